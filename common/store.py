@@ -1,0 +1,207 @@
+"""The artifact store: immutable HDF5 files under one storage root.
+
+Every artifact is written to a temporary name in its final directory, fsynced, then renamed, so a
+reader never sees a partial file and no HDF5 file is ever open for writing by two processes
+(no SWMR). HDF5 file locking is off by default because it does not work on many NFS/SMB mounts;
+atomic rename gives the guarantee instead. A message never carries data, only an
+:class:`ArtifactRef` (path relative to the root, sha256, size) that the reader checks.
+
+Every file carries root attributes ``schema``, ``schema_version``, ``created`` (UTC ISO 8601),
+``software_version`` and ``provenance`` (JSON: device, calibration, input digests, ...). The layout
+is documented in ``docs/storage.md``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Callable, Iterator, Mapping
+
+import h5py
+
+from common import __version__
+
+_CHUNK = 1 << 20
+
+
+class ArtifactError(Exception):
+    """An artifact is missing, truncated, corrupt, of the wrong schema or fails its digest."""
+
+
+@dataclass(frozen=True)
+class ArtifactRef:
+    """Pointer to an artifact: what travels in a message instead of the data.
+
+    Attributes
+    ----------
+    path : str
+        POSIX path relative to the storage root, e.g. ``fragments/F0001/rgbn/front-3fa2c1.h5``.
+    sha256 : str
+        Hex digest of the whole file.
+    bytes : int
+        File size in bytes.
+    """
+
+    path: str
+    sha256: str
+    bytes: int
+
+    def to_dict(self) -> dict:
+        return {"path": self.path, "sha256": self.sha256, "bytes": self.bytes}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "ArtifactRef":
+        try:
+            return cls(path=str(d["path"]), sha256=str(d["sha256"]), bytes=int(d["bytes"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArtifactError(f"malformed artifact pointer {d!r}: needs path, sha256, bytes") from exc
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(_CHUNK), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def content_key(*parts: str, length: int = 16) -> str:
+    """Short stable key from strings (input digests, stage name, stage version).
+
+    Outputs are named by this key so that a re-delivered job writes, or finds, the same file.
+    """
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(str(p).encode())
+        h.update(b"\0")
+    return h.hexdigest()[:length]
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):  # some network file systems refuse fsync on a directory
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+class Store:
+    """Immutable HDF5 artifacts under ``root``.
+
+    Parameters
+    ----------
+    root : path
+        Storage root: a local directory on one machine, an NFS/SMB mount across machines.
+    file_locking : bool
+        Pass HDF5 file locking through (False by default: rename-on-close makes it unnecessary,
+        and NFS often does not support it).
+    """
+
+    def __init__(self, root: str | os.PathLike, *, file_locking: bool = False):
+        self.root = Path(root)
+        self.file_locking = bool(file_locking)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    # -- paths -----------------------------------------------------------------------------
+    def path(self, relpath: str) -> Path:
+        """Absolute path of ``relpath``; refuses paths that escape the root."""
+        p = PurePosixPath(relpath)
+        if p.is_absolute() or ".." in p.parts or not p.parts:
+            raise ArtifactError(f"artifact path {relpath!r} must be relative to the storage root")
+        return self.root.joinpath(*p.parts)
+
+    def exists(self, relpath: str) -> bool:
+        return self.path(relpath).is_file()
+
+    def ref(self, relpath: str) -> ArtifactRef:
+        """Pointer (with digest and size) to an existing artifact."""
+        full = self.path(relpath)
+        if not full.is_file():
+            raise ArtifactError(f"artifact {relpath} does not exist under {self.root}")
+        return ArtifactRef(relpath, file_sha256(full), full.stat().st_size)
+
+    # -- writing ---------------------------------------------------------------------------
+    def write(
+        self,
+        relpath: str,
+        schema: str,
+        version: int,
+        fill: Callable[[h5py.File], None],
+        *,
+        provenance: Mapping | None = None,
+        overwrite: bool = False,
+    ) -> ArtifactRef:
+        """Write an artifact atomically and return its pointer.
+
+        ``fill(h5file)`` writes the datasets. If ``relpath`` already exists the artifact is
+        immutable: its pointer is returned unchanged (a re-delivered job is harmless), unless
+        ``overwrite`` is set (only for files that are not content-keyed, e.g. models).
+        """
+        final = self.path(relpath)
+        if final.exists() and not overwrite:
+            return self.ref(relpath)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+        os.close(fd)
+        try:
+            with h5py.File(tmp, "w", locking=self.file_locking) as f:
+                f.attrs["schema"] = schema
+                f.attrs["schema_version"] = int(version)
+                f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+                f.attrs["software_version"] = __version__
+                f.attrs["provenance"] = json.dumps(dict(provenance or {}), default=str, sort_keys=True)
+                fill(f)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, final)
+            _fsync_dir(final.parent)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+        return self.ref(relpath)
+
+    # -- reading ---------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def open(self, ref: ArtifactRef | Mapping | str, *, schema: str | None = None) -> Iterator[h5py.File]:
+        """Open an artifact read-only.
+
+        With an :class:`ArtifactRef` (or its dict) the size and sha256 are checked first; a
+        mismatch raises :class:`ArtifactError` naming the file. With ``schema`` the file's
+        schema attribute must match.
+        """
+        if isinstance(ref, Mapping):
+            ref = ArtifactRef.from_dict(ref)
+        relpath = ref.path if isinstance(ref, ArtifactRef) else str(ref)
+        full = self.path(relpath)
+        if not full.is_file():
+            raise ArtifactError(f"artifact {relpath} does not exist under {self.root}")
+        if isinstance(ref, ArtifactRef):
+            size = full.stat().st_size
+            if size != ref.bytes:
+                raise ArtifactError(f"artifact {relpath} is {size} bytes, message says {ref.bytes}: truncated or replaced")
+            digest = file_sha256(full)
+            if digest != ref.sha256:
+                raise ArtifactError(f"artifact {relpath} has sha256 {digest[:12]}…, message says {ref.sha256[:12]}…: corrupt or replaced")
+        try:
+            f = h5py.File(full, "r", locking=self.file_locking)
+        except OSError as exc:
+            raise ArtifactError(f"artifact {relpath} is not a readable HDF5 file ({exc})") from exc
+        try:
+            if schema is not None and f.attrs.get("schema") != schema:
+                raise ArtifactError(f"artifact {relpath} has schema {f.attrs.get('schema')!r}, expected {schema!r}")
+            yield f
+        finally:
+            f.close()
+
+    def provenance(self, f: h5py.File) -> dict:
+        """The provenance attribute of an open artifact, decoded."""
+        return json.loads(f.attrs.get("provenance", "{}"))

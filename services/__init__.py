@@ -1,0 +1,1 @@
+"""Tessera's processes: each module is a short shell around ``common``."""
