@@ -1,0 +1,1 @@
+"""Acquisition: flatbed scanning and photometric stereo (thesis chapter 3)."""
