@@ -14,10 +14,3 @@ def shared_data():
         pytest.skip(f"optional real data set not present at {SHARED_DATA}")
     return SHARED_DATA
 
-
-def require_data(*parts: str) -> Path:
-    """Path of one data set under ``../shared/data`` or skip, naming it."""
-    p = SHARED_DATA.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"optional data set {p} not present")
-    return p
