@@ -1,0 +1,74 @@
+"""Shared low-level filters for RGBN processing (private)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+# Above this sigma (px) a Gaussian is applied on a downsampled copy: the kernel cost then stays
+# constant per pixel, which keeps 8-scale exaggerated shading within its budget (§7.3).
+_DIRECT_SIGMA = 6.0
+
+
+def gaussian_blur(values: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur of an (H, W) or (H, W, C) float32 array, reflecting at the border.
+
+    Large sigmas are applied on a power-of-two downsampled copy (area averaging) and bilinearly
+    upsampled; the variances of the box and tent kernels are subtracted so the effective width
+    stays ``sigma_px``.
+    """
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    if sigma_px <= 0:
+        return values.copy()
+    h, w = values.shape[:2]
+    factor = 1
+    while sigma_px / (factor * 2) >= _DIRECT_SIGMA / 2 and min(h, w) // (factor * 2) >= 8:
+        factor *= 2
+    if factor == 1:
+        return _blur_direct(values, sigma_px)
+    small_shape = (max(1, round(w / factor)), max(1, round(h / factor)))
+    small = cv2.resize(values, small_shape, interpolation=cv2.INTER_AREA)
+    if values.ndim == 3 and small.ndim == 2:
+        small = small[..., None]
+    var = sigma_px ** 2 - (factor ** 2 - 1) / 12.0 - factor ** 2 / 6.0
+    small = _blur_direct(small, max(np.sqrt(max(var, 0.25)) / factor, 0.5))
+    out = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    if values.ndim == 3 and out.ndim == 2:
+        out = out[..., None]
+    return out
+
+
+def _blur_direct(values: np.ndarray, sigma_px: float) -> np.ndarray:
+    # OpenCV filters at most 4 channels in one call efficiently for all builds; split larger stacks.
+    if values.ndim == 3 and values.shape[2] > 4:
+        return np.concatenate([_blur_direct(values[..., i:i + 4], sigma_px)
+                               for i in range(0, values.shape[2], 4)], axis=2)
+    out = cv2.GaussianBlur(values, (0, 0), sigmaX=float(sigma_px), sigmaY=float(sigma_px),
+                           borderType=cv2.BORDER_REFLECT)
+    if values.ndim == 3 and out.ndim == 2:
+        out = out[..., None]
+    return out
+
+
+def normalize_vectors(v: np.ndarray, eps: float = 1e-12) -> np.ndarray:
+    """Unit vectors along the last axis (zero vectors stay zero)."""
+    n = np.sqrt(np.einsum("...i,...i->...", v, v))
+    return v / np.maximum(n, eps)[..., None]
+
+
+def check_normals(normals, name: str = "normals") -> np.ndarray:
+    """Validate an (H, W, 3) normal map and return it as float32."""
+    arr = np.asarray(normals)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"{name} must be an (H, W, 3) array of unit normals, got shape {arr.shape}")
+    return arr.astype(np.float32, copy=False)
+
+
+def check_mask(mask, shape, name: str = "mask") -> np.ndarray:
+    """Validate an optional (H, W) mask; None means every pixel."""
+    if mask is None:
+        return np.ones(shape, dtype=bool)
+    m = np.asarray(mask, dtype=bool)
+    if m.shape != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {m.shape}")
+    return m

@@ -1,0 +1,211 @@
+"""Curvature of the surface seen in a normal map (§7.2.3, eqs. 7.3-7.7).
+
+The surface is treated as a height field z(x, y) seen orthographically. With the normal
+n = (nx, ny, nz) the (scaled) tangent vectors of eq. 7.6 are
+
+    a = (nz, 0, -nx) = nz * dX/dx,      b = (0, nz, -ny) = nz * dX/dy,
+
+the first fundamental form (scaled by nz^2) is I = [[a.a, a.b], [a.b, b.b]] and the second
+(scaled by nz) is II = [[dn/dx . a, dn/dy . a], [dn/dx . b, dn/dy . b]] (symmetrized). The shape
+operator is S = I^-1 II = adj(I) II / nz, so
+
+    H = (G e - 2 F f + E g) / (2 nz),     K = e g - f^2,    k1,2 = H +- sqrt(H^2 - K).
+
+Sign convention: **positive = convex towards the viewer** (a bump, a sphere seen from outside).
+Derivatives are in mm (pixel size 25.4 / dpi), so curvatures are in 1/mm; a sphere of radius r mm
+has H = 1/r, K = 1/r^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.rgbn._filters import check_mask, check_normals
+from common.rgbn.smoothing import smooth_normals
+
+#: nz below this is treated as a silhouette: curvature there is not measurable from the image.
+NZ_MIN = 0.05
+
+
+@dataclass
+class Curvature:
+    """Curvature maps of a normal map, all in 1/mm (0 outside the mask).
+
+    Attributes
+    ----------
+    mean, gaussian : (H, W) float32
+        Mean curvature H (1/mm, convex positive) and Gaussian curvature K (1/mm^2).
+    k1, k2 : (H, W) float32
+        Principal curvatures, k1 >= k2.
+    dir1, dir2 : (H, W, 2) float32
+        Principal directions of k1 and k2 as unit vectors in the image plane (x right, y up);
+        the sign of a direction is arbitrary.
+    """
+
+    mean: np.ndarray
+    gaussian: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+    dir1: np.ndarray
+    dir2: np.ndarray
+
+
+def normal_derivatives(normals: np.ndarray, dpi: float, *, method: str = "central"):
+    """dn/dx and dn/dy in 1/mm (x right = columns, y up = towards row 0).
+
+    ``method`` 'central' uses (n[c+1] - n[c-1]) / 2; 'sobel' the 3x3 Sobel operator / 8, which
+    also smooths across the derivative direction. Borders are reflected.
+    """
+    normals = check_normals(normals)
+    if not np.isfinite(dpi) or dpi <= 0:
+        raise ValueError(f"dpi must be a positive number, got {dpi}")
+    if method not in ("central", "sobel"):
+        raise ValueError(f"method must be 'central' or 'sobel', got {method!r}")
+    pixel_mm = 25.4 / float(dpi)
+    ksize, norm = (1, 0.5) if method == "central" else (3, 0.125)
+    scale = norm / pixel_mm
+    dx = cv2.Sobel(normals, cv2.CV_32F, 1, 0, ksize=ksize, scale=scale, borderType=cv2.BORDER_REFLECT)
+    # y is up while rows go down
+    dy = cv2.Sobel(normals, cv2.CV_32F, 0, 1, ksize=ksize, scale=-scale, borderType=cv2.BORDER_REFLECT)
+    return dx, dy
+
+
+def _fundamental_forms(normals, dx, dy):
+    nx, ny, nz = normals[..., 0], normals[..., 1], np.maximum(normals[..., 2], NZ_MIN)
+    # first fundamental form of the scaled tangents a, b (eq. 7.6)
+    E = nz * nz + nx * nx
+    F = nx * ny
+    G = nz * nz + ny * ny
+    # second fundamental form: derivative of n along x / y dotted with a / b
+    e = nz * dx[..., 0] - nx * dx[..., 2]
+    g = nz * dy[..., 1] - ny * dy[..., 2]
+    f = 0.5 * ((nz * dx[..., 1] - ny * dx[..., 2]) + (nz * dy[..., 0] - nx * dy[..., 2]))
+    return nz, E, F, G, e, f, g
+
+
+def mean_curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
+                   method: str = "central", sigma_px: float = 0.0) -> np.ndarray:
+    """Mean curvature H (1/mm, convex towards the viewer positive) of a normal map, eq. 7.7.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals, x right, y up, z towards the viewer.
+    dpi : float
+        Sampling density; the pixel is 25.4 / dpi mm.
+    mask : (H, W) bool, optional
+        Output is 0 outside it.
+    method : {'central', 'sobel'}
+        Derivative operator.
+    sigma_px : float
+        Optional foreshortening-corrected pre-smoothing (pixels).
+
+    Returns
+    -------
+    (H, W) float32
+        H = (G e - 2 F f + E g) / (2 nz) in 1/mm.
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.2.3, eqs. 7.6-7.7; do Carmo, *Differential Geometry of Curves and
+    Surfaces*, §3-3.
+
+    Examples
+    --------
+    >>> n = np.zeros((8, 8, 3), np.float32); n[..., 2] = 1
+    >>> float(np.abs(mean_curvature(n, dpi=600)).max())
+    0.0
+    """
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
+    if sigma_px > 0:
+        normals = smooth_normals(normals, sigma_px, mask=mask)
+    dx, dy = normal_derivatives(normals, dpi, method=method)
+    nz, E, F, G, e, f, g = _fundamental_forms(normals, dx, dy)
+    H = (G * e - 2.0 * F * f + E * g) / (2.0 * nz)
+    return np.where(mask, H, 0.0).astype(np.float32)
+
+
+def curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
+              method: str = "central", sigma_px: float = 0.0) -> Curvature:
+    """Mean, Gaussian and principal curvatures and principal directions of a normal map.
+
+    The shape operator S = I^-1 II is built from the first and second fundamental forms with the
+    tangent vectors of eq. 7.6 (see the module docstring); its eigenvalues are the principal
+    curvatures and its eigenvectors, expressed in the image plane, the principal directions.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals, x right, y up, z towards the viewer.
+    dpi : float
+        Sampling density; curvatures come out in 1/mm.
+    mask : (H, W) bool, optional
+        Output is 0 outside it.
+    method : {'central', 'sobel'}
+        Derivative operator (central differences or Sobel).
+    sigma_px : float
+        Optional foreshortening-corrected Gaussian pre-smoothing in pixels (a curvature scale).
+
+    Returns
+    -------
+    Curvature
+        ``mean``, ``gaussian``, ``k1 >= k2`` (1/mm, 1/mm^2) and unit directions ``dir1``, ``dir2``.
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.2.3, eqs. 7.3-7.7; Toler-Franklin et al., NPAR 2007, §3.2.
+
+    Examples
+    --------
+    >>> n = np.zeros((8, 8, 3), np.float32); n[..., 2] = 1
+    >>> c = curvature(n, dpi=600)
+    >>> float(np.abs(c.gaussian).max()), float(np.abs(c.k1).max())
+    (0.0, 0.0)
+    """
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
+    if sigma_px > 0:
+        normals = smooth_normals(normals, sigma_px, mask=mask)
+    dx, dy = normal_derivatives(normals, dpi, method=method)
+    nz, E, F, G, e, f, g = _fundamental_forms(normals, dx, dy)
+    inv = 1.0 / nz
+    # S = adj(I) II / nz
+    s11 = (G * e - F * f) * inv
+    s12 = (G * f - F * g) * inv
+    s21 = (E * f - F * e) * inv
+    s22 = (E * g - F * f) * inv
+    H = 0.5 * (s11 + s22)
+    K = e * g - f * f
+    disc = np.sqrt(np.maximum(H * H - K, 0.0))
+    k1 = H + disc
+    k2 = H - disc
+    dir1 = _eigvec(s11, s12, s21, s22, k1)
+    # the directions are I-orthogonal, not image-orthogonal; compute the second one the same way
+    dir2 = _eigvec(s11, s12, s21, s22, k2)
+    if not mask.all():
+        out = mask.astype(np.float32)
+        H, K, k1, k2 = H * out, K * out, k1 * out, k2 * out
+        dir1, dir2 = dir1 * out[..., None], dir2 * out[..., None]
+    return Curvature(mean=H, gaussian=K, k1=k1, k2=k2, dir1=dir1, dir2=dir2)
+
+
+def _eigvec(s11, s12, s21, s22, k):
+    # (S - k) v = 0: take the better-conditioned of the two row-derived solutions
+    ax, ay = s12, k - s11
+    bx, by = k - s22, s21
+    na = ax * ax + ay * ay
+    nb = bx * bx + by * by
+    use_a = na >= nb
+    vx = np.where(use_a, ax, bx)
+    vy = np.where(use_a, ay, by)
+    n = np.sqrt(np.maximum(na, nb))
+    # umbilic (S = k I): every direction is principal; report x
+    small = n < 1e-12
+    inv = 1.0 / np.where(small, 1.0, n)
+    vx = np.where(small, 1.0, vx * inv)
+    vy = np.where(small, 0.0, vy * inv)
+    return np.stack([vx, vy], axis=-1)

@@ -1,0 +1,196 @@
+"""RGBN images from and to common files: normal maps, albedo images, 8/16-bit PNG and TIFF.
+
+Normal maps store ``n`` as colour ``(n + 1) / 2`` scaled to the integer range. The **OpenGL**
+convention has green = +y up (Tessera's own convention); **DirectX** has green = +y down, so its
+y is negated on reading. A pixel whose decoded vector is far from unit length (e.g. the black
+background of many maps) or whose alpha is 0 is outside the mask.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.rgbn.image import RGBNImage
+
+CONVENTIONS = ("opengl", "directx")
+_TIFF = (".tif", ".tiff")
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
+    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(values: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding of linear values in [0, 1]."""
+    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
+    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _read_raw(path: Path) -> tuple[np.ndarray, float]:
+    """Image as (H, W[, C]) in file channel order RGB(A), plus its integer full scale (1.0 for floats)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"image {path} does not exist")
+    if path.suffix.lower() == ".npy":
+        arr = np.load(path)
+        return arr, 1.0
+    if path.suffix.lower() in _TIFF:
+        import tifffile
+
+        arr = tifffile.imread(path)
+        if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[2] not in (3, 4):
+            arr = np.moveaxis(arr, 0, 2)  # planar TIFF
+    else:
+        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if arr is None:
+            raise ValueError(f"image {path} could not be decoded (PNG, TIFF, JPEG or .npy expected)")
+        if arr.ndim == 3:
+            arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    if arr.dtype == np.uint8:
+        return arr, 255.0
+    if arr.dtype == np.uint16:
+        return arr, 65535.0
+    if np.issubdtype(arr.dtype, np.floating):
+        return arr, 1.0
+    raise ValueError(f"image {path} has unsupported sample type {arr.dtype} (8/16-bit or float expected)")
+
+
+def read_normal_map(path, convention: str = "opengl") -> tuple[np.ndarray, np.ndarray]:
+    """Read a normal map (8/16-bit PNG/TIFF, or float .npy/.tif holding the vectors themselves).
+
+    Parameters
+    ----------
+    path : path
+        The file. Integer images are decoded as ``n = 2 v / full_scale - 1``; float images are
+        taken as the vectors themselves.
+    convention : {'opengl', 'directx'}
+        OpenGL: green is y up (Tessera's convention). DirectX: green is y down (negated here).
+
+    Returns
+    -------
+    normals : (H, W, 3) float32
+        Unit normals, x right, y up, z to viewer (``(0, 0, 1)`` outside the mask).
+    mask : (H, W) bool
+        Valid pixels: alpha > 0 if there is an alpha channel, and decoded length in [0.5, 1.5].
+    """
+    if convention not in CONVENTIONS:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    path = Path(path)
+    arr, full = _read_raw(path)
+    if arr.ndim != 3 or arr.shape[2] not in (3, 4):
+        raise ValueError(f"normal map {path} must have 3 or 4 channels, got shape {arr.shape}")
+    alpha = arr[..., 3] > 0 if arr.shape[2] == 4 else None
+    v = arr[..., :3].astype(np.float32)
+    if full != 1.0:
+        v = v * np.float32(2.0 / full) - 1.0
+    if convention == "directx":
+        v[..., 1] = -v[..., 1]
+    length = np.sqrt(np.einsum("...i,...i->...", v, v))
+    mask = (length > 0.5) & (length < 1.5) & np.isfinite(length)
+    if alpha is not None:
+        mask &= alpha
+    normals = np.zeros_like(v)
+    normals[..., 2] = 1.0
+    normals[mask] = v[mask] / length[mask][:, None]
+    return normals, mask
+
+
+def read_albedo(path, *, srgb: bool | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a colour image as linear albedo in [0, 1].
+
+    ``srgb`` None decodes integer images as sRGB (photographs) and leaves float images linear.
+    Returns ``(albedo (H, W, 3) float32, alpha mask or None)``.
+    """
+    path = Path(path)
+    arr, full = _read_raw(path)
+    alpha = None
+    if arr.ndim == 3 and arr.shape[2] in (2, 4):
+        alpha = arr[..., -1] > 0
+        arr = arr[..., :-1]
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=2)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"albedo image {path} must be grey or RGB, got shape {arr.shape}")
+    v = arr.astype(np.float32) / np.float32(full)
+    if srgb is None:
+        srgb = full != 1.0
+    return (srgb_to_linear(v) if srgb else np.clip(v, 0, 1).astype(np.float32)), alpha
+
+
+def load_rgbn_files(normals_path, albedo_path=None, *, convention: str = "opengl", dpi: float = 300.0,
+                    srgb: bool | None = None) -> RGBNImage:
+    """An :class:`RGBNImage` from a normal map file plus an optional albedo image.
+
+    Without an albedo the fragment is a uniform light grey (0.8). ``dpi`` sets the physical scale
+    (curvatures in 1/mm); say so when it is a nominal value.
+    """
+    normals, mask = read_normal_map(normals_path, convention)
+    if albedo_path is None:
+        albedo = np.full(normals.shape, 0.8, np.float32)
+    else:
+        albedo, alpha = read_albedo(albedo_path, srgb=srgb)
+        if albedo.shape[:2] != normals.shape[:2]:
+            raise ValueError(f"albedo {albedo_path} is {albedo.shape[1]}x{albedo.shape[0]} px but the normal map "
+                             f"{normals_path} is {normals.shape[1]}x{normals.shape[0]}: they must share a pixel grid")
+        if alpha is not None:
+            mask &= alpha
+    return RGBNImage(albedo=albedo, mask=mask, dpi=dpi, normals=normals)
+
+
+def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None) -> Path:
+    """Write an (H, W) or (H, W, 3) image with values in [0, 1] as 8/16-bit PNG or TIFF.
+
+    Values are written as given (no colour encoding); ``alpha`` (H, W) in [0, 1] adds a channel.
+    The format follows the suffix: ``.png``, ``.tif``/``.tiff``.
+    """
+    path = Path(path)
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {img.shape}")
+    if alpha is not None:
+        alpha = np.asarray(alpha, dtype=np.float32)
+        if alpha.shape != img.shape[:2]:
+            raise ValueError(f"alpha must be {img.shape[:2]}, got {alpha.shape}")
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        img = np.concatenate([img, alpha[..., None]], axis=2)
+    full = 255.0 if bits == 8 else 65535.0
+    data = np.round(np.clip(np.nan_to_num(img), 0.0, 1.0) * full).astype(np.uint8 if bits == 8 else np.uint16)
+    suffix = path.suffix.lower()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix in _TIFF:
+        import tifffile
+
+        tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack",
+                         compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
+    elif suffix == ".png":
+        if data.ndim == 3:
+            data = cv2.cvtColor(data, cv2.COLOR_RGBA2BGRA if data.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(path), data):
+            raise OSError(f"could not write {path}")
+    else:
+        raise ValueError(f"output {path} must end in .png, .tif or .tiff")
+    return path
+
+
+def encode_normal_map(normals: np.ndarray, mask: np.ndarray | None = None, convention: str = "opengl") -> np.ndarray:
+    """Normals as colour ``(n + 1) / 2`` in [0, 1] (for :func:`write_image`); 0 outside ``mask``."""
+    if convention not in CONVENTIONS:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    n = np.asarray(normals, dtype=np.float32).copy()
+    if convention == "directx":
+        n[..., 1] = -n[..., 1]
+    out = (n + 1.0) * 0.5
+    if mask is not None:
+        out[~np.asarray(mask, bool)] = 0.0
+    return out
