@@ -147,7 +147,7 @@ def _pose_matrix(pose, scale: float) -> np.ndarray:
 
 
 def join_at_pose(rgb_a: np.ndarray, mask_a: np.ndarray, rgb_b: np.ndarray, mask_b: np.ndarray,
-                 pose, pixel_mm: float, *, max_side_px: int = 1024, margin_px: int = 8,
+                 pose, pixel_mm: float, *, pixel_mm_b: float | None = None, max_side_px: int = 1024, margin_px: int = 8,
                  outline: bool = True, background: tuple[int, int, int] = (40, 40, 40)) -> np.ndarray:
     """The two fragments joined at a proposed pose, in one picture, for the conservator.
 
@@ -164,7 +164,9 @@ def join_at_pose(rgb_a: np.ndarray, mask_a: np.ndarray, rgb_b: np.ndarray, mask_
     pose : (angle_deg, tx_mm, ty_mm)
         B's frame → A's frame.
     pixel_mm : float
-        Pixel size of both pictures (25.4 / dpi).
+        Pixel size of A's picture (25.4 / dpi), and of B's unless ``pixel_mm_b`` is given.
+    pixel_mm_b : float, optional
+        Pixel size of B's picture when it was scanned at another dpi.
     max_side_px : int
     margin_px : int
     outline : bool
@@ -183,6 +185,9 @@ def join_at_pose(rgb_a: np.ndarray, mask_a: np.ndarray, rgb_b: np.ndarray, mask_
         raise ValueError(f"mask_b must be {b.shape[:2]}, got {mb.shape}")
     if not (np.isfinite(pixel_mm) and pixel_mm > 0):
         raise ValueError(f"pixel_mm must be a positive number, got {pixel_mm}")
+    pixel_mm_b = pixel_mm if pixel_mm_b is None else float(pixel_mm_b)
+    if not (np.isfinite(pixel_mm_b) and pixel_mm_b > 0):
+        raise ValueError(f"pixel_mm_b must be a positive number, got {pixel_mm_b}")
     if len(pose) != 3 or not all(np.isfinite(float(v)) for v in pose):
         raise ValueError(f"pose must be finite (angle_deg, tx_mm, ty_mm), got {pose!r}")
     if max_side_px < 16:
@@ -190,7 +195,8 @@ def join_at_pose(rgb_a: np.ndarray, mask_a: np.ndarray, rgb_b: np.ndarray, mask_
 
     if not ma.any() or not mb.any():
         raise ValueError("mask_a and mask_b must each mark at least one fragment pixel")
-    mab = _pose_matrix(pose, 1.0 / pixel_mm)  # B pixels (col, row) -> A pixels
+    mab = _pose_matrix(pose, 1.0 / pixel_mm)  # rotation, translation in A pixels
+    mab[:, :2] *= pixel_mm_b / pixel_mm        # B pixels (col, row) -> A pixels
     # the picture spans both fragments (their mask boxes), not their whole scan frames
     box_a = _mask_corners(ma)
     box_b = _mask_corners(mb) @ mab[:, :2].T + mab[:, 2]

@@ -161,3 +161,15 @@ def test_side_by_side_and_png_round_trip():
     assert out.shape == (40, 20 + 4 + 40, 3)
     back = cv2.cvtColor(cv2.imdecode(np.frombuffer(encode_png(out), np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     np.testing.assert_array_equal(back, out)
+
+
+def test_join_at_pose_rescales_a_fragment_scanned_at_another_dpi():
+    pixel_mm = 25.4 / 300
+    pose = _pose_putting_piece_in_frame(33.0, pixel_mm)
+    original, img_a, mask_a, img_b, mask_b = _cut(pose, pixel_mm)
+    # B scanned at twice the dpi: same physical fragment, twice the pixels, half the pixel size
+    img_b2 = cv2.resize(img_b, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
+    mask_b2 = cv2.resize(mask_b.astype(np.uint8), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST).astype(bool)
+    canvas = join_at_pose(img_a, mask_a, img_b2, mask_b2, pose, pixel_mm, pixel_mm_b=pixel_mm / 2,
+                          outline=False, background=MAGENTA, max_side_px=4096, margin_px=5)
+    assert _reassembly_error(canvas, original) < 6.0
