@@ -202,7 +202,7 @@ def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: flo
 
 def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96.0,
                    shadow_fraction: float = 0.2, highlight_fraction: float = 0.1,
-                   iterations: int = 3, min_shading: float = 0.3, residual_cutoff: float = 2.5,
+                   iterations: int = 5, min_shading: float = 0.3, residual_cutoff: float = 2.0,
                    progress: Callable[[float, str], None] | None = None) -> RGBNImage:
     """Photometric stereo that rejects shadows and highlights per pixel (thesis §3.2, eq. 3.2).
 
