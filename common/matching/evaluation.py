@@ -1,0 +1,185 @@
+"""Evaluation of the matcher (thesis §5.8, Table 5.3, §5.8.5).
+
+* :func:`grouped_cross_validation` — k-fold cross-validation with scikit-learn ``GroupKFold`` on the
+  fragment-pair groups, so the patch pairs of one fragment pair never sit in both the training and
+  the test fold; returns out-of-fold scores and predictions.
+* :func:`confusion_rates` — true/false positive/negative rates (the numbers of Table 5.3).
+* :func:`precision_recall` — precision–recall curve and average precision.
+* :func:`rank_all_pairs` and :func:`top_k_recall` — the conservator's view: for each fragment, the
+  share of its true neighbours among its ``k`` most probable proposals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from sklearn.metrics import average_precision_score, precision_recall_curve
+from sklearn.model_selection import GroupKFold
+
+from common.matching.classifiers import make_classifier, match_scores, subset_columns
+
+
+def confusion_rates(y_true: np.ndarray, y_pred: np.ndarray) -> dict:
+    """True-positive, true-negative, false-positive and false-negative rates.
+
+    ``tpr`` = matches recognised / matches, ``tnr`` = non-matches rejected / non-matches; the
+    rates (not counts) are what Table 5.3 reports, so they do not depend on the sampling ratio.
+    """
+    y_true = np.asarray(y_true).astype(bool)
+    y_pred = np.asarray(y_pred).astype(bool)
+    if y_true.shape != y_pred.shape:
+        raise ValueError(f"y_true {y_true.shape} and y_pred {y_pred.shape} differ in shape")
+    pos, neg = y_true.sum(), (~y_true).sum()
+    tp, tn = (y_true & y_pred).sum(), (~y_true & ~y_pred).sum()
+    tpr = tp / pos if pos else np.nan
+    tnr = tn / neg if neg else np.nan
+    return {"tpr": float(tpr), "tnr": float(tnr), "fnr": float(1 - tpr), "fpr": float(1 - tnr),
+            "positives": int(pos), "negatives": int(neg)}
+
+
+def precision_recall(y_true: np.ndarray, scores: np.ndarray) -> dict:
+    """Precision–recall curve and average precision (scikit-learn) of ranking scores."""
+    y_true = np.asarray(y_true).astype(int)
+    p, r, _ = precision_recall_curve(y_true, scores)
+    return {"precision": p, "recall": r, "ap": float(average_precision_score(y_true, scores)),
+            "prevalence": float(y_true.mean())}
+
+
+@dataclass
+class CVResult:
+    """Out-of-fold results of one classifier on one feature subset."""
+
+    kind: str
+    subset: str
+    scores: np.ndarray      # out-of-fold ranking score per row
+    predicted: np.ndarray   # out-of-fold 0/1 prediction per row
+    y: np.ndarray
+    rates: dict
+    ap: float
+    folds: int
+
+
+def grouped_cross_validation(x: np.ndarray, y: np.ndarray, groups: np.ndarray, columns: list[str], *,
+                             kind: str = "logistic", subset: str | list[str] = "all", n_splits: int = 10,
+                             progress=None) -> CVResult:
+    """k-fold cross-validation grouped by fragment pair (thesis §5.8).
+
+    Parameters
+    ----------
+    x : (K, D) correspondence rows; y : (K,) labels; groups : (K,) fragment-pair ids
+    columns : list of str
+        Column names of ``x`` (for the subset).
+    kind : str
+        Classifier (:data:`~common.matching.classifiers.CLASSIFIERS`).
+    subset : str or list of str
+        Feature subset name(s) (:data:`~common.matching.classifiers.SUBSETS`).
+    n_splits : int
+        Folds (10 in the thesis); reduced to the number of groups if there are fewer.
+    progress : callable(fraction, text), optional
+
+    Returns
+    -------
+    CVResult
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, int)
+    groups = np.asarray(groups)
+    if x.ndim != 2 or len(x) != len(y) or len(y) != len(groups):
+        raise ValueError(f"x {x.shape}, y {y.shape} and groups {groups.shape} must have matching rows")
+    if set(np.unique(y)) != {0, 1}:
+        raise ValueError("y must contain both classes (0 = non-match, 1 = match)")
+    cols = subset_columns(columns, subset)
+    xs = x[:, cols]
+    n_groups = len(np.unique(groups))
+    folds = min(n_splits, n_groups)
+    if folds < 2:
+        raise ValueError(f"need at least two fragment pairs (groups) for cross-validation, got {n_groups}")
+    scores = np.zeros(len(y))
+    pred = np.zeros(len(y), int)
+    for f, (tr, te) in enumerate(GroupKFold(n_splits=folds).split(xs, y, groups)):
+        if len(np.unique(y[tr])) < 2:
+            raise ValueError("a training fold lacks one class; use fewer folds or more fragment pairs")
+        clf = make_classifier(kind).fit(xs[tr], y[tr])
+        scores[te] = match_scores(clf, xs[te])
+        pred[te] = clf.predict(xs[te])
+        if progress:
+            progress((f + 1) / folds, f"{kind}/{subset}: fold {f + 1}/{folds}")
+    rates = confusion_rates(y, pred)
+    ap = float(average_precision_score(y, scores))
+    return CVResult(kind, subset if isinstance(subset, str) else "+".join(subset), scores, pred, y, rates, ap, folds)
+
+
+def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=None) -> dict:
+    """Probability of every (candidate) fragment pair of an index under a model.
+
+    Returns ``{(a, b): probability}`` with ``a < b``; each unordered pair scored once (from the
+    side that is first in the index order) unless ``n_candidates`` prunes, in which case both
+    sides' candidate lists are scored and the larger probability kept.
+    """
+    order = list(index._order)
+    out: dict = {}
+    for i, f in enumerate(order):
+        cues = index.cues[f]
+        if n_candidates is None:
+            others = order[i + 1:]
+        else:
+            others = index.candidates(cues, model, n_candidates)
+        for c in index.score(cues, others, model):
+            key = tuple(sorted((c.fragment, c.other)))
+            out[key] = max(out.get(key, 0.0), c.probability)
+        if progress and (i % 10 == 0 or i == len(order) - 1):
+            progress((i + 1) / len(order), f"ranked {i + 1}/{len(order)} fragments")
+    return out
+
+
+def top_k_recall(pair_scores: dict, neighbours, ks=(1, 3, 5, 10), fragments=None) -> dict:
+    """Share of true neighbours that appear in their fragment's top-k ranked proposals.
+
+    Parameters
+    ----------
+    pair_scores : dict (a, b) → score (unordered pairs; unscored pairs count as never proposed)
+    neighbours : iterable of (a, b, ...) true neighbour pairs
+    ks : k values
+    fragments : ids to evaluate (default: every fragment with a neighbour)
+
+    Returns
+    -------
+    dict k → recall, averaged over all (fragment, true neighbour) incidences, i.e. each true pair
+    counted once from each side.
+    """
+    ranked: dict = {}
+    for (a, b), s in pair_scores.items():
+        ranked.setdefault(a, []).append((s, b))
+        ranked.setdefault(b, []).append((s, a))
+    for f in ranked:
+        ranked[f].sort(key=lambda t: -t[0])
+    truth: dict = {}
+    for a, b, *_ in neighbours:
+        truth.setdefault(str(a), set()).add(str(b))
+        truth.setdefault(str(b), set()).add(str(a))
+    frags = [f for f in (fragments or truth) if f in truth]
+    out = {}
+    for k in ks:
+        hit = total = 0
+        for f in frags:
+            top = {o for _, o in ranked.get(f, [])[:k]}
+            hit += len(truth[f] & top)
+            total += len(truth[f])
+        out[int(k)] = hit / total if total else float("nan")
+    return out
+
+
+def pair_precision_recall(pair_scores: dict, neighbours) -> dict:
+    """Precision–recall over fragment pairs (a proposal is right when the pair are true neighbours)."""
+    truth = {tuple(sorted((str(a), str(b)))) for a, b, *_ in neighbours}
+    keys = list(pair_scores)
+    y = np.array([k in truth for k in keys], int)
+    s = np.array([pair_scores[k] for k in keys])
+    if y.sum() == 0:
+        raise ValueError("no true neighbour pair among the scored pairs")
+    res = precision_recall(y, s)
+    res["missing_truth"] = len(truth - set(keys))
+    # recall is relative to all true pairs, including those never scored (pruned away)
+    res["recall"] = res["recall"] * y.sum() / len(truth)
+    return res

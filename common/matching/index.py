@@ -1,0 +1,186 @@
+"""Staged matching that scales (thesis §5.2.1): prune with per-fragment cues, rank with per-patch
+cues, check the best few with the per-match alignment.
+
+Stage 1 — **prune** without an n² pass. Each fragment is a point in the space of its fragment-level
+descriptors, scaled per column by the model's weight ``max(0, −w_k) / s_k``, so the L1 distance
+between two points is exactly how much the fragment-level correspondences lower the model's logit.
+A KD-tree (scipy ``cKDTree``, Minkowski p = 1) over those points returns a new fragment's
+``n_candidates`` nearest fragments in O(log n).
+
+Stage 2 — **rank** the candidates: every patch pair between the new fragment and all candidates is
+scored in one vectorised batch (:func:`common.matching.pairs.pair_rows` semantics); a fragment
+pair's probability is the mean of its ``top_m`` best patch-pair probabilities (a true join has
+several matching patch pairs along the shared break; a single chance coincidence does not make one).
+
+Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
+(anchored at the best patch pairs), which gives the proposed pose and the gap/contact/overlap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from common.features.registry import fragment_descriptors
+from common.matching.alignment import Alignment, align_fragments
+from common.matching.models import MatchModel
+from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
+
+
+@dataclass
+class Candidate:
+    """A scored fragment pair from the index: ``fragment`` (the query) against ``other``."""
+
+    fragment: str
+    other: str
+    probability: float
+    patch_a: int            # best patch of the query (row in its FragmentCues)
+    patch_b: int            # best patch of the other fragment
+    top_pairs: np.ndarray   # (m, 2) the top_m patch pairs (query patch, other patch)
+    evidence: np.ndarray    # (m, D) their correspondence rows
+    alignment: Alignment | None = None
+
+
+class MatchIndex:
+    """In-memory index of fragments' matching cues, grown one fragment at a time.
+
+    It is a cache: everything in it is rebuilt from the feature artifacts that the proposal store
+    lists, so a matcher worker can be killed at any time.
+    """
+
+    def __init__(self):
+        self.cues: dict[str, FragmentCues] = {}
+        self._order: list[str] = []
+        self._dirty = True
+        self._tree = None
+        self._tree_weights = None
+        self.contours: dict[str, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def __contains__(self, fragment: str) -> bool:
+        return fragment in self.cues
+
+    def add(self, cues: FragmentCues, contour_mm: np.ndarray | None = None) -> None:
+        """Add (or replace) a fragment. Cost O(patches of this fragment) plus a lazy rebuild."""
+        if cues.fragment not in self.cues:
+            self._order.append(cues.fragment)
+        self.cues[cues.fragment] = cues
+        if contour_mm is not None:
+            self.contours[cues.fragment] = np.asarray(contour_mm, float)
+        self._dirty = True
+
+    # -- stacked arrays (rebuilt lazily after adds) ------------------------------------------
+    def _build(self):
+        cs = [self.cues[f] for f in self._order]
+        self._values = np.vstack([c.values for c in cs]) if cs else np.zeros((0, len(fragment_descriptors())))
+        counts = np.array([len(c) for c in cs], int)
+        self._offsets = np.concatenate([[0], np.cumsum(counts)])
+        self._patches = np.vstack([c.patches for c in cs]) if cs else None
+        self._strips = [np.concatenate([c.strips[m] for c in cs]) for m in range(len(cs[0].strips))] if cs else []
+        self._dirty = False
+        self._tree = None
+
+    def _ensure(self):
+        if self._dirty:
+            self._build()
+
+    def _prune_space(self, model: MatchModel):
+        fd, _ = _descs()
+        w = np.array([max(0.0, -model.coef[model.columns.index(d.key)]) / model.scale[model.columns.index(d.key)]
+                      if d.key in model.columns else 0.0 for d in fd])
+        v = self._values
+        med = np.nanmedian(v, axis=0) if len(v) else np.zeros(v.shape[1])
+        med = np.where(np.isfinite(med), med, 0.0)
+        return w, med
+
+    def _point(self, values, w, med):
+        return np.where(np.isfinite(values), values, med) * w
+
+    def candidates(self, cues: FragmentCues, model: MatchModel, n_candidates: int = 100) -> list[str]:
+        """Stage 1: the ``n_candidates`` fragments nearest in the weighted per-fragment space."""
+        self._ensure()
+        others = [f for f in self._order if f != cues.fragment]
+        if len(others) <= n_candidates:
+            return others
+        if self._tree is None or self._tree_weights is not model.version:
+            w, med = self._prune_space(model)
+            self._tree = cKDTree(self._point(self._values, w, med))
+            self._tree_med, self._tree_w = med, w
+            self._tree_weights = model.version
+        k = min(n_candidates + 1, len(self._order))
+        _, idx = self._tree.query(self._point(cues.values, self._tree_w, self._tree_med), k=k, p=1)
+        out = [self._order[i] for i in np.atleast_1d(idx) if i < len(self._order)]
+        return [f for f in out if f != cues.fragment][:n_candidates]
+
+    def score(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
+              chunk_rows: int = 400_000) -> list[Candidate]:
+        """Stage 2: probability of each (query, other) pair from all their patch pairs, best first."""
+        self._ensure()
+        if len(cues) == 0 or not others:
+            return []
+        fd, pd = _descs()
+        pos = {f: i for i, f in enumerate(self._order)}
+        idx = [pos[o] for o in others if o in pos and o != cues.fragment]
+        starts, stops = self._offsets[idx], self._offsets[np.array(idx) + 1]
+        rows_b = np.concatenate([np.arange(s, e) for s, e in zip(starts, stops)]) if idx else np.zeros(0, int)
+        owner = np.repeat(np.arange(len(idx)), stops - starts)
+        n_a, n_b = len(cues), len(rows_b)
+        # fragment-level correspondences of the query against each candidate
+        fcol = _columnwise(fd, cues.values[None, :], self._values[idx])
+        probs = np.empty((n_a, n_b))
+        per_chunk = max(1, chunk_rows // max(n_a, 1))
+        nf, npd = len(fd), len(pd)
+        for c0 in range(0, n_b, per_chunk):
+            rb = rows_b[c0:c0 + per_chunk]
+            x = self._rows(cues, rb, owner[c0:c0 + per_chunk], fcol, nf, npd, pd)
+            probs[:, c0:c0 + len(rb)] = model.probability(x).reshape(n_a, len(rb))
+        out = []
+        m = model.top_m
+        seg = np.concatenate([[0], np.cumsum(stops - starts)])
+        for k, o in enumerate(idx):
+            block = probs[:, seg[k]:seg[k + 1]]
+            if block.size == 0:
+                continue
+            flat = block.ravel()
+            top = np.argpartition(-flat, min(m, flat.size) - 1)[:m] if flat.size > m else np.arange(flat.size)
+            top = top[np.argsort(-flat[top])]
+            ia, ib = np.unravel_index(top, block.shape)
+            ev = self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
+            out.append(Candidate(cues.fragment, self._order[o], float(flat[top].mean()), int(ia[0]), int(ib[0]),
+                                 np.column_stack([ia, ib]), ev))
+        out.sort(key=lambda c: -c.probability)
+        return out
+
+    def _rows(self, cues, rows_b, owner, fcol, nf, npd, pd, ia=None):
+        """Correspondence rows: every query patch × ``rows_b`` (or the pairs ``ia`` × ``rows_b``)."""
+        if ia is None:
+            ia = np.repeat(np.arange(len(cues)), len(rows_b))
+            rb = np.tile(rows_b, len(cues))
+            ob = np.tile(owner, len(cues))
+        else:
+            rb, ob = rows_b, owner
+        x = np.empty((len(ia), nf + npd + len(self._strips)))
+        x[:, :nf] = fcol[ob]
+        x[:, nf:nf + npd] = _columnwise(pd, cues.patches[ia], self._patches[rb])
+        for m, s in enumerate(self._strips):
+            x[:, nf + npd + m] = strip_gap(cues.strips[m][ia], s[rb])
+        return x
+
+    def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
+                check: int = 3, contour_mm: np.ndarray | None = None) -> list[Candidate]:
+        """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned."""
+        ranked = self.score(cues, self.candidates(cues, model, n_candidates), model)[:top]
+        contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
+        if contour_a is not None:
+            for c in ranked[:check]:
+                contour_b = self.contours.get(c.other)
+                if contour_b is None:
+                    continue
+                other = self.cues[c.other]
+                c.alignment = align_fragments(contour_a, contour_b,
+                                              anchors=(cues.arc_mm[c.top_pairs[:, 0]], other.arc_mm[c.top_pairs[:, 1]]))
+        return ranked

@@ -1,0 +1,147 @@
+"""Versioned match models stored as plain numbers (no pickle) (thesis §5.8).
+
+A model file is a ``tessera.matchmodel`` HDF5 artifact under ``models/matcher/<version>.h5``
+holding only arrays and strings: the correspondence column names, the imputation values for
+missing features, the standardisation (mean, scale), the logistic-regression coefficients and
+intercept, the pair-aggregation rule and the per-fragment pruning weights. Loading reads those
+numbers back; nothing is executed, so a model file from another lab is safe to open (unlike a
+pickled scikit-learn estimator, which can run arbitrary code when loaded).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.store import ArtifactError, ArtifactRef, Store
+
+SCHEMA = "tessera.matchmodel"
+SCHEMA_VERSION = 1
+MODEL_DIR = "models/matcher"
+
+
+@dataclass
+class MatchModel:
+    """A linear (logistic) patch-pair match model: ``p = σ(w · (x̃ − μ) / s + b)``.
+
+    Attributes
+    ----------
+    columns : list of str
+        Correspondence columns in order (see :func:`common.matching.pairs.correspondence_columns`).
+    impute : (D,) float
+        Value used for a missing (NaN) correspondence: the training mean, so a missing cue
+        contributes nothing to the logit.
+    mean, scale : (D,) float
+        Standardisation.
+    coef : (D,) float
+        Logistic-regression weights on the standardised columns.
+    intercept : float
+    version : str
+        ``"<sequence>-<digest>"``, e.g. ``"0003-1a2b3c4d"``; the sequence orders versions.
+    top_m : int
+        A fragment pair's probability is the mean of its ``top_m`` best patch-pair probabilities.
+    info : dict
+        Provenance: training set, class weighting, number of verified pairs, ...
+    """
+
+    columns: list[str]
+    impute: np.ndarray
+    mean: np.ndarray
+    scale: np.ndarray
+    coef: np.ndarray
+    intercept: float
+    version: str = "0000-untrained"
+    top_m: int = 3
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.columns = [str(c) for c in self.columns]
+        d = len(self.columns)
+        for name in ("impute", "mean", "scale", "coef"):
+            arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
+            if arr.shape != (d,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"model {name} must be {d} finite numbers, got shape {arr.shape}")
+            setattr(self, name, arr)
+        if np.any(self.scale <= 0):
+            raise ValueError("model scale must be positive")
+        self.intercept = float(self.intercept)
+        if self.top_m < 1:
+            raise ValueError(f"top_m must be ≥ 1, got {self.top_m}")
+
+    @property
+    def sequence(self) -> int:
+        return int(self.version.split("-", 1)[0])
+
+    def decision(self, x: np.ndarray) -> np.ndarray:
+        """Logit of (K, D) correspondence rows (NaN = missing cue)."""
+        x = np.asarray(x, dtype=float)
+        if x.ndim != 2 or x.shape[1] != len(self.columns):
+            raise ValueError(f"x must be (K, {len(self.columns)}), got {x.shape}")
+        x = np.where(np.isnan(x), self.impute, x)
+        return ((x - self.mean) / self.scale) @ self.coef + self.intercept
+
+    def probability(self, x: np.ndarray) -> np.ndarray:
+        """Match probability of (K, D) correspondence rows."""
+        return 1.0 / (1.0 + np.exp(-np.clip(self.decision(x), -60, 60)))
+
+    def column_weights(self, columns: list[str]) -> np.ndarray:
+        """|w| / s for ``columns`` (0 where absent): the weighted-L1 pruning metric (§5.2.1)."""
+        idx = {c: i for i, c in enumerate(self.columns)}
+        return np.array([abs(self.coef[idx[c]]) / self.scale[idx[c]] if c in idx else 0.0 for c in columns])
+
+    def digest(self) -> str:
+        from common.store import content_key
+        return content_key(json.dumps(self.columns), self.impute.tobytes().hex(), self.mean.tobytes().hex(),
+                           self.scale.tobytes().hex(), self.coef.tobytes().hex(), repr(self.intercept),
+                           str(self.top_m), length=8)
+
+
+def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: int = 3, info: dict | None = None) -> MatchModel:
+    """Extract the numbers of a fitted logistic pipeline (from :func:`make_classifier`) into a model."""
+    imp = pipeline.named_steps["impute"]
+    sc = pipeline.named_steps["scale"]
+    clf = pipeline.named_steps["clf"]
+    if not hasattr(clf, "coef_"):
+        raise ValueError("only a linear (logistic) classifier can be stored as a MatchModel")
+    m = MatchModel(columns=list(columns), impute=imp.statistics_, mean=sc.mean_, scale=sc.scale_,
+                   coef=clf.coef_.ravel(), intercept=float(clf.intercept_[0]), top_m=top_m, info=dict(info or {}))
+    m.version = f"{int(sequence):04d}-{m.digest()}"
+    return m
+
+
+def save_model(store: Store, model: MatchModel, *, provenance: dict | None = None) -> ArtifactRef:
+    """Write a model as an immutable ``tessera.matchmodel`` artifact at ``models/matcher/<version>.h5``."""
+
+    def fill(f):
+        f.attrs["version"] = model.version
+        f.attrs["top_m"] = int(model.top_m)
+        f.attrs["intercept"] = float(model.intercept)
+        f.attrs["info"] = json.dumps(model.info, default=str, sort_keys=True)
+        f.attrs["saved"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+        f.create_dataset("columns", data=np.array(model.columns, dtype=object), dtype=_str_dtype())
+        for name in ("impute", "mean", "scale", "coef"):
+            f.create_dataset(name, data=getattr(model, name).astype(np.float64))
+
+    return store.write(f"{MODEL_DIR}/{model.version}.h5", SCHEMA, SCHEMA_VERSION, fill,
+                       provenance=provenance or {"model": model.version})
+
+
+def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
+    """Read a model artifact (digest-checked when given a pointer); only numbers and strings are read."""
+    with store.open(ref, schema=SCHEMA) as f:
+        try:
+            cols = [c.decode() if isinstance(c, bytes) else str(c) for c in f["columns"][()]]
+            return MatchModel(columns=cols, impute=f["impute"][()], mean=f["mean"][()], scale=f["scale"][()],
+                              coef=f["coef"][()], intercept=float(f.attrs["intercept"]),
+                              version=str(f.attrs["version"]), top_m=int(f.attrs["top_m"]),
+                              info=json.loads(f.attrs.get("info", "{}")))
+        except (KeyError, ValueError) as exc:
+            raise ArtifactError(f"model {getattr(ref, 'path', ref)} is malformed: {exc}") from exc
+
+
+def _str_dtype():
+    import h5py
+    return h5py.string_dtype(encoding="utf-8")

@@ -1,0 +1,335 @@
+"""Durable, queryable store of join proposals and verdicts (thesis §5.2, §5.8).
+
+Why SQLite
+----------
+Proposals are small rows that change (probabilities are re-ranked after every model update,
+statuses change when a conservator decides), and people ask indexed questions of them: "the ranked
+list for fragment F", "all pending proposals, most probable first", "every verdict in order". HDF5
+artifacts are immutable by design, so they do not fit; a database server would be one more
+service to run. SQLite gives transactions (a crash mid-update loses nothing committed), indexes,
+and a single file that the standard library reads — any lab can open it with ``sqlite3``.
+
+Where it lives
+--------------
+By default ``<storage root>/matches/proposals.sqlite`` (config ``matcher.db``). SQLite relies on
+POSIX byte-range locks, which many NFS/SMB mounts implement badly; on a station whose storage root
+is a network mount, put the database on the **matcher host's local disk** (``matcher.db =
+"/var/lib/tessera/proposals.sqlite"``) and run the matcher workers that write it on that host.
+The journal mode is WAL on local disks (readers never block the writer); on a network file system
+WAL cannot work (it needs shared memory) — pass ``journal_mode="DELETE"``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+STATUSES = ("pending", "confirmed", "rejected")
+VERDICTS = ("confirmed", "rejected")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS fragments (
+    fragment TEXT NOT NULL, face TEXT NOT NULL, artifact TEXT NOT NULL, sha256 TEXT NOT NULL,
+    bytes INTEGER NOT NULL, added REAL NOT NULL, PRIMARY KEY (fragment, face));
+CREATE TABLE IF NOT EXISTS proposals (
+    id INTEGER PRIMARY KEY,
+    fragment_a TEXT NOT NULL, fragment_b TEXT NOT NULL,
+    patch_a INTEGER, patch_b INTEGER,
+    probability REAL NOT NULL,
+    angle_deg REAL, tx_mm REAL, ty_mm REAL,
+    alignment TEXT,
+    evidence TEXT,
+    model_version TEXT NOT NULL,
+    status TEXT NOT NULL DEFAULT 'pending',
+    created REAL NOT NULL, updated REAL NOT NULL,
+    UNIQUE (fragment_a, fragment_b));
+CREATE INDEX IF NOT EXISTS proposals_a ON proposals (fragment_a, probability DESC);
+CREATE INDEX IF NOT EXISTS proposals_b ON proposals (fragment_b, probability DESC);
+CREATE INDEX IF NOT EXISTS proposals_status ON proposals (status, probability DESC);
+CREATE TABLE IF NOT EXISTS verdicts (
+    id INTEGER PRIMARY KEY,
+    fragment_a TEXT NOT NULL, fragment_b TEXT NOT NULL,
+    verdict TEXT NOT NULL, by TEXT, note TEXT,
+    proposal_id INTEGER, model_version TEXT, message_uid TEXT UNIQUE,
+    time REAL NOT NULL);
+CREATE INDEX IF NOT EXISTS verdicts_pair ON verdicts (fragment_a, fragment_b, time);
+CREATE TABLE IF NOT EXISTS models (
+    version TEXT PRIMARY KEY, artifact TEXT NOT NULL, sha256 TEXT NOT NULL, bytes INTEGER NOT NULL,
+    created REAL NOT NULL, n_train INTEGER, note TEXT);
+"""
+
+
+@dataclass
+class Proposal:
+    """One proposed join: fragment B relative to fragment A (``fragment_a < fragment_b``).
+
+    ``angle_deg, tx_mm, ty_mm`` map B's fragment frame (mm) into A's; ``evidence`` holds the
+    correspondence vectors of the best patch pairs (what the classifier saw, so a verdict can be
+    learnt from without reloading features); ``alignment`` the per-match check's scores.
+    """
+
+    fragment_a: str
+    fragment_b: str
+    probability: float
+    model_version: str
+    patch_a: int | None = None
+    patch_b: int | None = None
+    angle_deg: float | None = None
+    tx_mm: float | None = None
+    ty_mm: float | None = None
+    alignment: dict | None = None
+    evidence: dict | None = None
+    status: str = "pending"
+    id: int | None = None
+    created: float = 0.0
+    updated: float = 0.0
+
+    def other(self, fragment: str) -> str:
+        return self.fragment_b if fragment == self.fragment_a else self.fragment_a
+
+    def to_event_fields(self) -> dict:
+        """Fields of a ``match.proposed`` message (without the evidence vectors)."""
+        d = {"fragment": self.fragment_a, "other": self.fragment_b, "probability": float(self.probability),
+             "model_version": self.model_version, "proposal": self.id, "status": self.status,
+             "patches": [self.patch_a, self.patch_b]}
+        if self.angle_deg is not None:
+            d["pose"] = {"angle_deg": self.angle_deg, "tx_mm": self.tx_mm, "ty_mm": self.ty_mm,
+                         "frame": "other in fragment: p_fragment = R(angle) p_other + t, mm, x right, y down"}
+        if self.alignment:
+            d["alignment"] = self.alignment
+        return d
+
+
+@dataclass
+class Verdict:
+    fragment_a: str
+    fragment_b: str
+    verdict: str
+    time: float
+    by: str | None = None
+    note: str | None = None
+    proposal_id: int | None = None
+    model_version: str | None = None
+    id: int | None = None
+
+
+def ordered_pair(a: str, b: str) -> tuple[str, str]:
+    """A fragment pair in its stored order (lexicographic); raises ValueError for a == b."""
+    a, b = str(a), str(b)
+    if a == b:
+        raise ValueError(f"a fragment cannot join itself ({a!r})")
+    return (a, b) if a < b else (b, a)
+
+
+class ProposalStore:
+    """SQLite store of fragments seen, proposals, verdicts and model versions.
+
+    Parameters
+    ----------
+    path : path
+        Database file (created with its directory if absent). See the module notes on NFS.
+    journal_mode : str
+        ``"WAL"`` (default, local disk) or ``"DELETE"`` (network file systems).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, journal_mode: str = "WAL", timeout_s: float = 30.0):
+        if journal_mode.upper() not in ("WAL", "DELETE", "TRUNCATE"):
+            raise ValueError(f"journal_mode must be WAL, DELETE or TRUNCATE, got {journal_mode!r}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(str(self.path), timeout=timeout_s, isolation_level=None)
+        self._db.row_factory = sqlite3.Row
+        self._db.execute(f"PRAGMA journal_mode={journal_mode.upper()}")
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.executescript(_SCHEMA)  # idempotent; executescript manages its own transaction
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -- transactions --------------------------------------------------------------------
+    class _Tx:
+        def __init__(self, db):
+            self.db = db
+
+        def __enter__(self):
+            self.db.execute("BEGIN IMMEDIATE")
+
+        def __exit__(self, kind, *_):
+            self.db.execute("COMMIT" if kind is None else "ROLLBACK")
+
+    def _tx(self):
+        return self._Tx(self._db)
+
+    # -- meta ----------------------------------------------------------------------------
+    def get_meta(self, key: str, default: str | None = None) -> str | None:
+        row = self._db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return row[0] if row else default
+
+    def set_meta(self, key: str, value: str) -> None:
+        with self._tx():
+            self._db.execute("INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
+                             (key, str(value)))
+
+    # -- fragments -----------------------------------------------------------------------
+    def add_fragment(self, fragment: str, face: str, artifact: dict) -> bool:
+        """Record a fragment face's feature artifact; returns False if that exact artifact was known."""
+        with self._tx():
+            row = self._db.execute("SELECT sha256 FROM fragments WHERE fragment=? AND face=?", (fragment, face)).fetchone()
+            if row and row[0] == artifact["sha256"]:
+                return False
+            self._db.execute("INSERT OR REPLACE INTO fragments VALUES(?, ?, ?, ?, ?, ?)",
+                             (fragment, face, artifact["path"], artifact["sha256"], int(artifact["bytes"]), time.time()))
+        return True
+
+    def fragments(self, face: str | None = None) -> list[dict]:
+        q = "SELECT * FROM fragments" + (" WHERE face=?" if face else "") + " ORDER BY added, fragment"
+        rows = self._db.execute(q, (face,) if face else ()).fetchall()
+        return [{"fragment": r["fragment"], "face": r["face"],
+                 "artifact": {"path": r["artifact"], "sha256": r["sha256"], "bytes": r["bytes"]}} for r in rows]
+
+    # -- proposals -----------------------------------------------------------------------
+    def upsert(self, proposals: list[Proposal]) -> list[Proposal]:
+        """Insert or update proposals (one row per fragment pair); a decided pair keeps its status.
+
+        Returns the stored proposals with their ids.
+        """
+        now = time.time()
+        out = []
+        with self._tx():
+            for p in proposals:
+                a, b = ordered_pair(p.fragment_a, p.fragment_b)
+                if (a, b) != (p.fragment_a, p.fragment_b):
+                    raise ValueError("proposal fragments must be in stored order: use ordered_pair()")
+                self._db.execute(
+                    """INSERT INTO proposals (fragment_a, fragment_b, patch_a, patch_b, probability, angle_deg, tx_mm,
+                       ty_mm, alignment, evidence, model_version, status, created, updated)
+                       VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)
+                       ON CONFLICT(fragment_a, fragment_b) DO UPDATE SET patch_a=excluded.patch_a,
+                       patch_b=excluded.patch_b, probability=excluded.probability,
+                       angle_deg=COALESCE(excluded.angle_deg, angle_deg), tx_mm=COALESCE(excluded.tx_mm, tx_mm),
+                       ty_mm=COALESCE(excluded.ty_mm, ty_mm), alignment=COALESCE(excluded.alignment, alignment),
+                       evidence=excluded.evidence, model_version=excluded.model_version, updated=excluded.updated""",
+                    (a, b, p.patch_a, p.patch_b, float(p.probability), p.angle_deg, p.tx_mm, p.ty_mm,
+                     json.dumps(p.alignment) if p.alignment else None,
+                     json.dumps(p.evidence) if p.evidence else None, p.model_version, now, now))
+                out.append(self.get(a, b))
+        return out
+
+    def get(self, a: str, b: str) -> Proposal | None:
+        a, b = ordered_pair(a, b)
+        row = self._db.execute("SELECT * FROM proposals WHERE fragment_a=? AND fragment_b=?", (a, b)).fetchone()
+        return _proposal(row) if row else None
+
+    def ranked(self, fragment: str, limit: int = 20, *, status: str | None = None) -> list[Proposal]:
+        """Proposals involving ``fragment``, most probable first."""
+        extra = " AND status=?" if status else ""
+        args = (fragment,) + ((status,) if status else ())
+        q = (f"SELECT * FROM (SELECT * FROM proposals WHERE fragment_a=?{extra} UNION ALL "
+             f"SELECT * FROM proposals WHERE fragment_b=?{extra}) ORDER BY probability DESC, id LIMIT ?")
+        return [_proposal(r) for r in self._db.execute(q, args + args + (int(limit),))]
+
+    def pending(self, limit: int = 100) -> list[Proposal]:
+        """All pending proposals, most probable first."""
+        q = "SELECT * FROM proposals WHERE status='pending' ORDER BY probability DESC, id LIMIT ?"
+        return [_proposal(r) for r in self._db.execute(q, (int(limit),))]
+
+    def all(self) -> list[Proposal]:
+        return [_proposal(r) for r in self._db.execute("SELECT * FROM proposals ORDER BY id")]
+
+    def count(self, status: str | None = None) -> int:
+        if status:
+            return self._db.execute("SELECT COUNT(*) FROM proposals WHERE status=?", (status,)).fetchone()[0]
+        return self._db.execute("SELECT COUNT(*) FROM proposals").fetchone()[0]
+
+    def set_probabilities(self, updates: list[tuple[int, float]], model_version: str) -> None:
+        """Re-rank: new probabilities (proposal id, p) under ``model_version``, in one transaction."""
+        now = time.time()
+        with self._tx():
+            self._db.executemany("UPDATE proposals SET probability=?, model_version=?, updated=? WHERE id=?",
+                                 [(float(p), model_version, now, int(i)) for i, p in updates])
+
+    # -- verdicts ------------------------------------------------------------------------
+    def record_verdict(self, a: str, b: str, verdict: str, *, by: str | None = None, note: str | None = None,
+                       message_uid: str | None = None, when: float | None = None) -> Verdict | None:
+        """Store a person's verdict on a pair and set the proposal's status.
+
+        Idempotent per message: a re-delivered ``match.verified`` (same ``message_uid``) is
+        ignored and returns None. The full history is kept; the latest verdict sets the status.
+        """
+        if verdict not in VERDICTS:
+            raise ValueError(f"verdict must be one of {VERDICTS}, got {verdict!r}")
+        a, b = ordered_pair(a, b)
+        when = time.time() if when is None else float(when)
+        with self._tx():
+            if message_uid is not None and self._db.execute(
+                    "SELECT 1 FROM verdicts WHERE message_uid=?", (message_uid,)).fetchone():
+                return None
+            prop = self._db.execute("SELECT id, model_version FROM proposals WHERE fragment_a=? AND fragment_b=?",
+                                    (a, b)).fetchone()
+            cur = self._db.execute(
+                "INSERT INTO verdicts (fragment_a, fragment_b, verdict, by, note, proposal_id, model_version, message_uid, time)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (a, b, verdict, by, note, prop["id"] if prop else None, prop["model_version"] if prop else None,
+                 message_uid, when))
+            if prop:
+                self._db.execute("UPDATE proposals SET status=?, updated=? WHERE id=?", (verdict, when, prop["id"]))
+            vid = cur.lastrowid
+        return Verdict(a, b, verdict, when, by, note, prop["id"] if prop else None,
+                       prop["model_version"] if prop else None, vid)
+
+    def verdicts(self, fragment: str | None = None) -> list[Verdict]:
+        """Verdict history in time order (optionally only those involving ``fragment``)."""
+        q = "SELECT * FROM verdicts" + (" WHERE fragment_a=? OR fragment_b=?" if fragment else "") + " ORDER BY time, id"
+        rows = self._db.execute(q, (fragment, fragment) if fragment else ()).fetchall()
+        return [Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"],
+                        r["proposal_id"], r["model_version"], r["id"]) for r in rows]
+
+    def latest_verdicts(self) -> dict[tuple[str, str], str]:
+        """The latest verdict per pair (a person may change their mind)."""
+        out = {}
+        for v in self.verdicts():
+            out[(v.fragment_a, v.fragment_b)] = v.verdict
+        return out
+
+    # -- models --------------------------------------------------------------------------
+    def add_model(self, version: str, artifact: dict, *, n_train: int | None = None, note: str | None = None,
+                  make_current: bool = True) -> None:
+        with self._tx():
+            self._db.execute("INSERT OR IGNORE INTO models VALUES (?, ?, ?, ?, ?, ?, ?)",
+                             (version, artifact["path"], artifact["sha256"], int(artifact["bytes"]), time.time(),
+                              n_train, note))
+            if make_current:
+                self._db.execute("INSERT INTO meta(key, value) VALUES('current_model', ?) "
+                                 "ON CONFLICT(key) DO UPDATE SET value=excluded.value", (version,))
+
+    def current_model(self) -> dict | None:
+        """The current model's version and artifact pointer, or None before the first model."""
+        version = self.get_meta("current_model")
+        if version is None:
+            return None
+        r = self._db.execute("SELECT * FROM models WHERE version=?", (version,)).fetchone()
+        return {"version": r["version"], "n_train": r["n_train"], "note": r["note"],
+                "artifact": {"path": r["artifact"], "sha256": r["sha256"], "bytes": r["bytes"]}}
+
+    def models(self) -> list[dict]:
+        return [dict(r) for r in self._db.execute("SELECT * FROM models ORDER BY created")]
+
+
+def _proposal(r: sqlite3.Row) -> Proposal:
+    return Proposal(fragment_a=r["fragment_a"], fragment_b=r["fragment_b"], probability=r["probability"],
+                    model_version=r["model_version"], patch_a=r["patch_a"], patch_b=r["patch_b"],
+                    angle_deg=r["angle_deg"], tx_mm=r["tx_mm"], ty_mm=r["ty_mm"],
+                    alignment=json.loads(r["alignment"]) if r["alignment"] else None,
+                    evidence=json.loads(r["evidence"]) if r["evidence"] else None,
+                    status=r["status"], id=r["id"], created=r["created"], updated=r["updated"])

@@ -1,0 +1,74 @@
+"""The proposal store keeps proposals, verdicts and models across restarts and answers queries."""
+
+import sqlite3
+
+import pytest
+
+from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+
+
+def make(a, b, p, version="0001-x"):
+    a, b = ordered_pair(a, b)
+    return Proposal(a, b, p, version, patch_a=1, patch_b=2, angle_deg=10.0, tx_mm=1.0, ty_mm=-2.0,
+                    evidence={"columns": ["c"], "rows": [[0.5]]})
+
+
+def test_ranked_list_per_fragment_is_most_probable_first_and_survives_reopen(tmp_path):
+    db = tmp_path / "p.sqlite"
+    with ProposalStore(db) as s:
+        s.upsert([make("F1", "F2", 0.3), make("F3", "F1", 0.9), make("F1", "F4", 0.6), make("F2", "F3", 0.99)])
+    with ProposalStore(db) as s:
+        ranked = s.ranked("F1")
+        assert [p.other("F1") for p in ranked] == ["F3", "F4", "F2"]
+        assert [round(p.probability, 2) for p in ranked] == [0.9, 0.6, 0.3]
+        assert ranked[0].evidence == {"columns": ["c"], "rows": [[0.5]]}
+        assert [(p.fragment_a, p.fragment_b) for p in s.pending()] == [("F2", "F3"), ("F1", "F3"), ("F1", "F4"), ("F1", "F2")]
+
+
+def test_verdict_sets_status_keeps_history_and_ignores_redelivery(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("A", "B", 0.8), make("A", "C", 0.7)])
+        assert s.record_verdict("B", "A", "rejected", by="conservator", message_uid="u1") is not None
+        assert s.record_verdict("B", "A", "rejected", by="conservator", message_uid="u1") is None  # re-delivered
+        s.record_verdict("A", "B", "confirmed", by="conservator", message_uid="u2")
+        assert s.get("A", "B").status == "confirmed"
+        assert [v.verdict for v in s.verdicts("A")] == ["rejected", "confirmed"]
+        assert s.latest_verdicts() == {("A", "B"): "confirmed"}
+        assert [p.fragment_b for p in s.pending()] == ["C"]
+        # re-proposing a decided pair updates the numbers but keeps the person's decision
+        s.upsert([make("A", "B", 0.1, "0002-y")])
+        assert s.get("A", "B").status == "confirmed" and s.get("A", "B").model_version == "0002-y"
+
+
+def test_rerank_updates_probabilities_in_one_transaction(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        ps = s.upsert([make("A", "B", 0.8), make("A", "C", 0.7)])
+        s.set_probabilities([(ps[0].id, 0.1), (ps[1].id, 0.95)], "0002-z")
+        assert [p.other("A") for p in s.ranked("A")] == ["C", "B"]
+        assert {p.model_version for p in s.all()} == {"0002-z"}
+
+
+def test_models_and_fragments_are_recorded(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        assert s.current_model() is None
+        art = {"path": "models/matcher/0001-a.h5", "sha256": "ab" * 32, "bytes": 10}
+        s.add_model("0001-a", art, n_train=5)
+        assert s.current_model()["artifact"] == art
+        assert s.add_fragment("F1", "front", art) is True
+        assert s.add_fragment("F1", "front", art) is False
+        assert [f["fragment"] for f in s.fragments()] == ["F1"]
+
+
+def test_database_is_plain_sqlite_readable_without_tessera(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("A", "B", 0.5)])
+    con = sqlite3.connect(tmp_path / "p.sqlite")
+    assert con.execute("SELECT fragment_a, fragment_b, status FROM proposals").fetchall() == [("A", "B", "pending")]
+
+
+def test_bad_verdict_and_self_pair_are_refused(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        with pytest.raises(ValueError, match="verdict"):
+            s.record_verdict("A", "B", "maybe")
+        with pytest.raises(ValueError, match="itself"):
+            ordered_pair("A", "A")
