@@ -1,0 +1,44 @@
+"""Feature service: on ``rgbn.ready``, describe the face and publish ``features.ready`` (§5.4).
+
+Reads the RGBN artifact, runs :func:`common.features.extract_features`, writes the
+``tessera.features`` artifact at a content-keyed path (a re-delivered job finds it already there)
+and returns the ``features.ready`` event.
+"""
+
+from __future__ import annotations
+
+from common.features import extract_features, save_features
+from common.features.table import SCHEMA_VERSION
+from common.messages import MessageError, new_message
+from common.rgbn.image import load_rgbn
+from common.store import ArtifactRef, content_key
+
+SERVICE = "features"
+VERSION = f"features-1.0/schema-{SCHEMA_VERSION}"
+
+
+def output_path(fragment: str, face: str, rgbn_sha256: str) -> str:
+    """Content-keyed path of the feature artifact of one face."""
+    return f"fragments/{fragment}/features/{face}-{content_key(rgbn_sha256, SERVICE, VERSION)}.h5"
+
+
+def handle(job: dict, ctx) -> list[dict]:
+    """Describe the RGBN face named by an ``rgbn.ready`` job; return ``[features.ready]``."""
+    if job.get("type") != "rgbn.ready":
+        raise MessageError(f"features service handles rgbn.ready, got {job.get('type')!r}")
+    ref = ArtifactRef.from_dict(job["artifact"])
+    fragment, face = str(job["fragment"]), str(job.get("face", "front"))
+    relpath = output_path(fragment, face, ref.sha256)
+    if not ctx.store.exists(relpath):
+        image = load_rgbn(ctx.store, ref)
+        work_mm = float((ctx.config or {}).get("work_pixel_mm", 0.1))
+        table = extract_features(image, face=face, work_pixel_mm=work_mm,
+                                 progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
+        ctx.log.info("fragment %s %s: %d patches, missing %s", fragment, face, table.n_patches,
+                     table.missing_data or "nothing")
+        out = save_features(ctx.store, relpath, table, provenance={
+            "stage": SERVICE, "stage_version": VERSION, "fragment": fragment, "face": face,
+            "inputs": [ref.to_dict()]})
+    else:
+        out = ctx.store.ref(relpath)
+    return [new_message("features.ready", fragment=fragment, face=face, artifact=out)]
