@@ -1,0 +1,19 @@
+"""Synthetic fresco with ground truth (issue 5): paint, relieve, break, deteriorate, cut out.
+
+Public API: :func:`generate_wall` -> :class:`Wall` (fragments with RGBN images, surfaces and
+poses; adjacency with shared crack length; contour correspondences), :func:`save_groundtruth` /
+:func:`load_groundtruth` (schema ``tessera.groundtruth``) and :func:`import_dafne`.
+"""
+
+from common.synth.wall import Fragment, Wall, generate_wall, pose_apply
+from common.synth.groundtruth import load_groundtruth, save_groundtruth
+
+__all__ = ["Fragment", "Wall", "generate_wall", "pose_apply", "save_groundtruth", "load_groundtruth",
+           "import_dafne"]
+
+
+def __getattr__(name):
+    if name == "import_dafne":
+        from common.synth.dafne import import_dafne
+        return import_dafne
+    raise AttributeError(name)

@@ -1,0 +1,156 @@
+"""Surface relief of a synthetic wall painting, laid over the whole wall before it breaks.
+
+Layers (heights in mm, + out of the wall towards the viewer):
+
+* undulation of the wall face (tenths of a mm over decimetres);
+* string impressions: straight, shallow, rounded grooves where the painters snapped strings into
+  the wet plaster to lay out bands (so mostly along colour boundaries);
+* incisions: narrow V grooves along some outlines and spirals;
+* brush strokes: parallel ridges whose orientation, frequency and depth vary by region (each
+  region one working session of the plasterer/painter), blended smoothly between regions;
+* plaster grain: fine isotropic roughness;
+* thickness of the plaster (front face above the back), and the roughness of the back.
+
+Because every layer is a function of the wall position, relief continues across true joins.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.synth.noise import FractalField, periodic_noise_tile, sample_tile
+from common.synth.painting import Painting
+
+_STROKE_F0 = 16.0  # ridge frequency of the stroke tile, cycles per tile
+
+
+@dataclass
+class StrokeRegion:
+    """One brush-stroke region: centre (mm), ridge orientation (rad, wall frame), period, depth."""
+
+    x_mm: float
+    y_mm: float
+    angle_rad: float
+    period_mm: float
+    depth_mm: float
+
+
+class WallRelief:
+    """Relief and thickness of a whole wall, evaluated at any wall points.
+
+    Parameters
+    ----------
+    painting : Painting
+        Its string lines and incisions are pressed into the plaster; its size is the wall's.
+    rng : numpy.random.Generator
+    res_mm : float
+        Pixel size of the raster holding undulation, strings and incisions.
+    stroke_region_mm : float
+        Typical size of a brush-stroke region.
+    grain_mm, grain_depth_mm : float
+        Correlation length and r.m.s. height of the plaster grain.
+    thickness_mm : float
+        Mean plaster thickness; it varies by about +-25 % over the wall.
+    """
+
+    def __init__(self, painting: Painting, rng: np.random.Generator, *, res_mm: float = 0.25,
+                 stroke_region_mm: float = 90.0, grain_mm: float = 0.25, grain_depth_mm: float = 0.012,
+                 thickness_mm: float = 20.0):
+        if res_mm <= 0 or stroke_region_mm <= 0 or grain_mm <= 0 or thickness_mm <= 0:
+            raise ValueError("res_mm, stroke_region_mm, grain_mm and thickness_mm must be positive")
+        self.width_mm, self.height_mm = painting.size_mm
+        self.res_mm = float(res_mm)
+        W, H = int(np.ceil(self.width_mm / res_mm)), int(np.ceil(self.height_mm / res_mm))
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) * res_mm
+        macro = FractalField(rng, 120.0, octaves=3, persistence=0.5, amplitude=0.25)(xx, yy)
+        macro += self._grooves(painting, rng, (H, W))
+        self.macro = macro.astype(np.float32)
+        self.grain = FractalField(rng, grain_mm, octaves=2, persistence=0.5, amplitude=grain_depth_mm)
+        # brush-stroke regions on a jittered grid
+        self.stroke_tile = periodic_noise_tile(rng, band=(_STROKE_F0, 0.18))
+        nx = max(1, int(round(self.width_mm / stroke_region_mm)))
+        ny = max(1, int(round(self.height_mm / stroke_region_mm)))
+        self.regions: list[StrokeRegion] = []
+        for j in range(ny):
+            for i in range(nx):
+                base = rng.choice([0.0, np.pi / 2, rng.uniform(0, np.pi)])  # plasterers work along/across
+                self.regions.append(StrokeRegion(
+                    x_mm=(i + rng.uniform(0.2, 0.8)) * self.width_mm / nx,
+                    y_mm=(j + rng.uniform(0.2, 0.8)) * self.height_mm / ny,
+                    angle_rad=float(base + rng.normal(0, 0.25)),
+                    period_mm=float(np.exp(rng.uniform(np.log(0.6), np.log(3.0)))),
+                    depth_mm=float(np.exp(rng.uniform(np.log(0.015), np.log(0.08))))))
+        self._offsets = [(float(rng.uniform(0, 256)), float(rng.uniform(0, 256))) for _ in self.regions]
+        # soft region weights on a coarse raster (2 mm): softmin of the distance to the centres
+        self._w_res = 2.0
+        gy, gx = np.mgrid[0:int(np.ceil(self.height_mm / 2)) + 1, 0:int(np.ceil(self.width_mm / 2)) + 1]
+        gx, gy = gx * 2.0, gy * 2.0
+        d = np.stack([np.hypot(gx - r.x_mm, gy - r.y_mm) for r in self.regions])
+        tau = 0.12 * stroke_region_mm
+        w = np.exp(-(d - d.min(axis=0)) / tau)
+        self._weights = (w / w.sum(axis=0)).astype(np.float32)
+        self.thickness_field = FractalField(rng, 150.0, octaves=3, persistence=0.5, amplitude=0.15 * thickness_mm)
+        self.back_rough = FractalField(rng, 3.0, octaves=3, persistence=0.6, amplitude=0.4)
+        self.thickness_mean = float(thickness_mm)
+
+    def _grooves(self, painting: Painting, rng: np.random.Generator, shape) -> np.ndarray:
+        """String impressions (rounded, shallow) and incisions (V-shaped, narrow) in mm."""
+        k = 1.0 / self.res_mm
+        out = np.zeros(shape, np.float32)
+        # strings: each its own depth and width, Gaussian profile
+        for (x0, y0), (x1, y1) in painting.string_lines:
+            if rng.random() < 0.15:  # some strings were never snapped into the plaster
+                continue
+            lines = np.full(shape, 255, np.uint8)
+            cv2.line(lines, (int(round(x0 * k * 16)), int(round(y0 * k * 16))),
+                     (int(round(x1 * k * 16)), int(round(y1 * k * 16))), 0, 1, cv2.LINE_8, shift=4)
+            dist = cv2.distanceTransform(lines, cv2.DIST_L2, 5) * self.res_mm
+            depth, width = rng.uniform(0.08, 0.25), rng.uniform(0.4, 0.9)
+            out -= depth * np.exp(-0.5 * (dist / (0.5 * width)) ** 2)
+        if painting.incisions:
+            lines = np.full(shape, 255, np.uint8)
+            for pts in painting.incisions:
+                p = np.round(np.asarray(pts) * k * 16).astype(np.int32).reshape(-1, 1, 2)
+                cv2.polylines(lines, [p], False, 0, 1, cv2.LINE_8, shift=4)
+            dist = cv2.distanceTransform(lines, cv2.DIST_L2, 5) * self.res_mm
+            half = 0.35
+            out -= 0.25 * np.clip(1.0 - dist / half, 0.0, None)
+        return out
+
+    # -- evaluation ------------------------------------------------------------------------
+    def strokes(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """Brush-stroke relief (mm) at wall points."""
+        x_mm = np.asarray(x_mm, np.float32)
+        y_mm = np.asarray(y_mm, np.float32)
+        u, v = x_mm / self._w_res, y_mm / self._w_res
+        out = np.zeros(x_mm.shape, np.float32)
+        # only regions with weight somewhere near these points
+        ci = np.clip(np.round(u[::8, ::8] if u.ndim == 2 else u).astype(int), 0, self._weights.shape[2] - 1)
+        ri = np.clip(np.round(v[::8, ::8] if v.ndim == 2 else v).astype(int), 0, self._weights.shape[1] - 1)
+        active = np.nonzero(self._weights[:, ri, ci].reshape(len(self.regions), -1).max(axis=1) > 1e-3)[0]
+        for k in active:
+            reg = self.regions[k]
+            w = cv2.remap(self._weights[k], u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            # the tile's ridges run along its x axis; ridge period = tile period / F0
+            s = sample_tile(self.stroke_tile, x_mm, y_mm, px_per_mm=(256.0 / _STROKE_F0) / reg.period_mm,
+                            angle_rad=reg.angle_rad, offset=self._offsets[k])
+            out += w * reg.depth_mm * s
+        return out
+
+    def height(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """Front-face relief height (mm) at wall points: macro + strokes + grain."""
+        x_mm = np.asarray(x_mm, np.float32)
+        y_mm = np.asarray(y_mm, np.float32)
+        h = cv2.remap(self.macro, x_mm / self.res_mm, y_mm / self.res_mm, cv2.INTER_CUBIC,
+                      borderMode=cv2.BORDER_REPLICATE)
+        h += self.strokes(x_mm, y_mm)
+        h += self.grain(x_mm, y_mm)
+        return h
+
+    def thickness(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """Plaster thickness (mm) at wall points: front face above the rough back."""
+        t = self.thickness_mean + self.thickness_field(x_mm, y_mm) - self.back_rough(x_mm, y_mm)
+        return np.maximum(t, 0.2 * self.thickness_mean)

@@ -1,0 +1,448 @@
+"""A synthetic wall painting, broken into fragments with known ground truth.
+
+:func:`generate_wall` paints a wall (:mod:`~common.synth.painting`), lays relief over the whole
+of it (:mod:`~common.synth.relief`), breaks it (:mod:`~common.synth.breakage`), and cuts each
+fragment out into its own frame -- rotated by a random angle, its pose -- as an
+:class:`~common.rgbn.image.RGBNImage` and a :class:`~common.acquisition.surface.FragmentSurface`,
+then deteriorates it (:mod:`~common.synth.deterioration`). Some pieces go missing; a few
+spurious fragments from another wall are mixed in. Every fragment layer is evaluated directly at
+the wall position of each output pixel, so colour and relief continue exactly across true joins.
+
+Frames: a fragment's frame has x = col * pixel_mm (right), y = row * pixel_mm (down); its pose
+``(angle_deg, tx_mm, ty_mm)`` maps it to the wall (x right, y down, mm) by
+``wall = R(angle) @ p + t`` with ``R = [[cos, -sin], [sin, cos]]``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from typing import Callable
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from common.acquisition.surface import FragmentSurface
+from common.rgbn.image import RGBNImage
+from common.store import content_key
+from common.synth import deterioration as det
+from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
+from common.synth.painting import Painting, paint_wall, painting_from_image
+from common.synth.relief import WallRelief
+
+log = logging.getLogger(__name__)
+
+# mean piece area / median size^2 of the recursive model (measured), used to size the wall
+_AREA_FACTOR = 1.2
+# a 4-connected inner boundary has max(|cos|, |sin|) pixels per pixel_mm of edge; mean 2*sqrt(2)/pi
+_BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi
+
+
+@dataclass
+class Fragment:
+    """One fragment of a synthetic (or imported) wall.
+
+    Attributes
+    ----------
+    id : str
+        Fragment id (random order: it says nothing about the position on the wall).
+    rgbn : RGBNImage or None
+        Front face in the fragment's own frame (None when not kept in memory, or after loading
+        the ground truth alone).
+    surface : FragmentSurface or None
+        The physical front face (with its back) for the simulated flatbed.
+    pose : (angle_deg, tx_mm, ty_mm) or None
+        Fragment frame -> wall; None for a spurious fragment (it belongs to no place here).
+    spurious : bool
+        True for a fragment from another wall.
+    area_mm2 : float
+        Area of the (eroded) fragment.
+    contour_mm : (M, 2) float array or None
+        Outer contour in the fragment frame (x right, y down, mm).
+    """
+
+    id: str
+    rgbn: RGBNImage | None = None
+    surface: FragmentSurface | None = None
+    pose: tuple[float, float, float] | None = None
+    spurious: bool = False
+    area_mm2: float = float("nan")
+    contour_mm: np.ndarray | None = None
+
+    def to_wall(self, p_mm: np.ndarray) -> np.ndarray:
+        """Fragment-frame points (N, 2) mm -> wall mm."""
+        if self.pose is None:
+            raise ValueError(f"fragment {self.id} is spurious and has no pose")
+        return pose_apply(self.pose, p_mm)
+
+    def from_wall(self, w_mm: np.ndarray) -> np.ndarray:
+        """Wall points (N, 2) mm -> fragment frame mm."""
+        if self.pose is None:
+            raise ValueError(f"fragment {self.id} is spurious and has no pose")
+        a = np.deg2rad(self.pose[0])
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        return (np.asarray(w_mm, float) - np.array(self.pose[1:])) @ R
+
+
+def pose_apply(pose, p_mm: np.ndarray) -> np.ndarray:
+    """Apply a pose ``(angle_deg, tx, ty)`` to (N, 2) points: ``R(angle) @ p + t``."""
+    a = np.deg2rad(pose[0])
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return np.asarray(p_mm, float) @ R.T + np.array(pose[1:], float)
+
+
+@dataclass
+class Wall:
+    """A broken wall and its ground truth.
+
+    Attributes
+    ----------
+    id : str
+    fragments : list of Fragment
+        Delivered fragments (present ones and spurious ones, in random order).
+    adjacency : list of (id_a, id_b, shared_length_mm)
+        True neighbours among the delivered fragments (id_a < id_b), with the length of the
+        crack they shared before erosion.
+    correspondences : dict (id_a, id_b) -> ((K, 2), (K, 2))
+        Corresponding contour points of each adjacent pair, in each fragment's own frame (mm).
+    width_mm, height_mm : float
+        Wall size.
+    dpi : float
+        Sampling of the fragment images.
+    n_missing : int
+        Pieces of the wall that were broken but not delivered.
+    params : dict
+        Generation parameters (seed, mode, ...).
+    preview : dict
+        ``albedo`` (painting at ~1 mm/px), ``labels`` (pieces on the same grid, -1 = lost plaster),
+        ``label_ids`` (fragment id of each label, '' for missing pieces), ``grid_mm``.
+    """
+
+    id: str
+    fragments: list[Fragment]
+    adjacency: list[tuple[str, str, float]]
+    correspondences: dict
+    width_mm: float
+    height_mm: float
+    dpi: float
+    n_missing: int = 0
+    params: dict = field(default_factory=dict)
+    preview: dict = field(default_factory=dict)
+
+    def fragment(self, fragment_id: str) -> Fragment:
+        for f in self.fragments:
+            if f.id == fragment_id:
+                return f
+        raise KeyError(f"no fragment {fragment_id!r} in wall {self.id}")
+
+    def neighbours(self, fragment_id: str) -> list[str]:
+        """Ids of the true neighbours of a fragment."""
+        return sorted({b if a == fragment_id else a for a, b, _ in self.adjacency if fragment_id in (a, b)})
+
+    def is_neighbour(self, id_a: str, id_b: str) -> bool:
+        return tuple(sorted((id_a, id_b))) in {(a, b) for a, b, _ in self.adjacency}
+
+
+# --------------------------------------------------------------------------------------------
+@dataclass
+class _Plan:
+    painting: Painting
+    relief: WallRelief
+    fracture: Fracture
+
+
+def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image, median_size_mm, sigma,
+          jag_mm, aspect=1.5, image_width_mm=None) -> _Plan:
+    if image is not None:
+        width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * image.shape[1] / image.shape[0])
+        painting = painting_from_image(image, width)
+        W, H = painting.size_mm
+    else:
+        area = n_pieces * _AREA_FACTOR * median_size_mm ** 2 * np.exp(2 * sigma ** 2) ** 0.5
+        H = float(np.sqrt(area / aspect)) + 8.0
+        W = float(aspect * (H - 8.0)) + 8.0
+        painting = paint_wall(W, H, rng_paint, style=style)
+    relief = WallRelief(painting, rng_relief)
+    kw = dict(median_size_mm=median_size_mm, sigma=sigma, min_pieces=n_pieces, jag_mm=jag_mm)
+    fracture = (fracture_recursive if mode == "recursive" else fracture_voronoi)(W, H, rng_break, **kw)
+    return _Plan(painting, relief, fracture)
+
+
+def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Generator, *, erosion_mm: float,
+                  spurious: bool):
+    """Cut one piece out of the wall into its own (rotated) frame and deteriorate it.
+
+    Returns (Fragment without id, crack samples {other label: (crack length mm, (K, 2) wall mm)}).
+    """
+    pm = 25.4 / dpi
+    g = plan.fracture.grid_mm
+    pad = 3.0 + 2 * g
+    (r0, r1), (c0, c1) = bbox
+    x0, x1, y0, y1 = c0 * g - pad, (c1 - 1) * g + pad, r0 * g - pad, (r1 - 1) * g + pad
+    angle = float(rng.uniform(0.0, 360.0))
+    a = np.deg2rad(angle)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    p = corners @ R  # R^T w for each corner
+    off = p.min(axis=0)
+    W = int(np.ceil((p[:, 0].max() - off[0]) / pm)) + 1
+    H = int(np.ceil((p[:, 1].max() - off[1]) / pm)) + 1
+    t = R @ off
+    pose = (angle, float(t[0]), float(t[1]))
+    cols = (np.arange(W, dtype=np.float64) * pm)[None, :]
+    rows = (np.arange(H, dtype=np.float64) * pm)[:, None]
+    xw = (R[0, 0] * cols + R[0, 1] * rows + t[0]).astype(np.float32)
+    yw = (R[1, 0] * cols + R[1, 1] * rows + t[1]).astype(np.float32)
+
+    labels = plan.fracture.labels(xw, yw)
+    mask0 = det.largest_component(labels == label)
+    # crack samples: inner boundary pixels of this piece with a 4-neighbour in another piece
+    cracks = {}
+    if not spurious:
+        lab_p = np.pad(labels, 1, constant_values=-1)
+        hits_idx, hits_lab = [], []
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            other = lab_p[1 + dr:1 + dr + H, 1 + dc:1 + dc + W]
+            sel = mask0 & (other >= 0) & (other != label)
+            idx = np.flatnonzero(sel)
+            hits_idx.append(idx)
+            hits_lab.append(other.ravel()[idx])
+        idx = np.concatenate(hits_idx)
+        lab = np.concatenate(hits_lab)
+        if idx.size:
+            pairs = np.unique(np.column_stack([lab.astype(np.int64), idx]), axis=0)
+            for m in np.unique(pairs[:, 0]):
+                pix = pairs[pairs[:, 0] == m, 1]
+                pts = np.column_stack([xw.ravel()[pix], yw.ravel()[pix]]).astype(np.float64)
+                # about one sample per mm of crack
+                _, keep = np.unique(np.floor(pts / 1.0).astype(np.int64), axis=0, return_index=True)
+                cracks[int(m)] = (pix.size * pm / _BOUNDARY_PX_PER_LENGTH, pts[np.sort(keep)])
+
+    albedo = plan.painting.sample(xw, yw)
+    height = plan.relief.height(xw, yw)
+    thick = plan.relief.thickness(xw, yw)
+    # deterioration (per fragment: neighbours now differ)
+    mask = det.erode_edges(mask0, pm, rng, depth_mm=erosion_mm) if erosion_mm > 0 else mask0
+    if not mask.any():
+        mask = mask0
+    height = det.wear_edges(height, mask, pm, radius_mm=max(0.3, erosion_mm))
+    det.pit_surface(height, albedo, mask, pm, rng)
+    det.crack_surface(height, albedo, mask, pm, rng)
+    u = rng.random()
+    if u < 0.25:
+        albedo = det.fade(albedo, float(rng.uniform(0.2, 0.6)))
+    elif u < 0.45:
+        kind = str(rng.choice(sorted(det.DISCOLOURATIONS)))
+        albedo = det.discolour(albedo, kind, float(rng.uniform(0.5, 1.0)))
+    # normals from the height gradient: x right, y up (towards row 0), z to the viewer
+    gy_down, gx = np.gradient(height, pm)
+    n = np.dstack([-gx, gy_down, np.ones_like(gx)]).astype(np.float32)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n[~mask] = (0.0, 0.0, 1.0)
+    albedo[~mask] = 0.0
+    med_t = float(np.median(thick[mask]))
+    thickness_map = np.where(mask, thick + height - float(np.median(height[mask])), 0.0).astype(np.float32)
+    rgbn = RGBNImage(albedo=albedo, mask=mask, dpi=dpi, normals=n, confidence=mask.astype(np.float32),
+                     height_mm=thickness_map, attrs={"source": "synthetic fresco", "face": "front",
+                                                      "height_meaning": "thickness: front face above back, mm"})
+    front_h = np.where(mask, height - float(np.median(height[mask])), 0.0).astype(np.float32)
+    back_h = np.where(mask, thick - med_t, 0.0).astype(np.float32)
+    shade = 1.0 + 0.15 * np.tanh(plan.relief.back_rough(xw, yw))
+    back_albedo = np.where(mask[..., None], det.PLASTER[None, None, :] * 0.9 * shade[..., None], 0.0).astype(np.float32)
+    # the back, as seen after flipping the fragment over about its vertical axis
+    back = FragmentSurface(np.fliplr(back_albedo).copy(), np.fliplr(back_h).copy(), np.fliplr(mask).copy(), dpi,
+                           thickness_mm=med_t)
+    surface = FragmentSurface(albedo, front_h, mask, dpi, thickness_mm=med_t, back=back)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cont = max(contours, key=len).reshape(-1, 2).astype(np.float64) * pm
+    frag = Fragment(id="", rgbn=rgbn, surface=surface, pose=None if spurious else pose, spurious=spurious,
+                    area_mm2=float(mask.sum() * pm * pm), contour_mm=cont)
+    return frag, cracks
+
+
+def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = "recursive",
+                  style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
+                  median_size_mm: float = 30.0, sigma: float = 0.5, missing_fraction: float = 0.2,
+                  spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
+                  min_shared_mm: float = 3.0, keep_images: bool = True,
+                  on_fragment: Callable[[Fragment], None] | None = None,
+                  progress: Callable[[float, str], None] | None = None) -> Wall:
+    """Paint, relieve, break and deteriorate a wall; return its fragments and ground truth.
+
+    Parameters
+    ----------
+    n_fragments : int
+        Number of fragments delivered (present pieces plus spurious ones).
+    seed : int
+        Same seed and parameters -> identical data.
+    dpi : float
+        Sampling of the fragment images (pixel = 25.4 / dpi mm).
+    mode : {'recursive', 'voronoi'}
+        Breakage model: recursive perpendicular splitting (Shin et al. 2012) or a power diagram.
+    style : {'aegean', 'roman'}
+        Painting style (ignored with ``image``).
+    image : (H, W, 3) array, optional
+        A user-supplied painting (sRGB) instead of the generated one.
+    image_width_mm : float, optional
+        Physical width of ``image`` on the wall (default: sized for the fragment count).
+    median_size_mm, sigma : float
+        Log-normal fragment size (square root of area): median and log-sd, clipped to 1-20 cm.
+    missing_fraction : float
+        Fraction of the broken pieces that are lost (0.1-0.3 is typical of excavations).
+    spurious_fraction : float
+        Fraction of delivered fragments that come from another wall.
+    erosion_mm : float
+        Mean depth of edge erosion.
+    jag_mm : float
+        Amplitude of the crack jaggedness.
+    min_shared_mm : float
+        Pieces sharing less crack than this are not counted as neighbours.
+    keep_images : bool
+        Keep each fragment's RGBN image and surface in the returned wall (False: only metadata,
+        for large walls streamed through ``on_fragment``).
+    on_fragment : callable(Fragment), optional
+        Called with each finished fragment (with its images), e.g. to write it to the store.
+    progress : callable(fraction, text), optional
+        Progress report per fragment.
+
+    Returns
+    -------
+    Wall
+
+    References
+    ----------
+    Thesis §5.3.3 (a painted and broken fresco with known joins); Shin et al. 2012 (fracture
+    patterns of Theran wall paintings).
+
+    Examples
+    --------
+    >>> wall = generate_wall(6, seed=1, dpi=40)
+    >>> len(wall.fragments)
+    6
+    """
+    if int(n_fragments) != n_fragments or n_fragments < 1:
+        raise ValueError(f"n_fragments must be a positive integer, got {n_fragments}")
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    if mode not in ("recursive", "voronoi"):
+        raise ValueError(f"mode must be 'recursive' or 'voronoi', got {mode!r}")
+    if not 0 <= missing_fraction < 0.9:
+        raise ValueError(f"missing_fraction must be in [0, 0.9), got {missing_fraction}")
+    if not 0 <= spurious_fraction < 1:
+        raise ValueError(f"spurious_fraction must be in [0, 1), got {spurious_fraction}")
+    if image is not None and (np.ndim(image) != 3 or np.shape(image)[2] < 3):
+        raise ValueError(f"image must be an (H, W, 3) RGB array, got shape {np.shape(image)}")
+    n_fragments = int(n_fragments)
+    params = dict(n_fragments=n_fragments, seed=int(seed), dpi=float(dpi), mode=mode, style=style,
+                  image=None if image is None else content_key(np.ascontiguousarray(image).tobytes().hex()[:4096],
+                                                               str(np.shape(image))),
+                  median_size_mm=median_size_mm, sigma=sigma, missing_fraction=missing_fraction,
+                  spurious_fraction=spurious_fraction, erosion_mm=erosion_mm, jag_mm=jag_mm)
+    wall_id = f"s{int(seed)}n{n_fragments}-{content_key(json.dumps(params, sort_keys=True), length=6)}"
+    ss = np.random.SeedSequence(int(seed))
+    s_paint, s_relief, s_break, s_choice, s_spur, s_frag = ss.spawn(6)
+    n_spur = int(round(spurious_fraction * n_fragments))
+    if spurious_fraction > 0 and n_fragments >= 10:
+        n_spur = max(n_spur, 1)
+    n_present = n_fragments - n_spur
+    n_pieces = int(np.ceil(n_present / (1.0 - missing_fraction))) if n_present else 0
+    rng_choice = np.random.default_rng(s_choice)
+
+    plan = _plan(max(n_pieces, 1), np.random.default_rng(s_paint), np.random.default_rng(s_relief),
+                 np.random.default_rng(s_break), mode=mode, style=style,
+                 image=None if image is None else np.asarray(image), median_size_mm=median_size_mm, sigma=sigma,
+                 jag_mm=jag_mm, image_width_mm=image_width_mm)
+    coarse = plan.fracture.coarse_labels
+    areas = np.bincount(coarse[coarse >= 0].ravel(), minlength=plan.fracture.n_pieces)
+    usable = np.nonzero(areas * plan.fracture.grid_mm ** 2 >= 25.0)[0]  # at least ~5x5 mm
+    if len(usable) < n_present:
+        raise ValueError(f"the wall broke into only {len(usable)} usable pieces, fewer than the {n_present} "
+                         f"requested; lower median_size_mm or supply a larger image_width_mm")
+    present = np.sort(rng_choice.choice(usable, n_present, replace=False))
+    jobs = [(plan, int(lab), False) for lab in present]
+    if n_spur:
+        sr = np.random.default_rng(s_spur)
+        other = "roman" if style == "aegean" else "aegean"
+        splan = _plan(n_spur + 4, sr, sr, sr, mode=mode, style=other, image=None, median_size_mm=median_size_mm,
+                      sigma=sigma, jag_mm=jag_mm)
+        sc = splan.fracture.coarse_labels
+        sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)
+        cand = np.nonzero(sareas * splan.fracture.grid_mm ** 2 >= 25.0)[0]
+        jobs += [(splan, int(lab), True) for lab in sr.choice(cand, min(n_spur, len(cand)), replace=False)]
+    # ids in random order: an id says nothing about the place on the wall
+    numbers = rng_choice.permutation(len(jobs)) + 1
+    ids = [f"{wall_id}-{k:03d}" for k in numbers]
+
+    frags: list[Fragment] = []
+    crack_by_label: dict[int, dict] = {}
+    label_of: dict[str, int] = {}
+    frag_seeds = s_frag.spawn(len(jobs))
+    for j, ((pl, lab, spur), fid) in enumerate(zip(jobs, ids)):
+        c = pl.fracture.coarse_labels
+        sl = ndimage.find_objects((c == lab).astype(np.int32))[0]
+        bbox = ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))
+        frag, cracks = _render_piece(pl, lab, bbox, float(dpi), np.random.default_rng(frag_seeds[j]),
+                                     erosion_mm=erosion_mm, spurious=spur)
+        frag.id = fid
+        if not spur:
+            crack_by_label[lab] = cracks
+            label_of[fid] = lab
+        if on_fragment is not None:
+            on_fragment(frag)
+        if not keep_images:
+            frag.rgbn = None
+            frag.surface = None
+        frags.append(frag)
+        if progress is not None:
+            progress((j + 1) / len(jobs), f"fragment {fid} ({j + 1}/{len(jobs)})")
+
+    adjacency, corr = _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm)
+    order = np.argsort([f.id for f in frags])
+    frags = [frags[i] for i in order]
+    id_of_label = {lab: fid for fid, lab in label_of.items()}
+    g = plan.fracture.grid_mm
+    step = max(1, int(round(1.0 / plan.painting.res_mm * g)))
+    preview = dict(albedo=plan.painting.albedo[::step, ::step].copy(), labels=coarse.copy(), grid_mm=g,
+                   label_ids=[id_of_label.get(i, "") for i in range(plan.fracture.n_pieces)])
+    W, H = plan.painting.size_mm
+    return Wall(wall_id, frags, adjacency, corr, W, H, float(dpi), n_missing=plan.fracture.n_pieces - n_present,
+                params=params, preview=preview)
+
+
+def _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm):
+    """Adjacency (shared crack length) and contour correspondences of the present pieces."""
+    by_id = {f.id: f for f in frags}
+    id_of_label = {lab: fid for fid, lab in label_of.items()}
+    trees = {}
+    adjacency, corr = [], {}
+    done = set()
+    max_gap = 3.0 * erosion_mm + 2.5 + 2.0  # erosion, chips, edge wear
+    for la, cracks in crack_by_label.items():
+        for lb, (len_ab, pts) in cracks.items():
+            if lb not in id_of_label or (min(la, lb), max(la, lb)) in done:
+                continue
+            done.add((min(la, lb), max(la, lb)))
+            ida, idb = id_of_label[la], id_of_label[lb]
+            fa, fb = by_id[ida], by_id[idb]
+            back = crack_by_label.get(lb, {}).get(la)
+            # both sides measured the crack: average them
+            length = 0.5 * (len_ab + (back[0] if back else len_ab))
+            if length < min_shared_mm:
+                continue
+            for f in (fa, fb):
+                if f.id not in trees:
+                    trees[f.id] = cKDTree(f.to_wall(f.contour_mm))
+            da, ia = trees[ida].query(pts)
+            db, ib = trees[idb].query(pts)
+            ok = (da < max_gap) & (db < max_gap)
+            pa, pb = fa.contour_mm[ia[ok]], fb.contour_mm[ib[ok]]
+            if ida > idb:
+                ida, idb, pa, pb = idb, ida, pb, pa
+            adjacency.append((ida, idb, float(length)))
+            corr[(ida, idb)] = (pa, pb)
+    adjacency.sort()
+    return adjacency, corr
+
