@@ -35,6 +35,8 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "match.verified": ("A person confirmed or rejected a proposal.", ("fragment", "other", "verdict")),
     "stage.failed": ("A job failed its last attempt and is parked; carries the error.", ("service", "error")),
     "input.rejected": ("A message, frame or artifact was refused as malformed; carries the reason.", ("error",)),
+    "noop.job": ("A job for the no-op stage: plumbing tests and the broker benchmark.", ()),
+    "noop.done": ("The no-op stage finished a job; names the job and when the worker received it.", ("job",)),
 }
 
 

@@ -103,12 +103,23 @@ class Store:
     file_locking : bool
         Pass HDF5 file locking through (False by default: rename-on-close makes it unnecessary,
         and NFS often does not support it).
+    create : bool
+        Create ``root`` if missing (True). False for a mount point: a missing root then means
+        the storage is unreachable (:meth:`available` is False), never a local stand-in directory.
     """
 
-    def __init__(self, root: str | os.PathLike, *, file_locking: bool = False):
+    def __init__(self, root: str | os.PathLike, *, file_locking: bool = False, create: bool = True):
         self.root = Path(root)
         self.file_locking = bool(file_locking)
-        self.root.mkdir(parents=True, exist_ok=True)
+        if create:
+            self.root.mkdir(parents=True, exist_ok=True)
+
+    def available(self) -> bool:
+        """True if the root is a writable directory now (an unmounted or stale NFS share is not)."""
+        try:
+            return self.root.is_dir() and os.access(self.root, os.W_OK | os.X_OK)
+        except OSError:
+            return False
 
     # -- paths -----------------------------------------------------------------------------
     def path(self, relpath: str) -> Path:
@@ -161,6 +172,35 @@ class Store:
                 fill(f)
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
+            os.replace(tmp, final)
+            _fsync_dir(final.parent)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+        return self.ref(relpath)
+
+    def import_file(self, source: str | os.PathLike, relpath: str, sha256: str) -> ArtifactRef:
+        """Copy a finished artifact file (e.g. from a local spool) to ``relpath``, atomically.
+
+        The copy is written to a temporary name, fsynced, checked against ``sha256`` and renamed;
+        an existing file with the same digest is kept (re-running a drain is harmless).
+        """
+        final = self.path(relpath)
+        if final.is_file() and file_sha256(final) == sha256:
+            return self.ref(relpath)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+        try:
+            h = hashlib.sha256()
+            with open(source, "rb") as src, os.fdopen(fd, "wb") as dst:
+                for block in iter(lambda: src.read(_CHUNK), b""):
+                    h.update(block)
+                    dst.write(block)
+                dst.flush()
+                os.fsync(dst.fileno())
+            if h.hexdigest() != sha256:
+                raise ArtifactError(f"{source} has sha256 {h.hexdigest()[:12]}…, expected {sha256[:12]}…: not copied")
             os.replace(tmp, final)
             _fsync_dir(final.parent)
         except BaseException:

@@ -1,0 +1,532 @@
+"""The broker: Majordomo-style job queues, a durable journal and the event feed.
+
+After the ZeroMQ Guide's ``mdbroker.py`` (ch. 4, Majordomo Protocol): one ROUTER socket; workers
+announce READY for a service, heartbeat both ways, hold one job at a time; a queue per service.
+Tessera adds what a station needs on top:
+
+* **routing** — every accepted event becomes one job per service listed for its type in the
+  config's ``[routing]`` table; a job's result is a list of new events, routed in turn;
+* **at-least-once** — every accepted event and its jobs are in the journal (SQLite, local disk,
+  group commit: one fsync per poll-loop batch) before the submitter gets its acknowledgement and
+  before the event is published; a dead worker's job is re-queued; a broker restart replays the
+  journal (queued and in-flight jobs are queued again); stage outputs are content-keyed, so a
+  repeated job is harmless;
+* **failure parking** — after ``max_attempts`` failures (exceptions or dead workers) a job is
+  parked and a ``stage.failed`` event carries the error; a rejected input (malformed message,
+  digest mismatch, truncated HDF5) is parked at once with an ``input.rejected`` event; parked jobs
+  are listed by STATUS and re-run by RERUN;
+* **event feed** — every event is published on a PUB socket with a per-stream sequence number and
+  idle heartbeats; SINCE requests return retained events after a sequence number (the Guide's
+  Clone pattern), so a subscriber that reconnects misses nothing.
+
+The wire protocol is in :mod:`common.bus.protocol` and ``docs/messages.md``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import socket as _socket
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import zmq
+
+from common import messages
+from common.bus import protocol as P
+from common.bus.journal import Journal
+
+log = logging.getLogger("tessera.broker")
+
+# timing defaults (overridden by [broker] in the config)
+HEARTBEAT_INTERVAL_S = 1.0
+HEARTBEAT_LIVENESS = 3
+
+
+@dataclass
+class Job:
+    id: str
+    seq: int
+    service: str
+    body: bytes                 # the event, msgpack, exactly as journaled
+    failures: int = 0
+    state: str = "queued"       # queued | inflight | parked
+    error: str = ""
+    worker: bytes | None = None
+    started: float = 0.0
+    progress: tuple | None = None
+    _event: dict | None = None
+
+    @property
+    def event(self) -> dict:
+        if self._event is None:
+            try:
+                self._event = P.loads(self.body)
+            except Exception:
+                self._event = {}
+        return self._event
+
+
+@dataclass
+class Worker:
+    identity: bytes
+    service: str
+    host: str = "?"
+    pid: int = 0
+    expiry: float = 0.0
+    job: str | None = None
+    since: float = field(default_factory=time.time)
+
+
+class Broker:
+    """The station's broker.
+
+    Parameters
+    ----------
+    config : dict
+        Loaded configuration (:func:`common.config.load_config`); uses ``[broker]`` and ``[routing]``.
+    context : zmq.Context, optional
+        Shared context (a new one by default).
+
+    Examples
+    --------
+    A service process runs it until SIGTERM::
+
+        broker = Broker(load_config())
+        broker.run(stop_event)
+    """
+
+    def __init__(self, config: Mapping, context: zmq.Context | None = None):
+        b = config["broker"]
+        self.config = config
+        self.routing: dict[str, list[str]] = {k: list(v) for k, v in config["routing"].items()}
+        self.interval = float(b.get("heartbeat_interval_s", HEARTBEAT_INTERVAL_S))
+        self.liveness = int(b.get("heartbeat_liveness", HEARTBEAT_LIVENESS))
+        self.max_attempts = int(b["max_attempts"])
+        self.batch_max = int(b["batch_max"])
+        self.history = int(b["feed_history"])
+        self.ctx = context or zmq.Context.instance()
+        self.journal = Journal(b["journal_dir"], history=self.history, compact_interval_s=b["compact_interval_s"])
+        state = self.journal.load()
+        self.stream = state.stream.encode()
+        self.last_seq = state.last_seq          # highest sequence number assigned
+        self.published_seq = state.last_seq     # highest sequence number durable and published
+        self.jobs: dict[str, Job] = {}
+        self.queues: dict[str, collections.deque] = collections.defaultdict(collections.deque)
+        self.waiting: dict[str, collections.deque] = collections.defaultdict(collections.deque)
+        self.workers: dict[bytes, Worker] = {}
+        self._uids: dict[str, int] = {}
+        self._uid_order: collections.deque = collections.deque()
+        for uid, seq in state.uids:
+            self._remember(uid, seq)
+        for jid, seq, service, st, failures, error, body in state.jobs:
+            job = Job(jid, seq, service, bytes(body), failures=failures, error=error,
+                      state="parked" if st == "parked" else "queued")
+            self.jobs[jid] = job
+            if job.state == "queued":
+                self.queues[service].append(jid)
+        self._ops: list = []
+        self._after: list = []
+        self._waiting_batches: collections.OrderedDict = collections.OrderedDict()
+        self._batch_id = 0
+        self._dirty: set[str] = set(self.queues)
+        self._completed = 0
+        self._rate: collections.deque = collections.deque()   # (second, completions)
+        self._started = time.time()
+        self._last_feed = 0.0
+        self._journal_ok = True
+        self.router = self.feed = self._signal = None
+        if state.jobs:
+            log.info("journal replayed: %d queued, %d parked jobs; stream %s at seq %d",
+                     sum(j.state == "queued" for j in self.jobs.values()),
+                     sum(j.state == "parked" for j in self.jobs.values()), state.stream, self.last_seq)
+
+    # -- sockets ---------------------------------------------------------------------------
+    def bind(self) -> None:
+        """Bind the ROUTER and PUB sockets and start the journal writer."""
+        b = self.config["broker"]
+        self.router = self.ctx.socket(zmq.ROUTER)
+        self.router.setsockopt(zmq.LINGER, 0)
+        self.router.setsockopt(zmq.ROUTER_HANDOVER, 1)
+        self.router.setsockopt(zmq.SNDHWM, 100000)
+        self.router.setsockopt(zmq.RCVHWM, 100000)
+        self.router.bind(f"tcp://{b['bind']}:{b['port']}")
+        self.feed = self.ctx.socket(zmq.PUB)
+        self.feed.setsockopt(zmq.LINGER, 0)
+        self.feed.setsockopt(zmq.SNDHWM, 100000)
+        self.feed.bind(f"tcp://{b['bind']}:{b['feed_port']}")
+        endpoint = f"inproc://journal-{id(self)}"
+        self._signal = self.ctx.socket(zmq.PAIR)
+        self._signal.bind(endpoint)
+        self.journal.start(self.ctx, endpoint)
+        log.info("broker on port %d, feed on port %d, journal %s, stream %s at seq %d",
+                 b["port"], b["feed_port"], self.journal.path, self.stream.decode(), self.last_seq)
+
+    def close(self) -> None:
+        """Flush the journal and close the sockets."""
+        self._flush()
+        deadline = time.monotonic() + 10
+        while self._waiting_batches and time.monotonic() < deadline:
+            if self._signal.poll(100):
+                self._on_durable(self._signal.recv())
+        self.journal.stop()
+        for s in (self.router, self.feed, self._signal):
+            if s is not None:
+                s.close(linger=0)
+
+    def run(self, stop: threading.Event | None = None) -> None:
+        """The poll loop: until ``stop`` is set (or forever)."""
+        if self.router is None:
+            self.bind()
+        stop = stop or threading.Event()
+        poller = zmq.Poller()
+        poller.register(self.router, zmq.POLLIN)
+        poller.register(self._signal, zmq.POLLIN)
+        next_heartbeat = time.monotonic() + self.interval
+        try:
+            while not stop.is_set():
+                timeout = max(0.0, min(next_heartbeat - time.monotonic(), 0.25))
+                ready = dict(poller.poll(timeout * 1000))
+                if self.router in ready:
+                    for _ in range(self.batch_max):
+                        try:
+                            frames = self.router.recv_multipart(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        self._handle(frames)
+                    self._dispatch_dirty()
+                    self._flush()
+                if self._signal in ready:
+                    while True:
+                        try:
+                            self._on_durable(self._signal.recv(zmq.NOBLOCK))
+                        except zmq.Again:
+                            break
+                    self._dispatch_dirty()
+                if time.monotonic() >= next_heartbeat:
+                    self._heartbeat()
+                    self._dispatch_dirty()
+                    self._flush()
+                    next_heartbeat = time.monotonic() + self.interval
+        finally:
+            self.close()
+
+    # -- batches and durability ------------------------------------------------------------
+    def _flush(self) -> None:
+        """Hand this batch's journal operations to the writer; defer its side effects until durable."""
+        if self._ops:
+            self._batch_id += 1
+            self.journal.append(self._batch_id, self._ops)
+            self._waiting_batches[self._batch_id] = self._after
+            self._ops, self._after = [], []
+        elif self._after:
+            if self._waiting_batches:  # keep order behind a batch still being written
+                next(reversed(self._waiting_batches.values())).extend(self._after)
+            else:
+                self._run_actions(self._after)
+            self._after = []
+
+    def _on_durable(self, frame: bytes) -> None:
+        if frame == b"FAILED":
+            self._journal_ok = False
+            log.error("journal failed: no further event is acknowledged")
+            return
+        upto = int(frame)
+        while self._waiting_batches:
+            bid = next(iter(self._waiting_batches))
+            if bid > upto:
+                break
+            self._run_actions(self._waiting_batches.pop(bid))
+
+    def _run_actions(self, actions: list) -> None:
+        for act in actions:
+            kind = act[0]
+            if kind == "reply":
+                self.router.send_multipart([act[1], b"", P.CLIENT, act[2], act[3], act[4]])
+            elif kind == "publish":
+                _, etype, seq, body = act
+                self.feed.send_multipart([etype.encode(), self.stream, str(seq).encode(), body])
+                self.published_seq = seq
+                self._last_feed = time.monotonic()
+            elif kind == "enqueue":
+                job = self.jobs.get(act[1])
+                if job is not None and job.state == "queued":
+                    self.queues[job.service].append(job.id)
+                    self._dirty.add(job.service)
+
+    # -- events ----------------------------------------------------------------------------
+    def _remember(self, uid: str, seq: int) -> None:
+        self._uids[uid] = seq
+        self._uid_order.append(uid)
+        while len(self._uid_order) > self.history:
+            self._uids.pop(self._uid_order.popleft(), None)
+
+    def accept_event(self, event: dict, body: bytes | None = None) -> int:
+        """Journal an event and the jobs its type routes to; publish and queue them once durable."""
+        seq = self.last_seq + 1
+        self.last_seq = seq
+        body = body if body is not None else P.dumps(event)
+        etype = event["type"]
+        self._ops.append(("event", seq, event["uid"], etype, float(event["time"]), body))
+        self._remember(event["uid"], seq)
+        for service in self.routing.get(etype, ()):
+            jid = f"{seq}-{service}"
+            self.jobs[jid] = Job(jid, seq, service, body, _event=event)
+            self._ops.append(("job", jid, seq, service))
+            self._after.append(("enqueue", jid))
+        self._after.append(("publish", etype, seq, body))
+        return seq
+
+    def _reject(self, error: str, **fields) -> None:
+        log.warning("rejected: %s", error)
+        self.accept_event(messages.new_message("input.rejected", error=error, broker=_socket.gethostname(), **fields))
+
+    # -- frames ----------------------------------------------------------------------------
+    def _handle(self, frames: list[bytes]) -> None:
+        if len(frames) < 4 or frames[1] != b"":
+            self._reject(f"malformed frame: {len(frames)} parts, expected identity, empty, header, command",
+                         source="broker")
+            return
+        identity, header, command, rest = frames[0], frames[2], frames[3], frames[4:]
+        try:
+            if header == P.WORKER:
+                self._worker_message(identity, command, rest)
+            elif header == P.CLIENT:
+                self._client_message(identity, command, rest)
+            else:
+                self._reject(f"unknown protocol header {header[:16]!r}", source="broker")
+        except (ValueError, KeyError, IndexError, TypeError, messages.MessageError) as exc:
+            self._reject(f"malformed {header[:8]!r} {command[:16]!r} message: {type(exc).__name__}: {exc}",
+                         source="broker")
+
+    def _send_worker(self, identity: bytes, command: bytes, *parts: bytes) -> None:
+        self.router.send_multipart([identity, b"", P.WORKER, command, *parts])
+
+    def _worker_message(self, identity: bytes, command: bytes, rest: list[bytes]) -> None:
+        now = time.monotonic()
+        worker = self.workers.get(identity)
+        if command == P.READY:
+            if worker is not None:  # a second READY is a protocol error (MDP): start afresh
+                self._drop_worker(worker, "announced READY twice", count_failure=False)
+            info = P.loads(rest[1]) if len(rest) > 1 else {}
+            worker = Worker(identity, rest[0].decode(), host=str(info.get("host", "?")), pid=int(info.get("pid", 0)),
+                            expiry=now + self.interval * self.liveness)
+            self.workers[identity] = worker
+            busy = info.get("job")
+            job = self.jobs.get(busy) if busy else None
+            if job is not None and job.state != "parked":  # a worker that reconnected mid-job keeps it
+                job.state, job.worker, worker.job = "inflight", identity, job.id
+            elif not busy:
+                self.waiting[worker.service].append(worker)
+                self._dirty.add(worker.service)
+            log.info("worker %s:%d ready for %s", worker.host, worker.pid, worker.service)
+            return
+        if worker is None:
+            if command == P.RESULT:  # result of a job from before a broker restart
+                self._complete(rest[0].decode(), rest[1])
+            if command != P.DISCONNECT:
+                self._send_worker(identity, P.DISCONNECT)
+            return
+        worker.expiry = now + self.interval * self.liveness
+        if command == P.HEARTBEAT:
+            return
+        if command == P.PROGRESS:
+            job = self.jobs.get(rest[0].decode())
+            if job is not None:
+                p = P.loads(rest[1])
+                job.progress = (float(p.get("fraction", 0.0)), str(p.get("text", "")))
+            return
+        if command == P.RESULT:
+            self._complete(rest[0].decode(), rest[1])
+            self._worker_idle(worker)
+        elif command == P.FAIL:
+            jid, kind, error = rest[0].decode(), rest[1], rest[2].decode(errors="replace")
+            job = self.jobs.get(jid)
+            if job is not None and job.state == "inflight" and job.worker == identity:
+                self._job_failed(job, error, rejected=(kind == P.FAIL_REJECTED), host=f"{worker.host}:{worker.pid}")
+            self._worker_idle(worker)
+        elif command == P.DISCONNECT:
+            handed_back = rest[0].decode() if rest and rest[0] else None
+            self._drop_worker(worker, "disconnected", count_failure=False)
+            if handed_back:
+                log.info("worker %s:%d handed back job %s", worker.host, worker.pid, handed_back)
+        else:
+            raise ValueError(f"unknown worker command {command[:16]!r}")
+
+    def _worker_idle(self, worker: Worker) -> None:
+        worker.job = None
+        self.waiting[worker.service].append(worker)
+        self._dirty.add(worker.service)
+
+    def _drop_worker(self, worker: Worker, reason: str, *, count_failure: bool) -> None:
+        self.workers.pop(worker.identity, None)
+        try:
+            self.waiting[worker.service].remove(worker)
+        except ValueError:
+            pass
+        job = self.jobs.get(worker.job) if worker.job else None
+        if job is not None and job.state == "inflight" and job.worker == worker.identity:
+            if count_failure:
+                self._job_failed(job, f"worker {worker.host}:{worker.pid} {reason}", host=f"{worker.host}:{worker.pid}")
+            else:
+                job.state, job.worker = "queued", None
+                self.queues[job.service].appendleft(job.id)
+                self._dirty.add(job.service)
+        log.info("worker %s:%d (%s) %s", worker.host, worker.pid, worker.service, reason)
+
+    def _complete(self, jid: str, payload: bytes) -> None:
+        job = self.jobs.pop(jid, None)
+        if job is None:
+            log.debug("duplicate or unknown result for %s ignored", jid)
+            return
+        self._ops.append(("done", jid))
+        self._completed += 1
+        sec = int(time.time())
+        if self._rate and self._rate[-1][0] == sec:
+            self._rate[-1][1] += 1
+        else:
+            self._rate.append([sec, 1])
+            while self._rate and self._rate[0][0] < sec - 60:
+                self._rate.popleft()
+        try:
+            events = P.loads(payload)
+            if not isinstance(events, list):
+                raise messages.MessageError(f"result must be a list of events, got {type(events).__name__}")
+        except Exception as exc:
+            self._reject(f"undecodable result of job {jid}: {exc}", job=jid, service=job.service)
+            return
+        for ev in events:
+            try:
+                ev = messages.validate(ev)
+            except messages.MessageError as exc:
+                self._reject(f"job {jid} returned an invalid event: {exc}", job=jid, service=job.service)
+                continue
+            if ev["uid"] in self._uids:
+                continue
+            self.accept_event(ev)
+
+    def _job_failed(self, job: Job, error: str, *, rejected: bool = False, host: str = "") -> None:
+        job.failures += 1
+        job.error = error
+        job.worker = None
+        ev = job.event
+        ctx = {k: ev[k] for k in ("fragment", "face") if k in ev}
+        if rejected or job.failures >= self.max_attempts:
+            job.state = "parked"
+            self._ops.append(("park", job.id, job.failures, error))
+            kind = "input.rejected" if rejected else "stage.failed"
+            log.warning("job %s parked after %d attempt(s): %s", job.id, job.failures, error)
+            self.accept_event(messages.new_message(kind, service=job.service, error=error, job=job.id,
+                                                   attempts=job.failures, input=ev.get("uid"), worker=host, **ctx))
+        else:
+            job.state = "queued"
+            self._ops.append(("fail", job.id, job.failures, error))
+            self.queues[job.service].append(job.id)
+            self._dirty.add(job.service)
+            log.info("job %s failed attempt %d, re-queued: %s", job.id, job.failures, error)
+
+    def _dispatch_dirty(self) -> None:
+        for service in self._dirty:
+            queue, idle = self.queues.get(service), self.waiting.get(service)
+            while queue and idle:
+                job = self.jobs.get(queue.popleft())
+                if job is None or job.state != "queued":
+                    continue
+                worker = idle.popleft()
+                job.state, job.worker, job.started, job.progress = "inflight", worker.identity, time.time(), None
+                worker.job = job.id
+                self._send_worker(worker.identity, P.JOB, job.id.encode(), str(job.failures + 1).encode(), job.body)
+        self._dirty.clear()
+
+    def _heartbeat(self) -> None:
+        now = time.monotonic()
+        for worker in list(self.workers.values()):
+            if worker.expiry < now:
+                self._drop_worker(worker, "stopped responding (heartbeat lost)", count_failure=True)
+            else:
+                self._send_worker(worker.identity, P.HEARTBEAT)
+        if now - self._last_feed >= self.interval:
+            self.feed.send_multipart([P.FEED_HEARTBEAT, self.stream, str(self.published_seq).encode(), b""])
+            self._last_feed = now
+
+    # -- clients ---------------------------------------------------------------------------
+    def _client_message(self, identity: bytes, command: bytes, rest: list[bytes]) -> None:
+        tag, body = (rest + [b"", b""])[:2]
+
+        def reply(status: bytes, obj) -> tuple:
+            return ("reply", identity, status, tag, P.dumps(obj))
+
+        if command == P.SUBMIT:
+            if not self._journal_ok:
+                self._run_actions([reply(P.ERR, {"error": "broker journal failed; see the broker log"})])
+                return
+            try:
+                event = messages.unpack(body)
+            except messages.MessageError as exc:
+                self._run_actions([reply(P.ERR, {"error": str(exc)})])
+                self._reject(f"submitted message refused: {exc}", source="client")
+                return
+            seq = self._uids.get(event["uid"])
+            if seq is None:
+                seq = self.accept_event(event, body)
+            self._after.append(reply(P.OK, {"seq": seq}))
+        elif command == P.STATUS:
+            self._run_actions([reply(P.OK, self.status())])
+        elif command == P.SINCE:
+            req = P.loads(body) if body else {}
+            after = int(req.get("after", 0))
+            limit = max(1, min(int(req.get("limit", 1000)), 10000))
+            events = self.journal.events_since(after, limit, self.published_seq)
+            first = self.journal.first_seq()
+            self._run_actions([reply(P.OK, {"stream": self.stream.decode(), "last_seq": self.published_seq,
+                                             "first_seq": first, "events": [[s, b] for s, b in events]})])
+        elif command == P.RERUN:
+            req = P.loads(body) if body else {}
+            which = str(req.get("job", "all"))
+            rerun = []
+            for job in self.jobs.values():
+                if job.state == "parked" and (which == "all" or job.id == which):
+                    job.state, job.failures, job.error = "queued", 0, ""
+                    self._ops.append(("requeue", job.id))
+                    self.queues[job.service].append(job.id)
+                    self._dirty.add(job.service)
+                    rerun.append(job.id)
+            self._after.append(reply(P.OK, {"rerun": rerun}))
+        else:
+            self._run_actions([reply(P.ERR, {"error": f"unknown command {command[:16]!r}"})])
+            self._reject(f"unknown client command {command[:16]!r}", source="client")
+
+    def status(self) -> dict:
+        """Queues, workers per host, jobs in flight, parked failures, throughput."""
+        now = time.time()
+        services = sorted(set(self.queues) | {w.service for w in self.workers.values()} |
+                          {s for v in self.routing.values() for s in v})
+        queued = collections.Counter(j.service for j in self.jobs.values() if j.state == "queued")
+        hosts: dict = collections.defaultdict(list)
+        for w in self.workers.values():
+            hosts[w.host].append({"service": w.service, "pid": w.pid, "job": w.job,
+                                  "up_s": round(now - w.since, 1)})
+        inflight = []
+        for j in self.jobs.values():
+            if j.state == "inflight":
+                w = self.workers.get(j.worker)
+                inflight.append({"job": j.id, "service": j.service, "fragment": j.event.get("fragment"),
+                                 "worker": f"{w.host}:{w.pid}" if w else "?", "running_s": round(now - j.started, 2),
+                                 "attempt": j.failures + 1, "progress": j.progress})
+        parked = [{"job": j.id, "service": j.service, "fragment": j.event.get("fragment"), "face": j.event.get("face"),
+                   "attempts": j.failures, "error": j.error} for j in self.jobs.values() if j.state == "parked"]
+        sec = int(now)
+        recent = sum(c for s, c in self._rate if sec - 60 <= s < sec)
+        span = min(60.0, max(1.0, now - self._started))
+        return {
+            "stream": self.stream.decode(), "last_seq": self.published_seq, "uptime_s": round(now - self._started, 1),
+            "pid": os.getpid(), "host": _socket.gethostname(),
+            "queues": {s: queued.get(s, 0) for s in services},
+            "workers": {h: v for h, v in sorted(hosts.items())},
+            "in_flight": inflight, "parked": parked,
+            "completed": self._completed, "jobs_per_s": round(recent / span, 2),
+            "journal_bytes": self.journal.size_bytes(), "routing": self.routing,
+        }

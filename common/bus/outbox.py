@@ -1,0 +1,113 @@
+"""The bench's spool and durable outbox: capture never blocks on the lab.
+
+The scanner writes its scans to shared storage when it is reachable, else to a local **spool**
+(a :class:`~common.store.Store` on the bench's own disk, same relative paths). Every event it
+emits goes first into the **outbox**, an SQLite table on local disk committed with
+``synchronous=FULL`` (fsynced), and is removed only after the broker acknowledged it. A drain
+walks the outbox in order: upload the entry's spooled artifact (copy, fsync, digest check,
+rename), submit the event, delete the entry; it stops at the first entry that cannot be done
+yet, so order is kept and nothing is lost when the broker or the storage is down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sqlite3
+import threading
+from pathlib import Path
+from typing import Mapping
+
+from common import messages
+from common.bus.client import BrokerClient, BrokerRefused, BrokerUnavailable
+from common.store import ArtifactError, Store
+
+log = logging.getLogger("tessera.outbox")
+
+
+class Outbox:
+    """Ordered, durable queue of events (and spooled artifacts) waiting for the lab.
+
+    Parameters
+    ----------
+    directory : path
+        Local directory (not the NFS share): holds ``outbox.sqlite`` and ``spool/``.
+
+    Examples
+    --------
+    ::
+
+        box = Outbox("tessera-data/spool")
+        box.put(event, spooled=ref.path)         # after writing the artifact into box.spool
+        box.drain(client, storage)               # returns how many entries went out
+    """
+
+    def __init__(self, directory: str | os.PathLike):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.spool = Store(self.dir / "spool")
+        self._lock = threading.Lock()
+        self._con = sqlite3.connect(self.dir / "outbox.sqlite", isolation_level=None, check_same_thread=False)
+        self._con.execute("PRAGMA journal_mode=WAL")
+        self._con.execute("PRAGMA synchronous=FULL")
+        self._con.execute("CREATE TABLE IF NOT EXISTS outbox (id INTEGER PRIMARY KEY AUTOINCREMENT, "
+                          "body BLOB NOT NULL, spooled TEXT, sha256 TEXT)")
+
+    def close(self) -> None:
+        with self._lock:
+            self._con.close()
+
+    def put(self, event: Mapping, *, spooled: str | None = None, sha256: str | None = None) -> int:
+        """Append an event (durable when this returns); ``spooled`` names an artifact in
+        :attr:`spool` (relative path, digest ``sha256``) to upload before the event is sent."""
+        body = messages.pack(messages.validate(event))
+        with self._lock:
+            cur = self._con.execute("INSERT INTO outbox (body, spooled, sha256) VALUES (?, ?, ?)", (body, spooled, sha256))
+            return int(cur.lastrowid)
+
+    def pending(self) -> list[tuple[int, dict, str | None]]:
+        """Entries waiting, oldest first: ``(id, event, spooled path or None)``."""
+        with self._lock:
+            rows = self._con.execute("SELECT id, body, spooled FROM outbox ORDER BY id").fetchall()
+        return [(i, messages.unpack(b), s) for i, b, s in rows]
+
+    def __len__(self) -> int:
+        with self._lock:
+            return int(self._con.execute("SELECT COUNT(*) FROM outbox").fetchone()[0])
+
+    def drain(self, client: BrokerClient, storage: Store) -> int:
+        """Send what can be sent now, in order; returns the number of entries drained.
+
+        Stops quietly at the first entry whose artifact cannot be uploaded (storage unreachable)
+        or whose event the broker does not acknowledge (broker down); the next drain resumes there.
+        """
+        done = 0
+        while True:
+            with self._lock:
+                row = self._con.execute("SELECT id, body, spooled, sha256 FROM outbox ORDER BY id LIMIT 1").fetchone()
+            if row is None:
+                return done
+            oid, body, spooled, sha256 = row
+            if spooled:
+                if not storage.available():
+                    log.debug("storage %s unreachable; %d entries wait", storage.root, len(self))
+                    return done
+                try:
+                    storage.import_file(self.spool.path(spooled), spooled, sha256)
+                except OSError as exc:
+                    log.info("upload of %s failed (%s); will retry", spooled, exc)
+                    return done
+            try:
+                client.submit(messages.unpack(body))
+            except BrokerUnavailable:
+                log.debug("broker unreachable; %d entries wait", len(self))
+                return done
+            except BrokerRefused as exc:  # the broker published input.rejected with the reason
+                log.error("broker refused outbox entry %d (%s); dropped", oid, exc)
+            with self._lock:
+                self._con.execute("DELETE FROM outbox WHERE id = ?", (oid,))
+            if spooled:
+                with contextlib.suppress(FileNotFoundError, ArtifactError):
+                    self.spool.path(spooled).unlink()
+            done += 1

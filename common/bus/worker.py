@@ -1,0 +1,287 @@
+"""Worker runtime: runs one stage module's ``handle(job, ctx)`` for the broker.
+
+After the ZeroMQ Guide's ``mdwrkapi.py`` / ``ppworker.py``: a DEALER socket announces READY for
+its service, heartbeats both ways (interval and liveness from ``[broker]``), reconnects with
+exponential back-off when the broker goes quiet, and holds one job at a time. The job runs in a
+separate thread so heartbeats continue while a long stage computes. An exception in a job is
+reported (FAIL; the broker counts attempts) and the process stays up; a job whose input is bad
+(:class:`~common.messages.MessageError`, :class:`~common.store.ArtifactError`) is reported as
+rejected, which the broker parks at once with an ``input.rejected`` event. On SIGTERM the worker
+finishes its job within ``worker.shutdown_grace_s`` or hands it back, then says DISCONNECT.
+Nothing important lives only in the worker's memory: kill -9 loses at most the job in flight,
+which the broker re-queues.
+
+A stage module ``services/<name>.py`` exposes ``SERVICE``, ``VERSION`` and
+``handle(job: dict, ctx: StageContext) -> list[dict]`` (the events to publish).
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import queue
+import signal
+import socket as _socket
+import threading
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import zmq
+
+from common import messages
+from common.bus import protocol as P
+from common.config import broker_endpoint, service_config
+from common.store import ArtifactError, Store
+
+log = logging.getLogger("tessera.worker")
+
+# errors that mean "this input is bad": retrying will not help, so the broker parks at once
+REJECTED_ERRORS: tuple[type[BaseException], ...] = (messages.MessageError, ArtifactError)
+
+
+@dataclass
+class StageContext:
+    """What a stage's ``handle(job, ctx)`` gets besides the job.
+
+    Attributes
+    ----------
+    store : Store
+        The artifact store (storage root from ``[storage]``).
+    config : dict
+        This service's ``[services.<name>]`` section (may be empty: use defaults).
+    log : logging.Logger
+        Logger named ``tessera.<service>``.
+    progress : callable(fraction, text)
+        Report progress in [0, 1]; shown by ``tessera status``. Cheap; call it as often as useful.
+    service, job_id, attempt
+        Which stage, which job, which attempt (1 = first).
+    stopping : threading.Event
+        Set when the worker was asked to stop; a long job may finish early by raising.
+    """
+
+    store: Store
+    config: dict
+    log: logging.Logger
+    progress: Callable[[float, str], None]
+    service: str = ""
+    job_id: str = ""
+    attempt: int = 1
+    stopping: threading.Event = field(default_factory=threading.Event)
+
+
+def load_stage(name: str):
+    """Import ``services.<name>`` and check it is a stage module (SERVICE, VERSION, handle)."""
+    try:
+        module = importlib.import_module(f"services.{name}")
+    except ModuleNotFoundError as exc:
+        if exc.name == f"services.{name}":
+            raise ValueError(f"service {name!r}: no module services/{name}.py in this build") from exc
+        raise
+    for attr in ("SERVICE", "VERSION", "handle"):
+        if not hasattr(module, attr):
+            raise ValueError(f"service {name!r}: services/{name}.py lacks {attr} (not a stage module)")
+    return module
+
+
+class _JobRunner(threading.Thread):
+    """Runs jobs one at a time; wakes the poll loop over an inproc PAIR when one finishes."""
+
+    def __init__(self, ctx: zmq.Context, endpoint: str, handle, make_context):
+        super().__init__(name="job-runner", daemon=True)
+        self.ctx, self.endpoint, self.handle, self.make_context = ctx, endpoint, handle, make_context
+        self.jobs: queue.Queue = queue.Queue()
+        self.outcomes: queue.Queue = queue.Queue()
+        self._lock = threading.Lock()
+        self._wake = None
+
+    def _notify(self, item) -> None:
+        self.outcomes.put(item)
+        with self._lock:
+            try:
+                self._wake.send(b"", zmq.NOBLOCK)
+            except zmq.Again:  # the poll loop already has unread wake-ups
+                pass
+
+    def run(self) -> None:
+        self._wake = self.ctx.socket(zmq.PAIR)
+        self._wake.setsockopt(zmq.LINGER, 0)
+        self._wake.connect(self.endpoint)
+        while True:
+            item = self.jobs.get()
+            if item is None:
+                break
+            jid, attempt, event = item
+
+            def progress(fraction: float, text: str = "", _jid=jid) -> None:
+                self._notify(("progress", _jid, float(fraction), str(text)))
+
+            try:
+                stage_ctx = self.make_context(jid, attempt, progress)
+                result = self.handle(event, stage_ctx) or []
+                payload = P.dumps([messages.validate(e) for e in result])
+                self._notify(("result", jid, payload))
+            except REJECTED_ERRORS as exc:
+                log.warning("job %s rejected: %s", jid, exc)
+                self._notify(("fail", jid, P.FAIL_REJECTED, f"{type(exc).__name__}: {exc}"))
+            except Exception as exc:  # one bad job must never take the worker down
+                tb = traceback.extract_tb(exc.__traceback__)[-3:]
+                where = "; ".join(f"{os.path.basename(f.filename)}:{f.lineno} in {f.name}" for f in tb)
+                log.exception("job %s failed", jid)
+                self._notify(("fail", jid, P.FAIL_ERROR, f"{type(exc).__name__}: {exc} (at {where})"))
+        self._wake.close(linger=0)
+
+
+def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Event | None = None,
+               context: zmq.Context | None = None, install_signals: bool = True) -> int:
+    """Serve one stage for the broker until stopped.
+
+    Parameters
+    ----------
+    service_module_name : str
+        Stage module under ``services/`` (``solver``, ``features``, ``noop``, ...).
+    config : dict
+        Loaded configuration (:func:`common.config.load_config`).
+    stop : threading.Event, optional
+        Set it to stop the worker (SIGTERM/SIGINT set it too when ``install_signals``).
+    context : zmq.Context, optional
+    install_signals : bool
+        Install SIGTERM/SIGINT handlers (only possible in the main thread).
+
+    Returns
+    -------
+    int
+        Exit status: 0 after a clean stop.
+    """
+    module = load_stage(service_module_name)
+    service = str(module.SERVICE)
+    stop = stop or threading.Event()
+    if install_signals and threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    b, w = config["broker"], config["worker"]
+    interval, liveness_max = float(b["heartbeat_interval_s"]), int(b["heartbeat_liveness"])
+    st = config["storage"]
+    store = Store(st["root"], file_locking=st["file_locking"])
+    stage_log = logging.getLogger(f"tessera.{service}")
+    settings = service_config(config, service_module_name)
+    ctx = context or zmq.Context.instance()
+    endpoint = broker_endpoint(config)
+    info = {"host": _socket.gethostname(), "pid": os.getpid(), "version": str(module.VERSION)}
+
+    def make_context(jid, attempt, progress):
+        return StageContext(store=store, config=settings, log=stage_log, progress=progress,
+                            service=service, job_id=jid, attempt=attempt, stopping=stop)
+
+    wake_endpoint = f"inproc://worker-wake-{uuid.uuid4().hex}"
+    wake = ctx.socket(zmq.PAIR)
+    wake.bind(wake_endpoint)
+    runner = _JobRunner(ctx, wake_endpoint, module.handle, make_context)
+    runner.start()
+
+    sock = None
+    current: str | None = None       # job in flight
+    stop_seen_at: float | None = None
+    backoff = float(w["reconnect_min_s"])
+
+    def connect():
+        nonlocal sock
+        if sock is not None:
+            sock.close(linger=0)
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.ROUTING_ID, f"{service}-{info['pid']}-{uuid.uuid4().hex[:8]}".encode())
+        sock.connect(endpoint)
+        ready = dict(info, job=current) if current else info
+        sock.send_multipart([b"", P.WORKER, P.READY, service.encode(), P.dumps(ready)])
+        log.info("worker %s connected to %s%s", service, endpoint, f" (still running {current})" if current else "")
+
+    connect()
+    last_heard = time.monotonic()
+    next_heartbeat = time.monotonic() + interval
+    try:
+        while True:
+            if stop.is_set():
+                if stop_seen_at is None:
+                    stop_seen_at = time.monotonic()
+                    log.info("worker %s stopping%s", service, f"; finishing {current}" if current else "")
+                if current is None:
+                    sock.send_multipart([b"", P.WORKER, P.DISCONNECT, b""])
+                    break
+                if time.monotonic() - stop_seen_at > float(w["shutdown_grace_s"]):
+                    log.warning("worker %s: job %s not finished in time; handing it back", service, current)
+                    sock.send_multipart([b"", P.WORKER, P.DISCONNECT, current.encode()])
+                    break
+            poller = zmq.Poller()
+            poller.register(sock, zmq.POLLIN)
+            poller.register(wake, zmq.POLLIN)
+            timeout = max(0.0, min(next_heartbeat - time.monotonic(), 0.2))
+            ready = dict(poller.poll(timeout * 1000))
+            if sock in ready:
+                frames = sock.recv_multipart()
+                last_heard = time.monotonic()
+                backoff = float(w["reconnect_min_s"])
+                if len(frames) < 3 or frames[1] != P.WORKER:
+                    log.warning("malformed frame from broker ignored: %d parts", len(frames))
+                else:
+                    command = frames[2]
+                    if command == P.JOB:
+                        jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
+                        if current is not None:  # the broker thinks we are idle: tell it this job failed
+                            sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_ERROR,
+                                                 f"worker busy with {current}".encode()])
+                        else:
+                            try:
+                                event = messages.unpack(body)
+                            except messages.MessageError as exc:
+                                sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_REJECTED,
+                                                     f"MessageError: {exc}".encode()])
+                            else:
+                                current = jid
+                                runner.jobs.put((jid, attempt, event))
+                    elif command == P.DISCONNECT:
+                        log.info("broker asked %s to reconnect", service)
+                        connect()
+                    # HEARTBEAT: liveness already reset
+            if wake in ready:
+                while True:
+                    try:
+                        wake.recv(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                while True:
+                    try:
+                        item = runner.outcomes.get_nowait()
+                    except queue.Empty:
+                        break
+                    kind, jid = item[0], item[1]
+                    if kind == "progress":
+                        sock.send_multipart([b"", P.WORKER, P.PROGRESS, jid.encode(),
+                                             P.dumps({"fraction": item[2], "text": item[3]})])
+                        continue
+                    if kind == "result":
+                        sock.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), item[2]])
+                    else:
+                        sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), item[2], item[3].encode()])
+                    if jid == current:
+                        current = None
+            if time.monotonic() >= next_heartbeat:
+                if time.monotonic() - last_heard > interval * liveness_max:
+                    log.warning("broker silent for %.1f s; reconnecting in %.2f s", interval * liveness_max, backoff)
+                    if not stop.wait(backoff):
+                        backoff = min(backoff * 2, float(w["reconnect_max_s"]))
+                        connect()
+                    last_heard = time.monotonic()
+                else:
+                    sock.send_multipart([b"", P.WORKER, P.HEARTBEAT])
+                next_heartbeat = time.monotonic() + interval
+    finally:
+        runner.jobs.put(None)
+        if sock is not None:
+            sock.close(linger=200)
+        wake.close(linger=0)
+    log.info("worker %s stopped", service)
+    return 0

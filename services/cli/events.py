@@ -1,0 +1,46 @@
+"""tessera events — print the event feed as JSON lines (the reference subscriber).
+
+Each line is one event document plus ``seq`` and ``stream``. With ``--since N`` every retained
+event after sequence N is printed first; the subscriber fills any gap from the broker, so a
+client that remembers the last ``seq`` it saw and restarts with ``--since`` misses nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from common.config import add_config_arguments, config_from_arguments
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("events", help="print the event feed as JSON lines")
+    p.add_argument("--since", type=int, default=None, metavar="N", help="first print every event after sequence N")
+    p.add_argument("--type", action="append", default=None, metavar="T", help="only events of this type (repeatable)")
+    p.add_argument("--idle-exit", type=float, default=None, metavar="S", help="exit after S seconds without events")
+    p.add_argument("--count", type=int, default=None, metavar="K", help="exit after K events")
+    add_config_arguments(p)
+    p.set_defaults(func=run)
+
+
+def _plain(obj):
+    if isinstance(obj, bytes):
+        return obj.hex()
+    return str(obj)
+
+
+def run(args) -> int:
+    from common.bus.feed import FeedSubscriber
+    config = config_from_arguments(args)
+    n = 0
+    with FeedSubscriber.from_config(config, since=args.since, types=args.type) as sub:
+        try:
+            for seq, event in sub.events(timeout_s=args.idle_exit):
+                sys.stdout.write(json.dumps({"seq": seq, "stream": sub.stream, **event}, default=_plain) + "\n")
+                sys.stdout.flush()
+                n += 1
+                if args.count is not None and n >= args.count:
+                    break
+        except BrokenPipeError:
+            return 0
+    return 0

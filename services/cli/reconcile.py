@@ -1,0 +1,38 @@
+"""tessera reconcile — queue fragments whose later stages are missing on storage."""
+
+from __future__ import annotations
+
+from common.config import add_config_arguments, config_from_arguments
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("reconcile", help="find fragments whose later stages are missing on storage and queue them")
+    p.add_argument("--dry-run", action="store_true", help="only list what would be queued")
+    add_config_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from common.bus.client import BrokerClient, BrokerUnavailable
+    from common.bus.reconcile import missing_stages
+    from common.store import Store
+    config = config_from_arguments(args)
+    st = config["storage"]
+    store = Store(st["root"], file_locking=st["file_locking"], create=False)
+    if not store.available():
+        print(f"error: storage root {store.root} is not reachable")
+        return 1
+    events = missing_stages(store)
+    for e in events:
+        print(f"{e['fragment']:<12} {e['type']:<15} {e.get('face', ''):<6} {e['artifact']['path']}")
+    if args.dry_run or not events:
+        print(f"{len(events)} event(s) {'would be ' if args.dry_run else ''}queued")
+        return 0
+    try:
+        with BrokerClient.from_config(config) as bus:
+            bus.submit_many(events)
+    except BrokerUnavailable as exc:
+        print(f"error: {exc}")
+        return 1
+    print(f"{len(events)} event(s) queued")
+    return 0
