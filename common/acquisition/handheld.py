@@ -26,14 +26,15 @@ import numpy as np
 from common.acquisition.discontinuity import depth_discontinuities
 from common.acquisition.lightfile import LightSet
 from common.acquisition.photometric import least_squares_normals, robust_normals
+from common.acquisition.spheres import diffuse_sphere_intensities, mirror_sphere_directions
 from common.acquisition.surface import FragmentSurface
 from common.rgbn.image import RGBNImage
+from common.rgbn.io import encode_normal_map, linear_to_srgb, srgb_to_linear, write_image
 
 METHODS = ("robust", "least_squares")
 
-
-def _srgb_to_linear(v):
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+#: Algorithm version of the hand-held path: part of the content key of its RGBN artifacts.
+VERSION = "handheld-ps-1"
 
 
 def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False,
@@ -88,7 +89,7 @@ def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False,
         images[i] = raw[..., ::-1] / np.float32(scale)  # OpenCV gives BGR
     saturated = images.max(axis=3) >= saturation
     if srgb:
-        images = _srgb_to_linear(images)
+        images = srgb_to_linear(images)
     return images, saturated
 
 
@@ -132,6 +133,38 @@ def object_mask(images, *, exclude=None) -> np.ndarray:
     flood = np.pad(1 - obj, 1, constant_values=1)
     cv2.floodFill(flood, None, (0, 0), 2)
     return (flood[1:-1, 1:-1] != 2)
+
+
+def sphere_lights(chrome_images, chrome_circle, *, diffuse_images=None, diffuse_circle=None,
+                  diffuse_saturated=None) -> LightSet:
+    """Calibrate the flashes from the spheres (thesis §3.2).
+
+    Parameters
+    ----------
+    chrome_images : (N, H, W[, 3]) array
+        Images showing the mirror sphere (the capture itself, or a separate set under the
+        same flashes).
+    chrome_circle : (cx, cy, r)
+        Mirror-sphere outline in pixels.
+    diffuse_images, diffuse_circle : optional
+        Images showing the diffuse sphere and its outline; with them each flash also gets a
+        relative RGB intensity.
+    diffuse_saturated : (N, H, W) bool, optional
+        Saturated measurements of the diffuse sphere, excluded from the intensity fit.
+
+    Returns
+    -------
+    LightSet
+        Directions from the mirror-sphere highlights, intensities from the diffuse sphere.
+    """
+    directions = mirror_sphere_directions(chrome_images, chrome_circle)
+    intensities = None
+    if diffuse_images is not None:
+        if diffuse_circle is None:
+            raise ValueError("diffuse_circle is required with diffuse_images")
+        valid = None if diffuse_saturated is None else ~np.asarray(diffuse_saturated, bool)
+        intensities = diffuse_sphere_intensities(diffuse_images, diffuse_circle, directions, valid=valid)
+    return LightSet(directions, intensities=intensities)
 
 
 def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated=None,
@@ -294,3 +327,32 @@ def simulate_flash_capture(surface: FragmentSurface, directions, *, intensities=
             img = img + rng.normal(0.0, noise, img.shape).astype(np.float32)
         out[i] = np.clip(img, 0.0, 1.0)
     return out
+
+
+def discontinuity_picture(discontinuity) -> np.ndarray:
+    """(H, W, 3) colour picture of a discontinuity map: hue = direction to the occluder, value = strength."""
+    d = np.asarray(discontinuity, np.float32)
+    if d.ndim != 3 or d.shape[2] != 2:
+        raise ValueError(f"discontinuity must be (H, W, 2), got {d.shape}")
+    strength = np.clip(np.linalg.norm(d, axis=2), 0, 1)
+    hue = (np.degrees(np.arctan2(d[..., 1], d[..., 0])) % 360) / 2  # OpenCV hue is 0..180
+    hsv = np.stack([hue, np.full_like(hue, 255), strength * 255], axis=2).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).astype(np.float32) / 255
+
+
+def write_pictures(image: RGBNImage, directory: str | os.PathLike, *, prefix: str = "") -> list[str]:
+    """Write viewable PNGs of an RGBN image: normals (OpenGL colours), albedo (sRGB), confidence, discontinuity."""
+    from pathlib import Path
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    alpha = image.mask.astype(np.float32)
+    if image.normals is not None:
+        written.append(write_image(out / f"{prefix}normals.png", encode_normal_map(image.normals, image.mask), alpha=alpha))
+    written.append(write_image(out / f"{prefix}albedo.png", linear_to_srgb(image.albedo), alpha=alpha))
+    if image.confidence is not None:
+        written.append(write_image(out / f"{prefix}confidence.png", image.confidence))
+    if image.discontinuity is not None:
+        written.append(write_image(out / f"{prefix}discontinuity.png", discontinuity_picture(image.discontinuity)))
+    return [str(p) for p in written]
