@@ -1,0 +1,188 @@
+"""The broker with real processes: redelivery, restart, parking, bad input, journal compaction."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import h5py
+import numpy as np
+import pytest
+import zmq
+
+from common.bus import protocol as P
+from common.bus.client import BrokerRefused
+from common.messages import VERSION, new_message
+from common.store import Store
+
+from .conftest import collect, wait_for
+
+
+def _done(events, uids=None):
+    return {e["job"] for _, e in events if e["type"] == "noop.done" and (uids is None or e["job"] in uids)}
+
+
+def test_worker_killed_mid_job_is_redelivered(make_station):
+    st = make_station(services={"noop": {"sleep_s": 1.5, "write_output": True}})
+    st.broker()
+    st.worker()
+    st.worker()
+    st.workers_ready(2)
+    job = new_message("noop.job", fragment="F0001", face="front")
+    with st.client() as c:
+        c.submit(job)
+    inflight = wait_for(lambda: st.status()["in_flight"], 10, "the job to be in flight")
+    pid = int(inflight[0]["worker"].rsplit(":", 1)[1])
+    os.kill(pid, signal.SIGKILL)
+    with st.subscriber(0) as sub:
+        events = collect(sub, lambda ev: _done(ev), 20, "noop.done")
+    done = [e for _, e in events if e["type"] == "noop.done"]
+    assert len(done) == 1 and done[0]["job"] == job["uid"]
+    assert done[0]["attempt"] == 2, "the second delivery (after the kill) completed it"
+    outputs = [p for p in (st.root / "storage" / "fragments" / "F0001" / "noop").iterdir() if not p.name.startswith(".")]
+    assert len(outputs) == 1, f"exactly one result artifact, got {outputs}"
+    assert not any(e["type"] == "stage.failed" for _, e in events)
+    alive = [p for p in st.procs[1:] if p.poll() is None]
+    assert len(alive) == 1 and alive[0].pid != pid
+
+
+def test_broker_restart_with_queued_and_inflight_jobs_loses_none(make_station):
+    st = make_station(services={"noop": {"sleep_s": 0.4}})
+    broker = st.broker()
+    st.worker()
+    st.workers_ready(1)
+    jobs = [new_message("noop.job", n=i) for i in range(6)]
+    with st.client() as c:
+        c.submit_many(jobs)
+    wait_for(lambda: st.status()["in_flight"], 10, "a job in flight")
+    s = st.status()
+    assert s["queues"]["noop"] >= 4, "jobs are still queued when the broker dies"
+    broker.send_signal(signal.SIGKILL)
+    broker.wait(5)
+    time.sleep(0.5)
+    st.broker()
+    uids = {j["uid"] for j in jobs}
+    with st.subscriber(0) as sub:
+        events = collect(sub, lambda ev: _done(ev, uids) == uids, 30, "all six jobs done")
+    seqs = [s for s, _ in events]
+    assert seqs == list(range(1, len(seqs) + 1)), "the feed after restart is complete and in order"
+    submitted = [e["uid"] for _, e in events if e["type"] == "noop.job"]
+    assert submitted == [j["uid"] for j in jobs], "every accepted event survived, in order, once"
+
+
+def test_failing_job_is_parked_with_stage_failed_and_can_be_rerun(make_station):
+    st = make_station()
+    st.broker()
+    st.worker()
+    st.workers_ready(1)
+    bad = new_message("noop.job", fail=True)
+    good = new_message("noop.job")
+    with st.client() as c:
+        c.submit(bad)
+        c.submit(good)
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: any(e["type"] == "stage.failed" for _, e in ev) and _done(ev), 20,
+                             "stage.failed and the good job")
+            failed = [e for _, e in events if e["type"] == "stage.failed"][0]
+            assert failed["service"] == "noop" and failed["attempts"] == 3 and "asked to fail" in failed["error"]
+            parked = c.status()["parked"]
+            assert [p["job"] for p in parked] == [failed["job"]] and parked[0]["attempts"] == 3
+            assert c.rerun("all") == [failed["job"]]
+            again = collect(sub, lambda ev: any(e["type"] == "stage.failed" for _, e in ev), 20, "second stage.failed")
+            assert [e for _, e in again if e["type"] == "stage.failed"][0]["job"] == failed["job"]
+    assert _done(events) == {good["uid"]}
+
+
+def _raw_send(endpoint: str, *frames: bytes) -> None:
+    ctx = zmq.Context.instance()
+    s = ctx.socket(zmq.DEALER)
+    s.setsockopt(zmq.LINGER, 500)
+    s.connect(endpoint)
+    s.send_multipart(list(frames))
+    s.close()
+
+
+def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station):
+    st = make_station()
+    st.broker()
+    worker = st.worker()
+    st.workers_ready(1)
+    store = Store(st.root / "storage")
+    fill = lambda f: f.create_dataset("x", data=np.arange(1000.0))  # noqa: E731
+    ok_ref = store.write("fragments/F0002/scans/scans-a.h5", "tessera.scans", 1, fill)
+    trunc_ref = store.write("fragments/F0003/scans/scans-b.h5", "tessera.scans", 1, fill)
+    with open(store.path(trunc_ref.path), "r+b") as fh:
+        fh.truncate(trunc_ref.bytes // 2)
+    trunc_ref = store.ref(trunc_ref.path)  # digest of the truncated file: only HDF5 can tell
+    bad_digest = dict(ok_ref.to_dict(), sha256="0" * 64)
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    good = [new_message("noop.job", n=i) for i in range(3)]
+    with st.client() as c:
+        c.submit(good[0])
+        _raw_send(endpoint, b"garbage")                                        # malformed frames
+        _raw_send(endpoint, b"", b"XX9", b"HELLO")                             # unknown protocol
+        _raw_send(endpoint, b"", P.WORKER, P.RESULT, b"no-such-job", b"\xc1\xc1")  # worker frame from nowhere
+        for doc in ({"v": VERSION, "type": "no.such.type", "uid": "u1", "time": 0.0},   # unknown type
+                    {"v": 99, "type": "noop.job", "uid": "u2", "time": 0.0}):          # wrong version
+            with pytest.raises(BrokerRefused):
+                c.request(P.SUBMIT, P.dumps(doc))
+        with pytest.raises(BrokerRefused):
+            c.request(P.SUBMIT, b"\xc1not msgpack")
+        c.submit(good[1])
+        trunc = new_message("fragment.ready", fragment="F0003", artifact=trunc_ref)
+        wrong = new_message("fragment.ready", fragment="F0002", artifact=bad_digest)
+        fine = new_message("fragment.ready", fragment="F0002", artifact=ok_ref)
+        c.submit_many([trunc, wrong, fine, good[2]])
+        want = {g["uid"] for g in good} | {fine["uid"]}
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: _done(ev) >= want and
+                             sum(e["type"] == "input.rejected" for _, e in ev) >= 6, 20, "good jobs and rejections")
+        rejected = [e for _, e in events if e["type"] == "input.rejected"]
+        errors = " | ".join(e["error"] for e in rejected)
+        for phrase in ("malformed frame", "unknown protocol header", "unknown message type",
+                       "schema version 99", "undecodable", "not a readable HDF5", "sha256"):
+            assert phrase in errors, f"no input.rejected saying {phrase!r}: {errors}"
+        parked = {p["fragment"] for p in c.status()["parked"]}
+        assert parked == {"F0002", "F0003"}, "bad artifacts are parked at once, not retried"
+    assert _done(events) == want
+    assert all(p.poll() is None for p in st.procs), "broker and worker stay up"
+    assert worker.poll() is None
+
+
+def test_journal_is_compacted_and_keeps_pending_jobs(make_station):
+    st = make_station(extra="")
+    cfg = st.config_path.read_text().replace("max_attempts = 3", "max_attempts = 3\nfeed_history = 50")
+    st.config_path.write_text(cfg)
+    st.broker()
+    st.worker()
+    st.workers_ready(1)
+    with st.client() as c:
+        c.submit_many([new_message("noop.job", n=i) for i in range(400)])
+        wait_for(lambda: c.status()["completed"] >= 400, 30, "400 jobs done")
+        time.sleep(1.5)  # two compaction periods
+        first = c.since(0, 10)["first_seq"]
+    assert first > 800 - 50 - 5, f"old events dropped from the journal (first retained {first})"
+    db = st.root / "journal" / "journal.sqlite"
+    import sqlite3
+    with sqlite3.connect(db) as con:
+        n_events = con.execute("SELECT COUNT(*) FROM events").fetchone()[0]
+        n_jobs = con.execute("SELECT COUNT(*) FROM jobs").fetchone()[0]
+    assert n_events <= 50 + 5 and n_jobs == 0
+
+
+def test_worker_finishes_its_job_on_sigterm(make_station):
+    st = make_station(services={"noop": {"sleep_s": 1.0}})
+    st.broker()
+    w = st.worker()
+    st.workers_ready(1)
+    job = new_message("noop.job")
+    with st.client() as c:
+        c.submit(job)
+        wait_for(lambda: c.status()["in_flight"], 10, "job in flight")
+        w.send_signal(signal.SIGTERM)
+        assert w.wait(10) == 0
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: _done(ev), 5, "the job finished before exit")
+    assert _done(events) == {job["uid"]}
+    assert [e["attempt"] for _, e in events if e["type"] == "noop.done"] == [1]
