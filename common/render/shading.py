@@ -1,0 +1,357 @@
+"""Shading styles computed from the normals (§7.3): Lambertian and raking light, toon shading
+with quantized colour, Gooch warm/cool, exaggerated shading, and (multiscale) mean curvature
+shading.
+
+Every function takes arrays (normals x right, y up, z to viewer) and returns display values in
+[0, 1]; :mod:`common.render.recipes` turns them into layers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.render._util import as_light, check_dpi, dot_light, smoothstep
+from common.rgbn._filters import check_mask, check_normals
+from common.rgbn.curvature import mean_curvature
+from common.rgbn.smoothing import iter_scale_space
+
+
+def lambertian(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
+               ambient: float = 0.0) -> np.ndarray:
+    """Lambertian shading ``albedo * (ambient + (1 - ambient) * max(0, n . l))``.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    light : 3-vector or (azimuth_deg, elevation_deg)
+        Light direction; a raking light has a low elevation (5-20 degrees) and shows relief that a
+        photograph hides (§7.3.1).
+    albedo : (H, W, 3) float, optional
+        Display colour; None gives grey shading (H, W).
+    ambient : float
+        Fraction of light that reaches every pixel, in [0, 1].
+
+    Returns
+    -------
+    (H, W) or (H, W, 3) float32 in [0, 1]
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.3.1.
+
+    Examples
+    --------
+    >>> n = np.zeros((2, 2, 3), np.float32); n[..., 2] = 1
+    >>> float(lambertian(n, (0.0, 30.0))[0, 0])
+    0.5
+    """
+    normals = check_normals(normals)
+    if not 0.0 <= ambient <= 1.0:
+        raise ValueError(f"ambient must be in [0, 1], got {ambient}")
+    shade = np.float32(ambient) + np.float32(1.0 - ambient) * np.maximum(dot_light(normals, as_light(light)), 0.0)
+    if albedo is None:
+        return shade.astype(np.float32)
+    albedo = _check_colour(albedo, normals.shape[:2])
+    return (albedo * shade[..., None]).astype(np.float32)
+
+
+def toon(normals: np.ndarray, light=(135.0, 45.0), *, levels: int = 3, softness: float = 0.02,
+         dark: float = 0.35, colours: np.ndarray | None = None) -> np.ndarray:
+    """Toon (cel) shading: ``n . l`` cut into ``levels`` bands with smooth steps (§7.3.2).
+
+    Band boundaries are the isophotes ``n . l = j / levels`` (j = 1..levels-1) of the clamped
+    Lambertian term; each boundary is a smoothstep of half-width ``softness`` centred on its
+    isophote, so the tone is exactly half-way between two bands on the isophote itself.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    light : 3-vector or (azimuth_deg, elevation_deg)
+        Light direction.
+    levels : int
+        Number of tone bands (>= 2).
+    softness : float
+        Half-width of each step in units of ``n . l`` (0 = hard steps).
+    dark : float
+        Brightness of the darkest band (the lightest is 1).
+    colours : (H, W, 3) float, optional
+        Flat colours to shade, e.g. :func:`quantize_colours` of the albedo; None gives grey.
+
+    Returns
+    -------
+    (H, W) or (H, W, 3) float32 in [0, 1]
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.3.2; Lake et al., "Stylized rendering techniques for scalable
+    real-time 3D animation", NPAR 2000.
+    """
+    normals = check_normals(normals)
+    if int(levels) != levels or levels < 2:
+        raise ValueError(f"levels must be an integer >= 2, got {levels}")
+    if softness < 0:
+        raise ValueError(f"softness must be >= 0, got {softness}")
+    if not 0.0 <= dark <= 1.0:
+        raise ValueError(f"dark must be in [0, 1], got {dark}")
+    s = np.maximum(dot_light(normals, as_light(light)), 0.0)
+    tone = np.zeros_like(s)
+    for j in range(1, int(levels)):
+        t = j / levels
+        tone += smoothstep(t - softness, t + softness, s)
+    tone /= np.float32(levels - 1)
+    shade = np.float32(dark) + np.float32(1.0 - dark) * tone
+    if colours is None:
+        return shade
+    colours = _check_colour(colours, normals.shape[:2])
+    return (colours * shade[..., None]).astype(np.float32)
+
+
+def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray | None = None,
+                     sample: int = 20000, seed: int = 0) -> np.ndarray:
+    """Replace each colour by its k-means cluster centre (the flat colours of toon shading, §7.3.2).
+
+    Clusters are fitted on at most ``sample`` random mask pixels (deterministic for a ``seed``),
+    then every pixel takes its nearest centre. Pixels outside the mask are returned unchanged.
+    """
+    from sklearn.cluster import KMeans
+
+    colours = np.asarray(colours, dtype=np.float32)
+    if colours.ndim != 3 or colours.shape[2] != 3:
+        raise ValueError(f"colours must be (H, W, 3), got shape {colours.shape}")
+    if int(n_colours) != n_colours or n_colours < 1:
+        raise ValueError(f"n_colours must be an integer >= 1, got {n_colours}")
+    mask = check_mask(mask, colours.shape[:2])
+    pix = colours[mask]
+    if pix.shape[0] == 0:
+        return colours.copy()
+    rng = np.random.default_rng(seed)
+    fit = pix if pix.shape[0] <= sample else pix[rng.choice(pix.shape[0], sample, replace=False)]
+    k = int(min(n_colours, len(np.unique(fit, axis=0))))
+    km = KMeans(n_clusters=k, n_init=3, random_state=seed).fit(fit)
+    centres = km.cluster_centers_.astype(np.float32)
+    out = colours.copy()
+    # nearest centre in chunks keeps a 16-Mpx image within memory
+    flat_idx = np.flatnonzero(mask.ravel())
+    flat = out.reshape(-1, 3)
+    for start in range(0, flat_idx.size, 1 << 20):
+        idx = flat_idx[start:start + (1 << 20)]
+        d = ((flat[idx, None, :] - centres[None]) ** 2).sum(axis=2)
+        flat[idx] = centres[np.argmin(d, axis=1)]
+    return out
+
+
+def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
+          blue: float = 0.4, yellow: float = 0.4, alpha: float = 0.2, beta: float = 0.6) -> np.ndarray:
+    """Gooch warm/cool shading: hue, not only brightness, shows orientation.
+
+    ``c = t * k_warm + (1 - t) * k_cool`` with ``t = (1 + n . l) / 2``,
+    ``k_cool = (0, 0, blue) + alpha * kd`` and ``k_warm = (yellow, yellow, 0) + beta * kd``.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    light : 3-vector or (azimuth_deg, elevation_deg)
+        Light direction.
+    albedo : (H, W, 3) float, optional
+        Diffuse colour kd (display values); None uses a neutral 0.75 grey.
+    blue, yellow, alpha, beta : float
+        The paper's b, y, alpha, beta.
+
+    Returns
+    -------
+    (H, W, 3) float32 in [0, 1]
+
+    References
+    ----------
+    A. Gooch, B. Gooch, P. Shirley, E. Cohen, "A non-photorealistic lighting model for automatic
+    technical illustration", SIGGRAPH 1998, §4.2; Toler-Franklin 2011, §7.3.
+    """
+    normals = check_normals(normals)
+    kd = np.full(normals.shape, 0.75, np.float32) if albedo is None else _check_colour(albedo, normals.shape[:2])
+    t = (1.0 + dot_light(normals, as_light(light)))[..., None] * np.float32(0.5)
+    cool = np.array([0.0, 0.0, blue], np.float32) + np.float32(alpha) * kd
+    warm = np.array([yellow, yellow, 0.0], np.float32) + np.float32(beta) * kd
+    return np.clip(t * warm + (1.0 - t) * cool, 0.0, 1.0).astype(np.float32)
+
+
+def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray | None = None,
+                        scales: int = 8, sigma0_px: float = 1.0, sigma_ratio: float = 2.0,
+                        contrast: float = 10.0, detail: float = 0.5, base_weight: float = 0.3,
+                        foreshortening: bool = True) -> np.ndarray:
+    """Exaggerated shading (Rusinkiewicz, Burns & DeCarlo 2006) of a normal map (§7.3.5).
+
+    With normals ``n_i`` smoothed at ``sigma_i = sigma0 * ratio^i`` (i = 0..scales, the last one
+    being the base), the light at scale i is the global light projected into the tangent plane of
+    the next-coarser normal, ``l_{i+1} = normalize(l - (l . n_{i+1}) n_{i+1})`` — always grazing
+    with respect to the overall shape, so every bump at every scale is lit from the side. Each
+    scale contributes ``c_i = clamp(contrast * n_i . l_{i+1}, -1, 1)``; the base adds ordinary
+    clamped lighting ``c_b = clamp(contrast * n_b . l)``. The result is ::
+
+        0.5 + 0.5 * (sum_i k_i c_i + k_b c_b) / (sum_i k_i + k_b),   k_i = sigma_i^(-detail)
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    light : 3-vector or (azimuth_deg, elevation_deg)
+        Global light direction.
+    mask : (H, W) bool, optional
+        Pixels carrying normals (smoothing ignores the rest).
+    scales : int
+        Number of detail scales (the paper's examples use 6-10).
+    sigma0_px, sigma_ratio : float
+        Finest smoothing (pixels) and the factor between consecutive scales.
+    contrast : float
+        The paper's ``a``: high values give toon-like, saturated shading.
+    detail : float
+        Exponent of the per-scale weights ``k_i = sigma_i^-detail``: 0 weights all scales equally,
+        1 strongly favours fine detail.
+    base_weight : float
+        Weight ``k_b`` of the base (coarsest) lighting relative to the normalized detail weights.
+    foreshortening : bool
+        Use the 1/nz-corrected smoothing of §7.2.1.
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]
+
+    References
+    ----------
+    S. Rusinkiewicz, M. Burns, D. DeCarlo, "Exaggerated shading for depicting shape and detail",
+    ACM TOG 25(3) (SIGGRAPH 2006), §3; Toler-Franklin 2011, §7.3.5.
+
+    Examples
+    --------
+    >>> n = np.zeros((32, 32, 3), np.float32); n[..., 2] = 1
+    >>> float(exaggerated_shading(n, scales=3, base_weight=0.0).std())
+    0.0
+    """
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
+    if int(scales) != scales or scales < 1:
+        raise ValueError(f"scales must be an integer >= 1, got {scales}")
+    if not sigma0_px > 0:
+        raise ValueError(f"sigma0_px must be > 0, got {sigma0_px}")
+    if not sigma_ratio > 1:
+        raise ValueError(f"sigma_ratio must be > 1, got {sigma_ratio}")
+    if not contrast > 0:
+        raise ValueError(f"contrast must be > 0, got {contrast}")
+    if base_weight < 0:
+        raise ValueError(f"base_weight must be >= 0, got {base_weight}")
+    l = as_light(light)
+    sigmas = [sigma0_px * sigma_ratio ** i for i in range(int(scales) + 1)]
+    weights = np.array([s ** -detail for s in sigmas[:-1]], np.float64)
+    weights /= weights.sum()
+    total = np.zeros(normals.shape[:2], np.float32)
+    a = np.float32(contrast)
+    # walk from fine to coarse keeping only two smoothed levels alive (memory at 16 Mpx)
+    levels = iter_scale_space(normals, sigmas, mask=mask, foreshortening=foreshortening)
+    n_fine = next(levels)
+    for i, n_coarse in enumerate(levels):
+        # n_i . l_{i+1} with l_{i+1} = (l - (l.nc) nc) / |...| and |...|^2 = 1 - (l.nc)^2
+        lc = dot_light(n_coarse, l)
+        c = dot_light(n_fine, l) - lc * np.einsum("...i,...i->...", n_fine, n_coarse)
+        c /= np.sqrt(np.maximum(1.0 - lc * lc, 1e-8))
+        total += np.float32(weights[i]) * np.clip(a * c, -1.0, 1.0)
+        n_fine = n_coarse
+    if base_weight > 0:
+        total += np.float32(base_weight) * np.clip(a * dot_light(n_fine, l), -1.0, 1.0)
+    return (0.5 + 0.5 * total / np.float32(1.0 + base_weight)).astype(np.float32)
+
+
+def mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
+                           sigma_mm: float = 0.0, radius_mm: float = 2.0) -> np.ndarray:
+    """Mean curvature shading: convex regions light, concave dark, flat mid-grey (§7.3.6).
+
+    ``shade = 0.5 + 0.5 * tanh(H * radius_mm)`` with H the mean curvature in 1/mm (eq. 7.7):
+    a plane is uniformly 0.5; a sphere of radius ``radius_mm`` shows at 0.88.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    dpi : float
+        Sampling density (curvature in physical units).
+    mask : (H, W) bool, optional
+        Pixels carrying normals; 0.5 outside.
+    sigma_mm : float
+        Foreshortening-corrected pre-smoothing (the curvature scale), mm.
+    radius_mm : float
+        Radius of curvature that maps to tanh(1): the contrast.
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.3.6; Kindlmann et al., "Curvature-based transfer functions for direct
+    volume rendering", IEEE Vis 2003.
+
+    Examples
+    --------
+    >>> n = np.zeros((16, 16, 3), np.float32); n[..., :] = (0.6, 0.0, 0.8)
+    >>> float(mean_curvature_shading(n, dpi=300).min()), float(mean_curvature_shading(n, dpi=300).max())
+    (0.5, 0.5)
+    """
+    normals = check_normals(normals)
+    dpi = check_dpi(dpi)
+    mask = check_mask(mask, normals.shape[:2])
+    if sigma_mm < 0:
+        raise ValueError(f"sigma_mm must be >= 0, got {sigma_mm}")
+    if not radius_mm > 0:
+        raise ValueError(f"radius_mm must be > 0, got {radius_mm}")
+    H = mean_curvature(normals, dpi, mask=mask, sigma_px=sigma_mm * dpi / 25.4)
+    return (0.5 + 0.5 * np.tanh(H * np.float32(radius_mm))).astype(np.float32)
+
+
+def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
+                                      scales: int = 5, sigma0_mm: float = 0.1, sigma_ratio: float = 2.0,
+                                      gain: float = 2.0, detail: float = 0.0) -> np.ndarray:
+    """Multiscale mean curvature shading (eq. 7.8): curvature at all scales in one picture.
+
+    ``shade = 0.5 + 0.5 * tanh(gain * sum_i w_i * sigma_i * H_i)`` where ``H_i`` is the mean
+    curvature (1/mm) of the normals smoothed at ``sigma_i = sigma0_mm * ratio^i`` and the weights
+    ``w_i ∝ sigma_i^-detail`` sum to 1. Multiplying by ``sigma_i`` makes each term dimensionless
+    (a bump of width sigma_i contributes about equally at its own scale), so coarse shape and fine
+    tool marks appear together.
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]; a plane is uniformly 0.5.
+
+    References
+    ----------
+    Toler-Franklin 2011, §7.3.6, eq. 7.8; Toler-Franklin et al., NPAR 2007, §4.3.
+
+    Notes
+    -----
+    The per-scale normalization by ``sigma_i`` and the ``tanh`` soft clamp are this
+    implementation's choices for the weights of eq. 7.8.
+    """
+    normals = check_normals(normals)
+    dpi = check_dpi(dpi)
+    mask = check_mask(mask, normals.shape[:2])
+    if int(scales) != scales or scales < 1:
+        raise ValueError(f"scales must be an integer >= 1, got {scales}")
+    if not sigma0_mm > 0:
+        raise ValueError(f"sigma0_mm must be > 0, got {sigma0_mm}")
+    if not sigma_ratio > 1:
+        raise ValueError(f"sigma_ratio must be > 1, got {sigma_ratio}")
+    sigmas = [sigma0_mm * sigma_ratio ** i for i in range(int(scales))]
+    w = np.array([s ** -detail for s in sigmas])
+    w /= w.sum()
+    acc = np.zeros(normals.shape[:2], np.float32)
+    for wi, s in zip(w, sigmas):
+        acc += np.float32(wi * s) * mean_curvature(normals, dpi, mask=mask, sigma_px=s * dpi / 25.4)
+    return (0.5 + 0.5 * np.tanh(np.float32(gain) * acc)).astype(np.float32)
+
+
+def _check_colour(colour, shape) -> np.ndarray:
+    c = np.asarray(colour, dtype=np.float32)
+    if c.shape != tuple(shape) + (3,):
+        raise ValueError(f"colour image must be {tuple(shape) + (3,)}, got {c.shape}")
+    return c
