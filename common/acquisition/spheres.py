@@ -45,7 +45,9 @@ def fit_circle(points) -> np.ndarray:
     x, y = p[:, 0], p[:, 1]
     a = np.column_stack([x, y, np.ones_like(x)])
     b = x * x + y * y
-    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < 3:
+        raise ValueError("points are collinear: no circle fits them")
     cx, cy = sol[0] / 2, sol[1] / 2
     r2 = sol[2] + cx * cx + cy * cy
     if not r2 > 0:
@@ -145,12 +147,13 @@ def _grey(images):
     return a.astype(np.float32)
 
 
-def highlight_positions(images, circle, *, fraction: float = 0.9) -> np.ndarray:
+def highlight_positions(images, circle, *, fraction: float = 0.5) -> np.ndarray:
     """Sub-pixel position ``(x, y)`` of the mirror-sphere highlight in each image.
 
     The highlight is the connected region of pixels brighter than ``fraction`` of the way from
-    the sphere's median to its maximum that contains the maximum; its position is the
-    intensity-weighted centroid (a saturated highlight is a flat disc: its centre).
+    the sphere's median to its maximum that contains the maximum; its position is the centroid
+    weighted by the intensity above that level (a saturated highlight is a flat disc: its
+    centre).
 
     Raises
     ------
@@ -168,17 +171,19 @@ def highlight_positions(images, circle, *, fraction: float = 0.9) -> np.ndarray:
         top, med = float(vals.max()), float(np.median(vals))
         if top <= med:
             raise ValueError(f"image {i}: no highlight on the mirror sphere (flat intensities)")
-        bright = inside & (im >= med + fraction * (top - med))
+        level = med + fraction * (top - med)
+        bright = inside & (im >= level)
         _, labels = cv2.connectedComponents(bright.astype(np.uint8), connectivity=8)
         peak = np.unravel_index(np.argmax(np.where(inside, im, -np.inf)), im.shape)
         blob = labels == labels[peak]
         rows, cols = np.nonzero(blob)
-        wgt = im[rows, cols] - med
+        # weights fall to zero at the blob's edge: the centroid moves smoothly, not by whole pixels
+        wgt = im[rows, cols] - level + 1e-6 * (top - med)
         pos[i] = (np.sum(cols * wgt) / wgt.sum(), np.sum(rows * wgt) / wgt.sum())
     return pos
 
 
-def mirror_sphere_directions(images, circle, *, fraction: float = 0.9) -> np.ndarray:
+def mirror_sphere_directions(images, circle, *, fraction: float = 0.5) -> np.ndarray:
     """Light directions from the highlights on a mirror sphere (thesis §3.2).
 
     Parameters
