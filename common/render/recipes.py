@@ -186,13 +186,13 @@ def draw_ridges_valleys(image: RGBNImage, sigma_px: float = 1.5, threshold: floa
 
 
 def draw_discontinuity_shadows(image: RGBNImage, light=(135.0, 45.0), length_px: float = 12.0,
-                               softness_px: float = 1.5, opacity: float = 0.6, steep_nz: float = 0.5,
+                               softness_px: float = 1.5, strength: float = 0.6, steep_nz: float = 0.5,
                                outline: bool = True) -> Layer:
-    """Fast discontinuity shadows (eqs. 7.9-7.11): blend over shading to darken it by ``1 - opacity*S``."""
+    """Fast discontinuity shadows (eqs. 7.9-7.11): drawn over the shading, darkening it by ``1 - strength*S``."""
     d = _shadows.discontinuity_sources(image.normals, mask=image.mask, discontinuity=image.discontinuity,
                                        steep_nz=steep_nz, outline=outline)
     s = _shadows.discontinuity_shadows(d, light, length_px=length_px, softness_px=softness_px)
-    return _ink(s * np.float32(opacity), (0.0, 0.0, 0.0))
+    return _ink(s * np.float32(strength), (0.0, 0.0, 0.0))
 
 
 def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0, sigma_c: float = 0.08,

@@ -1,0 +1,48 @@
+"""Renderer service: on ``rgbn.ready``, draw the face with the configured recipe and publish
+``render.ready`` (§7.3).
+
+Config ``[services.renderer]``: ``recipe`` = a shipped recipe name (``configs/recipes/<name>.toml``)
+or a path to a TOML file; default ``"default"``. The output path is keyed by the RGBN digest,
+this stage's version and the recipe text, so a re-delivered job finds its output and a new
+recipe makes a new illustration.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+from common.messages import MessageError, new_message
+from common.render.artifact import SCHEMA_VERSION, save_rendering
+from common.render.recipes import load_recipe, render
+from common.rgbn.image import load_rgbn
+from common.store import ArtifactRef, content_key
+
+SERVICE = "renderer"
+VERSION = f"render-1.0/schema-{SCHEMA_VERSION}"
+
+
+def output_path(fragment: str, face: str, rgbn_sha256: str, recipe_text: str) -> str:
+    """Content-keyed path of one illustration of one face."""
+    recipe_digest = hashlib.sha256(recipe_text.encode()).hexdigest()
+    return f"fragments/{fragment}/renders/{face}-{content_key(rgbn_sha256, SERVICE, VERSION, recipe_digest)}.h5"
+
+
+def handle(job: dict, ctx) -> list[dict]:
+    """Render the RGBN face named by an ``rgbn.ready`` job; return ``[render.ready]``."""
+    if job.get("type") != "rgbn.ready":
+        raise MessageError(f"renderer handles rgbn.ready, got {job.get('type')!r}")
+    ref = ArtifactRef.from_dict(job["artifact"])
+    fragment, face = str(job["fragment"]), str(job.get("face", "front"))
+    recipe = load_recipe((ctx.config or {}).get("recipe", "default"))
+    relpath = output_path(fragment, face, ref.sha256, recipe.source)
+    if not ctx.store.exists(relpath):
+        image = load_rgbn(ctx.store, ref)
+        drawn = render(image, recipe, progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
+        if drawn.skipped:
+            ctx.log.warning("fragment %s %s has no normals: skipped %s", fragment, face, ", ".join(drawn.skipped))
+        out = save_rendering(ctx.store, relpath, drawn, dpi=image.dpi, provenance={
+            "stage": SERVICE, "stage_version": VERSION, "fragment": fragment, "face": face,
+            "recipe": recipe.name, "inputs": [ref.to_dict()]})
+    else:
+        out = ctx.store.ref(relpath)
+    return [new_message("render.ready", fragment=fragment, face=face, artifact=out, recipe=recipe.name)]
