@@ -76,7 +76,8 @@ def depth_discontinuities(images, directions, *, mask=None, sigma: float = 1.0, 
     are parallel, so the walk is a directional derivative (here: Sobel on the smoothed ratio
     image) with non-maximum suppression along the ray. Each flash votes its image-plane
     direction ``u_i`` (towards the flash = towards the occluder) weighted by its step; the map
-    keeps the strongest step and the direction of the vote sum.
+    keeps the strongest step and the direction of the vote sum, pooled over a Gaussian
+    window of 1.5 px.
 
     References
     ----------
@@ -146,6 +147,9 @@ def depth_discontinuities(images, directions, *, mask=None, sigma: float = 1.0, 
         strength = np.maximum(strength, s)
         votes[..., 0] += s * ux
         votes[..., 1] += s * uy
+    # neighbouring edge pixels often hold the votes of different flashes (each flash's step is
+    # thinned to one pixel): pool the votes over a small window before taking the direction
+    votes = cv2.GaussianBlur(votes, (0, 0), 1.5)
     norm = np.linalg.norm(votes, axis=2)
     keep = (strength > 0) & (norm > 1e-6) & region
     out = np.zeros((h, w, 2), np.float32)
