@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from skimage.segmentation import felzenszwalb
 
@@ -98,8 +100,11 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         # background becomes one far-away constant so no segment straddles the mask border
         far = np.float32(10.0 * (abs(colour_weight) + abs(normal_weight)) + 10.0)
         feats = np.where(mask[..., None], feats, far)
-    labels = felzenszwalb(feats.astype(np.float64, copy=False), scale=float(scale), sigma=float(sigma_px),
-                          min_size=int(min_size), channel_axis=-1)
+    with warnings.catch_warnings():
+        # skimage warns that a 6-channel image "may not be intended": here it is
+        warnings.filterwarnings("ignore", message="Got image with third dimension", category=RuntimeWarning)
+        labels = felzenszwalb(feats.astype(np.float64, copy=False), scale=float(scale), sigma=float(sigma_px),
+                              min_size=int(min_size), channel_axis=-1)
     return _relabel_by_area(labels, mask)
 
 

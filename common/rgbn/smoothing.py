@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.rgbn._filters import check_mask, check_normals, gaussian_blur, normalize_vectors
+from common.rgbn._filters import check_mask, check_normals, gaussian_blur
 
 #: Smallest nz used in the 1/nz weight: silhouette pixels (nz -> 0) would otherwise dominate.
 NZ_MIN = 0.05
@@ -71,14 +71,39 @@ def smooth_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     mask = check_mask(mask, normals.shape[:2])
     if sigma_px == 0:
         return normals.copy()
+    return next(iter_scale_space(normals, [sigma_px], mask=mask, foreshortening=foreshortening, nz_min=nz_min))
+
+
+def iter_scale_space(normals: np.ndarray, sigmas_px, *, mask: np.ndarray | None = None,
+                     foreshortening: bool = True, nz_min: float = NZ_MIN):
+    """Yield :func:`smooth_normals` at each sigma in turn, sharing the weighted stack (§7.2.1).
+
+    Only one level is alive at a time unless the caller keeps it, which bounds the memory of
+    many-scale styles on 16-Mpx images.
+    """
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
     w = foreshortening_weights(normals, mask, nz_min=nz_min) if foreshortening else mask.astype(np.float32)
-    stack = np.concatenate([normals * w[..., None], w[..., None]], axis=2)
-    blurred = gaussian_blur(stack, sigma_px)
-    out = normalize_vectors(blurred[..., :3])
-    # where no mask pixel is in reach the weight sum vanishes: keep the input there
-    empty = blurred[..., 3] <= 1e-6 * max(float(w.max(initial=0.0)), 1e-12)
-    out[empty] = normals[empty]
-    return out.astype(np.float32, copy=False)
+    stack = np.empty(normals.shape[:2] + (4,), np.float32)
+    np.multiply(normals, w[..., None], out=stack[..., :3])
+    stack[..., 3] = w
+    floor = np.float32(1e-6 * max(float(w.max(initial=0.0)), 1e-12))
+    for sigma in sigmas_px:
+        if not np.isfinite(sigma) or sigma < 0:
+            raise ValueError(f"sigma_px must be a finite number >= 0, got {sigma}")
+        if sigma == 0:
+            yield normals.copy()
+            continue
+        blurred = gaussian_blur(stack, float(sigma))
+        v = blurred[..., :3]
+        norm = np.sqrt(np.einsum("...i,...i->...", v, v))
+        # where no mask pixel is in reach the weight sum vanishes: keep the input there
+        empty = blurred[..., 3] <= floor
+        np.maximum(norm, 1e-12, out=norm)
+        out = v / norm[..., None]
+        if empty.any():
+            out[empty] = normals[empty]
+        yield out
 
 
 def smooth_albedo(albedo: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None) -> np.ndarray:
@@ -116,7 +141,7 @@ def scale_space(normals: np.ndarray, sigmas_px, *, mask: np.ndarray | None = Non
     sigmas = [float(s) for s in np.atleast_1d(sigmas_px)]
     if not sigmas:
         raise ValueError("sigmas_px must hold at least one sigma")
-    return [smooth_normals(normals, s, mask=mask, foreshortening=foreshortening) for s in sigmas]
+    return list(iter_scale_space(normals, sigmas, mask=mask, foreshortening=foreshortening))
 
 
 def smooth_rgbn(image, sigma_mm: float, *, foreshortening: bool = True):

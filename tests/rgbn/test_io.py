@@ -1,0 +1,76 @@
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from common.rgbn.io import (encode_normal_map, linear_to_srgb, load_rgbn_files, read_albedo, read_normal_map,
+                            srgb_to_linear, write_image)
+from tests.rgbn.analytic import sphere
+
+
+@pytest.mark.parametrize("suffix,bits", [(".png", 8), (".png", 16), (".tif", 8), (".tif", 16)])
+def test_normal_map_round_trips_in_both_conventions(tmp_path, suffix, bits):
+    n, mask = sphere(48, 2.0, 0.1)
+    for convention in ("opengl", "directx"):
+        path = tmp_path / f"n-{convention}{suffix}"
+        write_image(path, encode_normal_map(n, mask, convention), bits=bits)
+        back, back_mask = read_normal_map(path, convention)
+        tol = 2.5 / (255 if bits == 8 else 65535) * 2
+        assert np.array_equal(back_mask, mask)
+        assert np.abs(back[mask] - n[mask]).max() < 2 * tol + 1e-4
+
+
+def test_directx_green_channel_points_down(tmp_path):
+    # a normal tilted towards the top of the image (y up) has a *low* green value in DirectX
+    n = np.zeros((4, 4, 3), np.float32)
+    n[...] = (0.0, 0.6, 0.8)
+    path = tmp_path / "dx.png"
+    write_image(path, encode_normal_map(n, convention="directx"))
+    green = cv2.imread(str(path))[..., 1]
+    assert (green < 128).all()
+    back, _ = read_normal_map(path, "directx")
+    assert np.allclose(back[..., 1], 0.6, atol=0.01)
+
+
+def test_alpha_channel_and_black_background_are_outside_the_mask(tmp_path):
+    n, mask = sphere(32, 1.5, 0.1)
+    rgb = encode_normal_map(n, mask)
+    alpha = np.ones((32, 32), np.float32)
+    alpha[:, :4] = 0
+    write_image(tmp_path / "a.png", rgb, alpha=alpha)
+    _, got = read_normal_map(tmp_path / "a.png")
+    assert np.array_equal(got, mask & (alpha > 0))
+
+
+def test_albedo_is_decoded_from_srgb_and_must_share_the_grid(tmp_path):
+    img = np.zeros((8, 8, 3), np.uint8)
+    img[..., 0] = 188  # sRGB 188 -> linear ~0.5
+    cv2.imwrite(str(tmp_path / "alb.png"), img[..., ::-1])
+    albedo, _ = read_albedo(tmp_path / "alb.png")
+    assert albedo[0, 0, 0] == pytest.approx(0.5, abs=0.01)
+    n, mask = sphere(8, 0.4, 0.1)
+    np.save(tmp_path / "n.npy", n)
+    img8 = load_rgbn_files(tmp_path / "n.npy", tmp_path / "alb.png", dpi=600)
+    assert img8.dpi == 600 and img8.albedo.shape == (8, 8, 3)
+    np.save(tmp_path / "n9.npy", np.zeros((9, 9, 3), np.float32))
+    with pytest.raises(ValueError, match="pixel grid"):
+        load_rgbn_files(tmp_path / "n9.npy", tmp_path / "alb.png")
+
+
+def test_srgb_transfer_round_trips():
+    v = np.linspace(0, 1, 101, dtype=np.float32)
+    assert np.allclose(srgb_to_linear(linear_to_srgb(v)), v, atol=1e-5)
+
+
+def test_sixteen_bit_tiff_output_keeps_precision(tmp_path):
+    ramp = np.tile(np.linspace(0, 1, 1000, dtype=np.float32), (2, 1))
+    write_image(tmp_path / "r.tif", ramp, bits=16)
+    data = tifffile.imread(tmp_path / "r.tif")
+    assert data.dtype == np.uint16 and len(np.unique(data)) == 1000
+
+
+def test_bad_convention_and_format_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="convention"):
+        read_normal_map(tmp_path / "x.png", "vulkan")
+    with pytest.raises(ValueError, match=r"\.png"):
+        write_image(tmp_path / "x.bmp", np.zeros((2, 2)))

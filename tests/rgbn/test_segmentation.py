@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+from common.rgbn.segmentation import segment_means, segment_rgbn
+from tests.rgbn.analytic import tilted_plane
+
+
+def two_orientations(size=64):
+    n = tilted_plane(size, 0)
+    n[:, size // 2:] = tilted_plane(size, 40, 0)[:, size // 2:]
+    return n
+
+
+def test_regions_differing_only_in_normal_are_separated():
+    n = two_orientations()
+    albedo = np.full(n.shape, 0.5, np.float32)  # identical colour everywhere
+    labels = segment_rgbn(albedo, n, scale=20, sigma_px=0.5, min_size=200)
+    left, right = labels[:, :30], labels[:, 34:]
+    assert len(np.unique(left)) == 1 and len(np.unique(right)) == 1
+    assert left[0, 0] != right[0, 0]
+
+
+def test_colour_only_segmentation_cannot_see_a_normal_edge():
+    n = two_orientations()
+    albedo = np.full(n.shape, 0.5, np.float32)
+    labels = segment_rgbn(albedo, n, scale=20, sigma_px=0.5, min_size=200, normal_weight=0.0)
+    assert len(np.unique(labels)) == 1
+
+
+def test_regions_differing_only_in_colour_are_separated():
+    albedo = np.full((48, 48, 3), 0.2, np.float32)
+    albedo[24:] = (0.7, 0.3, 0.2)
+    labels = segment_rgbn(albedo, tilted_plane(48, 0), scale=20, sigma_px=0.5, min_size=100)
+    assert labels[0, 0] != labels[-1, 0]
+    assert len(np.unique(labels[:20])) == 1 and len(np.unique(labels[28:])) == 1
+
+
+def test_labels_are_ordered_by_area_and_minus_one_outside_the_mask():
+    n = two_orientations()
+    n[:, 48:] = tilted_plane(64, 40, 180)[:, 48:]
+    mask = np.ones((64, 64), bool)
+    mask[:4] = False
+    labels = segment_rgbn(None, n, mask=mask, scale=20, sigma_px=0, min_size=50)
+    assert (labels[~mask] == -1).all()
+    counts = np.bincount(labels[mask])
+    assert list(counts) == sorted(counts, reverse=True) and len(counts) == 3
+
+
+def test_segment_means_average_within_each_segment():
+    labels = np.array([[0, 0, 1], [0, 1, -1]])
+    values = np.array([[1.0, 3.0, 10.0], [2.0, 20.0, 7.0]])
+    out = segment_means(values, labels)
+    assert np.allclose(out, [[2.0, 2.0, 15.0], [2.0, 15.0, 7.0]])
+
+
+def test_bad_weights_are_refused_by_name():
+    with pytest.raises(ValueError, match="normal_weight"):
+        segment_rgbn(None, tilted_plane(8), normal_weight=-1)
+    with pytest.raises(ValueError, match="nothing to segment"):
+        segment_rgbn(None, None)

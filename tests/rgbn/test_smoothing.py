@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from common.rgbn.image import RGBNImage
+from common.rgbn.smoothing import foreshortening_weights, scale_space, smooth_normals, smooth_rgbn
+from tests.rgbn.analytic import sphere, tilted_plane
+
+
+def angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1, 1)))
+
+
+def test_foreshortening_corrected_smoothing_leaves_a_tilted_plane_unchanged():
+    n = tilted_plane(64, tilt_deg=60)
+    mask = np.zeros((64, 64), bool)
+    mask[8:56, 12:50] = True
+    out = smooth_normals(n, 5.0, mask=mask)
+    assert np.abs(out - n)[mask].max() < 1e-5  # float32 resolution
+
+
+def test_foreshortening_weight_is_one_over_nz():
+    n = tilted_plane(8, tilt_deg=60)
+    assert np.allclose(foreshortening_weights(n), 2.0, atol=1e-5)
+
+
+def test_weighting_by_one_over_nz_pulls_the_average_towards_the_steeper_normal():
+    # two half-planes: flat and 70 deg tilted; at the seam the 1/nz weight favours the tilted one,
+    # by the ratio of surface areas 1/cos(70 deg) ~ 2.9
+    n = np.zeros((32, 32, 3), np.float32)
+    n[..., 2] = 1
+    t = np.radians(70)
+    n[:, 16:] = (np.sin(t), 0, np.cos(t))
+    plain = smooth_normals(n, 4.0, foreshortening=False)
+    corrected = smooth_normals(n, 4.0, foreshortening=True)
+    seam = (16, 15)
+    assert corrected[seam][0] > plain[seam][0] + 0.1
+    # the corrected normal at the seam is the area-weighted mean of the two orientations
+    w = np.array([1.0, 1 / np.cos(t)])
+    # Gaussian weights of the left and right halves at column 15.5-0.5
+    cols = np.arange(32)
+    g = np.exp(-((cols - 15) ** 2) / (2 * 16.0))
+    wl, wr = g[:16].sum() * w[0], g[16:].sum() * w[1]
+    expect = (wl * np.array([0, 0, 1]) + wr * np.array([np.sin(t), 0, np.cos(t)]))
+    expect /= np.linalg.norm(expect)
+    assert angle_deg(corrected[seam], expect) < 1.0
+
+
+def test_smoothing_ignores_pixels_outside_the_mask():
+    n, mask = sphere(64, 3.0, 0.1)
+    garbage = n.copy()
+    garbage[~mask] = (1.0, 0.0, 0.0)
+    a = smooth_normals(n, 2.0, mask=mask)
+    b = smooth_normals(garbage, 2.0, mask=mask)
+    assert np.allclose(a[mask], b[mask], atol=1e-5)
+
+
+def test_scale_space_levels_get_smoother_and_stay_unit_length():
+    rng = np.random.default_rng(1)
+    n = tilted_plane(64, 10).astype(np.float32) + 0.2 * rng.standard_normal((64, 64, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    levels = scale_space(n, [0, 1, 2, 4, 8])
+    spread = [np.std(level[..., 0]) for level in levels]
+    assert all(a > b for a, b in zip(spread, spread[1:]))
+    for level in levels:
+        assert np.allclose(np.linalg.norm(level, axis=-1), 1, atol=1e-5)
+
+
+def test_smooth_rgbn_uses_physical_sigma():
+    n = tilted_plane(32, 20)
+    img = RGBNImage(albedo=np.random.default_rng(0).random((32, 32, 3)), mask=np.ones((32, 32), bool), dpi=254,
+                    normals=n)
+    out = smooth_rgbn(img, sigma_mm=0.3)  # 3 px
+    ref = smooth_normals(n, 3.0)
+    assert np.allclose(out.normals, ref, atol=1e-6)
+    assert out.albedo.std() < img.albedo.std() / 3
+
+
+@pytest.mark.parametrize("sigma", [-1.0, np.nan])
+def test_bad_sigma_is_refused_by_name(sigma):
+    with pytest.raises(ValueError, match="sigma_px"):
+        smooth_normals(tilted_plane(8), sigma)
+
+
+def test_wrong_normal_shape_is_refused():
+    with pytest.raises(ValueError, match="normals"):
+        smooth_normals(np.zeros((8, 8)), 1.0)
