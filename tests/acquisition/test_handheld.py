@@ -1,0 +1,202 @@
+"""Tests of common/acquisition/handheld.py and the ``tessera ps`` command."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from common.acquisition.handheld import (cast_shadows, handheld_rgbn, object_mask, read_images, read_mask,
+                                         simulate_flash_capture, sphere_lights, surface_normals)
+from common.acquisition.lightfile import LightSet, write_lp
+from common.acquisition.spheres import sphere_normals
+from common.acquisition.surface import FragmentSurface
+from common.rgbn.image import load_rgbn, read_rgbn
+from common.store import Store
+from services.cli import main as tessera
+
+
+def _lights(n, seed=0, min_elevation=30):
+    rng = np.random.default_rng(seed)
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(min_elevation, 80, n))
+    return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def _fragment(size=64, dpi=254.0):
+    """A tilted, gently waved plaster face on a dark table (mask = the face)."""
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    px = 25.4 / dpi
+    mask = (np.abs(cols - size / 2) < size * 0.35) & (np.abs(rows - size / 2) < size * 0.3)
+    height = (0.2 * cols + 0.1 * np.sin(rows / 5)) * px + 1.0
+    albedo = np.dstack([np.full((size, size), v) for v in (0.8, 0.6, 0.4)]).astype(np.float32)
+    return FragmentSurface(albedo, np.where(mask, height, 0.0), mask, dpi)
+
+
+def test_images_of_every_format_read_as_linear_rgb(tmp_path):
+    red = np.zeros((6, 5, 3), np.uint8)
+    red[..., 0] = 200  # RGB red
+    cv2.imwrite(str(tmp_path / "a.png"), red[..., ::-1])
+    cv2.imwrite(str(tmp_path / "b.png"), (red[..., ::-1].astype(np.uint16) * 257))
+    tifffile.imwrite(tmp_path / "c.tif", red.astype(np.uint16) * 257, photometric="rgb")
+    cv2.imwrite(str(tmp_path / "d.jpg"), red[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])
+    cv2.imwrite(str(tmp_path / "e.png"), red[..., 0])  # grey
+    images, saturated = read_images([tmp_path / n for n in ("a.png", "b.png", "c.tif", "d.jpg", "e.png")])
+    assert images.shape == (5, 6, 5, 3) and images.dtype == np.float32
+    for i in range(3):
+        np.testing.assert_allclose(images[i, 2, 2], [200 / 255, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(images[3, 2, 2], [200 / 255, 0, 0], atol=0.03)  # JPEG loss
+    np.testing.assert_allclose(images[4, 2, 2], [200 / 255] * 3, atol=1e-6)
+    assert not saturated.any()
+    lin, _ = read_images([tmp_path / "a.png"], srgb=True)
+    assert abs(lin[0, 0, 0, 0] - ((200 / 255 + 0.055) / 1.055) ** 2.4) < 1e-5
+
+
+def test_clipped_pixels_are_flagged_saturated(tmp_path):
+    img = np.full((4, 4, 3), 100, np.uint8)
+    img[1, 1, 2] = 255
+    cv2.imwrite(str(tmp_path / "s.png"), img)
+    _, saturated = read_images([tmp_path / "s.png"])
+    assert saturated[0].sum() == 1 and saturated[0, 1, 1]
+
+
+def test_image_of_another_size_is_named(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((4, 4), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((5, 4), np.uint8))
+    with pytest.raises(ValueError, match="b.png"):
+        read_images([tmp_path / "a.png", tmp_path / "b.png"])
+    with pytest.raises(ValueError, match="cannot read"):
+        read_images([tmp_path / "missing.png"])
+
+
+def test_surface_normals_of_a_tilted_plane():
+    dpi = 254.0
+    rows, cols = np.mgrid[0:8, 0:8].astype(float)
+    # rising to the right by 0.5 mm per mm and towards the top of the image by 0.25 mm per mm
+    height = (0.5 * cols - 0.25 * rows) * 25.4 / dpi
+    n = surface_normals(FragmentSurface(np.zeros((8, 8, 3)), height, np.ones((8, 8), bool), dpi))
+    expect = np.array([-0.5, -0.25, 1.0]) / np.linalg.norm([-0.5, -0.25, 1.0])
+    np.testing.assert_allclose(n[4, 4], expect, atol=1e-6)
+
+
+def test_cast_shadow_length_follows_the_light_elevation():
+    height = np.zeros((20, 40), np.float32)
+    height[:, 10:12] = 1.0  # a 1 mm wall, pixels of 0.1 mm
+    light = np.array([-np.cos(np.radians(30)), 0.0, np.sin(np.radians(30))])  # from the left, 30° up
+    shadow = cast_shadows(height, 0.1, light)
+    # shadow right of the wall: 1 mm / tan(30°) = 1.73 mm = 17 pixels
+    assert shadow[10, 12:29].all() and not shadow[10, 30:].any() and not shadow[10, :10].any()
+
+
+def test_object_mask_finds_the_lit_fragment():
+    surf = _fragment()
+    images = simulate_flash_capture(surf, _lights(8))
+    found = object_mask(images)
+    assert (found == surf.mask).mean() > 0.98
+
+
+def test_handheld_capture_becomes_an_rgbn_image_with_the_fragment_normals():
+    surf = _fragment()
+    lights = _lights(20, seed=1)
+    e = np.linspace(0.6, 1.2, 20)
+    images = simulate_flash_capture(surf, lights, intensities=e, specular=0.4, shininess=200)
+    rgbn = handheld_rgbn(images, LightSet(lights, intensities=e), mask=surf.mask,
+                         saturated=images.max(-1) >= 0.995, dpi=surf.dpi)
+    truth = surface_normals(surf)
+    inner = cv2.erode(surf.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    err = np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner]
+    assert err.mean() < 0.5
+    np.testing.assert_allclose(rgbn.albedo[inner].mean(0), [0.8, 0.6, 0.4], atol=0.02)
+    assert rgbn.discontinuity.shape == surf.mask.shape + (2,)
+    assert rgbn.attrs["capture"] == "handheld-flash" and rgbn.dpi == surf.dpi
+
+
+def test_unknown_method_is_refused():
+    with pytest.raises(ValueError, match="method"):
+        handheld_rgbn(np.ones((3, 4, 4, 3), np.float32), np.eye(3) + [0, 0, 1], method="magic")
+
+
+def test_sphere_lights_from_rendered_spheres():
+    shape, circle = (80, 80), (40.0, 40.0, 30.0)
+    lights = _lights(6, seed=2)
+    e = np.linspace(0.8, 1.2, 6)
+    normals, inside = sphere_normals(shape, circle)
+    refl = 2 * normals[..., 2:3] * normals - [0, 0, 1]
+    chrome = np.stack([np.where(inside, np.exp(-(np.degrees(np.arccos(np.clip(refl @ l, -1, 1))) / 6) ** 2), 0)
+                       for l in lights]).astype(np.float32)
+    diffuse = np.stack([0.5 * ei * np.clip(normals @ l, 0, None) for l, ei in zip(lights, e)]).astype(np.float32)
+    got = sphere_lights(chrome, circle, diffuse_images=diffuse, diffuse_circle=circle)
+    assert np.degrees(np.arccos(np.clip((got.directions * lights).sum(1), -1, 1))).max() < 0.5
+    np.testing.assert_allclose(got.intensities[:, 0], e / e.mean(), rtol=0.01)
+
+
+def _write_capture(tmp_path, n=12):
+    surf = _fragment()
+    lights = _lights(n, seed=3)
+    images = simulate_flash_capture(surf, lights)
+    names = []
+    for i, img in enumerate(images):
+        name = f"shot_{i:02d}.png"
+        cv2.imwrite(str(tmp_path / name), (np.round(img * 65535).astype(np.uint16))[..., ::-1])
+        names.append(name)
+    # the .lp lists the shots in another order: matched by name
+    write_lp(tmp_path / "capture.lp", names[::-1], lights[::-1])
+    cv2.imwrite(str(tmp_path / "mask.png"), surf.mask.astype(np.uint8) * 255)
+    return surf, [str(tmp_path / nm) for nm in names]
+
+
+def test_ps_command_writes_a_content_keyed_artifact_and_the_event(tmp_path, capsys):
+    surf, shots = _write_capture(tmp_path)
+    store = tmp_path / "store"
+    args = ["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+            "--store", str(store), "--fragment", "F0007", "--face", "back", "--dpi", "254",
+            "-o", str(tmp_path / "out.h5"), "--pictures", str(tmp_path / "pics")]
+    assert tessera(args) == 0
+    out = capsys.readouterr().out
+    event = json.loads(out[out.index("{"):out.rindex("}") + 1])
+    assert event["type"] == "rgbn.ready" and event["fragment"] == "F0007" and event["face"] == "back"
+    path = event["artifact"]["path"]
+    assert path.startswith("fragments/F0007/rgbn/back-") and path.endswith(".h5")
+    rgbn = load_rgbn(Store(store), event["artifact"])
+    truth = surface_normals(surf)
+    inner = cv2.erode(surf.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner].mean() < 0.5
+    assert rgbn.dpi == 254 and rgbn.discontinuity is not None
+    import h5py
+    with h5py.File(tmp_path / "out.h5", "r") as f:
+        assert f.attrs["schema"] == "tessera.rgbn"
+        np.testing.assert_array_equal(read_rgbn(f).mask, rgbn.mask)
+    assert {p.name for p in (tmp_path / "pics").iterdir()} == {"normals.png", "albedo.png", "confidence.png",
+                                                               "discontinuity.png"}
+    # a second run over the same inputs finds the same artifact (content-keyed, idempotent)
+    assert tessera(args) == 0
+    again = capsys.readouterr().out
+    assert json.loads(again[again.index("{"):again.rindex("}") + 1])["artifact"] == event["artifact"]
+
+
+def test_ps_command_refuses_ambiguous_lights(tmp_path, capsys):
+    _, shots = _write_capture(tmp_path, n=4)
+    code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--chrome", "auto", "-o",
+                    str(tmp_path / "x.h5")])
+    assert code == 2 and "exactly one of --lights" in capsys.readouterr().err
+
+
+def test_ps_command_calibrates_from_the_seitz_spheres(shared_data, tmp_path, capsys):
+    root = shared_data / "psm-seitz"
+    imgs = lambda obj: [str(root / obj / f"{obj}.{i:02d}.png") for i in range(12)]  # noqa: E731
+    lp = tmp_path / "owl.lp"
+    assert tessera(["ps", *imgs("owl"), "--mask", str(root / "owl" / "owl.mask.png"),
+                    "--chrome", str(root / "chrome" / "chrome.mask.png"), "--chrome-images", *imgs("chrome"),
+                    "--diffuse", str(root / "gray" / "gray.mask.png"), "--diffuse-images", *imgs("gray"),
+                    "--write-lp", str(lp), "-o", str(tmp_path / "owl.h5")]) == 0
+    from common.acquisition.lightfile import read_lights
+    got = read_lights(lp)
+    ref = read_lights(root / "lights.txt")
+    assert got.filenames[0] == "owl.00.png"
+    assert np.degrees(np.arccos(np.clip((got.directions * ref.directions).sum(1), -1, 1))).mean() < 4.0
+    import h5py
+    with h5py.File(tmp_path / "owl.h5", "r") as f:
+        owl = read_rgbn(f)
+    mask = read_mask(root / "owl" / "owl.mask.png")
+    assert owl.normals[mask, 2].mean() > 0.6 and owl.confidence[mask].mean() > 0.7
