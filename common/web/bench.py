@@ -68,7 +68,8 @@ def describe_error(exc: BaseException) -> dict:
     elif "ScannerError" in names:
         kind = "scanner"
         status = getattr(exc, "status", "unknown")
-        operator_message = operator_message or _SCANNER_STATUS_TEXT.get(status)
+        if not operator_message or operator_message == str(exc):  # only the technical text was given
+            operator_message = _SCANNER_STATUS_TEXT.get(status, operator_message)
     elif "CaptureError" in names:
         kind = "capture"
     else:

@@ -169,3 +169,10 @@ def test_fragment_ids_that_cannot_name_a_folder_are_refused(bad):
 
 def test_fragment_id_is_stripped():
     assert check_fragment_id("  F-12.a_3 ") == "F-12.a_3"
+
+
+def test_scanner_status_without_operator_text_gets_plain_language():
+    from common.acquisition.errors import ScannerError
+
+    d = describe_error(ScannerError("simulated device fault SANE_STATUS_JAMMED", status="SANE_STATUS_JAMMED"))
+    assert d["kind"] == "scanner" and "jam" in d["message"] and "SANE" not in d["message"]

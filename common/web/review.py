@@ -1,0 +1,194 @@
+"""What the review page shows: proposals, verdict history and pictures of proposed joins.
+
+Reads the matcher's proposal store (:class:`common.matching.proposals.ProposalStore`, SQLite)
+and the fragments' RGBN artifacts; writes nothing (verdicts travel as ``match.verified`` events
+and the matcher records them). Pictures: both fragments side by side and joined at the proposed
+pose (:func:`common.web.compose.join_at_pose`), in colour (albedo, sRGB) and in relief
+(exaggerated shading of the normals, §7.3.5, or a raking light when the renderer is absent).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import threading
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from common.rgbn.image import RGBNImage, load_rgbn
+from common.store import Store
+from common.web.compose import encode_png, fit_within, join_at_pose, linear_to_srgb8, raking_light, side_by_side
+
+log = logging.getLogger("tessera.web.review")
+
+VIEWS = ("pair-colour", "pair-relief", "joined-colour", "joined-relief")
+
+
+def proposal_dict(p) -> dict:
+    """A :class:`~common.matching.proposals.Proposal` as JSON for the page (evidence left out)."""
+    pose = None
+    if p.angle_deg is not None and p.tx_mm is not None and p.ty_mm is not None:
+        pose = {"angle_deg": float(p.angle_deg), "tx_mm": float(p.tx_mm), "ty_mm": float(p.ty_mm)}
+    return {"id": int(p.id), "fragment_a": p.fragment_a, "fragment_b": p.fragment_b,
+            "probability": float(p.probability), "status": p.status, "model_version": p.model_version,
+            "pose": pose, "alignment": p.alignment, "updated": p.updated}
+
+
+def relief_picture(image: RGBNImage) -> np.ndarray:
+    """Relief rendering of an RGBN image as (H, W, 3) uint8: exaggerated shading (§7.3.5).
+
+    Colour-only images (no normals) get their albedo as grey, so the page still shows the shape.
+    """
+    if image.normals is None:
+        grey = linear_to_srgb8(image.albedo.mean(axis=2))
+        return np.repeat(grey[..., None], 3, axis=2)
+    try:
+        from common.render.shading import exaggerated_shading
+    except ImportError:  # renderer not installed on this host: a raking light shows relief too
+        return raking_light(image.normals, image.mask)
+    shade = np.asarray(exaggerated_shading(image.normals, mask=image.mask), dtype=np.float32)
+    if shade.ndim == 2:
+        shade = np.repeat(shade[..., None], 3, axis=2)
+    out = np.round(np.clip(shade, 0, 1) * 255).astype(np.uint8)
+    out[~image.mask] = 0
+    return out
+
+
+class ReviewData:
+    """Proposals, history and pictures for the review page.
+
+    Parameters
+    ----------
+    db_path : path
+        The matcher's proposal database.
+    store : Store
+        Storage root holding ``fragments/<id>/rgbn/``.
+    cache_pictures : int
+        Rendered pictures kept in memory (least recently used dropped).
+    """
+
+    def __init__(self, db_path: str | os.PathLike, store: Store, *, cache_pictures: int = 64,
+                 journal_mode: str = "WAL"):
+        self.db_path = Path(db_path)
+        self.store = store
+        self.journal_mode = journal_mode
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._cache: collections.OrderedDict = collections.OrderedDict()
+        self._cache_size = int(cache_pictures)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping) -> "ReviewData":
+        """Database from ``[services.matcher] db`` (default ``<root>/matches/proposals.sqlite``)."""
+        root = Path(cfg["storage"]["root"])
+        matcher = dict(cfg.get("services", {}).get("matcher", {}))
+        db = matcher.get("db") or root / "matches" / "proposals.sqlite"
+        return cls(db, Store(root, file_locking=cfg["storage"]["file_locking"]),
+                   journal_mode=str(matcher.get("journal_mode", "WAL")))
+
+    # -- the database (one connection per thread: sqlite3 connections are thread-confined) --
+    def _db(self):
+        from common.matching.proposals import ProposalStore
+
+        db = getattr(self._local, "db", None)
+        if db is None:
+            if not self.db_path.exists():
+                return None   # no matcher has run yet: nothing to review
+            db = self._local.db = ProposalStore(self.db_path, journal_mode=self.journal_mode)
+        return db
+
+    def pending(self, limit: int = 50) -> list[dict]:
+        """Pending proposals, most probable first."""
+        db = self._db()
+        return [proposal_dict(p) for p in db.pending(limit)] if db else []
+
+    def ranked(self, fragment: str, limit: int = 20) -> list[dict]:
+        """Proposals involving ``fragment`` (any status), most probable first."""
+        db = self._db()
+        return [proposal_dict(p) for p in db.ranked(fragment, limit)] if db else []
+
+    def proposal(self, pid) -> dict | None:
+        """One proposal by id, or None."""
+        try:
+            pid = int(pid)
+        except (TypeError, ValueError):
+            return None
+        db = self._db()
+        if db is None:
+            return None
+        for p in db.all():
+            if p.id == pid:
+                return proposal_dict(p)
+        return None
+
+    def history(self, limit: int = 100) -> list[dict]:
+        """Recorded verdicts, newest first."""
+        db = self._db()
+        if db is None:
+            return []
+        out = [{"fragment_a": v.fragment_a, "fragment_b": v.fragment_b, "verdict": v.verdict, "by": v.by,
+                "time": v.time, "proposal": v.proposal_id, "note": v.note} for v in db.verdicts()]
+        return out[::-1][:limit]
+
+    def counts(self) -> dict:
+        db = self._db()
+        if db is None:
+            return {"pending": 0, "confirmed": 0, "rejected": 0}
+        return {s: db.count(s) for s in ("pending", "confirmed", "rejected")}
+
+    def matched_fragments(self) -> set[str]:
+        """Fragments the matcher has taken in."""
+        db = self._db()
+        return {f["fragment"] for f in db.fragments()} if db else set()
+
+    # -- pictures ----------------------------------------------------------------------------
+    def rgbn(self, fragment: str, face: str = "front") -> RGBNImage:
+        """The newest RGBN image of a fragment's face; LookupError if there is none yet."""
+        folder = self.store.root / "fragments" / fragment / "rgbn"
+        files = sorted(folder.glob(f"{face}-*.h5"), key=lambda p: p.stat().st_mtime) if folder.is_dir() else []
+        if not files:
+            raise LookupError(f"fragment {fragment} has no {face} RGBN image yet")
+        return load_rgbn(self.store, f"fragments/{fragment}/rgbn/{files[-1].name}")
+
+    def picture(self, pid: int, view: str, *, max_side_px: int = 640) -> bytes:
+        """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``.
+
+        Raises LookupError when the proposal, an image or the pose is missing.
+        """
+        if view not in VIEWS:
+            raise ValueError(f"view must be one of {VIEWS}, got {view!r}")
+        prop = self.proposal(pid)
+        if prop is None:
+            raise LookupError(f"no proposal {pid}")
+        key = (pid, view, max_side_px, prop["pose"] and tuple(prop["pose"].values()))
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        a, b = self.rgbn(prop["fragment_a"]), self.rgbn(prop["fragment_b"])
+        kind = view.split("-")[1]
+        pa, pb = (self._colour(a), self._colour(b)) if kind == "colour" else (relief_picture(a), relief_picture(b))
+        if view.startswith("pair"):
+            img = side_by_side([pa, pb], height_px=min(max_side_px // 2, max(pa.shape[0], pb.shape[0])))
+            img = fit_within(img, max_side_px)
+        else:
+            if prop["pose"] is None:
+                raise LookupError(f"proposal {pid} has no proposed pose yet")
+            pose = (prop["pose"]["angle_deg"], prop["pose"]["tx_mm"], prop["pose"]["ty_mm"])
+            img = join_at_pose(pa, a.mask, pb, b.mask, pose, a.pixel_mm, pixel_mm_b=b.pixel_mm,
+                               max_side_px=max_side_px)
+        png = encode_png(img)
+        with self._lock:
+            self._cache[key] = png
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return png
+
+    @staticmethod
+    def _colour(image: RGBNImage) -> np.ndarray:
+        out = linear_to_srgb8(image.albedo)
+        out[~image.mask] = 0
+        return out

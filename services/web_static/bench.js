@@ -1,0 +1,116 @@
+// Bench page: pre-scan, scan, the operator's step-by-step instructions, today's fragments (live).
+"use strict";
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const STAGES = ["scanned", "normals", "features", "matched", "rendered"];
+  const MARK = { done: "✓", waiting: "…", failed: "✗", kept: "⇡" };
+  const TITLE = { done: "done", waiting: "waiting", failed: "failed", kept: "kept on this machine; sent when the lab is back" };
+  let seq = null, current = null, prescanShownFor = null, busyRequest = false;
+
+  function fragmentId() { return $("fragment-id").value.trim(); }
+
+  function showError(err) {
+    $("bench-error").hidden = !err;
+    if (err) {
+      $("bench-error-text").textContent = err.message || String(err);
+      $("bench-error-detail").textContent = err.detail || "";
+    }
+  }
+
+  function render(st) {
+    current = st;
+    const waiting = st.phase === "waiting" && st.step;
+    const running = ["scanning", "waiting", "saving", "prescanning"].includes(st.phase);
+    $("step").hidden = !waiting;
+    if (waiting) {
+      $("step-count").textContent = `Step ${st.step.index} of ${st.step.total}`;
+      $("step-face").textContent = `${st.step.face} face · ${st.step.rotation}°`;
+      $("instruction").textContent = st.step.instruction;
+      $("proceed-button").disabled = !Tessera.loggedIn();
+    }
+    const total = st.scans_total || 0;
+    $("progress").hidden = !(total && (running || st.phase === "done"));
+    const done = st.phase === "done" ? total : Math.max(0, (st.scans_done || 1) - 1);
+    $("progress-bar").style.width = total ? `${Math.round(100 * done / total)}%` : "0";
+    $("bench-message").textContent = waiting ? "" : (st.message || "");
+    $("bench-message").className = "message" + (st.phase === "done" && st.delivery && !st.delivery.sent ? " notice" : "");
+    showError(st.phase === "error" ? st.error : null);
+    const canWrite = Tessera.loggedIn() && st.phase !== "none";
+    $("scan-button").disabled = !canWrite || running;
+    $("prescan-button").disabled = !canWrite || running;
+    $("cancel-button").disabled = !canWrite;
+    $("login-needed").hidden = Tessera.loggedIn();
+    if (st.fragment && (st.phase === "idle" || st.phase === "error") && prescanShownFor !== `${st.fragment}:${st.seq}`) {
+      prescanShownFor = `${st.fragment}:${st.seq}`;
+      const img = $("prescan-image");
+      img.onload = () => { $("prescan").hidden = false; };
+      img.onerror = () => { $("prescan").hidden = true; };
+      img.src = `/api/bench/prescan.png?t=${st.seq}`;
+    }
+    if (running && st.phase !== "prescanning") $("prescan").hidden = true;
+  }
+
+  function renderFragments(rows) {
+    const body = $("fragments").tBodies[0];
+    body.replaceChildren(...rows.map((r) => {
+      const tr = Tessera.el("tr", { "data-fragment": r.fragment });
+      const link = Tessera.el("a", { href: `/review?fragment=${encodeURIComponent(r.fragment)}`, text: r.fragment });
+      tr.append(Tessera.el("td", {}, link));
+      for (const s of STAGES) {
+        const state = (r.stages || {})[s] || "waiting";
+        const cell = Tessera.el("td", { "data-stage": s, "data-state": state });
+        const title = (r.errors || {})[s] ? `${TITLE[state]}: ${r.errors[s]}` : (s === "scanned" && r.scanned_at ? `scanned ${Tessera.clock(r.scanned_at)}` : TITLE[state]);
+        cell.append(Tessera.el("span", { class: `st ${state}`, text: MARK[state] || "?", title }));
+        tr.append(cell);
+      }
+      return tr;
+    }));
+  }
+
+  async function poll() {
+    for (;;) {
+      const url = seq === null ? "/api/bench" : `/api/bench?after=${seq}`;
+      const r = await Tessera.api("GET", url);
+      if (r.ok) {
+        seq = r.data.bench.seq;
+        render(r.data.bench);
+        renderFragments(r.data.fragments || []);
+      } else {
+        $("bench-message").textContent = r.data.error || "The station does not answer.";
+        await new Promise((res) => setTimeout(res, 2000));
+      }
+    }
+  }
+
+  async function act(url, body) {
+    if (busyRequest) return;
+    busyRequest = true;
+    try {
+      const r = await Tessera.api("POST", url, body);
+      if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
+      else render(r.data.bench);
+    } finally { busyRequest = false; }
+  }
+
+  $("fragment-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    if (!fragmentId()) { showError({ message: "Enter the fragment's ID first (type it or scan its label)." }); return; }
+    act("/api/bench/scan", { fragment: fragmentId() });
+  });
+  $("prescan-button").addEventListener("click", () => {
+    if (!fragmentId()) { showError({ message: "Enter the fragment's ID first (type it or scan its label)." }); return; }
+    $("bench-message").textContent = "Pre-scanning the glass…";
+    act("/api/bench/prescan", { fragment: fragmentId() });
+  });
+  $("proceed-button").addEventListener("click", () => {
+    if (current && current.step) act("/api/bench/proceed", { step: current.step.index });
+  });
+  $("cancel-button").addEventListener("click", () => act("/api/bench/cancel", {}));
+  document.addEventListener("keydown", (ev) => {
+    if (ev.key === "Enter" && current && current.phase === "waiting" && !Tessera.typingInField(ev)) {
+      ev.preventDefault();
+      $("proceed-button").click();
+    }
+  });
+  poll();
+})();

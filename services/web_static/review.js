@@ -1,0 +1,116 @@
+// Review page: the queue of pending proposals, pictures of the proposed join, verdicts by keyboard.
+"use strict";
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const VIEWS = ["joined-colour", "joined-relief", "pair-colour", "pair-relief"];
+  let items = [], index = -1, filter = document.querySelector(".review").dataset.fragment || "";
+  const skipped = new Set();
+
+  function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
+
+  function select(i) {
+    index = i;
+    [...$("queue").children].forEach((li, k) => li.classList.toggle("current", k === i));
+    const p = items[i];
+    const enabled = !!p && Tessera.loggedIn() && (p.status === "pending");
+    for (const b of ["confirm-button", "reject-button"]) $(b).disabled = !enabled;
+    $("skip-button").disabled = !p;
+    if (!p) {
+      $("proposal-title").textContent = items.length ? "Select a proposal" : "Nothing to review";
+      $("proposal-meta").textContent = "";
+      for (const v of VIEWS) { $(v).removeAttribute("src"); }
+      return;
+    }
+    $("proposal-title").textContent = `${p.fragment_a} ↔ ${p.fragment_b}`;
+    const pose = p.pose ? `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "no pose yet";
+    $("proposal-meta").textContent = `probability ${pct(p.probability)} · ${p.status} · ${pose} · model ${p.model_version}`;
+    for (const v of VIEWS) {
+      const img = $(v);
+      img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
+      img.src = `/api/review/picture/${p.id}/${v}.png`;
+    }
+    if (!Tessera.loggedIn()) $("review-message").textContent = "Log in (top right) to confirm or reject.";
+  }
+
+  async function loadQueue(keepId) {
+    const url = filter ? `/api/review/fragment/${encodeURIComponent(filter)}` : "/api/review/queue";
+    const r = await Tessera.api("GET", url);
+    if (!r.ok) { $("review-message").textContent = r.data.error || "The proposals cannot be read."; return; }
+    items = (r.data.proposals || []).filter((p) => !skipped.has(p.id) || p.id === keepId);
+    if (r.data.counts) $("counts").textContent = `(${r.data.counts.pending} pending · ${r.data.counts.confirmed} confirmed · ${r.data.counts.rejected} rejected)`;
+    $("queue").replaceChildren(...items.map((p, k) => {
+      const li = Tessera.el("li", { "data-proposal": p.id, title: p.status },
+        Tessera.el("span", { text: `${p.fragment_a} ↔ ${p.fragment_b}` }),
+        Tessera.el("span", { class: "prob", text: `${pct(p.probability)}${p.status !== "pending" ? " · " + p.status : ""}` }));
+      li.addEventListener("click", () => select(k));
+      return li;
+    }));
+    $("queue-empty").hidden = items.length > 0;
+    let i = items.findIndex((p) => p.id === keepId);
+    if (i < 0) i = items.findIndex((p) => p.status === "pending");
+    select(i >= 0 ? i : (items.length ? 0 : -1));
+  }
+
+  async function loadHistory() {
+    const r = await Tessera.api("GET", "/api/review/history");
+    if (!r.ok) return;
+    const rows = [];
+    for (const v of r.data.sent || []) rows.push([v, v.delivered ? "sent, waiting for the matcher" : "queued: the broker is unreachable, sent when back"]);
+    for (const v of r.data.history || []) rows.push([v, "recorded"]);
+    $("history").tBodies[0].replaceChildren(...rows.map(([v, state]) => Tessera.el("tr", { "data-state": state },
+      Tessera.el("td", { text: Tessera.when(v.time) }),
+      Tessera.el("td", { text: `${v.fragment_a} ↔ ${v.fragment_b}` }),
+      Tessera.el("td", { class: `verdict-${v.verdict}`, text: v.verdict }),
+      Tessera.el("td", { text: v.by || "" }),
+      Tessera.el("td", { text: state }))));
+  }
+
+  async function verdict(kind) {
+    const p = items[index];
+    if (!p) return;
+    if (kind === "skip") {
+      skipped.add(p.id);
+      $("review-message").textContent = `Skipped ${p.fragment_a} ↔ ${p.fragment_b}.`;
+      const next = items.findIndex((q, k) => k > index && q.status === "pending" && !skipped.has(q.id));
+      select(next >= 0 ? next : index);
+      return;
+    }
+    if ($("confirm-button").disabled) return;
+    $("confirm-button").disabled = $("reject-button").disabled = true;
+    const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind });
+    if (!r.ok) {
+      $("review-message").textContent = r.data.error || `refused (${r.status})`;
+      select(index);
+      return;
+    }
+    $("review-message").textContent = `${kind === "confirmed" ? "Confirmed" : "Rejected"} ${p.fragment_a} ↔ ${p.fragment_b}.`;
+    skipped.add(p.id);
+    await loadHistory();
+    await loadQueue();
+  }
+
+  $("confirm-button").addEventListener("click", () => verdict("confirmed"));
+  $("reject-button").addEventListener("click", () => verdict("rejected"));
+  $("skip-button").addEventListener("click", () => verdict("skip"));
+  $("fragment-filter").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    filter = $("filter-id").value.trim();
+    skipped.clear();
+    history.replaceState(null, "", filter ? `/review?fragment=${encodeURIComponent(filter)}` : "/review");
+    loadQueue();
+  });
+  document.addEventListener("keydown", (ev) => {
+    if (Tessera.typingInField(ev) || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+    const k = ev.key.toLowerCase();
+    if (k === "c" || k === "y") verdict("confirmed");
+    else if (k === "r" || k === "n") verdict("rejected");
+    else if (k === "s" || k === "arrowright") verdict("skip");
+    else if (k === "arrowdown" || k === "j") { if (index + 1 < items.length) select(index + 1); }
+    else if (k === "arrowup" || k === "k") { if (index > 0) select(index - 1); }
+    else return;
+    ev.preventDefault();
+  });
+  loadQueue();
+  loadHistory();
+  setInterval(() => { const p = items[index]; loadQueue(p && p.id); loadHistory(); }, 10000);
+})();

@@ -1,0 +1,315 @@
+"""Tests of services/web.py through Flask's test client: access control, bench, review, status."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from common.config import load_config
+from common.messages import unpack
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.store import Store
+from common.web.bench import BenchSession
+from services import web
+
+from .conftest import TOKEN, wait_for
+
+BEARER = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class CountingCapture:
+    """Capture/prescan callables that only count calls: to prove refused requests change nothing."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def capture(self, fid, operator):
+        self.calls += 1
+        return {}
+
+    def prescan(self, fid):
+        self.calls += 1
+        return {"png": b"", "message": ""}
+
+
+@pytest.fixture
+def counting_app(tmp_path):
+    counter = CountingCapture()
+    bench = BenchSession(capture=counter.capture, deliver=lambda fid, r: {"sent": True}, prescan=counter.prescan)
+    app = web.create_app(token=TOKEN, store_root=tmp_path, bench=bench)
+    return app, counter
+
+
+def _write_rules(app):
+    return sorted({r.rule for r in app.url_map.iter_rules() if "POST" in r.methods and r.rule.startswith("/api/")})
+
+
+def _fill(rule):
+    return rule.replace("<int:pid>", "1").replace("<fid>", "F1").replace("<view>", "pair-colour")
+
+
+def test_every_write_endpoint_refuses_requests_without_the_token(counting_app):
+    app, counter = counting_app
+    rules = _write_rules(app)
+    # the pages write through exactly these endpoints; a new one must be added here consciously
+    assert rules == ["/api/bench/cancel", "/api/bench/prescan", "/api/bench/proceed", "/api/bench/scan",
+                     "/api/review/verdict", "/api/status/rerun"]
+    c = app.test_client()
+    body = {"fragment": "F1", "step": 1, "proposal": 1, "verdict": "confirmed", "job": "all"}
+    for rule in rules:
+        url = _fill(rule)
+        assert c.post(url, json=body).status_code == 401, url
+        assert c.post(url, json=body, headers={"Authorization": "Bearer wrong-token-0123456789"}).status_code == 401
+        assert c.post(url, json=body, headers={"Authorization": f"Bearer {TOKEN[:-1]}"}).status_code == 401
+        assert c.post(url, json=body, headers={"X-CSRF-Token": "anything"}).status_code == 401
+    assert counter.calls == 0
+
+
+def test_a_logged_in_browser_needs_the_csrf_header_and_the_same_origin(counting_app):
+    app, counter = counting_app
+    c = app.test_client()
+    r = c.post("/login", data={"token": TOKEN, "next": "/bench"})
+    assert r.status_code == 302 and r.headers["Location"].endswith("/bench")
+    cookie = r.headers["Set-Cookie"]
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    page = c.get("/bench").get_data(as_text=True)
+    csrf = re.search(r'name="csrf-token" content="([^"]+)"', page).group(1)
+    # the session cookie alone (what a cross-site form would carry) is not enough
+    assert c.post("/api/bench/prescan", json={"fragment": "F1"}).status_code == 401
+    assert c.post("/api/bench/prescan", json={"fragment": "F1"}, headers={"X-CSRF-Token": csrf + "x"}).status_code == 401
+    assert c.post("/api/bench/prescan", json={"fragment": "F1"},
+                  headers={"X-CSRF-Token": csrf, "Origin": "http://evil.example"}).status_code == 403
+    assert c.post("/api/bench/prescan", data="fragment=F1", content_type="application/x-www-form-urlencoded",
+                  headers={"X-CSRF-Token": csrf}).status_code == 415
+    assert counter.calls == 0
+    r = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers={"X-CSRF-Token": csrf, "Origin": "http://localhost"})
+    assert r.status_code == 200 and counter.calls == 1
+    c.post("/logout", headers={"Origin": "http://localhost"})
+    assert c.post("/api/bench/prescan", json={"fragment": "F1"}, headers={"X-CSRF-Token": csrf}).status_code == 401
+
+
+def test_a_wrong_token_at_login_is_refused_and_redirects_stay_local(counting_app):
+    app, _ = counting_app
+    c = app.test_client()
+    r = c.post("/login", data={"token": "not-the-token-at-all"})
+    assert r.status_code == 401 and "not this station" in r.get_data(as_text=True)
+    for evil in ("//evil.example/x", "http://evil.example/", "/\\evil.example"):
+        r = c.post("/login", data={"token": TOKEN, "next": evil})
+        assert r.headers["Location"] in ("/", "http://localhost/")
+
+
+def test_pages_use_only_assets_served_by_the_station(counting_app):
+    app, _ = counting_app
+    c = app.test_client()
+    for page in ("/bench", "/review", "/status", "/login"):
+        r = c.get(page)
+        assert r.status_code == 200
+        html = r.get_data(as_text=True)
+        refs = re.findall(r'(?:src|href)="([^"]*)"', html)
+        assert refs and all(ref.startswith("/") and not ref.startswith("//") for ref in refs), refs
+        for ref in refs:
+            if ref.startswith("/static/"):
+                assert c.get(ref).status_code == 200, ref
+        assert "default-src 'self'" in r.headers["Content-Security-Policy"]
+    for js in ("tessera.js", "bench.js", "review.js", "status.js"):
+        text = c.get(f"/static/{js}").get_data(as_text=True)
+        assert "http://" not in text and "https://" not in text, js
+
+
+def test_listens_on_localhost_unless_config_opens_it():
+    assert web.web_settings(load_config())["host"] == "127.0.0.1"
+    cfg = load_config(None, {"services.web": {"host": "0.0.0.0", "port": 8090}})
+    assert web.web_settings(cfg)["host"] == "0.0.0.0"
+    with pytest.raises(web.WebConfigError, match="services.web.colour"):
+        web.web_settings(load_config(None, {"services.web": {"colour": "red"}}))
+    with pytest.raises(web.WebConfigError, match="services.web.port"):
+        web.web_settings(load_config(None, {"services.web": {"port": "80"}}))
+    with pytest.raises(web.WebConfigError, match="services.web.token"):
+        web.web_settings(load_config(None, {"services.web": {"token": "short"}}))
+
+
+def test_token_is_generated_at_first_start_and_kept(tmp_path):
+    cfg = load_config(None, {"storage.root": str(tmp_path / "storage")})
+    token, path = web.station_token(cfg, web.web_settings(cfg))
+    assert path == tmp_path / "storage" / "web" / "web_token" and len(token) >= 32
+    assert web.station_token(cfg, web.web_settings(cfg))[0] == token
+
+
+# -- bench on the simulated flatbed ---------------------------------------------------------------
+def _bench_app(cfg, scanner, surface_for=None):
+    link = web.StationLink(cfg)
+    bench = web.build_bench(cfg, link=link, scanner=scanner, surface_for=surface_for)
+    return web.create_app(token=TOKEN, store_root=cfg["storage"]["root"], bench=bench, link=link), link
+
+
+def _wait_bench(c, phases, timeout=120.0):
+    def done():
+        st = c.get("/api/bench").json["bench"]
+        if st["phase"] == "waiting":
+            c.post("/api/bench/proceed", json={"step": st["step"]["index"]}, headers=BEARER)
+        return st if st["phase"] in phases else None
+    return wait_for(done, timeout, f"bench phase in {phases}", interval=0.1)
+
+
+@pytest.mark.parametrize("fault, words", [("SANE_STATUS_COVER_OPEN", "lid is open"),
+                                          ("SANE_STATUS_JAMMED", "jam"),
+                                          ("SANE_STATUS_DEVICE_BUSY", "busy")])
+def test_scanner_faults_reach_the_operator_in_plain_language(station_config, fault, words):
+    from common.acquisition.flatbed_sim import SimulatedFlatbed
+
+    sim = SimulatedFlatbed("sim", seed=2)
+    sim.fault = fault
+    app, link = _bench_app(station_config, sim)
+    c = app.test_client()
+    st = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers=BEARER).json["bench"]
+    assert st["phase"] == "error" and st["error"]["kind"] == "scanner"
+    assert words in st["error"]["message"].lower() and "SANE_STATUS" not in st["error"]["message"]
+    link.close()
+
+
+def test_empty_glass_and_two_fragments_are_explained(station_config):
+    from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
+
+    sim = SimulatedFlatbed("sim", seed=3)
+    app, link = _bench_app(station_config, sim)
+    c = app.test_client()
+    st = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers=BEARER).json["bench"]
+    assert st["error"]["kind"] == "no_fragment" and "No fragment found" in st["error"]["message"]
+    sim.place(demo_surface(35.0, 100, seed=1), centre_mm=(60, 80), angle_deg=0)
+    sim.add(demo_surface(35.0, 100, seed=2), centre_mm=(150, 200), angle_deg=0)
+    st = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers=BEARER).json["bench"]
+    assert st["error"]["kind"] == "multiple_fragments" and "Leave only one fragment" in st["error"]["message"]
+    png = c.get("/api/bench/prescan.png")   # the operator sees where the objects are
+    assert png.status_code == 200 and png.data[:4] == b"\x89PNG"
+    link.close()
+
+
+def test_capture_with_the_lab_unreachable_keeps_the_scans_and_sends_them_later(tmp_path):
+    """Colour-only capture (one scan per face) on the simulated flatbed, no broker running."""
+    from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
+
+    from .conftest import station_overrides
+
+    cfg = load_config(None, station_overrides(tmp_path, **{"scanner.colour_only": True, "scanner.dpi": 100}))
+    sim = SimulatedFlatbed("sim", seed=4)
+    surface = demo_surface(30.0, 100, seed=5)
+    app, link = _bench_app(cfg, sim, surface_for=lambda fid: surface)
+    c = app.test_client()
+    st = c.post("/api/bench/prescan", json={"fragment": "F0007"}, headers=BEARER).json["bench"]
+    assert st["phase"] == "idle" and "Fragment found" in st["message"], st
+    png = cv2.imdecode(np.frombuffer(c.get("/api/bench/prescan.png").data, np.uint8), cv2.IMREAD_COLOR)
+    assert (np.all(png == [64, 230, 0], axis=2)).sum() > 20   # the green outline (BGR) is drawn
+    assert c.post("/api/bench/scan", json={"fragment": "F0007"}, headers=BEARER).status_code == 200
+    st = _wait_bench(c, ("done", "error"))
+    assert st["phase"] == "done", st
+    assert st["delivery"]["sent"] is False and "sent automatically" in st["message"]
+    # the scans are on storage, the fragment.ready waits in the outbox
+    assert Store(cfg["storage"]["root"]).exists(st["delivery"]["artifact"])
+    pending = link.outbox.pending()
+    assert len(pending) == 1 and pending[0][1]["type"] == "fragment.ready" and pending[0][1]["fragment"] == "F0007"
+    rows = c.get("/api/bench").json["fragments"]
+    assert rows[0]["fragment"] == "F0007" and rows[0]["stages"]["scanned"] == "done"
+    link.close()
+
+
+# -- review and status with a real broker ---------------------------------------------------------
+def _two_fragments(store: Store, pixel_mm: float):
+    """Two RGBN fragments cut from one picture, and the true pose of B in A's frame."""
+    h, w = 90, 120
+    r, col = np.mgrid[0:h, 0:w].astype(np.float32)
+    albedo = np.stack([0.5 + 0.4 * np.sin(col / 9), 0.5 + 0.4 * np.cos(r / 7), 0.4 + 0.3 * np.sin((r + col) / 11)], axis=2)
+    normals = np.dstack([0.2 * np.sin(col / 5), 0.2 * np.cos(r / 6), np.ones_like(r)])
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    left = col < 60
+    dpi = 25.4 / pixel_mm
+    save_rgbn(store, "fragments/FA/rgbn/front-aaaa.h5", RGBNImage(albedo, left, dpi, normals=normals))
+    # B: the right half, shifted into its own frame by 60 px (pose = +60 px along x)
+    shift = np.zeros_like(albedo)
+    shift[:, :60] = albedo[:, 60:]
+    nshift = np.zeros_like(normals)
+    nshift[..., 2] = 1
+    nshift[:, :60] = normals[:, 60:]
+    save_rgbn(store, "fragments/FB/rgbn/front-bbbb.h5", RGBNImage(shift, col < 60, dpi, normals=nshift))
+    return (0.0, 60 * pixel_mm, 0.0)
+
+
+@pytest.fixture
+def review_app(station_config, broker):
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.web.review import ReviewData
+
+    store = Store(station_config["storage"]["root"])
+    pose = _two_fragments(store, 25.4 / 200)
+    review = ReviewData.from_config(station_config)
+    with ProposalStore(review.db_path) as db:
+        db.upsert([Proposal("FA", "FB", 0.91, "m1", angle_deg=pose[0], tx_mm=pose[1], ty_mm=pose[2]),
+                   Proposal("FA", "FC", 0.35, "m1")])
+    link = web.StationLink(station_config)
+    app = web.create_app(token=TOKEN, store_root=store.root, link=link, review=review)
+    yield app, review
+    link.close()
+
+
+def test_review_queue_pictures_and_a_verdict_that_becomes_match_verified(review_app, station_config):
+    from common.bus.client import BrokerClient
+
+    app, review = review_app
+    c = app.test_client()
+    queue = c.get("/api/review/queue").json
+    assert [p["fragment_b"] for p in queue["proposals"]] == ["FB", "FC"]   # most probable first
+    assert queue["counts"]["pending"] == 2
+    pid = queue["proposals"][0]["id"]
+    for view in ("pair-colour", "pair-relief", "joined-colour", "joined-relief"):
+        r = c.get(f"/api/review/picture/{pid}/{view}.png")
+        assert r.status_code == 200 and r.headers["Content-Type"] == "image/png", view
+    joined = cv2.imdecode(np.frombuffer(c.get(f"/api/review/picture/{pid}/joined-colour.png").data, np.uint8), 1)
+    # joined at the true pose the two halves make one 90 x 120 picture (+ margins, outlines)
+    fg = np.any(joined != [40, 40, 40], axis=2)
+    rows, cols = np.flatnonzero(fg.any(axis=1)), np.flatnonzero(fg.any(axis=0))
+    assert abs((rows[-1] - rows[0] + 1) - 90) <= 2 and abs((cols[-1] - cols[0] + 1) - 120) <= 2
+    assert c.get(f"/api/review/picture/{queue['proposals'][1]['id']}/joined-colour.png").status_code == 404  # no pose
+    assert c.get("/api/review/fragment/FC").json["proposals"][0]["fragment_b"] == "FC"
+
+    r = c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed"}, headers=BEARER)
+    assert r.status_code == 200 and r.json["sent"]["delivered"] is True
+    with BrokerClient.from_config(station_config) as bus:
+        events = [unpack(bytes(b)) for _, b in bus.since(0)["events"]]
+    verified = [e for e in events if e["type"] == "match.verified"]
+    assert len(verified) == 1
+    assert (verified[0]["fragment"], verified[0]["other"], verified[0]["verdict"]) == ("FA", "FB", "confirmed")
+    hist = c.get("/api/review/history").json
+    assert hist["sent"][0]["fragment_b"] == "FB"
+    assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "maybe"}, headers=BEARER).status_code == 400
+    assert c.post("/api/review/verdict", json={"proposal": 999, "verdict": "rejected"}, headers=BEARER).status_code == 404
+
+
+def test_status_shows_a_parked_failure_and_reruns_it(station_config, broker, noop_worker):
+    from common.bus.client import BrokerClient
+    from common.messages import new_message
+
+    link = web.StationLink(station_config)
+    app = web.create_app(token=TOKEN, store_root=station_config["storage"]["root"], link=link)
+    c = app.test_client()
+    with BrokerClient.from_config(station_config) as bus:
+        bus.submit(new_message("noop.job", fragment="F9", fail=True))
+    st = wait_for(lambda: (s := c.get("/api/status").json)["parked"] and s, 30, "the failing job to be parked")
+    assert st["reachable"] and st["parked"][0]["fragment"] == "F9"
+    assert "asked to fail" in st["parked"][0]["error"]
+    assert any(w["service"] == "noop" for ws in st["workers"].values() for w in ws)
+    job = st["parked"][0]["job"]
+    assert c.post("/api/status/rerun", json={"job": job}).status_code == 401
+    r = c.post("/api/status/rerun", json={"job": job}, headers=BEARER)
+    assert r.status_code == 200 and r.json["rerun"] == [job]
+    link.close()
+
+
+def test_status_says_plainly_when_the_broker_is_down(station_config):
+    link = web.StationLink(station_config)
+    app = web.create_app(token=TOKEN, store_root=station_config["storage"]["root"], link=link)
+    r = app.test_client().get("/api/status")
+    assert r.status_code == 503 and "cannot be reached" in r.json["error"]
+    link.close()
