@@ -1,0 +1,280 @@
+"""Photometric calibration of a flatbed's lamp (§3.3.5).
+
+A diffuse target of known albedo is scanned at known tilts (0–25°) and rotations; each scan gives
+one sample (n, I) of the scanner's response to a surface orientation. The first-order model of
+the thesis (eq. 3.4) is linear in the normal,
+
+    I(n) = a · (n_x, n_y, n_z, 1),
+
+fitted by least squares; a second-order model adds (n_x², n_y², n_x n_y, n_x n_z, n_y n_z). Both
+are compared by leave-one-out cross-validation, and the first-order model is kept unless the
+second is clearly better (the normal solve, eqs. 3.5–3.7, needs the linear one). A calibration
+is stored per scanner as ``calibration/<scanner>/<UTC date>-<key>.h5`` (``tessera.calibration``)
+and :func:`newest_calibration` returns the newest valid one.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import re
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from common.acquisition.errors import CalibrationError
+from common.acquisition.locate import fragment_mask, locate_fragment, to_float
+from common.store import ArtifactError, ArtifactRef, Store, content_key
+
+SCHEMA = "tessera.calibration"
+SCHEMA_VERSION = 1
+DEFAULT_TILTS = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)
+DEFAULT_AZIMUTHS = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
+
+
+@dataclass
+class Calibration:
+    """A fitted lamp model of one scanner.
+
+    Attributes
+    ----------
+    scanner : str
+    a : (4,) float
+        First-order coefficients of eq. 3.4 for albedo 1, in full-scale units (I in [0, 1]).
+    second_order : (9,) float
+        Coefficients of the second-order model (same basis + 5 quadratic terms).
+    cv_rmse : dict
+        Leave-one-out RMS prediction error of each model, ``{"first": .., "second": ..}``.
+    order : int
+        Model the cross-validation recommends (the solver uses the first-order one regardless).
+    normals, intensities : (N, 3), (N,)
+        The calibration samples.
+    dpi, depth : scan settings used.
+    date : str
+        UTC ISO date-time of the calibration.
+    """
+
+    scanner: str
+    a: np.ndarray
+    second_order: np.ndarray
+    cv_rmse: dict
+    order: int
+    normals: np.ndarray
+    intensities: np.ndarray
+    dpi: float = 150.0
+    depth: int = 16
+    date: str = field(default_factory=lambda: _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    target_albedo: float = 0.8
+    id: str = ""
+
+    def predict(self, normals: np.ndarray, order: int = 1) -> np.ndarray:
+        """Predicted reading of an albedo-1 surface with these normals (..., 3)."""
+        X = _basis(np.asarray(normals, float), order)
+        coef = self.a if order == 1 else self.second_order
+        return X @ coef
+
+
+def _basis(n: np.ndarray, order: int) -> np.ndarray:
+    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    cols = [nx, ny, nz, np.ones_like(nx)]
+    if order == 2:
+        cols += [nx * nx, ny * ny, nx * ny, nx * nz, ny * nz]
+    return np.stack(cols, axis=-1)
+
+
+def fit_lamp_model(normals: np.ndarray, intensities: np.ndarray, order: int = 1) -> np.ndarray:
+    """Least-squares coefficients of the lamp model I(n) = a · (n_x, n_y, n_z, 1) (eq. 3.4).
+
+    Parameters
+    ----------
+    normals : (N, 3) array
+        Unit normals of the target (x right, y up, z to the sensor), N >= 4 (>= 9 for order 2).
+    intensities : (N,) array
+        Readings divided by the target's albedo.
+    order : 1 or 2
+
+    Returns
+    -------
+    (4,) or (9,) array
+    """
+    normals = np.asarray(normals, float)
+    intensities = np.asarray(intensities, float)
+    if normals.ndim != 2 or normals.shape[1] != 3:
+        raise ValueError(f"normals must be (N, 3), got {normals.shape}")
+    if intensities.shape != normals.shape[:1]:
+        raise ValueError(f"intensities must be ({normals.shape[0]},), got {intensities.shape}")
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order}")
+    X = _basis(normals, order)
+    if len(X) < X.shape[1]:
+        raise ValueError(f"need at least {X.shape[1]} samples for order {order}, got {len(X)}")
+    coef, *_ = np.linalg.lstsq(X, intensities, rcond=None)
+    return coef
+
+
+def cross_validate(normals: np.ndarray, intensities: np.ndarray) -> dict:
+    """Leave-one-out RMS prediction error of the first- and second-order models (§3.3.5)."""
+    normals = np.asarray(normals, float)
+    intensities = np.asarray(intensities, float)
+    out = {}
+    for name, order in (("first", 1), ("second", 2)):
+        X = _basis(normals, order)
+        if len(X) <= X.shape[1]:
+            out[name] = float("nan")
+            continue
+        # closed-form leave-one-out residuals of least squares: e_i / (1 - h_ii)
+        coef, *_ = np.linalg.lstsq(X, intensities, rcond=None)
+        resid = intensities - X @ coef
+        hat = np.einsum("ij,ji->i", X, np.linalg.pinv(X))
+        out[name] = float(np.sqrt(np.mean((resid / np.clip(1 - hat, 1e-9, None)) ** 2)))
+    return out
+
+
+def target_normal(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Normal of a target tilted by ``tilt_deg`` towards ``azimuth_deg`` (x right, y up)."""
+    t, p = np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg)
+    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+
+
+def measure_target(scan: np.ndarray, dpi: float) -> float:
+    """Mean reading (full scale = 1) over the central part of the target in a scan."""
+    img = to_float(scan).mean(axis=2)
+    mask = fragment_mask(scan, dpi)
+    if mask.sum() < 16:
+        raise CalibrationError("calibration target not visible in its scan")
+    # keep the central half of the target: away from its edges and their shadows
+    rows, cols = np.nonzero(mask)
+    r0, r1 = np.percentile(rows, [25, 75])
+    c0, c1 = np.percentile(cols, [25, 75])
+    sel = mask[int(r0):int(r1) + 1, int(c0):int(c1) + 1]
+    return float(np.median(img[int(r0):int(r1) + 1, int(c0):int(c1) + 1][sel]))
+
+
+def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilts=DEFAULT_TILTS,
+                      azimuths=DEFAULT_AZIMUTHS, dpi: float = 150, depth: int = 16, prescan_dpi: float = 50,
+                      area_mm=None, target_albedo: float = 0.8,
+                      progress: Callable[[float, str], None] | None = None) -> Calibration:
+    """Scan the target at every tilt × rotation and fit the lamp model (§3.3.5).
+
+    Parameters
+    ----------
+    scanner : Scanner
+    operator : callable(tilt_deg, azimuth_deg)
+        Sets the target up at that tilt and rotation; returns when done.
+    tilts, azimuths : sequences of degrees
+        Tilt 0 is scanned once.
+    area_mm : tuple or None
+        Where the calibration jig holds the target; None = find it with a pre-scan each time.
+    target_albedo : float
+        Diffuse reflectance of the target (readings are divided by it).
+    """
+    poses = [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
+    if len(poses) < 6:
+        raise ValueError("need at least 6 target poses (tilts × azimuths) to fit and cross-validate")
+    normals, values = [], []
+    for i, (t, a) in enumerate(poses):
+        if progress:
+            progress(i / len(poses), f"target at tilt {t:g}°, rotation {a:g}°")
+        operator(t, a)
+        area = area_mm
+        if area is None:
+            pre = scanner.scan(None, prescan_dpi, depth)
+            area = locate_fragment(pre, prescan_dpi, margin_mm=3.0, bed_mm=scanner.bed_mm)
+        img = scanner.scan(area, dpi, depth)
+        normals.append(target_normal(t, a))
+        values.append(measure_target(img, dpi) / target_albedo)
+    normals, values = np.array(normals), np.array(values)
+    return fit_calibration(getattr(scanner, "name", "scanner"), normals, values, dpi=dpi, depth=depth,
+                           target_albedo=target_albedo)
+
+
+def fit_calibration(scanner: str, normals: np.ndarray, intensities: np.ndarray, **kw) -> Calibration:
+    """Fit both models to calibration samples and cross-validate them."""
+    a = fit_lamp_model(normals, intensities, 1)
+    q = fit_lamp_model(normals, intensities, 2) if len(normals) >= 9 else np.r_[a, np.zeros(5)]
+    cv = cross_validate(normals, intensities)
+    # keep the first-order model unless the second predicts clearly (>25 %) better
+    order = 2 if np.isfinite(cv["second"]) and cv["second"] < 0.75 * cv["first"] else 1
+    if a[2] + a[3] <= 0 or not np.all(np.isfinite(a)):
+        raise CalibrationError(f"calibration fit is not physical (a = {a}); check the target scans")
+    return Calibration(scanner=scanner, a=a, second_order=q, cv_rmse=cv, order=order, normals=normals,
+                       intensities=intensities, **kw)
+
+
+def simulated_target_operator(sim, *, centre_mm=(60.0, 60.0), size_mm: float = 8.0, dpi: float = 150) -> Callable:
+    """Operator for the simulated flatbed: puts the tilted target in the jig (fixed place, angle 0)."""
+    from common.acquisition.flatbed_sim import calibration_target
+
+    def act(tilt, azimuth):
+        sim.place(calibration_target(tilt, azimuth, size_mm=size_mm, dpi=dpi), angle_deg=0.0, centre_mm=centre_mm)
+    return act
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "scanner"
+
+
+def save_calibration(store: Store, cal: Calibration) -> ArtifactRef:
+    """Store as ``calibration/<scanner>/<UTC date>-<key>.h5`` (schema ``tessera.calibration``)."""
+    stamp = _dt.datetime.fromisoformat(cal.date).astimezone(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    key = content_key(cal.scanner, cal.date, np.asarray(cal.a).tobytes().hex(), cal.intensities.tobytes().hex())
+    relpath = f"calibration/{_safe(cal.scanner)}/{stamp}-{key}.h5"
+
+    def fill(f):
+        f.attrs["scanner"] = cal.scanner
+        f.attrs["date"] = cal.date
+        f.attrs["order"] = cal.order
+        f.attrs["cv_rmse"] = json.dumps(cal.cv_rmse)
+        f.attrs["dpi"] = cal.dpi
+        f.attrs["depth"] = cal.depth
+        f.attrs["target_albedo"] = cal.target_albedo
+        f.attrs["model"] = "I(n) = a . (nx, ny, nz, 1), normals x right, y up, z to sensor, I full scale = 1"
+        f.create_dataset("a", data=np.asarray(cal.a, float))
+        f.create_dataset("second_order", data=np.asarray(cal.second_order, float))
+        f.create_dataset("normals", data=cal.normals)
+        f.create_dataset("intensities", data=cal.intensities)
+    ref = store.write(relpath, SCHEMA, SCHEMA_VERSION, fill, provenance={"device": cal.scanner})
+    cal.id = relpath
+    return ref
+
+
+def load_calibration(store: Store, ref) -> Calibration:
+    """Read a ``tessera.calibration`` artifact."""
+    with store.open(ref, schema=SCHEMA) as f:
+        try:
+            cal = Calibration(scanner=str(f.attrs["scanner"]), a=f["a"][()], second_order=f["second_order"][()],
+                              cv_rmse=json.loads(f.attrs["cv_rmse"]), order=int(f.attrs["order"]),
+                              normals=f["normals"][()], intensities=f["intensities"][()], dpi=float(f.attrs["dpi"]),
+                              depth=int(f.attrs["depth"]), date=str(f.attrs["date"]),
+                              target_albedo=float(f.attrs["target_albedo"]))
+        except KeyError as exc:
+            raise ArtifactError(f"calibration {f.filename} lacks {exc}") from exc
+    cal.id = ref.path if isinstance(ref, ArtifactRef) else str(ref)
+    return cal
+
+
+def newest_calibration(store: Store, scanner: str) -> tuple[Calibration, ArtifactRef]:
+    """The newest valid calibration of ``scanner``; unreadable or unphysical files are skipped.
+
+    Raises
+    ------
+    CalibrationError
+        When the scanner has no valid calibration (run ``tessera calibrate``).
+    """
+    folder = store.path(f"calibration/{_safe(scanner)}")
+    names = sorted((p.name for p in folder.glob("*.h5")), reverse=True) if folder.is_dir() else []
+    problems = []
+    for name in names:      # file names start with the UTC time stamp: newest first
+        rel = f"calibration/{_safe(scanner)}/{name}"
+        try:
+            ref = store.ref(rel)
+            cal = load_calibration(store, ref)
+            a = np.asarray(cal.a, float)
+            if a.shape != (4,) or not np.all(np.isfinite(a)) or a[2] + a[3] <= 0:
+                raise CalibrationError(f"coefficients {a} are not usable")
+            return cal, ref
+        except (ArtifactError, CalibrationError, OSError) as exc:
+            problems.append(f"{name}: {exc}")
+    detail = f" (skipped: {'; '.join(problems)})" if problems else ""
+    raise CalibrationError(f"no valid calibration for scanner {scanner!r} under {folder}{detail}; run `tessera calibrate`")

@@ -1,0 +1,183 @@
+"""Finding the fragment on the glass: background subtraction on the pre-scan (§3.3.4).
+
+:func:`locate_fragment` takes a low-dpi pre-scan of the whole bed and returns the fragment's
+region in bed millimetres. The background is either an empty-bed pre-scan (best) or estimated
+from the pre-scan itself by a median filter much larger than a fragment. Dust (specks below
+``min_area_mm2``), bed texture (robust noise threshold from the median absolute deviation) and
+the lamp's shadow (darker than the background, with no texture of its own) are rejected.
+:func:`fragment_mask` segments the fragment in a full-dpi scan of its region, whose outer ring is
+background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from common.acquisition.errors import MultipleFragmentsError, NoFragmentError
+
+
+@dataclass(frozen=True)
+class Blob:
+    """One object seen on the glass.
+
+    Attributes
+    ----------
+    bbox_mm : (left, top, right, bottom) in bed mm
+    centroid_mm : (x, y) in bed mm
+    area_mm2 : float
+    """
+
+    bbox_mm: tuple[float, float, float, float]
+    centroid_mm: tuple[float, float]
+    area_mm2: float
+
+
+def to_float(image: np.ndarray) -> np.ndarray:
+    """Scanner image (uint8/uint16/float) as float32 in [0, 1], always (H, W, 3)."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None].repeat(3, axis=2)
+    if image.ndim != 3 or image.shape[2] < 3:
+        raise ValueError(f"image must be (H, W, 3), got {image.shape}")
+    image = image[..., :3]
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / 255.0
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / 65535.0
+    return image.astype(np.float32)
+
+
+def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float) -> np.ndarray:
+    """Pixels that differ from the background beyond its noise, minus shadow-like ones."""
+    sm = cv2.GaussianBlur(img, (0, 0), max(0.6, 0.15 / pixel_mm))
+    diff = sm - bg
+    dist = np.sqrt((diff ** 2).sum(axis=2))
+    mad = np.median(np.abs(dist - np.median(dist))) + 1e-6
+    thr = max(k * 1.4826 * mad + np.median(dist), 0.02 * float(np.median(bg.sum(axis=2))) + 0.004)
+    fg = dist > thr
+    # the lamp's shadow: darker than the background in every channel, with the background's hue
+    lum, blum = sm.mean(axis=2), bg.mean(axis=2) + 1e-6
+    chroma = np.abs(sm / (lum[..., None] + 1e-6) - bg / blum[..., None]).sum(axis=2)
+    tex = cv2.GaussianBlur(np.abs(cv2.Laplacian(lum, cv2.CV_32F)), (0, 0), max(1.0, 0.5 / pixel_mm))
+    btex = np.median(tex)
+    shadow = (lum < 0.85 * blum) & (chroma < 0.15) & (tex < 3 * btex + 1e-4)
+    return fg & ~shadow
+
+
+def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray | None = None,
+                     min_area_mm2: float = 20.0, max_elongation: float = 6.0, k: float = 6.0) -> list[Blob]:
+    """Every object on the glass in a pre-scan, by background subtraction.
+
+    Parameters
+    ----------
+    prescan : (H, W, 3) array
+        Whole-bed pre-scan (uint8/uint16/float), pixel (0, 0) at bed (0, 0).
+    dpi : float
+        Pre-scan resolution.
+    background : (H, W, 3) array or None
+        Pre-scan of the empty bed at the same dpi; None = estimate it (median filter of ~30 mm).
+    min_area_mm2 : float
+        Smaller blobs are dust.
+    max_elongation : float
+        Blobs longer than this times their width are bed features (frames, rulers), not fragments.
+    k : float
+        Threshold in robust standard deviations of the background difference.
+
+    Returns
+    -------
+    list of Blob, largest first.
+    """
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    img = to_float(prescan)
+    pixel_mm = 25.4 / dpi
+    if background is not None:
+        bg = to_float(background)
+        if bg.shape != img.shape:
+            raise ValueError(f"background must have the pre-scan's shape {img.shape}, got {bg.shape}")
+        bg = cv2.GaussianBlur(bg, (0, 0), max(0.6, 0.15 / pixel_mm))
+    else:
+        # median filter larger than any fragment, on a coarse copy (fast), then back to full size
+        f = max(1, int(round(2.0 / pixel_mm)))   # ~2 mm cells
+        small = cv2.resize(img, (max(1, img.shape[1] // f), max(1, img.shape[0] // f)), interpolation=cv2.INTER_AREA)
+        ksz = int(round(30.0 / (pixel_mm * f))) | 1
+        med = np.dstack([ndimage.median_filter(small[..., c], size=ksz, mode="reflect") for c in range(3)])
+        bg = cv2.resize(med, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
+    fg = _foreground(img, bg, pixel_mm, k)
+    r = max(1, int(round(0.5 / pixel_mm)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 1, 4 * r + 1)))
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    blobs = []
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        area_mm2 = area * pixel_mm ** 2
+        if area_mm2 < min_area_mm2:
+            continue
+        if max(w, h) > max_elongation * max(1, min(w, h)) or area < 0.15 * w * h:
+            continue      # long thin or sparse: a frame, ruler or the bed edge
+        if area > 0.5 * img.shape[0] * img.shape[1]:
+            continue
+        blobs.append(Blob((x * pixel_mm, y * pixel_mm, (x + w) * pixel_mm, (y + h) * pixel_mm),
+                          ((cents[i][0] + 0.5) * pixel_mm, (cents[i][1] + 0.5) * pixel_mm), float(area_mm2)))
+    blobs.sort(key=lambda b: -b.area_mm2)
+    return blobs
+
+
+def locate_fragment(prescan: np.ndarray, dpi: float, *, background: np.ndarray | None = None,
+                    margin_mm: float = 5.0, bed_mm: tuple[float, float] | None = None, **kw) -> tuple[float, float, float, float]:
+    """The one fragment's region (left, top, right, bottom) in bed mm, plus ``margin_mm``.
+
+    Raises
+    ------
+    NoFragmentError
+        Nothing larger than dust on the glass.
+    MultipleFragmentsError
+        More than one object; the message says how many and where.
+    """
+    blobs = locate_fragments(prescan, dpi, background=background, **kw)
+    if not blobs:
+        raise NoFragmentError("pre-scan shows no fragment on the glass",
+                              "No fragment found on the glass. Place the fragment face down near the middle of the glass and press Scan.")
+    # a second object counts only if it is not negligible next to the first (e.g. a crumb)
+    others = [b for b in blobs[1:] if b.area_mm2 > 0.1 * blobs[0].area_mm2]
+    if others:
+        where = "; ".join(f"{b.area_mm2:.0f} mm² at x={b.centroid_mm[0]:.0f} mm, y={b.centroid_mm[1]:.0f} mm"
+                          for b in [blobs[0]] + others)
+        raise MultipleFragmentsError(f"pre-scan shows {1 + len(others)} objects: {where}",
+                                     f"{1 + len(others)} objects are on the glass ({where}). Leave only one fragment on the glass and press Scan.")
+    x0, y0, x1, y1 = blobs[0].bbox_mm
+    x0, y0, x1, y1 = x0 - margin_mm, y0 - margin_mm, x1 + margin_mm, y1 + margin_mm
+    if bed_mm is None:
+        bed_mm = (prescan.shape[1] * 25.4 / dpi, prescan.shape[0] * 25.4 / dpi)
+    return (max(0.0, x0), max(0.0, y0), min(bed_mm[0], x1), min(bed_mm[1], y1))
+
+
+def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, k: float = 6.0) -> np.ndarray:
+    """Mask of the fragment in a full-dpi scan of its region (the outer ring is background).
+
+    The background colour is the median of the outer ring; pixels differing beyond ``k`` robust
+    standard deviations are foreground, the lamp's shadow is excluded, holes are filled, and the
+    largest connected object is kept.
+    """
+    img = to_float(scan)
+    H, W = img.shape[:2]
+    pixel_mm = 25.4 / dpi
+    b = max(2, int(round(ring_fraction * min(H, W))))
+    ring = np.ones((H, W), bool)
+    ring[b:-b, b:-b] = False
+    bgc = np.median(img[ring], axis=0).astype(np.float32)
+    bg = np.broadcast_to(bgc, img.shape)
+    fg = _foreground(img, bg, pixel_mm, k)
+    r = max(1, int(round(0.3 / pixel_mm)))
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    if n <= 1:
+        return np.zeros((H, W), bool)
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return ndimage.binary_fill_holes(labels == best)
