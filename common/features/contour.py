@@ -47,7 +47,8 @@ class Contour:
         return p, n
 
 
-def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smooth_mm=1.0) -> Contour:
+def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smooth_mm=1.0,
+                     start_mm=None) -> Contour:
     """Sub-pixel outline of the largest fragment region of a mask.
 
     Parameters
@@ -63,6 +64,9 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
         Gaussian smoothing of the positions along the arc (removes the pixel staircase), mm.
     normal_smooth_mm : float
         Gaussian smoothing of the tangent used for the normals, mm.
+    start_mm : (2,) float, optional
+        Start the contour at the point nearest to this one (x, y mm) instead of the point
+        farthest from the centroid (e.g. to sample a re-scan at the same places).
 
     Returns
     -------
@@ -125,8 +129,11 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
     # walking clockwise on screen (y down), the outside is on the left-hand side: (ty, -tx)
     normals = np.stack([tan[:, 1], -tan[:, 0]], axis=-1)
     # canonical start: farthest point from the centroid (rotation-invariant up to ties)
-    centroid = pts.mean(axis=0)
-    start = int(np.argmax(np.sum((pts - centroid) ** 2, axis=1)))
+    if start_mm is None:
+        centroid = pts.mean(axis=0)
+        start = int(np.argmax(np.sum((pts - centroid) ** 2, axis=1)))
+    else:
+        start = int(np.argmin(np.sum((pts - np.asarray(start_mm, float)) ** 2, axis=1)))
     pts, normals = np.roll(pts, -start, axis=0), np.roll(normals, -start, axis=0)
     seg = np.linalg.norm(np.diff(np.vstack([pts, pts[:1]]), axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg)[:-1]])

@@ -126,6 +126,7 @@ def _area_downsample(a, factor: int, shape) -> np.ndarray:
 
 
 def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: float = WORK_PIXEL_MM,
+                     contour_start_mm=None,
                      progress: Callable[[float, str], None] | None = None) -> FeatureTable:
     """All per-fragment and per-patch descriptors of one fragment face (§5.2.1, §5.4).
 
@@ -138,6 +139,9 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         Face name stored with the table.
     work_pixel_mm : float
         Target pixel size of the working grid, mm.
+    contour_start_mm : (2,) float, optional
+        Start the contour (and the patch sampling) at the contour point nearest to this point
+        (x, y mm); by default the point farthest from the centroid.
     progress : callable(fraction, text), optional
         Called as the work advances.
 
@@ -204,16 +208,16 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         safe = np.maximum(M, 1e-6)
         nz = np.where(M > 0, S["nz"] / safe, 1.0).astype(np.float32)
         grey = np.where(M > 0, S["L"] / safe, 0.0).astype(np.float32)
-        values.update(discontinuity_from_differences(neighbour_differences(nz, inside)))
-        # smoothed nz for the FFTs, background filled with the mean so the outline stays quiet
+        # smoothed nz (background filled with the mean so the outline stays quiet) for the FFTs
+        # and the discontinuity histogram: statistics of the surface, not of sensor noise or
+        # of how the scan was resampled
         nz_s = ndi.gaussian_filter(np.where(region, nz, values["normal_z_mean"]).astype(np.float32), 1.0)
+        values.update(discontinuity_from_differences(neighbour_differences(nz_s, inside)))
         report(0.2, "fragment orientation")
         values.update(_fragment_orientation(nz_s, region, wp))
         report(0.3, "erosion")
         values.update(multiscale_erosion(grey, nz, M, wp, n_scales=EROSION_SCALES))
         eroded, _, _ = erosion_map(grey, nz, region)
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(eroded.astype(np.uint8), connectivity=8)
-        areas = stats[:, cv2.CC_STAT_AREA]
     if has_h and float(S["hv"].sum()) > 0:
         values["thickness_mean"] = float(S["h"].sum() / S["hv"].sum())
 
@@ -222,7 +226,7 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     names = [d.name for d in patch_descriptors()]
     col = {n: i for i, n in enumerate(names)}
     try:
-        contour = fragment_contour(M, wp)
+        contour = fragment_contour(M, wp, start_mm=contour_start_mm)
     except ValueError:
         contour = None
     if contour is None or contour.length_mm < 4 * max(CURVATURE_SCALES_MM):
@@ -249,10 +253,10 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         in_disc = (w > 0.5) & region[sel]
         if has_n:
             row.update(normal_from_moments(means(NORMAL_MOMENTS, w, sel)))
-            row.update(discontinuity_from_differences(neighbour_differences(nz[sel], inside[sel] & (w > 0.5))))
+            row.update(discontinuity_from_differences(neighbour_differences(nz_s[sel], inside[sel] & (w > 0.5))))
             row.update(dominant_orientation(nz_s[sel], in_disc, wp, smooth_px=0,
                                             reference_normal=patches.normals[i]))
-            d, s = erosion_statistics(eroded[sel], in_disc, wp, labels[sel], areas)
+            d, s = erosion_statistics(eroded[sel], in_disc, wp)
             row["erosion_density"], row["erosion_size"] = d, s
         if has_h:
             hv = float(np.sum(w * S["hv"][sel]))
