@@ -29,8 +29,8 @@ def paper_texture(shape, *, seed: int = 0, grain_px: float = 1.0, turbulence_px:
     rng = np.random.default_rng(seed)
     grain = gaussian_blur(rng.standard_normal(shape).astype(np.float32), grain_px)
     turb = gaussian_blur(rng.standard_normal(shape).astype(np.float32), turbulence_px)
-    grain /= max(float(grain.std()), 1e-6)
-    turb /= max(float(turb.std()), 1e-6)
+    grain = (grain - grain.mean()) / max(float(grain.std()), 1e-6)
+    turb = (turb - turb.mean()) / max(float(turb.std()), 1e-6)
     return np.clip(0.35 * grain + 0.65 * turb, -3, 3) / 3.0
 
 

@@ -1,0 +1,125 @@
+import numpy as np
+import pytest
+
+from common.render._util import light_vector
+from common.render.shading import (exaggerated_shading, gooch, lambertian, mean_curvature_shading,
+                                   multiscale_mean_curvature_shading, quantize_colours, toon)
+from tests.rgbn.analytic import gaussian_bump, grid_mm, sphere, tilted_plane
+
+
+def test_lambertian_is_n_dot_l_clamped_with_ambient():
+    n, mask = sphere(64, 3.0, 0.1)
+    l = light_vector(30.0, 20.0)
+    got = lambertian(n, (30.0, 20.0), ambient=0.2)
+    expect = 0.2 + 0.8 * np.maximum(n @ l, 0)
+    assert np.allclose(got, expect, atol=1e-6)
+    albedo = np.full(n.shape, 0.5, np.float32)
+    assert np.allclose(lambertian(n, l, albedo=albedo, ambient=0.2), 0.5 * expect[..., None], atol=1e-6)
+
+
+def test_raking_light_shows_shallow_relief_with_more_contrast_than_overhead_light():
+    n = gaussian_bump(96, 0.05, 0.05, 0.5)  # a 50 um high bump: a tool mark
+    overhead = lambertian(n, (0.0, 70.0))
+    raking = lambertian(n, (0.0, 10.0))
+    # Weber contrast (what the eye sees): d(n.l) ~ slope*cos(elevation) over a mean of sin(elevation)
+    assert raking.std() / raking.mean() > 5 * overhead.std() / overhead.mean()
+
+
+def test_toon_boundaries_lie_on_isophotes():
+    n, mask = sphere(128, 6.0, 0.1)
+    light = (120.0, 40.0)
+    s = np.maximum(n @ light_vector(*light), 0)
+    levels = 4
+    tone = toon(n, light, levels=levels, softness=0.0, dark=0.0)
+    # a hard toon image is constant between isophotes and jumps exactly across them
+    band = np.clip(np.floor(s * levels), 0, levels - 1) / (levels - 1)
+    assert np.allclose(tone[mask], band[mask], atol=1e-6)
+    # with smooth steps the tone is half-way on every isophote n.l = j/levels
+    soft = toon(n, light, levels=levels, softness=0.05, dark=0.0)
+    for j in range(1, levels):
+        on = mask & (np.abs(s - j / levels) < 0.002)
+        assert on.sum() > 10
+        assert np.allclose(soft[on], (j - 0.5) / (levels - 1), atol=0.02)
+
+
+def test_kmeans_quantization_recovers_the_palette():
+    rng = np.random.default_rng(3)
+    palette = np.array([[0.8, 0.2, 0.1], [0.1, 0.5, 0.2], [0.9, 0.9, 0.8]], np.float32)
+    idx = rng.integers(0, 3, (40, 40))
+    colours = palette[idx] + 0.02 * rng.standard_normal((40, 40, 3)).astype(np.float32)
+    out = quantize_colours(colours, 3, seed=1)
+    assert len(np.unique(out.reshape(-1, 3), axis=0)) == 3
+    assert np.abs(out - palette[idx]).max() < 0.02
+
+
+def test_gooch_goes_from_cool_to_warm():
+    l = light_vector(0.0, 0.0)
+    n = np.zeros((1, 2, 3), np.float32)
+    n[0, 0] = l
+    n[0, 1] = -l
+    kd = np.full((1, 2, 3), 0.5, np.float32)
+    out = gooch(n, l, albedo=kd, blue=0.4, yellow=0.4, alpha=0.2, beta=0.6)
+    assert np.allclose(out[0, 0], [0.4 + 0.3, 0.4 + 0.3, 0.3])  # k_warm
+    assert np.allclose(out[0, 1], [0.1, 0.1, 0.4 + 0.1])  # k_cool
+
+
+def test_exaggerated_shading_of_a_plane_is_uniform_and_reveals_a_bump_whatever_the_tilt():
+    flat = exaggerated_shading(tilted_plane(64, 30, 45), scales=4)
+    assert flat.std() < 1e-5
+    bump = gaussian_bump(96, 0.1, 0.3, 0.4)
+    # the same bump on a strongly tilted base: normals rotated by 50 degrees about y
+    t = np.radians(50)
+    rot = np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]], np.float32)
+    tilted = bump @ rot.T
+    a = exaggerated_shading(bump, (0.0, 45.0), scales=6, base_weight=0.0)
+    b = exaggerated_shading(tilted, (0.0, 45.0), scales=6, base_weight=0.0)
+    x, y = grid_mm(96, 0.1)
+    near = np.hypot(x, y) < 1.0
+
+    def spread(img):
+        lo, hi = np.percentile(img[near], [5, 95])
+        return hi - lo
+
+    # light always grazes the coarse surface: the bump keeps most of its contrast on the tilted
+    # base, where plain Lambertian shading under the same light washes it out
+    assert spread(a) > 0.4
+    assert spread(b) > 0.5 * spread(a)
+    la, lb = lambertian(bump, (0.0, 45.0)), lambertian(tilted, (0.0, 45.0))
+    assert spread(lb) < 0.3 * spread(la)
+    # and the flank facing the light (x > 0 for azimuth 0) is the bright one
+    row = np.abs(y) < 0.2
+    assert a[row & (x > 0.2) & (x < 0.6)].mean() > a[row & (x < -0.2) & (x > -0.6)].mean() + 0.2
+
+
+@pytest.mark.parametrize("fn", [mean_curvature_shading, multiscale_mean_curvature_shading])
+def test_plane_curvature_shading_is_uniform_half(fn):
+    out = fn(tilted_plane(48, 35, 70), 300.0)
+    assert np.allclose(out, 0.5, atol=1e-6)
+
+
+def test_mean_curvature_shading_of_a_sphere_follows_tanh_of_radius_ratio():
+    n, mask = sphere(96, 4.0, 0.1)
+    x, y = grid_mm(96, 0.1)
+    inner = np.hypot(x, y) < 3.4
+    out = mean_curvature_shading(n, 254.0, mask=mask, radius_mm=2.0)
+    assert np.allclose(out[inner], 0.5 + 0.5 * np.tanh(2.0 / 4.0), atol=2e-3)
+    bowl = n.copy()
+    bowl[..., :2] *= -1
+    assert np.allclose(mean_curvature_shading(bowl, 254.0, mask=mask, radius_mm=2.0)[inner],
+                       0.5 - 0.5 * np.tanh(0.5), atol=2e-3)
+
+
+def test_multiscale_shading_shows_convex_light_and_concave_dark():
+    n = gaussian_bump(96, 0.05, 0.4, 0.6)
+    out = multiscale_mean_curvature_shading(n, 508.0, scales=3, sigma0_mm=0.05)
+    assert out[48, 48] > 0.6  # the top of the bump
+    x, y = grid_mm(96, 0.05)
+    foot = np.abs(np.hypot(x, y) - 1.4) < 0.05
+    assert out[foot].mean() < 0.5
+
+
+def test_bad_levels_are_refused_by_name():
+    with pytest.raises(ValueError, match="levels"):
+        toon(tilted_plane(4), levels=1)
+    with pytest.raises(ValueError, match="sigma_ratio"):
+        exaggerated_shading(tilted_plane(4), sigma_ratio=1.0)
