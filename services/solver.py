@@ -1,0 +1,84 @@
+"""Solver service: on ``fragment.ready``, turn raw flatbed scans into RGBN faces (§3.3.6).
+
+Reads the ``tessera.scans`` artifact, takes the newest valid calibration of the scanning device,
+registers each face's scans to its first scan and solves albedo + normals
+(:func:`common.acquisition.flatbed_normals.solve_face`), writes one ``tessera.rgbn`` artifact per
+face at a content-keyed path and returns one ``rgbn.ready`` per face. A colour-only capture gives
+albedo only. A face whose scans cannot be registered fails the job with the reason (no
+embossed normals are published).
+
+Config (``[services.solver]``): ``auto_calibrate_simulator`` (default true: a simulated device
+without a calibration is calibrated on first use).
+"""
+
+from __future__ import annotations
+
+from common.acquisition.calibration import (calibrate_scanner, newest_calibration, save_calibration,
+                                            simulated_target_operator)
+from common.acquisition.capture import FACES, read_scans
+from common.acquisition.errors import CalibrationError
+from common.acquisition.flatbed_normals import colour_only_face, solve_face
+from common.messages import MessageError, new_message
+from common.rgbn.image import save_rgbn
+from common.store import ArtifactRef, content_key
+
+SERVICE = "solver"
+VERSION = "flatbed-ps-1.0"
+
+
+def output_path(fragment: str, face: str, scans_sha256: str, calibration_id: str) -> str:
+    """Content-keyed path of one face's RGBN artifact."""
+    return f"fragments/{fragment}/rgbn/{face}-{content_key(scans_sha256, calibration_id, SERVICE, VERSION)}.h5"
+
+
+def _calibration(ctx, device: str):
+    try:
+        return newest_calibration(ctx.store, device)
+    except CalibrationError:
+        if not (device.startswith("sim") and (ctx.config or {}).get("auto_calibrate_simulator", True)):
+            raise
+    from common.acquisition.flatbed_sim import SimulatedFlatbed
+    ctx.log.info("no calibration for simulated device %s: calibrating it now", device)
+    sim = SimulatedFlatbed(device)
+    cal = calibrate_scanner(sim, simulated_target_operator(sim), area_mm=(50, 50, 70, 70))
+    ref = save_calibration(ctx.store, cal)
+    return cal, ref
+
+
+def handle(job: dict, ctx) -> list[dict]:
+    """Solve every face of the fragment named by a ``fragment.ready`` job; return ``rgbn.ready`` events."""
+    if job.get("type") != "fragment.ready":
+        raise MessageError(f"solver handles fragment.ready, got {job.get('type')!r}")
+    ref = ArtifactRef.from_dict(job["artifact"])
+    fragment = str(job["fragment"])
+    ctx.progress(0.0, "reading scans")
+    capture = read_scans(ctx.store, ref)
+    cal, cal_ref = _calibration(ctx, capture.device)
+    events = []
+    faces = [f for f in FACES if capture.scans.get(f)]
+    for k, face in enumerate(faces):
+        scans = capture.scans[face]
+        relpath = output_path(fragment, face, ref.sha256, cal_ref.sha256)
+        if not ctx.store.exists(relpath):
+            base = k / len(faces)
+            report = lambda f, t: ctx.progress(base + f / len(faces), f"{face}: {t}")
+            if capture.colour_only or len(scans) < 3:
+                image = colour_only_face(scans[0].image, scans[0].dpi, cal.a)
+                regs = []
+            else:
+                image, regs = solve_face([s.image for s in scans], scans[0].dpi, cal.a,
+                                         nominal_deg=[s.rotation for s in scans], progress=report)
+            image.attrs["face"] = face
+            image.attrs["calibration"] = cal_ref.path
+            ctx.log.info("fragment %s %s: %d scans, registration residual %s", fragment, face, len(scans),
+                         image.attrs.get("registration_residual", "n/a"))
+            out = save_rgbn(ctx.store, relpath, image, provenance={
+                "stage": SERVICE, "stage_version": VERSION, "fragment": fragment, "face": face,
+                "device": capture.device, "calibration": cal_ref.to_dict(), "inputs": [ref.to_dict()],
+                "registration": [{"angle_deg": r.angle_deg, "correlation": r.correlation, "residual": r.residual}
+                                 for r in regs]})
+        else:
+            out = ctx.store.ref(relpath)
+        events.append(new_message("rgbn.ready", fragment=fragment, face=face, artifact=out))
+    ctx.progress(1.0, "done")
+    return events
