@@ -69,7 +69,7 @@ class Style:
     def parameters(self) -> dict:
         """Parameter name -> default value."""
         sig = inspect.signature(self.draw)
-        return {p.name: p.default for p in list(sig.parameters.values())[1:]}
+        return {p.name: p.default for p in list(sig.parameters.values())[1:] if p.name != "labels"}
 
 
 # ---- style adapters: RGBNImage -> Layer (thin; the algorithms live in the style modules) ----------
@@ -207,6 +207,17 @@ def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0
                                             relief=relief, paper=paper, edge_darkening=edge_darkening, seed=seed))
 
 
+def draw_segment_boundaries(image: RGBNImage, labels=None, width_px: float = 1.0, colour=(0.0, 0.0, 0.0)) -> Layer:
+    """Lines between the recipe's colour+normal segments (needs a [segmentation] section)."""
+    if labels is None:
+        raise ValueError("style 'segment_boundaries' needs a [segmentation] section in the recipe")
+    edge = np.zeros(labels.shape, bool)
+    edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
+    edge[1:] |= labels[1:] != labels[:-1]
+    edge &= image.mask
+    return _ink(_lines._thicken(edge.astype(np.float32), width_px), colour)
+
+
 def draw_normals(image: RGBNImage) -> Layer:
     """The normal map as colour (OpenGL convention, (n + 1) / 2)."""
     return _cover(image, (image.normals + 1.0) * 0.5)
@@ -229,6 +240,7 @@ STYLES: dict[str, Style] = {s.name: s for s in (
     Style("ridges_valleys", draw_ridges_valleys, _N, draw_ridges_valleys.__doc__),
     Style("discontinuity_shadows", draw_discontinuity_shadows, frozenset(), draw_discontinuity_shadows.__doc__),
     Style("watercolour", draw_watercolour, _C, draw_watercolour.__doc__),
+    Style("segment_boundaries", draw_segment_boundaries, frozenset({"segments"}), draw_segment_boundaries.__doc__),
     Style("normals", draw_normals, _N, draw_normals.__doc__),
 )}
 
@@ -284,8 +296,9 @@ def validate_recipe(recipe: Recipe) -> None:
         opacity = layer.get("opacity", 1.0)
         if not isinstance(opacity, (int, float)) or not 0 <= opacity <= 1:
             raise ValueError(f"{lw}: opacity must be a number in [0, 1], got {opacity!r}")
-        if ("segments" in layer or "exclude_segments" in layer) and recipe.segmentation is None:
-            raise ValueError(f"{lw}: 'segments' needs a [segmentation] section")
+        if ("segments" in layer or "exclude_segments" in layer or "segments" in style.needs) \
+                and recipe.segmentation is None:
+            raise ValueError(f"{lw}: per-segment drawing needs a [segmentation] section")
         params = set(layer) - set(_LAYER_KEYS)
         bad = params - set(style.parameters())
         if bad:
@@ -322,6 +335,36 @@ def load_recipe(path_or_name: str | Path) -> Recipe:
     return parse_recipe(p.read_text(), name=p.stem)
 
 
+def recipe_to_toml(recipe: Recipe) -> str:
+    """TOML text of a recipe (the form :func:`parse_recipe` reads)."""
+
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(float(v)) if isinstance(v, float) else str(v)
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {value(x)}" for k, x in v.items()) + " }"
+        raise ValueError(f"cannot write {v!r} as TOML")
+
+    out = [f"name = {value(recipe.name)}"]
+    if recipe.description:
+        out.append(f"description = {value(recipe.description)}")
+    out.append(f"background = {value(list(recipe.background))}")
+    out.append(f"bits = {recipe.bits}")
+    if recipe.preprocess:
+        out += ["", "[preprocess]"] + [f"{k} = {value(v)}" for k, v in recipe.preprocess.items()]
+    if recipe.segmentation is not None:
+        out += ["", "[segmentation]"] + [f"{k} = {value(v)}" for k, v in recipe.segmentation.items()]
+    for layer in recipe.layers:
+        out += ["", "[[layer]]"] + [f"{k} = {value(v)}" for k, v in layer.items()]
+    return "\n".join(out) + "\n"
+
+
 def style_recipe(style: str, **params) -> Recipe:
     """A one-layer recipe drawing ``style`` (with its parameters); line and shadow styles are
     drawn over the fragment's colour so they have something to sit on."""
@@ -331,7 +374,9 @@ def style_recipe(style: str, **params) -> Recipe:
     if style in ("discontinuity_lines", "suggestive_contours", "suggestive_contours_object", "ridges_valleys",
                  "discontinuity_shadows"):
         layers.insert(0, {"style": "albedo"})
-    return Recipe(name=style, layers=layers)
+    recipe = Recipe(name=style, layers=layers)
+    recipe.source = recipe_to_toml(recipe)
+    return recipe
 
 
 @dataclass
@@ -365,7 +410,8 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         log.warning("image has no normals: skipping %s", ", ".join(skipped))
         layers = [layer for layer in layers if layer["style"] not in skipped] or [{"style": "albedo"}]
     labels = None
-    if any("segments" in layer or "exclude_segments" in layer for layer in layers):
+    if any("segments" in layer or "exclude_segments" in layer or "segments" in STYLES[layer["style"]].needs
+           for layer in layers):
         from common.rgbn.segmentation import segment_rgbn
 
         labels = segment_rgbn(image.albedo, image.normals, mask=image.mask, **(recipe.segmentation or {}))
@@ -377,6 +423,8 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
             progress(i / len(layers), f"drawing {layer['style']}")
         style = STYLES[layer["style"]]
         params = {k: (tuple(v) if isinstance(v, list) else v) for k, v in layer.items() if k not in _LAYER_KEYS}
+        if "segments" in style.needs:
+            params["labels"] = labels
         drawn = style.draw(image, **params)
         a = drawn.alpha * np.float32(layer.get("opacity", 1.0))
         if labels is not None and "segments" in layer:

@@ -1,0 +1,61 @@
+import logging
+
+import numpy as np
+import pytest
+
+from common.messages import MessageError, new_message, validate
+from common.render.artifact import load_rendering
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.store import Store
+from services import renderer
+from tests.rgbn.analytic import sphere
+
+
+class Ctx:
+    def __init__(self, store, config=None):
+        self.store = store
+        self.config = config or {}
+        self.log = logging.getLogger("test.renderer")
+        self.progress_seen = []
+
+    def progress(self, fraction, text):
+        self.progress_seen.append(fraction)
+
+
+@pytest.fixture
+def rgbn_job(tmp_path):
+    store = Store(tmp_path / "store")
+    n, mask = sphere(48, 2.0, 0.1)
+    img = RGBNImage(albedo=np.full((48, 48, 3), 0.6), mask=mask, dpi=254.0, normals=n)
+    ref = save_rgbn(store, "fragments/F1/rgbn/front-abc.h5", img)
+    return store, new_message("rgbn.ready", fragment="F1", face="front", artifact=ref)
+
+
+def test_rgbn_ready_is_rendered_with_the_configured_recipe_on_the_same_grid(rgbn_job):
+    store, job = rgbn_job
+    ctx = Ctx(store, {"recipe": "relief"})
+    (event,) = renderer.handle(job, ctx)
+    validate(event)
+    assert event["type"] == "render.ready" and event["fragment"] == "F1" and event["recipe"] == "relief"
+    assert event["artifact"]["path"].startswith("fragments/F1/renders/front-")
+    image, alpha, attrs = load_rendering(store, event["artifact"])
+    assert image.shape == (48, 48, 3) and alpha.shape == (48, 48)
+    assert attrs["recipe"] == "relief" and attrs["bits"] == 8 and "exaggerated" in attrs["recipe_toml"]
+    assert ctx.progress_seen and max(ctx.progress_seen) <= 1.0
+
+
+def test_redelivered_job_finds_its_output_and_a_new_recipe_makes_a_new_one(rgbn_job):
+    store, job = rgbn_job
+    first = renderer.handle(job, Ctx(store))[0]
+    again = renderer.handle(job, Ctx(store))[0]
+    assert again["artifact"] == first["artifact"]
+    other = renderer.handle(job, Ctx(store, {"recipe": "raking"}))[0]
+    assert other["artifact"]["path"] != first["artifact"]["path"]
+    _, _, attrs = load_rendering(store, other["artifact"])
+    assert attrs["bits"] == 16
+
+
+def test_wrong_event_type_is_refused(rgbn_job):
+    store, job = rgbn_job
+    with pytest.raises(MessageError, match="rgbn.ready"):
+        renderer.handle(dict(job, type="features.ready"), Ctx(store))
