@@ -463,7 +463,7 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
 class StationLink:
     """The broker as the pages need it, plus the bench's durable outbox.
 
-    One :class:`~common.bus.client.BrokerClient` per thread (clients are thread-confined); the
+    A short-lived :class:`~common.bus.client.BrokerClient` per call (clients are thread-confined); the
     status is cached for ``cached_s`` so that many open pages do not hammer the broker. Verdicts go
     through the outbox too, so a verdict given while the broker is down is sent when it is back.
     """
@@ -473,34 +473,38 @@ class StationLink:
         from common.store import Store
 
         self.cfg = cfg
-        self._local = threading.local()
         self._status: tuple[float, dict] | None = None
         self._lock = threading.Lock()
+        self._drain_lock = threading.Lock()
         self.outbox = Outbox(cfg["scanner"]["spool_dir"])
-        self.storage = Store(cfg["storage"]["root"], file_locking=cfg["storage"]["file_locking"])
+        st = cfg["storage"]
+        self.storage = Store(st["root"], file_locking=st["file_locking"], create=st.get("create_root", True))
         self._stop = threading.Event()
         self._drain_thread: threading.Thread | None = None
-        self._wake = threading.Event()
 
     def client(self):
+        """A fresh client (clients are thread-confined and requests run on many threads).
+
+        One short attempt: a page must not hang while the broker is down; the outbox retries.
+        """
         from common.bus.client import BrokerClient
 
-        c = getattr(self._local, "client", None)
-        if c is None:
-            c = self._local.client = BrokerClient.from_config(self.cfg)
-        return c
+        return BrokerClient.from_config(self.cfg, timeout_s=min(1.0, float(self.cfg["client"]["timeout_s"])),
+                                        retries=1)
 
     def status(self, cached_s: float = 0.0) -> dict:
         with self._lock:
             if cached_s and self._status and time.monotonic() - self._status[0] < cached_s:
                 return dict(self._status[1])
-        st = self.client().status()
+        with self.client() as c:
+            st = c.status()
         with self._lock:
             self._status = (time.monotonic(), st)
         return dict(st)
 
     def rerun(self, job: str) -> dict:
-        return {"rerun": self.client().rerun(job)}
+        with self.client() as c:
+            return {"rerun": c.rerun(job)}
 
     def outbox_depth(self) -> int:
         return len(self.outbox)
@@ -512,9 +516,9 @@ class StationLink:
 
     def drain(self) -> bool:
         """Send what the outbox holds; True when it is empty afterwards."""
-        with self._lock:   # one drain at a time keeps the outbox's order
+        with self._drain_lock, self.client() as c:   # one drain at a time keeps the outbox's order
             try:
-                self.outbox.drain(self.client(), self.storage)
+                self.outbox.drain(c, self.storage)
             except Exception as exc:  # never let a drain error reach the operator's request
                 log.warning("outbox drain failed: %s", exc)
         return len(self.outbox) == 0
@@ -533,9 +537,9 @@ class StationLink:
 
     def close(self) -> None:
         self._stop.set()
-        c = getattr(self._local, "client", None)
-        if c is not None:
-            c.close()
+        if self._drain_thread is not None:
+            self._drain_thread.join(5)
+        self.outbox.close()
 
 
 def _simulated_bench(cfg: Mapping):
@@ -605,20 +609,12 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
                                     colour_only=bool(sc["colour_only"]), margin_mm=float(sc["margin_mm"]))
 
     def deliver(fid, result):
-        try:
-            if not link.storage.available():
-                raise OSError("storage root unreachable")
-            ref = cap.write_scans(link.storage, fid, result)
-            spooled = None
-        except OSError as exc:
-            log.warning("storage unreachable (%s): spooling the scans of %s", exc, fid)
-            ref = cap.write_scans(link.outbox.spool, fid, result)
-            spooled = ref.path
-        event = new_message("fragment.ready", fragment=fid, face="both", artifact=ref, device=result.device,
-                            colour_only=bool(result.colour_only))
-        link.outbox.put(event, spooled=spooled, sha256=ref.sha256 if spooled else None)
+        # exactly the scanner service's path: storage, else the local spool; fragment.ready via the outbox
+        from services.scanner import store_scans
+
+        event, spooled = store_scans(result, link.storage, link.outbox)
         sent = link.drain()
-        return {"sent": sent, "artifact": ref.path, "spooled": spooled is not None}
+        return {"sent": sent, "artifact": event["artifact"]["path"], "spooled": spooled}
 
     def prescan(fid):
         if surface_for is not None:
