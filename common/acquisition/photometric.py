@@ -33,7 +33,7 @@ from common.rgbn.image import RGBNImage
 #: images; with them the DiLiGenT least-squares baseline is reproduced.
 LUMA = np.array([0.2989, 0.5870, 0.1140], dtype=np.float32)
 
-_CHUNK = 1 << 16  # pixels per block: bounds memory at ~N × 64 Ki floats per temporary
+_CHUNK = 1 << 14  # pixels per block: temporaries of N × 16 Ki floats stay in cache
 
 
 def _check_inputs(images, directions, mask, valid):
@@ -65,14 +65,18 @@ def _check_inputs(images, directions, mask, valid):
     return images, d.astype(np.float32), mask, valid
 
 
-def _grey_and_colour(images, idx):
-    """(N, P) grey intensities and (N, P, 3) colour of the pixels ``idx`` (flat indices)."""
+def _pixels(images, idx):
+    """Grey (P, N) pixel-major intensities and colour (N, P, C) of the pixels ``idx`` (flat)."""
     n = images.shape[0]
     flat = images.reshape(n, -1, *images.shape[3:])
     colour = flat[:, idx].astype(np.float32, copy=False)
     if colour.ndim == 2:
-        return colour, colour[..., None]
-    return colour @ LUMA, colour
+        colour = colour[..., None]
+        grey = colour[..., 0]
+    else:
+        grey = colour @ LUMA
+    # pixel-major: per-pixel reductions and sorts over the lights run on contiguous memory
+    return np.ascontiguousarray(grey.T), colour
 
 
 def _unit(g):
@@ -81,32 +85,107 @@ def _unit(g):
     return n, rho
 
 
+def _solve_sym3(a, b):
+    """Solve P symmetric 3×3 systems ``a (P, 6: xx xy xz yy yz zz) · g = b (P, 3)`` by cofactors.
+
+    Closed form in float64: much faster than a batched LAPACK call for 3×3 matrices.
+    """
+    a = a.astype(np.float64)
+    b = b.astype(np.float64)
+    a00, a01, a02, a11, a12, a22 = (a[:, k] for k in range(6))
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    # pixels with < 3 usable lights have det ≈ 0: they come out as 0 and get confidence 0
+    inv = np.where(np.abs(det) > 1e-12, 1.0 / np.where(det == 0, 1.0, det), 0.0)
+    g = np.empty_like(b)
+    g[:, 0] = (c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2]) * inv
+    g[:, 1] = (c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2]) * inv
+    g[:, 2] = (c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]) * inv
+    return g.astype(np.float32)
+
+
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
 def _weighted_solve(grey, lights, weights):
-    """Per-pixel weighted least squares: g_p = (Σ w l lᵀ)⁻¹ Σ w I l, batched (eq. 3.2)."""
-    outer = (lights[:, :, None] * lights[:, None, :]).reshape(len(lights), 9)
-    a = (weights.T @ outer).reshape(-1, 3, 3)
-    b = (weights * grey).T @ lights
-    # pixels with < 3 usable lights: a tiny ridge keeps the batch solvable; they get confidence 0
-    a += np.eye(3, dtype=a.dtype) * 1e-6
-    return np.linalg.solve(a, b[..., None])[..., 0], a
+    """Per-pixel weighted least squares: g_p = (Σ w l lᵀ)⁻¹ Σ w I l, batched (eq. 3.2).
+
+    ``grey`` and ``weights`` are pixel-major (P, N).
+    """
+    outer = np.stack([lights[:, i] * lights[:, j] for i, j in _SYM], axis=1)  # (N, 6)
+    return _solve_sym3(weights @ outer, (weights * grey) @ lights)
 
 
 def _albedo_rgb(colour, lights, normals, weights):
-    """Per-channel albedo with the normal fixed: ρ_c = Σ w I_c s / Σ w s², s = l·n."""
-    shade = np.clip(lights @ normals.T, 0.0, None)  # (N, P)
+    """Per-channel albedo with the normal fixed: ρ_c = Σ w I_c s / Σ w s², s = max(0, l·n)."""
+    shade = np.clip(normals @ lights.T, 0.0, None)  # (P, N)
     ws = weights * shade
-    den = np.maximum((ws * shade).sum(0), 1e-12)
-    return np.einsum("np,npc->pc", ws, colour) / den[:, None]
+    den = np.maximum(np.einsum("pn,pn->p", ws, shade), 1e-12)
+    return np.einsum("pn,npc->pc", ws, colour) / den[:, None]
 
 
 def _confidence(grey, pred, weights, n_lights):
     """Confidence in [0, 1]: enough inlier lights, and a small residual relative to intensity."""
-    used = weights.sum(0)
-    rss = (weights * (grey - pred) ** 2).sum(0)
-    power = (weights * grey ** 2).sum(0)
-    rel = np.sqrt(rss / np.maximum(power, 1e-12))
+    used = weights.sum(1)
+    r = grey - pred
+    rss = np.einsum("pn,pn->p", weights * r, r)
+    power = np.einsum("pn,pn->p", weights * grey, grey)
+    return _confidence_from(used, rss, power, n_lights)
+
+
+def _confidence_from(used, rss, power, n_lights):
+    rel = np.sqrt(np.clip(rss, 0.0, None) / np.maximum(power, 1e-12))
     support = np.clip((used - 3.0) / max(3.0, 0.25 * n_lights), 0.0, 1.0)
     return (support * np.clip(1.0 - rel, 0.0, 1.0)).astype(np.float32)
+
+
+def _least_squares_linear(images, lights, idx_all):
+    """Unweighted least squares for the pixels ``idx_all``: one pseudo-inverse for every pixel.
+
+    Everything is linear in the images, so each channel is solved at once (one matrix product
+    over the contiguous (N, P·C) data) and the luminance solution is the weighted sum of the
+    channel solutions; albedo and residual follow from the 3×3 normal matrix without forming
+    predicted images.
+    """
+    n_img = images.shape[0]
+    chans = images.shape[3] if images.ndim == 4 else 1
+    flat = images.reshape(n_img, -1)  # (N, HW·C), no copy
+    a = (lights.T @ lights).astype(np.float32)
+    pinv = np.linalg.solve(a.astype(np.float64), lights.T.astype(np.float64)).astype(np.float32)  # (3, N)
+    luma = LUMA if chans == 3 else np.ones(1, np.float32)
+    normals = np.empty((len(idx_all), 3), np.float32)
+    albedo = np.empty((len(idx_all), 3), np.float32)
+    conf = np.empty(len(idx_all), np.float32)
+    hw = flat.shape[1] // chans
+    done = 0
+    for p0 in range(0, hw, _CHUNK):
+        p1 = min(p0 + _CHUNK, hw)
+        sel = idx_all[(idx_all >= p0) & (idx_all < p1)]
+        if len(sel) == 0:
+            continue
+        block = flat[:, p0 * chans:p1 * chans]
+        g_c = (pinv @ block).reshape(3, p1 - p0, chans)  # per-channel scaled normals
+        power = np.einsum("nk,nk->k", block, block).reshape(p1 - p0, chans).sum(1)
+        local = sel - p0
+        g_c = g_c[:, local]
+        g = g_c @ luma  # (3, m)
+        nrm = g / np.maximum(np.linalg.norm(g, axis=0), 1e-12)
+        an = a @ nrm
+        den = np.maximum((nrm * an).sum(0), 1e-12)
+        rho = np.einsum("km,kmc->mc", an, g_c) / den[:, None]  # ρ_c = nᵀA g_c / nᵀA n
+        explained = np.einsum("km,km->m", (a @ g_c.reshape(3, -1)), g_c.reshape(3, -1))
+        explained = explained.reshape(-1, chans).sum(1)
+        sl = slice(done, done + len(sel))
+        normals[sl] = nrm.T
+        albedo[sl] = rho if chans == 3 else np.repeat(rho, 3, axis=1)
+        conf[sl] = _confidence_from(np.full(len(sel), float(n_img)), power[local] - explained, power[local], n_img)
+        done += len(sel)
+    return normals, albedo, conf
 
 
 def _assemble(shape, mask, idx, normals, albedo, confidence, dpi, attrs):
@@ -176,33 +255,33 @@ def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: flo
     images, lights, mask, valid = _check_inputs(images, directions, mask, valid)
     n_img, h, w = images.shape[:3]
     idx_all = np.flatnonzero(mask)
-    pinv = np.linalg.pinv(lights.astype(np.float64)).astype(np.float32)  # (3, N)
-    normals = np.empty((len(idx_all), 3), np.float32)
-    albedo = np.empty((len(idx_all), 3), np.float32)
-    conf = np.empty(len(idx_all), np.float32)
-    for start in range(0, len(idx_all), _CHUNK):
-        idx = idx_all[start:start + _CHUNK]
-        grey, colour = _grey_and_colour(images, idx)
-        if valid is None:
-            weights = np.ones_like(grey)
-            g = (pinv @ grey).T
-        else:
-            weights = valid.reshape(n_img, -1)[:, idx].astype(np.float32)
-            g, _ = _weighted_solve(grey, lights, weights)
-        nrm, _ = _unit(g)
-        sl = slice(start, start + len(idx))
-        normals[sl] = nrm
-        albedo[sl] = _albedo_rgb(colour, lights, nrm, weights)
-        conf[sl] = _confidence(grey, (lights @ g.T), weights, n_img)
+    if valid is None:
+        normals, albedo, conf = _least_squares_linear(images, lights, idx_all)
         if progress:
-            progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "least-squares normals")
+            progress(1.0, "least-squares normals")
+    else:
+        normals = np.empty((len(idx_all), 3), np.float32)
+        albedo = np.empty((len(idx_all), 3), np.float32)
+        conf = np.empty(len(idx_all), np.float32)
+        for start in range(0, len(idx_all), _CHUNK):
+            idx = idx_all[start:start + _CHUNK]
+            grey, colour = _pixels(images, idx)
+            weights = np.ascontiguousarray(valid.reshape(n_img, -1)[:, idx].T, dtype=np.float32)
+            g = _weighted_solve(grey, lights, weights)
+            nrm, _ = _unit(g)
+            sl = slice(start, start + len(idx))
+            normals[sl] = nrm
+            albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, lights, nrm, weights))
+            conf[sl] = _confidence(grey, g @ lights.T, weights, n_img)
+            if progress:
+                progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "least-squares normals")
     return _assemble((h, w), mask, idx_all, normals, albedo, conf, dpi,
                      {"normal_solver": "least_squares", "n_lights": n_img})
 
 
 def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96.0,
                    shadow_fraction: float = 0.2, highlight_fraction: float = 0.1,
-                   iterations: int = 5, min_shading: float = 0.3, residual_cutoff: float = 2.0,
+                   iterations: int = 3, min_shading: float = 0.3, residual_cutoff: float = 2.0,
                    progress: Callable[[float, str], None] | None = None) -> RGBNImage:
     """Photometric stereo that rejects shadows and highlights per pixel (thesis §3.2, eq. 3.2).
 
@@ -286,15 +365,15 @@ def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96
     inliers = 0.0
     for start in range(0, len(idx_all), _CHUNK):
         idx = idx_all[start:start + _CHUNK]
-        grey, colour = _grey_and_colour(images, idx)
-        ok = np.ones_like(grey, bool) if valid is None else valid.reshape(n_img, -1)[:, idx]
+        grey, colour = _pixels(images, idx)
+        ok = None if valid is None else np.ascontiguousarray(valid.reshape(n_img, -1)[:, idx].T)
         g, weights = _robust_block(grey, ok, lights, shadow_fraction, highlight_fraction, iterations,
                                    min_shading, residual_cutoff)
         nrm, _ = _unit(g)
         sl = slice(start, start + len(idx))
         normals[sl] = nrm
-        albedo[sl] = _albedo_rgb(colour, lights, nrm, weights)
-        conf[sl] = _confidence(grey, lights @ g.T, weights, n_img)
+        albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, lights, nrm, weights))
+        conf[sl] = _confidence(grey, g @ lights.T, weights, n_img)
         inliers += float(weights.sum())
         if progress:
             progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "robust normals")
@@ -303,37 +382,56 @@ def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96
                       "mean_inliers": inliers / max(len(idx_all), 1)})
 
 
+def _broadcast_rgb(albedo):
+    return albedo if albedo.shape[1] == 3 else np.repeat(albedo, 3, axis=1)
+
+
 def _robust_block(grey, ok, lights, lo, hi, iterations, min_shading, cutoff):
-    """Trimmed solve then re-weighted rounds for one block of pixels; returns g (P,3), weights (N,P)."""
-    n = grey.shape[0]
-    # per-pixel rank trimming via the sorted valid intensities (invalid sort to the end)
-    n_ok = ok.sum(0)
-    srt = np.sort(np.where(ok, grey, np.inf), axis=0)
-    k_lo = np.floor(lo * n_ok).astype(int)
-    k_hi = np.maximum(np.ceil((1.0 - hi) * n_ok).astype(int) - 1, k_lo)
-    k_hi = np.clip(k_hi, 0, n - 1)
-    v_lo = np.take_along_axis(srt, k_lo[None], 0)[0]
-    v_hi = np.take_along_axis(srt, k_hi[None], 0)[0]
-    del srt
-    weights = (ok & (grey >= v_lo) & (grey <= v_hi)).astype(np.float32)
-    g, _ = _weighted_solve(grey, lights, weights)
+    """Trimmed solve then re-weighted rounds for one block of pixels (pixel-major (P, N) arrays).
+
+    Returns g (P, 3) and the final weights (P, N).
+    """
+    p, n = grey.shape
+    # per-pixel rank trimming: the k-th smallest valid intensities bound the kept band
+    if ok is None:
+        k_lo = int(np.floor(lo * n))
+        k_hi = max(int(np.ceil((1.0 - hi) * n)) - 1, k_lo)
+        part = np.partition(grey, (k_lo, k_hi), axis=1)
+        v_lo, v_hi = part[:, k_lo:k_lo + 1], part[:, k_hi:k_hi + 1]
+        del part
+        weights = ((grey >= v_lo) & (grey <= v_hi)).astype(np.float32)
+    else:
+        n_ok = ok.sum(1)
+        srt = np.sort(np.where(ok, grey, np.inf), axis=1)  # invalid sort to the end
+        k_lo = np.floor(lo * n_ok).astype(int)
+        k_hi = np.clip(np.maximum(np.ceil((1.0 - hi) * n_ok).astype(int) - 1, k_lo), 0, n - 1)
+        v_lo = np.take_along_axis(srt, k_lo[:, None], 1)
+        v_hi = np.take_along_axis(srt, k_hi[:, None], 1)
+        del srt
+        weights = (ok & (grey >= v_lo) & (grey <= v_hi)).astype(np.float32)
+    g = _weighted_solve(grey, lights, weights)
     g_start = g
+    cut2 = np.float32(cutoff * cutoff)
     for _ in range(iterations):
         nrm, _ = _unit(g)
-        pred = lights @ g.T
-        resid = grey - pred
-        dof = np.maximum(weights.sum(0) - 3.0, 1.0)
-        scale = np.sqrt((weights * resid ** 2).sum(0) / dof)
+        pred = g @ lights.T
+        r2 = grey - pred
+        r2 *= r2
+        dof = np.maximum(weights.sum(1) - 3.0, 1.0)
+        scale2 = np.einsum("pn,pn->p", weights, r2) / dof
         # a floor on the scale: a near-perfect fit must not reject ordinary noise
-        scale = np.maximum(scale, 1e-3 * np.maximum(np.abs(pred).max(0), 1e-6))
-        new = ok & ((lights @ nrm.T) > min_shading) & (np.abs(resid) < cutoff * scale)
+        floor = 1e-3 * np.maximum(pred.max(1), 1e-6)
+        scale2 = np.maximum(scale2, floor * floor).astype(np.float32)
+        new = (nrm @ lights.T > min_shading) & (r2 < cut2 * scale2[:, None])
+        if ok is not None:
+            new &= ok
         new = new.astype(np.float32)
-        enough = new.sum(0) >= 3
-        weights = np.where(enough, new, weights)
-        g, _ = _weighted_solve(grey, lights, weights)
+        enough = new.sum(1) >= 3
+        weights = np.where(enough[:, None], new, weights)
+        g = _weighted_solve(grey, lights, weights)
     # where the re-weighted system is degenerate keep the trimmed solution
-    bad = ~np.isfinite(g).all(1) | (weights.sum(0) < 3)
+    bad = ~np.isfinite(g).all(1) | (weights.sum(1) < 3) | (np.linalg.norm(g, axis=1) == 0)
     if bad.any():
         g[bad] = g_start[bad]
-        weights[:, bad] = 0.0
+        weights[bad] = 0.0
     return g, weights

@@ -1,0 +1,177 @@
+"""Benchmark of hand-held flash photometric stereo (thesis §3.2, issue 4).
+
+Run ``python tests/bench/bench_photometric.py [--docs]``. Prints:
+
+* speed: least squares and robust solver on 96 images of 640×480 (0.3 Mpx), grey and RGB
+  (targets: ≤ 1 s and ≤ 10 s);
+* DiLiGenT ball: mean angular error of both solvers inside the mask (published least-squares
+  baseline 4.10°; target for the robust solver ≤ 2.5°), and the distance to the published
+  baseline normals;
+* psm-seitz: light directions from the chrome sphere vs the source's ``lights.txt``, and vs an
+  independent estimate from the diffuse (grey) sphere;
+* with ``--docs``: writes the cat/owl normal and albedo pictures to ``docs/handheld/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from common.acquisition.handheld import handheld_rgbn, read_images, read_mask  # noqa: E402
+from common.acquisition.lightfile import read_lights  # noqa: E402
+from common.acquisition.photometric import least_squares_normals, robust_normals  # noqa: E402
+from common.acquisition.spheres import find_sphere, mirror_sphere_directions, sphere_normals  # noqa: E402
+from common.acquisition.spheres import diffuse_sphere_intensities  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+
+
+def _angles(a, b):
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+
+
+def _lights(n, seed=0):
+    rng = np.random.default_rng(seed)
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(25, 85, n))
+    return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def bench_speed():
+    h, w, n = 480, 640, 96
+    lights = _lights(n)
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(h, w, 3)).astype(np.float32) * [0.4, 0.4, 0] + [0, 0, 1]
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    shade = np.clip(np.einsum("nk,hwk->nhw", lights.astype(np.float32), normals), 0, None)
+    grey = (0.6 * shade).astype(np.float32)
+    rgb = grey[..., None] * np.array([1.0, 0.8, 0.6], np.float32)
+    print(f"speed: {n} images of {w}x{h} ({w * h / 1e6:.2f} Mpx)")
+    for name, images in (("grey", grey), ("RGB", rgb)):
+        for solver, target in ((least_squares_normals, 1.0), (robust_normals, 10.0)):
+            t = time.perf_counter()
+            out = solver(images, lights)
+            dt = time.perf_counter() - t
+            err = _angles(out.normals, normals).mean()
+            print(f"  {solver.__name__:22s} {name:4s} {dt:6.2f} s  (target <= {target:.0f} s)  "
+                  f"mean error {err:.3f} deg")
+        del images
+
+
+def bench_diligent():
+    root = DATA / "diligent-ball"
+    if not root.is_dir():
+        print(f"diligent-ball: data not present at {root}, skipped")
+        return
+    names = (root / "filenames.txt").read_text().split()
+    images, saturated = read_images([root / n for n in names])
+    lights = read_lights(root / "light_directions.txt", root / "light_intensities.txt")
+    images /= lights.intensities[:, None, None, :].astype(np.float32)
+    mask = read_mask(root / "mask.png")
+    truth = np.load(root / "normal_gt.npy")
+    baseline = np.load(root / "baseline_l2_normal.npy")
+    print(f"DiLiGenT ball: {len(names)} images, {int(mask.sum())} pixels in the mask")
+    print(f"  published least-squares baseline normals: {_angles(baseline, truth)[mask].mean():.2f} deg "
+          f"(paper: 4.10)")
+    runs = [("least squares", least_squares_normals, {}),
+            ("least squares, saturated dropped", least_squares_normals, {"valid": ~saturated}),
+            ("robust", robust_normals, {"valid": ~saturated})]
+    for label, solver, kw in runs:
+        t = time.perf_counter()
+        out = solver(images, lights.directions, mask=mask, **kw)
+        dt = time.perf_counter() - t
+        err = _angles(out.normals, truth)[mask]
+        print(f"  {label:34s} mean {err.mean():.2f} deg, median {np.median(err):.2f}, "
+              f"vs baseline normals {_angles(out.normals, baseline)[mask].mean():.2f} deg, {dt:.2f} s")
+
+
+def _seitz_stack(root, obj):
+    return read_images([root / obj / f"{obj}.{i:02d}.png" for i in range(12)])
+
+
+def bench_seitz(docs: bool):
+    root = DATA / "psm-seitz"
+    if not root.is_dir():
+        print(f"psm-seitz: data not present at {root}, skipped")
+        return
+    chrome, _ = _seitz_stack(root, "chrome")
+    circle = find_sphere(read_mask(root / "chrome" / "chrome.mask.png"))
+    found = mirror_sphere_directions(chrome, circle)
+    ref = read_lights(root / "lights.txt").directions
+    ang = _angles(found, ref)
+    print(f"psm-seitz: chrome sphere circle ({circle[0]:.1f}, {circle[1]:.1f}) r={circle[2]:.1f} px")
+    print("  light | chrome-sphere direction      | lights.txt direction         | angle")
+    for i, (a, b, d) in enumerate(zip(found, ref, ang)):
+        print(f"  {i:5d} | {a[0]:+.3f} {a[1]:+.3f} {a[2]:+.3f}         | {b[0]:+.3f} {b[1]:+.3f} {b[2]:+.3f}"
+              f"         | {d:.2f} deg")
+    print(f"  chrome vs lights.txt: mean {ang.mean():.2f} deg, max {ang.max():.2f} deg")
+    # an independent check: fit each light to the grey (diffuse) sphere's shading
+    gray, gsat = _seitz_stack(root, "gray")
+    gcircle = find_sphere(read_mask(root / "gray" / "gray.mask.png"))
+    normals, inside = sphere_normals(gray.shape[1:3], gcircle, shrink=0.9)
+    nv = normals[inside]
+    est = []
+    for img, sat in zip(gray.mean(-1), gsat):
+        vals, ok = img[inside], ~sat[inside]
+        use = ok & (vals > 0.05 * vals.max())
+        for _ in range(5):
+            l, *_ = np.linalg.lstsq(nv[use], vals[use], rcond=None)
+            use = ok & (nv @ l > 0.1 * np.linalg.norm(l))
+        est.append(l / np.linalg.norm(l))
+    est = np.asarray(est)
+    print(f"  grey-sphere shading fit vs chrome: mean {_angles(est, found).mean():.2f} deg; "
+          f"vs lights.txt: mean {_angles(est, ref).mean():.2f} deg")
+    e = diffuse_sphere_intensities(gray, gcircle, found, valid=~gsat)
+    print(f"  relative intensities from the grey sphere: {e.mean(1).min():.3f} .. {e.mean(1).max():.3f}")
+    for obj in ("cat", "owl"):
+        images, sat = _seitz_stack(root, obj)
+        mask = read_mask(root / obj / f"{obj}.mask.png")
+        from common.acquisition.lightfile import LightSet
+
+        t = time.perf_counter()
+        rgbn = handheld_rgbn(images, LightSet(found, intensities=e), mask=mask, saturated=sat)
+        dt = time.perf_counter() - t
+        print(f"  {obj}: {int(mask.sum())} pixels, mean confidence {rgbn.confidence[mask].mean():.2f}, "
+              f"{rgbn.attrs['mean_inliers']:.1f} of 12 lights used per pixel, {dt:.2f} s")
+        if docs:
+            _write_docs_picture(obj, rgbn)
+
+
+def _write_docs_picture(obj, rgbn):
+    from common.rgbn.io import encode_normal_map, linear_to_srgb
+
+    out = ROOT / "docs" / "handheld"
+    out.mkdir(parents=True, exist_ok=True)
+    rows, cols = np.nonzero(rgbn.mask)
+    r0, r1 = max(rows.min() - 4, 0), rows.max() + 5
+    c0, c1 = max(cols.min() - 4, 0), cols.max() + 5
+    normals = encode_normal_map(rgbn.normals, rgbn.mask)[r0:r1, c0:c1]
+    albedo = linear_to_srgb(rgbn.albedo / max(np.percentile(rgbn.albedo[rgbn.mask], 99), 1e-6))
+    albedo = np.where(rgbn.mask[..., None], albedo, 0)[r0:r1, c0:c1]
+    pic = np.hstack([normals, albedo])
+    path = out / f"{obj}.png"
+    cv2.imwrite(str(path), (np.clip(pic, 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    print(f"  wrote {path.relative_to(ROOT)} ({path.stat().st_size // 1024} KB)")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--docs", action="store_true", help="write the docs/handheld pictures")
+    parser.add_argument("--skip-speed", action="store_true")
+    args = parser.parse_args(argv)
+    if not args.skip_speed:
+        bench_speed()
+    bench_diligent()
+    bench_seitz(args.docs)
+
+
+if __name__ == "__main__":
+    main()
