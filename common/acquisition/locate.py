@@ -69,7 +69,8 @@ def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float) -> n
 
 
 def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray | None = None,
-                     min_area_mm2: float = 20.0, max_elongation: float = 6.0, k: float = 6.0) -> list[Blob]:
+                     min_area_mm2: float = 20.0, max_elongation: float = 6.0, min_solidity: float = 0.5,
+                     k: float = 6.0) -> list[Blob]:
     """Every object on the glass in a pre-scan, by background subtraction.
 
     Parameters
@@ -84,6 +85,8 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
         Smaller blobs are dust.
     max_elongation : float
         Blobs longer than this times their width are bed features (frames, rulers), not fragments.
+    min_solidity : float
+        Blobs filling less than this fraction of their convex hull (rings, frames) are rejected.
     k : float
         Threshold in robust standard deviations of the background difference.
 
@@ -110,8 +113,10 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
     fg = _foreground(img, bg, pixel_mm, k)
     r = max(1, int(round(0.5 / pixel_mm)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, kernel)
-    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 1, 4 * r + 1)))
+    # close first: an object close to the bed's colour is a speckle of foreground pixels (engraving,
+    # relief); then open: isolated dust specks vanish
+    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 1, 4 * r + 1)))
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, kernel)
     n, labels, stats, cents = cv2.connectedComponentsWithStats(fg, connectivity=8)
     blobs = []
     for i in range(1, n):
@@ -123,6 +128,11 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
             continue      # long thin or sparse: a frame, ruler or the bed edge
         if area > 0.5 * img.shape[0] * img.shape[1]:
             continue
+        comp = (labels[y:y + h, x:x + w] == i).astype(np.uint8)
+        contours, _ = cv2.findContours(comp, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        hull = cv2.contourArea(cv2.convexHull(np.vstack(contours)))
+        if area < min_solidity * max(hull, 1.0):
+            continue      # a ring or frame around the bed, not a fragment
         blobs.append(Blob((x * pixel_mm, y * pixel_mm, (x + w) * pixel_mm, (y + h) * pixel_mm),
                           ((cents[i][0] + 0.5) * pixel_mm, (cents[i][1] + 0.5) * pixel_mm), float(area_mm2)))
     blobs.sort(key=lambda b: -b.area_mm2)
