@@ -66,7 +66,7 @@ def bench_speed():
         del images
 
 
-def bench_diligent():
+def bench_diligent(docs: bool = False):
     root = DATA / "diligent-ball"
     if not root.is_dir():
         print(f"diligent-ball: data not present at {root}, skipped")
@@ -84,6 +84,7 @@ def bench_diligent():
     runs = [("least squares", least_squares_normals, {}),
             ("least squares, saturated dropped", least_squares_normals, {"valid": ~saturated}),
             ("robust", robust_normals, {"valid": ~saturated})]
+    maps = []
     for label, solver, kw in runs:
         t = time.perf_counter()
         out = solver(images, lights.directions, mask=mask, **kw)
@@ -91,6 +92,15 @@ def bench_diligent():
         err = _angles(out.normals, truth)[mask]
         print(f"  {label:34s} mean {err.mean():.2f} deg, median {np.median(err):.2f}, "
               f"vs baseline normals {_angles(out.normals, baseline)[mask].mean():.2f} deg, {dt:.2f} s")
+        maps.append(np.where(mask, _angles(out.normals, truth), 0))
+    if docs:
+        # angular error, 0 (black) .. 10 degrees (white), least squares | robust
+        pic = np.hstack([maps[0], np.zeros((mask.shape[0], 4)), maps[2]]) / 10.0
+        pic = cv2.applyColorMap((np.clip(pic, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+        path = ROOT / "docs" / "handheld" / "diligent_ball_error.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), cv2.resize(pic, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
+        print(f"  wrote {path.relative_to(ROOT)}")
 
 
 def _seitz_stack(root, obj):
@@ -162,6 +172,36 @@ def _write_docs_picture(obj, rgbn):
     print(f"  wrote {path.relative_to(ROOT)} ({path.stat().st_size // 1024} KB)")
 
 
+def docs_discontinuity():
+    """Picture: a simulated flash capture of a relief and its directional discontinuity map."""
+    from common.acquisition.discontinuity import depth_discontinuities
+    from common.acquisition.handheld import discontinuity_picture, simulate_flash_capture
+    from common.acquisition.surface import FragmentSurface
+    from common.rgbn.io import linear_to_srgb
+
+    size, dpi = 160, 254.0
+    px = 25.4 / dpi
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    height = np.zeros((size, size))
+    height[(cols - 55) ** 2 + (rows - 60) ** 2 < 30 ** 2] = 8 * px          # raised disc
+    height[95:140, 90:145] = 5 * px                                         # a step block
+    height[20:40, 100:150] = np.linspace(0, 6 * px, 50)[None, :]            # a ramp ending in a cliff
+    rng = np.random.default_rng(1)
+    albedo = cv2.GaussianBlur(rng.uniform(0.4, 0.9, (size, size, 3)).astype(np.float32), (0, 0), 3)
+    surface = FragmentSurface(albedo, height, np.ones((size, size), bool), dpi)
+    az = np.radians(np.arange(8) * 45 + 20)
+    el = np.radians(40)
+    lights = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(8, np.sin(el))])
+    images = simulate_flash_capture(surface, lights, ambient=0.05)
+    disc = depth_discontinuities(images, lights)
+    pic = np.hstack([linear_to_srgb(images[0]), linear_to_srgb(images[3]), np.ones((size, 4, 3)),
+                     discontinuity_picture(disc)])
+    path = ROOT / "docs" / "handheld" / "discontinuity.png"
+    cv2.imwrite(str(path), (np.clip(pic, 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    print(f"discontinuity picture: {int((np.linalg.norm(disc, axis=2) > 0).sum())} edge pixels; wrote "
+          f"{path.relative_to(ROOT)}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--docs", action="store_true", help="write the docs/handheld pictures")
@@ -169,8 +209,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if not args.skip_speed:
         bench_speed()
-    bench_diligent()
+    bench_diligent(args.docs)
     bench_seitz(args.docs)
+    if args.docs:
+        docs_discontinuity()
 
 
 if __name__ == "__main__":
