@@ -12,9 +12,14 @@ Examples::
         --diffuse gray/gray.mask.png --diffuse-images gray/gray.*.png \\
         -o cat.h5 --pictures cat-pictures/
 
-A sphere is given as ``cx,cy,r`` (pixels: column, row, radius), as a mask image, or as ``auto``
-(found in the median image). Without ``--chrome-images`` the mirror sphere is looked for in
-the capture images themselves (and kept out of the automatic object mask).
+    # mirror and diffuse spheres in the frame, circles in pixels (column, row, radius)
+    tessera ps shots/*.tif --spheres 1710,220,95 1710,520,95 --pictures out/
+
+``--spheres MIRROR [DIFFUSE]`` is short for ``--chrome MIRROR --diffuse DIFFUSE`` (put the
+images first). A sphere is given as ``cx,cy,r`` (pixels: column, row, radius), as a mask
+image, or as ``auto`` (found in the median image). Without ``--chrome-images`` the mirror
+sphere is looked for in the capture images themselves and kept out of the automatic object
+mask (likewise the diffuse sphere).
 """
 
 from __future__ import annotations
@@ -36,9 +41,11 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("ps", help="hand-held flash photometric stereo → RGBN image",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("images", nargs="+", help="flash images of one view (8/16-bit PNG, TIFF, JPEG)")
-    lights = p.add_argument_group("lights (one of --lights or --chrome)")
+    lights = p.add_argument_group("lights (one of --lights, --spheres or --chrome)")
     lights.add_argument("--lights", metavar="FILE", help=".lp file (filename x y z) or plain x y z directions")
     lights.add_argument("--intensities", metavar="FILE", help="per-image light intensity (1 or r g b per line)")
+    lights.add_argument("--spheres", nargs="+", metavar="SPEC",
+                        help="spheres in the frame: MIRROR [DIFFUSE] (same as --chrome MIRROR --diffuse DIFFUSE)")
     lights.add_argument("--chrome", metavar="SPEC", help="mirror sphere: cx,cy,r | mask image | auto")
     lights.add_argument("--chrome-images", nargs="+", metavar="IMG", help="mirror-sphere images (same flashes)")
     lights.add_argument("--diffuse", metavar="SPEC", help="diffuse sphere (intensities): cx,cy,r | mask image | auto")
@@ -103,8 +110,13 @@ def _run(args) -> int:
     from common.rgbn.image import SCHEMA, SCHEMA_VERSION, save_rgbn, write_rgbn
     from common.store import Store, content_key
 
+    if args.spheres:
+        if args.chrome or args.diffuse or len(args.spheres) > 2:
+            raise ValueError("--spheres takes MIRROR [DIFFUSE] and replaces --chrome/--diffuse")
+        args.chrome = args.spheres[0]
+        args.diffuse = args.spheres[1] if len(args.spheres) > 1 else None
     if bool(args.lights) == bool(args.chrome):
-        raise ValueError("give exactly one of --lights FILE or --chrome SPEC")
+        raise ValueError("give exactly one of --lights FILE or --spheres/--chrome SPEC")
     if args.store and not args.fragment:
         raise ValueError("--store needs --fragment ID")
     if args.submit and not args.store:

@@ -200,3 +200,35 @@ def test_ps_command_calibrates_from_the_seitz_spheres(shared_data, tmp_path, cap
         owl = read_rgbn(f)
     mask = read_mask(root / "owl" / "owl.mask.png")
     assert owl.normals[mask, 2].mean() > 0.6 and owl.confidence[mask].mean() > 0.7
+
+
+def test_ps_command_calibrates_from_a_mirror_sphere_in_the_frame(tmp_path, capsys):
+    size, dpi = 64, 254.0
+    surf = _fragment(size, dpi)
+    # widen the scene: the fragment on the left, a mirror sphere on the table to its right
+    wide = FragmentSurface(np.pad(surf.albedo, ((0, 0), (0, 56), (0, 0))), np.pad(surf.height_mm, ((0, 0), (0, 56))),
+                           np.pad(surf.mask, ((0, 0), (0, 56))), dpi)
+    lights = _lights(10, seed=6)
+    images = simulate_flash_capture(wide, lights)
+    circle = (92.0, 32.0, 20.0)
+    normals, inside = sphere_normals(images.shape[1:3], circle)
+    refl = 2 * normals[..., 2:3] * normals - [0, 0, 1]
+    shots = []
+    for i, (img, l) in enumerate(zip(images, lights)):
+        chrome = np.exp(-(np.degrees(np.arccos(np.clip(refl @ l, -1, 1))) / 8) ** 2) + 0.03
+        img[inside] = chrome[inside, None]
+        shots.append(str(tmp_path / f"f{i}.png"))
+        cv2.imwrite(shots[-1], np.round(img * 65535).astype(np.uint16)[..., ::-1])
+    assert tessera(["ps", *shots, "--spheres", "92,32,20", "--write-lp", str(tmp_path / "l.lp"),
+                    "-o", str(tmp_path / "o.h5")]) == 0
+    from common.acquisition.lightfile import read_lights
+    got = read_lights(tmp_path / "l.lp").directions
+    assert np.degrees(np.arccos(np.clip((got * lights).sum(1), -1, 1))).max() < 1.0
+    import h5py
+    with h5py.File(tmp_path / "o.h5", "r") as f:
+        rgbn = read_rgbn(f)
+    assert not rgbn.mask[inside].any()  # the sphere is not part of the object
+    assert (rgbn.mask == wide.mask).mean() > 0.97
+    truth = surface_normals(wide)
+    inner = cv2.erode(wide.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner].mean() < 1.0
