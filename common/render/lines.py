@@ -214,7 +214,8 @@ def ridges_valleys(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
                    width_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Ridge and valley lines: local extrema of principal curvature along its direction (§7.3.4).
 
-    A ridge pixel has ``k1 > threshold`` and is a maximum of k1 along its principal direction
+    A ridge pixel has ``k1 > threshold``, a dominant curvature (``k1 - k2 > k1 / 4``: no lines at
+    umbilics such as a sphere) and is a maximum of k1 along its principal direction
     ``dir1`` (non-maximum suppression at the two neighbours along ``±dir1``, as in Canny's edge
     thinning); a valley pixel has ``k2 < -threshold`` and is a minimum of k2 along ``dir2``.
     Ridges are convex crests (towards the viewer), valleys concave troughs (incisions, string
@@ -261,8 +262,13 @@ def ridges_valleys(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
         threshold = float(np.percentile(vals, percentile)) if vals.size else np.inf
     if threshold < 0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
-    ridge = (c.k1 > threshold) & _extremum_along(c.k1, c.dir1, maximum=True) & inner
-    valley = (c.k2 < -threshold) & _extremum_along(c.k2, c.dir2, maximum=False) & inner
+    # near silhouettes (small nz) curvature from normals is unreliable; at umbilics (k1 = k2,
+    # e.g. a sphere) the lines of curvature are undefined: require a dominant curvature
+    inner &= normals[..., 2] > 0.25
+    aniso = c.k1 - c.k2
+    ridge = (c.k1 > threshold) & (aniso > 0.25 * np.abs(c.k1)) & _extremum_along(c.k1, c.dir1, maximum=True) & inner
+    valley = (c.k2 < -threshold) & (aniso > 0.25 * np.abs(c.k2)) & _extremum_along(c.k2, c.dir2, maximum=False) \
+        & inner
     ridge = prune_short_lines(ridge, min_length_px)
     valley = prune_short_lines(valley, min_length_px)
     return _thicken(ridge.astype(np.float32), width_px), _thicken(valley.astype(np.float32), width_px)

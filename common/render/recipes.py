@@ -132,18 +132,19 @@ def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 8, sig
     return _cover(image, display_albedo(image.albedo) * s[..., None] if colour else s)
 
 
-def draw_mean_curvature(image: RGBNImage, sigma_mm: float = 0.0, radius_mm: float = 2.0) -> Layer:
-    """Mean curvature shading: convex light, concave dark, flat 0.5 (§7.3.6)."""
+def draw_mean_curvature(image: RGBNImage, sigma_mm: float = 0.05, radius_mm: float = -1.0) -> Layer:
+    """Mean curvature shading: convex light, concave dark, flat 0.5; radius_mm < 0 = auto contrast (§7.3.6)."""
     return _cover(image, _shading.mean_curvature_shading(image.normals, image.dpi, mask=image.mask,
-                                                         sigma_mm=sigma_mm, radius_mm=radius_mm))
+                                                         sigma_mm=sigma_mm,
+                                                         radius_mm=None if radius_mm < 0 else radius_mm))
 
 
 def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm: float = 0.1,
-                                   sigma_ratio: float = 2.0, gain: float = 2.0, detail: float = 0.0) -> Layer:
-    """Multiscale mean curvature shading (eq. 7.8)."""
+                                   sigma_ratio: float = 2.0, gain: float = -1.0, detail: float = 0.0) -> Layer:
+    """Multiscale mean curvature shading (eq. 7.8); gain < 0 = auto contrast."""
     return _cover(image, _shading.multiscale_mean_curvature_shading(
         image.normals, image.dpi, mask=image.mask, scales=scales, sigma0_mm=sigma0_mm, sigma_ratio=sigma_ratio,
-        gain=gain, detail=detail))
+        gain=None if gain < 0 else gain, detail=detail))
 
 
 def draw_discontinuity_lines(image: RGBNImage, threshold_deg: float = 20.0, softness_deg: float = 10.0,
@@ -163,8 +164,8 @@ def draw_suggestive_contours(image: RGBNImage, radius_px: float = 4.0, fraction:
                                            width_px=width_px), colour)
 
 
-def draw_suggestive_contours_object(image: RGBNImage, sigma_px: float = 2.0, threshold: float = 0.05,
-                                    min_length_px: int = 12, width_px: float = 1.0,
+def draw_suggestive_contours_object(image: RGBNImage, sigma_px: float = 3.0, threshold: float = 0.05,
+                                    min_length_px: int = 20, width_px: float = 1.0,
                                     colour=(0.0, 0.0, 0.0)) -> Layer:
     """Object-space suggestive contours from curvature derivatives (§7.3.4)."""
     return _ink(_lines.suggestive_contours_object(image.normals, image.dpi, mask=image.mask, sigma_px=sigma_px,

@@ -269,11 +269,12 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
 
 
 def mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
-                           sigma_mm: float = 0.0, radius_mm: float = 2.0) -> np.ndarray:
+                           sigma_mm: float = 0.0, radius_mm: float | None = 2.0) -> np.ndarray:
     """Mean curvature shading: convex regions light, concave dark, flat mid-grey (§7.3.6).
 
     ``shade = 0.5 + 0.5 * tanh(H * radius_mm)`` with H the mean curvature in 1/mm (eq. 7.7):
-    a plane is uniformly 0.5; a sphere of radius ``radius_mm`` shows at 0.88.
+    a plane is uniformly 0.5; a sphere of radius ``radius_mm`` shows at 0.88. With
+    ``radius_mm=None`` the contrast adapts to the data (:func:`auto_gain`).
 
     Parameters
     ----------
@@ -285,8 +286,8 @@ def mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray 
         Pixels carrying normals; 0.5 outside.
     sigma_mm : float
         Foreshortening-corrected pre-smoothing (the curvature scale), mm.
-    radius_mm : float
-        Radius of curvature that maps to tanh(1): the contrast.
+    radius_mm : float or None
+        Radius of curvature that maps to tanh(1): the contrast; None = automatic.
 
     Returns
     -------
@@ -308,22 +309,30 @@ def mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray 
     mask = check_mask(mask, normals.shape[:2])
     if sigma_mm < 0:
         raise ValueError(f"sigma_mm must be >= 0, got {sigma_mm}")
-    if not radius_mm > 0:
-        raise ValueError(f"radius_mm must be > 0, got {radius_mm}")
+    if radius_mm is not None and not radius_mm > 0:
+        raise ValueError(f"radius_mm must be > 0 or None, got {radius_mm}")
     H = mean_curvature(normals, dpi, mask=mask, sigma_px=sigma_mm * dpi / 25.4)
-    return (0.5 + 0.5 * np.tanh(H * np.float32(radius_mm))).astype(np.float32)
+    gain = auto_gain(H, mask) if radius_mm is None else np.float32(radius_mm)
+    return (0.5 + 0.5 * np.tanh(H * gain)).astype(np.float32)
+
+
+def auto_gain(values: np.ndarray, mask: np.ndarray, *, percentile: float = 95.0, target: float = 1.5) -> np.float32:
+    """Gain that maps the ``percentile`` of ``|values|`` on the mask to ``target`` (1 if all zero)."""
+    v = np.abs(values[mask]) if mask.any() else np.abs(values).ravel()
+    ref = float(np.percentile(v, percentile)) if v.size else 0.0
+    return np.float32(target / ref) if ref > 1e-12 else np.float32(1.0)
 
 
 def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
                                       scales: int = 5, sigma0_mm: float = 0.1, sigma_ratio: float = 2.0,
-                                      gain: float = 2.0, detail: float = 0.0) -> np.ndarray:
+                                      gain: float | None = None, detail: float = 0.0) -> np.ndarray:
     """Multiscale mean curvature shading (eq. 7.8): curvature at all scales in one picture.
 
     ``shade = 0.5 + 0.5 * tanh(gain * sum_i w_i * sigma_i * H_i)`` where ``H_i`` is the mean
     curvature (1/mm) of the normals smoothed at ``sigma_i = sigma0_mm * ratio^i`` and the weights
     ``w_i ∝ sigma_i^-detail`` sum to 1. Multiplying by ``sigma_i`` makes each term dimensionless
     (a bump of width sigma_i contributes about equally at its own scale), so coarse shape and fine
-    tool marks appear together.
+    tool marks appear together. ``gain=None`` adapts the contrast to the data (:func:`auto_gain`).
 
     Returns
     -------
@@ -353,7 +362,8 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     acc = np.zeros(normals.shape[:2], np.float32)
     for wi, s in zip(w, sigmas):
         acc += np.float32(wi * s) * mean_curvature(normals, dpi, mask=mask, sigma_px=s * dpi / 25.4)
-    return (0.5 + 0.5 * np.tanh(np.float32(gain) * acc)).astype(np.float32)
+    g = auto_gain(acc, mask) if gain is None else np.float32(gain)
+    return (0.5 + 0.5 * np.tanh(g * acc)).astype(np.float32)
 
 
 def _check_colour(colour, shape) -> np.ndarray:

@@ -97,3 +97,12 @@ def test_bad_arguments_are_refused_by_name():
         suggestive_contours(tilted_plane(8), fraction=1.5)
     with pytest.raises(ValueError, match="dpi"):
         ridges_valleys(tilted_plane(8), -1)
+
+
+def test_a_sphere_has_no_ridges_or_valleys():
+    # every point of a sphere is umbilic: no line of curvature, no ridge, however the threshold
+    from tests.rgbn.analytic import sphere
+
+    n, mask = sphere(96, 4.0, 0.1)
+    ridge, valley = ridges_valleys(n, 254.0, mask=mask, percentile=50.0)
+    assert ridge.max() == 0 and valley.max() == 0
