@@ -69,12 +69,16 @@ def _pixels(images, idx):
     """Grey (P, N) pixel-major intensities and colour (N, P, C) of the pixels ``idx`` (flat)."""
     n = images.shape[0]
     flat = images.reshape(n, -1, *images.shape[3:])
-    colour = flat[:, idx].astype(np.float32, copy=False)
+    if len(idx) and idx[-1] - idx[0] + 1 == len(idx):
+        colour = flat[:, idx[0]:idx[-1] + 1]  # a run of pixels: a view, no gather
+    else:
+        colour = flat[:, idx]
+    colour = colour.astype(np.float32, copy=False)
     if colour.ndim == 2:
         colour = colour[..., None]
         grey = colour[..., 0]
     else:
-        grey = colour @ LUMA
+        grey = colour[..., 0] * LUMA[0] + colour[..., 1] * LUMA[1] + colour[..., 2] * LUMA[2]
     # pixel-major: per-pixel reductions and sorts over the lights run on contiguous memory
     return np.ascontiguousarray(grey.T), colour
 
@@ -413,8 +417,8 @@ def _robust_block(grey, ok, lights, lo, hi, iterations, min_shading, cutoff):
     g_start = g
     cut2 = np.float32(cutoff * cutoff)
     for _ in range(iterations):
-        nrm, _ = _unit(g)
-        pred = g @ lights.T
+        rho = np.linalg.norm(g, axis=1)
+        pred = g @ lights.T  # = rho · (l·n): the shading test below needs no second product
         r2 = grey - pred
         r2 *= r2
         dof = np.maximum(weights.sum(1) - 3.0, 1.0)
@@ -422,12 +426,15 @@ def _robust_block(grey, ok, lights, lo, hi, iterations, min_shading, cutoff):
         # a floor on the scale: a near-perfect fit must not reject ordinary noise
         floor = 1e-3 * np.maximum(pred.max(1), 1e-6)
         scale2 = np.maximum(scale2, floor * floor).astype(np.float32)
-        new = (nrm @ lights.T > min_shading) & (r2 < cut2 * scale2[:, None])
+        new = pred > (min_shading * rho)[:, None].astype(np.float32)
+        new &= r2 < cut2 * scale2[:, None]
         if ok is not None:
             new &= ok
-        new = new.astype(np.float32)
         enough = new.sum(1) >= 3
-        weights = np.where(enough[:, None], new, weights)
+        # pixels left with < 3 lights keep their previous weights
+        keep = weights[~enough]
+        weights = new.astype(np.float32)
+        weights[~enough] = keep
         g = _weighted_solve(grey, lights, weights)
     # where the re-weighted system is degenerate keep the trimmed solution
     bad = ~np.isfinite(g).all(1) | (weights.sum(1) < 3) | (np.linalg.norm(g, axis=1) == 0)
