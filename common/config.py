@@ -74,11 +74,11 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "sane_device": "",               # SANE device name, e.g. "epson2:libusb:001:004"
         "spool_dir": "tessera-data/spool",  # LOCAL disk at the bench: spool + outbox
         "dpi": 300,
-        "prescan_dpi": 50,
+        "prescan_dpi": 25,               # 1 mm pixels find a fragment; the simulated bed scans fast
         "depth": 16,
         "colour_only": False,
         "margin_mm": 5.0,
-        "seed": 1,                       # synthetic fresco seed (simulated device)
+        "seed": 3,                       # synthetic fresco seed (simulated device)
         "fragments": 4,                  # synthetic fragments per run when not given
         "wall_dpi": 100,                 # resolution of the synthetic fresco
         "drain_interval_s": 2.0,         # how often the outbox retries the broker/storage

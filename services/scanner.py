@@ -28,7 +28,8 @@ def fragments(config: Mapping, count: int) -> Iterator[tuple[str, object]]:
     """(fragment id, physical surface) of ``count`` synthetic fresco fragments (simulated device)."""
     from common.synth import generate_wall
     sc = config["scanner"]
-    wall = generate_wall(int(count), int(sc["seed"]), dpi=float(sc["wall_dpi"]))
+    # a wall of at least 8 pieces: tiny walls are atypical (and the painter needs some room)
+    wall = generate_wall(max(int(count), 8), int(sc["seed"]), dpi=float(sc["wall_dpi"]))
     for frag in wall.fragments[:count]:
         yield frag.id, frag.surface
 

@@ -1,0 +1,196 @@
+"""tessera station — the whole station on this machine: broker, scanner, one worker per stage.
+
+Children are separate processes (as on a real station, where they may live on other hosts):
+the broker, one worker for each stage listed in ``[station] stages`` whose module exists (a
+missing one is skipped with a log line), and the scanner on the simulated flatbed. Logs go to
+``<storage>/logs/``. ``--demo N`` captures N synthetic fragments, waits until the station is
+idle (every stage's output exists or the failure is parked), prints a per-fragment summary and
+exits 0 if every fragment went through every stage, else 1. Without ``--demo`` it runs until
+Ctrl-C and then stops every child cleanly (SIGTERM, then SIGKILL after a grace period).
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib.util
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from common.config import add_config_arguments, config_from_arguments
+
+log = logging.getLogger("tessera.station")
+
+# stage -> event type of its output (what the demo waits for per fragment)
+OUTPUT_EVENT = {"solver": "rgbn.ready", "features": "features.ready", "renderer": "render.ready",
+                "matcher": "match.proposed"}
+_LAUNCH = "import sys; from services.cli import main; sys.exit(main())"
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("station", help="run broker, scanner and one worker per stage on this machine")
+    p.add_argument("--demo", type=int, metavar="N", default=None,
+                   help="capture N synthetic fragments, wait for every stage, print a summary, exit 0/1")
+    add_config_arguments(p)
+    p.set_defaults(func=run)
+
+
+class Children:
+    """The station's child processes, started and stopped together."""
+
+    def __init__(self, config_args: list[str], log_dir: Path):
+        self.config_args = config_args
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, *args: str, to_terminal: bool = False) -> subprocess.Popen:
+        out = None if to_terminal else open(self.log_dir / f"{name}.log", "ab")
+        p = subprocess.Popen([sys.executable, "-c", _LAUNCH, *args, *self.config_args], stdout=out,
+                             stderr=subprocess.STDOUT if out else None, start_new_session=True)
+        self.procs[name] = p
+        log.info("started %s (pid %d)%s", name, p.pid, "" if to_terminal else f", log {self.log_dir / (name + '.log')}")
+        return p
+
+    def stop(self, grace_s: float = 10.0) -> None:
+        order = [n for n in self.procs if n not in ("broker",)] + [n for n in self.procs if n == "broker"]
+        for group in (order[:-1], order[-1:]):  # workers and scanner first, the broker last
+            for n in group:
+                if self.procs[n].poll() is None:
+                    self.procs[n].send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + grace_s
+            for n in group:
+                p = self.procs[n]
+                try:
+                    p.wait(max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    log.warning("%s did not stop in %.0f s: killing it", n, grace_s)
+                    p.kill()
+                    p.wait(5)
+
+
+def _stage_present(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(f"services.{name}") is not None
+    except ImportError:
+        return False
+
+
+def _config_args(args) -> list[str]:
+    out = ["--config", args.config] if args.config else []
+    for item in args.set or []:
+        out += ["--set", item]
+    return out
+
+
+def run(args) -> int:
+    from common.bus.client import BrokerClient
+    config = config_from_arguments(args)
+    root = Path(config["storage"]["root"])
+    log_dir = root / "logs"
+    log_dir.mkdir(parents=True, exist_ok=True)
+    kids = Children(_config_args(args), log_dir)
+    stages = []
+    for name in config["station"]["stages"]:
+        if _stage_present(name):
+            stages.append(name)
+        else:
+            log.warning("stage %s skipped: services/%s.py is not part of this build", name, name)
+    status = 0
+    try:
+        broker = kids.start("broker", "broker")
+        with BrokerClient.from_config(config, timeout_s=0.5, retries=1) as bus:
+            deadline = time.monotonic() + 20
+            while True:
+                try:
+                    bus.status()
+                    break
+                except Exception:
+                    if broker.poll() is not None or time.monotonic() > deadline:
+                        tail = (log_dir / "broker.log").read_text(errors="replace")[-1500:]
+                        print(f"error: the broker did not start (is another station using port "
+                              f"{config['broker']['port']}?)\n{tail}")
+                        return 1
+            for name in stages:
+                kids.start(name, "worker", name)
+            if config["scanner"]["device"] != "simulated" and args.demo is None:
+                log.info("scanner device is %s: run `tessera scanner` at the bench", config["scanner"]["device"])
+            else:
+                count = args.demo if args.demo is not None else config["scanner"]["fragments"]
+                kids.start("scanner", "scanner", "--count", str(count), to_terminal=True)
+            if args.demo is None:
+                print(f"station running (storage {root.resolve()}); `tessera status` and `tessera events` "
+                      f"show what it does; Ctrl-C stops it", flush=True)
+                while True:
+                    time.sleep(1.0)
+                    dead = [n for n, p in kids.procs.items() if n != "scanner" and p.poll() is not None]
+                    if dead:
+                        log.error("%s exited; stopping the station (see %s)", ", ".join(dead), log_dir)
+                        return 1
+            status = _demo(config, kids, stages, args.demo)
+    except KeyboardInterrupt:
+        print("stopping the station", flush=True)
+        status = 130
+    finally:
+        kids.stop()
+    return status
+
+
+def _demo(config, kids: Children, stages: list[str], n: int) -> int:
+    """Follow the feed until the station is idle; print the per-fragment summary; 0 if all went through."""
+    from common.bus.client import BrokerClient
+    from common.bus.feed import FeedSubscriber
+    seen: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    failures: dict[str, list[str]] = collections.defaultdict(list)
+    deadline = time.monotonic() + float(config["station"]["demo_timeout_s"])
+    idle_since = None
+    timed_out = False
+    with FeedSubscriber.from_config(config, since=0) as feed, BrokerClient.from_config(config) as bus:
+        while time.monotonic() < deadline:
+            item = feed.next(0.5)
+            if item is not None:
+                _, ev = item
+                frag = ev.get("fragment")
+                if frag is None:
+                    continue
+                seen[frag][ev["type"]] += 1
+                if ev["type"] in ("stage.failed", "input.rejected"):
+                    failures[frag].append(f"{ev.get('service', '?')}: {ev.get('error', '')}")
+                idle_since = None
+                continue
+            scanner = kids.procs.get("scanner")
+            if scanner is not None and scanner.poll() is None:
+                continue
+            s = bus.status()
+            busy = s["in_flight"] or any(s["queues"].get(x, 0) for x in stages)
+            if busy:
+                idle_since = None
+            elif idle_since is None:
+                idle_since = time.monotonic()
+            elif time.monotonic() - idle_since > 2 * float(config["broker"]["heartbeat_interval_s"]):
+                break
+        else:
+            print("demo timed out before the station became idle")
+            timed_out = True
+        parked = {p["fragment"]: p for p in bus.status()["parked"]}
+    scanner = kids.procs.get("scanner")
+    if scanner is not None and scanner.returncode:
+        print(f"the scanner exited with status {scanner.returncode} (its output is above)")
+    frags = sorted(f for f in seen if seen[f]["fragment.ready"])
+    cols = [("scans", "fragment.ready")] + [(s, OUTPUT_EVENT.get(s, f"{s}.ready")) for s in stages]
+    print()
+    print(f"{'fragment':<20}" + "".join(f"{c:>10}" for c, _ in cols) + "  failures")
+    ok = len(frags) == n
+    for f in frags:
+        row = [seen[f][etype] for _, etype in cols]
+        required = [c for c, _ in cols if c != "matcher"]  # no proposal is a valid outcome for one fragment
+        complete = all(seen[f][etype] for c, etype in cols if c in required)
+        ok &= complete and not failures[f]
+        note = "; ".join(failures[f]) or (parked[f]["error"] if f in parked else "")
+        print(f"{f:<20}" + "".join(f"{v:>10}" for v in row) + f"  {note}")
+    print(f"\n{len(frags)} of {n} fragments captured; "
+          f"{'every stage done' if ok else 'some stages missing or failed'}; storage {Path(config['storage']['root']).resolve()}")
+    return 0 if ok and not timed_out else 1

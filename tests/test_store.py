@@ -1,0 +1,101 @@
+"""Artifact store: atomic immutable writes, digest/size checks, schema, provenance, spool import."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from common.store import ArtifactError, ArtifactRef, Store, content_key
+
+
+def _fill(f):
+    f.create_dataset("x", data=np.arange(100, dtype=np.float32))
+
+
+def test_write_is_atomic_and_carries_schema_and_provenance(tmp_path):
+    store = Store(tmp_path)
+    ref = store.write("fragments/F1/rgbn/front-abc.h5", "tessera.test", 3, _fill, provenance={"inputs": ["d1"]})
+    path = tmp_path / "fragments/F1/rgbn/front-abc.h5"
+    assert ref.bytes == path.stat().st_size
+    assert ref.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert [p.name for p in path.parent.iterdir()] == [path.name], "no temporary file left behind"
+    with store.open(ref, schema="tessera.test") as f:
+        assert f.attrs["schema_version"] == 3
+        assert json.loads(f.attrs["provenance"]) == {"inputs": ["d1"]}
+        assert np.array_equal(f["x"][()], np.arange(100))
+
+
+def test_existing_artifact_is_immutable_and_rewrite_returns_same_ref(tmp_path):
+    store = Store(tmp_path)
+    a = store.write("a.h5", "s", 1, _fill)
+    b = store.write("a.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]))
+    assert a == b
+    with store.open(b) as f:
+        assert "y" not in f
+
+
+def test_failed_fill_leaves_nothing(tmp_path):
+    store = Store(tmp_path)
+
+    def boom(f):
+        raise RuntimeError("disk full")
+    with pytest.raises(RuntimeError):
+        store.write("d/b.h5", "s", 1, boom)
+    assert list((tmp_path / "d").iterdir()) == []
+
+
+def test_digest_size_truncation_and_schema_are_checked_on_read(tmp_path):
+    store = Store(tmp_path)
+    ref = store.write("a.h5", "s", 1, _fill)
+    with pytest.raises(ArtifactError, match="sha256"):
+        with store.open(ArtifactRef(ref.path, "0" * 64, ref.bytes)):
+            pass
+    with pytest.raises(ArtifactError, match="bytes"):
+        with store.open(ArtifactRef(ref.path, ref.sha256, ref.bytes + 1)):
+            pass
+    with pytest.raises(ArtifactError, match="schema"):
+        with store.open(ref, schema="other"):
+            pass
+    with open(tmp_path / "a.h5", "r+b") as fh:
+        fh.truncate(ref.bytes // 3)
+    with pytest.raises(ArtifactError, match="not a readable HDF5"):
+        with store.open(store.ref("a.h5")):
+            pass
+
+
+@pytest.mark.parametrize("bad", ["/etc/passwd", "../x.h5", "a/../../x.h5", ""])
+def test_paths_cannot_escape_the_root(tmp_path, bad):
+    with pytest.raises(ArtifactError):
+        Store(tmp_path).path(bad)
+
+
+def test_content_key_depends_on_every_part():
+    k = content_key("sha-a", "solver", "1")
+    assert k == content_key("sha-a", "solver", "1")
+    assert len({k, content_key("sha-b", "solver", "1"), content_key("sha-a", "solver", "2"),
+                content_key("sha-a", "solver1", "")}) == 4
+
+
+def test_missing_mount_is_unavailable_and_not_created(tmp_path):
+    store = Store(tmp_path / "mnt", create=False)
+    assert not store.available() and not (tmp_path / "mnt").exists()
+
+
+def test_import_file_copies_verified_and_refuses_wrong_digest(tmp_path):
+    spool, lab = Store(tmp_path / "spool"), Store(tmp_path / "lab")
+    ref = spool.write("fragments/F/scans/s.h5", "s", 1, _fill)
+    with pytest.raises(ArtifactError, match="not copied"):
+        lab.import_file(spool.path(ref.path), ref.path, "f" * 64)
+    assert not lab.exists(ref.path) and not any(p.is_file() for p in (tmp_path / "lab").rglob("*"))
+    assert lab.import_file(spool.path(ref.path), ref.path, ref.sha256) == ref
+    assert lab.import_file(spool.path(ref.path), ref.path, ref.sha256) == ref  # idempotent
+
+
+def test_works_with_hdf5_file_locking_off_while_another_reader_holds_the_file(tmp_path):
+    store = Store(tmp_path, file_locking=False)
+    ref = store.write("a.h5", "s", 1, _fill)
+    with store.open(ref) as f1, store.open(ref) as f2:
+        assert f1["x"].shape == f2["x"].shape
