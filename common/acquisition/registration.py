@@ -49,14 +49,27 @@ class Registration:
     residual: float
 
 
-def registration_image(scan: np.ndarray, sigma_px: float = 1.5) -> np.ndarray:
-    """Shading-tolerant image for registration: |∇ log luminance|, smoothed (float32)."""
-    lum = to_float(scan).mean(axis=2)
-    log = np.log(lum + 1e-3)
-    log = cv2.GaussianBlur(log, (0, 0), sigma_px)
-    gx = cv2.Sobel(log, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(log, cv2.CV_32F, 0, 1, ksize=3)
-    return cv2.GaussianBlur(np.sqrt(gx * gx + gy * gy), (0, 0), sigma_px)
+def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.5) -> np.ndarray:
+    """Shading-tolerant image for registration (float32).
+
+    ``sqrt(|∇ log chromaticity|² + w² |∇ log luminance|²)``, smoothed: under one white lamp a
+    Lambertian surface's chromaticity does not depend on the shading, so painted edges register
+    regardless of the light; the luminance term (weight ``w``) keeps the outline and the relief of
+    unpainted surfaces.
+    """
+    img = to_float(scan)
+    img = cv2.GaussianBlur(img, (0, 0), sigma_px)
+    eps = 1e-3
+    log = np.log(img + eps)
+    lum = log.mean(axis=2)
+    def grad2(a):
+        gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+        gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+        return gx * gx + gy * gy
+    g = luminance_weight ** 2 * grad2(lum)
+    for c in (0, 2):
+        g += grad2(log[..., c] - log[..., 1])
+    return cv2.GaussianBlur(np.sqrt(g), (0, 0), sigma_px)
 
 
 def _rigid(angle_deg: float, centre_to: np.ndarray, centre_from: np.ndarray) -> np.ndarray:
@@ -196,15 +209,9 @@ def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal
     ct = np.array([xs.mean(), ys.mean()])
     ys, xs = np.nonzero(mm)
     cm = np.array([xs.mean(), ys.mean()])
-    # interior masks: the lamp's shadow and edge shading change with rotation
-    er = max(1, int(round(1.0 / pixel_mm)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * er + 1, 2 * er + 1))
-    tin = cv2.erode(tm.astype(np.uint8), kernel) > 0
-    if tin.sum() < 100:
-        tin = tm
-    min_ = cv2.erode(mm.astype(np.uint8), kernel) > 0
-    if min_.sum() < 100:
-        min_ = mm
+    # the whole fragment including its outline: the outline anchors the translation where the
+    # interior is striped or plain (interior-only masks let it slide along stripes)
+    tin, min_ = tm, mm
     # coarse angle on a ~0.4 mm grid
     s = min(1.0, pixel_mm / 0.4)
     size = lambda a: (max(8, int(round(a.shape[1] * s))), max(8, int(round(a.shape[0] * s))))

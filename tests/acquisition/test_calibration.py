@@ -1,0 +1,78 @@
+"""Tests of the lamp calibration (common/acquisition/calibration.py)."""
+
+import numpy as np
+import pytest
+
+from common.acquisition.calibration import (calibrate_scanner, cross_validate, fit_lamp_model, newest_calibration,
+                                            save_calibration, simulated_target_operator, target_normal)
+from common.acquisition.errors import CalibrationError
+from common.acquisition.flatbed_sim import SimulatedFlatbed, calibration_target
+from common.acquisition.locate import to_float
+from common.store import Store
+
+
+def _samples(a, quad=0.0, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    n = np.array([target_normal(t, p) for t in (0, 5, 10, 15, 20, 25) for p in range(0, 360, 45)])
+    i = n @ a[:3] + a[3] + quad * n[:, 0] * n[:, 1] * 10 + rng.normal(0, noise, len(n))
+    return n, i
+
+
+def test_fit_recovers_known_coefficients_exactly():
+    a = np.array([0.01, 0.3, 0.55, 0.2])
+    n, i = _samples(a)
+    np.testing.assert_allclose(fit_lamp_model(n, i), a, atol=1e-10)
+
+
+def test_cross_validation_prefers_second_order_only_when_the_data_needs_it():
+    a = np.array([0.0, 0.3, 0.55, 0.2])
+    lin = cross_validate(*_samples(a, noise=0.002))
+    assert lin["second"] >= 0.9 * lin["first"]               # no gain from the extra terms
+    quad = cross_validate(*_samples(a, quad=0.05, noise=0.002))
+    assert quad["second"] < 0.5 * quad["first"]
+
+
+def test_fit_validates_its_input():
+    with pytest.raises(ValueError, match="normals"):
+        fit_lamp_model(np.zeros((5, 2)), np.zeros(5))
+    with pytest.raises(ValueError, match="at least 4"):
+        fit_lamp_model(np.zeros((3, 3)), np.zeros(3))
+
+
+@pytest.fixture(scope="module")
+def sim_calibration():
+    sim = SimulatedFlatbed(bed_mm=(100, 100), seed=11)
+    cal = calibrate_scanner(sim, simulated_target_operator(sim), area_mm=(50, 50, 70, 70))
+    return sim, cal
+
+
+def test_fitted_model_predicts_new_simulated_scans(sim_calibration):
+    sim, cal = sim_calibration
+    assert cal.cv_rmse["first"] < 0.01 and cal.order == 1     # first order suffices (§3.3.5)
+    for tilt, az in ((12.0, 30.0), (22.0, 200.0), (7.0, 300.0)):
+        sim.place(calibration_target(tilt, az, size_mm=8, dpi=150), angle_deg=0.0, centre_mm=(60, 60))
+        img = to_float(sim.scan((56, 56, 64, 64), 150)).mean(axis=2)
+        measured = float(np.median(img[20:27, 20:27])) / 0.8
+        predicted = float(cal.predict(target_normal(tilt, az)[None])[0])
+        assert predicted == pytest.approx(measured, rel=0.02), (tilt, az)
+
+
+def test_lamp_side_is_image_top_in_the_fitted_model(sim_calibration):
+    _, cal = sim_calibration
+    assert cal.a[1] > 0.2 and abs(cal.a[0]) < 0.02       # light from +y (row 0), none along the lamp
+
+
+def test_newest_valid_calibration_is_used_and_broken_ones_skipped(sim_calibration, tmp_path):
+    _, cal = sim_calibration
+    store = Store(tmp_path)
+    with pytest.raises(CalibrationError, match="tessera calibrate"):
+        newest_calibration(store, "sim")
+    cal.date = "2026-01-01T00:00:00+00:00"
+    old = save_calibration(store, cal)
+    cal.date = "2026-03-01T00:00:00+00:00"
+    new = save_calibration(store, cal)
+    got, ref = newest_calibration(store, "sim")
+    assert ref.path == new.path and got.date.startswith("2026-03-01")
+    store.path(new.path).write_bytes(b"not hdf5")                # the newest is broken: fall back
+    got, ref = newest_calibration(store, "sim")
+    assert ref.path == old.path
