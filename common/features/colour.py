@@ -14,20 +14,26 @@ import numpy as np
 COLOUR_MOMENTS = ("r", "g", "b", "rr", "gg", "bb", "sat")
 
 
-def colour_channels(albedo) -> dict[str, np.ndarray]:
-    """Per-pixel moment channels of an (H, W, 3) linear RGB albedo (float32)."""
+def colour_channels(albedo, centre=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
+    """Per-pixel moment channels of an (H, W, 3) linear RGB albedo (float32).
+
+    The channels are centred on ``centre`` (e.g. the fragment's mean colour) so that variances
+    summed in float32 do not cancel; :func:`colour_from_moments` adds it back.
+    """
     a = np.asarray(albedo, dtype=np.float32)
-    r, g, b = a[..., 0], a[..., 1], a[..., 2]
-    mx = np.maximum(np.maximum(r, g), b)
-    mn = np.minimum(np.minimum(r, g), b)
+    mx = a.max(axis=-1)
+    mn = a.min(axis=-1)
     sat = np.where(mx > 1e-6, (mx - mn) / np.maximum(mx, 1e-6), 0.0).astype(np.float32)
+    r, g, b = (a[..., k] - np.float32(centre[k]) for k in range(3))
     return {"r": r, "g": g, "b": b, "rr": r * r, "gg": g * g, "bb": b * b, "sat": sat}
 
 
-def colour_from_moments(m) -> dict[str, float]:
-    """Colour descriptors from weighted means of :data:`COLOUR_MOMENTS` (dict name -> mean)."""
+def colour_from_moments(m, centre=(0.0, 0.0, 0.0)) -> dict[str, float]:
+    """Colour descriptors from weighted means of :data:`COLOUR_MOMENTS` (dict name -> mean) of
+    channels centred on ``centre``."""
     var = sum(max(m[c + c] - m[c] ** 2, 0.0) for c in "rgb")
-    return {"colour_mean_r": float(m["r"]), "colour_mean_g": float(m["g"]), "colour_mean_b": float(m["b"]),
+    return {"colour_mean_r": float(m["r"] + centre[0]), "colour_mean_g": float(m["g"] + centre[1]),
+            "colour_mean_b": float(m["b"] + centre[2]),
             "colour_variance": float(var), "saturation": float(m["sat"])}
 
 

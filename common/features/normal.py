@@ -24,12 +24,15 @@ RATIO_EPS = 1e-3
 WINSOR_PERCENTILE = 99.0
 
 
-def normal_channels(albedo, normals) -> dict[str, np.ndarray]:
-    """Per-pixel moment channels of luminance and normals (float32)."""
+def normal_channels(albedo, normals, centre=None) -> dict[str, np.ndarray]:
+    """Per-pixel moment channels of luminance and normals (float32), centred on ``centre``
+    (dict L, nx, ny, nz -> value, e.g. the fragment means; :func:`normal_from_moments` adds it
+    back) so that small variances summed in float32 do not cancel."""
     a = np.asarray(albedo, dtype=np.float32)
     n = np.asarray(normals, dtype=np.float32)
-    cols = {"L": a[..., 0] * LUMA[0] + a[..., 1] * LUMA[1] + a[..., 2] * LUMA[2],
-            "nx": n[..., 0], "ny": n[..., 1], "nz": n[..., 2]}
+    c = {k: np.float32((centre or {}).get(k, 0.0)) for k in _STACK}
+    cols = {"L": a[..., 0] * LUMA[0] + a[..., 1] * LUMA[1] + a[..., 2] * LUMA[2] - c["L"],
+            "nx": n[..., 0] - c["nx"], "ny": n[..., 1] - c["ny"], "nz": n[..., 2] - c["nz"]}
     out = dict(cols)
     for i, p in enumerate(_STACK):
         for q in _STACK[i:]:
@@ -37,16 +40,16 @@ def normal_channels(albedo, normals) -> dict[str, np.ndarray]:
     return out
 
 
-def normal_from_moments(m) -> dict[str, float]:
+def normal_from_moments(m, centre=None) -> dict[str, float]:
     """normal_z_mean, normal_z_variance and colour_normal_svd from weighted means of
-    :data:`NORMAL_MOMENTS` (dict name -> mean)."""
+    :data:`NORMAL_MOMENTS` (dict name -> mean) of channels centred on ``centre``."""
     cov = np.empty((4, 4))
     for i, p in enumerate(_STACK):
         for j, q in enumerate(_STACK):
             key = f"{p}*{q}" if i <= j else f"{q}*{p}"
             cov[i, j] = m[key] - m[p] * m[q]
     ev = np.linalg.eigvalsh(cov)
-    return {"normal_z_mean": float(m["nz"]), "normal_z_variance": float(max(cov[3, 3], 0.0)),
+    return {"normal_z_mean": float(m["nz"] + (centre or {}).get("nz", 0.0)), "normal_z_variance": float(max(cov[3, 3], 0.0)),
             "colour_normal_svd": float(np.sum(np.sqrt(np.clip(ev, 0.0, None))))}
 
 
@@ -120,20 +123,26 @@ def neighbour_differences(nz, valid) -> np.ndarray:
 
 def discontinuity_from_differences(d) -> dict[str, float]:
     """The four §5.4.4 statistics of a set of neighbour |dnz| values."""
-    d = np.asarray(d, dtype=np.float64)
+    d = np.asarray(d, dtype=np.float32)
     nan = {"disc_ratio_80_50": np.nan, "disc_frac_046": np.nan, "disc_skewness": np.nan, "disc_kurtosis": np.nan}
     if d.size < 16:
         return nan
-    p50, p80, p99 = np.percentile(d, [50, 80, WINSOR_PERCENTILE])
+    n = d.size
+    ks = [min(n - 1, int(round(q / 100 * (n - 1)))) for q in (50, 80, WINSOR_PERCENTILE)]
+    part = np.partition(d, ks)  # nearest-rank percentiles, one partial sort
+    p50, p80, p99 = (float(part[k]) for k in ks)
     dw = np.minimum(d, p99)  # moments of the winsorised values: a few crack pixels must not rule them
-    mu, sd = dw.mean(), dw.std()
+    mu = float(dw.mean(dtype=np.float64))
+    z = dw - np.float32(mu)
+    z2 = z * z
+    var = float(z2.mean(dtype=np.float64))
+    sd = np.sqrt(var)
     out = dict(nan)
     out["disc_frac_046"] = float(np.mean(d > DISCONTINUITY_THRESHOLD))
     out["disc_ratio_80_50"] = float((p80 + RATIO_EPS) / (p50 + RATIO_EPS))
-    if sd > 1e-12:
-        z = (dw - mu) / sd
-        out["disc_skewness"] = float(np.mean(z ** 3))
-        out["disc_kurtosis"] = float(np.mean(z ** 4))
+    if sd > 1e-9:
+        out["disc_skewness"] = float((z2 * z).mean(dtype=np.float64)) / sd ** 3
+        out["disc_kurtosis"] = float((z2 * z2).mean(dtype=np.float64)) / var ** 2
     return out
 
 

@@ -11,6 +11,7 @@ opposite, and the angle is axial (modulo 180°).
 from __future__ import annotations
 
 import numpy as np
+from scipy import fft as sfft
 from scipy import ndimage as ndi
 
 #: lowest frequency considered, cycles per window (§5.4.5)
@@ -18,7 +19,7 @@ OMEGA_MIN = 3.0
 
 
 def dominant_orientation(nz, mask, pixel_mm, *, omega_min=OMEGA_MIN, smooth_px=1.0,
-                         reference_normal=None, pad=2):
+                         reference_normal=None, pad=1.5):
     """Frequency, amplitude and angle of the strongest periodic relief in a region (eq. 5.4).
 
     Parameters
@@ -36,7 +37,7 @@ def dominant_orientation(nz, mask, pixel_mm, *, omega_min=OMEGA_MIN, smooth_px=1
         Gaussian smoothing of nz before the transform, pixels (0 = none).
     reference_normal : (2,) float, optional
         Outward contour normal (x right, y down). If given, the returned angle is relative to it.
-    pad : int
+    pad : float
         Zero-padding factor of the FFT (finer frequency sampling of the peak).
 
     Returns
@@ -80,8 +81,8 @@ def dominant_orientation(nz, mask, pixel_mm, *, omega_min=OMEGA_MIN, smooth_px=1
         z = ndi.gaussian_filter(z, smooth_px, mode="nearest")
     win = np.outer(np.hanning(h), np.hanning(w))
     z = (z - mean) * win
-    n = 1 << int(np.ceil(np.log2(max(h, w) * max(pad, 1))))
-    spec = np.abs(np.fft.rfft2(z, s=(n, n)))
+    n = sfft.next_fast_len(int(np.ceil(max(h, w) * max(pad, 1.0))), real=True)
+    spec = np.abs(sfft.rfft2(z, s=(n, n)))
     fy = np.fft.fftfreq(n)[:, None]          # cycles per pixel along rows (y down)
     fx = np.fft.rfftfreq(n)[None, :]         # cycles per pixel along columns (x right)
     omega = np.sqrt((fy * h) ** 2 + (fx * w) ** 2)  # cycles per window

@@ -157,10 +157,10 @@ def _build() -> dict[str, Descriptor]:
         "normal discontinuity: fraction of neighbour |dnz| above 0.46 (§5.4.4)", 0.01)
     add("disc_skewness", both, N, "abs_diff", "normal", "1",
         "normal discontinuity: third standardised moment of the neighbour |dnz| (§5.4.4)",
-        {"fragment": 0.6, "patch": 2.0})
+        {"fragment": 0.3, "patch": 2.0}, rel=0.15)
     add("disc_kurtosis", both, N, "abs_diff", "normal", "1",
         "normal discontinuity: fourth standardised moment of the neighbour |dnz| (§5.4.4)",
-        {"fragment": 6.0, "patch": 20.0})
+        {"fragment": 2.0, "patch": 10.0}, rel=0.4)
     add("orient_frequency", both, N, "abs_diff", "normal", "1/mm",
         "dominant orientation: frequency of the strongest FFT peak of smoothed nz above "
         "omega_min = 3 cycles per window (§5.4.5)", 0.08)

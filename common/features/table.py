@@ -4,12 +4,12 @@
 :func:`save_features` / :func:`load_features` store tables as ``tessera.features`` artifacts (one
 HDF5 group per face).
 
-How it stays fast at 600 dpi: every statistic that is a function of means (colour, normal-z,
-eq. 5.3) is computed from *moment channels* (values, squares, products) multiplied by the mask and
-area-averaged once to a working grid of about 0.1 mm; a patch's statistic is then a weighted sum
-over a small disc of that grid, and equals the full-resolution statistic. Statistics that need the
-pixels themselves (discontinuity histogram, FFT, top-hats) run on the working grid, which also
-makes them independent of the scan dpi.
+All pixel statistics run on a *working grid* of about 0.1 mm (the scan area-averaged by an
+integer factor, fragment pixels only, weighted by how much of each grid cell is fragment). That
+makes the descriptors independent of the scan dpi (a 600 and a 300 dpi scan of one fragment
+describe it alike; detail finer than 0.1 mm is scanner noise for these cues) and fast: the
+statistics that are functions of means (colour, normal-z, eq. 5.3) come from *moment channels*
+(values, squares, products) stacked once, so a patch's statistic is one weighted sum over its disc.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from scipy import ndimage as ndi
 from common.features.colour import COLOUR_MOMENTS, colour_channels, colour_from_moments
 from common.features.contour import fragment_contour
 from common.features.curvature import area_curvature, three_point_curvature
-from common.features.erosion import erosion_map, erosion_statistics, multiscale_erosion
+from common.features.erosion import _multiscale_erosion, erosion_statistics
 from common.features.normal import (NORMAL_MOMENTS, discontinuity_from_differences,
                                     neighbour_differences, normal_channels, normal_from_moments)
 from common.features.orientation import dominant_orientation
@@ -115,14 +115,18 @@ class FeatureTable:
 
 
 def _area_downsample(a, factor: int, shape) -> np.ndarray:
-    """Block mean by an integer factor onto ``shape`` (the image is zero-padded to fit)."""
+    """Block mean by an integer factor onto ``shape`` (the image is zero-padded to fit);
+    (H, W) or (H, W, C) with C <= 4."""
+    a = np.asarray(a, dtype=np.float32)
     if factor == 1:
-        return np.asarray(a, dtype=np.float32)
+        return a
     h, w = shape
-    pad = np.zeros((h * factor, w * factor), np.float32)
-    hh, ww = min(a.shape[0], h * factor), min(a.shape[1], w * factor)
-    pad[:hh, :ww] = a[:hh, :ww]
-    return cv2.resize(pad, (w, h), interpolation=cv2.INTER_AREA)
+    if a.shape[:2] != (h * factor, w * factor):
+        pad = np.zeros((h * factor, w * factor) + a.shape[2:], np.float32)
+        hh, ww = min(a.shape[0], h * factor), min(a.shape[1], w * factor)
+        pad[:hh, :ww] = a[:hh, :ww]
+        a = pad
+    return cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
 
 
 def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: float = WORK_PIXEL_MM,
@@ -177,37 +181,55 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     has_n, has_h = image.normals is not None, image.height_mm is not None
     missing = sorted(({"normal"} if not has_n else set()) | ({"height"} if not has_h else set()))
 
-    # --- moment channels, masked and area-averaged to the working grid -----------------------
-    report(0.0, "moments")
+    # --- the working grid: mask coverage and fragment-only block means -------------------------
+    report(0.0, "working grid")
     m = image.mask.astype(np.float32)
     M = _area_downsample(m, factor, shape)
-    S: dict[str, np.ndarray] = {}
-    for k, v in colour_channels(image.albedo).items():
-        S[k] = _area_downsample(v * m, factor, shape)
+    safe = np.maximum(M, 1e-6)[..., None]
+    m3 = cv2.merge([m, m, m])
+    albedo = _area_downsample(cv2.multiply(image.albedo, m3), factor, shape) / safe
+    # moment channels on the working grid, weighted by coverage M: every patch statistic is a
+    # weighted sum over the patch disc (one tensordot), equal to the statistic of the grid pixels
+    # channels centred on the fragment means so float32 sums of squares do not cancel
+    wsum = float(M.sum(dtype=np.float64))
+    wmean = lambda a: float(np.tensordot(M, a, axes=2) / wsum)  # noqa: E731
+    c_rgb = tuple(wmean(albedo[..., k]) for k in range(3))
+    chans = colour_channels(albedo, c_rgb)
+    c_n = None
     if has_n:
-        for k, v in normal_channels(image.albedo, image.normals).items():
-            S[k] = _area_downsample(v * m, factor, shape)
+        normals = _area_downsample(cv2.multiply(image.normals, m3), factor, shape) / safe
+        c_n = {"L": float(np.dot(c_rgb, (0.2126, 0.7152, 0.0722)))}
+        c_n.update({k: wmean(normals[..., i]) for i, k in enumerate(("nx", "ny", "nz"))})
+        chans.update(normal_channels(albedo, normals, c_n))
     if has_h:
         ok = np.isfinite(image.height_mm) & image.mask
-        S["h"] = _area_downsample(np.where(ok, image.height_mm, 0.0).astype(np.float32), factor, shape)
-        S["hv"] = _area_downsample(ok.astype(np.float32), factor, shape)
+        chans["h"] = _area_downsample(np.where(ok, image.height_mm, 0.0).astype(np.float32), factor, shape)
+        chans["hv"] = _area_downsample(ok.astype(np.float32), factor, shape)
+    keys = list(chans)
+    kidx = {k: i for i, k in enumerate(keys)}
+    stack = np.empty(M.shape + (len(keys),), np.float32)
+    for i, k in enumerate(keys):
+        stack[..., i] = chans[k] if k in ("h", "hv") else chans[k] * M
+    S = {k: stack[..., i] for i, k in enumerate(keys)}
 
-    def means(keys, wts, sel=(slice(None), slice(None))):
-        tot = float(np.sum(wts * M[sel], dtype=np.float64))
-        return {k: float(np.sum(wts * S[k][sel], dtype=np.float64)) / tot for k in keys} if tot > 0 else None
+    def means(names, wts, sel=(slice(None), slice(None))):
+        tot = float(np.einsum("ij,ij->", wts, M[sel]))
+        if tot <= 0:
+            return None
+        sums = np.einsum("ij,ijk->k", wts.astype(np.float32), stack[sel])
+        return {k: float(sums[kidx[k]]) / tot for k in names}
 
     nan = float("nan")
     values = {d.name: nan for d in fragment_descriptors()}
     one = np.ones_like(M)
     mu = means(COLOUR_MOMENTS, one)
-    values.update(colour_from_moments(mu))
+    values.update(colour_from_moments(mu, c_rgb))
     region = M > 0.5
     inside = M > 0.99  # fully on the fragment: no edge pixels in the pixel statistics
     if has_n:
-        values.update(normal_from_moments(means(NORMAL_MOMENTS, one)))
-        safe = np.maximum(M, 1e-6)
-        nz = np.where(M > 0, S["nz"] / safe, 1.0).astype(np.float32)
-        grey = np.where(M > 0, S["L"] / safe, 0.0).astype(np.float32)
+        values.update(normal_from_moments(means(NORMAL_MOMENTS, one), c_n))
+        nz = np.where(M > 0, chans["nz"], 1.0).astype(np.float32)
+        grey = np.where(M > 0, chans["L"], 0.0).astype(np.float32)
         # smoothed nz (background filled with the mean so the outline stays quiet) for the FFTs
         # and the discontinuity histogram: statistics of the surface, not of sensor noise or
         # of how the scan was resampled
@@ -216,8 +238,8 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         report(0.2, "fragment orientation")
         values.update(_fragment_orientation(nz_s, region, wp))
         report(0.3, "erosion")
-        values.update(multiscale_erosion(grey, nz, M, wp, n_scales=EROSION_SCALES))
-        eroded, _, _ = erosion_map(grey, nz, region)
+        ms, eroded = _multiscale_erosion(grey, nz, M, wp, n_scales=EROSION_SCALES)
+        values.update(ms)
     if has_h and float(S["hv"].sum()) > 0:
         values["thickness_mean"] = float(S["h"].sum() / S["hv"].sum())
 
@@ -249,10 +271,10 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
             continue
         rows, cols, w, _ = disk_window(patches.centers_mm[i], patches.diameter_mm[i] / 2, wp, M.shape)
         sel = (rows, cols)
-        row = colour_from_moments(means(COLOUR_MOMENTS, w, sel))
+        row = colour_from_moments(means(COLOUR_MOMENTS, w, sel), c_rgb)
         in_disc = (w > 0.5) & region[sel]
         if has_n:
-            row.update(normal_from_moments(means(NORMAL_MOMENTS, w, sel)))
+            row.update(normal_from_moments(means(NORMAL_MOMENTS, w, sel), c_n))
             row.update(discontinuity_from_differences(neighbour_differences(nz_s[sel], inside[sel] & (w > 0.5))))
             row.update(dominant_orientation(nz_s[sel], in_disc, wp, smooth_px=0,
                                             reference_normal=patches.normals[i]))

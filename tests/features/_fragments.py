@@ -11,12 +11,13 @@ from common.rgbn.image import RGBNImage
 
 
 def textured_fragment(*, dpi=150.0, size_mm=60.0, seed=0, stroke_period_mm=3.0, stroke_angle_deg=30.0,
-                      stroke_amp_mm=0.06, crack=True, bumps=True, height=True) -> RGBNImage:
-    """An irregular fragment (radius ~ size/2 modulated by low harmonics) in a canvas with room to
-    rotate it. Returns linear albedo, mask, normals (x right, y up, z out) and a height map."""
+                      stroke_amp_mm=0.06, crack=True, bumps=True, height=True,
+                      canvas=1.6) -> RGBNImage:
+    """An irregular fragment (radius ~ size/2 modulated by low harmonics) in a square canvas of
+    ``canvas * size_mm`` (1.6: room to rotate it). Returns linear albedo, mask, normals (x right, y up, z out) and a height map."""
     rng = np.random.default_rng(seed)
     px = 25.4 / dpi
-    n = int(np.ceil(size_mm * 1.6 / px))
+    n = int(np.ceil(size_mm * canvas / px))
     c = (n - 1) / 2
     yy, xx = np.mgrid[:n, :n].astype(np.float64)
     x, y = (xx - c) * px, (yy - c) * px              # mm, y down
