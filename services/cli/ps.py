@@ -58,7 +58,8 @@ def add_parser(subparsers) -> None:
     solve.add_argument("--dpi", type=float, default=96.0, help="sampling density of the view (nominal if unknown)")
     solve.add_argument("--no-discontinuities", action="store_true", help="skip the depth-discontinuity map")
     out = p.add_argument_group("output")
-    out.add_argument("--store", metavar="DIR", help="storage root: write fragments/<id>/rgbn/<face>-<key>.h5")
+    out.add_argument("--store", metavar="DIR", help="storage root: write fragments/<id>/rgbn/<face>-<key>.h5 "
+                     "(default with --submit: the config's [storage] root)")
     out.add_argument("--fragment", metavar="ID", help="fragment id (with --store)")
     out.add_argument("--face", choices=("front", "back"), default="front")
     out.add_argument("--submit", action="store_true", help="submit the rgbn.ready event to the broker")
@@ -117,10 +118,14 @@ def _run(args) -> int:
         args.diffuse = args.spheres[1] if len(args.spheres) > 1 else None
     if bool(args.lights) == bool(args.chrome):
         raise ValueError("give exactly one of --lights FILE or --spheres/--chrome SPEC")
+    config = None
+    if args.submit:
+        from common.config import load_config
+
+        config = load_config(args.config)
+        args.store = args.store or config["storage"]["root"]
     if args.store and not args.fragment:
-        raise ValueError("--store needs --fragment ID")
-    if args.submit and not args.store:
-        raise ValueError("--submit needs --store (the event points at the stored artifact)")
+        raise ValueError("--store and --submit need --fragment ID")
     if not (args.store or args.output or args.pictures):
         raise ValueError("nothing to write: give --store, -o OUT.h5 or --pictures DIR")
 
@@ -195,9 +200,12 @@ def _run(args) -> int:
                             source="handheld", method=args.method)
         print(json.dumps(event, indent=2))
         if args.submit:
-            from common.bus.client import submit
-            from common.config import load_config
+            from common.bus.client import BrokerRefused, BrokerUnavailable, submit
 
-            seq = submit(event, load_config(args.config))
+            try:
+                seq = submit(event, config)
+            except (BrokerUnavailable, BrokerRefused) as exc:
+                print(f"tessera ps: the artifact is stored, but the event was not submitted: {exc}", file=sys.stderr)
+                return 1
             print(f"submitted rgbn.ready as event {seq}")
     return 0

@@ -232,3 +232,64 @@ def test_ps_command_calibrates_from_a_mirror_sphere_in_the_frame(tmp_path, capsy
     truth = surface_normals(wide)
     inner = cv2.erode(wide.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner].mean() < 1.0
+
+
+def test_ps_command_submits_rgbn_ready_to_the_broker(tmp_path, capsys):
+    import socket
+    import threading
+    import time
+
+    from common.bus.broker import Broker
+    from common.bus.client import BrokerClient
+    from common.config import load_config
+    from common.messages import unpack
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    cfg_path = tmp_path / "station.toml"
+    cfg_path.write_text(f'[storage]\nroot = "{tmp_path / "storage"}"\n'
+                        f'[broker]\nhost = "127.0.0.1"\nbind = "127.0.0.1"\nport = {ports[0]}\nfeed_port = {ports[1]}\n'
+                        f'journal_dir = "{tmp_path / "journal"}"\n[client]\ntimeout_s = 1.0\nretries = 3\n')
+    config = load_config(cfg_path)
+    stop = threading.Event()
+    broker = threading.Thread(target=Broker(config).run, args=(stop,), daemon=True)
+    broker.start()
+    try:
+        _, shots = _write_capture(tmp_path, n=6)
+        code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+                        "--fragment", "F0009", "--submit", "--config", str(cfg_path), "--no-discontinuities"])
+        assert code == 0, capsys.readouterr().err
+        assert "submitted rgbn.ready" in capsys.readouterr().out
+        with BrokerClient.from_config(config) as bus:
+            deadline = time.monotonic() + 10
+            events = []
+            while time.monotonic() < deadline and not events:
+                events = [unpack(e) for _, e in bus.since(0)["events"]]
+                time.sleep(0.05)
+        ready = [e for e in events if e["type"] == "rgbn.ready"]
+        assert len(ready) == 1 and ready[0]["fragment"] == "F0009"
+        # the artifact is in the station's storage root, where the workers will look
+        rgbn = load_rgbn(Store(tmp_path / "storage"), ready[0]["artifact"])
+        assert rgbn.normals is not None and rgbn.discontinuity is None
+    finally:
+        stop.set()
+        broker.join(10)
+
+
+def test_ps_command_keeps_the_artifact_when_the_broker_is_away(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nobody listens here
+    cfg_path = tmp_path / "station.toml"
+    cfg_path.write_text(f'[storage]\nroot = "{tmp_path / "storage"}"\n[broker]\nhost = "127.0.0.1"\nport = {port}\n'
+                        f'journal_dir = "{tmp_path / "journal"}"\n[client]\ntimeout_s = 0.2\nretries = 1\n')
+    _, shots = _write_capture(tmp_path, n=5)
+    code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+                    "--fragment", "F0010", "--submit", "--config", str(cfg_path), "--no-discontinuities"])
+    assert code == 1 and "not submitted" in capsys.readouterr().err
+    assert len(list((tmp_path / "storage" / "fragments" / "F0010" / "rgbn").glob("front-*.h5"))) == 1
