@@ -18,6 +18,7 @@ the path can be checked end to end without a camera.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Callable, Sequence
 
 import cv2
@@ -342,14 +343,13 @@ def discontinuity_picture(discontinuity) -> np.ndarray:
 
 def write_pictures(image: RGBNImage, directory: str | os.PathLike, *, prefix: str = "") -> list[str]:
     """Write viewable PNGs of an RGBN image: normals (OpenGL colours), albedo (sRGB), confidence, discontinuity."""
-    from pathlib import Path
-
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     alpha = image.mask.astype(np.float32)
     if image.normals is not None:
-        written.append(write_image(out / f"{prefix}normals.png", encode_normal_map(image.normals, image.mask), alpha=alpha))
+        colours = encode_normal_map(image.normals, image.mask)
+        written.append(write_image(out / f"{prefix}normals.png", colours, alpha=alpha))
     written.append(write_image(out / f"{prefix}albedo.png", linear_to_srgb(image.albedo), alpha=alpha))
     if image.confidence is not None:
         written.append(write_image(out / f"{prefix}confidence.png", image.confidence))
