@@ -124,34 +124,78 @@ def joint_bilateral(albedo: np.ndarray | None, normals: np.ndarray | None, *, si
 
 def _bilateral_pass(feat: np.ndarray, values: np.ndarray, weight: np.ndarray, sigma_x: float, r: int,
                     axis: int | None) -> np.ndarray:
-    """One bilateral pass over a window of shifted arrays, strip by strip (the heavy loop)."""
-    h, w = feat.shape[:2]
+    """One bilateral pass: along columns (axis 1), rows (axis 0) or the full 2-D window (None)."""
     if axis == 1:
-        offsets = [(0, dx) for dx in range(-r, r + 1)]
-    elif axis == 0:
-        offsets = [(dy, 0) for dy in range(-r, r + 1)]
-    else:
-        offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= r * r]
+        return _pass_1d(feat, values, weight, sigma_x, r)
+    if axis == 0:
+        t = lambda a: np.ascontiguousarray(np.swapaxes(a, 0, 1))  # noqa: E731
+        return t(_pass_1d(t(feat), t(values), t(weight), sigma_x, r))
+    return _pass_2d(feat, values, weight, sigma_x, r)
+
+
+def _pass_1d(feat, values, weight, sigma_x, r):
+    """Bilateral pass along axis 1, strip by strip (the heavy loop).
+
+    The range weight is symmetric, w(p, p + d) = w(p + d, p), so one distance-and-exp evaluation
+    per offset pair +-d serves both neighbours: E[c] = w(c, c + d) is computed once over W + d
+    columns and read at c (for +d) and at c - d (for -d).
+    """
+    h, w = feat.shape[:2]
+    nc = values.shape[2]
+    fpad = np.pad(feat, ((0, 0), (r, r), (0, 0)), mode="edge")
+    vw = np.concatenate([values * weight[..., None], weight[..., None]], axis=2)
+    vpad = np.pad(vw, ((0, 0), (r, r), (0, 0)), mode="constant")
+    out = np.empty_like(values)
+    nf = feat.shape[2]
+    for r0 in range(0, h, _STRIP_ROWS):
+        r1 = min(h, r0 + _STRIP_ROWS)
+        fs, vs = fpad[r0:r1], vpad[r0:r1]
+        acc = vw[r0:r1].copy()  # the centre sample, weight 1
+        tmp = np.empty((r1 - r0, w, nc + 1), np.float32)
+        for d in range(1, r + 1):
+            ls = np.float32(d * d / (2.0 * sigma_x ** 2))
+            # E[j] = w(column r - d + j, column r + j) for j in [0, w + d)
+            a = fs[:, r - d:r + w]
+            b = fs[:, r:r + w + d]
+            if nf:
+                diff = b - a
+                e = np.einsum("ijk,ijk->ij", diff, diff)
+                e *= np.float32(-0.5)
+                e -= ls
+            else:
+                e = np.full(a.shape[:2], -ls, np.float32)
+            np.exp(e, out=e)
+            # +d neighbour of centre column r + i is E[i + d]; -d neighbour is E[i]
+            np.multiply(vs[:, r + d:r + d + w], e[:, d:d + w, None], out=tmp)
+            acc += tmp
+            np.multiply(vs[:, r - d:r - d + w], e[:, 0:w, None], out=tmp)
+            acc += tmp
+        den = acc[..., nc:]
+        out[r0:r1] = np.where(den > 1e-12, acc[..., :nc] / np.maximum(den, 1e-12), values[r0:r1])
+    return out
+
+
+def _pass_2d(feat, values, weight, sigma_x, r):
+    """Exact 2-D window of shifted arrays over a disc of radius r, strip by strip."""
+    h, w = feat.shape[:2]
+    offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= r * r]
     log_spatial = [np.float32(-(dy * dy + dx * dx) / (2.0 * sigma_x ** 2)) for dy, dx in offsets]
     pad = ((r, r), (r, r), (0, 0))
     fpad = np.pad(feat, pad, mode="edge")
     vpad = np.pad(np.concatenate([values * weight[..., None], weight[..., None]], axis=2), pad, mode="constant")
     nc = values.shape[2]
     out = np.empty_like(values)
-    nf = feat.shape[2]
     for r0 in range(0, h, _STRIP_ROWS):
         r1 = min(h, r0 + _STRIP_ROWS)
         fp = fpad[r0 + r:r1 + r, r:r + w]
         acc = np.zeros((r1 - r0, w, nc + 1), np.float32)
-        d2 = np.empty((r1 - r0, w), np.float32)
         for (dy, dx), ls in zip(offsets, log_spatial):
-            fq = fpad[r0 + r + dy:r1 + r + dy, r + dx:r + dx + w]
-            d2.fill(-ls)
-            for c in range(nf):
-                diff = fq[..., c] - fp[..., c]
-                d2 += 0.5 * diff * diff
-            wq = np.exp(-d2)
-            acc += wq[..., None] * vpad[r0 + r + dy:r1 + r + dy, r + dx:r + dx + w]
+            diff = fpad[r0 + r + dy:r1 + r + dy, r + dx:r + dx + w] - fp
+            e = np.einsum("ijk,ijk->ij", diff, diff)
+            e *= np.float32(-0.5)
+            e += ls
+            np.exp(e, out=e)
+            acc += e[..., None] * vpad[r0 + r + dy:r1 + r + dy, r + dx:r + dx + w]
         den = acc[..., nc:]
         out[r0:r1] = np.where(den > 1e-12, acc[..., :nc] / np.maximum(den, 1e-12), values[r0:r1])
     return out

@@ -1,0 +1,138 @@
+"""Benchmark of RGBN processing and rendering (§7.2-7.3), per megapixel, and peak memory at 16 Mpx.
+
+Run ``python tests/bench/bench_render.py`` (add ``--quick`` to skip the 16-Mpx memory runs).
+Targets (issue 8, per megapixel on the 2-core machine): smoothing <= 0.1 s, curvature <= 0.1 s,
+joint bilateral (sigma_x = 3 px) <= 1 s, segmentation <= 1.5 s, exaggerated shading with
+8 scales <= 1 s; a 16-Mpx image renders in any style within 4 GB peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+TARGETS_S_PER_MPX = {"smoothing": 0.1, "curvature": 0.1, "joint_bilateral": 1.0, "segmentation": 1.5,
+                     "exaggerated_8_scales": 1.0}
+
+
+def relief_image(size: int, seed: int = 0):
+    """A fragment-like RGBN image: multi-scale relief, incisions, two pigments, a round outline."""
+    import cv2
+
+    from common.rgbn.image import RGBNImage
+
+    rng = np.random.default_rng(seed)
+    height = np.zeros((size, size), np.float32)
+    for sigma, amp in ((size / 16, 2.0), (size / 64, 0.4), (3.0, 0.05)):
+        noise = rng.standard_normal((size, size)).astype(np.float32)
+        layer = cv2.GaussianBlur(noise, (0, 0), sigma)
+        height += amp * layer / max(float(layer.std()), 1e-6)
+    # straight incisions (tool marks)
+    for _ in range(12):
+        x0, y0, x1, y1 = rng.integers(0, size, 4)
+        groove = np.zeros((size, size), np.uint8)
+        cv2.line(groove, (int(x0), int(y0)), (int(x1), int(y1)), 1, max(2, size // 400))
+        height -= 0.3 * cv2.GaussianBlur(groove.astype(np.float32), (0, 0), 1.5)
+    pixel_mm = 25.4 / 600
+    gy, gx = np.gradient(height * 0.05)  # height in units of 0.05 mm
+    n = np.stack([-gx / pixel_mm, gy / pixel_mm, np.ones_like(gx)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    yy, xx = np.mgrid[0:size, 0:size]
+    mask = (xx - size / 2) ** 2 + (yy - size / 2) ** 2 < (0.48 * size) ** 2
+    albedo = np.empty((size, size, 3), np.float32)
+    albedo[:] = (0.75, 0.68, 0.55)
+    albedo[(height > 0.5)] = (0.6, 0.25, 0.15)
+    del height, gx, gy
+    return RGBNImage(albedo=albedo, mask=mask, dpi=600.0, normals=n.astype(np.float32))
+
+
+def timed(fn, repeat: int = 3) -> float:
+    best = np.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def per_megapixel(size: int = 1024) -> dict:
+    from common.render.shading import exaggerated_shading
+    from common.rgbn.bilateral import joint_bilateral
+    from common.rgbn.curvature import curvature
+    from common.rgbn.segmentation import segment_rgbn
+    from common.rgbn.smoothing import smooth_normals
+
+    img = relief_image(size)
+    mpx = size * size / 1e6
+    runs = {
+        "smoothing": lambda: smooth_normals(img.normals, 3.0, mask=img.mask),
+        "curvature": lambda: curvature(img.normals, img.dpi, mask=img.mask),
+        "joint_bilateral": lambda: joint_bilateral(img.albedo, img.normals, sigma_x=3.0, mask=img.mask),
+        "segmentation": lambda: segment_rgbn(img.albedo, img.normals, mask=img.mask, scale=300, min_size=200),
+        "exaggerated_8_scales": lambda: exaggerated_shading(img.normals, mask=img.mask, scales=8),
+    }
+    out = {}
+    for name, fn in runs.items():
+        out[name] = timed(fn, 1 if name in ("segmentation", "joint_bilateral") else 3) / mpx
+    return out
+
+
+def child(style: str, size: int) -> None:
+    """Render one style at size x size and print seconds and peak RSS (run in a fresh process)."""
+    from common.render.recipes import load_recipe, render, style_recipe
+
+    img = relief_image(size)
+    t = time.perf_counter()
+    recipe = load_recipe(style[len("recipe-"):]) if style.startswith("recipe-") else style_recipe(style)
+    render(img, recipe)
+    seconds = time.perf_counter() - t
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"style": style, "seconds": seconds, "peak_rss_mb": peak_mb}))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="skip the 16-Mpx memory runs")
+    parser.add_argument("--size", type=int, default=4096, help="side of the memory-run image (4096 = 16.8 Mpx)")
+    parser.add_argument("--styles", nargs="*", help="styles for the memory runs (default: all)")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args.child, args.size)
+        return 0
+    print("per megapixel (1024 x 1024 fragment-like relief, best of runs):")
+    for name, s in per_megapixel().items():
+        target = TARGETS_S_PER_MPX[name]
+        print(f"  {name:24s} {s:6.3f} s/Mpx   target <= {target:.1f}   {'ok' if s <= target else 'OVER'}")
+    if args.quick:
+        return 0
+    from common.render.recipes import STYLES
+
+    styles = args.styles or [s for s in STYLES if s != "segment_boundaries"] + ["recipe-segments"]
+    print(f"{args.size} x {args.size} = {args.size ** 2 / 1e6:.1f} Mpx, one fresh process per style "
+          "(peak RSS includes the input image):")
+    worst = 0.0
+    for style in styles:
+        res = subprocess.run([sys.executable, __file__, "--child", style, "--size", str(args.size)],
+                             capture_output=True, text=True)
+        if res.returncode != 0:
+            print(f"  {style:28s} FAILED: {res.stderr.strip().splitlines()[-1] if res.stderr else res.returncode}")
+            continue
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        worst = max(worst, r["peak_rss_mb"])
+        print(f"  {style:28s} {r['seconds']:7.1f} s   peak RSS {r['peak_rss_mb']:7.0f} MB")
+    print(f"  worst peak RSS {worst:.0f} MB   target <= 4096 MB   {'ok' if worst <= 4096 else 'OVER'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
