@@ -11,10 +11,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import heapq
+
 import numpy as np
+import cv2
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from common.synth.noise import FractalField
+from common.synth.noise import FractalField, affine_grid, compose
 
 
 @dataclass
@@ -69,6 +73,41 @@ class Fracture:
         """Fragment label (int32, -1 = lost) at wall points (mm)."""
         xw, yw = self.warped(x_mm, y_mm)
         return self._labels_warped(xw, yw)
+
+    def labels_grid(self, G: np.ndarray, shape: tuple[int, int], *, near: int | None = None) -> np.ndarray:
+        """Labels on an affine pixel grid ``wall = G @ (col, row, 1)``.
+
+        The coarse label map gives every pixel whose neighbourhood (2 grid cells) holds a single
+        piece; the exact partition is evaluated only in the bands around cracks -- with ``near``,
+        only around the cracks of that piece (elsewhere the coarse label is close enough).
+        """
+        H, W = shape
+        A = compose([[1.0 / self.grid_mm, 0, 0], [0, 1.0 / self.grid_mm, 0]], G)
+        flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+        corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float) @ A.T
+        (c0, r0), (c1, r1) = np.floor(corners.min(axis=0)).astype(int) - 3, np.ceil(corners.max(axis=0)).astype(int) + 4
+        cl = self.coarse_labels
+        sub = np.full((r1 - r0, c1 - c0), -1, np.int32)
+        rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, cl.shape[0]), max(c0, 0), min(c1, cl.shape[1])
+        if rr1 > rr0 and cc1 > cc0:
+            sub[rr0 - r0:rr1 - r0, cc0 - c0:cc1 - c0] = cl[rr0:rr1, cc0:cc1]
+        mixed = ndimage.maximum_filter(sub, 5) != ndimage.minimum_filter(sub, 5)
+        if near is not None:
+            mixed &= ndimage.maximum_filter(sub == near, 5)
+        A_sub = A.copy()
+        A_sub[:, 2] -= (c0, r0)
+        lab = cv2.warpAffine(sub.astype(np.float32), A_sub, (W, H), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=-1).astype(np.int32)
+        exact = cv2.warpAffine(mixed.astype(np.uint8), A_sub, (W, H), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=1).astype(bool)
+        idx = np.flatnonzero(exact)
+        if idx.size:
+            x, y = affine_grid(G, shape)
+            dx, dy = self.warp_x.grid(G, shape), self.warp_y.grid(G, shape)
+            xw = (x + dx).ravel()[idx]
+            yw = (y + dy).ravel()[idx]
+            lab.ravel()[idx] = self._labels_warped(xw, yw)
+        return lab
 
     def _labels_warped(self, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
         shape = xw.shape
@@ -125,7 +164,7 @@ def _check(width_mm, height_mm, median_size_mm, sigma, min_size_mm, max_size_mm)
 
 def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generator, *,
                        median_size_mm: float = 35.0, sigma: float = 0.5, min_size_mm: float = 10.0,
-                       max_size_mm: float = 200.0, min_pieces: int = 0, angle_jitter_deg: float = 12.0,
+                       max_size_mm: float = 200.0, n_pieces: int | None = None, angle_jitter_deg: float = 12.0,
                        jag_mm: float = 1.5, jag_scale_mm: float = 20.0, inset_mm: float = 4.0,
                        grid_mm: float = 1.0) -> Fracture:
     """Break a wall by recursive splitting along roughly perpendicular cracks.
@@ -145,8 +184,9 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
         Log-normal target size: median (mm) and standard deviation of its logarithm.
     min_size_mm, max_size_mm : float
         Clip of the target sizes (the issue asks for 1-20 cm).
-    min_pieces : int
-        Keep splitting the largest pieces until there are at least this many.
+    n_pieces : int, optional
+        Break into exactly this many pieces: the piece largest relative to its target size
+        splits next. Without it, every piece splits until it is near its target size.
     angle_jitter_deg : float
         Standard deviation of the crack's deviation from perpendicular.
     jag_mm, jag_scale_mm : float
@@ -207,22 +247,30 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
         left[node] = new_node(lo); right[node] = new_node(hi)
         return True
 
+    def target():
+        return float(np.clip(median_size_mm * np.exp(sigma * rng.standard_normal()), min_size_mm, max_size_mm))
+
     root = new_node(np.nonzero(inside)[0])
-    queue = [root]
-    while queue:
-        node = queue.pop()
-        size = np.sqrt(members[node].size * cell)
-        target = float(np.clip(median_size_mm * np.exp(sigma * rng.standard_normal()), min_size_mm, max_size_mm))
-        # split while clearly larger than the target (halves land near it)
-        if size > 1.3 * target and members[node].size > 8 and split(node):
-            queue += [left[node], right[node]]
-    while True:
-        leaves = [i for i, mm in enumerate(members) if mm is not None]
-        if len(leaves) >= min_pieces:
-            break
-        big = max(leaves, key=lambda i: members[i].size)
-        if members[big].size < 16 or not split(big):
-            break
+    if n_pieces is None:
+        queue = [root]
+        while queue:
+            node = queue.pop()
+            size = np.sqrt(members[node].size * cell)
+            # split while clearly larger than the target (halves land near it)
+            if size > 1.3 * target() and members[node].size > 8 and split(node):
+                queue += [left[node], right[node]]
+    else:
+        if n_pieces < 1:
+            raise ValueError(f"n_pieces must be >= 1, got {n_pieces}")
+        heap = [(-1.0, root)]
+        count = 1
+        while count < n_pieces and heap:
+            _, node = heapq.heappop(heap)
+            if members[node].size <= 8 or not split(node):
+                continue
+            count += 1
+            for ch in (left[node], right[node]):
+                heapq.heappush(heap, (-np.sqrt(members[ch].size * cell) / target(), ch))
     leaf_label = np.full(len(members), -1, np.int32)
     coarse = np.full(px.size, -1, np.int32)
     for lab, i in enumerate(i for i, mm in enumerate(members) if mm is not None):
@@ -242,7 +290,7 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
 
 def fracture_voronoi(width_mm: float, height_mm: float, rng: np.random.Generator, *,
                      median_size_mm: float = 35.0, sigma: float = 0.5, min_size_mm: float = 10.0,
-                     max_size_mm: float = 200.0, min_pieces: int = 0, jag_mm: float = 1.5,
+                     max_size_mm: float = 200.0, n_pieces: int | None = None, jag_mm: float = 1.5,
                      jag_scale_mm: float = 20.0, inset_mm: float = 4.0, grid_mm: float = 1.0) -> Fracture:
     """Break a wall into the cells of a power (weighted Voronoi) diagram.
 
@@ -265,23 +313,36 @@ def fracture_voronoi(width_mm: float, height_mm: float, rng: np.random.Generator
     wx, wy = _jagged_warp(rng, jag_mm, jag_scale_mm)
     frac = Fracture(float(width_mm), float(height_mm), "voronoi", wx, wy, float(inset_mm), float(grid_mm))
     seeds: list[tuple[float, float, float]] = []
-    fails = 0
-    while fails < 300 or len(seeds) < min_pieces:
-        d = float(np.clip(median_size_mm * np.exp(sigma * rng.standard_normal()), min_size_mm, max_size_mm))
-        r = 0.5 * d
-        p = rng.uniform([0, 0], [width_mm, height_mm])
-        if seeds:
-            s = np.asarray(seeds)
-            # discs may overlap a little when the wall is full, so min_pieces can be met
-            slack = 0.9 if fails < 300 else 0.5
-            if np.any(np.hypot(s[:, 0] - p[0], s[:, 1] - p[1]) < slack * (s[:, 2] + r)):
-                fails += 1
-                if fails > 20000:
+
+    def diameter():
+        return float(np.clip(median_size_mm * np.exp(sigma * rng.standard_normal()), min_size_mm, max_size_mm))
+
+    if n_pieces is not None:
+        if n_pieces < 1:
+            raise ValueError(f"n_pieces must be >= 1, got {n_pieces}")
+        # exactly n_pieces discs, scaled to cover ~70 % of the wall, thrown largest first
+        d = np.sort([diameter() for _ in range(n_pieces)])[::-1]
+        d *= np.sqrt(0.7 * width_mm * height_mm / np.sum(np.pi * (d / 2) ** 2))
+        for r in d / 2:
+            slack = 1.0
+            for attempt in range(100000):
+                p = rng.uniform([0, 0], [width_mm, height_mm])
+                s = np.asarray(seeds).reshape(-1, 3)
+                if not len(s) or np.all(np.hypot(s[:, 0] - p[0], s[:, 1] - p[1]) >= slack * (s[:, 2] + r)):
                     break
-                continue
+                if attempt % 200 == 199:
+                    slack *= 0.9  # crowded: let discs overlap a little more
+            seeds.append((float(p[0]), float(p[1]), float(r)))
+    fails = 0
+    while n_pieces is None and fails < 300:
+        r = 0.5 * diameter()
+        p = rng.uniform([0, 0], [width_mm, height_mm])
+        s = np.asarray(seeds).reshape(-1, 3)
+        if len(s) and np.any(np.hypot(s[:, 0] - p[0], s[:, 1] - p[1]) < 0.9 * (s[:, 2] + r)):
+            fails += 1
+            continue
         seeds.append((float(p[0]), float(p[1]), r))
-        if fails < 300:
-            fails = 0
+        fails = 0
     s = np.asarray(seeds)
     big = s[:, 2].max()
     # power distance as a Euclidean distance in 3-D: lift each seed by sqrt(R^2 - r^2)

@@ -54,9 +54,8 @@ def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, 
         raise ValueError(f"depth_mm must be >= 0, got {depth_mm}")
     if depth_mm == 0 and chips == 0:
         return mask.copy()
-    H, W = mask.shape
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) * np.float32(pixel_mm)
-    vary = FractalField(rng, 8.0, octaves=4, persistence=0.6, amplitude=0.8)(xx, yy)
+    G = np.array([[pixel_mm, 0.0, 0.0], [0.0, pixel_mm, 0.0]])
+    vary = FractalField(rng, 8.0, octaves=4, persistence=0.6, amplitude=0.8).grid(G, mask.shape)
     depth = np.float32(depth_mm) * np.exp(vary - 0.32)  # log-normal-ish, mean ~ depth_mm
     dist = inner_distance_mm(mask, pixel_mm)
     out = mask & (dist > depth)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from common.synth.noise import FractalField
+from common.synth.noise import FractalField, sample_raster_grid
 
 # linear-RGB pigments of Aegean and Roman palettes (approximate reflectances)
 PIGMENTS = {
@@ -63,6 +63,10 @@ class Painting:
         u = (np.asarray(x_mm, np.float32) / self.res_mm)
         v = (np.asarray(y_mm, np.float32) / self.res_mm)
         return cv2.remap(self.albedo, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def sample_grid(self, G: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Albedo on an affine pixel grid ``wall = G @ (col, row, 1)``, (H, W, 3)."""
+        return sample_raster_grid(self.albedo, self.res_mm, G, shape)
 
 
 def _poly(img, pts_px, colour, *, closed=True, thickness=None, aa=True):

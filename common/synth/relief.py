@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.synth.noise import FractalField, periodic_noise_tile, sample_tile
+from common.synth.noise import (FractalField, periodic_noise_tile, sample_raster_grid, sample_tile,
+                                sample_tile_grid)
 from common.synth.painting import Painting
 
 _STROKE_F0 = 16.0  # ridge frequency of the stroke tile, cycles per tile
@@ -139,6 +140,39 @@ class WallRelief:
                             angle_rad=reg.angle_rad, offset=self._offsets[k])
             out += w * reg.depth_mm * s
         return out
+
+    def strokes_grid(self, G: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """:meth:`strokes` on an affine pixel grid ``wall = G @ (col, row, 1)``."""
+        out = np.zeros(shape, np.float32)
+        H, W = shape
+        corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float) @ np.asarray(G).T
+        (x0, y0), (x1, y1) = corners.min(axis=0), corners.max(axis=0)
+        wr = self._weights[:, max(int(y0 / self._w_res) - 1, 0):int(y1 / self._w_res) + 2,
+                           max(int(x0 / self._w_res) - 1, 0):int(x1 / self._w_res) + 2]
+        if wr.size == 0:
+            wr = self._weights
+        active = np.nonzero(wr.reshape(len(self.regions), -1).max(axis=1) > 1e-3)[0]
+        for k in active:
+            reg = self.regions[k]
+            w = sample_raster_grid(self._weights[k], self._w_res, G, shape, smooth_mm=4 * self._w_res)
+            s = sample_tile_grid(self.stroke_tile, G, shape, px_per_mm=(256.0 / _STROKE_F0) / reg.period_mm,
+                                 angle_rad=reg.angle_rad, offset=self._offsets[k])
+            out += w * np.float32(reg.depth_mm) * s
+        return out
+
+    def height_grid(self, G: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """:meth:`height` on an affine pixel grid ``wall = G @ (col, row, 1)``."""
+        h = sample_raster_grid(self.macro, self.res_mm, G, shape, interpolation=cv2.INTER_CUBIC)
+        h += self.strokes_grid(G, shape)
+        h += self.grain.grid(G, shape)
+        return h
+
+    def thickness_grid(self, G: np.ndarray, shape: tuple[int, int], *, back_rough: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`thickness` on an affine pixel grid (``back_rough``: that field on the grid, if at hand)."""
+        if back_rough is None:
+            back_rough = self.back_rough.grid(G, shape)
+        t = self.thickness_mean + self.thickness_field.grid(G, shape) - back_rough
+        return np.maximum(t, 0.2 * self.thickness_mean)
 
     def height(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
         """Front-face relief height (mm) at wall points: macro + strokes + grain."""

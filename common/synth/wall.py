@@ -161,12 +161,12 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
         painting = painting_from_image(image, width)
         W, H = painting.size_mm
     else:
-        area = n_pieces * _AREA_FACTOR * median_size_mm ** 2 * np.exp(2 * sigma ** 2) ** 0.5
+        area = n_pieces * _AREA_FACTOR * median_size_mm ** 2
         H = float(np.sqrt(area / aspect)) + 8.0
         W = float(aspect * (H - 8.0)) + 8.0
         painting = paint_wall(W, H, rng_paint, style=style)
     relief = WallRelief(painting, rng_relief)
-    kw = dict(median_size_mm=median_size_mm, sigma=sigma, min_pieces=n_pieces, jag_mm=jag_mm)
+    kw = dict(median_size_mm=median_size_mm, sigma=sigma, n_pieces=n_pieces, jag_mm=jag_mm)
     fracture = (fracture_recursive if mode == "recursive" else fracture_voronoi)(W, H, rng_break, **kw)
     return _Plan(painting, relief, fracture)
 
@@ -179,25 +179,22 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
     """
     pm = 25.4 / dpi
     g = plan.fracture.grid_mm
-    pad = 3.0 + 2 * g
     (r0, r1), (c0, c1) = bbox
-    x0, x1, y0, y1 = c0 * g - pad, (c1 - 1) * g + pad, r0 * g - pad, (r1 - 1) * g + pad
+    rr, cc = np.nonzero(plan.fracture.coarse_labels[r0:r1, c0:c1] == label)
+    pts = np.column_stack([(cc + c0) * g, (rr + r0) * g])
     angle = float(rng.uniform(0.0, 360.0))
     a = np.deg2rad(angle)
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
-    p = corners @ R  # R^T w for each corner
-    off = p.min(axis=0)
-    W = int(np.ceil((p[:, 0].max() - off[0]) / pm)) + 1
-    H = int(np.ceil((p[:, 1].max() - off[1]) / pm)) + 1
+    p = pts @ R  # R^T w: the piece's coarse cells in the fragment frame
+    pad = 0.5 + 1.5 * g  # the piece reaches ~1 cell beyond its cell centres, plus sub-mm jags
+    off = p.min(axis=0) - pad
+    W = int(np.ceil((p[:, 0].max() + pad - off[0]) / pm)) + 1
+    H = int(np.ceil((p[:, 1].max() + pad - off[1]) / pm)) + 1
     t = R @ off
     pose = (angle, float(t[0]), float(t[1]))
-    cols = (np.arange(W, dtype=np.float64) * pm)[None, :]
-    rows = (np.arange(H, dtype=np.float64) * pm)[:, None]
-    xw = (R[0, 0] * cols + R[0, 1] * rows + t[0]).astype(np.float32)
-    yw = (R[1, 0] * cols + R[1, 1] * rows + t[1]).astype(np.float32)
-
-    labels = plan.fracture.labels(xw, yw)
+    G = np.hstack([R * pm, t[:, None]])  # wall = G @ (col, row, 1)
+    shape = (H, W)
+    labels = plan.fracture.labels_grid(G, shape, near=label)
     mask0 = det.largest_component(labels == label)
     # crack samples: inner boundary pixels of this piece with a 4-neighbour in another piece
     cracks = {}
@@ -216,14 +213,15 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
             pairs = np.unique(np.column_stack([lab.astype(np.int64), idx]), axis=0)
             for m in np.unique(pairs[:, 0]):
                 pix = pairs[pairs[:, 0] == m, 1]
-                pts = np.column_stack([xw.ravel()[pix], yw.ravel()[pix]]).astype(np.float64)
+                pts = np.column_stack([pix % W, pix // W, np.ones(pix.size)]) @ G.T  # wall mm
                 # about one sample per mm of crack
                 _, keep = np.unique(np.floor(pts / 1.0).astype(np.int64), axis=0, return_index=True)
                 cracks[int(m)] = (pix.size * pm / _BOUNDARY_PX_PER_LENGTH, pts[np.sort(keep)])
 
-    albedo = plan.painting.sample(xw, yw)
-    height = plan.relief.height(xw, yw)
-    thick = plan.relief.thickness(xw, yw)
+    albedo = plan.painting.sample_grid(G, shape)
+    height = plan.relief.height_grid(G, shape)
+    back_rough = plan.relief.back_rough.grid(G, shape)
+    thick = plan.relief.thickness_grid(G, shape, back_rough=back_rough)
     # deterioration (per fragment: neighbours now differ)
     mask = det.erode_edges(mask0, pm, rng, depth_mm=erosion_mm) if erosion_mm > 0 else mask0
     if not mask.any():
@@ -250,7 +248,7 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
                                                       "height_meaning": "thickness: front face above back, mm"})
     front_h = np.where(mask, height - float(np.median(height[mask])), 0.0).astype(np.float32)
     back_h = np.where(mask, thick - med_t, 0.0).astype(np.float32)
-    shade = 1.0 + 0.15 * np.tanh(plan.relief.back_rough(xw, yw))
+    shade = 1.0 + 0.15 * np.tanh(back_rough)
     back_albedo = np.where(mask[..., None], det.PLASTER[None, None, :] * 0.9 * shade[..., None], 0.0).astype(np.float32)
     # the back, as seen after flipping the fragment over about its vertical axis
     back = FragmentSurface(np.fliplr(back_albedo).copy(), np.fliplr(back_h).copy(), np.fliplr(mask).copy(), dpi,
@@ -265,7 +263,7 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
 
 def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = "recursive",
                   style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
-                  median_size_mm: float = 30.0, sigma: float = 0.5, missing_fraction: float = 0.2,
+                  median_size_mm: float = 30.0, sigma: float = 0.7, missing_fraction: float = 0.2,
                   spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
                   min_shared_mm: float = 3.0, keep_images: bool = True,
                   on_fragment: Callable[[Fragment], None] | None = None,
