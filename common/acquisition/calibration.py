@@ -202,7 +202,7 @@ def fit_calibration(scanner: str, normals: np.ndarray, intensities: np.ndarray, 
                        intensities=intensities, **kw)
 
 
-def simulated_target_operator(sim, *, centre_mm=(60.0, 60.0), size_mm: float = 8.0, dpi: float = 150) -> Callable:
+def simulated_target_operator(sim, *, centre_mm=(60.0, 60.0), size_mm: float = 4.0, dpi: float = 300) -> Callable:
     """Operator for the simulated flatbed: puts the tilted target in the jig (fixed place, angle 0)."""
     from common.acquisition.flatbed_sim import calibration_target
 

@@ -1,0 +1,125 @@
+"""Tests of the flatbed normal solve (common/acquisition/flatbed_normals.py), eqs. 3.4–3.7."""
+
+import cv2
+import numpy as np
+import pytest
+
+from common.acquisition.calibration import calibrate_scanner, simulated_target_operator
+from common.acquisition.flatbed_normals import light_rows, rerender, rerender_residual, solve_face, solve_normals
+from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
+from common.rgbn.image import RGBNImage
+
+A = np.array([0.0, 0.33, 0.54, 0.21])
+
+
+def _field(h=40, w=50, seed=0):
+    """Random smooth unit normals (tilts up to ~35°) and RGB albedo."""
+    rng = np.random.default_rng(seed)
+    g = cv2.GaussianBlur(rng.normal(size=(h, w, 2)).astype(np.float32), (0, 0), 3) * 3
+    n = np.dstack([g[..., 0], g[..., 1], np.ones((h, w), np.float32)])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    rho = rng.uniform(0.2, 0.9, (h, w, 3)).astype(np.float32)
+    return n, rho
+
+
+def _render(n, rho, angles, a=A):
+    """Independent forward model: rotate the normal into each scan's frame and apply eq. 3.4."""
+    out = []
+    for ang in angles:
+        t = np.deg2rad(ang)
+        # clockwise by t on a y-down image = rotation by -t in the y-up normal frame
+        R = np.array([[np.cos(-t), -np.sin(-t), 0], [np.sin(-t), np.cos(-t), 0], [0, 0, 1]])
+        ns = n @ R.T
+        s = ns @ a[:3] + a[3]
+        out.append(rho * s[..., None])
+    return np.stack(out).astype(np.float32)
+
+
+def _angle_err(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    # atan2 of |cross| and dot: accurate for tiny angles (arccos is not)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def test_light_rows_apply_the_inverse_rotation_to_a():
+    rows = light_rows(A, [0, 90, 180, 270])
+    # a fragment turned 90° clockwise on the image sees the lamp (from image-top) from its left
+    np.testing.assert_allclose(rows[:, :2], [[0, 0.33], [-0.33, 0], [0, -0.33], [0.33, 0]], atol=1e-12)
+    np.testing.assert_allclose(rows[:, 2], 0.54)
+
+
+@pytest.mark.parametrize("angles", [(0, 90, 180, 270), (0, 97, 172, 265)])
+def test_exact_scans_give_exact_normals_and_albedo(angles):
+    n, rho = _field()
+    imgs = _render(n, rho, angles)
+    out = solve_normals(imgs, angles, A)
+    assert _angle_err(out.normals, n).max() < 0.01
+    np.testing.assert_allclose(out.albedo, rho, atol=1e-4)
+    assert out.confidence.min() > 0.99
+
+
+def test_a_shadowed_sample_is_rejected_per_pixel():
+    n, rho = _field(seed=1)
+    angles = (0, 90, 180, 270)
+    imgs = _render(n, rho, angles)
+    imgs[1, 10:20, 10:20] *= 0.3               # the lamp's shadow on part of scan 1
+    out = solve_normals(imgs, angles, A)
+    err = _angle_err(out.normals, n)
+    assert err[10:20, 10:20].max() < 0.05      # recovered from the 3 other scans
+    assert out.confidence[10:20, 10:20].max() < 0.75 < out.confidence[30:, 30:].min()
+    naive = solve_normals(imgs, angles, A, k_sigma=1e9)     # no rejection: visibly wrong
+    assert _angle_err(naive.normals, n)[10:20, 10:20].mean() > 5
+
+
+def test_saturated_and_missing_samples_are_dropped():
+    n, rho = _field(seed=2)
+    angles = (0, 90, 180, 270)
+    imgs = _render(n, rho, angles)
+    imgs[0, :5] = 1.0                           # clipped at full scale
+    valid = np.ones(imgs.shape[:3], bool)
+    valid[2, -5:] = False                       # outside scan 2 after registration
+    out = solve_normals(imgs, angles, A, valid=valid)
+    assert _angle_err(out.normals, n)[:5].max() < 0.05 and _angle_err(out.normals, n)[-5:].max() < 0.05
+    two_missing = valid.copy()
+    two_missing[1, :3] = False
+    out2 = solve_normals(imgs, angles, A, valid=two_missing)
+    assert out2.confidence[:3].max() == 0 and not out2.mask[:3].any()
+
+
+def test_rerender_reproduces_the_scans_from_the_solution():
+    n, rho = _field(seed=3)
+    angles = (0, 91, 183, 268)
+    imgs = _render(n, rho, angles)
+    out = solve_normals(imgs, angles, A)
+    np.testing.assert_allclose(rerender(out, angles, A), imgs, atol=1e-4)
+    assert rerender_residual(out, imgs, angles, A) < 1e-4
+
+
+def test_bad_inputs_are_named():
+    with pytest.raises(ValueError, match="images"):
+        solve_normals(np.zeros((4, 5, 5)), [0, 90, 180, 270], A)
+    with pytest.raises(ValueError, match="at least 3"):
+        solve_normals(np.zeros((2, 5, 5, 3)), [0, 90], A)
+    with pytest.raises(ValueError, match="angles_deg"):
+        solve_normals(np.zeros((4, 5, 5, 3)), [0, 90], A)
+
+
+def test_simulated_flatbed_normals_meet_the_accuracy_target():
+    sim = SimulatedFlatbed(bed_mm=(100, 100), seed=21)
+    cal = calibrate_scanner(sim, simulated_target_operator(sim), azimuths=(0, 60, 120, 180, 240, 300),
+                            area_mm=(50, 50, 70, 70))
+    dpi, area = 200, (30, 30, 70, 70)
+    sim.place(demo_surface(25, dpi, seed=4), centre_mm=(50, 50))
+    truth = sim.truth(area, dpi)
+    scans = []
+    for k in range(4):
+        if k:
+            sim.rotate(90)
+        scans.append(sim.scan(area, dpi, 16))
+    out, regs = solve_face(scans, dpi, cal.a, nominal_deg=[0, 90, 180, 270])
+    assert isinstance(out, RGBNImage) and out.dpi == dpi
+    inner = cv2.distanceTransform(truth.mask.astype(np.uint8), cv2.DIST_L2, 5) * 25.4 / dpi > 1.0
+    sel = inner & out.mask
+    err = _angle_err(out.normals, truth.normals)[sel]
+    assert np.median(err) < 1.5 and np.percentile(err, 95) < 5.0
+    assert np.abs(out.albedo - truth.albedo)[sel].mean() < 0.02
