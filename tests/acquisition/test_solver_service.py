@@ -1,0 +1,72 @@
+"""Tests of the solver service shell (services/solver.py) with a stand-in stage context."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from common.acquisition.capture import capture_fragment, simulated_operator, write_scans
+from common.acquisition.errors import CalibrationError
+from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
+from common.messages import MessageError, new_message, validate
+from common.rgbn.image import load_rgbn
+from common.store import Store
+from services import solver
+
+
+class Ctx:
+    def __init__(self, store, config=None):
+        self.store, self.config = store, config or {}
+        self.log = logging.getLogger("test.solver")
+        self.reports = []
+
+    def progress(self, fraction, text):
+        self.reports.append((fraction, text))
+
+
+def _fragment_ready(store, colour_only=False, device="sim"):
+    sim = SimulatedFlatbed(device, bed_mm=(100, 100), seed=8)
+    sim.place(demo_surface(20, 150, seed=3), centre_mm=(50, 50))
+    res = capture_fragment(sim, "F0100", operator=simulated_operator(sim), dpi=150, prescan_dpi=25,
+                           colour_only=colour_only)
+    ref = write_scans(store, "F0100", res)
+    return new_message("fragment.ready", fragment="F0100", artifact=ref)
+
+
+def test_fragment_ready_gives_one_rgbn_ready_per_face_and_is_idempotent(tmp_path):
+    store = Store(tmp_path)
+    job = _fragment_ready(store)
+    ctx = Ctx(store)
+    events = solver.handle(job, ctx)
+    assert [e["face"] for e in events] == ["front", "back"]
+    for e in events:
+        validate(e)
+        assert e["type"] == "rgbn.ready" and e["artifact"]["path"].startswith("fragments/F0100/rgbn/")
+        img = load_rgbn(store, e["artifact"])
+        assert img.has_normals and img.confidence is not None and img.mask.sum() > 1000
+        inside = img.normals[img.mask]
+        assert np.allclose(np.linalg.norm(inside, axis=1), 1, atol=1e-4) and (inside[:, 2] > 0.5).mean() > 0.95
+    assert ctx.reports[-1][0] == 1.0
+    again = solver.handle(job, Ctx(store))                 # re-delivered job: same artifacts
+    assert [e["artifact"] for e in again] == [e["artifact"] for e in events]
+    assert len(list((tmp_path / "calibration" / "sim").glob("*.h5"))) == 1   # calibrated once, on first use
+
+
+def test_colour_only_capture_gives_albedo_without_normals(tmp_path):
+    store = Store(tmp_path)
+    events = solver.handle(_fragment_ready(store, colour_only=True), Ctx(store))
+    img = load_rgbn(store, events[0]["artifact"])
+    assert not img.has_normals and img.albedo[img.mask].mean() > 0.2
+
+
+def test_real_device_without_calibration_fails_clearly(tmp_path):
+    store = Store(tmp_path)
+    job = _fragment_ready(store, device="epson2:libusb:001:004")
+    with pytest.raises(CalibrationError, match="tessera calibrate"):
+        solver.handle(job, Ctx(store))
+
+
+def test_wrong_message_type_is_rejected(tmp_path):
+    with pytest.raises(MessageError):
+        solver.handle(new_message("rgbn.ready", fragment="F", face="front",
+                                  artifact={"path": "x", "sha256": "0", "bytes": 1}), Ctx(Store(tmp_path)))
