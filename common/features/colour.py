@@ -21,8 +21,8 @@ def colour_channels(albedo, centre=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
     summed in float32 do not cancel; :func:`colour_from_moments` adds it back.
     """
     a = np.asarray(albedo, dtype=np.float32)
-    mx = a.max(axis=-1)
-    mn = a.min(axis=-1)
+    mx = np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2])
+    mn = np.minimum(np.minimum(a[..., 0], a[..., 1]), a[..., 2])
     sat = np.where(mx > 1e-6, (mx - mn) / np.maximum(mx, 1e-6), 0.0).astype(np.float32)
     r, g, b = (a[..., k] - np.float32(centre[k]) for k in range(3))
     return {"r": r, "g": g, "b": b, "rr": r * r, "gg": g * g, "bb": b * b, "sat": sat}

@@ -23,11 +23,11 @@ import h5py
 import numpy as np
 from scipy import ndimage as ndi
 
-from common.features.colour import COLOUR_MOMENTS, colour_channels, colour_from_moments
+from common.features.colour import colour_channels, colour_from_moments
 from common.features.contour import fragment_contour
 from common.features.curvature import area_curvature, three_point_curvature
 from common.features.erosion import _multiscale_erosion, erosion_statistics
-from common.features.normal import (NORMAL_MOMENTS, discontinuity_from_differences,
+from common.features.normal import (discontinuity_from_differences,
                                     neighbour_differences, normal_channels, normal_from_moments)
 from common.features.orientation import dominant_orientation
 from common.features.patches import MIN_COVERAGE, disk_window, sample_patches
@@ -203,31 +203,31 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         chans.update(normal_channels(albedo, normals, c_n))
     if has_h:
         ok = np.isfinite(image.height_mm) & image.mask
-        chans["h"] = _area_downsample(np.where(ok, image.height_mm, 0.0).astype(np.float32), factor, shape)
-        chans["hv"] = _area_downsample(ok.astype(np.float32), factor, shape)
+        # per fragment area, like the other channels: thickness = sum(w M h) / sum(w M hv)
+        chans["h"] = _area_downsample(np.where(ok, image.height_mm, 0.0), factor, shape) / safe[..., 0]
+        chans["hv"] = _area_downsample(ok.astype(np.float32), factor, shape) / safe[..., 0]
     keys = list(chans)
     kidx = {k: i for i, k in enumerate(keys)}
-    stack = np.empty(M.shape + (len(keys),), np.float32)
-    for i, k in enumerate(keys):
-        stack[..., i] = chans[k] if k in ("h", "hv") else chans[k] * M
-    S = {k: stack[..., i] for i, k in enumerate(keys)}
+    stack = np.stack([chans[k] for k in keys])  # (C, H, W)
 
-    def means(names, wts, sel=(slice(None), slice(None))):
-        tot = float(np.einsum("ij,ij->", wts, M[sel]))
+    def means(wts, sel=(slice(None), slice(None))):
+        """Coverage-weighted means of every channel under the weights ``wts`` at ``sel``."""
+        wm = wts * M[sel]
+        tot = float(wm.sum(dtype=np.float64))
         if tot <= 0:
             return None
-        sums = np.einsum("ij,ijk->k", wts.astype(np.float32), stack[sel])
-        return {k: float(sums[kidx[k]]) / tot for k in names}
+        sums = np.einsum("ij,kij->k", wm, stack[(slice(None),) + tuple(sel)]) / tot
+        return {k: float(sums[i]) for k, i in kidx.items()}
 
     nan = float("nan")
     values = {d.name: nan for d in fragment_descriptors()}
     one = np.ones_like(M)
-    mu = means(COLOUR_MOMENTS, one)
+    mu = means(one)
     values.update(colour_from_moments(mu, c_rgb))
     region = M > 0.5
     inside = M > 0.99  # fully on the fragment: no edge pixels in the pixel statistics
     if has_n:
-        values.update(normal_from_moments(means(NORMAL_MOMENTS, one), c_n))
+        values.update(normal_from_moments(mu, c_n))
         nz = np.where(M > 0, chans["nz"], 1.0).astype(np.float32)
         grey = np.where(M > 0, chans["L"], 0.0).astype(np.float32)
         # smoothed nz (background filled with the mean so the outline stays quiet) for the FFTs
@@ -240,8 +240,9 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         report(0.3, "erosion")
         ms, eroded = _multiscale_erosion(grey, nz, M, wp, n_scales=EROSION_SCALES)
         values.update(ms)
-    if has_h and float(S["hv"].sum()) > 0:
-        values["thickness_mean"] = float(S["h"].sum() / S["hv"].sum())
+    if has_h:
+        if mu["hv"] > 0:
+            values["thickness_mean"] = mu["h"] / mu["hv"]
 
     # --- contour and patches -------------------------------------------------------------------
     report(0.45, "contour and patches")
@@ -271,18 +272,18 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
             continue
         rows, cols, w, _ = disk_window(patches.centers_mm[i], patches.diameter_mm[i] / 2, wp, M.shape)
         sel = (rows, cols)
-        row = colour_from_moments(means(COLOUR_MOMENTS, w, sel), c_rgb)
+        pm = means(w, sel)
+        row = colour_from_moments(pm, c_rgb)
         in_disc = (w > 0.5) & region[sel]
         if has_n:
-            row.update(normal_from_moments(means(NORMAL_MOMENTS, w, sel), c_n))
+            row.update(normal_from_moments(pm, c_n))
             row.update(discontinuity_from_differences(neighbour_differences(nz_s[sel], inside[sel] & (w > 0.5))))
             row.update(dominant_orientation(nz_s[sel], in_disc, wp, smooth_px=0,
                                             reference_normal=patches.normals[i]))
             d, s = erosion_statistics(eroded[sel], in_disc, wp)
             row["erosion_density"], row["erosion_size"] = d, s
         if has_h:
-            hv = float(np.sum(w * S["hv"][sel]))
-            row["thickness_mean"] = float(np.sum(w * S["h"][sel]) / hv) if hv > 0 else nan
+            row["thickness_mean"] = pm["h"] / pm["hv"] if pm["hv"] > 0 else nan
         for k, v in row.items():
             if k in col:
                 pv[i, col[k]] = v
