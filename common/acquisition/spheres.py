@@ -87,20 +87,128 @@ def find_sphere(image, *, radius_range: tuple[float, float] | None = None) -> np
         raise ValueError(f"image must be (H, W) or (H, W, 3), got {arr.shape}")
     if arr.dtype == bool:
         return _circle_from_mask(arr)
+    return _hough_circles(arr, radius_range)[0]
+
+
+def _hough_circles(arr, radius_range):
+    """Circles (K, 3) found by the Hough transform, strongest first; ValueError if none."""
     h, w = arr.shape
     r_min, r_max = radius_range or (0.05 * min(h, w), 0.5 * min(h, w))
     if not 1 <= r_min < r_max:
         raise ValueError(f"radius_range must be (r_min, r_max) with 1 <= r_min < r_max, got {radius_range}")
-    # a square-root stretch lifts the dark rim of a mirror sphere against a dark background
-    a = np.sqrt(np.clip(arr.astype(np.float32), 0, None))
-    lo, hi = np.percentile(a, [1, 99.5])
-    u8 = np.clip((a - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
-    u8 = cv2.GaussianBlur(u8, (0, 0), 2)
+    u8 = _stretch(arr)
     circles = cv2.HoughCircles(u8, cv2.HOUGH_GRADIENT, dp=1, minDist=r_min, param1=60, param2=30,
                                minRadius=int(r_min), maxRadius=int(np.ceil(r_max)))
     if circles is None:
         raise ValueError("no sphere outline found in the image; give the circle or a mask")
-    return circles[0, 0].astype(np.float64)
+    ex, ey = _edge_pixels(u8)
+    return np.array([_refine_circle(c, ex, ey) for c in circles[0][:16].astype(np.float64)])
+
+
+def _stretch(arr):
+    # a log stretch lifts the dark rim of a mirror sphere against a dark background, even
+    # beside a bright diffuse sphere
+    a = arr.astype(np.float32)
+    a = np.log(np.clip(a, 0, None) + 1e-3 * max(float(a.max()), 1e-12))
+    lo, hi = np.percentile(a, [1, 99.5])
+    u8 = np.clip((a - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
+    return cv2.GaussianBlur(u8, (0, 0), 2)
+
+
+def _edge_pixels(u8):
+    ey, ex = np.nonzero(cv2.Canny(u8, 30, 60))
+    return ex, ey
+
+
+def _refine_circle(circle, ex, ey):
+    """Sub-pixel circle: Kåsa fit to the edge pixels near a Hough circle (two passes)."""
+    c = np.asarray(circle, np.float64)
+    for band in (max(2.0, 0.05 * c[2]), 1.5):
+        d = np.abs(np.hypot(ex - c[0], ey - c[1]) - c[2])
+        near = d < band
+        if near.sum() < 20:
+            break
+        c = fit_circle(np.column_stack([ex[near], ey[near]]))
+    return c
+
+
+def find_calibration_spheres(images, *, radius_range: tuple[float, float] | None = None,
+                             candidates: int = 8) -> tuple[np.ndarray, np.ndarray | None]:
+    """Find the mirror sphere and the diffuse sphere in a flash capture.
+
+    Circles are proposed by a Hough transform of the median image, then told apart by how
+    they respond to the moving flash: on a **mirror** sphere each flash lights a small spot
+    (high peak over the median, few bright pixels); a **diffuse** sphere is Lambertian, so each
+    image of it is fitted well by ``I = n · s`` with the sphere's own normals (R² close to 1).
+
+    Parameters
+    ----------
+    images : (N, H, W) or (N, H, W, 3) array
+        The flash images.
+    radius_range : (r_min, r_max), optional
+        Sphere radii to search, in pixels.
+    candidates : int
+        Hough circles examined (strongest first).
+
+    Returns
+    -------
+    mirror : (3,) array
+        ``(cx, cy, r)`` of the mirror sphere.
+    diffuse : (3,) array or None
+        ``(cx, cy, r)`` of the diffuse sphere, or None when no circle behaves like one
+        (R² < 0.9).
+
+    Raises
+    ------
+    ValueError
+        If no circle behaves like a mirror sphere.
+    """
+    grey = _grey(images)
+    if len(grey) < 2:
+        raise ValueError("images: at least 2 flash images are needed to tell the spheres apart")
+    circles = _hough_circles(np.median(grey, axis=0), radius_range)[:max(1, int(candidates))]
+    shape = grey.shape[1:]
+    mirror_score, lambert_r2 = [], []
+    for c in circles:
+        normals, inside = sphere_normals(shape, c, shrink=0.9)
+        if inside.sum() < 20:
+            mirror_score.append(0.0)
+            lambert_r2.append(0.0)
+            continue
+        vals = grey[:, inside]  # (N, P)
+        top, med = vals.max(1), np.median(vals, axis=1)
+        contrast = (top - med) / np.maximum(top, 1e-12)
+        spot = (vals > (med + 0.5 * (top - med))[:, None]).mean(1)
+        mirror_score.append(float(np.median(contrast * (1.0 - spot))))
+        nv = normals[inside]
+        r2 = []
+        for v in vals:  # per image: Lambertian fit on the lit side (two passes to settle the side)
+            lit = v > 0.1 * max(float(v.max()), 1e-12)
+            for _ in range(2):
+                if lit.sum() < 10:
+                    break
+                s_, *_ = np.linalg.lstsq(nv[lit], v[lit], rcond=None)
+                lit = nv @ s_ > 0.05 * np.linalg.norm(s_)
+            if lit.sum() < 10:
+                r2.append(0.0)
+                continue
+            pred = np.clip(nv @ s_, 0, None)
+            r2.append(1.0 - np.sum((v - pred) ** 2) / max(float(np.sum((v - v.mean()) ** 2)), 1e-12))
+        lambert_r2.append(float(np.median(r2)))
+    # Hough order is vote order: the first circle that behaves like each sphere is taken
+    mirrors = [k for k in range(len(circles)) if mirror_score[k] >= 0.5 and lambert_r2[k] < 0.9]
+    if not mirrors:
+        raise ValueError("no mirror sphere found in the images; give its circle or a mask")
+    mirror = circles[mirrors[0]]
+    diffuse = None
+    for k in range(len(circles)):
+        apart = np.hypot(*(circles[k][:2] - mirror[:2])) > circles[k][2] + 0.5 * mirror[2]
+        if apart and lambert_r2[k] >= 0.9:
+            # in the median image the diffuse sphere's shadowed side fades into the table; in
+            # the max composite every side is lit: refine its outline there
+            diffuse = _refine_circle(circles[k], *_edge_pixels(_stretch(grey.max(axis=0))))
+            break
+    return mirror, diffuse
 
 
 def _circle_from_mask(mask):

@@ -14,12 +14,14 @@ Examples::
 
     # mirror and diffuse spheres in the frame, circles in pixels (column, row, radius)
     tessera ps shots/*.tif --spheres 1710,220,95 1710,520,95 --pictures out/
+    tessera ps shots/*.tif --spheres auto auto --pictures out/      # found automatically
 
 ``--spheres MIRROR [DIFFUSE]`` is short for ``--chrome MIRROR --diffuse DIFFUSE`` (put the
 images first). A sphere is given as ``cx,cy,r`` (pixels: column, row, radius), as a mask
-image, or as ``auto`` (found in the median image). Without ``--chrome-images`` the mirror
-sphere is looked for in the capture images themselves and kept out of the automatic object
-mask (likewise the diffuse sphere).
+image, or as ``auto``: circles of the median image, told apart by their response to the moving
+flash (a small moving spot on the mirror, Lambertian shading on the diffuse sphere). Without
+``--chrome-images`` the mirror sphere is looked for in the capture images themselves and kept
+out of the automatic object mask (likewise the diffuse sphere).
 """
 
 from __future__ import annotations
@@ -68,12 +70,18 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _sphere_circle(spec: str, images: np.ndarray) -> np.ndarray:
+def _sphere_circle(spec: str, images: np.ndarray, kind: str) -> np.ndarray:
+    """Circle of the ``kind`` ('mirror' | 'diffuse') sphere from ``cx,cy,r``, a mask, or 'auto'."""
     from common.acquisition.handheld import read_mask
-    from common.acquisition.spheres import find_sphere
+    from common.acquisition.spheres import find_calibration_spheres, find_sphere
 
     if spec == "auto":
-        return find_sphere(np.median(images, axis=0))
+        mirror, diffuse = find_calibration_spheres(images)
+        if kind == "mirror":
+            return mirror
+        if diffuse is None:
+            raise ValueError("no diffuse sphere found in the images; give its circle or a mask")
+        return diffuse
     parts = spec.split(",")
     if len(parts) == 3:
         try:
@@ -82,7 +90,7 @@ def _sphere_circle(spec: str, images: np.ndarray) -> np.ndarray:
             pass
     if Path(spec).is_file():
         return find_sphere(read_mask(spec, images.shape[1:3]))
-    raise ValueError(f"sphere {spec!r}: expected cx,cy,r in pixels, a mask image, or 'auto'")
+    raise ValueError(f"{kind} sphere {spec!r}: expected cx,cy,r in pixels, a mask image, or 'auto'")
 
 
 def _digest(paths) -> str:
@@ -140,7 +148,7 @@ def _run(args) -> int:
         inputs.append(Path(args.lights))
     else:
         chrome_imgs = images if not args.chrome_images else hh.read_images(args.chrome_images, srgb=args.srgb)[0]
-        circle = _sphere_circle(args.chrome, chrome_imgs)
+        circle = _sphere_circle(args.chrome, chrome_imgs, "mirror")
         if not args.chrome_images:
             exclude |= sphere_normals(exclude.shape, circle, shrink=1.05)[1]
         diffuse_imgs = diffuse_sat = dcircle = None
@@ -149,7 +157,7 @@ def _run(args) -> int:
                 diffuse_imgs, diffuse_sat = hh.read_images(args.diffuse_images, srgb=args.srgb)
             else:
                 diffuse_imgs, diffuse_sat = images, saturated
-            dcircle = _sphere_circle(args.diffuse, diffuse_imgs)
+            dcircle = _sphere_circle(args.diffuse, diffuse_imgs, "diffuse")
             if not args.diffuse_images:
                 exclude |= sphere_normals(exclude.shape, dcircle, shrink=1.05)[1]
         lights = hh.sphere_lights(chrome_imgs, circle, diffuse_images=diffuse_imgs, diffuse_circle=dcircle,

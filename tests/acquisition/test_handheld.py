@@ -293,3 +293,38 @@ def test_ps_command_keeps_the_artifact_when_the_broker_is_away(tmp_path, capsys)
                     "--fragment", "F0010", "--submit", "--config", str(cfg_path), "--no-discontinuities"])
     assert code == 1 and "not submitted" in capsys.readouterr().err
     assert len(list((tmp_path / "storage" / "fragments" / "F0010" / "rgbn").glob("front-*.h5"))) == 1
+
+
+def test_ps_command_finds_both_spheres_by_itself(tmp_path):
+    size, dpi = 64, 254.0
+    surf = _fragment(size, dpi)
+    pad = ((0, 36), (0, 136))
+    wide = FragmentSurface(np.pad(surf.albedo, pad + ((0, 0),)), np.pad(surf.height_mm, pad),
+                           np.pad(surf.mask, pad), dpi)
+    lights = _lights(12, seed=7)
+    e = np.linspace(0.7, 1.3, 12)
+    images = simulate_flash_capture(wide, lights, intensities=e)
+    mirror, diffuse = (100.0, 50.0, 26.0), (165.0, 48.0, 27.0)
+    nm, im = sphere_normals(images.shape[1:3], mirror)
+    nd, idf = sphere_normals(images.shape[1:3], diffuse)
+    refl = 2 * nm[..., 2:3] * nm - [0, 0, 1]
+    shots = []
+    for i, (img, l) in enumerate(zip(images, lights)):
+        img[im] = (np.exp(-(np.degrees(np.arccos(np.clip(refl @ l, -1, 1))) / 6) ** 2) + 0.02)[im, None]
+        img[idf] = (0.6 * e[i] * np.clip(nd @ l, 0, None))[idf, None]
+        shots.append(str(tmp_path / f"f{i}.tif"))
+        tifffile.imwrite(shots[-1], np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16), photometric="rgb")
+    assert tessera(["ps", *shots, "--spheres", "auto", "auto", "--write-lp", str(tmp_path / "l.lp"),
+                    "-o", str(tmp_path / "o.h5")]) == 0
+    from common.acquisition.lightfile import read_lights
+    got = read_lights(tmp_path / "l.lp").directions
+    assert np.degrees(np.arccos(np.clip((got * lights).sum(1), -1, 1))).max() < 1.5
+    import h5py
+    with h5py.File(tmp_path / "o.h5", "r") as f:
+        rgbn = read_rgbn(f)
+    assert not (rgbn.mask & (im | idf)).any()  # neither sphere is part of the object
+    truth = surface_normals(wide)
+    inner = cv2.erode(wide.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner].mean() < 1.0
+    # the diffuse sphere measured the flashes (mean 1): the albedo comes out as the surface's
+    np.testing.assert_allclose(rgbn.albedo[inner].mean(0), [0.8, 0.6, 0.4], atol=0.02)

@@ -105,3 +105,39 @@ def test_chrome_sphere_lights_agree_with_the_source_estimate(shared_data):
     ang = np.degrees(np.arccos(np.clip((found * ref).sum(1), -1, 1)))
     # measured 3.0° mean, 8.5° max (lights 0 and 1); the grey sphere sides with ours (docs/handheld.md)
     assert ang.mean() < 4.0 and ang.max() < 10.0, ang
+
+
+def _scene_with_both_spheres(lights):
+    """A dim table, a mirror sphere (left) and a diffuse sphere (right) under each flash."""
+    shape = (100, 200)
+    mirror, diffuse = (50.0, 50.0, 30.0), (140.0, 48.0, 32.0)
+    nm, im = sphere_normals(shape, mirror)
+    nd, idf = sphere_normals(shape, diffuse)
+    refl = 2 * nm[..., 2:3] * nm - [0, 0, 1]
+    frames = []
+    for l in lights:
+        img = 0.04 * np.clip(l[2], 0, None) * np.ones(shape)  # the table
+        img[im] = (np.exp(-(np.degrees(np.arccos(np.clip(refl @ l, -1, 1))) / 6) ** 2) + 0.02)[im]
+        img[idf] = (0.7 * np.clip(nd @ l, 0, None))[idf] + 0.01
+        frames.append(img)
+    return np.stack(frames).astype(np.float32), mirror, diffuse
+
+
+def test_mirror_and_diffuse_spheres_are_found_and_told_apart():
+    from common.acquisition.spheres import find_calibration_spheres
+
+    images, mirror, diffuse = _scene_with_both_spheres(_lights(12, seed=8))
+    got_m, got_d = find_calibration_spheres(images)
+    assert np.hypot(*(got_m[:2] - mirror[:2])) < 1.5 and abs(got_m[2] - mirror[2]) < 1.5
+    assert got_d is not None
+    assert np.hypot(*(got_d[:2] - diffuse[:2])) < 1.5 and abs(got_d[2] - diffuse[2]) < 1.5
+
+
+def test_without_a_mirror_sphere_the_search_says_so():
+    from common.acquisition.spheres import find_calibration_spheres
+
+    lights = _lights(8, seed=9)
+    normals, inside = sphere_normals(SHAPE, CIRCLE)
+    images = np.stack([np.where(inside, 0.7 * np.clip(normals @ l, 0, None), 0.02) for l in lights])
+    with pytest.raises(ValueError, match="no mirror sphere"):
+        find_calibration_spheres(images.astype(np.float32))
