@@ -125,6 +125,13 @@ def bench_seitz(docs: bool):
         print(f"  {i:5d} | {a[0]:+.3f} {a[1]:+.3f} {a[2]:+.3f}         | {b[0]:+.3f} {b[1]:+.3f} {b[2]:+.3f}"
               f"         | {d:.2f} deg")
     print(f"  chrome vs lights.txt: mean {ang.mean():.2f} deg, max {ang.max():.2f} deg")
+    from common.acquisition.spheres import find_calibration_spheres
+
+    auto, _ = find_calibration_spheres(chrome)
+    ang_auto = _angles(mirror_sphere_directions(chrome, auto), ref)
+    print(f"  circle found without the mask ({auto[0]:.1f}, {auto[1]:.1f}) r={auto[2]:.1f} px: "
+          f"vs lights.txt mean {ang_auto.mean():.2f} deg, max {ang_auto.max():.2f} deg; "
+          f"vs the mask circle's lights mean {_angles(mirror_sphere_directions(chrome, auto), found).mean():.2f} deg")
     # an independent check: fit each light to the grey (diffuse) sphere's shading
     gray, gsat = _seitz_stack(root, "gray")
     gcircle = find_sphere(read_mask(root / "gray" / "gray.mask.png"))
