@@ -54,8 +54,8 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
     Parameters
     ----------
     mask : (H, W) bool or float array
-        True (or coverage 1) on the fragment. A float map such as an area-averaged mask is used
-        as is; a boolean mask is blurred by half a pixel first so the 0.5 iso-line is sub-pixel.
+        True (or coverage 1) on the fragment, e.g. a boolean mask or an area-averaged one. It is
+        blurred by a one-pixel Gaussian and the 0.5 iso-line is traced (sub-pixel).
     pixel_mm : float
         Pixel size in mm.
     step_mm : float
@@ -90,10 +90,10 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
         raise ValueError(f"pixel_mm must be a positive number, got {pixel_mm}")
     if not step_mm > 0:
         raise ValueError(f"step_mm must be positive, got {step_mm}")
-    if m.dtype == bool:
-        f = ndi.gaussian_filter(m.astype(np.float32), 0.5)
-    else:
-        f = m.astype(np.float32)
+    # a Gaussian of one pixel anti-aliases the pixel staircase of a binary mask (a disc's flat
+    # bottom run of sqrt(r) pixels would otherwise read as zero curvature); it moves the 0.5
+    # iso-line of a curve of radius R by only ~1/(2R) pixel
+    f = ndi.gaussian_filter(m.astype(np.float32), 1.0)
     # keep only the largest region so holes or crumbs don't give the outline
     lab, n = ndi.label(f > 0.5)
     if n == 0:
@@ -120,6 +120,12 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
     step = length / m_pts
     if smooth_mm > 0:
         pts = ndi.gaussian_filter1d(pts, smooth_mm / step, axis=0, mode="wrap")
+        # smoothing moves the samples along the curve: resample to uniform arc length again
+        loop = np.vstack([pts, pts[:1]])
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(loop, axis=0), axis=1))])
+        s = np.linspace(0.0, cum[-1], m_pts, endpoint=False)
+        pts = np.stack([np.interp(s, cum, loop[:, 0]), np.interp(s, cum, loop[:, 1])], axis=-1)
+        step = cum[-1] / m_pts
     tan = ndi.gaussian_filter1d(pts, max(normal_smooth_mm / step, 0.5), axis=0, order=1, mode="wrap")
     tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-12)
     # traversal: clockwise on screen (shoelace > 0 with y down) -> fragment on the right
