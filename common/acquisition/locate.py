@@ -168,11 +168,13 @@ def locate_fragment(prescan: np.ndarray, dpi: float, *, background: np.ndarray |
     return (max(0.0, x0), max(0.0, y0), min(bed_mm[0], x1), min(bed_mm[1], y1))
 
 
-def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, k: float = 6.0) -> np.ndarray:
+def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, k: float = 6.0,
+                  close_mm: float = 0.0) -> np.ndarray:
     """Mask of the fragment in a full-dpi scan of its region (the outer ring is background).
 
     The background colour is the median of the outer ring; pixels differing beyond ``k`` robust
-    standard deviations are foreground, the lamp's shadow is excluded, holes are filled, and the
+    standard deviations are foreground, the lamp's shadow is excluded, gaps up to ``close_mm`` are
+    closed (for objects of the bed's own colour, e.g. a coin on grey), holes are filled, and the
     largest connected object is kept.
     """
     img = to_float(scan)
@@ -183,9 +185,15 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
     ring[b:-b, b:-b] = False
     bgc = np.median(img[ring], axis=0).astype(np.float32)
     bg = np.broadcast_to(bgc, img.shape)
-    fg = _foreground(img, bg, pixel_mm, k)
+    fg = _foreground(img, bg, pixel_mm, k).astype(np.uint8)
+    # close gaps of up to ``close_mm`` (an object of the bed's own grey shows only its outline and
+    # engraving), fill the enclosed holes, then open away dust
+    if close_mm > 0:
+        rc = max(1, int(round(close_mm / pixel_mm)))
+        fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rc + 1,) * 2))
+        fg = ndimage.binary_fill_holes(fg).astype(np.uint8)
     r = max(1, int(round(0.3 / pixel_mm)))
-    fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
     if n <= 1:
         return np.zeros((H, W), bool)
