@@ -56,8 +56,11 @@ def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, 
         return mask.copy()
     G = np.array([[pixel_mm, 0.0, 0.0], [0.0, pixel_mm, 0.0]])
     vary = FractalField(rng, 8.0, octaves=4, persistence=0.6, amplitude=0.8).grid(G, mask.shape)
-    depth = np.float32(depth_mm) * np.exp(vary - 0.32)  # log-normal-ish, mean ~ depth_mm
     dist = inner_distance_mm(mask, pixel_mm)
+    # log-normal depth with median depth_mm along this fragment's edge
+    edge = mask & (dist < 3 * depth_mm + 2 * pixel_mm)
+    vary -= np.median(vary[edge]) if edge.any() else 0.0
+    depth = np.float32(depth_mm) * np.exp(vary)
     out = mask & (dist > depth)
     # chipped bites: discs centred on the edge
     edge = np.argwhere(mask & (dist <= 1.5 * pixel_mm))

@@ -7,6 +7,7 @@ Layout (HDF5, written through :meth:`common.store.Store.write`)::
     fragments/pose           (N, 3) f8    angle_deg, tx_mm, ty_mm (NaN for spurious)
     fragments/spurious       (N,) bool
     fragments/area_mm2       (N,) f8
+    fragments/notes          (N,) str     JSON: fading / discolouration applied
     fragments/contours/<id>  (M, 2) f8    outer contour, fragment frame mm (x right, y down)
     adjacency/a, adjacency/b (P,) str     neighbour pairs, a < b
     adjacency/shared_mm      (P,) f8      crack length shared before erosion
@@ -46,6 +47,8 @@ def write_groundtruth(f: h5py.Group, wall: Wall, *, preview: bool = True) -> Non
                                             for fr in wall.fragments], float).reshape(-1, 3))
     g.create_dataset("spurious", data=np.array([fr.spurious for fr in wall.fragments], bool))
     g.create_dataset("area_mm2", data=np.array([fr.area_mm2 for fr in wall.fragments], float))
+    g.create_dataset("notes", data=np.array([json.dumps(fr.notes, sort_keys=True) for fr in wall.fragments],
+                                            dtype=object), dtype=_STR)
     cg = g.create_group("contours")
     for fr in wall.fragments:
         if fr.contour_mm is not None:
@@ -75,11 +78,14 @@ def read_groundtruth(f: h5py.Group) -> Wall:
         g = f["fragments"]
         ids = [s.decode() if isinstance(s, bytes) else str(s) for s in g["ids"][()]]
         poses, spur, area = g["pose"][()], g["spurious"][()], g["area_mm2"][()]
+        notes = [json.loads(s.decode() if isinstance(s, bytes) else s) for s in g["notes"][()]] \
+            if "notes" in g else [{} for _ in ids]
         frags = []
         for i, fid in enumerate(ids):
             pose = None if np.isnan(poses[i]).any() else tuple(float(v) for v in poses[i])
             cont = g["contours"][fid][()] if fid in g["contours"] else None
-            frags.append(Fragment(fid, pose=pose, spurious=bool(spur[i]), area_mm2=float(area[i]), contour_mm=cont))
+            frags.append(Fragment(fid, pose=pose, spurious=bool(spur[i]), area_mm2=float(area[i]), contour_mm=cont,
+                                  notes=notes[i]))
         a = f["adjacency"]
         dec = lambda arr: [s.decode() if isinstance(s, bytes) else str(s) for s in arr]
         adjacency = [(x, y, float(l)) for x, y, l in zip(dec(a["a"][()]), dec(a["b"][()]), a["shared_mm"][()])]

@@ -67,8 +67,10 @@ def sample_tile(tile: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, *, px_per_
     n = tile.shape[0]
     u = ((c * x_mm + s * y_mm) * px_per_mm + offset[0]) % n
     v = ((-s * x_mm + c * y_mm) * px_per_mm + offset[1]) % n
-    return cv2.remap(tile, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_WRAP)
+    shape = np.shape(u)
+    u = np.atleast_2d(u.astype(np.float32))
+    v = np.atleast_2d(v.astype(np.float32))
+    return cv2.remap(tile, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).reshape(shape)
 
 
 def affine_grid(G: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

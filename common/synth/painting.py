@@ -60,9 +60,10 @@ class Painting:
 
     def sample(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
         """Albedo at wall points (mm), bilinear; points outside the wall get the border colour."""
-        u = (np.asarray(x_mm, np.float32) / self.res_mm)
-        v = (np.asarray(y_mm, np.float32) / self.res_mm)
-        return cv2.remap(self.albedo, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        shape = np.shape(x_mm)
+        u = np.atleast_2d(np.asarray(x_mm, np.float32) / np.float32(self.res_mm))
+        v = np.atleast_2d(np.asarray(y_mm, np.float32) / np.float32(self.res_mm))
+        return cv2.remap(self.albedo, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(shape + (3,))
 
     def sample_grid(self, G: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """Albedo on an affine pixel grid ``wall = G @ (col, row, 1)``, (H, W, 3)."""

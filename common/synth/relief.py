@@ -28,6 +28,40 @@ from common.synth.painting import Painting
 _STROKE_F0 = 16.0  # ridge frequency of the stroke tile, cycles per tile
 
 
+def normals_from_height(height_mm: np.ndarray, pixel_mm: float) -> np.ndarray:
+    """Unit surface normals of a height field, in the RGBN convention.
+
+    ``n = (-dh/dx, -dh/dy_up, 1) / |.|`` with x to the right (columns) and y up (towards row 0),
+    z towards the viewer; derivatives by central differences in mm.
+
+    Parameters
+    ----------
+    height_mm : (H, W) array
+        Height in mm, + towards the viewer.
+    pixel_mm : float
+        Pixel size in mm.
+
+    Returns
+    -------
+    (H, W, 3) float32
+
+    Examples
+    --------
+    >>> h = np.tile(np.arange(5.0), (4, 1))  # rises 1 mm per pixel to the right
+    >>> np.round(normals_from_height(h, 1.0)[2, 2], 3)
+    array([-0.707,  0.   ,  0.707], dtype=float32)
+    """
+    height_mm = np.asarray(height_mm, np.float32)
+    if height_mm.ndim != 2:
+        raise ValueError(f"height_mm must be 2-D, got shape {height_mm.shape}")
+    if not pixel_mm > 0:
+        raise ValueError(f"pixel_mm must be positive, got {pixel_mm}")
+    d_row, d_col = np.gradient(height_mm, np.float32(pixel_mm))
+    n = np.dstack([-d_col, d_row, np.ones_like(d_col)])  # d/dy_up = -d/drow
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    return n.astype(np.float32)
+
+
 @dataclass
 class StrokeRegion:
     """One brush-stroke region: centre (mm), ridge orientation (rad, wall frame), period, depth."""
@@ -129,12 +163,13 @@ class WallRelief:
         u, v = x_mm / self._w_res, y_mm / self._w_res
         out = np.zeros(x_mm.shape, np.float32)
         # only regions with weight somewhere near these points
-        ci = np.clip(np.round(u[::8, ::8] if u.ndim == 2 else u).astype(int), 0, self._weights.shape[2] - 1)
-        ri = np.clip(np.round(v[::8, ::8] if v.ndim == 2 else v).astype(int), 0, self._weights.shape[1] - 1)
+        ci = np.clip(np.round(u.ravel()).astype(int), 0, self._weights.shape[2] - 1)
+        ri = np.clip(np.round(v.ravel()).astype(int), 0, self._weights.shape[1] - 1)
         active = np.nonzero(self._weights[:, ri, ci].reshape(len(self.regions), -1).max(axis=1) > 1e-3)[0]
         for k in active:
             reg = self.regions[k]
-            w = cv2.remap(self._weights[k], u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            w = cv2.remap(self._weights[k], np.atleast_2d(u), np.atleast_2d(v), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE).reshape(u.shape)
             # the tile's ridges run along its x axis; ridge period = tile period / F0
             s = sample_tile(self.stroke_tile, x_mm, y_mm, px_per_mm=(256.0 / _STROKE_F0) / reg.period_mm,
                             angle_rad=reg.angle_rad, offset=self._offsets[k])
@@ -178,8 +213,9 @@ class WallRelief:
         """Front-face relief height (mm) at wall points: macro + strokes + grain."""
         x_mm = np.asarray(x_mm, np.float32)
         y_mm = np.asarray(y_mm, np.float32)
-        h = cv2.remap(self.macro, x_mm / self.res_mm, y_mm / self.res_mm, cv2.INTER_CUBIC,
-                      borderMode=cv2.BORDER_REPLICATE)
+        h = cv2.remap(self.macro, np.atleast_2d(x_mm / np.float32(self.res_mm)),
+                      np.atleast_2d(y_mm / np.float32(self.res_mm)), cv2.INTER_CUBIC,
+                      borderMode=cv2.BORDER_REPLICATE).reshape(x_mm.shape)
         h += self.strokes(x_mm, y_mm)
         h += self.grain(x_mm, y_mm)
         return h

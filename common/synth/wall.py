@@ -31,7 +31,7 @@ from common.store import content_key
 from common.synth import deterioration as det
 from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
 from common.synth.painting import Painting, paint_wall, painting_from_image
-from common.synth.relief import WallRelief
+from common.synth.relief import WallRelief, normals_from_height
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,9 @@ class Fragment:
         Area of the (eroded) fragment.
     contour_mm : (M, 2) float array or None
         Outer contour in the fragment frame (x right, y down, mm).
+    notes : dict
+        How it was deteriorated beyond erosion, pits and cracks: ``fade`` (amount) or
+        ``discolour`` (kind) and ``strength``; ground truth only, never in the images.
     """
 
     id: str
@@ -71,6 +74,7 @@ class Fragment:
     spurious: bool = False
     area_mm2: float = float("nan")
     contour_mm: np.ndarray | None = None
+    notes: dict = field(default_factory=dict)
 
     def to_wall(self, p_mm: np.ndarray) -> np.ndarray:
         """Fragment-frame points (N, 2) mm -> wall mm."""
@@ -230,15 +234,16 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
     det.pit_surface(height, albedo, mask, pm, rng)
     det.crack_surface(height, albedo, mask, pm, rng)
     u = rng.random()
+    notes = {}
     if u < 0.25:
-        albedo = det.fade(albedo, float(rng.uniform(0.2, 0.6)))
+        notes["fade"] = float(rng.uniform(0.2, 0.6))
+        albedo = det.fade(albedo, notes["fade"])
     elif u < 0.45:
-        kind = str(rng.choice(sorted(det.DISCOLOURATIONS)))
-        albedo = det.discolour(albedo, kind, float(rng.uniform(0.5, 1.0)))
+        notes["discolour"] = str(rng.choice(sorted(det.DISCOLOURATIONS)))
+        notes["strength"] = float(rng.uniform(0.5, 1.0))
+        albedo = det.discolour(albedo, notes["discolour"], notes["strength"])
     # normals from the height gradient: x right, y up (towards row 0), z to the viewer
-    gy_down, gx = np.gradient(height, pm)
-    n = np.dstack([-gx, gy_down, np.ones_like(gx)]).astype(np.float32)
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n = normals_from_height(height, pm)
     n[~mask] = (0.0, 0.0, 1.0)
     albedo[~mask] = 0.0
     med_t = float(np.median(thick[mask]))
@@ -257,7 +262,7 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cont = max(contours, key=len).reshape(-1, 2).astype(np.float64) * pm
     frag = Fragment(id="", rgbn=rgbn, surface=surface, pose=None if spurious else pose, spurious=spurious,
-                    area_mm2=float(mask.sum() * pm * pm), contour_mm=cont)
+                    area_mm2=float(mask.sum() * pm * pm), contour_mm=cont, notes=notes)
     return frag, cracks
 
 

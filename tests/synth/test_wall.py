@@ -1,0 +1,134 @@
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from common.synth.wall import _plan, _render_piece, generate_wall
+
+
+@pytest.fixture(scope="module")
+def wall():
+    return generate_wall(16, seed=11, dpi=60)
+
+
+def test_same_seed_gives_identical_data():
+    a = generate_wall(5, seed=4, dpi=40)
+    b = generate_wall(5, seed=4, dpi=40)
+    assert a.id == b.id and a.adjacency == b.adjacency
+    for fa, fb in zip(a.fragments, b.fragments):
+        assert fa.id == fb.id and fa.pose == fb.pose
+        assert np.array_equal(fa.rgbn.albedo, fb.rgbn.albedo)
+        assert np.array_equal(fa.rgbn.normals, fb.rgbn.normals)
+        assert np.array_equal(fa.surface.back.height_mm, fb.surface.back.height_mm)
+    c = generate_wall(5, seed=5, dpi=40)
+    assert c.id != a.id and not np.array_equal(c.fragments[0].rgbn.mask.shape, a.fragments[0].rgbn.mask.shape) \
+        or not np.array_equal(c.fragments[0].rgbn.albedo, a.fragments[0].rgbn.albedo)
+
+
+def test_counts_missing_and_spurious_fragments(wall):
+    assert len(wall.fragments) == 16 and len({f.id for f in wall.fragments}) == 16
+    spurious = [f for f in wall.fragments if f.spurious]
+    assert len(spurious) == 1 and spurious[0].pose is None
+    pieces = len(wall.fragments) - len(spurious) + wall.n_missing
+    assert 0.1 <= wall.n_missing / pieces <= 0.3
+    in_pairs = {i for a, b, _ in wall.adjacency for i in (a, b)}
+    assert spurious[0].id not in in_pairs
+    assert all(a < b for a, b, _ in wall.adjacency)
+
+
+def test_fragments_show_the_wall_painting_at_their_pose(wall):
+    ref = wall.preview["albedo"]
+    g = wall.preview["grid_mm"]
+    checked = 0
+    for f in wall.fragments:
+        if f.spurious or f.notes:  # faded/discoloured ones no longer match their neighbours
+            continue
+        pm = f.rgbn.pixel_mm
+        inner = ndimage.binary_erosion(f.rgbn.mask, iterations=int(2.0 / pm))
+        rr, cc = np.nonzero(inner)
+        w = f.to_wall(np.column_stack([cc, rr]) * pm) / g
+        expect = np.stack([ndimage.map_coordinates(ref[..., k], [w[:, 1], w[:, 0]], order=1) for k in range(3)], 1)
+        assert np.median(np.abs(f.rgbn.albedo[rr, cc] - expect)) < 0.03, f.id
+        checked += 1
+    assert checked >= 5
+
+
+def test_correspondences_meet_on_the_wall(wall):
+    assert len(wall.adjacency) >= 10
+    gaps = []
+    for a, b, length in wall.adjacency:
+        pa, pb = wall.correspondences[(a, b)]
+        assert len(pa) == len(pb) >= 0.3 * length  # about one per mm of shared crack
+        wa, wb = wall.fragment(a).to_wall(pa), wall.fragment(b).to_wall(pb)
+        gap = np.hypot(*(wa - wb).T)
+        # eroded and chipped edges no longer touch, but corresponding points stay close
+        assert np.median(gap) < 4.0
+        gaps.append(gap)
+    assert 0.3 < np.median(np.concatenate(gaps)) < 2.5
+
+
+def test_adjacency_is_the_pieces_that_touch_on_the_wall(wall):
+    lab = wall.preview["labels"]
+    ids = wall.preview["label_ids"]
+    touching = {}
+    for a, b in ((lab[:, 1:], lab[:, :-1]), (lab[1:], lab[:-1])):
+        sel = (a != b) & (a >= 0) & (b >= 0)
+        for u, v in zip(a[sel], b[sel]):
+            if ids[u] and ids[v]:
+                key = tuple(sorted((ids[u], ids[v])))
+                touching[key] = touching.get(key, 0) + 1
+    truth = {(a, b) for a, b, _ in wall.adjacency}
+    # every ground-truth pair touches on the 1 mm map, every long shared crack is a pair
+    assert truth <= set(touching)
+    assert {k for k, n in touching.items() if n >= 8} <= truth
+
+
+def test_normals_are_rotated_with_the_fragment():
+    rng = np.random.default_rng(0)
+    plan = _plan(6, rng, rng, rng, mode="recursive", style="aegean", image=None, median_size_mm=30, sigma=0.5,
+                 jag_mm=1.5)
+    c = plan.fracture.coarse_labels
+    lab = int(np.argmax(np.bincount(c[c >= 0])))
+    sl = ndimage.find_objects((c == lab).astype(int))[0]
+    bbox = ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))
+    f1, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(1), erosion_mm=0.0, spurious=False)
+    f2, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(2), erosion_mm=0.0, spurious=False)
+    assert abs(f1.pose[0] - f2.pose[0]) > 20
+
+    def wall_normals(f, p):
+        # fragment-frame (x right, y up) normal -> wall frame (x right, y up)
+        pm = f.rgbn.pixel_mm
+        rc = np.round(p / pm).astype(int)
+        n = f.rgbn.normals[rc[:, 1], rc[:, 0]]
+        a = np.deg2rad(f.pose[0])
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        xy_down = np.column_stack([n[:, 0], -n[:, 1]]) @ R.T
+        return np.column_stack([xy_down[:, 0], -xy_down[:, 1], n[:, 2]])
+
+    pm = f1.rgbn.pixel_mm
+    inner = ndimage.binary_erosion(f1.rgbn.mask, iterations=int(3 / pm))
+    rr, cc = np.nonzero(inner)
+    p1 = np.column_stack([cc, rr]) * pm
+    p2 = f2.from_wall(f1.to_wall(p1))
+    ok = np.all((p2 >= 0) & (p2 / pm < np.array(f2.rgbn.mask.shape[::-1]) - 1), axis=1)
+    n1, n2 = wall_normals(f1, p1[ok]), wall_normals(f2, p2[ok])
+    ang = np.degrees(np.arccos(np.clip(np.sum(n1 * n2, axis=1), -1, 1)))
+    tilt = np.degrees(np.arccos(np.clip(n1[:, 2], -1, 1)))
+    assert np.median(tilt) > 1.0  # there is relief to compare
+    assert np.median(ang) < 0.35 * np.median(tilt)
+
+
+def test_voronoi_mode_and_sizes():
+    w = generate_wall(10, seed=2, dpi=40, mode="voronoi", median_size_mm=35)
+    sizes = np.sqrt([f.area_mm2 for f in w.fragments])
+    assert len(w.fragments) == 10 and len(w.adjacency) >= 5
+    assert np.all(sizes > 8) and np.all(sizes < 200)
+    assert 15 < np.median(sizes) < 60
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(ValueError, match="n_fragments"):
+        generate_wall(0, seed=1)
+    with pytest.raises(ValueError, match="mode"):
+        generate_wall(3, seed=1, mode="shatter")
+    with pytest.raises(ValueError, match="missing_fraction"):
+        generate_wall(3, seed=1, missing_fraction=1.5)
