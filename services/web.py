@@ -171,7 +171,7 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
         # pages are local-only: no framing by other sites, no third-party anything
         resp.headers.setdefault("X-Frame-Options", "DENY")
         resp.headers.setdefault("X-Content-Type-Options", "nosniff")
-        resp.headers.setdefault("Referrer-Policy", "no-referrer")
+        resp.headers.setdefault("Referrer-Policy", "same-origin")  # no-referrer would make Origin "null"
         resp.headers.setdefault("Content-Security-Policy",
                                 "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
                                 "frame-ancestors 'none'; form-action 'self'")
@@ -275,6 +275,11 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     @writes
     def bench_prescan():
         return bench_action(lambda b: bench.prescan(b.get("fragment", "")))
+
+    @app.post("/api/bench/empty-glass")
+    @writes
+    def bench_empty_glass():
+        return bench_action(lambda b: bench.scan_empty_glass())
 
     @app.post("/api/bench/scan")
     @writes
@@ -594,6 +599,20 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
             scanner = SaneScanner(sc["sane_device"])
     sim_act = cap.simulated_operator(scanner) if surface_for is not None else None
     current = {"fragment": None}
+    glass = {"background": None}   # empty-bed pre-scan: finds fragments of any size (§3.3.4)
+
+    def empty_glass():
+        if surface_for is not None:
+            scanner.clear()   # simulated: the operator takes everything off the glass
+        pre = scanner.scan(None, float(sc["prescan_dpi"]), int(sc["depth"]))
+        # only something fragment-sized counts: the estimated background lets noise through as specks
+        blobs = [b for b in locate_fragments(pre, float(sc["prescan_dpi"])) if b.area_mm2 >= 100.0]
+        if blobs:
+            raise cap.CaptureError(f"empty-glass scan shows {len(blobs)} object(s)",
+                                   "Something is still on the glass. Take everything off, close the lid and "
+                                   "press 'Scan empty glass' again.")
+        glass["background"] = pre
+        return "Empty glass scanned: fragments will be found against it. Place a fragment and press Pre-scan."
 
     if surface_for is not None:
         def act(step):
@@ -606,7 +625,8 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
         current["fragment"] = fid
         return cap.capture_fragment(scanner, fid, operator=operator, dpi=float(sc["dpi"]),
                                     prescan_dpi=float(sc["prescan_dpi"]), depth=int(sc["depth"]),
-                                    colour_only=bool(sc["colour_only"]), margin_mm=float(sc["margin_mm"]))
+                                    colour_only=bool(sc["colour_only"]), margin_mm=float(sc["margin_mm"]),
+                                    background=glass["background"])
 
     def deliver(fid, result):
         # exactly the scanner service's path: storage, else the local spool; fragment.ready via the outbox
@@ -625,10 +645,10 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
         pixel = 25.4 / dpi
         try:
             left, top, right, bottom = locate_fragment(pre, dpi, margin_mm=float(sc["margin_mm"]),
-                                                       bed_mm=tuple(scanner.bed_mm))
+                                                       bed_mm=tuple(scanner.bed_mm), background=glass["background"])
         except cap.CaptureError as exc:
             boxes = [tuple(int(round(v / pixel)) for v in (b.bbox_mm[1], b.bbox_mm[0], b.bbox_mm[3], b.bbox_mm[2]))
-                     for b in locate_fragments(pre, dpi)]
+                     for b in locate_fragments(pre, dpi, background=glass["background"])]
             img = shown
             for box in boxes:
                 img = outline_detected(img, bbox=box, colour=COLOUR_B, thickness_px=2)
@@ -642,4 +662,7 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
         w, h = right - left, bottom - top
         return {"png": png, "message": f"Fragment found ({w:.0f} × {h:.0f} mm with margin). Press Scan to capture it."}
 
-    return BenchSession(capture=capture, deliver=deliver, prescan=prescan, act=act, log=log)
+    session = BenchSession(capture=capture, deliver=deliver, prescan=prescan, act=act, empty_glass=empty_glass, log=log)
+    if surface_for is not None:
+        session.scan_empty_glass()   # simulated: the glass starts empty, take its background now
+    return session

@@ -120,12 +120,18 @@ class BenchSession:
     act : callable(step), optional
         Performs a step physically — the simulated operator of the simulated flatbed. Called
         after the operator presses *Done* and before the scan.
+    empty_glass : callable() -> str, optional
+        Scans the empty glass as the background that pre-scans are compared with (§3.3.4: an
+        empty-bed pre-scan finds fragments larger than the estimated background's window);
+        returns a message for the operator.
     log : logging.Logger, optional
     """
 
     def __init__(self, *, capture: Callable, deliver: Callable, prescan: Callable | None = None,
-                 act: Callable | None = None, log: logging.Logger | None = None):
+                 act: Callable | None = None, empty_glass: Callable | None = None,
+                 log: logging.Logger | None = None):
         self._capture, self._deliver, self._prescan, self._act = capture, deliver, prescan, act
+        self._empty_glass = empty_glass
         self.log = log or logging.getLogger("tessera.web.bench")
         self._scanner = threading.Lock()      # held for the whole of a pre-scan or a capture
         self._cond = threading.Condition()   # guards _state and the operator hand-shake
@@ -187,6 +193,26 @@ class BenchSession:
             with self._cond:
                 self._prescan_png = out.get("png")
             self._update(phase="idle", message=out.get("message", "Fragment found. Press Scan to capture it."))
+            return self.state()
+        finally:
+            self._scanner.release()
+
+    def scan_empty_glass(self) -> dict:
+        """Scan the empty glass as the background for finding fragments; return the state."""
+        if self._empty_glass is None:
+            raise BenchBusy("this station's scanner takes no background scan")
+        if not self._scanner.acquire(blocking=False):
+            raise BenchBusy("the scanner is busy with another scan; wait until it finishes")
+        try:
+            self._update(phase="prescanning", error=None, step=None, delivery=None,
+                         message="Scanning the empty glass…")
+            try:
+                text = self._empty_glass()
+            except Exception as exc:
+                self.log.warning("empty-glass scan failed: %s", exc)
+                self._update(phase="error", error=describe_error(exc), message="")
+                return self.state()
+            self._update(phase="idle", message=text or "Empty glass scanned.")
             return self.state()
         finally:
             self._scanner.release()

@@ -46,7 +46,8 @@ def fragment_state(root: str | os.PathLike, fragment_id: str, *, matched: Iterab
         Fragments the matcher has taken in (e.g. ``ProposalStore.fragments()``), for matchers
         that keep their results in a database rather than in the tree.
     failed : mapping service -> error text, optional
-        Parked failures of this fragment's jobs.
+        Parked failures of this fragment's jobs; they mark the stage failed even when some of
+        its outputs exist (one face solved, the other not).
 
     Returns
     -------
@@ -65,11 +66,12 @@ def fragment_state(root: str | os.PathLike, fragment_id: str, *, matched: Iterab
             t = max(f.stat().st_mtime for f in files)
             updated = t if updated is None else max(updated, t)
         service = STAGE_SERVICE.get(stage)
-        if done:
-            stages[stage] = "done"
-        elif service and service in failed:
+        if service and service in failed:
+            # a parked job outranks outputs: one face may be done while the other failed
             stages[stage] = "failed"
             errors[stage] = failed[service]
+        elif done:
+            stages[stage] = "done"
         else:
             stages[stage] = "waiting"
     return {"fragment": fragment_id, "stages": stages, "errors": errors, "updated": updated}

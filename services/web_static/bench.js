@@ -38,6 +38,7 @@
     const canWrite = Tessera.loggedIn() && st.phase !== "none";
     $("scan-button").disabled = !canWrite || running;
     $("prescan-button").disabled = !canWrite || running;
+    $("empty-glass-button").disabled = !canWrite || running;
     $("cancel-button").disabled = !canWrite;
     $("login-needed").hidden = Tessera.loggedIn();
     if (st.fragment && (st.phase === "idle" || st.phase === "error") && prescanShownFor !== `${st.fragment}:${st.seq}`) {
@@ -102,6 +103,7 @@
     $("bench-message").textContent = "Pre-scanning the glass…";
     act("/api/bench/prescan", { fragment: fragmentId() });
   });
+  $("empty-glass-button").addEventListener("click", () => act("/api/bench/empty-glass", {}));
   $("proceed-button").addEventListener("click", () => {
     if (current && current.step) act("/api/bench/proceed", { step: current.step.index });
   });

@@ -41,6 +41,8 @@ def test_parked_failure_marks_the_blocked_stage(tmp_path):
     assert st["stages"]["normals"] == "failed"
     assert st["errors"]["normals"].startswith("RegistrationError")
     assert st["stages"]["scanned"] == "done"
+    _write(Store(tmp_path), "fragments/F3/rgbn/front-abc.h5")   # front solved, back parked
+    assert fragment_state(tmp_path, "F3", failed={"solver": "x"})["stages"]["normals"] == "failed"
 
 
 def test_fragments_since_lists_recent_scans_newest_first(tmp_path):

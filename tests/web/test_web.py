@@ -56,7 +56,7 @@ def test_every_write_endpoint_refuses_requests_without_the_token(counting_app):
     app, counter = counting_app
     rules = _write_rules(app)
     # the pages write through exactly these endpoints; a new one must be added here consciously
-    assert rules == ["/api/bench/cancel", "/api/bench/prescan", "/api/bench/proceed", "/api/bench/scan",
+    assert rules == ["/api/bench/cancel", "/api/bench/empty-glass", "/api/bench/prescan", "/api/bench/proceed", "/api/bench/scan",
                      "/api/review/verdict", "/api/status/rerun"]
     c = app.test_client()
     body = {"fragment": "F1", "step": 1, "proposal": 1, "verdict": "confirmed", "job": "all"}
@@ -174,9 +174,11 @@ def test_scanner_faults_reach_the_operator_in_plain_language(station_config, fau
 def test_empty_glass_and_two_fragments_are_explained(station_config):
     from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 
-    sim = SimulatedFlatbed("sim", seed=3)
+    sim = SimulatedFlatbed("sim", seed=4)
     app, link = _bench_app(station_config, sim)
     c = app.test_client()
+    st = c.post("/api/bench/empty-glass", json={}, headers=BEARER).json["bench"]
+    assert st["phase"] == "idle" and "Empty glass scanned" in st["message"]
     st = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers=BEARER).json["bench"]
     assert st["error"]["kind"] == "no_fragment" and "No fragment found" in st["error"]["message"]
     sim.place(demo_surface(35.0, 100, seed=1), centre_mm=(60, 80), angle_deg=0)

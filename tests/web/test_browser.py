@@ -1,0 +1,332 @@
+"""The pages in a real browser against a real station on the simulated scanner.
+
+Processes as the station runs them (broker, stage workers, ``tessera web``), Chromium driven by
+Playwright: the operator captures a fragment end to end, the conservator confirms a proposal and
+sees it recorded, a failure shows on the status page. Screenshots go to ``docs/web/``.
+
+Needs the pip package ``playwright`` and Debian's ``chromium`` (``apt-get install -y chromium``;
+never ``playwright install``); skipped, saying which is missing, otherwise.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from .conftest import TOKEN, free_port, wait_for
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[2]
+DOCS = REPO / "docs" / "web"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+STAGES = ("solver", "features", "matcher", "renderer")
+MAX_PNG_BYTES = 300_000
+
+
+def _require_browser():
+    if importlib.util.find_spec("playwright") is None:
+        pytest.skip("browser tests need the pip package 'playwright' (pip install playwright)")
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"browser tests need Debian's Chromium at {CHROMIUM} (apt-get install -y chromium)")
+
+
+def _shot(page, name: str) -> None:
+    """Screenshot into docs/web/<name>.png, shrunk until it is under ~300 KB."""
+    DOCS.mkdir(parents=True, exist_ok=True)
+    path = DOCS / f"{name}.png"
+    page.screenshot(path=str(path), full_page=True)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    scale = 1.0
+    while path.stat().st_size > MAX_PNG_BYTES and scale > 0.3:
+        scale *= 0.8
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(path), small, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+
+
+def _seed_review(cfg) -> list[tuple[str, str]]:
+    """RGBN images of a synthetic fresco's fragments and join proposals among them (true poses from
+    the generator's ground truth, plus one non-neighbour pair), as the matcher would leave them."""
+    from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from common.synth import generate_wall
+    from common.web.compose import relative_pose
+
+    store = Store(cfg["storage"]["root"])
+    wall = generate_wall(6, 11, dpi=100)
+    frags = {f.id: f for f in wall.fragments}
+    for f in wall.fragments:
+        save_rgbn(store, f"fragments/{f.id}/rgbn/front-groundtruth.h5", f.rgbn)
+    proposals, pairs = [], []
+    for k, (a, b, shared) in enumerate(sorted(wall.adjacency, key=lambda x: -x[2])[:3]):
+        a, b = ordered_pair(a, b)
+        angle, tx, ty = relative_pose(frags[a].pose, frags[b].pose)
+        proposals.append(Proposal(a, b, 0.93 - 0.1 * k, "groundtruth", angle_deg=angle, tx_mm=tx, ty_mm=ty))
+        pairs.append((a, b))
+    adjacent = {ordered_pair(a, b) for a, b, _ in wall.adjacency}
+    ids = sorted(frags)
+    wrong = next(ordered_pair(a, b) for a in ids for b in ids if a < b and ordered_pair(a, b) not in adjacent)
+    proposals.append(Proposal(*wrong, 0.21, "groundtruth", angle_deg=40.0, tx_mm=25.0, ty_mm=-10.0))
+    db_path = Path(cfg["storage"]["root"]) / "matches" / "proposals.sqlite"
+    with ProposalStore(db_path) as db:
+        db.upsert(proposals)
+    return pairs
+
+
+class LiveStation:
+    """Broker, stage workers and ``tessera web`` as separate processes on loopback."""
+
+    def __init__(self, root: Path):
+        from common.config import load_config
+
+        self.root = root
+        self.web_port = free_port()
+        self.stages = [s for s in STAGES if importlib.util.find_spec(f"services.{s}") is not None]
+        text = f"""
+[storage]
+root = "{root / 'storage'}"
+[broker]
+host = "127.0.0.1"
+bind = "127.0.0.1"
+port = {free_port()}
+feed_port = {free_port()}
+journal_dir = "{root / 'journal'}"
+heartbeat_interval_s = 0.5
+max_attempts = 2
+[client]
+timeout_s = 1.0
+retries = 2
+[routing]
+"fragment.ready" = ["solver"]
+"rgbn.ready" = ["features", "renderer"]
+"features.ready" = ["matcher"]
+"match.verified" = ["matcher"]
+"noop.job" = ["noop"]
+[scanner]
+device = "simulated"
+spool_dir = "{root / 'bench'}"
+dpi = 100
+prescan_dpi = 50
+wall_dpi = 100
+fragments = 4
+seed = 1
+drain_interval_s = 0.5
+[services.web]
+port = {self.web_port}
+token = "{TOKEN}"
+long_poll_s = 2.0
+"""
+        self.config_path = root / "station.toml"
+        self.config_path.write_text(text)
+        self.config = load_config(self.config_path)
+        self.procs: list[subprocess.Popen] = []
+        self.url = f"http://127.0.0.1:{self.web_port}"
+
+    def spawn(self, *args: str) -> subprocess.Popen:
+        log = open(self.root / f"{'-'.join(args)}.log", "wb")
+        env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
+        p = subprocess.Popen([sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
+                              *args, "--config", str(self.config_path)], stdout=log, stderr=subprocess.STDOUT,
+                             cwd=self.root, env=env)
+        self.procs.append(p)
+        return p
+
+    def start(self) -> None:
+        self.spawn("broker")
+        for stage in ["noop", *self.stages]:
+            self.spawn("worker", stage)
+        web = self.spawn("web")
+
+        def answers():
+            if web.poll() is not None:
+                raise AssertionError(f"tessera web exited: {(self.root / 'web.log').read_text()[-2000:]}")
+            try:
+                return urllib.request.urlopen(self.url + "/status", timeout=2).status == 200
+            except OSError:
+                return False
+        wait_for(answers, 60, "tessera web to answer", interval=0.3)
+
+    def stop(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+    def logs(self) -> str:
+        return "\n".join(f"--- {f.name}\n{f.read_text()[-1500:]}" for f in sorted(self.root.glob("*.log")))
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    _require_browser()
+    station = LiveStation(tmp_path_factory.mktemp("station"))
+    pairs = _seed_review(station.config)
+    station.start()
+    station.pairs = pairs
+    yield station
+    station.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    _require_browser()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def _login(browser, live, who="Test Operator"):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 860})
+    page = ctx.new_page()
+    page.goto(f"{live.url}/login?next=/bench")
+    page.fill("#token", TOKEN)
+    page.fill("#who", who)
+    page.click("#login-submit")
+    page.wait_for_url(f"{live.url}/bench")
+    return ctx, page
+
+
+def test_operator_captures_a_fragment_end_to_end(browser, live):
+    ctx, page = _login(browser, live)
+    try:
+        page.fill("#fragment-id", "F0001")
+        page.click("#prescan-button")
+        page.wait_for_function("() => /Fragment found/.test(document.getElementById('bench-message').textContent) || "
+                               "!document.getElementById('bench-error').hidden", timeout=60_000)
+        assert "Fragment found" in page.inner_text("#bench-message"), page.inner_text("#bench-error")
+        page.wait_for_selector("#prescan:not([hidden])", timeout=10_000)
+        _shot(page, "bench-prescan")
+        page.click("#scan-button")
+        seen_steps, shot = [], False
+        state_js = """() => {
+            const err = document.getElementById('bench-error');
+            if (!err.hidden) return 'error';
+            if (/captured/.test(document.getElementById('bench-message').textContent)) return 'done';
+            const step = document.getElementById('step');
+            return step.hidden ? '' : 'step:' + document.getElementById('step-count').textContent;
+        }"""
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            state = page.wait_for_function(state_js, timeout=120_000).json_value()
+            if not state.startswith("step:"):
+                break
+            count = state[5:]
+            if count not in seen_steps:
+                seen_steps.append(count)
+                if count.startswith("Step 2 ") and not shot:
+                    _shot(page, "bench-step")
+                    shot = True
+                page.keyboard.press("Enter")   # the operator has done the step
+            page.wait_for_timeout(150)
+        error = page.inner_text("#bench-error-text") if page.is_visible("#bench-error") else ""
+        assert not error, f"capture failed: {error}\n{live.logs()}"
+        assert seen_steps == [f"Step {i} of 8" for i in range(1, 9)], seen_steps
+        assert "F0001 is captured and sent to the lab" in page.inner_text("#bench-message")
+        row = 'tr[data-fragment="F0001"]'
+        page.wait_for_selector(f'{row} td[data-stage="scanned"][data-state="done"]', timeout=30_000)
+        if "solver" in live.stages:   # the live list follows the pipeline without a reload
+            page.wait_for_selector(f'{row} td[data-stage="normals"][data-state="done"]', timeout=180_000)
+        _shot(page, "bench")
+    finally:
+        ctx.close()
+
+
+def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
+    from common.bus.client import BrokerClient
+    from common.messages import unpack
+
+    ctx, page = _login(browser, live, who="A. Conservator")
+    try:
+        page.goto(f"{live.url}/review")
+        page.wait_for_selector("#queue li.current", timeout=30_000)
+        first = live.pairs[0]
+        assert page.inner_text("#proposal-title") == f"{first[0]} ↔ {first[1]}"
+        probs = [float(re.match(r"([\d.]+)%", t).group(1)) for t in page.locator("#queue .prob").all_inner_texts()]
+        assert probs == sorted(probs, reverse=True)   # most probable first
+        for view in ("joined-colour", "joined-relief", "pair-colour", "pair-relief"):
+            page.wait_for_function(f"() => document.getElementById('{view}').complete && "
+                                   f"document.getElementById('{view}').naturalWidth > 0", timeout=60_000)
+        _shot(page, "review")
+        page.keyboard.press("c")   # confirm, from the keyboard
+        page.wait_for_selector("#review-message:has-text('Confirmed')", timeout=15_000)
+        page.wait_for_selector(f"#history tr:has-text('{first[0]} ↔ {first[1]}'):has-text('confirmed')", timeout=15_000)
+        with BrokerClient.from_config(live.config) as bus:
+            events = [unpack(bytes(b)) for _, b in bus.since(0, 10000)["events"]]
+        verified = [e for e in events if e["type"] == "match.verified"]
+        assert [(e["fragment"], e["other"], e["verdict"], e["by"]) for e in verified] == \
+            [(first[0], first[1], "confirmed", "A. Conservator")]
+        if "matcher" in live.stages:   # the matcher records it; the page shows the stored history
+            page.wait_for_selector(f"#history tr[data-state='recorded']:has-text('{first[0]} ↔ {first[1]}')",
+                                   timeout=60_000)
+        # the next pending proposal is up; skip it with S, reject the one after with R
+        second = live.pairs[1]
+        assert page.inner_text("#proposal-title") == f"{second[0]} ↔ {second[1]}"
+        page.keyboard.press("s")
+        assert page.inner_text("#proposal-title") != f"{second[0]} ↔ {second[1]}"
+        page.keyboard.press("r")
+        page.wait_for_selector("#review-message:has-text('Rejected')", timeout=15_000)
+        _shot(page, "review-history")
+    finally:
+        ctx.close()
+
+
+def test_status_page_shows_a_failure_and_reruns_it(browser, live):
+    from common.bus.client import BrokerClient
+    from common.messages import new_message
+
+    with BrokerClient.from_config(live.config) as bus:
+        bus.submit(new_message("noop.job", fragment="F0666", fail=True))
+    ctx, page = _login(browser, live)
+    try:
+        page.goto(f"{live.url}/status")
+        row = page.wait_for_selector("#parked tr:has-text('F0666')", timeout=60_000)
+        assert "asked to fail" in row.inner_text()
+        page.wait_for_selector("#services tr[data-service='noop']")
+        assert page.locator("#hosts tbody tr").count() >= 1 + len(live.stages)
+        _shot(page, "status")
+        row.query_selector("button.rerun").click()
+        page.wait_for_selector("#status-message:has-text('Re-queued 1 job')", timeout=15_000)
+    finally:
+        ctx.close()
+
+
+def test_a_browser_without_the_token_cannot_change_anything(browser, live):
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    try:
+        page.goto(f"{live.url}/bench")
+        assert page.is_disabled("#scan-button") and page.is_visible("#login-needed")
+        codes = page.evaluate("""async () => {
+            const out = [];
+            for (const [url, body] of [["/api/bench/scan", {fragment: "F0002"}],
+                                       ["/api/review/verdict", {proposal: 1, verdict: "confirmed"}],
+                                       ["/api/status/rerun", {job: "all"}]]) {
+                const r = await fetch(url, {method: "POST", headers: {"Content-Type": "application/json"},
+                                            body: JSON.stringify(body)});
+                out.push(r.status);
+            }
+            return out;
+        }""")
+        assert codes == [401, 401, 401]
+    finally:
+        ctx.close()
