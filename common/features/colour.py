@@ -73,5 +73,6 @@ def colour_statistics(albedo, mask) -> dict[str, float]:
     tot = float(w.sum())
     if tot <= 0:
         return {k: float("nan") for k in colour_from_moments({c: 0.0 for c in COLOUR_MOMENTS})}
-    ch = colour_channels(a)
-    return colour_from_moments({k: float(np.sum(v * w)) / tot for k, v in ch.items()})
+    centre = tuple(float(np.sum(a[..., k] * w, dtype=np.float64)) / tot for k in range(3))
+    ch = colour_channels(a, centre)  # centred: float32 squares do not cancel
+    return colour_from_moments({k: float(np.sum(v * w, dtype=np.float64)) / tot for k, v in ch.items()}, centre)

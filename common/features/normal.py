@@ -49,6 +49,8 @@ def normal_from_moments(m, centre=None) -> dict[str, float]:
             key = f"{p}*{q}" if i <= j else f"{q}*{p}"
             cov[i, j] = m[key] - m[p] * m[q]
     ev = np.linalg.eigvalsh(cov)
+    # eigenvalues at float32 rounding level are zero: their square roots would add ~3e-4 each
+    ev = np.where(ev > 1e-7 * max(ev.max(), 0.0), ev, 0.0)
     return {"normal_z_mean": float(m["nz"] + (centre or {}).get("nz", 0.0)), "normal_z_variance": float(max(cov[3, 3], 0.0)),
             "colour_normal_svd": float(np.sum(np.sqrt(np.clip(ev, 0.0, None))))}
 
@@ -104,7 +106,9 @@ def normal_statistics(albedo, normals, mask) -> dict[str, float]:
     if tot <= 0:
         return {"normal_z_mean": np.nan, "normal_z_variance": np.nan, "colour_normal_svd": np.nan}
     ch = normal_channels(a, n)
-    return normal_from_moments({k: float(np.sum(v * w, dtype=np.float64)) / tot for k, v in ch.items()})
+    centre = {k: float(np.sum(ch[k] * w, dtype=np.float64)) / tot for k in _STACK}
+    ch = normal_channels(a, n, centre)  # centred: float32 products do not cancel
+    return normal_from_moments({k: float(np.sum(v * w, dtype=np.float64)) / tot for k, v in ch.items()}, centre)
 
 
 def neighbour_differences(nz, valid) -> np.ndarray:
@@ -140,7 +144,7 @@ def discontinuity_from_differences(d) -> dict[str, float]:
     out = dict(nan)
     out["disc_frac_046"] = float(np.mean(d > DISCONTINUITY_THRESHOLD))
     out["disc_ratio_80_50"] = float((p80 + RATIO_EPS) / (p50 + RATIO_EPS))
-    if sd > 1e-9:
+    if sd > 1e-5 * mu + 1e-9:  # below: float rounding, not spread
         out["disc_skewness"] = float((z2 * z).mean(dtype=np.float64)) / sd ** 3
         out["disc_kurtosis"] = float((z2 * z2).mean(dtype=np.float64)) / var ** 2
     return out
