@@ -53,7 +53,7 @@ DEFAULTS: dict[str, Any] = {
     "token": "",                # access token; empty: generated at first start into token_file
     "token_file": "",           # default <storage root>/web/web_token  (keep it on local disk)
     "operator": "",             # name recorded with verdicts when the browser sends none
-    "long_poll_s": 10.0,        # how long a page's live request waits for a change
+    "long_poll_s": 3.0,         # how long a page's live request waits for a change
     "picture_px": 640,          # longest side of the review pictures
 }
 
@@ -433,7 +433,13 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
     token, token_path = station_token(cfg, settings)
     link = StationLink(cfg)
     review = ReviewData.from_config(cfg)
-    bench = build_bench(cfg, link=link) if with_scanner else None
+    bench = None
+    if with_scanner:
+        try:
+            bench = build_bench(cfg, link=link)
+        except Exception as exc:  # the review and status pages are still worth serving
+            log.error("no scanner for the bench page (%s: %s); serving review and status only",
+                      type(exc).__name__, exc)
     if bench is not None:
         link.start_drain()
     app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
