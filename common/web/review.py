@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import sqlite3
 import threading
 from pathlib import Path
 from typing import Mapping
@@ -75,9 +76,10 @@ class ReviewData:
         self.db_path = Path(db_path)
         self.store = store
         self.journal_mode = journal_mode
-        self._local = threading.local()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
+        self._store = None
         self._cache: collections.OrderedDict = collections.OrderedDict()
+        self._cache_lock = threading.Lock()
         self._cache_size = int(cache_pictures)
 
     @classmethod
@@ -89,26 +91,42 @@ class ReviewData:
         return cls(db, Store(root, file_locking=cfg["storage"]["file_locking"]),
                    journal_mode=str(matcher.get("journal_mode", "WAL")))
 
-    # -- the database (one connection per thread: sqlite3 connections are thread-confined) --
+    # -- the database ------------------------------------------------------------------------
     def _db(self):
+        """The proposal store, opened read-only once and shared by the server's threads.
+
+        The web server runs each request on a new thread; a connection per thread would leak one
+        file per request, and opening a :class:`ProposalStore` per request would take SQLite's
+        write lock (it creates its schema) against the matcher. So one read-only connection
+        (``mode=ro``, usable from any thread, guarded by ``self._lock``) is bound to the store's
+        own query methods.
+        """
         from common.matching.proposals import ProposalStore
 
-        db = getattr(self._local, "db", None)
+        db = getattr(self, "_store", None)
         if db is None:
             if not self.db_path.exists():
                 return None   # no matcher has run yet: nothing to review
-            db = self._local.db = ProposalStore(self.db_path, journal_mode=self.journal_mode)
+            con = sqlite3.connect(f"file:{self.db_path}?mode=ro", uri=True, check_same_thread=False,
+                                  isolation_level=None, timeout=10.0)
+            con.row_factory = sqlite3.Row
+            db = ProposalStore.__new__(ProposalStore)
+            db.path, db._db = self.db_path, con
+            self._store = db
         return db
+
+    def _read(self, fn, default):
+        with self._lock:
+            db = self._db()
+            return fn(db) if db is not None else default
 
     def pending(self, limit: int = 50) -> list[dict]:
         """Pending proposals, most probable first."""
-        db = self._db()
-        return [proposal_dict(p) for p in db.pending(limit)] if db else []
+        return self._read(lambda db: [proposal_dict(p) for p in db.pending(limit)], [])
 
     def ranked(self, fragment: str, limit: int = 20) -> list[dict]:
         """Proposals involving ``fragment`` (any status), most probable first."""
-        db = self._db()
-        return [proposal_dict(p) for p in db.ranked(fragment, limit)] if db else []
+        return self._read(lambda db: [proposal_dict(p) for p in db.ranked(fragment, limit)], [])
 
     def proposal(self, pid) -> dict | None:
         """One proposal by id, or None."""
@@ -116,33 +134,23 @@ class ReviewData:
             pid = int(pid)
         except (TypeError, ValueError):
             return None
-        db = self._db()
-        if db is None:
-            return None
-        for p in db.all():
-            if p.id == pid:
-                return proposal_dict(p)
-        return None
+        found = self._read(lambda db: [p for p in db.all() if p.id == pid], [])
+        return proposal_dict(found[0]) if found else None
 
     def history(self, limit: int = 100) -> list[dict]:
         """Recorded verdicts, newest first."""
-        db = self._db()
-        if db is None:
-            return []
         out = [{"fragment_a": v.fragment_a, "fragment_b": v.fragment_b, "verdict": v.verdict, "by": v.by,
-                "time": v.time, "proposal": v.proposal_id, "note": v.note} for v in db.verdicts()]
+                "time": v.time, "proposal": v.proposal_id, "note": v.note}
+               for v in self._read(lambda db: db.verdicts(), [])]
         return out[::-1][:limit]
 
     def counts(self) -> dict:
-        db = self._db()
-        if db is None:
-            return {"pending": 0, "confirmed": 0, "rejected": 0}
-        return {s: db.count(s) for s in ("pending", "confirmed", "rejected")}
+        return self._read(lambda db: {s: db.count(s) for s in ("pending", "confirmed", "rejected")},
+                          {"pending": 0, "confirmed": 0, "rejected": 0})
 
     def matched_fragments(self) -> set[str]:
         """Fragments the matcher has taken in."""
-        db = self._db()
-        return {f["fragment"] for f in db.fragments()} if db else set()
+        return self._read(lambda db: {f["fragment"] for f in db.fragments()}, set())
 
     # -- pictures ----------------------------------------------------------------------------
     def rgbn(self, fragment: str, face: str = "front") -> RGBNImage:
@@ -164,7 +172,7 @@ class ReviewData:
         if prop is None:
             raise LookupError(f"no proposal {pid}")
         key = (pid, view, max_side_px, prop["pose"] and tuple(prop["pose"].values()))
-        with self._lock:
+        with self._cache_lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
                 return self._cache[key]
@@ -181,7 +189,7 @@ class ReviewData:
             img = join_at_pose(pa, a.mask, pb, b.mask, pose, a.pixel_mm, pixel_mm_b=b.pixel_mm,
                                max_side_px=max_side_px)
         png = encode_png(img)
-        with self._lock:
+        with self._cache_lock:
             self._cache[key] = png
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)

@@ -1,0 +1,97 @@
+"""Tests of common/web/review.py: reading the matcher's proposal store, pictures of proposals."""
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from common.matching.proposals import Proposal, ProposalStore
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.store import Store
+from common.web.review import ReviewData, relief_picture
+
+
+def _fragment(store, fid, shape=(40, 50)):
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    mask = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (min(h, w) / 2.2) ** 2
+    n = np.dstack([np.zeros((h, w)), np.zeros((h, w)), np.ones((h, w))])
+    save_rgbn(store, f"fragments/{fid}/rgbn/front-0.h5", RGBNImage(np.full((h, w, 3), 0.5), mask, 200, normals=n))
+
+
+@pytest.fixture
+def review(tmp_path):
+    store = Store(tmp_path)
+    for fid in ("A", "B", "C"):
+        _fragment(store, fid)
+    db_path = tmp_path / "matches" / "proposals.sqlite"
+    with ProposalStore(db_path) as db:
+        db.upsert([Proposal("A", "B", 0.8, "m1", angle_deg=10.0, tx_mm=6.0, ty_mm=0.5),
+                   Proposal("A", "C", 0.6, "m1")])
+    return ReviewData(db_path, store), db_path
+
+
+def test_reads_see_the_matchers_later_writes_and_verdicts(review):
+    data, db_path = review
+    assert [p["fragment_b"] for p in data.pending()] == ["B", "C"]
+    with ProposalStore(db_path) as db:   # the matcher, in another connection
+        db.upsert([Proposal("B", "C", 0.95, "m2")])
+        db.record_verdict("A", "B", "rejected", by="x")
+        db.record_verdict("A", "C", "confirmed", by="y")
+    assert [(p["fragment_a"], p["fragment_b"]) for p in data.pending()] == [("B", "C")]
+    assert [v["verdict"] for v in data.history()] == ["confirmed", "rejected"]   # newest first
+    assert data.counts() == {"pending": 1, "confirmed": 1, "rejected": 1}
+
+
+def test_many_request_threads_share_one_read_only_connection(review):
+    data, _ = review
+    errors = []
+
+    def work():
+        try:
+            for _ in range(20):
+                assert len(data.pending()) == 2
+        except Exception as exc:  # collected, re-raised below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    with pytest.raises(Exception):   # read-only: the page can never write the matcher's database
+        data._db()._db.execute("DELETE FROM proposals")
+
+
+def test_no_database_yet_means_nothing_to_review(tmp_path):
+    data = ReviewData(tmp_path / "absent.sqlite", Store(tmp_path))
+    assert data.pending() == [] and data.history() == [] and data.proposal(1) is None
+    assert not (tmp_path / "absent.sqlite").exists()
+
+
+def test_pictures_of_a_proposal(review):
+    data, _ = review
+    pid = data.pending()[0]["id"]
+    for view in ("pair-colour", "pair-relief", "joined-colour", "joined-relief"):
+        img = cv2.imdecode(np.frombuffer(data.picture(pid, view, max_side_px=200), np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and max(img.shape[:2]) <= 200, view
+    no_pose = data.pending()[1]["id"]
+    with pytest.raises(LookupError, match="pose"):
+        data.picture(no_pose, "joined-colour")
+    assert data.picture(no_pose, "pair-colour")[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="view"):
+        data.picture(pid, "sideways")
+    with pytest.raises(LookupError):
+        data.picture(9999, "pair-colour")
+
+
+def test_relief_of_a_flat_fragment_is_uniform_and_colour_only_falls_back_to_grey():
+    h, w = 30, 30
+    n = np.dstack([np.zeros((h, w)), np.zeros((h, w)), np.ones((h, w))])
+    mask = np.ones((h, w), bool)
+    out = relief_picture(RGBNImage(np.full((h, w, 3), 0.3), mask, 200, normals=n))
+    assert out.shape == (h, w, 3) and np.ptp(out[5:-5, 5:-5]) <= 2
+    grey = relief_picture(RGBNImage(np.full((h, w, 3), 0.3), mask, 200))
+    assert np.all(grey == grey[0, 0]) and grey[0, 0, 0] == grey[0, 0, 1]
