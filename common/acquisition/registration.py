@@ -49,7 +49,8 @@ class Registration:
     residual: float
 
 
-def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.5) -> np.ndarray:
+def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.5,
+                       chroma_weight: float = 1.0) -> np.ndarray:
     """Shading-tolerant image for registration (float32).
 
     ``sqrt(|∇ log chromaticity|² + w² |∇ log luminance|²)``, smoothed: under one white lamp a
@@ -67,8 +68,9 @@ def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight
         gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
         return gx * gx + gy * gy
     g = luminance_weight ** 2 * grad2(lum)
-    for c in (0, 2):
-        g += grad2(log[..., c] - log[..., 1])
+    if chroma_weight > 0:
+        for c in (0, 2):
+            g += chroma_weight ** 2 * grad2(log[..., c] - log[..., 1])
     return cv2.GaussianBlur(np.sqrt(g), (0, 0), sigma_px)
 
 
@@ -255,13 +257,20 @@ def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal
 
 def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, masks: list | None = None,
                    progress=None, **kw) -> list[Registration]:
-    """Register every scan to the first (the target scan); the first gets the identity."""
+    """Register every scan to the first (the target scan); the first gets the identity.
+
+    ``nominal_deg`` are the nominal rotations of the scans (e.g. 0, 90, 180, 270); scan i is
+    searched around the measured angle of scan i−1 plus the nominal step, since a person's
+    errors in turning the fragment accumulate.
+    """
     if len(scans) < 1:
         raise ValueError("scans must not be empty")
     masks = masks or [fragment_mask(s, dpi) for s in scans]
     out = [Registration(np.array([[1.0, 0, 0], [0, 1.0, 0]]), 0.0, 1.0, 0.0)]
     for i in range(1, len(scans)):
-        nom = None if nominal_deg is None else nominal_deg[i] - nominal_deg[0]
+        # each turn is ~90° ± 10°, so errors add up: expect this scan relative to the previous
+        # scan's measured angle rather than to the nominal angle alone
+        nom = None if nominal_deg is None else out[-1].angle_deg + nominal_deg[i] - nominal_deg[i - 1]
         try:
             out.append(register_scan(scans[0], scans[i], dpi, nominal_deg=nom, target_mask=masks[0],
                                      moving_mask=masks[i], **kw))
