@@ -64,3 +64,25 @@ def test_bad_scales_are_refused(disc):
         area_curvature(cov, px, c.points_mm[:1], 0.0)
     with pytest.raises(ValueError, match="span_mm"):
         three_point_curvature(c, [0.0], c.length_mm)
+
+
+def test_two_pieces_of_one_cut_have_opposite_curvature_along_it():
+    # a square broken along a wavy crack y = 40 + 6 sin(2 pi x / 30) mm: at every point of the
+    # crack the upper piece's curvature is minus the lower one's (rule abs_sum: |a + b| ~ 0)
+    px, n, s4 = 0.2, 500, 4
+    yy, xx = (np.mgrid[:n * s4, :n * s4] + 0.5) / s4 - 0.5
+    crack = (40 + 6 * np.sin(2 * np.pi * xx * px / 30)) / px
+    square = (xx > 50) & (xx < 450) & (yy > 50) & (yy < 450)
+    upper = cv2.resize((square & (yy < crack)).astype(np.float32), (n, n), interpolation=cv2.INTER_AREA)
+    lower = cv2.resize((square & (yy >= crack)).astype(np.float32), (n, n), interpolation=cv2.INTER_AREA)
+    cu, cl = fragment_contour(upper, px), fragment_contour(lower, px)
+    x = np.linspace(25.0, 75.0, 21)                      # crack points away from the corners
+    pts = np.stack([x, 40 + 6 * np.sin(2 * np.pi * x / 30)], axis=1)
+    su = np.array([cu.arc_mm[np.argmin(np.linalg.norm(cu.points_mm - p, axis=1))] for p in pts])
+    sl = np.array([cl.arc_mm[np.argmin(np.linalg.norm(cl.points_mm - p, axis=1))] for p in pts])
+    for scale in (2.5, 5.0):
+        ku, kl = three_point_curvature(cu, su, scale), three_point_curvature(cl, sl, scale)
+        assert np.max(np.abs(ku + kl)) < 0.01 and np.max(np.abs(ku)) > 0.1
+        au = area_curvature(upper, px, cu.at(su)[0], scale)
+        al = area_curvature(lower, px, cl.at(sl)[0], scale)
+        assert np.median(np.abs(au + al)) < 0.15 * np.median(np.abs(au))

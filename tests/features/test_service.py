@@ -1,0 +1,93 @@
+"""The feature stage service (services/features.py) and the ``tessera features`` command
+(services/cli/features.py)."""
+
+import logging
+
+import numpy as np
+import pytest
+
+import services.features as stage
+from common.features import load_features
+from common.messages import MessageError, new_message, validate
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.store import ArtifactError, Store
+from services.cli import main as tessera
+
+
+class _Ctx:
+    def __init__(self, store):
+        self.store, self.config, self.log = store, {}, logging.getLogger("test.features")
+        self.calls = []
+        self.progress = lambda f, t: self.calls.append(f)
+
+
+def _rgbn(normals=True):
+    yy, xx = np.mgrid[:200, :200]
+    mask = (yy - 100) ** 2 + ((xx - 100) * 1.2) ** 2 < 80 ** 2
+    n = np.zeros((200, 200, 3), np.float32)
+    n[..., 0] = 0.1 * np.sin(2 * np.pi * xx / 12)
+    n[..., 2] = 1
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return RGBNImage(np.full((200, 200, 3), 0.4), mask, 150.0, normals=n if normals else None)
+
+
+@pytest.fixture
+def store_with_rgbn(tmp_path):
+    store = Store(tmp_path)
+    ref = save_rgbn(store, "fragments/F7/rgbn/front-abc.h5", _rgbn())
+    return store, ref
+
+
+def test_rgbn_ready_gives_features_ready_at_a_content_keyed_path(store_with_rgbn):
+    store, ref = store_with_rgbn
+    ctx = _Ctx(store)
+    job = new_message("rgbn.ready", fragment="F7", face="front", artifact=ref)
+    events = stage.handle(job, ctx)
+    assert [e["type"] for e in events] == ["features.ready"]
+    ev = validate(events[0])
+    assert (ev["fragment"], ev["face"]) == ("F7", "front")
+    assert ev["artifact"]["path"] == stage.output_path("F7", "front", ref.sha256)
+    assert ev["artifact"]["path"].startswith("fragments/F7/features/front-")
+    table = load_features(store, ev["artifact"])
+    assert table.n_patches > 0 and table.face == "front" and ctx.calls
+
+
+def test_redelivered_job_finds_its_output_and_does_not_recompute(store_with_rgbn):
+    store, ref = store_with_rgbn
+    job = new_message("rgbn.ready", fragment="F7", face="front", artifact=ref)
+    first = stage.handle(job, _Ctx(store))[0]["artifact"]
+    ctx = _Ctx(store)
+    again = stage.handle(job, ctx)[0]["artifact"]
+    assert again == first and ctx.calls == []
+
+
+def test_wrong_job_type_and_corrupt_input_are_refused(store_with_rgbn):
+    store, ref = store_with_rgbn
+    with pytest.raises(MessageError):
+        stage.handle(new_message("fragment.ready", fragment="F7", artifact=ref), _Ctx(store))
+    bad = dict(ref.to_dict(), sha256="0" * 64)
+    with pytest.raises(ArtifactError):
+        stage.handle(new_message("rgbn.ready", fragment="F7", face="front", artifact=bad), _Ctx(store))
+
+
+def test_cli_describes_a_store_fragment_and_writes_debug_pictures(store_with_rgbn, tmp_path, capsys):
+    store, _ = store_with_rgbn
+    dbg = tmp_path / "dbg"
+    assert tessera(["features", "--store", str(store.root), "--fragment", "F7", "--debug-dir", str(dbg)]) == 0
+    out = capsys.readouterr().out
+    assert "features.ready" in out and "colour_mean_r" in out
+    assert sorted(p.name for p in dbg.iterdir()) == ["front-erosion.png", "front-orientation.png", "front-patches.png"]
+
+
+def test_cli_on_an_rgbn_file_writes_the_table(store_with_rgbn, tmp_path, capsys):
+    store, ref = store_with_rgbn
+    out = tmp_path / "t.h5"
+    assert tessera(["features", str(store.path(ref.path)), "--out", str(out), "--json"]) == 0
+    assert '"colour_mean_r"' in capsys.readouterr().out
+    assert load_features(Store(tmp_path), "t.h5").values["colour_mean_r"] == pytest.approx(0.4, rel=1e-5)
+
+
+def test_cli_reports_a_missing_fragment_plainly(tmp_path, capsys):
+    assert tessera(["features", "--store", str(tmp_path), "--fragment", "NOPE"]) == 1
+    assert "no RGBN artifact" in capsys.readouterr().out
+    assert tessera(["features"]) == 2
