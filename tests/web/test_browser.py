@@ -2,7 +2,10 @@
 
 Processes as the station runs them (broker, stage workers, ``tessera web``), Chromium driven by
 Playwright: the operator captures a fragment end to end, the conservator confirms a proposal and
-sees it recorded, a failure shows on the status page. Screenshots go to ``docs/web/``.
+sees it recorded, a failure shows on the status page. Screenshots of each page go to a temporary
+folder, or to ``docs/web/`` (the pictures in ``docs/web.md``) with ``TESSERA_WEB_SCREENSHOTS=1``:
+
+    TESSERA_WEB_SCREENSHOTS=1 python -m pytest tests/web/test_browser.py
 
 Needs the pip package ``playwright`` and Debian's ``chromium`` (``apt-get install -y chromium``;
 never ``playwright install``); skipped, saying which is missing, otherwise.
@@ -29,6 +32,7 @@ pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 DOCS = REPO / "docs" / "web"
+SHOTS: Path | None = None   # set by the ``live`` fixture
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
@@ -44,9 +48,9 @@ def _require_browser():
 
 
 def _shot(page, name: str) -> None:
-    """Screenshot into docs/web/<name>.png, shrunk until it is under ~300 KB."""
-    DOCS.mkdir(parents=True, exist_ok=True)
-    path = DOCS / f"{name}.png"
+    """Screenshot into <SHOTS>/<name>.png, shrunk until it is under ~300 KB."""
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    path = SHOTS / f"{name}.png"
     page.screenshot(path=str(path), full_page=True)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     scale = 1.0
@@ -176,7 +180,9 @@ long_poll_s = 2.0
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     _require_browser()
+    global SHOTS
     station = LiveStation(tmp_path_factory.mktemp("station"))
+    SHOTS = DOCS if os.environ.get("TESSERA_WEB_SCREENSHOTS") == "1" else station.root / "screenshots"
     pairs = _seed_review(station.config)
     station.start()
     station.pairs = pairs
