@@ -234,11 +234,11 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
         d = np.array([np.cos(a), np.sin(a)]) * (width_mm + height_mm)
         strings.append((tuple(p - d), tuple(p + d)))
     # mottling of the paint (uneven brushing, pigment density) and fine speckle
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) * res_mm
+    G = np.array([[res_mm, 0.0, 0.0], [0.0, res_mm, 0.0]])
     mott = FractalField(rng, 40.0, octaves=4, persistence=0.6, amplitude=0.05)
     for c in range(3):
-        img[..., c] *= 1.0 + mott(xx + 97.0 * c, yy)
-    img *= 1.0 + FractalField(rng, 2.0, octaves=2, amplitude=0.02)(xx, yy)[..., None]
+        img[..., c] *= 1.0 + mott.grid(G + [[0, 0, 97.0 * c], [0, 0, 0]], (H, W))
+    img *= 1.0 + FractalField(rng, 2.0, octaves=2, amplitude=0.02).grid(G, (H, W))[..., None]
     np.clip(img, 0.0, 1.0, out=img)
     return Painting(img, float(res_mm), strings, incisions)
 

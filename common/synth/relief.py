@@ -99,8 +99,8 @@ class WallRelief:
         self.width_mm, self.height_mm = painting.size_mm
         self.res_mm = float(res_mm)
         W, H = int(np.ceil(self.width_mm / res_mm)), int(np.ceil(self.height_mm / res_mm))
-        yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) * res_mm
-        macro = FractalField(rng, 120.0, octaves=3, persistence=0.5, amplitude=0.25)(xx, yy)
+        G = np.array([[res_mm, 0.0, 0.0], [0.0, res_mm, 0.0]])
+        macro = FractalField(rng, 120.0, octaves=3, persistence=0.5, amplitude=0.25).grid(G, (H, W))
         macro += self._grooves(painting, rng, (H, W))
         self.macro = macro.astype(np.float32)
         self.grain = FractalField(rng, grain_mm, octaves=2, persistence=0.5, amplitude=grain_depth_mm)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing as mp
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -211,15 +212,17 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
             idx = np.flatnonzero(sel)
             hits_idx.append(idx)
             hits_lab.append(other.ravel()[idx])
-        idx = np.concatenate(hits_idx)
-        lab = np.concatenate(hits_lab)
+        idx = np.concatenate(hits_idx).astype(np.int64)
+        lab = np.concatenate(hits_lab).astype(np.int64)
         if idx.size:
-            pairs = np.unique(np.column_stack([lab.astype(np.int64), idx]), axis=0)
-            for m in np.unique(pairs[:, 0]):
-                pix = pairs[pairs[:, 0] == m, 1]
+            keys = np.unique(lab * (H * W) + idx)  # (other piece, pixel) pairs, each once
+            others, pix_all = keys // (H * W), keys % (H * W)
+            for m in np.unique(others):
+                pix = pix_all[others == m]
                 pts = np.column_stack([pix % W, pix // W, np.ones(pix.size)]) @ G.T  # wall mm
                 # about one sample per mm of crack
-                _, keep = np.unique(np.floor(pts / 1.0).astype(np.int64), axis=0, return_index=True)
+                cell = np.floor(pts).astype(np.int64)
+                _, keep = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_index=True)
                 cracks[int(m)] = (pix.size * pm / _BOUNDARY_PX_PER_LENGTH, pts[np.sort(keep)])
 
     albedo = plan.painting.sample_grid(G, shape)
@@ -270,7 +273,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
                   style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
                   median_size_mm: float = 30.0, sigma: float = 0.7, missing_fraction: float = 0.2,
                   spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
-                  min_shared_mm: float = 3.0, keep_images: bool = True,
+                  min_shared_mm: float = 3.0, keep_images: bool = True, workers: int = 1,
                   on_fragment: Callable[[Fragment], None] | None = None,
                   progress: Callable[[float, str], None] | None = None) -> Wall:
     """Paint, relieve, break and deteriorate a wall; return its fragments and ground truth.
@@ -310,6 +313,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Called with each finished fragment (with its images), e.g. to write it to the store.
     progress : callable(fraction, text), optional
         Progress report per fragment.
+    workers : int
+        Render fragments in this many forked processes (same data as with one).
 
     Returns
     -------
@@ -383,24 +388,39 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     crack_by_label: dict[int, dict] = {}
     label_of: dict[str, int] = {}
     frag_seeds = s_frag.spawn(len(jobs))
-    for j, ((pl, lab, spur), fid) in enumerate(zip(jobs, ids)):
-        c = pl.fracture.coarse_labels
-        sl = ndimage.find_objects((c == lab).astype(np.int32))[0]
-        bbox = ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))
-        frag, cracks = _render_piece(pl, lab, bbox, float(dpi), np.random.default_rng(frag_seeds[j]),
-                                     erosion_mm=erosion_mm, spurious=spur)
-        frag.id = fid
-        if not spur:
-            crack_by_label[lab] = cracks
-            label_of[fid] = lab
-        if on_fragment is not None:
-            on_fragment(frag)
-        if not keep_images:
-            frag.rgbn = None
-            frag.surface = None
-        frags.append(frag)
-        if progress is not None:
-            progress((j + 1) / len(jobs), f"fragment {fid} ({j + 1}/{len(jobs)})")
+    tasks = []
+    for j, (pl, lab, spur) in enumerate(jobs):
+        sl = ndimage.find_objects((pl.fracture.coarse_labels == lab).astype(np.int32))[0]
+        tasks.append((j, ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))))
+    global _POOL_STATE
+    _POOL_STATE = (jobs, frag_seeds, float(dpi), erosion_mm)
+    pool = None
+    try:
+        if workers > 1 and len(jobs) > 1 and "fork" in mp.get_all_start_methods():
+            # forked workers inherit the wall plan; each fragment has its own seed -> same data
+            pool = mp.get_context("fork").Pool(min(workers, len(jobs)))
+            results = pool.imap(_render_task, tasks)
+        else:
+            results = map(_render_task, tasks)
+        for j, (frag, cracks) in enumerate(results):
+            _, lab, spur = jobs[j]
+            fid = ids[j]
+            frag.id = fid
+            if not spur:
+                crack_by_label[lab] = cracks
+                label_of[fid] = lab
+            if on_fragment is not None:
+                on_fragment(frag)
+            if not keep_images:
+                frag.rgbn = None
+                frag.surface = None
+            frags.append(frag)
+            if progress is not None:
+                progress((j + 1) / len(jobs), f"fragment {fid} ({j + 1}/{len(jobs)})")
+    finally:
+        if pool is not None:
+            pool.terminate()
+        _POOL_STATE = None
 
     adjacency, corr = _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm)
     order = np.argsort([f.id for f in frags])
@@ -413,6 +433,16 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     W, H = plan.painting.size_mm
     return Wall(wall_id, frags, adjacency, corr, W, H, float(dpi), n_missing=plan.fracture.n_pieces - n_present,
                 params=params, preview=preview)
+
+
+_POOL_STATE = None
+
+
+def _render_task(task):
+    j, bbox = task
+    jobs, seeds, dpi, erosion_mm = _POOL_STATE
+    pl, lab, spur = jobs[j]
+    return _render_piece(pl, lab, bbox, dpi, np.random.default_rng(seeds[j]), erosion_mm=erosion_mm, spurious=spur)
 
 
 def _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm):

@@ -2,7 +2,7 @@
 
     tessera synth --fragments N --seed S --store DIR [--dpi 300] [--as rgbn|scans]
                   [--mode recursive|voronoi] [--style aegean|roman] [--image PICTURE --image-width-mm W]
-                  [--missing 0.2] [--spurious 0.05] [--scan-dpi D] [--colour-only]
+                  [--missing 0.2] [--spurious 0.05] [--scan-dpi D] [--colour-only] [--workers K]
 
 Writes each fragment either as an RGBN artifact ``fragments/<id>/rgbn/front-<key>.h5`` or as the raw
 scans of the simulated flatbed (four rotations per face) ``fragments/<id>/scans/scans-<key>.h5``,
@@ -37,6 +37,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--spurious", type=float, default=0.05, help="fraction of fragments from another wall")
     p.add_argument("--scan-dpi", type=float, help="scan resolution with --as scans (default: --dpi)")
     p.add_argument("--colour-only", action="store_true", help="with --as scans: one scan per face")
+    p.add_argument("--workers", type=int, default=1, help="render fragments in this many processes (same data)")
     p.set_defaults(func=run)
 
 
@@ -90,6 +91,7 @@ def run(args) -> int:
     wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, style=args.style, image=image,
                          image_width_mm=args.image_width_mm, median_size_mm=args.median_size_mm,
                          missing_fraction=args.missing, spurious_fraction=args.spurious, keep_images=False,
+                         workers=max(1, args.workers),
                          on_fragment=on_fragment, progress=progress)
     gt = save_groundtruth(store, wall)
     areas = np.array([f.area_mm2 for f in wall.fragments])

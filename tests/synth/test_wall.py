@@ -24,6 +24,14 @@ def test_same_seed_gives_identical_data():
         or not np.array_equal(c.fragments[0].rgbn.albedo, a.fragments[0].rgbn.albedo)
 
 
+def test_parallel_rendering_gives_the_same_wall():
+    a = generate_wall(4, seed=8, dpi=40)
+    b = generate_wall(4, seed=8, dpi=40, workers=2)
+    assert a.adjacency == b.adjacency
+    for fa, fb in zip(a.fragments, b.fragments):
+        assert fa.id == fb.id and np.array_equal(fa.rgbn.albedo, fb.rgbn.albedo)
+
+
 def test_counts_missing_and_spurious_fragments(wall):
     assert len(wall.fragments) == 16 and len({f.id for f in wall.fragments}) == 16
     spurious = [f for f in wall.fragments if f.spurious]
