@@ -18,7 +18,9 @@
   }
 
   function render(st) {
+    const finished = st.phase === "done" && (!current || current.phase !== "done");
     current = st;
+    if (finished) $("fragment-id").select();   // ready for the next label
     const waiting = st.phase === "waiting" && st.step;
     const running = ["scanning", "waiting", "saving", "prescanning"].includes(st.phase);
     $("step").hidden = !waiting;
