@@ -195,6 +195,21 @@ def _evaluate(a_pts, tree_a, b_pts, contour_a, contour_b, theta, t, step_mm, tol
     return bt, d, contact, gap, overlap
 
 
+def align_hypotheses(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, step_mm: float = 1.0,
+                    window_mm: float = 24.0, tolerance_mm: float = 1.5, penetration_mm: float = 1.0,
+                    n_candidates: int = 24, icp_iterations: int = 8, cell_mm: float = 0.5,
+                    anchors: tuple[np.ndarray, np.ndarray] | None = None) -> list[Alignment]:
+    """Candidate alignments of fragment B to fragment A along their boundaries, best first (§5.3).
+
+    Distinct poses (one per refined window pair, duplicates merged) sorted by score; see
+    :func:`align_fragments` for the method and parameters. The matcher re-scores these
+    hypotheses with the patch classifier (the patches each pose puts face to face).
+    """
+    return _align(contour_a_mm, contour_b_mm, step_mm=step_mm, window_mm=window_mm, tolerance_mm=tolerance_mm,
+                  penetration_mm=penetration_mm, n_candidates=n_candidates, icp_iterations=icp_iterations,
+                  cell_mm=cell_mm, anchors=anchors)
+
+
 def align_fragments(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, step_mm: float = 1.0,
                     window_mm: float = 24.0, tolerance_mm: float = 1.5, penetration_mm: float = 1.0,
                     n_candidates: int = 24, icp_iterations: int = 8, cell_mm: float = 0.5,
@@ -249,6 +264,13 @@ def align_fragments(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, step_
     >>> al.contact_mm < 15
     True
     """
+    return _align(contour_a_mm, contour_b_mm, step_mm=step_mm, window_mm=window_mm, tolerance_mm=tolerance_mm,
+                  penetration_mm=penetration_mm, n_candidates=n_candidates, icp_iterations=icp_iterations,
+                  cell_mm=cell_mm, anchors=anchors)[0]
+
+
+def _align(contour_a_mm, contour_b_mm, *, step_mm, window_mm, tolerance_mm, penetration_mm, n_candidates,
+           icp_iterations, cell_mm, anchors):
     a_raw = np.asarray(contour_a_mm, float)
     b_raw = np.asarray(contour_b_mm, float)
     for name, c in (("contour_a_mm", a_raw), ("contour_b_mm", b_raw)):
@@ -288,7 +310,7 @@ def align_fragments(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, step_
         if len(chosen) >= n_candidates:
             break
     tree_a = cKDTree(a)
-    result = None
+    results: list[Alignment] = []
     for o in chosen:
         wa, wb = win_a[rows[o]], win_b[cols[best_j[o]]]
         theta, t = _rigid_fit(wa, wb)
@@ -307,9 +329,14 @@ def align_fragments(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, step_
         _, _, contact, gap, overlap = _evaluate(a, tree_a, b, a_poly, b_poly, theta, t, step_mm,
                                                 tolerance_mm, cell_mm)
         score = contact - overlap / penetration_mm
-        if result is None or score > result.score:
-            result = Alignment(float(np.degrees(theta)), float(t[0]), float(t[1]), gap, contact, overlap, score)
-    return result
+        results.append(Alignment(float(np.degrees(theta)), float(t[0]), float(t[1]), gap, contact, overlap, score))
+    results.sort(key=lambda r: -r.score)
+    distinct: list[Alignment] = []
+    for r in results:  # refinement often brings several windows to the same pose
+        if not any(abs((r.angle_deg - d.angle_deg + 180) % 360 - 180) < 2.0
+                   and np.hypot(r.tx_mm - d.tx_mm, r.ty_mm - d.ty_mm) < 2.0 for d in distinct):
+            distinct.append(r)
+    return distinct
 
 
 def _anchor_windows(contour, arcs_mm, k, width, step_mm, *, reverse):

@@ -45,6 +45,8 @@ class MatchModel:
         A fragment pair's probability is the mean of its ``top_m`` best patch-pair probabilities.
     info : dict
         Provenance: training set, class weighting, number of verified pairs, ...
+    training : (x, y, weight) or None
+        The bootstrap training rows, kept so online refits start from them (stored as arrays).
     """
 
     columns: list[str]
@@ -56,6 +58,7 @@ class MatchModel:
     version: str = "0000-untrained"
     top_m: int = 3
     info: dict = field(default_factory=dict)
+    training: tuple | None = field(default=None, repr=False)
 
     def __post_init__(self):
         self.columns = [str(c) for c in self.columns]
@@ -124,6 +127,12 @@ def save_model(store: Store, model: MatchModel, *, provenance: dict | None = Non
         f.create_dataset("columns", data=np.array(model.columns, dtype=object), dtype=_str_dtype())
         for name in ("impute", "mean", "scale", "coef"):
             f.create_dataset(name, data=getattr(model, name).astype(np.float64))
+        if model.training is not None:
+            x, y, w = model.training
+            g = f.create_group("training")
+            g.create_dataset("x", data=np.asarray(x, np.float64), compression="gzip", shuffle=True)
+            g.create_dataset("y", data=np.asarray(y, np.int8))
+            g.create_dataset("weight", data=np.asarray(w, np.float64))
 
     return store.write(f"{MODEL_DIR}/{model.version}.h5", SCHEMA, SCHEMA_VERSION, fill,
                        provenance=provenance or {"model": model.version})
@@ -134,10 +143,14 @@ def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
     with store.open(ref, schema=SCHEMA) as f:
         try:
             cols = [c.decode() if isinstance(c, bytes) else str(c) for c in f["columns"][()]]
+            training = None
+            if "training" in f:
+                g = f["training"]
+                training = (g["x"][()].astype(float), g["y"][()].astype(int), g["weight"][()].astype(float))
             return MatchModel(columns=cols, impute=f["impute"][()], mean=f["mean"][()], scale=f["scale"][()],
                               coef=f["coef"][()], intercept=float(f.attrs["intercept"]),
                               version=str(f.attrs["version"]), top_m=int(f.attrs["top_m"]),
-                              info=json.loads(f.attrs.get("info", "{}")))
+                              info=json.loads(f.attrs.get("info", "{}")), training=training)
         except (KeyError, ValueError) as exc:
             raise ArtifactError(f"model {getattr(ref, 'path', ref)} is malformed: {exc}") from exc
 

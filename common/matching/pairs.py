@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.features.patches import MIN_COVERAGE
 from common.features.registry import correspondence, fragment_descriptors, patch_descriptors
 from common.matching.alignment import signed_area_mm2
 from common.matching.classifiers import MATCH_COLUMNS
@@ -68,7 +69,8 @@ class FragmentCues:
         return len(self.arc_mm)
 
 
-def fragment_cues(table, fragment: str | None = None, *, kind: str = PAIR_KIND) -> FragmentCues:
+def fragment_cues(table, fragment: str | None = None, *, kind: str = PAIR_KIND,
+                  min_coverage: float = MIN_COVERAGE) -> FragmentCues:
     """Extract the matcher's view of a :class:`~common.features.table.FeatureTable`.
 
     Parameters
@@ -80,6 +82,8 @@ def fragment_cues(table, fragment: str | None = None, *, kind: str = PAIR_KIND) 
         Fragment id (default ``table.fragment`` if the table has one).
     kind : str
         Patch kind to pair.
+    min_coverage : float
+        Patches with less of their disc on the fragment are left out (their values are missing).
     """
     fragment = str(fragment if fragment is not None else getattr(table, "fragment", ""))
     fvals = np.array([_get(table.values, d.name) for d in fragment_descriptors()], dtype=float)
@@ -87,7 +91,11 @@ def fragment_cues(table, fragment: str | None = None, *, kind: str = PAIR_KIND) 
     names = [str(n) for n in getattr(table, "patch_names", [d.name for d in patch_descriptors()])]
     col = {n: i for i, n in enumerate(names)}
     kinds = np.asarray(getattr(table, "patch_kind", np.full(len(pv), kind))).astype(str)
-    sel = np.flatnonzero(kinds == kind)
+    cov = getattr(table, "patch_coverage", None)
+    cov = np.ones(len(pv)) if cov is None else np.asarray(cov, float)
+    # a patch mostly off the fragment has no values of its own (the extractor leaves them NaN):
+    # pairing it would only add imputed noise, so it is not a patch the matcher uses
+    sel = np.flatnonzero((kinds == kind) & (cov >= min_coverage))
     patches = np.full((len(sel), len(patch_descriptors())), np.nan)
     for k, d in enumerate(patch_descriptors()):
         if d.name in col:
@@ -233,7 +241,7 @@ def _to_wall(points, pose):
     return points @ r.T + np.array([tx, ty]), r
 
 
-def true_patch_pairs(a: FragmentCues, pose_a, b: FragmentCues, pose_b, *, max_dist_mm: float = 3.5,
+def true_patch_pairs(a: FragmentCues, pose_a, b: FragmentCues, pose_b, *, max_dist_mm: float = 2.5,
                      min_opposition: float = 0.5) -> np.ndarray:
     """Matching patch pairs of two true neighbours, from their wall poses.
 
@@ -302,7 +310,7 @@ class TrainingSet:
 
 
 def training_set(cues: dict, poses: dict, adjacency, *, negatives_per_positive: float = 10.0,
-                 max_dist_mm: float = 3.5, seed: int = 0) -> TrainingSet:
+                 max_dist_mm: float = 2.5, seed: int = 0) -> TrainingSet:
     """Training rows from ground truth: all matching patch pairs of true neighbours plus sampled
     non-matches from fragment pairs that are not neighbours.
 

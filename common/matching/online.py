@@ -1,0 +1,144 @@
+"""Training, online learning from verdicts, and re-ranking (thesis §5.8; §5.2.2).
+
+* :func:`wall_cues` — feature tables and matcher cues of a synthetic (or imported) wall.
+* :func:`train_model` — fit the default logistic regression on a training set and extract it as a
+  pickle-free :class:`~common.matching.models.MatchModel` (its training rows go with it, so later
+  refits can start from them).
+* :func:`verdict_rows` / :func:`refit_with_verdicts` — **online learning**: every verdict adds the
+  evidence rows the classifier saw for that proposal (its ``top_m`` best patch pairs), labelled 1
+  (confirmed) or 0 (rejected), with a larger sample weight than the bootstrap rows (a person's
+  decision on a real fragment outweighs a synthetic example); the logistic regression is re-fitted
+  on the union and becomes the next model version.
+* :func:`rerank` — new probabilities for stored proposals under the new model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.matching.classifiers import make_classifier
+from common.matching.models import MatchModel, model_from_pipeline
+from common.matching.pairs import FragmentCues, TrainingSet, correspondence_columns, fragment_cues, training_set
+
+#: sample weight of one verdict row relative to one bootstrap row
+VERDICT_WEIGHT = 5.0
+
+
+def wall_cues(wall, *, progress=None, work_pixel_mm: float = 0.1):
+    """Extract features of every fragment of a wall with images.
+
+    Returns
+    -------
+    tables : dict id → FeatureTable, cues : dict id → FragmentCues, poses : dict id → pose (None
+    for spurious fragments)
+    """
+    from common.features import extract_features
+
+    tables, cues, poses = {}, {}, {}
+    n = len(wall.fragments)
+    for i, f in enumerate(wall.fragments):
+        if f.rgbn is None:
+            raise ValueError(f"fragment {f.id} of wall {wall.id} has no image (generate with keep_images=True)")
+        tables[f.id] = extract_features(f.rgbn, work_pixel_mm=work_pixel_mm)
+        cues[f.id] = fragment_cues(tables[f.id], f.id)
+        poses[f.id] = f.pose
+        if progress:
+            progress((i + 1) / n, f"features of fragment {i + 1}/{n}")
+    return tables, cues, poses
+
+
+def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_weight=None, top_m: int = 3,
+                info: dict | None = None) -> tuple[MatchModel, object]:
+    """Fit the logistic regression (balanced class weights) and return (model, fitted pipeline)."""
+    if len(np.unique(ts.y)) < 2:
+        raise ValueError("the training set needs both matches and non-matches")
+    pipe = make_classifier("logistic", C=C)
+    kw = {"clf__sample_weight": np.asarray(sample_weight, float)} if sample_weight is not None else {}
+    pipe.fit(ts.x, ts.y, **kw)
+    meta = {"n_train": int(len(ts)), "n_match": int(ts.y.sum()), "class_weight": "balanced",
+            "negatives_per_positive": float(ts.negatives_per_positive), "C": C}
+    meta.update(info or {})
+    model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta)
+    model.training = (ts.x, ts.y, np.ones(len(ts.y)) if sample_weight is None else np.asarray(sample_weight, float))
+    return model, pipe
+
+
+def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None) -> MatchModel:
+    """A first model trained on a synthetic wall, for a station that has no verdicts yet."""
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
+    _, cues, poses = wall_cues(wall, progress=progress)
+    ts = training_set(cues, poses, wall.adjacency, seed=seed)
+    model, _ = train_model(ts, sequence=1, info={"trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, "
+                                                               f"seed {seed}, {dpi:g} dpi)"})
+    return model
+
+
+def verdict_rows(evidence: dict, verdict: str, columns: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and labels a verdict teaches: the proposal's evidence rows, 1 if confirmed else 0."""
+    if verdict not in ("confirmed", "rejected"):
+        raise ValueError(f"verdict must be 'confirmed' or 'rejected', got {verdict!r}")
+    if not evidence or "rows" not in evidence:
+        return np.zeros((0, len(columns))), np.zeros(0, int)
+    cols = list(evidence.get("columns", columns))
+    rows = np.array(evidence["rows"], dtype=float).reshape(-1, len(cols))
+    x = np.full((len(rows), len(columns)), np.nan)
+    pos = {c: i for i, c in enumerate(cols)}
+    for j, c in enumerate(columns):
+        if c in pos:
+            x[:, j] = rows[:, pos[c]]
+    return x, np.full(len(rows), 1 if verdict == "confirmed" else 0)
+
+
+def refit_with_verdicts(base_x: np.ndarray, base_y: np.ndarray, verdicts: list[tuple[np.ndarray, np.ndarray]], *,
+                        previous: MatchModel, verdict_weight: float = VERDICT_WEIGHT, C: float | None = None) -> MatchModel:
+    """Re-fit the logistic regression on the bootstrap rows plus every verdict's rows.
+
+    Parameters
+    ----------
+    base_x, base_y : bootstrap training rows (stored with the model)
+    verdicts : list of (rows, labels) from :func:`verdict_rows`, all verdicts so far (latest per pair)
+    previous : MatchModel
+        The current model; the new one gets the next sequence number.
+    verdict_weight : float
+        Sample weight of a verdict row relative to a bootstrap row.
+    """
+    xs = [np.asarray(base_x, float)] + [v[0] for v in verdicts if len(v[0])]
+    ys = [np.asarray(base_y, int)] + [v[1] for v in verdicts if len(v[1])]
+    ws = [np.ones(len(base_y))] + [np.full(len(v[1]), float(verdict_weight)) for v in verdicts if len(v[1])]
+    x, y, w = np.vstack(xs), np.concatenate(ys), np.concatenate(ws)
+    ts = TrainingSet(x, y, np.zeros(len(y), int), np.zeros((len(y), 2), str), np.zeros((len(y), 2), int),
+                     list(previous.columns), float(previous.info.get("negatives_per_positive", np.nan)))
+    n_v = int(sum(len(v[1]) for v in verdicts))
+    info = dict(previous.info)
+    info.update({"verdict_rows": n_v, "verdict_weight": float(verdict_weight), "previous": previous.version})
+    model, _ = train_model(ts, sequence=previous.sequence + 1, C=float(C if C is not None else previous.info.get("C", 1.0)),
+                           sample_weight=w, top_m=previous.top_m, info=info)
+    model.training = (np.asarray(base_x, float), np.asarray(base_y, int), np.ones(len(base_y)))
+    return model
+
+
+def rerank(index, model: MatchModel, pairs: list[tuple[str, str]]) -> dict:
+    """New probabilities of fragment pairs under ``model`` (pairs whose fragments are indexed).
+
+    Pairs are grouped by their first fragment so each fragment's patches are scored against all
+    its partners in one batch. Returns ``{(a, b): Candidate}``.
+    """
+    by_a: dict = {}
+    for a, b in pairs:
+        if a in index and b in index:
+            by_a.setdefault(a, []).append(b)
+    out = {}
+    for a, others in by_a.items():
+        for c in index.score(index.cues[a], others, model):
+            out[(a, c.other)] = c
+    return out
+
+
+def evidence_dict(candidate, columns: list[str] | None = None) -> dict:
+    """JSON-able evidence of a candidate: its top patch pairs and their correspondence rows."""
+    rows = np.asarray(candidate.evidence, float)
+    return {"columns": list(columns or correspondence_columns()),
+            "patches": np.asarray(candidate.top_pairs, int).tolist(),
+            "rows": [[None if not np.isfinite(v) else float(v) for v in r] for r in rows]}
