@@ -7,12 +7,13 @@ import warnings
 import numpy as np
 from skimage.segmentation import felzenszwalb
 
-from common.rgbn._filters import check_mask, check_normals
+from common.rgbn._filters import check_mask, check_normals, gaussian_blur
 
 
 def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask: np.ndarray | None = None,
                  scale: float = 1.0, sigma_px: float = 0.8, min_size: int = 64,
-                 colour_weight: float = 1.0, normal_weight: float = 1.0) -> np.ndarray:
+                 colour_weight: float = 1.0, normal_weight: float = 1.0,
+                 max_megapixels: float | None = 2.0) -> np.ndarray:
     """Graph-based (Felzenszwalb-Huttenlocher) segmentation with a colour+normal dissimilarity.
 
     The edge weight between 4-/8-connected neighbours p, q is (§7.2.4)::
@@ -40,6 +41,11 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         Minimum segment size in pixels (smaller ones are merged into a neighbour).
     colour_weight, normal_weight : float
         ``wc`` and ``wn`` above: the relative importance of colour and normal differences.
+    max_megapixels : float or None
+        Larger images are segmented on an integer-factor downsampled grid (area averaging, with
+        ``min_size`` scaled accordingly) and the labels upsampled by nearest neighbour: the graph
+        of a 16-Mpx image would need ~8 GB. Segment boundaries are then accurate to the factor in
+        pixels. None always works at full resolution.
 
     Returns
     -------
@@ -95,17 +101,49 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
     if sigma_px < 0:
         raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
     mask = check_mask(mask, shape)
+    if max_megapixels is not None and shape[0] * shape[1] > max_megapixels * 1e6:
+        return _segment_downsampled(albedo, normals, mask, shape, scale=scale, sigma_px=sigma_px, min_size=min_size,
+                                    colour_weight=colour_weight, normal_weight=normal_weight,
+                                    max_megapixels=max_megapixels)
     feats = np.concatenate(parts, axis=2)
     if not mask.all():
         # background becomes one far-away constant so no segment straddles the mask border
         far = np.float32(10.0 * (abs(colour_weight) + abs(normal_weight)) + 10.0)
         feats = np.where(mask[..., None], feats, far)
+    if sigma_px > 0:
+        # OpenCV's float32 Gaussian is several times faster than the float64 one inside skimage
+        feats = gaussian_blur(feats, float(sigma_px))
     with warnings.catch_warnings():
         # skimage warns that a 6-channel image "may not be intended": here it is
         warnings.filterwarnings("ignore", message="Got image with third dimension", category=RuntimeWarning)
-        labels = felzenszwalb(feats.astype(np.float64, copy=False), scale=float(scale), sigma=float(sigma_px),
+        labels = felzenszwalb(feats.astype(np.float64), scale=float(scale), sigma=0.0,
                               min_size=int(min_size), channel_axis=-1)
     return _relabel_by_area(labels, mask)
+
+
+def _segment_downsampled(albedo, normals, mask, shape, *, max_megapixels, **kw):
+    import cv2
+
+    h, w = shape
+    f = int(np.ceil(np.sqrt(h * w / (max_megapixels * 1e6))))
+    size = (max(1, w // f), max(1, h // f))
+    small = lambda a: None if a is None else cv2.resize(a, size, interpolation=cv2.INTER_AREA)  # noqa: E731
+    n_small = small(normals)
+    if n_small is not None:
+        n_small /= np.maximum(np.linalg.norm(n_small, axis=2, keepdims=True), 1e-12)
+    m_small = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    kw = dict(kw, sigma_px=kw["sigma_px"] / f, min_size=max(1, int(round(kw["min_size"] / f ** 2))))
+    labels = segment_rgbn(small(albedo), n_small, mask=m_small, max_megapixels=None, **kw)
+    up = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
+    # the mask stays exact; mask pixels that fell on background in the small grid take the
+    # nearest label, background pixels that fell on the fragment become -1
+    up[~mask] = -1
+    if ((up < 0) & mask).any():
+        import scipy.ndimage as ndi
+
+        idx = ndi.distance_transform_edt(up < 0, return_distances=False, return_indices=True)
+        up = np.where(mask, up[idx[0], idx[1]], -1)
+    return up.astype(np.int32)
 
 
 def _relabel_by_area(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:

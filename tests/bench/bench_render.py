@@ -28,20 +28,21 @@ def relief_image(size: int, seed: int = 0):
     """A fragment-like RGBN image: multi-scale relief, incisions, two pigments, a round outline."""
     import cv2
 
+    from common.rgbn._filters import gaussian_blur
     from common.rgbn.image import RGBNImage
 
     rng = np.random.default_rng(seed)
     height = np.zeros((size, size), np.float32)
     for sigma, amp in ((size / 16, 2.0), (size / 64, 0.4), (3.0, 0.05)):
         noise = rng.standard_normal((size, size)).astype(np.float32)
-        layer = cv2.GaussianBlur(noise, (0, 0), sigma)
+        layer = gaussian_blur(noise, sigma)
         height += amp * layer / max(float(layer.std()), 1e-6)
     # straight incisions (tool marks)
     for _ in range(12):
         x0, y0, x1, y1 = rng.integers(0, size, 4)
         groove = np.zeros((size, size), np.uint8)
         cv2.line(groove, (int(x0), int(y0)), (int(x1), int(y1)), 1, max(2, size // 400))
-        height -= 0.3 * cv2.GaussianBlur(groove.astype(np.float32), (0, 0), 1.5)
+        height -= 0.3 * gaussian_blur(groove.astype(np.float32), 1.5)
     pixel_mm = 25.4 / 600
     gy, gx = np.gradient(height * 0.05)  # height in units of 0.05 mm
     n = np.stack([-gx / pixel_mm, gy / pixel_mm, np.ones_like(gx)], axis=-1)

@@ -58,3 +58,15 @@ def test_bad_weights_are_refused_by_name():
         segment_rgbn(None, tilted_plane(8), normal_weight=-1)
     with pytest.raises(ValueError, match="nothing to segment"):
         segment_rgbn(None, None)
+
+
+def test_large_images_are_segmented_on_a_coarser_grid_with_the_same_regions():
+    n = two_orientations(128)
+    mask = np.ones((128, 128), bool)
+    mask[:, :3] = False
+    full = segment_rgbn(None, n, mask=mask, scale=20, sigma_px=0, min_size=400, max_megapixels=None)
+    coarse = segment_rgbn(None, n, mask=mask, scale=20, sigma_px=0, min_size=400, max_megapixels=0.004)
+    assert (coarse[~mask] == -1).all() and (coarse[mask] >= 0).all()
+    # the same two regions, boundaries within the downsampling factor (3 px)
+    agree = (full == coarse)[:, 3:]
+    assert agree.mean() > 0.95 and agree[:, :58].all() and agree[:, 67:].all()
