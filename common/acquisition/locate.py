@@ -51,13 +51,20 @@ def to_float(image: np.ndarray) -> np.ndarray:
     return image.astype(np.float32)
 
 
-def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float) -> np.ndarray:
-    """Pixels that differ from the background beyond its noise, minus shadow-like ones."""
+def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float,
+                noise_region: np.ndarray | None = None) -> np.ndarray:
+    """Pixels that differ from the background beyond its noise, minus shadow-like ones.
+
+    The noise statistics come from ``noise_region`` (pixels known to be background), or from
+    the whole image when the object is small in it (the pre-scan).
+    """
     sm = cv2.GaussianBlur(img, (0, 0), max(0.6, 0.15 / pixel_mm))
     diff = sm - bg
     dist = np.sqrt((diff ** 2).sum(axis=2))
-    mad = np.median(np.abs(dist - np.median(dist))) + 1e-6
-    thr = max(k * 1.4826 * mad + np.median(dist), 0.02 * float(np.median(bg.sum(axis=2))) + 0.004)
+    ref = dist if noise_region is None else dist[noise_region]
+    med = np.median(ref)
+    mad = np.median(np.abs(ref - med)) + 1e-6
+    thr = max(k * 1.4826 * mad + med, 0.02 * float(np.median(bg.sum(axis=2))) + 0.004)
     fg = dist > thr
     # the lamp's shadow: darker than the background in every channel, with the background's hue
     lum, blum = sm.mean(axis=2), bg.mean(axis=2) + 1e-6
@@ -185,7 +192,7 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
     ring[b:-b, b:-b] = False
     bgc = np.median(img[ring], axis=0).astype(np.float32)
     bg = np.broadcast_to(bgc, img.shape)
-    fg = _foreground(img, bg, pixel_mm, k).astype(np.uint8)
+    fg = _foreground(img, bg, pixel_mm, k, noise_region=ring).astype(np.uint8)
     # close gaps of up to ``close_mm`` (an object of the bed's own grey shows only its outline and
     # engraving), fill the enclosed holes, then open away dust
     if close_mm > 0:
