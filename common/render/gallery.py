@@ -65,9 +65,10 @@ def _downsample(image: RGBNImage, max_side: int) -> RGBNImage:
     size = (int(round(w / f)), int(round(h / f)))
     n = cv2.resize(image.normals, size, interpolation=cv2.INTER_AREA)
     n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    d = None if image.discontinuity is None else cv2.resize(image.discontinuity, size, interpolation=cv2.INTER_AREA)
     return RGBNImage(albedo=cv2.resize(image.albedo, size, interpolation=cv2.INTER_AREA),
                      mask=cv2.resize(image.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0,
-                     dpi=image.dpi / f, normals=n)
+                     dpi=image.dpi / f, normals=n, discontinuity=d)
 
 
 def ball(data: Path) -> RGBNImage:
@@ -171,15 +172,26 @@ def _sheet(tiles: list, height: int = TILE_HEIGHT, gap: int = 6) -> np.ndarray:
 def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict) -> None:
     lines = ["# Illustration gallery (§7.3)", "",
              "Every style and every shipped recipe (`configs/recipes/`) drawn on real data by "
-             "`python -m common.render.gallery`. Each style's recipe is the TOML under its heading; "
-             "draw one yourself with `tessera render IN --style NAME -o OUT.png` or "
-             "`tessera render IN --recipe FILE -o OUT.png`.", "",
+             "`python -m common.render.gallery` (regenerate after changing a style). Under each picture is "
+             "the recipe that drew it.", "",
+             "Draw your own:", "",
+             "```sh",
+             "tessera render --list-styles                               # styles and their parameters",
+             "tessera render front.h5 --style exaggerated -o front.png  # an RGBN artifact, one style",
+             "tessera render front.h5 --recipe relief -o front.tif --bits 16",
+             "tessera render --normals N.png --albedo A.png --convention directx --dpi 600 \\",
+             "    --style toon -p levels=4 -o toon.png                    # a normal map from another tool",
+             "```", "",
+             "The renderer service draws every new face with the recipe named in the station config "
+             "(`[services.renderer] recipe = \"default\"`, a shipped name or a TOML path) and publishes "
+             "`render.ready`; the recipe format is documented in `common/render/recipes.py`.", "",
              "Each picture shows, left to right: " + ", ".join(rows) + ". Subjects (pixel sizes are nominal — "
              "none of these captures records a scale):", ""]
     about = {
         "ball": "DiLiGenT *ball*, ground-truth normals (`normal_gt.npy`, row 0 = top, y up), grey albedo, nominal 200 dpi.",
         "cat": "psm-seitz *cat*: 12 flash images solved by robust hand-held photometric stereo, lights from the "
-               "chrome sphere, intensities from the grey sphere, nominal 100 dpi.",
+               "chrome sphere, intensities from the grey sphere, nominal 100 dpi; its depth-discontinuity map "
+               "(Raskar et al. 2004) feeds the discontinuity lines and shadows.",
         "owl": "psm-seitz *owl*, solved as the cat.",
         "coin": "flatbed-coin: four registered scans (0/90/180/270°) solved by the flatbed photometric stereo "
                 "(§3.3.6) at 1/4 size under a *nominal* lamp model a = (0, 0.55, 0.55, 0) — the data set has no "

@@ -18,7 +18,8 @@ from common.rgbn.smoothing import smooth_normals
 
 def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray | None = None,
                         discontinuity: np.ndarray | None = None, threshold_deg: float = 20.0,
-                        softness_deg: float = 10.0, outline: bool = True, width_px: float = 1.0) -> np.ndarray:
+                        softness_deg: float = 10.0, outline: bool = True, width_px: float = 1.0,
+                        flash_gain: float = 2.5) -> np.ndarray:
     """Lines along depth and orientation discontinuities (§7.3.3).
 
     Sources, combined by maximum:
@@ -26,7 +27,7 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
     * the normal map: the angle between the normals of neighbouring pixels (central differences),
       ``smoothstep(threshold - softness, threshold + softness, angle)`` — creases, steps, cracks;
     * the flash capture's discontinuity map (:attr:`RGBNImage.discontinuity`, Raskar et al. 2004):
-      its magnitude (clipped to 1);
+      its magnitude times ``flash_gain``, clipped to 1;
     * the fragment outline (the mask boundary) when ``outline``.
 
     Parameters
@@ -43,6 +44,8 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
         Draw the mask boundary.
     width_px : float
         Line width in pixels (lines are thickened by a grey dilation and softened).
+    flash_gain : float
+        Scale of the flash discontinuity strength before clipping (its values rarely reach 1).
 
     Returns
     -------
@@ -76,7 +79,7 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
         d = np.asarray(discontinuity, np.float32)
         if d.shape != tuple(shape) + (2,):
             raise ValueError(f"discontinuity must be {tuple(shape) + (2,)}, got {d.shape}")
-        lines = np.maximum(lines, np.clip(np.hypot(d[..., 0], d[..., 1]), 0.0, 1.0))
+        lines = np.maximum(lines, np.clip(np.float32(flash_gain) * np.hypot(d[..., 0], d[..., 1]), 0.0, 1.0))
     if outline and not mask.all():
         m = mask.astype(np.uint8)
         edge = (m - cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)) > 0

@@ -148,11 +148,12 @@ def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm:
 
 
 def draw_discontinuity_lines(image: RGBNImage, threshold_deg: float = 20.0, softness_deg: float = 10.0,
-                             outline: bool = True, width_px: float = 1.5, colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Lines along normal and depth discontinuities and the outline (§7.3.3)."""
+                             outline: bool = True, width_px: float = 1.5, flash_gain: float = 2.5,
+                             colour=(0.0, 0.0, 0.0)) -> Layer:
+    """Lines along normal and depth discontinuities (flash map if any) and the outline (§7.3.3)."""
     return _ink(_lines.discontinuity_lines(image.normals, mask=image.mask, discontinuity=image.discontinuity,
                                            threshold_deg=threshold_deg, softness_deg=softness_deg,
-                                           outline=outline, width_px=width_px), colour)
+                                           outline=outline, width_px=width_px, flash_gain=flash_gain), colour)
 
 
 def draw_suggestive_contours(image: RGBNImage, radius_px: float = 4.0, fraction: float = 0.2, depth: float = 0.02,

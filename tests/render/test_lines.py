@@ -26,7 +26,7 @@ def test_discontinuity_lines_use_the_flash_discontinuity_map_and_the_outline():
     mask = np.zeros((32, 32), bool)
     mask[4:28, 4:28] = True
     lines = discontinuity_lines(None, mask=mask, discontinuity=d, outline=True)
-    assert lines[10, 5:25].min() == 1.0
+    assert lines[10, 5:25].min() == 1.0  # strength 1 x flash_gain, clipped
     assert lines[4, 10] == 1.0 and lines[15, 27] == 1.0  # the outline
     assert lines[16, 16] == 0.0
 
