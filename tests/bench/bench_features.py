@@ -3,6 +3,7 @@
     python tests/bench/bench_features.py            # speed and the Table 5.1-like table
     python tests/bench/bench_features.py --speed    # speed only
     python tests/bench/bench_features.py --table [--fragments 30 --seed 1 --dpi 200]
+    python tests/bench/bench_features.py --pictures docs/features   # the debug pictures of docs/
 
 Speed: all per-fragment and per-patch descriptors of a 10 cm fragment at 600 dpi (about
 2400 x 2400 pixels), target <= 1.5 s on the 2-core station machine.
@@ -70,12 +71,14 @@ def _auc(match: np.ndarray, non: np.ndarray) -> float:
     return 1.0 - u / (len(match) * len(non))
 
 
-def bench_table(n_fragments: int, seed: int, dpi: float, out: Path | None, match_mm: float = 1.0) -> None:
+def bench_table(n_fragments: int, seed: int, dpi: float, out: Path | None, match_mm: float = 1.0,
+                erosion_mm: float | None = None) -> None:
     from common.synth import generate_wall
     t0 = time.perf_counter()
-    wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
+    kw = {} if erosion_mm is None else {"erosion_mm": erosion_mm}
+    wall = generate_wall(n_fragments, seed=seed, dpi=dpi, **kw)
     frags = {f.id: f for f in wall.fragments}
-    print(f"table: synthetic fresco generate_wall({n_fragments}, seed={seed}, dpi={dpi:g}): "
+    print(f"table: synthetic fresco generate_wall({n_fragments}, seed={seed}, dpi={dpi:g}{', erosion_mm=%g' % erosion_mm if kw else ''}): "
           f"{len(frags)} fragments, {len(wall.adjacency)} adjacent pairs ({time.perf_counter() - t0:.0f} s)")
     tables = {}
     for fid, f in frags.items():
@@ -135,6 +138,18 @@ def bench_table(n_fragments: int, seed: int, dpi: float, out: Path | None, match
         print(f"wrote {out}")
 
 
+def make_pictures(out_dir: Path) -> None:
+    """Debug pictures (patches, Fig. 5.5-like orientation, Fig. 5.6-like erosion) of the largest
+    fragment of a small synthetic wall."""
+    from common.features.debug import save_debug_pictures
+    from common.synth import generate_wall
+    wall = generate_wall(6, seed=4, dpi=300, median_size_mm=40)
+    frag = max(wall.fragments, key=lambda f: f.rgbn.mask.sum())
+    table = extract_features(frag.rgbn)
+    for p in save_debug_pictures(frag.rgbn, table, out_dir, prefix="synth-"):
+        print(f"wrote {p} (fragment {frag.id})")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--speed", action="store_true")
@@ -144,13 +159,19 @@ def main(argv=None) -> int:
     p.add_argument("--dpi", type=float, default=200.0)
     p.add_argument("--match-mm", type=float, default=1.0,
                    help="how close both patches' contour points must be to a corresponding pair")
+    p.add_argument("--erosion-mm", type=float, help="edge erosion of the synthetic fresco (default: its own)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")
+    p.add_argument("--pictures", type=Path, help="write the debug pictures of docs/features.md here")
     a = p.parse_args(argv)
+    if a.pictures:
+        make_pictures(a.pictures)
+        if not (a.speed or a.table):
+            return 0
     both = not (a.speed or a.table)
     if a.speed or both:
         bench_speed()
     if a.table or both:
-        bench_table(a.fragments, a.seed, a.dpi, a.out, a.match_mm)
+        bench_table(a.fragments, a.seed, a.dpi, a.out, a.match_mm, a.erosion_mm)
     return 0
 
 
