@@ -30,7 +30,7 @@ def inner_distance_mm(mask: np.ndarray, pixel_mm: float) -> np.ndarray:
 
 
 def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, depth_mm: float = 0.8,
-                chips: float = 0.3) -> np.ndarray:
+                chips: float = 0.2) -> np.ndarray:
     """Erode a fragment's broken edges by a depth that varies along the contour.
 
     Parameters
@@ -43,7 +43,7 @@ def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, 
     depth_mm : float
         Mean erosion depth; it varies between about 0 and 2.5x this along the edge.
     chips : float
-        Expected number of chipped bites per cm of contour.
+        Expected number of chipped bites (small ellipses) per cm of contour.
 
     Returns
     -------
@@ -67,8 +67,8 @@ def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, 
     if len(edge) and chips > 0:
         n = rng.poisson(chips * len(edge) * pixel_mm / 10.0)
         for r, c in edge[rng.integers(0, len(edge), n)]:
-            rad = rng.uniform(0.5, 2.5) / pixel_mm
-            cv2.circle(out.view(np.uint8), (int(c), int(r)), int(round(rad)), 0, -1)
+            axes = (max(1, int(round(rng.uniform(0.4, 1.8) / pixel_mm))), max(1, int(round(rng.uniform(0.2, 0.9) / pixel_mm))))
+            cv2.ellipse(out.view(np.uint8), (int(c), int(r)), axes, float(rng.uniform(0, 180)), 0, 360, 0, -1)
     return largest_component(out)
 
 

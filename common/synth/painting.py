@@ -213,11 +213,12 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
     # spiral frieze
     if frieze_h:
         y0 = top
-        hband(y0, y0 + frieze_h, rng.choice(["lime white", "egyptian blue", "yellow ochre"]))
+        ground_name = rng.choice(["lime white", "egyptian blue", "yellow ochre"])
+        hband(y0, y0 + frieze_h, ground_name)
         cy = y0 + frieze_h / 2
         r = frieze_h * 0.38
         step = 2.2 * r
-        colour = col(rng.choice(["red ochre", "carbon black", "egyptian blue"]))
+        colour = col(rng.choice([c for c in ("red ochre", "carbon black", "egyptian blue") if c != ground_name]))
         for i, cx in enumerate(np.arange(rng.uniform(0, step), width_mm + step, step)):
             sp = _spiral(cx, cy, r, rng.uniform(1.7, 2.4), rng.uniform(0, 2 * np.pi), 1 if i % 2 else -1)
             _poly(img, sp * k, colour, closed=False, thickness=max(frieze_h * 0.06, 1.0) * k)

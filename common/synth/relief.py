@@ -105,7 +105,7 @@ class WallRelief:
         self.macro = macro.astype(np.float32)
         self.grain = FractalField(rng, grain_mm, octaves=2, persistence=0.5, amplitude=grain_depth_mm)
         # brush-stroke regions on a jittered grid
-        self.stroke_tile = periodic_noise_tile(rng, band=(_STROKE_F0, 0.18))
+        self.stroke_tile = periodic_noise_tile(rng, band=(_STROKE_F0, 0.3))
         nx = max(1, int(round(self.width_mm / stroke_region_mm)))
         ny = max(1, int(round(self.height_mm / stroke_region_mm)))
         self.regions: list[StrokeRegion] = []
@@ -117,7 +117,7 @@ class WallRelief:
                     y_mm=(j + rng.uniform(0.2, 0.8)) * self.height_mm / ny,
                     angle_rad=float(base + rng.normal(0, 0.25)),
                     period_mm=float(np.exp(rng.uniform(np.log(0.6), np.log(3.0)))),
-                    depth_mm=float(np.exp(rng.uniform(np.log(0.015), np.log(0.08))))))
+                    depth_mm=float(np.exp(rng.uniform(np.log(0.008), np.log(0.04))))))
         self._offsets = [(float(rng.uniform(0, 256)), float(rng.uniform(0, 256))) for _ in self.regions]
         # soft region weights on a coarse raster (2 mm): softmin of the distance to the centres
         self._w_res = 2.0

@@ -38,6 +38,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scan-dpi", type=float, help="scan resolution with --as scans (default: --dpi)")
     p.add_argument("--colour-only", action="store_true", help="with --as scans: one scan per face")
     p.add_argument("--workers", type=int, default=1, help="render fragments in this many processes (same data)")
+    p.add_argument("--pictures", metavar="DIR", help="also write wall.png, cracks.png, fragments.png, reassembly.png here")
     p.set_defaults(func=run)
 
 
@@ -64,6 +65,7 @@ def run(args) -> int:
         image = bgr[..., ::-1]
     store = Store(args.store)
     written = []
+    keep = []  # fragments kept for the pictures
     t0 = time.monotonic()
 
     if args.output == "scans":
@@ -84,6 +86,11 @@ def run(args) -> int:
                                       colour_only=args.colour_only)
             ref = write_scans(store, frag.id, result)
         written.append(ref)
+        if args.pictures:
+            from dataclasses import replace
+
+            from common.synth.figures import thumbnail
+            keep.append(replace(frag) if len(keep) < 8 else thumbnail(frag, 0.5))
 
     def progress(fraction, text):
         print(f"[{fraction * 100:5.1f}%] {text} {time.monotonic() - t0:6.1f}s", file=sys.stderr, flush=True)
@@ -94,6 +101,16 @@ def run(args) -> int:
                          workers=max(1, args.workers),
                          on_fragment=on_fragment, progress=progress)
     gt = save_groundtruth(store, wall)
+    if args.pictures:
+        from pathlib import Path
+
+        from common.synth import figures
+        out = Path(args.pictures)
+        figures.save_png(out / "wall.png", figures.wall_picture(wall))
+        figures.save_png(out / "cracks.png", figures.crack_picture(wall))
+        figures.save_png(out / "fragments.png", figures.fragment_sheet(keep[:6], tile=130, columns=2))
+        figures.save_png(out / "reassembly.png", figures.reassembly_picture(wall, keep, mm_per_px=max(0.5, wall.width_mm / 1200)))
+        print(f"pictures in {out}")
     areas = np.array([f.area_mm2 for f in wall.fragments])
     sizes = np.sqrt(areas) / 10.0
     print(f"wall {wall.id}: {wall.width_mm:.0f} x {wall.height_mm:.0f} mm, {len(wall.fragments)} fragments "
