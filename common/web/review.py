@@ -17,6 +17,7 @@ import threading
 from pathlib import Path
 from typing import Mapping
 
+import cv2
 import numpy as np
 
 from common.rgbn.image import RGBNImage, load_rgbn
@@ -56,6 +57,27 @@ def relief_picture(image: RGBNImage) -> np.ndarray:
     out = np.round(np.clip(shade, 0, 1) * 255).astype(np.uint8)
     out[~image.mask] = 0
     return out
+
+
+def shrink_rgbn(image: RGBNImage, max_side_px: int) -> RGBNImage:
+    """An RGBN image scaled down (area averaging) so its longer side is at most ``max_side_px``.
+
+    Normals are averaged and renormalised, the mask resampled by nearest neighbour, the dpi
+    scaled with the pixels so physical sizes (and poses in mm) stay right. Never upscales.
+    """
+    h, w = image.mask.shape
+    s = max_side_px / max(h, w)
+    if s >= 1.0:
+        return image
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    albedo = cv2.resize(image.albedo, size, interpolation=cv2.INTER_AREA)
+    mask = cv2.resize(image.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+    normals = None
+    if image.normals is not None:
+        n = cv2.resize(np.nan_to_num(image.normals), size, interpolation=cv2.INTER_AREA)
+        norm = np.linalg.norm(n, axis=2, keepdims=True)
+        normals = np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), np.array([0, 0, 1], np.float32))
+    return RGBNImage(albedo, mask, image.dpi * size[0] / w, normals=normals)
 
 
 class ReviewData:
@@ -134,8 +156,15 @@ class ReviewData:
             pid = int(pid)
         except (TypeError, ValueError):
             return None
-        found = self._read(lambda db: [p for p in db.all() if p.id == pid], [])
-        return proposal_dict(found[0]) if found else None
+        def by_id(db):
+            if hasattr(db, "by_id"):
+                return db.by_id(pid)
+            from common.matching.proposals import _proposal   # no public lookup by id yet
+            row = db._db.execute("SELECT * FROM proposals WHERE id=?", (pid,)).fetchone()
+            return _proposal(row) if row else None
+
+        found = self._read(by_id, None)
+        return proposal_dict(found) if found else None
 
     def history(self, limit: int = 100) -> list[dict]:
         """Recorded verdicts, newest first."""
@@ -153,13 +182,17 @@ class ReviewData:
         return self._read(lambda db: {f["fragment"] for f in db.fragments()}, set())
 
     # -- pictures ----------------------------------------------------------------------------
-    def rgbn(self, fragment: str, face: str = "front") -> RGBNImage:
-        """The newest RGBN image of a fragment's face; LookupError if there is none yet."""
+    def rgbn(self, fragment: str, face: str = "front") -> tuple[str, RGBNImage]:
+        """(relative path, image) of the newest RGBN image of a fragment's face.
+
+        Raises LookupError if there is none yet.
+        """
         folder = self.store.root / "fragments" / fragment / "rgbn"
         files = sorted(folder.glob(f"{face}-*.h5"), key=lambda p: p.stat().st_mtime) if folder.is_dir() else []
         if not files:
             raise LookupError(f"fragment {fragment} has no {face} RGBN image yet")
-        return load_rgbn(self.store, f"fragments/{fragment}/rgbn/{files[-1].name}")
+        rel = f"fragments/{fragment}/rgbn/{files[-1].name}"
+        return rel, load_rgbn(self.store, rel)
 
     def picture(self, pid: int, view: str, *, max_side_px: int = 640) -> bytes:
         """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``.
@@ -176,9 +209,10 @@ class ReviewData:
             if key in self._cache:
                 self._cache.move_to_end(key)
                 return self._cache[key]
-        a, b = self.rgbn(prop["fragment_a"]), self.rgbn(prop["fragment_b"])
         kind = view.split("-")[1]
-        pa, pb = (self._colour(a), self._colour(b)) if kind == "colour" else (relief_picture(a), relief_picture(b))
+        each = max(128, max_side_px // 2)   # two fragments share every picture
+        (a, pa), (b, pb) = (self._fragment_picture(prop["fragment_a"], kind, each),
+                            self._fragment_picture(prop["fragment_b"], kind, each))
         if view.startswith("pair"):
             img = side_by_side([pa, pb], height_px=min(max_side_px // 2, max(pa.shape[0], pb.shape[0])))
             img = fit_within(img, max_side_px)
@@ -194,6 +228,31 @@ class ReviewData:
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
         return png
+
+    def _fragment_picture(self, fragment: str, kind: str, max_side_px: int) -> tuple[RGBNImage, np.ndarray]:
+        """(RGBN image, colour or relief picture) of a fragment at display size, cached.
+
+        The image is first shrunk to ``max_side_px`` (the page never shows it larger), which also
+        makes the relief rendering — the costly part — several times cheaper.
+        """
+        key = ("fragment", fragment, kind, max_side_px)
+        with self._cache_lock:
+            if key in self._cache and self._cache[key][0] == self._newest(fragment):
+                self._cache.move_to_end(key)
+                return self._cache[key][1]
+        rel, image = self.rgbn(fragment)
+        image = shrink_rgbn(image, max_side_px)
+        value = (image, self._colour(image) if kind == "colour" else relief_picture(image))
+        with self._cache_lock:
+            self._cache[key] = (rel, value)
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return value
+
+    def _newest(self, fragment: str) -> str | None:
+        folder = self.store.root / "fragments" / fragment / "rgbn"
+        files = sorted(folder.glob("front-*.h5"), key=lambda p: p.stat().st_mtime) if folder.is_dir() else []
+        return f"fragments/{fragment}/rgbn/{files[-1].name}" if files else None
 
     @staticmethod
     def _colour(image: RGBNImage) -> np.ndarray:

@@ -95,3 +95,17 @@ def test_relief_of_a_flat_fragment_is_uniform_and_colour_only_falls_back_to_grey
     assert out.shape == (h, w, 3) and np.ptp(out[5:-5, 5:-5]) <= 2
     grey = relief_picture(RGBNImage(np.full((h, w, 3), 0.3), mask, 200))
     assert np.all(grey == grey[0, 0]) and grey[0, 0, 0] == grey[0, 0, 1]
+
+
+def test_shrunk_rgbn_keeps_physical_size_and_unit_normals():
+    from common.web.review import shrink_rgbn
+
+    h, w = 200, 100
+    n = np.dstack([np.full((h, w), 0.6), np.zeros((h, w)), np.full((h, w), 0.8)])
+    img = RGBNImage(np.full((h, w, 3), 0.4), np.ones((h, w), bool), 400, normals=n)
+    small = shrink_rgbn(img, 50)
+    assert small.mask.shape == (50, 25)
+    assert small.pixel_mm * 50 == pytest.approx(img.pixel_mm * 200)   # same physical height
+    np.testing.assert_allclose(np.linalg.norm(small.normals, axis=2), 1.0, atol=1e-5)
+    np.testing.assert_allclose(small.normals[10, 10], [0.6, 0, 0.8], atol=1e-5)
+    assert shrink_rgbn(img, 500) is img
