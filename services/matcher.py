@@ -1,0 +1,183 @@
+"""Matcher service: on ``features.ready`` propose joins; on ``match.verified`` learn and re-rank (§5).
+
+* ``features.ready`` (front face): the feature artifact is recorded in the proposal store, the
+  fragment is added to the in-memory index (only its own cues are computed — nothing else is
+  recomputed), its joins are proposed by the staged matcher (:mod:`common.matching.index`), stored,
+  and returned as ``match.proposed`` events. Back faces are recorded but not matched.
+* ``match.verified``: the verdict is stored (a re-delivered message is ignored), the logistic
+  regression is re-fitted on its bootstrap rows plus every verdict's evidence
+  (:func:`common.matching.online.refit_with_verdicts`), saved as the next model version
+  (pickle-free), and all pending proposals are re-ranked in the store.
+
+State lives in the proposal store (SQLite; ``[services.matcher] db``, default
+``<root>/matches/proposals.sqlite`` — on an NFS root put it on the matcher host's local disk) and in
+artifacts; the index and model in memory are caches re-synchronised at every job, so several matcher
+workers on one host, or a restarted one, see the same fragments and the current model.
+
+Config (``[services.matcher]``, all optional): ``db``, ``journal_mode`` ("WAL"), ``n_candidates``
+(100), ``top`` (10 proposals per new fragment), ``check`` (3 aligned), ``bootstrap_fragments`` (60),
+``bootstrap_seed`` (0), ``verdict_weight`` (5.0).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from common.features import load_features
+from common.matching.models import load_model, save_model
+from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_dict, refit_with_verdicts, rerank,
+                                    verdict_rows)
+from common.matching.index import MatchIndex
+from common.matching.pairs import correspondence_columns, fragment_cues
+from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+from common.messages import MessageError, new_message
+
+SERVICE = "matcher"
+VERSION = "matcher-1.0"
+
+_STATES: dict = {}
+
+
+class _State:
+    """Per-process caches of one proposal store: the index and the current model."""
+
+    def __init__(self, db: ProposalStore):
+        self.db = db
+        self.index = MatchIndex()
+        self.model = None
+        self.seen: dict = {}   # fragment -> sha256 of the indexed feature artifact
+
+
+def _state(ctx) -> _State:
+    cfg = ctx.config or {}
+    db_path = Path(cfg.get("db") or ctx.store.root / "matches" / "proposals.sqlite")
+    key = (str(ctx.store.root), str(db_path))
+    st = _STATES.get(key)
+    if st is None:
+        st = _STATES[key] = _State(ProposalStore(db_path, journal_mode=str(cfg.get("journal_mode", "WAL"))))
+    _sync(st, ctx)
+    return st
+
+
+def _sync(st: _State, ctx) -> None:
+    """Bring the caches up to the store: fragments other workers added, the current model."""
+    for row in st.db.fragments(face="front"):
+        f, art = row["fragment"], row["artifact"]
+        if st.seen.get(f) != art["sha256"]:
+            table = load_features(ctx.store, art, face="front")
+            st.index.add(fragment_cues(table, f), table.contour_mm)
+            st.seen[f] = art["sha256"]
+    current = st.db.current_model()
+    if current is None:
+        cfg = ctx.config or {}
+        ctx.log.info("no match model yet: training the bootstrap model on a synthetic wall")
+        model = bootstrap_model(n_fragments=int(cfg.get("bootstrap_fragments", 60)), seed=int(cfg.get("bootstrap_seed", 0)),
+                                progress=lambda f, t: ctx.progress(0.5 * f, f"bootstrap model: {t}"))
+        ref = save_model(ctx.store, model, provenance={"stage": SERVICE, "stage_version": VERSION})
+        st.db.add_model(model.version, ref.to_dict(), n_train=model.info.get("n_train"), note="bootstrap")
+        st.model = model
+    elif st.model is None or st.model.version != current["version"]:
+        st.model = load_model(ctx.store, current["artifact"])
+
+
+def handle(job: dict, ctx) -> list[dict]:
+    """Route a ``features.ready`` or ``match.verified`` job; return the events to publish."""
+    kind = job.get("type")
+    if kind == "features.ready":
+        return _on_features(job, ctx)
+    if kind == "match.verified":
+        return _on_verified(job, ctx)
+    raise MessageError(f"matcher handles features.ready and match.verified, got {kind!r}")
+
+
+def _on_features(job: dict, ctx) -> list[dict]:
+    fragment, face = str(job["fragment"]), str(job.get("face", "front"))
+    st = _state(ctx)
+    st.db.add_fragment(fragment, face, job["artifact"])
+    if face != "front":
+        ctx.log.info("fragment %s %s face recorded; only front faces are matched", fragment, face)
+        return []
+    _sync(st, ctx)  # indexes the new fragment (only its own cues are computed)
+    cfg = ctx.config or {}
+    cues = st.index.cues[fragment]
+    ctx.progress(0.6, f"proposing joins among {len(st.index)} fragments")
+    found = st.index.propose(cues, st.model, n_candidates=int(cfg.get("n_candidates", 100)),
+                             top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)))
+    columns = correspondence_columns()
+    props = [_proposal(c, st, columns) for c in found]
+    stored = st.db.upsert(props) if props else []
+    ctx.log.info("fragment %s: %d proposals (best %.3f)", fragment, len(stored),
+                 stored[0].probability if stored else float("nan"))
+    return [new_message("match.proposed", **p.to_event_fields()) for p in stored]
+
+
+def _proposal(c, st: _State, columns) -> Proposal:
+    """A stored proposal (fragment_a < fragment_b) from an index candidate (query vs other)."""
+    a, b = ordered_pair(c.fragment, c.other)
+    qa = st.index.cues[c.fragment].patch_index
+    qb = st.index.cues[c.other].patch_index
+    patch_q, patch_o = int(qa[c.patch_a]), int(qb[c.patch_b])
+    pose = None
+    if c.alignment is not None:
+        pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
+        if a != c.fragment:   # stored as b in a: invert
+            th = math.radians(pose[0])
+            cs, sn = math.cos(th), math.sin(th)
+            pose = (-pose[0], -(cs * pose[1] + sn * pose[2]), -(-sn * pose[1] + cs * pose[2]))
+    ev = evidence_dict(c, columns)
+    ev["query"] = c.fragment
+    return Proposal(a, b, c.probability, st.model.version,
+                    patch_a=patch_q if a == c.fragment else patch_o, patch_b=patch_o if a == c.fragment else patch_q,
+                    angle_deg=pose[0] if pose else None, tx_mm=pose[1] if pose else None,
+                    ty_mm=pose[2] if pose else None, alignment=c.alignment.to_dict() if c.alignment else None,
+                    evidence=ev)
+
+
+def _verdict(value) -> str:
+    if value in (True, "confirmed", "confirm", "accept", "accepted", "yes"):
+        return "confirmed"
+    if value in (False, "rejected", "reject", "no"):
+        return "rejected"
+    raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {value!r}")
+
+
+def _on_verified(job: dict, ctx) -> list[dict]:
+    st = _state(ctx)
+    verdict = _verdict(job["verdict"])
+    a, b = ordered_pair(job["fragment"], job["other"])
+    if st.db.get(a, b) is None and a in st.index and b in st.index:
+        # a verdict on a pair the matcher never proposed: score it so the verdict has evidence
+        found = st.index.score(st.index.cues[a], [b], st.model)
+        if found:
+            st.db.upsert([_proposal(found[0], st, correspondence_columns())])
+    recorded = st.db.record_verdict(a, b, verdict, by=job.get("by"), note=job.get("note"),
+                                    message_uid=job.get("uid"), when=job.get("time"))
+    if recorded is None:
+        ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
+        return []
+    # online learning: re-fit on the bootstrap rows + every pair's latest verdict
+    columns = list(st.model.columns)
+    rows = []
+    for (fa, fb), v in st.db.latest_verdicts().items():
+        p = st.db.get(fa, fb)
+        if p is not None and p.evidence:
+            rows.append(verdict_rows(p.evidence, v, columns))
+    if st.model.training is None:
+        raise RuntimeError(f"model {st.model.version} carries no training rows to re-fit from")
+    base_x, base_y, _ = st.model.training
+    ctx.progress(0.3, f"re-fitting on {len(base_y)} bootstrap rows and {len(rows)} verdicts")
+    model = refit_with_verdicts(base_x, base_y, rows, previous=st.model,
+                                verdict_weight=float((ctx.config or {}).get("verdict_weight", VERDICT_WEIGHT)))
+    ref = save_model(ctx.store, model, provenance={"stage": SERVICE, "stage_version": VERSION,
+                                                   "previous": st.model.version, "verdicts": len(rows)})
+    st.db.add_model(model.version, ref.to_dict(), n_train=len(base_y), note=f"{len(rows)} verdicts")
+    st.model = model
+    # re-rank every pending proposal under the new model
+    pending = st.db.pending(limit=10 ** 9)
+    ctx.progress(0.6, f"re-ranking {len(pending)} pending proposals")
+    scored = rerank(st.index, model, [(p.fragment_a, p.fragment_b) for p in pending])
+    st.db.set_probabilities([(p.id, scored[(p.fragment_a, p.fragment_b)].probability) for p in pending
+                             if (p.fragment_a, p.fragment_b) in scored], model.version)
+    ctx.log.info("verdict %s on %s-%s: model %s, %d proposals re-ranked", verdict, a, b, model.version, len(scored))
+    return []

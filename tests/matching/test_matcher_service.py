@@ -1,0 +1,99 @@
+"""The matcher service proposes joins for new fragments and learns from verdicts."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from common.bus.worker import StageContext
+from common.features import save_features
+from common.matching.models import load_model, save_model
+from common.matching.online import train_model
+from common.matching.pairs import training_set
+from common.matching.proposals import ProposalStore
+from common.messages import new_message, validate
+from common.store import Store
+
+
+@pytest.fixture
+def station(tmp_path, small_wall):
+    wall, tables, cues, poses = small_wall
+    store = Store(tmp_path / "root")
+    model, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1))
+    ref = save_model(store, model)
+    db = ProposalStore(tmp_path / "root" / "matches" / "proposals.sqlite")
+    db.add_model(model.version, ref.to_dict(), n_train=len(model.training[1]))
+    arts = {fid: save_features(store, f"fragments/{fid}/features/front-test.h5", t) for fid, t in tables.items()}
+    ctx = StageContext(store=store, config={"top": 5, "check": 2}, log=logging.getLogger("test.matcher"),
+                       progress=lambda f, t: None, service="matcher")
+    return wall, store, db, arts, ctx
+
+
+def test_features_ready_proposes_ranked_joins_and_stores_them(station):
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    ids = [f.id for f in wall.fragments[:20]]
+    events = []
+    for fid in ids:
+        events += matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx)
+    assert events and all(validate(e)["type"] == "match.proposed" for e in events)
+    last = [e for e in events if ids[-1] in (e["fragment"], e["other"])]
+    assert 1 <= len(last) <= 5
+    ranked = db.ranked(ids[-1])
+    assert [p.probability for p in ranked] == sorted((p.probability for p in ranked), reverse=True)
+    assert db.count() >= len(ids)
+    # the best proposals were aligned: their pose maps B onto A without overlap
+    aligned = [p for p in db.all() if p.alignment]
+    assert aligned and all(p.alignment["overlap_mm2"] < 50 for p in aligned[:5])
+    # a re-delivered job is harmless
+    n = db.count()
+    matcher.handle(new_message("features.ready", fragment=ids[0], face="front", artifact=arts[ids[0]]), ctx)
+    assert db.count() == n
+
+
+def test_verdict_refits_a_new_model_version_and_is_idempotent(station):
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    for f in wall.fragments[:15]:
+        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    before = db.current_model()["version"]
+    top = db.pending(1)[0]
+    truth = wall.is_neighbour(top.fragment_a, top.fragment_b)
+    msg = new_message("match.verified", fragment=top.fragment_a, other=top.fragment_b,
+                      verdict="confirmed" if truth else "rejected", by="test")
+    assert matcher.handle(msg, ctx) == []
+    after = db.current_model()
+    assert after["version"] != before and int(after["version"][:4]) == int(before[:4]) + 1
+    model = load_model(store, after["artifact"])
+    assert model.info["verdict_rows"] > 0
+    assert db.get(top.fragment_a, top.fragment_b).status == ("confirmed" if truth else "rejected")
+    assert {p.model_version for p in db.pending(10 ** 6)} == {after["version"]}
+    matcher.handle(msg, ctx)   # re-delivered: no second verdict, no new model
+    assert len(db.verdicts()) == 1 and db.current_model()["version"] == after["version"]
+
+
+def test_rejections_lower_the_probability_of_similar_pairs(station):
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    for f in wall.fragments[:12]:
+        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][:4]
+    assert wrong
+    before = {(p.fragment_a, p.fragment_b): p.probability for p in wrong}
+    for p in wrong:
+        matcher.handle(new_message("match.verified", fragment=p.fragment_a, other=p.fragment_b,
+                                   verdict="rejected"), ctx)
+    model = load_model(store, db.current_model()["artifact"])
+    for (a, b), p0 in before.items():
+        ev = db.get(a, b).evidence
+        rows = np.array(ev["rows"], dtype=float)
+        assert model.probability(rows).mean() < p0
+
+
+def test_unknown_job_type_is_refused(station):
+    import services.matcher as matcher
+    *_, ctx = station
+    from common.messages import MessageError
+    with pytest.raises(MessageError, match="matcher handles"):
+        matcher.handle(new_message("rgbn.ready", fragment="F", face="front",
+                                   artifact={"path": "x", "sha256": "0" * 64, "bytes": 1}), ctx)
