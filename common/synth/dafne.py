@@ -55,7 +55,7 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
     neighbour_px : float
         Placed masks closer than this (fresco pixels) make two fragments neighbours.
     wall_id : str, optional
-        Id of the wall (default ``dafne-<directory name>``); fragment ids are
+        Id of the wall (default: the directory name, prefixed ``dafne-`` if it lacks it); fragment ids are
         ``<wall id>-<index>``.
     load_images : bool
         Keep each fragment's RGBN image (colour only).
@@ -80,7 +80,7 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
     if neighbour_px < 0:
         raise ValueError(f"neighbour_px must be >= 0, got {neighbour_px}")
     pm = 25.4 / dpi
-    wall_id = wall_id or f"dafne-{root.name}"
+    wall_id = wall_id or (root.name if root.name.lower().startswith("dafne") else f"dafne-{root.name}")
     placements = {int(r[0]): (float(r[1]), float(r[2]), float(r[3])) for r in _read_table(root / "fragments.txt")}
     spurious = set()
     if (root / "fragments_s.txt").is_file():

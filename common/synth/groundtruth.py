@@ -67,9 +67,10 @@ def write_groundtruth(f: h5py.Group, wall: Wall, *, preview: bool = True) -> Non
         p.attrs["grid_mm"] = float(wall.preview.get("grid_mm", 1.0))
         p.create_dataset("albedo", data=np.clip(np.asarray(wall.preview["albedo"]) * 255 + 0.5, 0, 255).astype(np.uint8),
                          compression="gzip", compression_opts=4)
-        p.create_dataset("labels", data=np.asarray(wall.preview["labels"], np.int32), compression="gzip",
-                         compression_opts=4)
-        p.create_dataset("label_ids", data=np.array(wall.preview["label_ids"], dtype=object), dtype=_STR)
+        if "labels" in wall.preview:
+            p.create_dataset("labels", data=np.asarray(wall.preview["labels"], np.int32), compression="gzip",
+                             compression_opts=4)
+            p.create_dataset("label_ids", data=np.array(wall.preview["label_ids"], dtype=object), dtype=_STR)
 
 
 def read_groundtruth(f: h5py.Group) -> Wall:
@@ -96,8 +97,9 @@ def read_groundtruth(f: h5py.Group) -> Wall:
         preview = {}
         if "preview" in f:
             p = f["preview"]
-            preview = dict(albedo=p["albedo"][()].astype(np.float32) / 255.0, labels=p["labels"][()],
-                           label_ids=dec(p["label_ids"][()]), grid_mm=float(p.attrs["grid_mm"]))
+            preview = dict(albedo=p["albedo"][()].astype(np.float32) / 255.0, grid_mm=float(p.attrs["grid_mm"]))
+            if "labels" in p:
+                preview.update(labels=p["labels"][()], label_ids=dec(p["label_ids"][()]))
         return Wall(str(f.attrs["wall_id"]), frags, adjacency, corr, float(f.attrs["width_mm"]),
                     float(f.attrs["height_mm"]), float(f.attrs["dpi"]), n_missing=int(f.attrs["n_missing"]),
                     params=json.loads(f.attrs["params"]), preview=preview)

@@ -8,6 +8,10 @@ Writes each fragment either as an RGBN artifact ``fragments/<id>/rgbn/front-<key
 scans of the simulated flatbed (four rotations per face) ``fragments/<id>/scans/scans-<key>.h5``,
 plus the ground truth ``groundtruth/<wall id>.h5``. Same seed and options -> identical data.
 Then ``tessera reconcile`` queues the fragments for the station's stages.
+
+    tessera synth --dafne DIR --store DIR [--dafne-dpi 50]
+
+imports a DAFNE fragment set (colour only) into the same form: RGBN artifacts and ground truth.
 """
 
 from __future__ import annotations
@@ -22,7 +26,9 @@ log = logging.getLogger("tessera.synth")
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("synth", help="generate a synthetic broken fresco with ground truth",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--fragments", type=int, required=True, help="number of fragments delivered (incl. spurious)")
+    p.add_argument("--fragments", type=int, help="number of fragments delivered (incl. spurious)")
+    p.add_argument("--dafne", metavar="DIR", help="instead of generating, import a DAFNE fragment set (colour only)")
+    p.add_argument("--dafne-dpi", type=float, default=50.0, help="nominal dpi of the DAFNE images (default 50)")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed -> same data)")
     p.add_argument("--store", required=True, help="storage root to write into")
     p.add_argument("--dpi", type=float, default=300.0, help="fragment sampling in dpi (default 300)")
@@ -49,7 +55,9 @@ def run(args) -> int:
     from common.store import Store, content_key
     from common.synth import generate_wall, save_groundtruth
 
-    if args.fragments < 1:
+    if args.dafne:
+        return _import_dafne(args)
+    if args.fragments is None or args.fragments < 1:
         print("tessera synth: --fragments must be at least 1", file=sys.stderr)
         return 2
     if args.dpi <= 0:
@@ -119,6 +127,30 @@ def run(args) -> int:
           f"[{sizes.min():.1f}-{sizes.max():.1f}]")
     print(f"wrote {len(written)} {args.output} artifacts under {store.root}/fragments and {gt.path} "
           f"in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def _import_dafne(args) -> int:
+    from common.rgbn.image import save_rgbn
+    from common.store import Store, content_key
+    from common.synth import save_groundtruth
+    from common.synth.dafne import import_dafne
+
+    try:
+        wall = import_dafne(args.dafne, dpi=args.dafne_dpi)
+    except ValueError as exc:
+        print(f"tessera synth: {exc}", file=sys.stderr)
+        return 2
+    store = Store(args.store)
+    for k, frag in enumerate(wall.fragments):
+        key = content_key(_digest(frag.rgbn), "dafne")
+        save_rgbn(store, f"fragments/{frag.id}/rgbn/front-{key}.h5", frag.rgbn,
+                  provenance={"source": "DAFNE", "path": str(args.dafne)})
+        print(f"[{(k + 1) / len(wall.fragments) * 100:5.1f}%] fragment {frag.id}", file=sys.stderr, flush=True)
+    gt = save_groundtruth(store, wall)
+    placed = sum(f.pose is not None for f in wall.fragments)
+    print(f"imported {wall.id}: {len(wall.fragments)} fragments ({placed} placed, {len(wall.fragments) - placed} "
+          f"spurious), {len(wall.adjacency)} neighbour pairs at a nominal {wall.dpi:g} dpi; ground truth {gt.path}")
     return 0
 
 

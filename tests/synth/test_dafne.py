@@ -64,6 +64,15 @@ def test_dafne_correspondences_are_close_on_the_fresco(dafne):
             assert np.median(d) <= 8 * 25.4 / dafne.dpi
 
 
+def test_dafne_ground_truth_round_trips(dafne, tmp_path):
+    from common.store import Store
+    from common.synth import load_groundtruth, save_groundtruth
+    store = Store(tmp_path)
+    back = load_groundtruth(store, save_groundtruth(store, dafne))
+    assert back.adjacency == dafne.adjacency
+    assert sum(f.spurious for f in back.fragments) == 29
+
+
 def test_not_a_dafne_directory_is_refused(tmp_path):
     with pytest.raises(ValueError, match="not a DAFNE set"):
         import_dafne(tmp_path)
