@@ -44,10 +44,12 @@ def area_curvature(coverage_map, pixel_mm, points_mm, radius_mm):
 
     Examples
     --------
-    >>> yy, xx = np.mgrid[:200, :200]
-    >>> disc = ((yy - 100) ** 2 + (xx - 100) ** 2 < 80 ** 2).astype(float)
-    >>> k = area_curvature(disc, 0.25, np.array([[25.0, 5.0]]), 2.5)
-    >>> abs(k[0] - 1 / 20) < 0.01
+    >>> from common.features.contour import fragment_contour
+    >>> yy, xx = np.mgrid[:240, :240]
+    >>> disc = (yy - 120) ** 2 + (xx - 120) ** 2 < 80 ** 2     # radius 20 mm at 0.25 mm/px
+    >>> c = fragment_contour(disc, 0.25)
+    >>> k = area_curvature(disc, 0.25, c.points_mm[::50], 10.0)
+    >>> bool(np.all(np.abs(k * 20 - 1) < 0.1))
     True
     """
     cov = np.asarray(coverage_map, dtype=np.float32)
@@ -103,7 +105,8 @@ def three_point_curvature(contour: Contour, arc_mm, span_mm):
     >>> from common.features.contour import fragment_contour
     >>> yy, xx = np.mgrid[:200, :200]
     >>> c = fragment_contour((yy - 100) ** 2 + (xx - 100) ** 2 < 80 ** 2, 0.25)
-    >>> abs(three_point_curvature(c, [0.0], 5.0)[0] - 1 / 20) < 0.005
+    >>> k = three_point_curvature(c, c.arc_mm[::50], 10.0)
+    >>> bool(np.all(np.abs(k * 20 - 1) < 0.05))
     True
     """
     if not span_mm > 0:

@@ -138,7 +138,8 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     ----------
     image : RGBNImage
         The face; ``normals`` None (colour-only) or ``height_mm`` None give NaN for the
-        descriptors that need them, recorded in ``missing_data``.
+        descriptors that need them, recorded in ``missing_data``. Non-finite albedo pixels
+        count as black and non-finite normals as (0, 0, 1); non-finite heights are skipped.
     face : str
         Face name stored with the table.
     work_pixel_mm : float
@@ -163,7 +164,7 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     >>> mask = (yy - 120) ** 2 + (xx - 120) ** 2 < 100 ** 2
     >>> img = RGBNImage(np.full((240, 240, 3), 0.5), mask, dpi=100)
     >>> t = extract_features(img)
-    >>> t.values["colour_variance"], np.isnan(t.values["normal_z_mean"]), t.missing_data
+    >>> t.values["colour_variance"], bool(np.isnan(t.values["normal_z_mean"])), t.missing_data
     (0.0, True, ['height', 'normal'])
     """
     if not isinstance(image, RGBNImage):
@@ -188,6 +189,9 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     safe = np.maximum(M, 1e-6)[..., None]
     m3 = cv2.merge([m, m, m])
     albedo = _area_downsample(cv2.multiply(image.albedo, m3), factor, shape) / safe
+    if not np.isfinite(albedo).all():  # NaN pixels (e.g. saturated) count as black, not as NaN
+        albedo = _area_downsample(cv2.multiply(np.nan_to_num(image.albedo, nan=0.0, posinf=1.0, neginf=0.0), m3),
+                                  factor, shape) / safe
     # moment channels on the working grid, weighted by coverage M: every patch statistic is a
     # weighted sum over the patch disc (one tensordot), equal to the statistic of the grid pixels
     # channels centred on the fragment means so float32 sums of squares do not cancel
@@ -198,6 +202,12 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
     c_n = None
     if has_n:
         normals = _area_downsample(cv2.multiply(image.normals, m3), factor, shape) / safe
+        if not np.isfinite(normals).all():
+            # unsolved pixels (NaN normals) read as facing the viewer rather than poisoning
+            # every statistic of their grid cell and patch
+            bad = ~np.isfinite(image.normals).all(axis=-1)
+            fixed = np.where(bad[..., None], np.float32((0.0, 0.0, 1.0)), image.normals)
+            normals = _area_downsample(cv2.multiply(fixed, m3), factor, shape) / safe
         c_n = {"L": float(np.dot(c_rgb, (0.2126, 0.7152, 0.0722)))}
         c_n.update({k: wmean(normals[..., i]) for i, k in enumerate(("nx", "ny", "nz"))})
         chans.update(normal_channels(albedo, normals, c_n))

@@ -187,6 +187,19 @@ def test_saved_table_loads_back_identically(tmp_path, fragment):
     assert (u.dpi, u.face, u.missing_data) == (t.dpi, t.face, t.missing_data)
 
 
+def test_unsolved_nan_pixels_do_not_poison_the_table(fragment):
+    img, ref = fragment
+    normals, albedo = img.normals.copy(), img.albedo.copy()
+    rng = np.random.default_rng(5)
+    holes = rng.random(img.shape) < 0.001
+    normals[holes] = np.nan
+    albedo[holes] = np.nan
+    t = extract_features(RGBNImage(albedo, img.mask, img.dpi, normals=normals, height_mm=img.height_mm))
+    assert all(np.isfinite(t.values[d.name]) == np.isfinite(ref.values[d.name]) for d in fragment_descriptors())
+    assert np.array_equal(np.isfinite(t.patch_values), np.isfinite(ref.patch_values))
+    assert t.values["normal_z_mean"] == pytest.approx(ref.values["normal_z_mean"], abs=1e-3)
+
+
 def test_bad_input_is_refused_with_a_named_error():
     with pytest.raises(ValueError, match="image"):
         extract_features(np.zeros((4, 4, 3)))
