@@ -29,10 +29,17 @@ def station(tmp_path, small_wall):
     return wall, store, db, arts, ctx
 
 
+def _n_patches(store, art):
+    from common.features import load_features
+    return int((load_features(store, art).patch_kind == "p10").sum())
+
+
 def test_features_ready_proposes_ranked_joins_and_stores_them(station):
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
     ids = [f.id for f in wall.fragments[:20]]
+    # end with a fragment that has patches of its own (a crumb has none and gets no proposals)
+    ids.sort(key=lambda i: _n_patches(store, arts[i]) >= 5)
     events = []
     for fid in ids:
         events += matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx)
