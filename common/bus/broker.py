@@ -266,11 +266,12 @@ class Broker:
 
     def accept_event(self, event: dict, body: bytes | None = None) -> int:
         """Journal an event and the jobs its type routes to; publish and queue them once durable."""
+        when = float(event["time"])  # before a sequence number is taken: a bad field must not leave a gap
         seq = self.last_seq + 1
         self.last_seq = seq
         body = body if body is not None else P.dumps(event)
         etype = event["type"]
-        self._ops.append(("event", seq, event["uid"], etype, float(event["time"]), body))
+        self._ops.append(("event", seq, event["uid"], etype, when, body))
         self._remember(event["uid"], seq)
         for service in self.routing.get(etype, ()):
             jid = f"{seq}-{service}"
@@ -298,7 +299,7 @@ class Broker:
                 self._client_message(identity, command, rest)
             else:
                 self._reject(f"unknown protocol header {header[:16]!r}", source="broker")
-        except (ValueError, KeyError, IndexError, TypeError, messages.MessageError) as exc:
+        except Exception as exc:  # any defect of one message (wrong shapes too) rejects it, never the broker
             self._reject(f"malformed {header[:8]!r} {command[:16]!r} message: {type(exc).__name__}: {exc}",
                          source="broker")
 
