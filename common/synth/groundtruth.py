@@ -119,3 +119,54 @@ def load_groundtruth(store: Store, ref: ArtifactRef | Mapping | str) -> Wall:
     """Load (and digest-check, given a pointer) a ``tessera.groundtruth`` artifact."""
     with store.open(ref, schema=SCHEMA) as f:
         return read_groundtruth(f)
+
+
+def label_patch_pairs(wall: Wall, id_a: str, points_a_mm: np.ndarray, id_b: str, points_b_mm: np.ndarray, *,
+                      tol_mm: float = 5.0, reach_mm: float = 12.0) -> np.ndarray:
+    """Ground-truth labels for patch pairs of two fragments: which patches face each other across a join.
+
+    A patch of A and a patch of B match when the fragments are true neighbours, each patch lies
+    within ``reach_mm`` of the shared crack (of its own fragment's corresponding contour points),
+    and their projections onto the crack lie within ``tol_mm`` of each other on the wall (a crack
+    point's wall position is the midpoint of its two corresponding contour points). Symmetric in
+    A and B.
+
+    Parameters
+    ----------
+    wall : Wall
+    id_a, id_b : str
+        Fragment ids.
+    points_a_mm, points_b_mm : (Na, 2), (Nb, 2) arrays
+        Patch positions (e.g. centres or contour anchors) in each fragment's own frame, mm
+        (x right, y down), as in the feature table.
+    tol_mm : float
+        How far apart along the crack two patches may be and still match.
+    reach_mm : float
+        How far from the crack a patch centre may be (patches sit ~8 mm inward, §5.4).
+
+    Returns
+    -------
+    (Na, Nb) bool
+        True for a true match; all False for fragments that are not neighbours.
+    """
+    pa_pts = np.asarray(points_a_mm, float).reshape(-1, 2)
+    pb_pts = np.asarray(points_b_mm, float).reshape(-1, 2)
+    out = np.zeros((len(pa_pts), len(pb_pts)), bool)
+    if tol_mm <= 0 or reach_mm <= 0:
+        raise ValueError("tol_mm and reach_mm must be positive")
+    key, swap = ((id_a, id_b), False) if id_a < id_b else ((id_b, id_a), True)
+    if key not in wall.correspondences or not len(pa_pts) or not len(pb_pts):
+        return out
+    ca, cb = wall.correspondences[key]
+    if swap:
+        ca, cb = cb, ca
+    if not len(ca):
+        return out
+    from scipy.spatial import cKDTree
+    da, ia = cKDTree(ca).query(pa_pts)
+    db, ib = cKDTree(cb).query(pb_pts)
+    fa, fb = wall.fragment(id_a), wall.fragment(id_b)
+    crack = 0.5 * (fa.to_wall(ca) + fb.to_wall(cb))     # wall position of each crack sample
+    qa, qb = crack[ia], crack[ib]                       # each patch projected onto the crack
+    near = np.hypot(*(qa[:, None, :] - qb[None, :, :]).transpose(2, 0, 1)) <= tol_mm
+    return near & (da <= reach_mm)[:, None] & (db <= reach_mm)[None, :]

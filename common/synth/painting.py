@@ -197,7 +197,8 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
         for _ in range(n_fig):
             cx = rng.uniform(0, width_mm)
             cy = rng.uniform(field_top + 10, field_bottom - 10)
-            r0 = rng.uniform(12, min(70, field_h / 2))
+            lo = min(12.0, field_h / 3)
+            r0 = rng.uniform(lo, max(lo + 1.0, min(70.0, field_h / 2)))
             pts = _blob(rng, cx, cy, r0)
             fill = col(rng.choice(["red ochre", "egyptian blue", "yellow ochre", "green earth", "pink", "cinnabar"]))
             _poly(img, pts * k, fill)

@@ -31,3 +31,18 @@ def test_a_damaged_ground_truth_file_is_refused(tmp_path):
         fh.write(b"\0" * 64)
     with pytest.raises(ArtifactError, match="sha256"):
         load_groundtruth(store, ref)
+
+
+def test_patch_pairs_match_only_across_a_true_join():
+    from common.synth.groundtruth import label_patch_pairs
+    wall = generate_wall(10, seed=6, dpi=40)
+    (a, b, _), = wall.adjacency[:1]
+    pa, pb = wall.correspondences[(a, b)]
+    lab = label_patch_pairs(wall, a, pa, b, pb, tol_mm=3.0)
+    assert np.all(np.diag(lab))                         # each point faces its partner
+    far = np.hypot(*(pb[:, None] - pb[None]).transpose(2, 0, 1)) > 10
+    assert not np.any(lab & far)                        # not points far along the crack
+    assert np.array_equal(label_patch_pairs(wall, b, pb, a, pa, tol_mm=3.0), lab.T)  # symmetric
+    neighbours = set(wall.neighbours(a)) | {a}
+    other = next(f.id for f in wall.fragments if f.id not in neighbours)
+    assert not label_patch_pairs(wall, a, pa, other, wall.fragment(other).contour_mm[::10]).any()

@@ -40,3 +40,12 @@ def test_bad_sizes_are_refused():
         paint_wall(-1, 10, np.random.default_rng(0))
     with pytest.raises(ValueError, match="style"):
         paint_wall(10, 10, np.random.default_rng(0), style="baroque")
+
+
+@pytest.mark.parametrize("style", ["aegean", "roman"])
+def test_any_wall_size_and_seed_paints(style):
+    for seed in range(25):
+        rng = np.random.default_rng(seed)
+        w, h = rng.uniform(20, 600), rng.uniform(20, 400)
+        p = paint_wall(w, h, rng, res_mm=4.0, style=style)
+        assert np.isfinite(p.albedo).all()
