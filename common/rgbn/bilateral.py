@@ -125,50 +125,61 @@ def joint_bilateral(albedo: np.ndarray | None, normals: np.ndarray | None, *, si
 def _bilateral_pass(feat: np.ndarray, values: np.ndarray, weight: np.ndarray, sigma_x: float, r: int,
                     axis: int | None) -> np.ndarray:
     """One bilateral pass: along columns (axis 1), rows (axis 0) or the full 2-D window (None)."""
-    if axis == 1:
-        return _pass_1d(feat, values, weight, sigma_x, r)
-    if axis == 0:
-        t = lambda a: np.ascontiguousarray(np.swapaxes(a, 0, 1))  # noqa: E731
-        return t(_pass_1d(t(feat), t(values), t(weight), sigma_x, r))
-    return _pass_2d(feat, values, weight, sigma_x, r)
+    if axis is None:
+        return _pass_2d(feat, values, weight, sigma_x, r)
+    return _pass_1d(feat, values, weight, sigma_x, r, axis)
 
 
-def _pass_1d(feat, values, weight, sigma_x, r):
-    """Bilateral pass along axis 1, strip by strip (the heavy loop).
+def _pass_1d(feat, values, weight, sigma_x, r, axis):
+    """Bilateral pass along ``axis``, strip by strip of rows (the heavy loop).
 
     The range weight is symmetric, w(p, p + d) = w(p + d, p), so one distance-and-exp evaluation
-    per offset pair +-d serves both neighbours: E[c] = w(c, c + d) is computed once over W + d
-    columns and read at c (for +d) and at c - d (for -d).
+    per offset pair +-d serves both neighbours: E[j] = w(j, j + d) is computed once over S + d
+    positions and read at j (for +d) and at j - d (for -d). Each strip is padded on its own
+    (edge mode for the range guide, zero weight for the values), so memory stays at a few strips
+    beyond the input and output, even at 16 Mpx.
     """
     h, w = feat.shape[:2]
     nc = values.shape[2]
-    fpad = np.pad(feat, ((0, 0), (r, r), (0, 0)), mode="edge")
-    vw = np.concatenate([values * weight[..., None], weight[..., None]], axis=2)
-    vpad = np.pad(vw, ((0, 0), (r, r), (0, 0)), mode="constant")
     out = np.empty_like(values)
-    nf = feat.shape[2]
-    for r0 in range(0, h, _STRIP_ROWS):
-        r1 = min(h, r0 + _STRIP_ROWS)
-        fs, vs = fpad[r0:r1], vpad[r0:r1]
-        acc = vw[r0:r1].copy()  # the centre sample, weight 1
-        tmp = np.empty((r1 - r0, w, nc + 1), np.float32)
+    rows = _STRIP_ROWS if axis == 1 else 4 * _STRIP_ROWS  # a row strip carries 2r halo rows on axis 0
+
+    def along(arr, start, stop):
+        return arr[:, start:stop] if axis == 1 else arr[start:stop]
+
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        if axis == 1:
+            f_src, v_src, w_src = feat[r0:r1], values[r0:r1], weight[r0:r1]
+            lo, hi = r, r  # halo added by padding on both sides
+            n = w
+        else:
+            a0, a1 = max(0, r0 - r), min(h, r1 + r)
+            f_src, v_src, w_src = feat[a0:a1], values[a0:a1], weight[a0:a1]
+            lo, hi = r - (r0 - a0), r - (a1 - r1)  # what the image border leaves to pad
+            n = r1 - r0
+        pad = ((0, 0), (lo, hi), (0, 0)) if axis == 1 else ((lo, hi), (0, 0), (0, 0))
+        fs = np.pad(f_src, pad, mode="edge")
+        vw = np.concatenate([v_src * w_src[..., None], w_src[..., None]], axis=2)
+        vs = np.pad(vw, pad, mode="constant")
+        acc = along(vs, r, r + n).copy()  # the centre sample, weight 1
+        tmp = np.empty_like(acc)
         for d in range(1, r + 1):
             ls = np.float32(d * d / (2.0 * sigma_x ** 2))
-            # E[j] = w(column r - d + j, column r + j) for j in [0, w + d)
-            a = fs[:, r - d:r + w]
-            b = fs[:, r:r + w + d]
-            if nf:
-                diff = b - a
+            # E[j] = w(position r - d + j, position r + j) for j in [0, n + d)
+            if feat.shape[2]:
+                diff = along(fs, r, r + n + d) - along(fs, r - d, r + n)
                 e = np.einsum("ijk,ijk->ij", diff, diff)
                 e *= np.float32(-0.5)
                 e -= ls
             else:
-                e = np.full(a.shape[:2], -ls, np.float32)
+                e = np.full(along(fs, r, r + n + d).shape[:2], -ls, np.float32)
             np.exp(e, out=e)
-            # +d neighbour of centre column r + i is E[i + d]; -d neighbour is E[i]
-            np.multiply(vs[:, r + d:r + d + w], e[:, d:d + w, None], out=tmp)
+            e = e[..., None]
+            # +d neighbour of centre r + i is E[i + d]; -d neighbour is E[i]
+            np.multiply(along(vs, r + d, r + d + n), along(e, d, d + n), out=tmp)
             acc += tmp
-            np.multiply(vs[:, r - d:r - d + w], e[:, 0:w, None], out=tmp)
+            np.multiply(along(vs, r - d, r - d + n), along(e, 0, n), out=tmp)
             acc += tmp
         den = acc[..., nc:]
         out[r0:r1] = np.where(den > 1e-12, acc[..., :nc] / np.maximum(den, 1e-12), values[r0:r1])
