@@ -19,9 +19,9 @@ from tests.features._fragments import (add_scanner_noise, match_patches, rotate_
 ANGLES = (17.0, 143.0, 251.0)
 
 
-@pytest.fixture(scope="module")
-def fragment():
-    img = textured_fragment(dpi=150, seed=0)
+@pytest.fixture(scope="module", params=[0, 1], ids=["seed0", "seed1"])
+def fragment(request):
+    img = textured_fragment(dpi=150, seed=request.param)
     return img, extract_features(img)
 
 
