@@ -128,6 +128,8 @@ wall_dpi = 100
 fragments = 4
 seed = 1
 drain_interval_s = 0.5
+[services.matcher]
+bootstrap_fragments = 12
 [services.web]
 port = {self.web_port}
 token = "{TOKEN}"
@@ -284,13 +286,18 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
         assert [(e["fragment"], e["other"], e["verdict"], e["by"]) for e in verified] == \
             [(first[0], first[1], "confirmed", "A. Conservator")]
         if "matcher" in live.stages:   # the matcher records it; the page shows the stored history
-            page.wait_for_selector(f"#history tr[data-state='recorded']:has-text('{first[0]} ↔ {first[1]}')",
-                                   timeout=60_000)
-        # the next pending proposal is up; skip it with S, reject the one after with R
-        second = live.pairs[1]
-        assert page.inner_text("#proposal-title") == f"{second[0]} ↔ {second[1]}"
+            recorded = f"#history tr[data-state='recorded']:has-text('{first[0]} ↔ {first[1]}')"
+            try:
+                page.wait_for_selector(recorded, timeout=120_000)
+            except Exception:
+                with BrokerClient.from_config(live.config) as bus:
+                    parked = [j for j in bus.status()["parked"] if j["service"] == "matcher"]
+                raise AssertionError(f"the matcher did not record the verdict; its parked jobs: {parked}")
+        # the next pending proposal is up (the matcher may have re-ranked): skip it with S, reject the next with R
+        second = page.inner_text("#proposal-title")
+        assert second != f"{first[0]} ↔ {first[1]}"
         page.keyboard.press("s")
-        assert page.inner_text("#proposal-title") != f"{second[0]} ↔ {second[1]}"
+        assert page.inner_text("#proposal-title") != second
         page.keyboard.press("r")
         page.wait_for_selector("#review-message:has-text('Rejected')", timeout=15_000)
         _shot(page, "review-history")
