@@ -12,7 +12,7 @@
     index = i;
     [...$("queue").children].forEach((li, k) => li.classList.toggle("current", k === i));
     const p = items[i];
-    const enabled = !!p && Tessera.loggedIn() && (p.status === "pending");
+    const enabled = !!p && Tessera.loggedIn();   // a decided pair may be decided again (latest verdict counts)
     for (const b of ["confirm-button", "reject-button"]) $(b).disabled = !enabled;
     $("skip-button").disabled = !p;
     if (!p) {
@@ -84,9 +84,13 @@
       return;
     }
     $("review-message").textContent = `${kind === "confirmed" ? "Confirmed" : "Rejected"} ${p.fragment_a} ↔ ${p.fragment_b}.`;
-    skipped.add(p.id);
+    if (!filter) skipped.add(p.id);   // the queue moves on; a fragment's list keeps every proposal
     await loadHistory();
-    await loadQueue();
+    await loadQueue(filter ? p.id : undefined);
+    if (filter) {   // on to the next undecided proposal of this fragment, if any
+      const next = items.findIndex((q, k) => k > index && q.status === "pending");
+      if (next >= 0) select(next);
+    }
   }
 
   $("confirm-button").addEventListener("click", () => verdict("confirmed"));
