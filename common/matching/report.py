@@ -1,0 +1,210 @@
+"""The matcher's evaluation report: Table 5.3-style rates, PR curves, top-k recall, cross-wall test.
+
+:func:`evaluate_matching` runs the whole evaluation of thesis §5.8 on a training wall (grouped
+10-fold cross-validation per classifier and feature subset), a second wall (train on one, test on
+the other, §5.8.5) and optionally a colour-only real set (DAFNE), and writes CSV numbers and PNG
+plots into one directory. ``tessera evaluate`` is its command-line shell.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.matching.evaluation import (confusion_rates, grouped_cross_validation, pair_precision_recall,
+                                        precision_recall, rank_all_pairs, top_k_recall)
+from common.matching.index import MatchIndex
+from common.matching.online import train_model, wall_cues
+from common.matching.pairs import training_set
+
+log = logging.getLogger("tessera.matching.report")
+
+TABLE_SUBSETS = ("colour", "curvature", "normal", "erosion", "thickness", "per-match", "all")
+KS = (1, 3, 5, 10, 20)
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys = list(rows[0]) if rows else []
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+
+
+def _plot_pr(curves: dict, path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.2, 4.2), dpi=90)
+    for label, (p, r, ap) in curves.items():
+        ax.plot(r, p, lw=1.3, label=f"{label} (AP {ap:.2f})")
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="upper right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _plot_topk(series: dict, path: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.2, 4.0), dpi=90)
+    for label, rec in series.items():
+        ks = sorted(rec)
+        ax.plot(ks, [rec[k] for k in ks], marker="o", lw=1.3, label=label)
+    ax.set_xlabel("k (proposals shown per fragment)")
+    ax.set_ylabel("share of true neighbours in top k")
+    ax.set_ylim(0, 1.02)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _index_of(tables, cues):
+    idx = MatchIndex()
+    for fid, c in cues.items():
+        idx.add(c, tables[fid].contour_mm)
+    return idx
+
+
+def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_seed: int = 12, dpi: float = 100.0,
+                      folds: int = 10, classifiers=("logistic", "tree", "forest", "svm"), subsets=TABLE_SUBSETS,
+                      negatives_per_positive: float = 10.0, dafne: str | None = None, progress=None) -> dict:
+    """Run the evaluation of §5.8 and write its CSV and PNG files into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path
+        Where ``table_5_3.csv``, ``pr_subsets.png``, ``pr_classifiers.png``, ``crosswall.csv``,
+        ``topk.csv``, ``topk.png`` (and ``dafne_*.csv|png``) go.
+    n_fragments, seed, test_seed, dpi : synthetic walls (training wall ``seed``, test wall ``test_seed``)
+    folds : cross-validation folds, grouped by fragment pair
+    classifiers : classifier kinds compared on all features (logistic also on every subset)
+    subsets : feature subsets for the logistic regression (Table 5.3 rows)
+    negatives_per_positive : sampled non-matches per match (class weights balance the rest)
+    dafne : path of a DAFNE set (colour and contour only), optional
+
+    Returns
+    -------
+    dict with the numbers written (``table``, ``crosswall``, ``topk``, ``dafne``).
+    """
+    from common.synth.wall import generate_wall
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda f, t: None)
+    t0 = time.time()
+    say(0.0, f"training wall: {n_fragments} fragments, seed {seed}")
+    wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
+    tables, cues, poses = wall_cues(wall, progress=lambda f, t: say(0.1 * f, t))
+    ts = training_set(cues, poses, wall.adjacency, negatives_per_positive=negatives_per_positive, seed=seed)
+    log.info("training set: %d rows, %d matches, ratio %.1f", len(ts), ts.y.sum(), ts.negatives_per_positive)
+
+    # Table 5.3: rates per subset (logistic) and per classifier (all features)
+    table, pr_sub, pr_clf = [], {}, {}
+    runs = [("logistic", s) for s in subsets] + [(k, "all") for k in classifiers if k != "logistic"]
+    for i, (kind, subset) in enumerate(runs):
+        say(0.15 + 0.45 * i / len(runs), f"cross-validation {kind} / {subset}")
+        r = grouped_cross_validation(ts.x, ts.y, ts.groups, ts.columns, kind=kind, subset=subset, n_splits=folds)
+        table.append({"wall": wall.id, "classifier": kind, "subset": subset, "tpr": r.rates["tpr"],
+                      "tnr": r.rates["tnr"], "fpr": r.rates["fpr"], "fnr": r.rates["fnr"], "ap": r.ap,
+                      "matches": r.rates["positives"], "non_matches": r.rates["negatives"], "folds": r.folds})
+        pr = precision_recall(r.y, r.scores)
+        (pr_sub if kind == "logistic" else pr_clf)[subset if kind == "logistic" else kind] = (pr["precision"], pr["recall"], r.ap)
+        if kind == "logistic" and subset == "all":
+            pr_clf["logistic"] = (pr["precision"], pr["recall"], r.ap)
+    write_csv(table, out / "table_5_3.csv")
+    _plot_pr(pr_sub, out / "pr_subsets.png", f"Patch pairs, logistic regression by feature subset\n{wall.id}, {folds}-fold grouped CV")
+    _plot_pr(pr_clf, out / "pr_classifiers.png", f"Patch pairs, all features, by classifier\n{wall.id}, {folds}-fold grouped CV")
+
+    # train on one wall, test on another (§5.8.5)
+    say(0.6, f"test wall: {n_fragments} fragments, seed {test_seed}")
+    wall2 = generate_wall(n_fragments, seed=test_seed, dpi=dpi)
+    tables2, cues2, poses2 = wall_cues(wall2, progress=lambda f, t: say(0.6 + 0.1 * f, t))
+    ts2 = training_set(cues2, poses2, wall2.adjacency, negatives_per_positive=negatives_per_positive, seed=test_seed)
+    model, pipe = train_model(ts, info={"trained_on": wall.id})
+    pred = pipe.predict(ts2.x)
+    rates = confusion_rates(ts2.y, pred)
+    ap2 = precision_recall(ts2.y, model.probability(ts2.x))["ap"]
+    crosswall = [{"train_wall": wall.id, "test_wall": wall2.id, "classifier": "logistic", "subset": "all",
+                  "tpr": rates["tpr"], "tnr": rates["tnr"], "ap": ap2, "matches": rates["positives"],
+                  "non_matches": rates["negatives"]}]
+    write_csv(crosswall, out / "crosswall.csv")
+
+    # top-k recall: every fragment pair of the test wall ranked by the staged matcher's stage 2
+    say(0.72, "ranking every fragment pair of the test wall")
+    idx2 = _index_of(tables2, cues2)
+    scores = rank_all_pairs(idx2, model, progress=lambda f, t: say(0.72 + 0.15 * f, t))
+    topk = {"synthetic (train seed %d, test seed %d)" % (seed, test_seed): top_k_recall(scores, wall2.adjacency, KS)}
+    ppr = pair_precision_recall(scores, wall2.adjacency)
+    pair_curves = {"synthetic test wall": (ppr["precision"], ppr["recall"], ppr["ap"])}
+    n_random = len(idx2) - 1
+    topk["random ranking (expected)"] = {k: min(1.0, k / max(n_random, 1)) for k in KS}
+
+    result = {"table": table, "crosswall": crosswall, "topk": topk, "pair_ap": {"synthetic": ppr["ap"]}}
+    if dafne:
+        say(0.88, "DAFNE (colour and contour only)")
+        result["dafne"] = _evaluate_dafne(dafne, out, folds=folds, negatives_per_positive=negatives_per_positive,
+                                          topk=topk, pair_curves=pair_curves)
+        result["pair_ap"]["dafne"] = result["dafne"]["pair_ap"]
+    write_csv([{"ranking": name, **{f"top{k}": v for k, v in rec.items()}} for name, rec in topk.items()],
+              out / "topk.csv")
+    _plot_topk(topk, out / "topk.png", "Top-k recall of true neighbours")
+    _plot_pr(pair_curves, out / "pr_pairs.png", "Fragment pairs ranked by the matcher")
+    log.info("evaluation done in %.0f s", time.time() - t0)
+    say(1.0, "done")
+    return result
+
+
+def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pair_curves) -> dict:
+    """DAFNE: grouped CV on colour+curvature cues; top-k by training on one half of the fresco and
+    ranking the other half (the halves split by the fragments' x position), both ways."""
+    from common.synth.dafne import import_dafne
+
+    wall = import_dafne(path)
+    tables, cues, poses = wall_cues(wall)
+    placed = {f.id: f.pose for f in wall.fragments if f.pose is not None}
+    ts = training_set(cues, placed, wall.adjacency, negatives_per_positive=negatives_per_positive, seed=0)
+    rows = []
+    for subset in ("colour", "curvature", "per-match", "all"):
+        r = grouped_cross_validation(ts.x, ts.y, ts.groups, ts.columns, subset=subset, n_splits=folds)
+        rows.append({"wall": wall.id, "classifier": "logistic", "subset": subset, "tpr": r.rates["tpr"],
+                     "tnr": r.rates["tnr"], "ap": r.ap, "matches": r.rates["positives"],
+                     "non_matches": r.rates["negatives"]})
+    write_csv(rows, out / "dafne_table.csv")
+    xs = {fid: p[1] for fid, p in placed.items()}
+    cut = float(np.median(list(xs.values())))
+    halves = [{f for f in xs if xs[f] < cut}, {f for f in xs if xs[f] >= cut}]
+    spurious = {f.id for f in wall.fragments if f.pose is None}
+    all_scores = {}
+    for h in range(2):
+        train_ids, test_ids = halves[h], halves[1 - h] | spurious
+        adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
+        ts_h = training_set({f: cues[f] for f in train_ids}, placed, adj_tr,
+                            negatives_per_positive=negatives_per_positive, seed=h)
+        model, _ = train_model(ts_h)
+        idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
+        all_scores.update(rank_all_pairs(idx, model))
+    adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
+    rec = top_k_recall(all_scores, adj_te, KS)
+    topk["DAFNE (train one half, rank the other)"] = rec
+    ppr = pair_precision_recall(all_scores, adj_te)
+    pair_curves["DAFNE halves"] = (ppr["precision"], ppr["recall"], ppr["ap"])
+    return {"table": rows, "topk": rec, "pair_ap": ppr["ap"]}

@@ -1,0 +1,93 @@
+"""``tessera evaluate``: evaluate the matcher on synthetic walls (and DAFNE) (thesis §5.8).
+
+    tessera evaluate [--out docs/matching] [--fragments 150] [--seed 11] [--test-seed 12]
+                     [--dpi 100] [--folds 10] [--classifiers logistic,tree,forest,svm]
+                     [--subsets colour,curvature,normal,erosion,thickness,per-match,all]
+                     [--dafne ../shared/data/dafne-adam]
+    tessera evaluate --train-model ROOT [--db PATH] [--fragments 60] [--seed 0]
+
+The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
+feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
+``crosswall.csv`` (train on one wall, test on another, §5.8.5), ``topk.csv``/``topk.png``
+(share of each fragment's true neighbours among its k best proposals) and, with ``--dafne``, the
+same for the colour-only DAFNE set. The second trains a model on a synthetic wall and installs it
+as the current model of a station's matcher (storage root ``ROOT``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+log = logging.getLogger("tessera.evaluate")
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("evaluate", help="evaluate the matcher: rates, PR curves, top-k recall (§5.8)",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default="docs/matching", help="directory for CSV and PNG results (default: docs/matching)")
+    p.add_argument("--fragments", type=int, default=150, help="fragments per synthetic wall (default 150)")
+    p.add_argument("--seed", type=int, default=11, help="seed of the training wall (default 11)")
+    p.add_argument("--test-seed", type=int, default=12, help="seed of the test wall (default 12)")
+    p.add_argument("--dpi", type=float, default=100.0, help="sampling of the synthetic fragments (default 100)")
+    p.add_argument("--folds", type=int, default=10, help="cross-validation folds (default 10)")
+    p.add_argument("--classifiers", default="logistic,tree,forest,svm", help="classifiers compared on all features")
+    p.add_argument("--subsets", default="colour,curvature,normal,erosion,thickness,per-match,all",
+                   help="feature subsets for the logistic regression")
+    p.add_argument("--negatives", type=float, default=10.0, help="sampled non-matches per match (default 10)")
+    p.add_argument("--dafne", help="a DAFNE set (e.g. ../shared/data/dafne-adam): colour-only evaluation")
+    p.add_argument("--train-model", metavar="ROOT", help="train a model on a synthetic wall and install it in the "
+                                                         "matcher's proposal store under storage root ROOT")
+    p.add_argument("--db", help="proposal database (default ROOT/matches/proposals.sqlite)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from common.matching.classifiers import CLASSIFIERS, SUBSETS
+
+    def progress(fraction, text):
+        log.info("%3.0f%% %s", 100 * fraction, text)
+
+    if args.folds < 2:
+        raise SystemExit("--folds must be at least 2")
+    if args.fragments < 10:
+        raise SystemExit("--fragments must be at least 10 (a wall needs neighbours to learn from)")
+    if args.train_model:
+        return _train(args, progress)
+    kinds = [k.strip() for k in args.classifiers.split(",") if k.strip()]
+    subsets = [s.strip() for s in args.subsets.split(",") if s.strip()]
+    bad = [k for k in kinds if k not in CLASSIFIERS] + [s for s in subsets if s not in SUBSETS]
+    if bad:
+        raise SystemExit(f"unknown classifier or subset {bad}; classifiers: {list(CLASSIFIERS)}, subsets: {list(SUBSETS)}")
+    if args.dafne and not Path(args.dafne).is_dir():
+        raise SystemExit(f"--dafne {args.dafne}: no such directory")
+    from common.matching.report import evaluate_matching
+    res = evaluate_matching(args.out, n_fragments=args.fragments, seed=args.seed, test_seed=args.test_seed,
+                            dpi=args.dpi, folds=args.folds, classifiers=kinds, subsets=subsets,
+                            negatives_per_positive=args.negatives, dafne=args.dafne, progress=progress)
+    print(f"{'classifier':10s} {'subset':10s} {'TPR':>6s} {'TNR':>6s} {'AP':>6s}")
+    for r in res["table"]:
+        print(f"{r['classifier']:10s} {r['subset']:10s} {r['tpr']:6.3f} {r['tnr']:6.3f} {r['ap']:6.3f}")
+    for r in res["crosswall"]:
+        print(f"train {r['train_wall']} -> test {r['test_wall']}: TPR {r['tpr']:.3f} TNR {r['tnr']:.3f} AP {r['ap']:.3f}")
+    for name, rec in res["topk"].items():
+        print(f"top-k recall, {name}: " + ", ".join(f"k={k}: {v:.3f}" for k, v in rec.items()))
+    print("fragment-pair AP: " + json.dumps({k: round(v, 4) for k, v in res["pair_ap"].items()}))
+    print(f"results in {args.out}")
+    return 0
+
+
+def _train(args, progress) -> int:
+    from common.matching.models import save_model
+    from common.matching.online import bootstrap_model
+    from common.matching.proposals import ProposalStore
+    from common.store import Store
+
+    store = Store(args.train_model)
+    model = bootstrap_model(n_fragments=args.fragments, seed=args.seed, dpi=args.dpi, progress=progress)
+    ref = save_model(store, model, provenance={"command": "tessera evaluate --train-model"})
+    db = ProposalStore(args.db or Path(args.train_model) / "matches" / "proposals.sqlite")
+    db.add_model(model.version, ref.to_dict(), n_train=model.info.get("n_train"), note="tessera evaluate --train-model")
+    print(f"model {model.version} installed: {ref.path} ({model.info.get('n_train')} training rows)")
+    return 0
