@@ -78,7 +78,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "depth": 16,
         "colour_only": False,
         "margin_mm": 5.0,
-        "seed": 3,                       # synthetic fresco seed (simulated device)
+        "seed": 1,                       # synthetic fresco seed (simulated device)
         "fragments": 4,                  # synthetic fragments per run when not given
         "wall_dpi": 300,                 # synthetic fresco resolution (as fine as the scans: the solver registers on texture)
         "drain_interval_s": 2.0,         # how often the outbox retries the broker/storage

@@ -34,6 +34,11 @@ class ArtifactError(Exception):
     """An artifact is missing, truncated, corrupt, of the wrong schema or fails its digest."""
 
 
+class ArtifactMissing(ArtifactError):
+    """An artifact is not (yet) on storage: possibly transient (NFS attribute cache, a share
+    remounting), so a worker retries it instead of rejecting the input outright."""
+
+
 @dataclass(frozen=True)
 class ArtifactRef:
     """Pointer to an artifact: what travels in a message instead of the data.
@@ -136,7 +141,7 @@ class Store:
         """Pointer (with digest and size) to an existing artifact."""
         full = self.path(relpath)
         if not full.is_file():
-            raise ArtifactError(f"artifact {relpath} does not exist under {self.root}")
+            raise ArtifactMissing(f"artifact {relpath} does not exist under {self.root}")
         return ArtifactRef(relpath, file_sha256(full), full.stat().st_size)
 
     # -- writing ---------------------------------------------------------------------------
@@ -223,7 +228,7 @@ class Store:
         relpath = ref.path if isinstance(ref, ArtifactRef) else str(ref)
         full = self.path(relpath)
         if not full.is_file():
-            raise ArtifactError(f"artifact {relpath} does not exist under {self.root}")
+            raise ArtifactMissing(f"artifact {relpath} does not exist under {self.root}")
         if isinstance(ref, ArtifactRef):
             size = full.stat().st_size
             if size != ref.bytes:

@@ -71,6 +71,8 @@ class FeedSubscriber:
         self._need_catchup = True
         self._heard = time.monotonic()
         self._connect()
+        if since is None:  # "only new events" means new from now: fix the position at construction
+            self._catch_up()
 
     @classmethod
     def from_config(cls, config: Mapping, **kw) -> "FeedSubscriber":

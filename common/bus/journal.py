@@ -178,8 +178,7 @@ class Journal:
                     items = [i for i in items if i is not None]
                 if items:
                     con.execute("BEGIN")
-                    for _batch_id, ops in items:
-                        self._apply(con, ops)
+                    self._apply(con, [op for _batch_id, ops in items for op in ops])
                     con.execute("INSERT OR REPLACE INTO meta VALUES ('last_seq', ?)", (str(self._last_seq_written),))
                     con.execute("COMMIT")
                     self.batches_committed += 1
@@ -195,23 +194,35 @@ class Journal:
             con.close()
 
     def _apply(self, con: sqlite3.Connection, ops: list) -> None:
+        # Grouped by kind, in an order that gives the same end state as the original sequence:
+        # a job is inserted before it is updated, updated (in order) before it is deleted.
+        events, jobs, updates, done = [], [], [], []
         for op in ops:
             kind = op[0]
             if kind == "event":
-                con.execute("INSERT OR IGNORE INTO events VALUES (?, ?, ?, ?, ?)", op[1:])
-                self._last_seq_written = max(self._last_seq_written, op[1])
+                events.append(op[1:])
             elif kind == "job":
-                con.execute("INSERT OR IGNORE INTO jobs (id, seq, service, state) VALUES (?, ?, ?, 'queued')", op[1:])
+                jobs.append(op[1:])
             elif kind == "done":
-                con.execute("DELETE FROM jobs WHERE id = ?", (op[1],))
-            elif kind == "fail":
-                con.execute("UPDATE jobs SET failures = ?, error = ?, state = 'queued' WHERE id = ?", (op[2], op[3], op[1]))
-            elif kind == "park":
-                con.execute("UPDATE jobs SET failures = ?, error = ?, state = 'parked' WHERE id = ?", (op[2], op[3], op[1]))
-            elif kind == "requeue":
-                con.execute("UPDATE jobs SET failures = 0, state = 'queued' WHERE id = ?", (op[1],))
+                done.append((op[1],))
+            elif kind in ("fail", "park", "requeue"):
+                updates.append(op)
             else:
                 raise ValueError(f"unknown journal operation {kind!r}")
+        if events:
+            con.executemany("INSERT OR IGNORE INTO events VALUES (?, ?, ?, ?, ?)", events)
+            self._last_seq_written = max(self._last_seq_written, max(e[0] for e in events))
+        if jobs:
+            con.executemany("INSERT OR IGNORE INTO jobs (id, seq, service, state) VALUES (?, ?, ?, 'queued')", jobs)
+        for op in updates:
+            if op[0] == "fail":
+                con.execute("UPDATE jobs SET failures = ?, error = ?, state = 'queued' WHERE id = ?", (op[2], op[3], op[1]))
+            elif op[0] == "park":
+                con.execute("UPDATE jobs SET failures = ?, error = ?, state = 'parked' WHERE id = ?", (op[2], op[3], op[1]))
+            else:
+                con.execute("UPDATE jobs SET failures = 0, state = 'queued' WHERE id = ?", (op[1],))
+        if done:
+            con.executemany("DELETE FROM jobs WHERE id = ?", done)
 
     def _compact(self, con: sqlite3.Connection) -> None:
         keep_after = self._last_seq_written - self.history

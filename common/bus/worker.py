@@ -35,7 +35,7 @@ import zmq
 from common import messages
 from common.bus import protocol as P
 from common.config import broker_endpoint, service_config
-from common.store import ArtifactError, Store
+from common.store import ArtifactError, ArtifactMissing, Store
 
 log = logging.getLogger("tessera.worker")
 
@@ -88,28 +88,15 @@ def load_stage(name: str):
 
 
 class _JobRunner(threading.Thread):
-    """Runs jobs one at a time; wakes the poll loop over an inproc PAIR when one finishes."""
+    """Runs jobs one at a time in its own thread; outcomes and progress go to :attr:`outcomes`."""
 
-    def __init__(self, ctx: zmq.Context, endpoint: str, handle, make_context):
+    def __init__(self, handle, make_context):
         super().__init__(name="job-runner", daemon=True)
-        self.ctx, self.endpoint, self.handle, self.make_context = ctx, endpoint, handle, make_context
+        self.handle, self.make_context = handle, make_context
         self.jobs: queue.Queue = queue.Queue()
         self.outcomes: queue.Queue = queue.Queue()
-        self._lock = threading.Lock()
-        self._wake = None
-
-    def _notify(self, item) -> None:
-        self.outcomes.put(item)
-        with self._lock:
-            try:
-                self._wake.send(b"", zmq.NOBLOCK)
-            except zmq.Again:  # the poll loop already has unread wake-ups
-                pass
 
     def run(self) -> None:
-        self._wake = self.ctx.socket(zmq.PAIR)
-        self._wake.setsockopt(zmq.LINGER, 0)
-        self._wake.connect(self.endpoint)
         while True:
             item = self.jobs.get()
             if item is None:
@@ -117,22 +104,24 @@ class _JobRunner(threading.Thread):
             jid, attempt, event = item
 
             def progress(fraction: float, text: str = "", _jid=jid) -> None:
-                self._notify(("progress", _jid, float(fraction), str(text)))
+                self.outcomes.put(("progress", _jid, float(fraction), str(text)))
 
             try:
                 stage_ctx = self.make_context(jid, attempt, progress)
                 result = self.handle(event, stage_ctx) or []
                 payload = P.dumps([messages.validate(e) for e in result])
-                self._notify(("result", jid, payload))
+                self.outcomes.put(("result", jid, payload))
+            except ArtifactMissing as exc:  # maybe not visible yet on a network share: an ordinary, retried failure
+                log.warning("job %s: %s", jid, exc)
+                self.outcomes.put(("fail", jid, P.FAIL_ERROR, f"{type(exc).__name__}: {exc}"))
             except REJECTED_ERRORS as exc:
                 log.warning("job %s rejected: %s", jid, exc)
-                self._notify(("fail", jid, P.FAIL_REJECTED, f"{type(exc).__name__}: {exc}"))
+                self.outcomes.put(("fail", jid, P.FAIL_REJECTED, f"{type(exc).__name__}: {exc}"))
             except Exception as exc:  # one bad job must never take the worker down
                 tb = traceback.extract_tb(exc.__traceback__)[-3:]
                 where = "; ".join(f"{os.path.basename(f.filename)}:{f.lineno} in {f.name}" for f in tb)
                 log.exception("job %s failed", jid)
-                self._notify(("fail", jid, P.FAIL_ERROR, f"{type(exc).__name__}: {exc} (at {where})"))
-        self._wake.close(linger=0)
+                self.outcomes.put(("fail", jid, P.FAIL_ERROR, f"{type(exc).__name__}: {exc} (at {where})"))
 
 
 def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Event | None = None,
@@ -176,10 +165,7 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
         return StageContext(store=store, config=settings, log=stage_log, progress=progress,
                             service=service, job_id=jid, attempt=attempt, stopping=stop)
 
-    wake_endpoint = f"inproc://worker-wake-{uuid.uuid4().hex}"
-    wake = ctx.socket(zmq.PAIR)
-    wake.bind(wake_endpoint)
-    runner = _JobRunner(ctx, wake_endpoint, module.handle, make_context)
+    runner = _JobRunner(module.handle, make_context)
     runner.start()
 
     sock = None
@@ -202,6 +188,34 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
     connect()
     last_heard = time.monotonic()
     next_heartbeat = time.monotonic() + interval
+
+    def from_broker(frames: list[bytes]) -> None:
+        nonlocal current, last_heard, backoff
+        last_heard = time.monotonic()
+        backoff = float(w["reconnect_min_s"])
+        if len(frames) < 3 or frames[1] != P.WORKER:
+            log.warning("malformed frame from broker ignored: %d parts", len(frames))
+            return
+        command = frames[2]
+        if command == P.JOB:
+            jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
+            if current is not None:  # the broker thinks we are idle: tell it this job cannot run here
+                sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_ERROR,
+                                     f"worker busy with {current}".encode()])
+                return
+            try:
+                event = messages.unpack(body)
+            except messages.MessageError as exc:
+                sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_REJECTED,
+                                     f"MessageError: {exc}".encode()])
+                return
+            current = jid
+            runner.jobs.put((jid, attempt, event))
+        elif command == P.DISCONNECT:
+            log.info("broker asked %s to reconnect", service)
+            connect()
+        # HEARTBEAT: only a sign of life
+
     try:
         while True:
             if stop.is_set():
@@ -215,59 +229,36 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
                     log.warning("worker %s: job %s not finished in time; handing it back", service, current)
                     sock.send_multipart([b"", P.WORKER, P.DISCONNECT, current.encode()])
                     break
-            poller = zmq.Poller()
-            poller.register(sock, zmq.POLLIN)
-            poller.register(wake, zmq.POLLIN)
             timeout = max(0.0, min(next_heartbeat - time.monotonic(), 0.2))
-            ready = dict(poller.poll(timeout * 1000))
-            if sock in ready:
-                frames = sock.recv_multipart()
-                last_heard = time.monotonic()
-                backoff = float(w["reconnect_min_s"])
-                if len(frames) < 3 or frames[1] != P.WORKER:
-                    log.warning("malformed frame from broker ignored: %d parts", len(frames))
-                else:
-                    command = frames[2]
-                    if command == P.JOB:
-                        jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
-                        if current is not None:  # the broker thinks we are idle: tell it this job failed
-                            sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_ERROR,
-                                                 f"worker busy with {current}".encode()])
-                        else:
-                            try:
-                                event = messages.unpack(body)
-                            except messages.MessageError as exc:
-                                sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_REJECTED,
-                                                     f"MessageError: {exc}".encode()])
-                            else:
-                                current = jid
-                                runner.jobs.put((jid, attempt, event))
-                    elif command == P.DISCONNECT:
-                        log.info("broker asked %s to reconnect", service)
-                        connect()
-                    # HEARTBEAT: liveness already reset
-            if wake in ready:
-                while True:
-                    try:
-                        wake.recv(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                while True:
-                    try:
-                        item = runner.outcomes.get_nowait()
-                    except queue.Empty:
-                        break
+            if current is not None:
+                # busy: wait for the job's outcome (a queue wake-up is immediate), then read the broker
+                try:
+                    item = runner.outcomes.get(timeout=timeout)
+                except queue.Empty:
+                    item = None
+                while item is not None:
                     kind, jid = item[0], item[1]
                     if kind == "progress":
                         sock.send_multipart([b"", P.WORKER, P.PROGRESS, jid.encode(),
                                              P.dumps({"fraction": item[2], "text": item[3]})])
-                        continue
-                    if kind == "result":
-                        sock.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), item[2]])
                     else:
-                        sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), item[2], item[3].encode()])
-                    if jid == current:
-                        current = None
+                        if kind == "result":
+                            sock.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), item[2]])
+                        else:
+                            sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), item[2], item[3].encode()])
+                        if jid == current:
+                            current = None
+                    try:
+                        item = runner.outcomes.get_nowait()
+                    except queue.Empty:
+                        item = None
+                while sock.poll(0):
+                    from_broker(sock.recv_multipart())
+            elif sock.poll(timeout * 1000):
+                while True:
+                    from_broker(sock.recv_multipart())
+                    if current is not None or not sock.poll(0):
+                        break
             if time.monotonic() >= next_heartbeat:
                 if time.monotonic() - last_heard > interval * liveness_max:
                     log.warning("broker silent for %.1f s; reconnecting in %.2f s", interval * liveness_max, backoff)
@@ -282,6 +273,5 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
         runner.jobs.put(None)
         if sock is not None:
             sock.close(linger=200)
-        wake.close(linger=0)
     log.info("worker %s stopped", service)
     return 0

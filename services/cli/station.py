@@ -16,6 +16,7 @@ import importlib.util
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -72,6 +73,16 @@ class Children:
                     p.wait(5)
 
 
+def _port_free(bind: str, port: int) -> bool:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("" if bind == "*" else bind, port))
+            return True
+        except OSError:
+            return False
+
+
 def _stage_present(name: str) -> bool:
     try:
         return importlib.util.find_spec(f"services.{name}") is not None
@@ -99,6 +110,12 @@ def run(args) -> int:
             stages.append(name)
         else:
             log.warning("stage %s skipped: services/%s.py is not part of this build", name, name)
+    busy = [k for k in ("port", "feed_port") if not _port_free(config["broker"]["bind"], config["broker"][k])]
+    if busy:
+        print("error: " + ", ".join(f"broker.{k} {config['broker'][k]}" for k in busy) + " already in use on this "
+              "machine (another station?). Stop it, or choose free ports, e.g. "
+              "--set broker.port=5565 --set broker.feed_port=5566")
+        return 1
     status = 0
     try:
         broker = kids.start("broker", "broker")
@@ -106,9 +123,11 @@ def run(args) -> int:
             deadline = time.monotonic() + 20
             while True:
                 try:
-                    bus.status()
+                    if bus.status()["pid"] != broker.pid:  # somebody else's broker answers on our port
+                        print(f"error: another broker answers on port {config['broker']['port']}; stopping")
+                        return 1
                     break
-                except Exception:
+                except (KeyError, TypeError, OSError, RuntimeError):
                     if broker.poll() is not None or time.monotonic() > deadline:
                         tail = (log_dir / "broker.log").read_text(errors="replace")[-1500:]
                         print(f"error: the broker did not start (is another station using port "
