@@ -23,7 +23,6 @@ import urllib.request
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 from .conftest import TOKEN, free_port, wait_for
