@@ -32,7 +32,7 @@ def handle(job: dict, ctx) -> list[dict]:
     if not ctx.store.exists(relpath):
         image = load_rgbn(ctx.store, ref)
         work_mm = float((ctx.config or {}).get("work_pixel_mm", 0.1))
-        table = extract_features(image, face=face, work_pixel_mm=work_mm,
+        table = extract_features(image, face=face, fragment=fragment, work_pixel_mm=work_mm,
                                  progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
         ctx.log.info("fragment %s %s: %d patches, missing %s", fragment, face, table.n_patches,
                      table.missing_data or "nothing")

@@ -69,6 +69,8 @@ class FeatureTable:
     dpi : float
         Scan dpi of the RGBN image.
     face : str
+    fragment : str
+        Fragment id ('' when not known, e.g. a table of a loose RGBN file).
     work_pixel_mm : float
         Pixel size of the working grid the pixel statistics ran on.
     missing_data : list of str
@@ -88,6 +90,7 @@ class FeatureTable:
     patch_coverage: np.ndarray = None
     patch_contour_mm: np.ndarray = None
     face: str = "front"
+    fragment: str = ""
     work_pixel_mm: float = WORK_PIXEL_MM
     missing_data: list = field(default_factory=list)
 
@@ -129,7 +132,8 @@ def _area_downsample(a, factor: int, shape) -> np.ndarray:
     return cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: float = WORK_PIXEL_MM,
+def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "",
+                     work_pixel_mm: float = WORK_PIXEL_MM,
                      contour_start_mm=None,
                      progress: Callable[[float, str], None] | None = None) -> FeatureTable:
     """All per-fragment and per-patch descriptors of one fragment face (§5.2.1, §5.4).
@@ -140,8 +144,8 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         The face; ``normals`` None (colour-only) or ``height_mm`` None give NaN for the
         descriptors that need them, recorded in ``missing_data``. Non-finite albedo pixels
         count as black and non-finite normals as (0, 0, 1); non-finite heights are skipped.
-    face : str
-        Face name stored with the table.
+    face, fragment : str
+        Face name and fragment id stored with the table.
     work_pixel_mm : float
         Target pixel size of the working grid, mm.
     contour_start_mm : (2,) float, optional
@@ -309,7 +313,7 @@ def extract_features(image: RGBNImage, *, face: str = "front", work_pixel_mm: fl
         patch_contour_mm=patches.contour_mm if n_p else empty2,
         contour_mm=contour.points_mm if contour is not None else empty2,
         contour_normals=contour.normals if contour is not None else empty2,
-        dpi=image.dpi, face=face, work_pixel_mm=wp, missing_data=missing)
+        dpi=image.dpi, face=face, fragment=fragment, work_pixel_mm=wp, missing_data=missing)
 
 
 def _fragment_orientation(nz_s, region, wp) -> dict:
@@ -334,6 +338,7 @@ def write_features(group: h5py.Group, table: FeatureTable) -> None:
     """Write one feature table into an open HDF5 group."""
     group.attrs["dpi"] = table.dpi
     group.attrs["face"] = table.face
+    group.attrs["fragment"] = table.fragment
     group.attrs["work_pixel_mm"] = table.work_pixel_mm
     group.attrs["missing_data"] = json.dumps(list(table.missing_data))
     group.attrs["frame"] = "fragment frame, mm: x = col * pixel_mm (right), y = row * pixel_mm (down)"
@@ -370,6 +375,7 @@ def read_features(group: h5py.Group) -> FeatureTable:
             contour_normals=group["contour_normals"][()],
             dpi=float(group.attrs["dpi"]),
             face=str(group.attrs["face"]),
+            fragment=str(group.attrs.get("fragment", "")),
             work_pixel_mm=float(group.attrs["work_pixel_mm"]),
             missing_data=json.loads(group.attrs.get("missing_data", "[]")))
     except KeyError as exc:

@@ -49,7 +49,7 @@ def test_rgbn_ready_gives_features_ready_at_a_content_keyed_path(store_with_rgbn
     assert ev["artifact"]["path"] == stage.output_path("F7", "front", ref.sha256)
     assert ev["artifact"]["path"].startswith("fragments/F7/features/front-")
     table = load_features(store, ev["artifact"])
-    assert table.n_patches > 0 and table.face == "front" and ctx.calls
+    assert table.n_patches > 0 and (table.face, table.fragment) == ("front", "F7") and ctx.calls
 
 
 def test_redelivered_job_finds_its_output_and_does_not_recompute(store_with_rgbn):

@@ -184,7 +184,7 @@ def test_saved_table_loads_back_identically(tmp_path, fragment):
                  "patch_contour_mm", "contour_mm", "contour_normals"):
         assert np.array_equal(getattr(u, name), getattr(t, name), equal_nan=True), name
     assert list(u.patch_kind) == list(t.patch_kind)
-    assert (u.dpi, u.face, u.missing_data) == (t.dpi, t.face, t.missing_data)
+    assert (u.dpi, u.face, u.fragment, u.missing_data) == (t.dpi, t.face, t.fragment, t.missing_data)
 
 
 def test_unsolved_nan_pixels_do_not_poison_the_table(fragment):
