@@ -444,6 +444,8 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
         link.start_drain()
     app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
                      review=review)
+    if not log.isEnabledFor(logging.DEBUG):   # one line per poll of every open page is noise
+        logging.getLogger("werkzeug").setLevel(logging.WARNING)
     server = make_server(host, port, app, threaded=True)
     url = f"http://{host if host not in ('0.0.0.0', '::') else '127.0.0.1'}:{server.server_port}"
     where = "this machine only" if host in ("127.0.0.1", "localhost", "::1") else "the lab network"
