@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.render.recipes import RECIPE_DIR, load_recipe, recipe_to_toml, render, style_recipe
+from common.render.recipes import RECIPE_DIR, STYLES, load_recipe, recipe_to_toml, render, style_recipe
 from common.rgbn.image import RGBNImage
 
 log = logging.getLogger(__name__)
@@ -203,7 +203,8 @@ def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict) -> None
         lines.append(f"* **{name}** — not drawn: {why}")
     lines.append("")
     for key, recipe in recipes.items():
-        lines += [f"## {key}", "", recipe.layers[-1]["style"] if not key.startswith("recipe-") else recipe.description,
+        what = recipe.description if key.startswith("recipe-") else STYLES[key].doc.splitlines()[0]
+        lines += [f"## {key}", "", what,
                   "", f"![{key}: {', '.join(rows)}](gallery/{key}.png)", "",
                   "```toml", recipe_to_toml(recipe).rstrip(), "```", ""]
     path.write_text("\n".join(lines))

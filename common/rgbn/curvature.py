@@ -123,10 +123,13 @@ def mean_curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
     mask = check_mask(mask, normals.shape[:2])
     if sigma_px > 0:
         normals = smooth_normals(normals, sigma_px, mask=mask)
-    dx, dy = normal_derivatives(normals, dpi, method=method)
-    nz, E, F, G, e, f, g = _fundamental_forms(normals, dx, dy)
-    H = (G * e - 2.0 * F * f + E * g) / (2.0 * nz)
-    return np.where(mask, H, 0.0).astype(np.float32)
+    H = np.empty(normals.shape[:2], np.float32)
+    for rows, block, inner in _blocks(normals):
+        dx, dy = normal_derivatives(block, dpi, method=method)
+        nz, E, F, G, e, f, g = _fundamental_forms(block, dx, dy)
+        H[rows] = ((G * e - 2.0 * F * f + E * g) / (2.0 * nz))[inner]
+    H[~mask] = 0.0
+    return H
 
 
 def curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
@@ -170,27 +173,46 @@ def curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None
     mask = check_mask(mask, normals.shape[:2])
     if sigma_px > 0:
         normals = smooth_normals(normals, sigma_px, mask=mask)
-    dx, dy = normal_derivatives(normals, dpi, method=method)
-    nz, E, F, G, e, f, g = _fundamental_forms(normals, dx, dy)
-    inv = 1.0 / nz
-    # S = adj(I) II / nz
-    s11 = (G * e - F * f) * inv
-    s12 = (G * f - F * g) * inv
-    s21 = (E * f - F * e) * inv
-    s22 = (E * g - F * f) * inv
-    H = 0.5 * (s11 + s22)
-    K = e * g - f * f
-    disc = np.sqrt(np.maximum(H * H - K, 0.0))
-    k1 = H + disc
-    k2 = H - disc
-    dir1 = _eigvec(s11, s12, s21, s22, k1)
-    # the directions are I-orthogonal, not image-orthogonal; compute the second one the same way
-    dir2 = _eigvec(s11, s12, s21, s22, k2)
+    shape = normals.shape[:2]
+    H, K, k1, k2 = (np.empty(shape, np.float32) for _ in range(4))
+    dir1, dir2 = np.empty(shape + (2,), np.float32), np.empty(shape + (2,), np.float32)
+    # row blocks keep the dozen per-pixel temporaries small on 16-Mpx images
+    for rows, block, inner in _blocks(normals):
+        dx, dy = normal_derivatives(block, dpi, method=method)
+        nz, E, F, G, e, f, g = (a[inner] for a in _fundamental_forms(block, dx, dy))
+        inv = 1.0 / nz
+        # S = adj(I) II / nz
+        s11 = (G * e - F * f) * inv
+        s12 = (G * f - F * g) * inv
+        s21 = (E * f - F * e) * inv
+        s22 = (E * g - F * f) * inv
+        h = 0.5 * (s11 + s22)
+        k = e * g - f * f
+        disc = np.sqrt(np.maximum(h * h - k, 0.0))
+        H[rows], K[rows], k1[rows], k2[rows] = h, k, h + disc, h - disc
+        dir1[rows] = _eigvec(s11, s12, s21, s22, h + disc)
+        # the directions are I-orthogonal, not image-orthogonal; compute the second one the same way
+        dir2[rows] = _eigvec(s11, s12, s21, s22, h - disc)
     if not mask.all():
-        out = mask.astype(np.float32)
-        H, K, k1, k2 = H * out, K * out, k1 * out, k2 * out
-        dir1, dir2 = dir1 * out[..., None], dir2 * out[..., None]
+        outside = ~mask
+        for arr in (H, K, k1, k2, dir1, dir2):
+            arr[outside] = 0.0
     return Curvature(mean=H, gaussian=K, k1=k1, k2=k2, dir1=dir1, dir2=dir2)
+
+
+_BLOCK_ROWS = 256
+
+
+def _blocks(normals: np.ndarray, rows: int | None = None):
+    """Row blocks with a 2-row halo: yields (output row slice, block with halo, slice of the block's
+    own rows). Derivatives inside a block then see their true neighbours; only the image border
+    is reflected."""
+    h = normals.shape[0]
+    rows = rows or _BLOCK_ROWS
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        a0, a1 = max(0, r0 - 2), min(h, r1 + 2)
+        yield slice(r0, r1), normals[a0:a1], slice(r0 - a0, r0 - a0 + (r1 - r0))
 
 
 def _eigvec(s11, s12, s21, s22, k):

@@ -93,3 +93,21 @@ def test_curvature_is_zero_outside_the_mask():
 def test_bad_dpi_is_refused_by_name():
     with pytest.raises(ValueError, match="dpi"):
         curvature(tilted_plane(8), 0)
+
+
+@pytest.mark.parametrize("method", ["central", "sobel"])
+def test_row_blocks_give_exactly_the_whole_image_result(method, monkeypatch):
+    import sys
+
+    module = sys.modules["common.rgbn.curvature"]
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(90, 40, 3)).astype(np.float32)
+    n[..., 2] = np.abs(n[..., 2]) + 3
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    monkeypatch.setattr(module, "_BLOCK_ROWS", 10 ** 6)
+    whole = curvature(n, 300.0, method=method)
+    monkeypatch.setattr(module, "_BLOCK_ROWS", 7)
+    blocks = curvature(n, 300.0, method=method)
+    for name in ("mean", "gaussian", "k1", "k2", "dir1", "dir2"):
+        assert np.array_equal(getattr(whole, name), getattr(blocks, name)), name
+    assert np.array_equal(mean_curvature(n, 300.0, method=method), whole.mean)
