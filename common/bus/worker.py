@@ -103,8 +103,13 @@ class _JobRunner(threading.Thread):
                 break
             jid, attempt, event = item
 
-            def progress(fraction: float, text: str = "", _jid=jid) -> None:
-                self.outcomes.put(("progress", _jid, float(fraction), str(text)))
+            last = [0.0]
+
+            def progress(fraction: float, text: str = "", _jid=jid, _last=last) -> None:
+                now = time.monotonic()
+                if now - _last[0] >= 0.2 or fraction >= 1.0:  # a stage may call this per row: send 5/s at most
+                    _last[0] = now
+                    self.outcomes.put(("progress", _jid, float(fraction), str(text)))
 
             try:
                 stage_ctx = self.make_context(jid, attempt, progress)

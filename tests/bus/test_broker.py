@@ -186,3 +186,23 @@ def test_worker_finishes_its_job_on_sigterm(make_station):
             events = collect(sub, lambda ev: _done(ev), 5, "the job finished before exit")
     assert _done(events) == {job["uid"]}
     assert [e["attempt"] for _, e in events if e["type"] == "noop.done"] == [1]
+
+
+def test_worker_hands_back_a_long_job_on_sigterm_and_another_worker_runs_it(make_station):
+    st = make_station(services={"noop": {"sleep_s": 3.0}})
+    st.broker()
+    slow = st.spawn("worker", "noop", "--set", "worker.shutdown_grace_s=0.3")
+    st.workers_ready(1)
+    job = new_message("noop.job")
+    with st.client() as c:
+        c.submit(job)
+        inflight = wait_for(lambda: c.status()["in_flight"], 10, "job in flight")
+        assert inflight[0]["worker"].endswith(f":{slow.pid}")
+        wait_for(lambda: (c.status()["in_flight"] or [{}])[0].get("progress"), 5, "progress reported")
+        slow.send_signal(signal.SIGTERM)
+        assert slow.wait(10) == 0
+        st.worker()
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: _done(ev), 20, "the handed-back job done elsewhere")
+        assert [e["attempt"] for _, e in events if e["type"] == "noop.done"] == [1], "a hand-back is not a failure"
+        assert c.status()["parked"] == []
