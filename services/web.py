@@ -556,30 +556,42 @@ class StationLink:
 
 
 def _simulated_bench(cfg: Mapping):
-    """A simulated flatbed and the fragments it can be given, by id (the synthetic fresco)."""
+    """A simulated flatbed and the fragments it can be given, by id (the synthetic fresco).
+
+    The fresco is generated at the first request for a fragment, not at start, so the pages come
+    up at once. A known fresco id gets its fragment; any other id the next fragment nobody asked
+    for by name (the operator's labels are free text).
+    """
     from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 
     sc = cfg["scanner"]
     sim = SimulatedFlatbed("sim", seed=int(sc["seed"]))
     surfaces: dict[str, Any] = {}
-    try:
-        from common.synth import generate_wall
-
-        wall = generate_wall(int(sc["fragments"]), int(sc["seed"]), dpi=float(sc["wall_dpi"]))
-        surfaces = {f.id: f.surface for f in wall.fragments}
-    except ImportError:  # the synthetic fresco is optional here: any fragment-like surface will do
-        log.info("common.synth.generate_wall not available; the simulated glass gets demo fragments")
-    order = list(surfaces)
+    order: list[str] = []
+    lock = threading.Lock()
+    made = []
 
     def surface_for(fid: str):
-        if fid in surfaces:
+        with lock:
+            if not made:
+                made.append(True)
+                try:
+                    from common.synth import generate_wall
+
+                    wall = generate_wall(int(sc["fragments"]), int(sc["seed"]), dpi=float(sc["wall_dpi"]))
+                    surfaces.update({f.id: f.surface for f in wall.fragments})
+                    order.extend(surfaces)
+                except ImportError:  # any fragment-like surface will do
+                    log.info("common.synth.generate_wall not available; the simulated glass gets demo fragments")
+            if fid not in surfaces:
+                if order:
+                    surfaces[fid] = surfaces[order.pop(0)]
+                else:
+                    seed = int.from_bytes(fid.encode()[:4].ljust(4, b"\0"), "little")
+                    surfaces[fid] = demo_surface(40.0, float(sc["wall_dpi"]), seed=seed)
+            elif fid in order:
+                order.remove(fid)
             return surfaces[fid]
-        if order:   # an unknown id gets the next fresco fragment nobody asked for by name
-            surfaces[fid] = surfaces[order.pop(0)]
-            return surfaces[fid]
-        seed = int.from_bytes(fid.encode()[:4].ljust(4, b"\0"), "little")
-        surfaces[fid] = demo_surface(40.0, float(sc["wall_dpi"]), seed=seed)
-        return surfaces[fid]
 
     return sim, surface_for
 
