@@ -30,7 +30,7 @@ from common.features.erosion import _multiscale_erosion, erosion_statistics
 from common.features.normal import (discontinuity_from_differences,
                                     neighbour_differences, normal_channels, normal_from_moments)
 from common.features.orientation import dominant_orientation
-from common.features.patches import MIN_COVERAGE, disk_window, sample_patches
+from common.features.patches import MIN_COVERAGE, PATCH_SPACING_MM, disk_window, sample_patches
 from common.features.registry import (CURVATURE_SCALES_MM, EROSION_SCALES, fragment_descriptors,
                                       patch_descriptors)
 from common.rgbn.image import RGBNImage
@@ -197,7 +197,7 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         albedo = _area_downsample(cv2.multiply(np.nan_to_num(image.albedo, nan=0.0, posinf=1.0, neginf=0.0), m3),
                                   factor, shape) / safe
     # moment channels on the working grid, weighted by coverage M: every patch statistic is a
-    # weighted sum over the patch disc (one tensordot), equal to the statistic of the grid pixels
+    # weighted sum over the patch disc (one einsum), equal to the statistic of the grid pixels
     # channels centred on the fragment means so float32 sums of squares do not cancel
     wsum = float(M.sum(dtype=np.float64))
     wmean = lambda a: float(np.tensordot(M, a, axes=2) / wsum)  # noqa: E731
@@ -250,7 +250,8 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         nz_s = ndi.gaussian_filter(np.where(region, nz, values["normal_z_mean"]).astype(np.float32), 1.0)
         values.update(discontinuity_from_differences(neighbour_differences(nz_s, inside)))
         report(0.2, "fragment orientation")
-        values.update(_fragment_orientation(nz_s, region, wp))
+        if region.any():
+            values.update(_fragment_orientation(nz_s, region, wp))
         report(0.3, "erosion")
         ms, eroded = _multiscale_erosion(grey, nz, M, wp, n_scales=EROSION_SCALES)
         values.update(ms)
@@ -266,7 +267,7 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         contour = fragment_contour(M, wp, start_mm=contour_start_mm)
     except ValueError:
         contour = None
-    if contour is None or contour.length_mm < 4 * max(CURVATURE_SCALES_MM):
+    if contour is None or contour.length_mm < PATCH_SPACING_MM:
         patches = None
     else:
         patches = sample_patches(contour, M, wp)
@@ -278,7 +279,8 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         cpts, _ = contour.at(arcs)
         for s in CURVATURE_SCALES_MM:
             pv[:, col[f"curv_area_{s:g}"]] = area_curvature(M, wp, cpts, s)[inv]
-            pv[:, col[f"curv_3pt_{s:g}"]] = three_point_curvature(contour, arcs, s)[inv]
+            if 2 * s < contour.length_mm:  # else the three points would wrap around the fragment
+                pv[:, col[f"curv_3pt_{s:g}"]] = three_point_curvature(contour, arcs, s)[inv]
     for i in range(n_p):
         if i % 16 == 0:
             report(0.5 + 0.5 * i / n_p, f"patch {i + 1}/{n_p}")

@@ -200,6 +200,27 @@ def test_unsolved_nan_pixels_do_not_poison_the_table(fragment):
     assert t.values["normal_z_mean"] == pytest.approx(ref.values["normal_z_mean"], abs=1e-3)
 
 
+def test_small_fragment_gets_patches_and_only_the_curvature_scales_that_fit():
+    # a disc of radius 4 mm (perimeter 25 mm): 15 mm three-point spans would wrap around it
+    yy, xx = np.mgrid[:100, :100]
+    img = RGBNImage(np.full((100, 100, 3), 0.3), (yy - 50) ** 2 + (xx - 50) ** 2 < 40 ** 2, 254.0)
+    t = extract_features(img)
+    assert t.n_patches in (2 * 4, 2 * 5)  # every 5 mm of a ~25 mm outline
+    assert np.isnan(t.patch_column("curv_3pt_15")).all()
+    assert np.isfinite(t.patch_column("curv_area_15")).all()  # a disc of 15 mm still has an area
+    assert np.allclose(t.patch_column("curv_3pt_5"), 1 / 4.0, rtol=0.1)
+    assert np.isnan(t.patch_column("colour_mean_r")).all()  # 10 mm discs 8 mm in: off the fragment
+
+
+def test_a_speck_of_a_fragment_is_described_without_a_crash():
+    mask = np.zeros((40, 40), bool)
+    mask[20, 20] = True
+    n = np.zeros((40, 40, 3), np.float32)
+    n[..., 2] = 1
+    t = extract_features(RGBNImage(np.full((40, 40, 3), 0.3), mask, 600.0, normals=n))
+    assert t.n_patches == 0 and t.values["colour_mean_r"] == pytest.approx(0.3, rel=1e-5)
+
+
 def test_bad_input_is_refused_with_a_named_error():
     with pytest.raises(ValueError, match="image"):
         extract_features(np.zeros((4, 4, 3)))
