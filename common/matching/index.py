@@ -65,24 +65,86 @@ class MatchIndex:
         return fragment in self.cues
 
     def add(self, cues: FragmentCues, contour_mm: np.ndarray | None = None) -> None:
-        """Add (or replace) a fragment. Cost O(patches of this fragment) plus a lazy rebuild."""
-        if cues.fragment not in self.cues:
-            self._order.append(cues.fragment)
-        self.cues[cues.fragment] = cues
+        """Add (or replace) a fragment.
+
+        A new fragment is appended to the stacked arrays (amortised O(its own patches): buffers
+        grow by doubling), so adding one to a large index does not copy the others; replacing a
+        fragment marks the index for a full rebuild.
+        """
         if contour_mm is not None:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
-        self._dirty = True
+        if cues.fragment in self.cues:
+            self.cues[cues.fragment] = cues
+            self._dirty = True
+            return
+        self._order.append(cues.fragment)
+        self.cues[cues.fragment] = cues
+        if not self._dirty:
+            self._append(cues)
+        self._tree = None
 
-    # -- stacked arrays (rebuilt lazily after adds) ------------------------------------------
+    def remove(self, fragment: str) -> None:
+        """Forget a fragment (full rebuild on next use)."""
+        if fragment not in self.cues:
+            return
+        last = self._order[-1] == fragment
+        self._order.remove(fragment)
+        del self.cues[fragment]
+        self.contours.pop(fragment, None)
+        self._tree = None
+        if last and not self._dirty:  # undo the last append without a rebuild
+            self._n -= 1
+            self._offsets_list.pop()
+            self._offsets = np.asarray(self._offsets_list)
+        else:
+            self._dirty = True
+
+    # -- stacked arrays ----------------------------------------------------------------------
     def _build(self):
+        fd, pd = _descs()
         cs = [self.cues[f] for f in self._order]
-        self._values = np.vstack([c.values for c in cs]) if cs else np.zeros((0, len(fragment_descriptors())))
-        counts = np.array([len(c) for c in cs], int)
-        self._offsets = np.concatenate([[0], np.cumsum(counts)])
-        self._patches = np.vstack([c.patches for c in cs]) if cs else None
-        self._strips = [np.concatenate([c.strips[m] for c in cs]) for m in range(len(cs[0].strips))] if cs else []
+        n_strips = len(cs[0].strips) if cs else 0
+        widths = [cs[0].strips[m].shape[1] for m in range(n_strips)] if cs else []
+        cap_f = max(16, 2 * len(cs))
+        cap_p = max(256, 2 * sum(len(c) for c in cs))
+        self._vbuf = np.empty((cap_f, len(fd)))
+        self._pbuf = np.empty((cap_p, len(pd)))
+        self._sbuf = [np.empty((cap_p, w, 2)) for w in widths]
+        self._n = 0
+        self._offsets_list = [0]
         self._dirty = False
         self._tree = None
+        for c in cs:
+            self._append(c)
+
+    def _append(self, c: FragmentCues):
+        if not self._sbuf and c.strips:  # the index was built empty: size the strip buffers now
+            self._sbuf = [np.empty((len(self._pbuf), s.shape[1], 2)) for s in c.strips]
+        n, npch = self._n, self._offsets_list[-1]
+        if n + 1 > len(self._vbuf):
+            self._vbuf = np.concatenate([self._vbuf, np.empty_like(self._vbuf)])
+        while npch + len(c) > len(self._pbuf):
+            self._pbuf = np.concatenate([self._pbuf, np.empty_like(self._pbuf)])
+            self._sbuf = [np.concatenate([b, np.empty_like(b)]) for b in self._sbuf]
+        self._vbuf[n] = c.values
+        self._pbuf[npch:npch + len(c)] = c.patches
+        for m, b in enumerate(self._sbuf):
+            b[npch:npch + len(c)] = c.strips[m]
+        self._n += 1
+        self._offsets_list.append(npch + len(c))
+        self._offsets = np.asarray(self._offsets_list)
+
+    @property
+    def _values(self):
+        return self._vbuf[:self._n]
+
+    @property
+    def _patches(self):
+        return self._pbuf[:self._offsets_list[-1]]
+
+    @property
+    def _strips(self):
+        return [b[:self._offsets_list[-1]] for b in self._sbuf]
 
     def _ensure(self):
         if self._dirty:
@@ -106,7 +168,7 @@ class MatchIndex:
         others = [f for f in self._order if f != cues.fragment]
         if len(others) <= n_candidates:
             return others
-        if self._tree is None or self._tree_weights is not model.version:
+        if self._tree is None or self._tree_weights != model.version:
             w, med = self._prune_space(model)
             self._tree = cKDTree(self._point(self._values, w, med))
             self._tree_med, self._tree_w = med, w

@@ -1,0 +1,121 @@
+"""Scale benchmark of the staged matcher (thesis §5.2.1).
+
+    python tests/bench/bench_matching.py [--sizes 250,500,1000,2000] [--repeats 20]
+
+A model is trained on a small synthetic wall (60 fragments); the index is then filled with n
+synthetic feature tables (allowed for the scale test): each is a real fragment's cues from a pool
+of synthetic walls with its values jittered, so patch counts, value ranges and contours are
+realistic. For each n it prints
+
+* the time to propose joins for one new fragment (stage 1 prune + stage 2 rank, the ``features.ready``
+  path without the alignment check), and separately the alignment check of its best 3;
+* the full re-rank after a model update: every fragment's proposals recomputed under a new model
+  (stage 1 + 2 for all n fragments) and the re-scoring of the stored proposals (10 per fragment);
+* peak resident memory of the process;
+
+targets: ≤ 100 ms per new fragment, ≤ 10 min full re-rank, ≤ 4 GB at n = 2000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from common.matching.index import MatchIndex  # noqa: E402
+from common.matching.online import rerank, train_model, wall_cues  # noqa: E402
+from common.matching.pairs import FragmentCues, training_set  # noqa: E402
+from common.synth.wall import generate_wall  # noqa: E402
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def jittered(c: FragmentCues, fid: str, rng) -> FragmentCues:
+    """A new fragment's cues: a real fragment's, with every value moved by 10 % of its size."""
+    v = c.values * (1 + 0.1 * rng.standard_normal(c.values.shape))
+    p = c.patches * (1 + 0.1 * rng.standard_normal(c.patches.shape))
+    return FragmentCues(fid, v, p, c.arc_mm.copy(), c.points_mm.copy(), c.normals.copy(),
+                        [s + 0.1 * rng.standard_normal(s.shape) for s in c.strips], c.patch_index)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="250,500,1000,2000")
+    ap.add_argument("--repeats", type=int, default=20, help="new fragments timed per size")
+    ap.add_argument("--full-rerank-max", type=int, default=2000, help="largest n where the full re-rank is run")
+    args = ap.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",")]
+    rng = np.random.default_rng(0)
+
+    t = time.perf_counter()
+    wall = generate_wall(60, seed=0, dpi=100)
+    tables, cues, poses = wall_cues(wall)
+    model, _ = train_model(training_set(cues, poses, wall.adjacency))
+    model2 = copy.deepcopy(model)
+    model2.coef = model.coef * (1 + 0.05 * rng.standard_normal(model.coef.shape))
+    model2.version = "0002-bench"
+    pool = [(cues[f], tables[f].contour_mm) for f in cues if len(cues[f]) >= 3]
+    print(f"model trained on {wall.id} in {time.perf_counter() - t:.1f} s; pool of {len(pool)} fragments; "
+          f"median {int(np.median([len(c) for c, _ in pool]))} patches per fragment")
+    print(f"{'n':>6s} {'build s':>8s} {'propose ms (med/p90)':>21s} {'align3 ms':>10s} "
+          f"{'full re-rank s':>15s} {'re-score stored s':>18s} {'peak RSS MB':>12s}")
+    index = MatchIndex()
+    n_done = 0
+    for n in sizes:
+        t = time.perf_counter()
+        while n_done < n:
+            c, contour = pool[rng.integers(len(pool))]
+            index.add(jittered(c, f"F{n_done:05d}", rng), contour)
+            n_done += 1
+        index._ensure()
+        build = time.perf_counter() - t
+        # one new fragment at a time: add, propose (stage 1 + 2), then remove it again
+        times, align_times = [], []
+        for r in range(args.repeats):
+            c, contour = pool[rng.integers(len(pool))]
+            q = jittered(c, f"Q{n}-{r}", rng)
+            t = time.perf_counter()
+            index.add(q, contour)
+            found = index.propose(q, model, n_candidates=100, top=10, check=0)
+            times.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            index.propose(q, model, n_candidates=100, top=10, check=3)
+            align_times.append(time.perf_counter() - t - times[-1])
+            index.remove(q.fragment)
+        # full re-rank after a model update: re-propose for every fragment under model2
+        full = np.nan
+        stored_pairs = []
+        if n <= args.full_rerank_max:
+            t = time.perf_counter()
+            for f in list(index._order):
+                for cnd in index.propose(index.cues[f], model2, n_candidates=100, top=10, check=0):
+                    stored_pairs.append((f, cnd.other))
+            full = time.perf_counter() - t
+        t = time.perf_counter()
+        rerank(index, model, stored_pairs)
+        rescore = time.perf_counter() - t
+        print(f"{n:6d} {build:8.2f} {1e3 * np.median(times):10.1f} / {1e3 * np.percentile(times, 90):7.1f} "
+              f"{1e3 * np.median(align_times):10.1f} {full:15.1f} {rescore:18.1f} {peak_rss_mb():12.0f}")
+        sys.stdout.flush()
+        assert found  # the last query got proposals
+    return 0
+
+
+def _remove(index: MatchIndex, fragment: str) -> None:
+    index._order.remove(fragment)
+    index.cues.pop(fragment)
+    index.contours.pop(fragment, None)
+    index._dirty = True
+
+
+if __name__ == "__main__":
+    sys.exit(main())
