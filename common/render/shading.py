@@ -8,8 +8,6 @@ Every function takes arrays (normals x right, y up, z to viewer) and returns dis
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 from common.render._util import as_light, check_dpi, dot_light, smoothstep
@@ -117,8 +115,7 @@ def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarra
     Clusters are fitted on at most ``sample`` random mask pixels (deterministic for a ``seed``),
     then every pixel takes its nearest centre. Pixels outside the mask are returned unchanged.
     """
-    from sklearn.cluster import KMeans
-    from sklearn.exceptions import ConvergenceWarning
+    import cv2
 
     colours = np.asarray(colours, dtype=np.float32)
     if colours.ndim != 3 or colours.shape[2] != 3:
@@ -132,11 +129,12 @@ def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarra
     rng = np.random.default_rng(seed)
     fit = pix if pix.shape[0] <= sample else pix[rng.choice(pix.shape[0], sample, replace=False)]
     k = int(min(n_colours, len(np.unique(fit, axis=0))))
-    with warnings.catch_warnings():
-        # near-duplicate colours (flat washes) can leave fewer distinct clusters than asked: fine
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        km = KMeans(n_clusters=k, n_init=3, random_state=seed).fit(fit)
-    centres = km.cluster_centers_.astype(np.float32)
+    # OpenCV's k-means (k-means++ seeding, 3 attempts): fast and single-threaded, so it behaves on
+    # a loaded machine; its RNG is seeded for a deterministic palette
+    cv2.setRNGSeed(int(seed))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-5)
+    _, _, centres = cv2.kmeans(np.ascontiguousarray(fit), k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
+    centres = centres.astype(np.float32)
     out = colours.copy()
     # nearest centre in chunks keeps a 16-Mpx image within memory
     flat_idx = np.flatnonzero(mask.ravel())
