@@ -114,6 +114,22 @@ def test_patch_orientation_angle_follows_the_contour_normal(stroke_fragment):
     assert np.median(d) < 3.0 and np.mean(d < 8.0) > 0.9
 
 
+def test_a_300_and_a_600_dpi_scan_of_one_fragment_are_described_alike():
+    # both share the 0.0847 mm working grid; every descriptor but the dominant orientation (held
+    # on stroke patterns only) agrees within its rotation/noise tolerance
+    a = textured_fragment(dpi=300, seed=0, size_mm=40, canvas=1.2)
+    b = textured_fragment(dpi=600, seed=0, size_mm=40, canvas=1.2)
+    ta = extract_features(a)
+    ca = (np.array(a.shape[::-1]) - 1) / 2 * a.pixel_mm  # the canvases share their centre
+    cb = (np.array(b.shape[::-1]) - 1) / 2 * b.pixel_mm
+    tb = extract_features(b, contour_start_mm=ta.contour_mm[0] - ca + cb)
+    assert ta.work_pixel_mm == pytest.approx(tb.work_pixel_mm)
+    pairs = match_patches(ta, tb, lambda p: p - cb + ca, max_mm=1.0)
+    assert len(pairs) == ta.n_patches == tb.n_patches
+    names = [d.name for d in DESCRIPTORS.values() if not d.name.startswith("orient")]
+    assert _violations(ta, tb, pairs, names) == []
+
+
 def test_table_columns_match_the_registry(fragment):
     _, t = fragment
     assert list(t.values) == [d.name for d in fragment_descriptors()]
