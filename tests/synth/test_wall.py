@@ -140,3 +140,19 @@ def test_bad_arguments_are_refused():
         generate_wall(3, seed=1, mode="shatter")
     with pytest.raises(ValueError, match="missing_fraction"):
         generate_wall(3, seed=1, missing_fraction=1.5)
+
+
+def test_a_user_picture_becomes_the_painted_layer():
+    img = np.zeros((60, 90, 3), np.uint8)
+    img[:, :45] = (200, 30, 30)   # left half red, right half blue (sRGB)
+    img[:, 45:] = (30, 30, 200)
+    w = generate_wall(6, seed=1, dpi=30, image=img, image_width_mm=180, spurious_fraction=0)
+    assert w.width_mm == pytest.approx(180, abs=1)
+    for f in w.fragments:
+        if f.notes:
+            continue
+        rr, cc = np.nonzero(ndimage.binary_erosion(f.rgbn.mask, iterations=3))
+        x_wall = f.to_wall(np.column_stack([cc, rr]) * f.rgbn.pixel_mm)[:, 0]
+        a = f.rgbn.albedo[rr, cc]
+        left, right = x_wall < 80, x_wall > 100
+        assert np.all(a[left, 0] > a[left, 2]) and np.all(a[right, 2] > a[right, 0])
