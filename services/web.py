@@ -407,7 +407,7 @@ def _failures_by_fragment(link) -> dict[str, dict[str, str]]:
     if link is None:
         return {}
     try:
-        parked = link.status(cached_s=2.0).get("parked", [])
+        parked = link.status(cached_s=5.0).get("parked", [])
     except Exception:
         return {}
     out: dict[str, dict[str, str]] = collections.defaultdict(dict)
@@ -506,11 +506,20 @@ class StationLink:
                                         retries=1)
 
     def status(self, cached_s: float = 0.0) -> dict:
+        """The broker's status; with ``cached_s``, an answer (or failure) that recent is reused,
+        so the bench's live poll never waits for a broker that is down."""
         with self._lock:
             if cached_s and self._status and time.monotonic() - self._status[0] < cached_s:
+                if isinstance(self._status[1], Exception):
+                    raise self._status[1]
                 return dict(self._status[1])
-        with self.client() as c:
-            st = c.status()
+        try:
+            with self.client() as c:
+                st = c.status()
+        except Exception as exc:
+            with self._lock:
+                self._status = (time.monotonic(), exc)
+            raise
         with self._lock:
             self._status = (time.monotonic(), st)
         return dict(st)

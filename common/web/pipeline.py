@@ -89,9 +89,15 @@ def fragments_since(root: str | os.PathLike, since: float) -> list[tuple[str, fl
     except FileNotFoundError:
         return []
     for entry in entries:
-        if not entry.is_dir():
+        scans = Path(entry.path) / "scans"
+        try:
+            # one stat per fragment: a folder gains a file only by a rename into it, which updates
+            # its mtime, so older folders cannot hold a scan stored since ``since``
+            if scans.stat().st_mtime < since:
+                continue
+        except (FileNotFoundError, NotADirectoryError):
             continue
-        files = _artifacts(Path(entry.path) / "scans")
+        files = _artifacts(scans)
         if not files:
             continue
         t = min(f.stat().st_mtime for f in files)

@@ -45,6 +45,7 @@ def timed(fn, n=5):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fragments", type=int, default=500)
+    ap.add_argument("--older", type=int, default=5000, help="fragments scanned on earlier days")
     ap.add_argument("--proposals", type=int, default=10000)
     ap.add_argument("--dpi", type=float, default=300)
     args = ap.parse_args()
@@ -57,6 +58,16 @@ def main() -> int:
         for stage in ("scans", "rgbn", "features")[: 1 + i % 3]:
             store.write(f"fragments/{fid}/{stage}/front-{i:x}.h5", "tessera.bench", 1,
                         lambda f: f.create_dataset("x", data=np.zeros(1)))
+
+    # fragments of earlier days: the live poll must not pay for them
+    import os
+    past = time.time() - 3 * 86400
+    for i in range(args.older):
+        d = root / "fragments" / f"OLD{i:05d}" / "scans"
+        d.mkdir(parents=True)
+        (d / "scans-0.h5").write_bytes(b"")
+        os.utime(d / "scans-0.h5", (past, past))
+        os.utime(d, (past, past))
 
     # proposals in the matcher's store
     db_path = root / "matches" / "proposals.sqlite"
@@ -87,7 +98,8 @@ def main() -> int:
     app = web.create_app(token=TOKEN, store_root=root, review=review)
     c = app.test_client()
     assert c.get("/api/bench").status_code == 200
-    print(f"/api/bench, {args.fragments} fragments today:        {1000 * timed(lambda: c.get('/api/bench')):8.1f} ms")
+    print(f"/api/bench, {args.fragments} fragments today + {args.older} older: "
+          f"{1000 * timed(lambda: c.get('/api/bench')):8.1f} ms")
     print(f"/api/review/queue (50 of {len(unique)} proposals):  "
           f"{1000 * timed(lambda: c.get('/api/review/queue')):8.1f} ms")
     print(f"/api/review/fragment/F00001:                {1000 * timed(lambda: c.get('/api/review/fragment/F00001')):8.1f} ms")
