@@ -251,11 +251,6 @@ class Broker:
                 self.feed.send_multipart([etype.encode(), self.stream, str(seq).encode(), body])
                 self.published_seq = seq
                 self._last_feed = time.monotonic()
-            elif kind == "enqueue":
-                job = self.jobs.get(act[1])
-                if job is not None and job.state == "queued":
-                    self.queues[job.service].append(job.id)
-                    self._dirty.add(job.service)
 
     # -- events ----------------------------------------------------------------------------
     def _remember(self, uid: str, seq: int) -> None:
@@ -274,10 +269,15 @@ class Broker:
         self._ops.append(("event", seq, event["uid"], etype, when, body))
         self._remember(event["uid"], seq)
         for service in self.routing.get(etype, ()):
-            jid = f"{seq}-{service}"
+            # Dispatched at once, before the journal write completes (only the acknowledgement and
+            # the publication wait for it): if the broker dies first, the submitter never got its
+            # ack and re-submits the same uid, which makes the same job id, so a late result from
+            # this early run completes the right job; stage outputs are content-keyed anyway.
+            jid = f"{event['uid'][:12]}-{service}"
             self.jobs[jid] = Job(jid, seq, service, body, _event=event)
             self._ops.append(("job", jid, seq, service))
-            self._after.append(("enqueue", jid))
+            self.queues[service].append(jid)
+            self._dirty.add(service)
         self._after.append(("publish", etype, seq, body))
         return seq
 

@@ -79,9 +79,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=20000)
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4], help="worker counts for the throughput runs")
     args = ap.parse_args()
     print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch)")
-    for k in (1, 2, 4):
+    for k in args.workers:
         rate, accept = throughput(k, args.jobs)
         print(f"  {k} worker(s): {rate:8.0f} jobs/s completed   (submissions acknowledged at {accept:.0f}/s)")
     lat = latency(100.0, args.seconds)
