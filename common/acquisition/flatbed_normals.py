@@ -31,11 +31,12 @@ from __future__ import annotations
 
 from typing import Callable, Sequence
 
+import cv2
 import numpy as np
 
 from common.acquisition.errors import CalibrationError
 from common.acquisition.locate import fragment_mask, to_float
-from common.acquisition.registration import Registration, register_scans, warp_to_target
+from common.acquisition.registration import Registration, register_scans
 from common.rgbn.image import RGBNImage
 
 
@@ -68,22 +69,36 @@ def light_rows(a: np.ndarray, angles_deg: Sequence[float]) -> np.ndarray:
 
 
 def _solve_patterns(Y: np.ndarray, use: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares per pixel with a per-pixel subset of rows; pixels grouped by subset."""
+    """Least squares per pixel with a per-pixel subset of rows; pixels grouped by subset.
+
+    Each subset (at most 2^K) is one pseudo-inverse applied to all its pixels at once; the
+    common case, every sample usable, is a single (3, K) @ (K, N) product.
+    """
     K, N = Y.shape
-    code = np.zeros(N, np.int64)
+    code = np.zeros(N, np.uint8 if K <= 8 else np.int64)
     for k in range(K):
-        code |= use[k].astype(np.int64) << k
+        code |= use[k].astype(code.dtype) << k
+    everything = (1 << K) - 1
     x = np.zeros((3, N), np.float32)
     solved = np.zeros(N, bool)
-    for c in np.unique(code):
+    counts = np.bincount(code, minlength=1 << K) if K <= 16 else None
+    present = np.flatnonzero(counts) if counts is not None else np.unique(code)
+    present = sorted(present, key=lambda c: c != everything)      # the all-samples group first
+    for c in present:
         rows = [k for k in range(K) if c >> k & 1]
         if len(rows) < 3:
             continue
-        sel = code == c
         P = np.linalg.pinv(A[rows]).astype(np.float32)
+        if c == everything and counts is not None and counts[c] > N // 2:
+            x = P @ Y                               # most pixels: all at once, others overwritten
+            solved |= code == c
+            continue
+        sel = code == c
         x[:, sel] = P @ Y[rows][:, sel]
         solved[sel] = True
-    return x, solved
+    if counts is not None and counts[everything] > N // 2:
+        x[:, ~solved] = 0
+    return x.astype(np.float32, copy=False), solved
 
 
 def _recover(x: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -97,9 +112,9 @@ def _recover(x: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
     else:
         rho = q / np.maximum(2 * w * c, 1e-12)
     rho = np.maximum(rho, 1e-9)
-    n = np.stack([u / rho, v / rho, w / rho - c])
-    n[2] = np.maximum(n[2], 0.0)           # a visible face looks towards the sensor
-    n /= np.maximum(np.linalg.norm(n, axis=0), 1e-12)
+    inv = 1 / rho
+    n = np.stack([u * inv, v * inv, np.maximum(w * inv - c, 0)])   # a visible face looks towards the sensor
+    n *= 1 / np.maximum(np.sqrt((n * n).sum(axis=0)), 1e-12)
     return rho, n
 
 
@@ -150,23 +165,34 @@ def solve_normals(images: np.ndarray, angles_deg: Sequence[float], a: np.ndarray
     mask = np.asarray(mask, bool)
     if mask.shape != (H, W):
         raise ValueError(f"mask must be {(H, W)}, got {mask.shape}")
-    A = light_rows(a, angles_deg)
-    c = a[3] / a[2]
     idx = np.flatnonzero(mask.ravel())
     pix = images.reshape(K, H * W, 3)[:, idx]                  # (K, N, 3)
-    Y = pix.mean(axis=2)                                        # luminance (K, N)
-    use = pix.max(axis=2) < saturation
+    use = None if valid is None else np.asarray(valid, bool).reshape(K, H * W)[:, idx]
+    return _solve_samples(pix, use, (H, W), idx, angles_deg, a, saturation=saturation, k_sigma=k_sigma, dpi=dpi)
+
+
+_CHUNK = 1 << 17      # pixels per block: the per-pixel work stays in the CPU cache
+
+
+def _first_pass(pix, valid, A, saturation):
+    Y = (pix[..., 0] + pix[..., 1] + pix[..., 2]) * np.float32(1 / 3)   # luminance (K, N)
+    use = (pix[..., 0] < saturation) & (pix[..., 1] < saturation) & (pix[..., 2] < saturation)
     if valid is not None:
-        use &= np.asarray(valid, bool).reshape(K, H * W)[:, idx]
+        use &= valid
     x, solved = _solve_patterns(Y, use, A)
-    # shadow rejection where all samples were usable and disagree beyond the noise
+    resid = Y - A @ x
+    return Y, use, x, solved, resid
+
+
+def _solve_block(pix, valid, A, c, saturation, k_sigma, sigma):
+    """Solve one block of pixels; returns albedo (N, 3), normals (3, N), confidence, solved, used."""
+    K = pix.shape[0]
+    Y, use, x, solved, resid = _first_pass(pix, valid, A, saturation)
     full = use.all(axis=0) & solved
-    resid = Y - (A.astype(np.float32) @ x)
-    if K > 3 and full.any():
-        rn = np.sqrt((resid[:, full] ** 2).sum(axis=0))
-        sigma = 1.4826 * np.median(np.abs(rn - np.median(rn))) + np.median(rn) * 0.5 + 1e-6
-        bad = np.zeros(len(idx), bool)
-        bad[full] = rn > k_sigma * sigma + 0.01 * Y[:, full].mean(axis=0)
+    if sigma is not None:
+        # shadow rejection where all samples were usable and disagree beyond the noise
+        rn_all = np.sqrt((resid * resid).sum(axis=0))
+        bad = full & (rn_all > k_sigma * sigma + 0.01 * Y.mean(axis=0))
         if bad.any():
             r = resid[:, bad]
             neg = r < -0.5 * np.abs(r).max(axis=0)
@@ -181,36 +207,60 @@ def solve_normals(images: np.ndarray, angles_deg: Sequence[float], a: np.ndarray
             ub = use[:, bad]
             ub[:, ok2] = use2[:, ok2]
             use[:, bad] = ub
-        sig_full = sigma
-    else:
-        sig_full = None
     rho, n = _recover(x, c)
     # shading of each sample and RGB albedo by least squares over the used samples
-    shading = (A @ np.vstack([n[0], n[1], n[2] + c])).astype(np.float32)       # (K, N)
-    wts = use & (shading > 1e-4)
-    num = np.einsum("kn,knc->nc", np.where(wts, shading, 0), pix)
-    den = np.maximum((np.where(wts, shading, 0) ** 2).sum(axis=0), 1e-9)
+    shading = A @ np.stack([n[0], n[1], n[2] + c])                               # (K, N)
+    ws = np.where(use & (shading > 1e-4), shading, np.float32(0))
+    num = np.stack([(ws * pix[..., ch]).sum(axis=0) for ch in range(3)], axis=1)
+    den = np.maximum((ws * ws).sum(axis=0), 1e-9)
     albedo = np.clip(num / den[:, None], 0, 1)
     nused = use.sum(axis=0)
     conf = np.clip((nused - 2) / (K - 2), 0, 1).astype(np.float32)
     conf[~solved] = 0
-    if sig_full is not None:
+    if sigma is not None:
         r_final = (Y - shading * rho) * use
-        rn = np.sqrt((r_final ** 2).sum(axis=0))
-        conf *= np.exp(-0.5 * (rn / (k_sigma * sig_full + 1e-6)) ** 2).astype(np.float32)
-    # outputs
+        rn = np.sqrt((r_final * r_final).sum(axis=0))
+        conf *= np.exp(-0.5 * (rn / (k_sigma * sigma + 1e-6)) ** 2).astype(np.float32)
+    return albedo, n, conf, solved, nused
+
+
+def _solve_samples(pix: np.ndarray, valid: np.ndarray | None, shape, idx, angles_deg, a, *, saturation: float,
+                   k_sigma: float, dpi: float) -> RGBNImage:
+    """The solve on gathered samples: ``pix`` (K, N, 3) float32 at the flat pixel indices ``idx``."""
+    K, N = pix.shape[:2]
+    H, W = shape
+    A = light_rows(a, angles_deg).astype(np.float32)
+    c = np.float32(a[3] / a[2])
+    # the noise level for shadow rejection, from a subsample of pixels with every sample usable
+    sigma = None
+    if K > 3 and N:
+        sub = slice(None, None, max(1, N // 200_000))
+        Y, use, x, solved, resid = _first_pass(pix[:, sub], None if valid is None else valid[:, sub], A, saturation)
+        full = use.all(axis=0) & solved
+        if full.any():
+            rn = np.sqrt((resid[:, full] ** 2).sum(axis=0))
+            med = np.median(rn)
+            sigma = float(1.4826 * np.median(np.abs(rn - med)) + med * 0.5 + 1e-6)
     normals = np.zeros((H * W, 3), np.float32)
     normals[:, 2] = 1
-    normals[idx] = np.where(solved[:, None], n.T, (0, 0, 1))
     alb = np.zeros((H * W, 3), np.float32)
-    alb[idx] = albedo
     cmap = np.zeros(H * W, np.float32)
-    cmap[idx] = conf
     out_mask = np.zeros(H * W, bool)
-    out_mask[idx] = solved
+    used_total = 0
+    for s0 in range(0, N, _CHUNK):
+        blk = slice(s0, min(N, s0 + _CHUNK))
+        albedo, n, conf, solved, nused = _solve_block(pix[:, blk], None if valid is None else valid[:, blk], A, c,
+                                                      saturation, k_sigma, sigma)
+        ii = idx[blk]
+        normals[ii] = np.where(solved[:, None], n.T, np.float32([0, 0, 1]))
+        alb[ii] = albedo
+        cmap[ii] = conf
+        out_mask[ii] = solved
+        used_total += int(nused.sum())
     return RGBNImage(albedo=alb.reshape(H, W, 3), mask=out_mask.reshape(H, W), dpi=dpi,
                      normals=normals.reshape(H, W, 3), confidence=cmap.reshape(H, W),
-                     attrs={"samples_used_mean": float(nused.mean()) if len(idx) else 0.0})
+                     attrs={"samples_used_mean": used_total / N if N else 0.0,
+                            "noise_sigma": float(sigma) if sigma is not None else float("nan")})
 
 
 def rerender(image: RGBNImage, angles_deg: Sequence[float], a: np.ndarray) -> np.ndarray:
@@ -234,6 +284,18 @@ def rerender_residual(image: RGBNImage, registered: np.ndarray, angles_deg, a, *
     return float(np.sqrt(np.mean(d ** 2)) / max(np.mean(registered[m]), 1e-9))
 
 
+def _sample_rgb(image: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, 3) of an (H, W, 3) image at points q = (x, y) (2, N)."""
+    n = q.shape[1]
+    rows = -(-n // 1024)
+    mx = np.full(rows * 1024, -1e6, np.float32)
+    my = np.full(rows * 1024, -1e6, np.float32)
+    mx[:n], my[:n] = q[0], q[1]
+    out = cv2.remap(image, mx.reshape(rows, 1024), my.reshape(rows, 1024), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.reshape(-1, 3)[:n]
+
+
 def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nominal_deg: Sequence[float] | None = None,
                progress: Callable[[float, str], None] | None = None, **kw) -> tuple[RGBNImage, list[Registration]]:
     """Register the scans of one face to the first and solve its RGBN image (§3.3.6).
@@ -246,16 +308,26 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
     regs = register_scans(list(scans), dpi, nominal_deg=nominal_deg, masks=masks,
                           progress=(lambda f, t: progress(0.6 * f, t)) if progress else None)
     H, W = scans[0].shape[:2]
-    images = np.empty((len(scans), H, W, 3), np.float32)
-    valid = np.empty((len(scans), H, W), bool)
-    import cv2
+    idx = np.flatnonzero(masks[0].ravel())
+    ys, xs = np.divmod(idx, W)
+    pts = np.stack([xs, ys, np.ones_like(xs)]).astype(np.float64)
+    K = len(scans)
+    pix = np.empty((K, len(idx), 3), np.float32)
+    valid = np.ones((K, len(idx)), bool)
     for i, (s, r) in enumerate(zip(scans, regs)):
-        images[i] = to_float(s) if i == 0 else warp_to_target(s, r, (H, W))
-        ones = np.ones(s.shape[:2], np.uint8)
-        valid[i] = cv2.warpAffine(ones, r.affine, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0 if i else True
+        # sample each scan only at the target's fragment pixels (no full-frame warps)
+        s = np.asarray(s)
+        scale = np.float32(1 / 65535 if s.dtype == np.uint16 else 1 / 255 if s.dtype == np.uint8 else 1)
+        if i == 0:
+            pix[0] = s.reshape(-1, s.shape[2])[idx, :3] * scale
+            continue
+        q = (r.affine @ pts).astype(np.float32)
+        pix[i] = _sample_rgb(np.ascontiguousarray(s[..., :3]), q) * scale
+        valid[i] = (q[0] >= 0) & (q[1] >= 0) & (q[0] <= s.shape[1] - 1) & (q[1] <= s.shape[0] - 1)
     if progress:
         progress(0.7, "solving normals")
-    out = solve_normals(images, [r.angle_deg for r in regs], a, mask=masks[0], valid=valid, dpi=dpi, **kw)
+    out = _solve_samples(pix, valid, (H, W), idx, [r.angle_deg for r in regs], np.asarray(a, float),
+                         saturation=kw.get("saturation", 0.98), k_sigma=kw.get("k_sigma", 4.0), dpi=dpi)
     out.attrs["registration_residual"] = float(max(r.residual for r in regs))
     out.attrs["registration_correlation_min"] = float(min(r.correlation for r in regs))
     if progress:

@@ -121,18 +121,35 @@ def _coarse_angle(ft, mt, fm, mm, ct, cm, candidates, s):
     return best, best_score
 
 
+def _sample(image: np.ndarray, q: np.ndarray, interp: int) -> np.ndarray:
+    """Values of a 2-D image at points q = (x, y) (2, N); 0 outside (cv2.remap in 1024-wide rows)."""
+    n = q.shape[1]
+    rows = -(-n // 1024)
+    mx = np.full(rows * 1024, -1e6, np.float32)
+    my = np.full(rows * 1024, -1e6, np.float32)
+    mx[:n], my[:n] = q[0], q[1]
+    out = cv2.remap(image, mx.reshape(rows, 1024), my.reshape(rows, 1024), interp,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.reshape(-1)[:n]
+
+
 def _refine_lk(template: np.ndarray, moving: np.ndarray, tmask: np.ndarray, mmask: np.ndarray, M: np.ndarray,
-               iterations: int, tol_px: float = 0.005) -> tuple[np.ndarray, float]:
+               iterations: int, tol_px: float = 0.01, max_points: int = 120_000) -> tuple[np.ndarray, float, float]:
     """Rigid inverse-compositional Lucas–Kanade (Baker & Matthews 2004) with gain/offset.
 
     Minimises Σ [(I(W(x; p)) − β)/α − T(x)]² over the rigid warp W (target → moving pixels),
-    α, β re-fitted each iteration so a global change of brightness does not matter. Returns
-    the refined 2×3 warp and the correlation of T and the warped I over the used pixels.
+    α, β re-fitted each iteration so a global change of brightness does not matter. The sum runs
+    over the template mask, on a regular subsample of at most ``max_points`` pixels; the moving
+    image is sampled only there (``cv2.remap``). Returns the refined 2×3 warp, the correlation of
+    T and the warped I, and the RMS of their difference after normalisation (the residual).
     """
-    H, W = template.shape
     ys, xs = np.nonzero(tmask)
     if len(xs) < 50:
         raise RegistrationError("too few fragment pixels to register")
+    step = max(1, int(np.ceil(np.sqrt(len(xs) / max_points))))
+    if step > 1:
+        keep = (ys % step == 0) & (xs % step == 0)
+        ys, xs = ys[keep], xs[keep]
     cx, cy = xs.mean(), ys.mean()
     gx = cv2.Sobel(template, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(template, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
@@ -143,33 +160,123 @@ def _refine_lk(template: np.ndarray, moving: np.ndarray, tmask: np.ndarray, mmas
     Ci = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
     M3 = np.vstack([M, [0, 0, 1.0]])
     r_max = float(np.sqrt((X * X + Y * Y).max()))
-    corr = -1.0
+    pts = np.stack([xs, ys, np.ones_like(xs)]).astype(np.float64)
+    mm8 = mmask.astype(np.uint8)
+    corr, resid = -1.0, np.inf
     for _ in range(iterations):
-        Iw = cv2.warpAffine(moving, M3[:2], (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        vw = cv2.warpAffine(mmask.astype(np.uint8), M3[:2], (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        use = vw[ys, xs] > 0
+        q = (M3[:2] @ pts).astype(np.float32)
+        iv = _sample(moving, q, cv2.INTER_LINEAR)
+        use = _sample(mm8, q, cv2.INTER_NEAREST) > 0
         if use.sum() < 50:
             raise RegistrationError("the scans do not overlap after alignment")
-        iv, tv = Iw[ys, xs][use], Tv[use]
+        iv, tv = iv[use], Tv[use]
         ti = tv - tv.mean()
         ii = iv - iv.mean()
-        alpha = float((ti * ii).sum() / max((ti * ti).sum(), 1e-12))
-        corr = float((ti * ii).sum() / np.sqrt(max((ti * ti).sum() * (ii * ii).sum(), 1e-24)))
+        tt, vv, tv_ = float((ti * ti).sum()), float((ii * ii).sum()), float((ti * ii).sum())
+        alpha = tv_ / max(tt, 1e-12)
+        corr = tv_ / np.sqrt(max(tt * vv, 1e-24))
+        resid = float(np.sqrt(max(2.0 - 2.0 * corr, 0.0)))     # RMS of the difference of the z-scores
         if alpha <= 0:
             raise RegistrationError(f"registration images are anti-correlated (r = {corr:.2f})")
         err = ii / alpha - ti
         sd = SD[use]
-        Hm = sd.T @ sd
-        dp = np.linalg.solve(Hm + 1e-9 * np.eye(3), sd.T @ err)
+        dp = np.linalg.solve(sd.T @ sd + 1e-9 * np.eye(3), sd.T @ err)
         th, tx, ty = dp
         Wd = np.array([[np.cos(th), -np.sin(th), tx], [np.sin(th), np.cos(th), ty], [0, 0, 1.0]])
         M3 = M3 @ C @ np.linalg.inv(Wd) @ Ci
-        # keep it rigid (numerical drift)
-        ang = np.arctan2(M3[1, 0], M3[0, 0])
+        ang = np.arctan2(M3[1, 0], M3[0, 0])          # keep it rigid (numerical drift)
         M3[:2, :2] = [[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]]
         if abs(th) * r_max + np.hypot(tx, ty) < tol_px:
             break
-    return M3[:2], corr
+    return M3[:2], float(corr), resid
+
+
+def _shrink(img: np.ndarray, f: int, nearest: bool = False) -> np.ndarray:
+    """Reduce by an integer factor exactly (crop the right/bottom remainder first), so that
+    pixel centres map as p_full = f p + (f - 1)/2."""
+    if f == 1:
+        return img
+    H, W = img.shape[:2]
+    H2, W2 = max(f, H - H % f), max(f, W - W % f)
+    img = img[:H2, :W2]
+    if nearest:
+        return cv2.resize(img.astype(np.uint8), (W2 // f, H2 // f), interpolation=cv2.INTER_NEAREST) > 0
+    return cv2.resize(img, (W2 // f, H2 // f), interpolation=cv2.INTER_AREA)
+
+
+@dataclass
+class _Prepared:
+    """A scan reduced to what registration needs, at the working scale ``scale``."""
+
+    image: np.ndarray        # registration image at the working scale
+    mask: np.ndarray         # fragment mask at the working scale
+    centroid: np.ndarray     # fragment centroid, full-resolution pixels
+    area_px: int             # fragment area, full-resolution pixels
+    scale: float
+
+
+def _working_scale(pixel_mm: float, target_mm: float = 0.08) -> float:
+    """Scale at which registration works: about ``target_mm`` per pixel, never upsampled."""
+    return 1.0 / max(1, int(round(target_mm / pixel_mm)))
+
+
+def _prepare(scan: np.ndarray, mask: np.ndarray, dpi: float) -> _Prepared:
+    mask = np.asarray(mask, bool)
+    pixel_mm = 25.4 / dpi
+    scale = _working_scale(pixel_mm)
+    f = int(round(1 / scale))
+    scan = np.asarray(scan)
+    img = to_float(_shrink(np.ascontiguousarray(scan[..., :3]), f) if scan.ndim == 3 else _shrink(scan, f))
+    m = _shrink(mask, f, nearest=True)
+    mom = cv2.moments(mask.astype(np.uint8), binaryImage=True)
+    area = mom["m00"]
+    centroid = np.array([mom["m10"] / area, mom["m01"] / area]) if area else np.array([np.nan, np.nan])
+    return _Prepared(registration_image(img), m, centroid, int(area), scale)
+
+
+def _register(t: _Prepared, m: _Prepared, dpi: float, nominal_deg, search_deg, min_correlation) -> Registration:
+    pixel_mm = 25.4 / dpi
+    if t.area_px * pixel_mm ** 2 < 4 or m.area_px * pixel_mm ** 2 < 4:
+        raise RegistrationError("no fragment visible in one of the scans (mask under 4 mm²); cannot register")
+    area_ratio = m.area_px / t.area_px
+    if not 0.8 < area_ratio < 1.25:
+        raise RegistrationError(f"the fragment's visible area differs by {abs(1 - area_ratio):.0%} between scans; "
+                                "the scans may show different faces or a moved/broken fragment")
+    fs = t.scale
+    ct, cm = t.centroid, m.centroid
+    # the whole fragment including its outline: the outline anchors the translation where the
+    # interior is striped or plain (interior-only masks let it slide along stripes)
+    # coarse angle on a ~0.4 mm grid (relative to the working scale)
+    fc = max(1, int(round(0.4 / (pixel_mm / fs))))
+    s = 1.0 / fc
+    fts, fms = _shrink(t.image, fc), _shrink(m.image, fc)
+    tms, mms = _shrink(t.mask, fc, nearest=True), _shrink(m.mask, fc, nearest=True)
+    if nominal_deg is None:
+        cand = np.arange(0, 360, 3.0)
+    else:
+        cand = nominal_deg + np.arange(-search_deg, search_deg + 0.1, 2.0)
+    angle, _ = _coarse_angle(fts, fms, tms, mms, ct, cm, cand, s * fs)
+    if angle is None:
+        raise RegistrationError("no rotation makes the fragment outlines overlap; the scans may show different objects")
+    step = 3.0 if nominal_deg is None else 2.0     # refine the grid to 0.5°
+    angle, _ = _coarse_angle(fts, fms, tms, mms, ct, cm, angle + np.arange(-step + 0.5, step, 0.5), s * fs)
+    M = _rigid(angle, ct, cm)
+    # Lucas–Kanade pyramid down to the working scale
+    levels = [l for l in (0.25, 0.5, 1.0) if l >= s * 0.99 or l == 1.0]
+    corr, residual = -1.0, np.inf
+    for lv in levels:
+        fl = int(round(1 / lv))
+        ftl, fml = _shrink(t.image, fl), _shrink(m.image, fl)
+        tml, mml = _shrink(t.mask, fl, nearest=True), _shrink(m.mask, fl, nearest=True)
+        Ml = _to_level(M, lv * fs)
+        Ml, corr, residual = _refine_lk(ftl, fml, tml, mml, Ml, 40 if lv < 1.0 else 15)
+        M = _from_level(Ml, lv * fs)
+    angle_deg = float(np.degrees(np.arctan2(M[1, 0], M[0, 0])))
+    if corr < min_correlation:
+        raise RegistrationError(f"registration correlation {corr:.2f} is below {min_correlation:.2f} "
+                                f"(rotation {angle_deg:.1f}°, residual {residual:.2f}); refusing to solve normals "
+                                "from misaligned scans — rescan this face")
+    return Registration(M, angle_deg, float(corr), float(residual))
 
 
 def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal_deg: float | None = None,
@@ -182,7 +289,7 @@ def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal
     target, moving : (H, W, 3) arrays
         Scans of the same face; shapes may differ.
     dpi : float
-        Resolution of both scans.
+        Resolution of both scans (registration works at about 0.08 mm per pixel).
     nominal_deg : float or None
         Expected rotation of ``moving`` relative to ``target`` (clockwise on the image), e.g. 90;
         the angle is searched within ±``search_deg`` of it (None = all round).
@@ -197,66 +304,14 @@ def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal
     """
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi}")
-    tm = fragment_mask(target, dpi) if target_mask is None else np.asarray(target_mask, bool)
-    mm = fragment_mask(moving, dpi) if moving_mask is None else np.asarray(moving_mask, bool)
-    pixel_mm = 25.4 / dpi
-    if tm.sum() * pixel_mm ** 2 < 4 or mm.sum() * pixel_mm ** 2 < 4:
-        raise RegistrationError("no fragment visible in one of the scans (mask under 4 mm²); cannot register")
-    area_ratio = mm.sum() / tm.sum()
-    if not 0.8 < area_ratio < 1.25:
-        raise RegistrationError(f"the fragment's visible area differs by {abs(1 - area_ratio):.0%} between scans; "
-                                "the scans may show different faces or a moved/broken fragment")
-    ft, fmv = registration_image(target), registration_image(moving)
-    ys, xs = np.nonzero(tm)
-    ct = np.array([xs.mean(), ys.mean()])
-    ys, xs = np.nonzero(mm)
-    cm = np.array([xs.mean(), ys.mean()])
-    # the whole fragment including its outline: the outline anchors the translation where the
-    # interior is striped or plain (interior-only masks let it slide along stripes)
-    tin, min_ = tm, mm
-    # coarse angle on a ~0.4 mm grid
-    s = min(1.0, pixel_mm / 0.4)
-    size = lambda a: (max(8, int(round(a.shape[1] * s))), max(8, int(round(a.shape[0] * s))))
-    fts, fms = cv2.resize(ft, size(ft), interpolation=cv2.INTER_AREA), cv2.resize(fmv, size(fmv), interpolation=cv2.INTER_AREA)
-    tms = cv2.resize(tin.astype(np.uint8), size(ft), interpolation=cv2.INTER_NEAREST) > 0
-    mms = cv2.resize(mm.astype(np.uint8), size(fmv), interpolation=cv2.INTER_NEAREST) > 0
-    if nominal_deg is None:
-        cand = np.arange(0, 360, 3.0)
-    else:
-        cand = nominal_deg + np.arange(-search_deg, search_deg + 0.1, 1.0)
-    angle, _ = _coarse_angle(fts, fms, tms, mms, ct, cm, cand, s)
-    if angle is None:
-        raise RegistrationError("no rotation makes the fragment outlines overlap; the scans may show different objects")
-    if nominal_deg is None:    # refine the 3° grid
-        angle, _ = _coarse_angle(fts, fms, tms, mms, ct, cm, angle + np.arange(-2, 2.1, 0.5), s)
-    M = _rigid(angle, ct, cm)
-    # Lucas–Kanade pyramid down to full resolution
-    levels = [l for l in (0.25, 0.5, 1.0) if l >= s * 0.99 or l == 1.0]
-    corr = -1.0
-    for lv in levels:
-        if lv < 1.0:
-            ftl = cv2.resize(ft, (int(ft.shape[1] * lv), int(ft.shape[0] * lv)), interpolation=cv2.INTER_AREA)
-            fml = cv2.resize(fmv, (int(fmv.shape[1] * lv), int(fmv.shape[0] * lv)), interpolation=cv2.INTER_AREA)
-            tml = cv2.resize(tin.astype(np.uint8), (ftl.shape[1], ftl.shape[0]), interpolation=cv2.INTER_NEAREST)
-            mml = cv2.resize(min_.astype(np.uint8), (fml.shape[1], fml.shape[0]), interpolation=cv2.INTER_NEAREST)
-        else:
-            ftl, fml, tml, mml = ft, fmv, tin.astype(np.uint8), min_.astype(np.uint8)
-        Ml = _to_level(M, lv)
-        Ml, corr = _refine_lk(ftl, fml, tml > 0, mml > 0, Ml, 40 if lv < 1.0 else 8)
-        M = _from_level(Ml, lv)
-    warped = cv2.warpAffine(fmv, M, (ft.shape[1], ft.shape[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    a, b = _normalised(ft, tin), _normalised(warped, tin)
-    residual = float(np.sqrt(np.mean((a[tin] - b[tin]) ** 2)))
-    angle_deg = float(np.degrees(np.arctan2(M[1, 0], M[0, 0])))
-    if corr < min_correlation:
-        raise RegistrationError(f"registration correlation {corr:.2f} is below {min_correlation:.2f} "
-                                f"(rotation {angle_deg:.1f}°, residual {residual:.2f}); refusing to solve normals "
-                                "from misaligned scans — rescan this face")
-    return Registration(M, angle_deg, float(corr), residual)
+    tm = fragment_mask(target, dpi) if target_mask is None else target_mask
+    mm = fragment_mask(moving, dpi) if moving_mask is None else moving_mask
+    return _register(_prepare(target, tm, dpi), _prepare(moving, mm, dpi), dpi, nominal_deg, search_deg,
+                     min_correlation)
 
 
 def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, masks: list | None = None,
-                   progress=None, **kw) -> list[Registration]:
+                   progress=None, search_deg: float = 20.0, min_correlation: float = 0.6) -> list[Registration]:
     """Register every scan to the first (the target scan); the first gets the identity.
 
     ``nominal_deg`` are the nominal rotations of the scans (e.g. 0, 90, 180, 270); scan i is
@@ -265,15 +320,17 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
     """
     if len(scans) < 1:
         raise ValueError("scans must not be empty")
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
     masks = masks or [fragment_mask(s, dpi) for s in scans]
+    target = _prepare(scans[0], masks[0], dpi)
     out = [Registration(np.array([[1.0, 0, 0], [0, 1.0, 0]]), 0.0, 1.0, 0.0)]
     for i in range(1, len(scans)):
         # each turn is ~90° ± 10°, so errors add up: expect this scan relative to the previous
         # scan's measured angle rather than to the nominal angle alone
         nom = None if nominal_deg is None else out[-1].angle_deg + nominal_deg[i] - nominal_deg[i - 1]
         try:
-            out.append(register_scan(scans[0], scans[i], dpi, nominal_deg=nom, target_mask=masks[0],
-                                     moving_mask=masks[i], **kw))
+            out.append(_register(target, _prepare(scans[i], masks[i], dpi), dpi, nom, search_deg, min_correlation))
         except RegistrationError as exc:
             raise RegistrationError(f"scan {i} (nominal {nom}°): {exc}") from exc
         if progress:
