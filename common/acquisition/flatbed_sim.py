@@ -404,8 +404,6 @@ class SimulatedFlatbed:
             my = ((ys - cy0) / cpix - 0.5).astype(np.float32)
             vis = np.stack([cv2.remap(v, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
                             for v in cvis])
-            # the fragment's own face is never behind its own face: keep relief shadows only where
-            # the coarse grid resolves them (avoid edge bleeding into the lit face)
         irr = lamp_irradiance(normals, depth_mm, self.lamp, visibility=vis)
         signal = albedo * irr[..., None] * np.float32(self.exposure)
         truth = None

@@ -2,16 +2,23 @@
 
 The operator turns the fragment by roughly 90° between scans and it shifts a little, and the
 shading changes with every rotation (the lamp stays put). Registration is therefore done on a
-shading-tolerant image: the smoothed gradient magnitude of the log luminance (albedo edges
-survive a change of light, gain and offset do not matter to the correlation). Steps:
+shading-tolerant image (:func:`registration_image`: gradients of the log chromaticity, which
+shading does not change, plus a weaker log-luminance term for outlines and unpainted relief),
+on copies reduced to about 0.08 mm per pixel (2× at 600 dpi, 4× at 1200 dpi); the fit is
+sub-pixel there and so well below a pixel at full resolution. Steps:
 
-1. coarse: align the fragment masks' centroids and search the angle (around the nominal
-   rotation if known, else all round) by normalised correlation on a ~0.4 mm grid;
-2. fine: a pyramid of rigid inverse-compositional Lucas–Kanade refinements (Baker & Matthews 2004)
-   with a gain/offset fit, down to full resolution, for a sub-pixel rotation + translation;
+1. coarse: align the fragment masks' centroids and search the angle (within ±20° of the previous
+   scan's angle plus the nominal step, else all round) by normalised correlation on a ~0.4 mm grid;
+2. fine: rigid inverse-compositional Lucas–Kanade (Baker & Matthews 2004) with a gain/offset fit,
+   on a pyramid down to the working scale, sampling the moving image only at (a subsample of)
+   the target's fragment pixels; the whole mask is used, outline included — it anchors the
+   translation where the interior is striped or plain;
 3. check: the correlation after alignment must exceed ``min_correlation``, else
    :class:`~common.acquisition.errors.RegistrationError` — a bad registration would emboss the
    normals, so it is refused.
+
+OpenCV 5's ``findTransformECC``/``findTransformECCWithMask`` were tried first: on these images
+they converged away from the true rotation even when started on it, so they are not used.
 
 Transforms are 2×3 affines mapping target-scan pixel (col, row) to the moving scan's pixel.
 """
@@ -244,9 +251,8 @@ def _register(t: _Prepared, m: _Prepared, dpi: float, nominal_deg, search_deg, m
                                 "the scans may show different faces or a moved/broken fragment")
     fs = t.scale
     ct, cm = t.centroid, m.centroid
-    # the whole fragment including its outline: the outline anchors the translation where the
-    # interior is striped or plain (interior-only masks let it slide along stripes)
-    # coarse angle on a ~0.4 mm grid (relative to the working scale)
+    # coarse angle on a ~0.4 mm grid; the whole fragment including its outline is used throughout
+    # (the outline anchors the translation where the interior is striped or plain)
     fc = max(1, int(round(0.4 / (pixel_mm / fs))))
     s = 1.0 / fc
     fts, fms = _shrink(t.image, fc), _shrink(m.image, fc)
