@@ -125,7 +125,9 @@ class WallRelief:
         gx, gy = gx * 2.0, gy * 2.0
         d = np.stack([np.hypot(gx - r.x_mm, gy - r.y_mm) for r in self.regions])
         tau = 0.12 * stroke_region_mm
-        w = np.exp(-(d - d.min(axis=0)) / tau)
+        # cut off at 2 %: a region's strokes end a few cm beyond its border (exactly zero there,
+        # so which regions a fragment sees does not depend on its bounding box)
+        w = np.clip(np.exp(-(d - d.min(axis=0)) / tau) - 0.02, 0.0, None)
         self._weights = (w / w.sum(axis=0)).astype(np.float32)
         self.thickness_field = FractalField(rng, 150.0, octaves=3, persistence=0.5, amplitude=0.15 * thickness_mm)
         self.back_rough = FractalField(rng, 3.0, octaves=3, persistence=0.6, amplitude=0.4)
@@ -165,7 +167,7 @@ class WallRelief:
         # only regions with weight somewhere near these points
         ci = np.clip(np.round(u.ravel()).astype(int), 0, self._weights.shape[2] - 1)
         ri = np.clip(np.round(v.ravel()).astype(int), 0, self._weights.shape[1] - 1)
-        active = np.nonzero(self._weights[:, ri, ci].reshape(len(self.regions), -1).max(axis=1) > 1e-3)[0]
+        active = np.nonzero(self._weights[:, ri, ci].reshape(len(self.regions), -1).max(axis=1) > 0)[0]
         for k in active:
             reg = self.regions[k]
             w = cv2.remap(self._weights[k], np.atleast_2d(u), np.atleast_2d(v), cv2.INTER_LINEAR,
@@ -186,7 +188,7 @@ class WallRelief:
                            max(int(x0 / self._w_res) - 1, 0):int(x1 / self._w_res) + 2]
         if wr.size == 0:
             wr = self._weights
-        active = np.nonzero(wr.reshape(len(self.regions), -1).max(axis=1) > 1e-3)[0]
+        active = np.nonzero(wr.reshape(len(self.regions), -1).max(axis=1) > 0)[0]
         for k in active:
             reg = self.regions[k]
             w = sample_raster_grid(self._weights[k], self._w_res, G, shape, smooth_mm=4 * self._w_res)

@@ -177,7 +177,7 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
 
 
 def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Generator, *, erosion_mm: float,
-                  spurious: bool):
+                  spurious: bool, surfaces: bool = True):
     """Cut one piece out of the wall into its own (rotated) frame and deteriorate it.
 
     Returns (Fragment without id, crack samples {other label: (crack length mm, (K, 2) wall mm)}).
@@ -254,14 +254,17 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
     rgbn = RGBNImage(albedo=albedo, mask=mask, dpi=dpi, normals=n, confidence=mask.astype(np.float32),
                      height_mm=thickness_map, attrs={"source": "synthetic fresco", "face": "front",
                                                       "height_meaning": "thickness: front face above back, mm"})
-    front_h = np.where(mask, height - float(np.median(height[mask])), 0.0).astype(np.float32)
-    back_h = np.where(mask, thick - med_t, 0.0).astype(np.float32)
-    shade = 1.0 + 0.15 * np.tanh(back_rough)
-    back_albedo = np.where(mask[..., None], det.PLASTER[None, None, :] * 0.9 * shade[..., None], 0.0).astype(np.float32)
-    # the back, as seen after flipping the fragment over about its vertical axis
-    back = FragmentSurface(np.fliplr(back_albedo).copy(), np.fliplr(back_h).copy(), np.fliplr(mask).copy(), dpi,
-                           thickness_mm=med_t)
-    surface = FragmentSurface(albedo, front_h, mask, dpi, thickness_mm=med_t, back=back)
+    surface = None
+    if surfaces:
+        front_h = np.where(mask, height - float(np.median(height[mask])), 0.0).astype(np.float32)
+        back_h = np.where(mask, thick - med_t, 0.0).astype(np.float32)
+        shade = 1.0 + 0.15 * np.tanh(back_rough)
+        back_albedo = np.where(mask[..., None], det.PLASTER[None, None, :] * 0.9 * shade[..., None],
+                               0.0).astype(np.float32)
+        # the back, as seen after flipping the fragment over about its vertical axis
+        back = FragmentSurface(np.fliplr(back_albedo).copy(), np.fliplr(back_h).copy(), np.fliplr(mask).copy(), dpi,
+                               thickness_mm=med_t)
+        surface = FragmentSurface(albedo, front_h, mask, dpi, thickness_mm=med_t, back=back)
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cont = max(contours, key=len).reshape(-1, 2).astype(np.float64) * pm
     frag = Fragment(id="", rgbn=rgbn, surface=surface, pose=None if spurious else pose, spurious=spurious,
@@ -273,7 +276,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
                   style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
                   median_size_mm: float = 30.0, sigma: float = 0.7, missing_fraction: float = 0.2,
                   spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
-                  min_shared_mm: float = 3.0, keep_images: bool = True, workers: int = 1,
+                  min_shared_mm: float = 3.0, keep_images: bool = True, surfaces: bool = True, workers: int = 1,
                   on_fragment: Callable[[Fragment], None] | None = None,
                   progress: Callable[[float, str], None] | None = None) -> Wall:
     """Paint, relieve, break and deteriorate a wall; return its fragments and ground truth.
@@ -309,6 +312,9 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     keep_images : bool
         Keep each fragment's RGBN image and surface in the returned wall (False: only metadata,
         for large walls streamed through ``on_fragment``).
+    surfaces : bool
+        Build each fragment's :class:`FragmentSurface` (front and back, for the simulated
+        flatbed); False when only the RGBN images are wanted (faster).
     on_fragment : callable(Fragment), optional
         Called with each finished fragment (with its images), e.g. to write it to the store.
     progress : callable(fraction, text), optional
@@ -393,7 +399,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         sl = ndimage.find_objects((pl.fracture.coarse_labels == lab).astype(np.int32))[0]
         tasks.append((j, ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))))
     global _POOL_STATE
-    _POOL_STATE = (jobs, frag_seeds, float(dpi), erosion_mm)
+    _POOL_STATE = (jobs, frag_seeds, float(dpi), erosion_mm, surfaces)
     pool = None
     try:
         if workers > 1 and len(jobs) > 1 and "fork" in mp.get_all_start_methods():
@@ -440,9 +446,10 @@ _POOL_STATE = None
 
 def _render_task(task):
     j, bbox = task
-    jobs, seeds, dpi, erosion_mm = _POOL_STATE
+    jobs, seeds, dpi, erosion_mm, surfaces = _POOL_STATE
     pl, lab, spur = jobs[j]
-    return _render_piece(pl, lab, bbox, dpi, np.random.default_rng(seeds[j]), erosion_mm=erosion_mm, spurious=spur)
+    return _render_piece(pl, lab, bbox, dpi, np.random.default_rng(seeds[j]), erosion_mm=erosion_mm, spurious=spur,
+                         surfaces=surfaces)
 
 
 def _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm):

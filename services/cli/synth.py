@@ -115,7 +115,7 @@ def run(args) -> int:
     wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, style=args.style, image=image,
                          image_width_mm=args.image_width_mm, median_size_mm=args.median_size_mm,
                          missing_fraction=args.missing, spurious_fraction=args.spurious, keep_images=False,
-                         workers=max(1, args.workers),
+                         workers=max(1, args.workers), surfaces=args.output == "scans",
                          on_fragment=on_fragment, progress=progress)
     gt = save_groundtruth(store, wall)
     if args.pictures:

@@ -40,7 +40,8 @@ def main() -> int:
     load0 = os.getloadavg()[0]
     c0 = time.process_time()
     t0 = time.perf_counter()
-    wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, keep_images=False, workers=args.workers,
+    wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, keep_images=False, surfaces=False,
+                         workers=args.workers,
                          on_fragment=lambda f: pixels.append((f.rgbn.mask.size, int(f.rgbn.mask.sum()))))
     t_gen = time.perf_counter() - t0
     c_gen = time.process_time() - c0
@@ -60,7 +61,8 @@ def main() -> int:
 
         def write(f):
             save_rgbn(store, f"fragments/{f.id}/rgbn/front-{content_key(f.id, 'bench')}.h5", f.rgbn)
-        wall2 = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, keep_images=False, on_fragment=write,
+        wall2 = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, keep_images=False, surfaces=False,
+                              on_fragment=write,
                               workers=args.workers)
         save_groundtruth(store, wall2)
         t_all = time.perf_counter() - t0
