@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.rgbn._filters import check_normals, normalize_vectors  # noqa: F401  (re-exported)
 
 
 @dataclass
