@@ -44,6 +44,7 @@ log = logging.getLogger("tessera.broker")
 # timing defaults (overridden by [broker] in the config)
 HEARTBEAT_INTERVAL_S = 1.0
 HEARTBEAT_LIVENESS = 3
+DONE_DELAY_S = 0.05      # completions alone are journaled at most this late (group commit)
 
 
 @dataclass
@@ -137,6 +138,7 @@ class Broker:
         self._rate: collections.deque = collections.deque()   # (second, completions)
         self._started = time.time()
         self._last_feed = 0.0
+        self._last_flush = 0.0
         self._journal_ok = True
         self.router = self.feed = self._signal = None
         if state.jobs:
@@ -167,7 +169,7 @@ class Broker:
 
     def close(self) -> None:
         """Flush the journal and close the sockets."""
-        self._flush()
+        self._flush(force=True)
         deadline = time.monotonic() + 10
         while self._waiting_batches and time.monotonic() < deadline:
             if self._signal.poll(100):
@@ -188,7 +190,7 @@ class Broker:
         next_heartbeat = time.monotonic() + self.interval
         try:
             while not stop.is_set():
-                timeout = max(0.0, min(next_heartbeat - time.monotonic(), 0.25))
+                timeout = max(0.0, min(next_heartbeat - time.monotonic(), DONE_DELAY_S if self._ops else 0.25))
                 ready = dict(poller.poll(timeout * 1000))
                 if self.router in ready:
                     for _ in range(self.batch_max):
@@ -206,6 +208,8 @@ class Broker:
                         except zmq.Again:
                             break
                     self._dispatch_dirty()
+                if self._ops and not ready:
+                    self._flush()
                 if time.monotonic() >= next_heartbeat:
                     self._heartbeat()
                     self._dispatch_dirty()
@@ -215,8 +219,16 @@ class Broker:
             self.close()
 
     # -- batches and durability ------------------------------------------------------------
-    def _flush(self) -> None:
-        """Hand this batch's journal operations to the writer; defer its side effects until durable."""
+    def _flush(self, force: bool = False) -> None:
+        """Hand this batch's journal operations to the writer; defer its side effects until durable.
+
+        A batch of nothing but completions waits up to ``DONE_DELAY_S`` to join the next one: no
+        reply depends on it, and losing it in a crash only repeats (idempotent) jobs.
+        """
+        if self._ops and not self._after and not force and self._only_done() and \
+                time.monotonic() - self._last_flush < DONE_DELAY_S:
+            return
+        self._last_flush = time.monotonic()
         if self._ops:
             self._batch_id += 1
             self.journal.append(self._batch_id, self._ops)
@@ -228,6 +240,9 @@ class Broker:
             else:
                 self._run_actions(self._after)
             self._after = []
+
+    def _only_done(self) -> bool:
+        return all(op[0] == "done" for op in self._ops)
 
     def _on_durable(self, frame: bytes) -> None:
         if frame == b"FAILED":
