@@ -166,7 +166,14 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
         yy = y_bottom
         for _ in range(rng.integers(2, 5)):
             h = rng.uniform(4, 25)
-            hband(yy - h, yy, rng.choice(list(PIGMENTS)))
+            name = rng.choice(list(PIGMENTS))
+            hband(yy - h, yy, name)
+            if h > 10 and rng.random() < 0.4:  # a wavy line running along the band
+                xs = np.linspace(0, width_mm, max(2, int(width_mm)))
+                period, amp = rng.uniform(15, 50), 0.3 * h
+                wave = np.column_stack([xs, yy - h / 2 + amp * np.sin(2 * np.pi * xs / period + rng.uniform(0, 6.3))])
+                other = rng.choice([c for c in PIGMENTS if c != name])
+                _poly(img, wave * k, col(other), closed=False, thickness=rng.uniform(1.0, 3.0) * k)
             yy -= h
         return yy
     y = band_stack(y)
@@ -211,6 +218,16 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
             ctrl = np.array([cx, cy]) + rng.normal(0, r0, 2)
             stem = (1 - t) ** 2 * np.array([cx, cy]) + 2 * t * (1 - t) * ctrl + t ** 2 * end
             _poly(img, stem * k, fill, closed=False, thickness=rng.uniform(1.5, 4) * k)
+        # rosettes: a ring of dots around a dot
+        for _ in range(int(rng.poisson(width_mm * field_h / 30000.0))):
+            cx, cy = rng.uniform(0, width_mm), rng.uniform(field_top + 8, field_bottom - 8)
+            rr, n_pet = rng.uniform(4, 12), int(rng.integers(6, 11))
+            colour = col(rng.choice(["red ochre", "egyptian blue", "carbon black", "cinnabar"]))
+            dot = max(1, int(round(rr * 0.3 * k)))
+            cv2.circle(img, (int(cx * k), int(cy * k)), dot, colour, -1, cv2.LINE_AA)
+            for a in np.linspace(0, 2 * np.pi, n_pet, endpoint=False):
+                cv2.circle(img, (int((cx + rr * np.cos(a)) * k), int((cy + rr * np.sin(a)) * k)), dot, colour, -1,
+                           cv2.LINE_AA)
     # spiral frieze
     if frieze_h:
         y0 = top
@@ -237,9 +254,10 @@ def paint_wall(width_mm: float, height_mm: float, rng: np.random.Generator, *, r
         strings.append((tuple(p - d), tuple(p + d)))
     # mottling of the paint (uneven brushing, pigment density) and fine speckle
     G = np.array([[res_mm, 0.0, 0.0], [0.0, res_mm, 0.0]])
-    mott = FractalField(rng, 40.0, octaves=4, persistence=0.6, amplitude=0.05)
+    mott = FractalField(rng, 40.0, octaves=4, persistence=0.6, amplitude=0.025)
+    shared = FractalField(rng, 25.0, octaves=4, persistence=0.6, amplitude=0.04).grid(G, (H, W))
     for c in range(3):
-        img[..., c] *= 1.0 + mott.grid(G + [[0, 0, 97.0 * c], [0, 0, 0]], (H, W))
+        img[..., c] *= 1.0 + shared + mott.grid(G + [[0, 0, 97.0 * c], [0, 0, 0]], (H, W))
     img *= 1.0 + FractalField(rng, 2.0, octaves=2, amplitude=0.02).grid(G, (H, W))[..., None]
     np.clip(img, 0.0, 1.0, out=img)
     return Painting(img, float(res_mm), strings, incisions)
