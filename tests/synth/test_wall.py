@@ -156,3 +156,39 @@ def test_a_user_picture_becomes_the_painted_layer():
         a = f.rgbn.albedo[rr, cc]
         left, right = x_wall < 80, x_wall > 100
         assert np.all(a[left, 0] > a[left, 2]) and np.all(a[right, 2] > a[right, 0])
+
+
+def test_colour_continues_across_true_joins_but_not_between_strangers(wall):
+    """The premise of matching (§5.2): edge colours of true neighbours agree far better than chance."""
+    def edge_colour(f, pts):
+        # mean albedo of a 2 mm disc 1.5 mm inside the contour, at each given contour point
+        pm = f.rgbn.pixel_mm
+        inner = ndimage.binary_erosion(f.rgbn.mask, iterations=max(1, int(1.5 / pm)))
+        rr, cc = np.nonzero(inner)
+        xy = np.column_stack([cc, rr]) * pm
+        out = []
+        for p in pts:
+            d = np.hypot(*(xy - p).T)
+            sel = d < d.min() + 2.0
+            out.append(f.rgbn.albedo[rr[sel], cc[sel]].mean(axis=0))
+        return np.array(out)
+
+    clean = {f.id for f in wall.fragments if not f.notes and not f.spurious}
+    true_d, rng = [], np.random.default_rng(0)
+    for a, b, _ in wall.adjacency:
+        if a in clean and b in clean:
+            pa, pb = wall.correspondences[(a, b)]
+            ca, cb = edge_colour(wall.fragment(a), pa[::3]), edge_colour(wall.fragment(b), pb[::3])
+            true_d.append(np.abs(ca - cb).sum(axis=1))
+    ids = sorted(clean)
+    rand_d = []
+    for _ in range(30):
+        a, b = rng.choice(ids, 2, replace=False)
+        if wall.is_neighbour(a, b):
+            continue
+        fa, fb = wall.fragment(a), wall.fragment(b)
+        pa = fa.contour_mm[rng.integers(0, len(fa.contour_mm), 5)]
+        pb = fb.contour_mm[rng.integers(0, len(fb.contour_mm), 5)]
+        rand_d.append(np.abs(edge_colour(fa, pa) - edge_colour(fb, pb)).sum(axis=1))
+    assert len(true_d) >= 5
+    assert np.median(np.concatenate(true_d)) < 0.5 * np.median(np.concatenate(rand_d))
