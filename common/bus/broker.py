@@ -520,20 +520,23 @@ class Broker:
         now = time.time()
         services = sorted(set(self.queues) | {w.service for w in self.workers.values()} |
                           {s for v in self.routing.values() for s in v})
-        queued = collections.Counter(j.service for j in self.jobs.values() if j.state == "queued")
-        hosts: dict = collections.defaultdict(list)
-        for w in self.workers.values():
-            hosts[w.host].append({"service": w.service, "pid": w.pid, "job": w.job,
-                                  "up_s": round(now - w.since, 1)})
-        inflight = []
-        for j in self.jobs.values():
-            if j.state == "inflight":
+        queued: collections.Counter = collections.Counter()
+        inflight, parked = [], []
+        for j in self.jobs.values():  # one pass: status is polled while thousands of jobs wait
+            if j.state == "queued":
+                queued[j.service] += 1
+            elif j.state == "inflight":
                 w = self.workers.get(j.worker)
                 inflight.append({"job": j.id, "service": j.service, "fragment": j.event.get("fragment"),
                                  "worker": f"{w.host}:{w.pid}" if w else "?", "running_s": round(now - j.started, 2),
                                  "attempt": j.failures + 1, "progress": j.progress})
-        parked = [{"job": j.id, "service": j.service, "fragment": j.event.get("fragment"), "face": j.event.get("face"),
-                   "attempts": j.failures, "error": j.error} for j in self.jobs.values() if j.state == "parked"]
+            else:
+                parked.append({"job": j.id, "service": j.service, "fragment": j.event.get("fragment"),
+                               "face": j.event.get("face"), "attempts": j.failures, "error": j.error})
+        hosts: dict = collections.defaultdict(list)
+        for w in self.workers.values():
+            hosts[w.host].append({"service": w.service, "pid": w.pid, "job": w.job,
+                                  "up_s": round(now - w.since, 1)})
         sec = int(now)
         recent = sum(c for s, c in self._rate if sec - 60 <= s < sec)
         span = min(60.0, max(1.0, now - self._started))

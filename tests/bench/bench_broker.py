@@ -13,6 +13,7 @@ Targets (issue 2): >= 2,000 jobs/s on a 2-core machine; p99 dispatch latency < 1
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -40,11 +41,41 @@ def throughput(workers: int, jobs: int) -> tuple[float, float]:
                 t0 = time.perf_counter()
                 c.submit_many(events, window=1000)
                 t_sub = time.perf_counter() - t0
-                wait_for(lambda: c.status()["completed"] >= jobs, 600, f"{jobs} jobs", interval=0.02)
+                wait_for(lambda: c.status()["completed"] >= jobs, 600, f"{jobs} jobs", interval=0.1)
                 elapsed = time.perf_counter() - t0
         finally:
             st.stop()
     return jobs / elapsed, jobs / t_sub
+
+
+_PEER = """
+import sys, zmq
+d = zmq.Context().socket(zmq.DEALER); d.connect(sys.argv[1]); d.send_multipart([b"", b"TW1", b"READY"])
+while True:
+    f = d.recv_multipart()
+    if f[-1] == b"stop": break
+    d.send_multipart([b"", b"TW1", b"RESULT", f[4], b"\\x90"])
+"""
+
+
+def pingpong(n: int = 5000) -> float:
+    """Reference: bare pyzmq ROUTER<->DEALER round trips/s between two processes right now (the
+    ceiling of any Python broker with one job in flight per worker on this machine and load)."""
+    import subprocess
+    import zmq
+    r = zmq.Context.instance().socket(zmq.ROUTER)
+    port = r.bind_to_random_port("tcp://127.0.0.1")
+    p = subprocess.Popen([sys.executable, "-c", _PEER, f"tcp://127.0.0.1:{port}"])
+    ident = r.recv_multipart()[0]
+    t0 = time.perf_counter()
+    for _ in range(n):
+        r.send_multipart([ident, b"", b"TW1", b"JOB", b"id", b"1", b"body"])
+        r.recv_multipart()
+    rate = n / (time.perf_counter() - t0)
+    r.send_multipart([ident, b"stop"])
+    p.wait(10)
+    r.close(0)
+    return rate
 
 
 def latency(rate: float, seconds: float) -> np.ndarray:
@@ -82,7 +113,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4], help="worker counts for the throughput runs")
     args = ap.parse_args()
-    print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch)")
+    print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch); "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"  reference: bare pyzmq round trips between two processes: {pingpong():.0f}/s")
     for k in args.workers:
         rate, accept = throughput(k, args.jobs)
         print(f"  {k} worker(s): {rate:8.0f} jobs/s completed   (submissions acknowledged at {accept:.0f}/s)")
