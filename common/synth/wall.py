@@ -238,10 +238,10 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
     det.crack_surface(height, albedo, mask, pm, rng)
     u = rng.random()
     notes = {}
-    if u < 0.25:
+    if u < 0.15:
         notes["fade"] = float(rng.uniform(0.2, 0.6))
         albedo = det.fade(albedo, notes["fade"])
-    elif u < 0.45:
+    elif u < 0.30:
         notes["discolour"] = str(rng.choice(sorted(det.DISCOLOURATIONS)))
         notes["strength"] = float(rng.uniform(0.5, 1.0))
         albedo = det.discolour(albedo, notes["discolour"], notes["strength"])
