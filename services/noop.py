@@ -5,7 +5,8 @@ sha256 and HDF5 readability are checked exactly as a real stage would), optional
 (``[services.noop] sleep_s``, reporting progress), optionally writes a content-keyed output
 artifact (``write_output``), and returns one ``noop.done`` event naming the job and the time the
 worker received it (``emit = false`` returns nothing). A ``noop.job`` event with ``fail = true``
-raises, to exercise retries and parking.
+raises (``"exit"``: SystemExit; ``"bad-event"``: returns a malformed event), to exercise retries
+and parking.
 """
 
 from __future__ import annotations
@@ -31,7 +32,12 @@ def handle(job: dict, ctx) -> list[dict]:
     for i in range(steps if sleep_s > 0 else 0):
         time.sleep(sleep_s / steps)
         ctx.progress((i + 1) / steps, "sleeping")
-    if job.get("fail"):
+    fail = job.get("fail")
+    if fail == "exit":         # a stage that calls sys.exit must not stop the worker
+        raise SystemExit(3)
+    if fail == "bad-event":    # a stage returning a malformed event is a stage failure
+        return [{"type": "noop.done"}]
+    if fail:
         raise RuntimeError(f"noop job {job['uid']} asked to fail")
     out = {}
     if cfg.get("write_output", False):

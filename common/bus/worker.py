@@ -114,7 +114,10 @@ class _JobRunner(threading.Thread):
             try:
                 stage_ctx = self.make_context(jid, attempt, progress)
                 result = self.handle(event, stage_ctx) or []
-                payload = P.dumps([messages.validate(e) for e in result])
+                try:
+                    payload = P.dumps([messages.validate(e) for e in result])
+                except Exception as exc:  # the stage's fault, not its input's: an ordinary failure
+                    raise RuntimeError(f"stage returned an invalid event: {exc}") from None
                 self.outcomes.put(("result", jid, payload))
             except ArtifactMissing as exc:  # maybe not visible yet on a network share: an ordinary, retried failure
                 log.warning("job %s: %s", jid, exc)
@@ -122,7 +125,7 @@ class _JobRunner(threading.Thread):
             except REJECTED_ERRORS as exc:
                 log.warning("job %s rejected: %s", jid, exc)
                 self.outcomes.put(("fail", jid, P.FAIL_REJECTED, f"{type(exc).__name__}: {exc}"))
-            except Exception as exc:  # one bad job must never take the worker down
+            except BaseException as exc:  # one bad job (even one calling sys.exit) must never take the worker down
                 tb = traceback.extract_tb(exc.__traceback__)[-3:]
                 where = "; ".join(f"{os.path.basename(f.filename)}:{f.lineno} in {f.name}" for f in tb)
                 log.exception("job %s failed", jid)

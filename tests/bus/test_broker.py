@@ -206,3 +206,21 @@ def test_worker_hands_back_a_long_job_on_sigterm_and_another_worker_runs_it(make
             events = collect(sub, lambda ev: _done(ev), 20, "the handed-back job done elsewhere")
         assert [e["attempt"] for _, e in events if e["type"] == "noop.done"] == [1], "a hand-back is not a failure"
         assert c.status()["parked"] == []
+
+
+def test_stage_calling_exit_or_returning_bad_events_is_parked_and_worker_survives(make_station):
+    st = make_station()
+    st.broker()
+    worker = st.worker()
+    st.workers_ready(1)
+    bad = [new_message("noop.job", fail="exit"), new_message("noop.job", fail="bad-event")]
+    good = new_message("noop.job")
+    with st.client() as c:
+        c.submit_many(bad + [good])
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: sum(e["type"] == "stage.failed" for _, e in ev) == 2 and _done(ev),
+                             30, "two stage.failed and the good job")
+    failed = {e["input"]: e["error"] for _, e in events if e["type"] == "stage.failed"}
+    assert "SystemExit" in failed[bad[0]["uid"]]
+    assert "invalid event" in failed[bad[1]["uid"]]
+    assert _done(events) == {good["uid"]} and worker.poll() is None
