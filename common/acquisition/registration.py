@@ -56,7 +56,7 @@ class Registration:
     residual: float
 
 
-def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.5,
+def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.3,
                        chroma_weight: float = 1.0) -> np.ndarray:
     """Shading-tolerant image for registration (float32).
 
@@ -184,7 +184,8 @@ def _refine_lk(template: np.ndarray, moving: np.ndarray, tmask: np.ndarray, mmas
         corr = tv_ / np.sqrt(max(tt * vv, 1e-24))
         resid = float(np.sqrt(max(2.0 - 2.0 * corr, 0.0)))     # RMS of the difference of the z-scores
         if alpha <= 0:
-            raise RegistrationError(f"registration images are anti-correlated (r = {corr:.2f})")
+            raise RegistrationError(f"the scans do not match (correlation {corr:.2f}): they may show different "
+                                    "faces or fragments; refusing to solve normals — rescan this face")
         err = ii / alpha - ti
         sd = SD[use]
         dp = np.linalg.solve(sd.T @ sd + 1e-9 * np.eye(3), sd.T @ err)
