@@ -28,7 +28,7 @@ log = logging.getLogger("tessera.station")
 
 # stage -> event type of its output (what the demo waits for per fragment)
 OUTPUT_EVENT = {"solver": "rgbn.ready", "features": "features.ready", "renderer": "render.ready",
-                "matcher": "match.proposed"}
+                "matcher": "match.proposed", "noop": "noop.done"}
 _LAUNCH = "import sys; from services.cli import main; sys.exit(main())"
 
 
