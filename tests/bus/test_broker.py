@@ -52,7 +52,7 @@ def test_broker_restart_with_queued_and_inflight_jobs_loses_none(make_station):
     broker = st.broker()
     st.worker()
     st.workers_ready(1)
-    jobs = [new_message("noop.job", n=i) for i in range(6)]
+    jobs = [new_message("noop.job", n=i) for i in range(8)]
     with st.client() as c:
         c.submit_many(jobs)
     wait_for(lambda: st.status()["in_flight"], 10, "a job in flight")
@@ -64,7 +64,7 @@ def test_broker_restart_with_queued_and_inflight_jobs_loses_none(make_station):
     st.broker()
     uids = {j["uid"] for j in jobs}
     with st.subscriber(0) as sub:
-        events = collect(sub, lambda ev: _done(ev, uids) == uids, 30, "all six jobs done")
+        events = collect(sub, lambda ev: _done(ev, uids) == uids, 40, "all eight jobs done")
     seqs = [s for s, _ in events]
     assert seqs == list(range(1, len(seqs) + 1)), "the feed after restart is complete and in order"
     submitted = [e["uid"] for _, e in events if e["type"] == "noop.job"]
