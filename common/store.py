@@ -216,12 +216,14 @@ class Store:
 
     # -- reading ---------------------------------------------------------------------------
     @contextlib.contextmanager
-    def open(self, ref: ArtifactRef | Mapping | str, *, schema: str | None = None) -> Iterator[h5py.File]:
+    def open(self, ref: ArtifactRef | Mapping | str, *, schema: str | None = None,
+             version: int | None = None) -> Iterator[h5py.File]:
         """Open an artifact read-only.
 
         With an :class:`ArtifactRef` (or its dict) the size and sha256 are checked first; a
         mismatch raises :class:`ArtifactError` naming the file. With ``schema`` the file's
-        schema attribute must match.
+        schema attribute must match; with ``version`` its ``schema_version`` must not be newer
+        (a reader understands its own version and older ones).
         """
         if isinstance(ref, Mapping):
             ref = ArtifactRef.from_dict(ref)
@@ -243,6 +245,9 @@ class Store:
         try:
             if schema is not None and f.attrs.get("schema") != schema:
                 raise ArtifactError(f"artifact {relpath} has schema {f.attrs.get('schema')!r}, expected {schema!r}")
+            if version is not None and int(f.attrs.get("schema_version", 0)) > int(version):
+                raise ArtifactError(f"artifact {relpath} has schema version {int(f.attrs['schema_version'])}; "
+                                    f"this reader understands up to {int(version)}")
             yield f
         finally:
             f.close()

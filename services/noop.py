@@ -24,8 +24,9 @@ def handle(job: dict, ctx) -> list[dict]:
     received = time.time()
     cfg = ctx.config
     source = job.get("artifact")
-    if source:
-        with ctx.store.open(source):
+    if source:  # with [services.noop] schema/schema_version set it checks them like a real stage
+        schema, version = cfg.get("schema"), cfg.get("schema_version")
+        with ctx.store.open(source, schema=schema, version=version):
             pass
     sleep_s = float(cfg.get("sleep_s", 0.0))
     steps = max(1, int(sleep_s / 0.05))

@@ -59,6 +59,11 @@ def test_digest_size_truncation_and_schema_are_checked_on_read(tmp_path):
     with pytest.raises(ArtifactError, match="schema"):
         with store.open(ref, schema="other"):
             pass
+    with pytest.raises(ArtifactError, match="schema version 1; this reader understands up to 0"):
+        with store.open(ref, schema="s", version=0):
+            pass
+    with store.open(ref, schema="s", version=2):  # older files stay readable
+        pass
     with open(tmp_path / "a.h5", "r+b") as fh:
         fh.truncate(ref.bytes // 3)
     with pytest.raises(ArtifactError, match="not a readable HDF5"):

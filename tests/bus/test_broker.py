@@ -104,7 +104,7 @@ def _raw_send(endpoint: str, *frames: bytes) -> None:
 
 
 def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station):
-    st = make_station()
+    st = make_station(services={"noop": {"schema": "tessera.scans", "schema_version": 1}})
     st.broker()
     worker = st.worker()
     st.workers_ready(1)
@@ -116,6 +116,7 @@ def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station
         fh.truncate(trunc_ref.bytes // 2)
     trunc_ref = store.ref(trunc_ref.path)  # digest of the truncated file: only HDF5 can tell
     bad_digest = dict(ok_ref.to_dict(), sha256="0" * 64)
+    future = store.write("fragments/F0004/scans/scans-c.h5", "tessera.scans", 7, fill)   # newer schema version
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
     good = [new_message("noop.job", n=i) for i in range(3)]
     with st.client() as c:
@@ -133,18 +134,20 @@ def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station
         trunc = new_message("fragment.ready", fragment="F0003", artifact=trunc_ref)
         wrong = new_message("fragment.ready", fragment="F0002", artifact=bad_digest)
         fine = new_message("fragment.ready", fragment="F0002", artifact=ok_ref)
-        c.submit_many([trunc, wrong, fine, good[2]])
+        newer = new_message("fragment.ready", fragment="F0004", artifact=future)
+        c.submit_many([trunc, wrong, newer, fine, good[2]])
         want = {g["uid"] for g in good} | {fine["uid"]}
         with st.subscriber(0) as sub:
             events = collect(sub, lambda ev: _done(ev) >= want and
-                             sum(e["type"] == "input.rejected" for _, e in ev) >= 6, 20, "good jobs and rejections")
+                             sum(e["type"] == "input.rejected" for _, e in ev) >= 8, 20, "good jobs and rejections")
         rejected = [e for _, e in events if e["type"] == "input.rejected"]
         errors = " | ".join(e["error"] for e in rejected)
         for phrase in ("malformed frame", "unknown protocol header", "unknown message type",
-                       "schema version 99", "undecodable", "not a readable HDF5", "sha256"):
+                       "schema version 99", "undecodable", "not a readable HDF5", "sha256",
+                       "schema version 7; this reader understands up to 1"):
             assert phrase in errors, f"no input.rejected saying {phrase!r}: {errors}"
         parked = {p["fragment"] for p in c.status()["parked"]}
-        assert parked == {"F0002", "F0003"}, "bad artifacts are parked at once, not retried"
+        assert parked == {"F0002", "F0003", "F0004"}, "bad artifacts are parked at once, not retried"
     assert _done(events) == want
     assert all(p.poll() is None for p in st.procs), "broker and worker stay up"
     assert worker.poll() is None
