@@ -133,14 +133,14 @@ def simulated(depth, dpi, size_mm, seed, figures=None, cal=None):
         tag = f"sim{depth}"
         save_small(figures / f"{tag}_scans.png", np.hstack([
             cv2.resize((np.clip(to_float(s) / 0.9, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)[..., ::-1], (300, 300),
-                       interpolation=cv2.INTER_AREA) for s in scans]), 1200)
+                       interpolation=cv2.INTER_AREA) for s in scans]), 800)
         save_small(figures / f"{tag}_albedo_normals.png",
                    np.hstack([albedo_png(out.albedo, out.mask), normals_png(out.normals, out.mask),
-                              normals_png(truth.normals, truth.mask)]), 1200)
+                              normals_png(truth.normals, truth.mask)]), 900)
         emap = np.clip(err / 5.0, 0, 1)
         emap = cv2.applyColorMap((emap * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
         emap[~truth.mask] = 0
-        save_small(figures / f"{tag}_error.png", emap, 500)
+        save_small(figures / f"{tag}_error.png", emap, 400)
     return res, cal
 
 
@@ -201,7 +201,7 @@ def real_coin(figures=None, nominal_a=None):
     angles = [r.angle_deg for r in regs]
     out = solve_normals(imgs, angles, a, mask=masks[0], valid=valid, dpi=dpi)
     resid = rerender_residual(out, imgs, angles, a, valid=valid)
-    raw_res = {"areas_mm": [tuple(round(v, 1) for v in ar) for ar in areas],
+    raw_res = {"areas_mm": [tuple(round(float(v), 1) for v in ar) for ar in areas],
                "angles_deg": [round(x, 2) for x in angles], "reg_correlation": [round(r.correlation, 3) for r in regs],
                "lamp_side_xy": side.round(2).tolist(), "coin_px": int(masks[0].sum()), "rerender_residual": resid}
     # the registered 1596 × 1563 crops (another coin, already registered by the source project)
@@ -241,7 +241,7 @@ def real_coin(figures=None, nominal_a=None):
         save_small(figures / "coin_raw_albedo_normals.png",
                    np.hstack([albedo_png(out.albedo, out.mask), normals_png(out.normals, out.mask)]), 600)
         save_small(figures / "coin_registered_albedo_normals.png",
-                   np.hstack([albedo_png(out2.albedo, out2.mask), normals_png(out2.normals, out2.mask)]), 1000)
+                   np.hstack([albedo_png(out2.albedo, out2.mask), normals_png(out2.normals, out2.mask)]), 800)
     return raw_res, reg_res
 
 
