@@ -26,7 +26,7 @@ RGBN convention (x right, y up, z towards the sensor).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np

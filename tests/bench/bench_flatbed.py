@@ -32,7 +32,7 @@ from common.acquisition.calibration import calibrate_scanner, simulated_target_o
 from common.acquisition.flatbed_normals import (light_rows, rerender_residual, solve_face,  # noqa: E402
                                                 solve_normals)
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface, scan_to_scan_affine  # noqa: E402
-from common.acquisition.locate import fragment_mask, locate_fragment, to_float  # noqa: E402
+from common.acquisition.locate import locate_fragment, to_float  # noqa: E402
 from common.acquisition.registration import register_scans, warp_to_target  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "flatbed-coin"
