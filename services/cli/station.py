@@ -117,6 +117,10 @@ def run(args) -> int:
               "--set broker.port=5565 --set broker.feed_port=5566")
         return 1
     status = 0
+
+    def interrupt(*_):  # systemd and kill send SIGTERM: stop the children as for Ctrl-C
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, interrupt)
     try:
         broker = kids.start("broker", "broker")
         with BrokerClient.from_config(config, timeout_s=0.5, retries=1) as bus:
