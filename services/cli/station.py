@@ -158,6 +158,7 @@ def run(args) -> int:
         print("stopping the station", flush=True)
         status = 130
     finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the orderly stop short
         kids.stop()
     return status
 
