@@ -274,7 +274,7 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
 
 def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = "recursive",
                   style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
-                  median_size_mm: float = 30.0, sigma: float = 0.7, missing_fraction: float = 0.2,
+                  median_size_mm: float = 30.0, sigma: float = 1.0, missing_fraction: float = 0.2,
                   spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
                   min_shared_mm: float = 3.0, keep_images: bool = True, surfaces: bool = True, workers: int = 1,
                   on_fragment: Callable[[Fragment], None] | None = None,
