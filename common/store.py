@@ -39,6 +39,10 @@ class ArtifactMissing(ArtifactError):
     remounting), so a worker retries it instead of rejecting the input outright."""
 
 
+class StorageUnavailable(ArtifactMissing, OSError):
+    """The storage root (a mount point, ``create=False``) is not there: nothing can be written."""
+
+
 @dataclass(frozen=True)
 class ArtifactRef:
     """Pointer to an artifact: what travels in a message instead of the data.
@@ -116,8 +120,14 @@ class Store:
     def __init__(self, root: str | os.PathLike, *, file_locking: bool = False, create: bool = True):
         self.root = Path(root)
         self.file_locking = bool(file_locking)
+        self.create = bool(create)
         if create:
             self.root.mkdir(parents=True, exist_ok=True)
+
+    def _check_root(self) -> None:
+        # never create a mount point's directories locally: that would hide data from the lab
+        if not self.create and not self.root.is_dir():
+            raise StorageUnavailable(f"storage root {self.root} is not reachable (not mounted?)")
 
     def available(self) -> bool:
         """True if the root is a writable directory now (an unmounted or stale NFS share is not)."""
@@ -164,6 +174,7 @@ class Store:
         final = self.path(relpath)
         if final.exists() and not overwrite:
             return self.ref(relpath)
+        self._check_root()
         final.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
         os.close(fd)
@@ -194,6 +205,7 @@ class Store:
         final = self.path(relpath)
         if final.is_file() and file_sha256(final) == sha256:
             return self.ref(relpath)
+        self._check_root()
         final.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
         try:

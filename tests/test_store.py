@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from common.store import ArtifactError, ArtifactRef, Store, content_key
+from common.store import ArtifactError, ArtifactRef, Store, StorageUnavailable, content_key
 
 
 def _fill(f):
@@ -84,9 +84,16 @@ def test_content_key_depends_on_every_part():
                 content_key("sha-a", "solver1", "")}) == 4
 
 
-def test_missing_mount_is_unavailable_and_not_created(tmp_path):
+def test_missing_mount_is_unavailable_and_never_created(tmp_path):
     store = Store(tmp_path / "mnt", create=False)
     assert not store.available() and not (tmp_path / "mnt").exists()
+    with pytest.raises(StorageUnavailable, match="not reachable"):
+        store.write("fragments/F/rgbn/front-1.h5", "s", 1, _fill)
+    with pytest.raises(OSError):  # the scanner falls back to its spool on OSError
+        store.write("fragments/F/rgbn/front-1.h5", "s", 1, _fill)
+    assert not (tmp_path / "mnt").exists(), "a missing mount is not replaced by local directories"
+    (tmp_path / "mnt").mkdir()
+    assert store.available() and store.write("a.h5", "s", 1, _fill).bytes > 0
 
 
 def test_import_file_copies_verified_and_refuses_wrong_digest(tmp_path):

@@ -162,7 +162,7 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
     b, w = config["broker"], config["worker"]
     interval, liveness_max = float(b["heartbeat_interval_s"]), int(b["heartbeat_liveness"])
     st = config["storage"]
-    store = Store(st["root"], file_locking=st["file_locking"])
+    store = Store(st["root"], file_locking=st["file_locking"], create=st["create_root"])
     stage_log = logging.getLogger(f"tessera.{service}")
     settings = service_config(config, service_module_name)
     ctx = context or zmq.Context.instance()
@@ -206,7 +206,11 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
             return
         command = frames[2]
         if command == P.JOB:
-            jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
+            try:
+                jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
+            except (IndexError, ValueError) as exc:  # a malformed frame must never end the worker
+                log.warning("malformed JOB frame from broker ignored (%d parts): %s", len(frames), exc)
+                return
             if current is not None:  # the broker thinks we are idle: tell it this job cannot run here
                 sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_ERROR,
                                      f"worker busy with {current}".encode()])
