@@ -213,8 +213,6 @@ def _fake_broker_config(tmp_path, port):
     return cfg
 
 
-@pytest.mark.xfail(strict=True, reason="worker.py: from_broker() indexes JOB frames unchecked (IndexError kills "
-                   "the worker); fix proposed to the backbone owner, remove this mark when it lands")
 def test_a_worker_survives_malformed_frames_from_its_broker(tmp_path):
     rng = random.Random(11)
     port = free_port()
