@@ -105,6 +105,18 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         return _segment_downsampled(albedo, normals, mask, shape, scale=scale, sigma_px=sigma_px, min_size=min_size,
                                     colour_weight=colour_weight, normal_weight=normal_weight,
                                     max_megapixels=max_megapixels)
+    if not mask.any():
+        return np.full(shape, -1, np.int32)
+    if not mask.all():
+        # the graph of the fragment's bounding box only (scans carry a background margin)
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        box = (slice(max(rows[0] - 1, 0), rows[-1] + 2), slice(max(cols[0] - 1, 0), cols[-1] + 2))
+        if mask[box].size < 0.9 * mask.size:
+            out = np.full(shape, -1, np.int32)
+            out[box] = segment_rgbn(None if albedo is None else albedo[box], None if normals is None else normals[box],
+                                    mask=mask[box], scale=scale, sigma_px=sigma_px, min_size=min_size,
+                                    colour_weight=colour_weight, normal_weight=normal_weight, max_megapixels=None)
+            return out
     feats = np.concatenate(parts, axis=2)
     if not mask.all():
         # background becomes one far-away constant so no segment straddles the mask border

@@ -70,3 +70,12 @@ def test_large_images_are_segmented_on_a_coarser_grid_with_the_same_regions():
     # the same two regions, boundaries within the downsampling factor (3 px)
     agree = (full == coarse)[:, 3:]
     assert agree.mean() > 0.95 and agree[:, :58].all() and agree[:, 67:].all()
+
+
+def test_a_fragment_with_a_background_margin_is_segmented_inside_its_box_only():
+    n = two_orientations(64)
+    mask = np.zeros((64, 64), bool)
+    mask[20:44, 10:54] = True
+    labels = segment_rgbn(None, n, mask=mask, scale=20, sigma_px=0, min_size=50)
+    assert (labels[~mask] == -1).all()
+    assert labels[30, 15] != labels[30, 50] and len(np.unique(labels[mask])) == 2
