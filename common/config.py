@@ -88,6 +88,13 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "demo_timeout_s": 900.0,
     },
     "services": {},
+    "security": {                        # ZeroMQ CURVE between hosts (common/bus/security.py, docs/security.md)
+        "curve": False,                  # encrypt + authenticate every bus connection
+        "broker_secret_key": "",         # broker: its key pair file (broker.key_secret)
+        "authorized_keys": "",           # broker: directory of public keys (*.key) allowed to connect
+        "broker_public_key": "",         # others: the broker's public key file (broker.key)
+        "secret_key": "",                # others: this host's key pair file (<name>.key_secret)
+    },
 }
 
 # sections whose keys are free-form (checked by shape, not by name)

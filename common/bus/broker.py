@@ -37,6 +37,7 @@ import zmq
 
 from common import messages
 from common.bus import protocol as P
+from common.bus import security
 from common.bus.journal import Journal
 
 log = logging.getLogger("tessera.broker")
@@ -141,6 +142,7 @@ class Broker:
         self._last_flush = 0.0
         self._journal_ok = True
         self.router = self.feed = self._signal = None
+        self._auth = None
         if state.jobs:
             log.info("journal replayed: %d queued, %d parked jobs; stream %s at seq %d",
                      sum(j.state == "queued" for j in self.jobs.values()),
@@ -150,13 +152,14 @@ class Broker:
     def bind(self) -> None:
         """Bind the ROUTER and PUB sockets and start the journal writer."""
         b = self.config["broker"]
-        self.router = self.ctx.socket(zmq.ROUTER)
+        self._auth = security.start_authenticator(self.ctx, self.config)  # None unless [security] curve
+        self.router = security.secure_server_socket(self.ctx.socket(zmq.ROUTER), self.config)
         self.router.setsockopt(zmq.LINGER, 0)
         self.router.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.router.setsockopt(zmq.SNDHWM, 100000)
         self.router.setsockopt(zmq.RCVHWM, 100000)
         self.router.bind(f"tcp://{b['bind']}:{b['port']}")
-        self.feed = self.ctx.socket(zmq.PUB)
+        self.feed = security.secure_server_socket(self.ctx.socket(zmq.PUB), self.config)
         self.feed.setsockopt(zmq.LINGER, 0)
         self.feed.setsockopt(zmq.SNDHWM, 100000)
         self.feed.bind(f"tcp://{b['bind']}:{b['feed_port']}")
@@ -178,6 +181,8 @@ class Broker:
         for s in (self.router, self.feed, self._signal):
             if s is not None:
                 s.close(linger=0)
+        if self._auth is not None:
+            self._auth.stop()
 
     def run(self, stop: threading.Event | None = None) -> None:
         """The poll loop: until ``stop`` is set (or forever)."""

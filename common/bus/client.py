@@ -27,6 +27,7 @@ import zmq
 
 from common import messages
 from common.bus import protocol as P
+from common.bus.security import secure_client_socket
 from common.config import broker_endpoint
 
 
@@ -51,8 +52,10 @@ class BrokerClient:
         Attempts before :class:`BrokerUnavailable`.
     """
 
-    def __init__(self, endpoint: str, *, timeout_s: float = 2.5, retries: int = 3, context: zmq.Context | None = None):
+    def __init__(self, endpoint: str, *, timeout_s: float = 2.5, retries: int = 3, context: zmq.Context | None = None,
+                 security: Mapping | None = None):
         self.endpoint = endpoint
+        self.security = security or {}  # a config with [security]: CURVE keys when curve is on
         self.timeout_s = float(timeout_s)
         self.retries = max(1, int(retries))
         self.ctx = context or zmq.Context.instance()
@@ -65,7 +68,7 @@ class BrokerClient:
         """Client for the broker named by a loaded configuration."""
         c = config["client"]
         return cls(broker_endpoint(config), timeout_s=kw.pop("timeout_s", c["timeout_s"]),
-                   retries=kw.pop("retries", c["retries"]), **kw)
+                   retries=kw.pop("retries", c["retries"]), security=kw.pop("security", config), **kw)
 
     def __enter__(self):
         return self
@@ -80,7 +83,7 @@ class BrokerClient:
 
     def _socket(self):
         if self._sock is None:
-            self._sock = self.ctx.socket(zmq.DEALER)
+            self._sock = secure_client_socket(self.ctx.socket(zmq.DEALER), self.security)
             self._sock.setsockopt(zmq.LINGER, 0)
             self._sock.connect(self.endpoint)
         return self._sock

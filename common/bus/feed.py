@@ -26,6 +26,7 @@ import zmq
 
 from common.bus import protocol as P
 from common.bus.client import BrokerClient, BrokerUnavailable
+from common.bus.security import secure_client_socket
 from common.config import broker_endpoint, feed_endpoint
 
 log = logging.getLogger("tessera.feed")
@@ -57,13 +58,16 @@ class FeedSubscriber:
     """
 
     def __init__(self, feed: str, broker: str, *, since: int | None = None, types: Iterable[str] | None = None,
-                 heartbeat_interval_s: float = 1.0, liveness: int = 3, context: zmq.Context | None = None):
+                 heartbeat_interval_s: float = 1.0, liveness: int = 3, context: zmq.Context | None = None,
+                 security: Mapping | None = None):
         self.feed_endpoint = feed
+        self.security = security or {}  # a config with [security]: CURVE keys when curve is on
         self.ctx = context or zmq.Context.instance()
         self.types = set(types) if types else None
         self.interval = float(heartbeat_interval_s)
         self.liveness = int(liveness)
-        self.client = BrokerClient(broker, timeout_s=max(0.5, self.interval), retries=1, context=self.ctx)
+        self.client = BrokerClient(broker, timeout_s=max(0.5, self.interval), retries=1, context=self.ctx,
+                                   security=self.security)
         self.last: int | None = since
         self.stream: str | None = None
         self._ready: collections.deque = collections.deque()
@@ -78,7 +82,7 @@ class FeedSubscriber:
     def from_config(cls, config: Mapping, **kw) -> "FeedSubscriber":
         b = config["broker"]
         return cls(feed_endpoint(config), broker_endpoint(config), heartbeat_interval_s=b["heartbeat_interval_s"],
-                   liveness=b["heartbeat_liveness"], **kw)
+                   liveness=b["heartbeat_liveness"], security=kw.pop("security", config), **kw)
 
     def close(self) -> None:
         if self._sub is not None:
@@ -95,7 +99,7 @@ class FeedSubscriber:
     def _connect(self) -> None:
         if self._sub is not None:
             self._sub.close(linger=0)
-        self._sub = self.ctx.socket(zmq.SUB)
+        self._sub = secure_client_socket(self.ctx.socket(zmq.SUB), self.security)
         self._sub.setsockopt(zmq.LINGER, 0)
         self._sub.setsockopt(zmq.RCVHWM, 100000)
         self._sub.setsockopt(zmq.SUBSCRIBE, b"")

@@ -34,6 +34,7 @@ import zmq
 
 from common import messages
 from common.bus import protocol as P
+from common.bus.security import secure_client_socket
 from common.config import broker_endpoint, service_config
 from common.store import ArtifactError, ArtifactMissing, Store
 
@@ -185,7 +186,7 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
         nonlocal sock
         if sock is not None:
             sock.close(linger=0)
-        sock = ctx.socket(zmq.DEALER)
+        sock = secure_client_socket(ctx.socket(zmq.DEALER), config)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.ROUTING_ID, f"{service}-{info['pid']}-{uuid.uuid4().hex[:8]}".encode())
         sock.connect(endpoint)

@@ -1,0 +1,189 @@
+"""ZeroMQ CURVE authentication and encryption between the station's hosts (RFC 26 CurveZMQ, ZAP RFC 27).
+
+Off by default (one machine, loopback). With ``[security] curve = true`` every bus socket is
+encrypted and the broker admits only peers whose public key is in its authorised-keys directory:
+
+* the broker's ROUTER and PUB sockets are CURVE servers with the broker's key pair, and a ZAP
+  handler (:class:`zmq.auth.thread.ThreadAuthenticator`) checks each connecting peer's public key
+  against ``authorized_keys``; an unknown key never completes the handshake, so its frames (job
+  submissions, verdicts, worker results, feed subscriptions) never reach the broker;
+* workers, clients, the scanner and feed subscribers are CURVE clients: they know the broker's
+  public key (``broker_public_key``) and present their own key pair (``secret_key``).
+
+Key files are ZeroMQ's certificate format (``<name>.key`` public, ``<name>.key_secret`` both
+halves; :func:`zmq.auth.create_certificates`), written by ``tessera keys`` (``docs/security.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Mapping
+
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+log = logging.getLogger("tessera.security")
+
+DEFAULTS = {
+    "curve": False,            # encrypt and authenticate every bus connection
+    "broker_secret_key": "",   # broker: its key pair file (<name>.key_secret)
+    "authorized_keys": "",     # broker: directory of the public keys (*.key) allowed to connect
+    "broker_public_key": "",   # everyone else: the broker's public key file (broker.key)
+    "secret_key": "",          # everyone else: this host's key pair file (<name>.key_secret)
+}
+
+
+class SecurityError(ValueError):
+    """Security is enabled but a key file is missing, unreadable or of the wrong kind."""
+
+
+def enabled(config: Mapping) -> bool:
+    """True when ``[security] curve`` is on."""
+    return bool(config.get("security", {}).get("curve", False))
+
+
+def _setting(config: Mapping, key: str) -> str:
+    value = str(config.get("security", {}).get(key, "") or "")
+    if not value:
+        raise SecurityError(f"security.{key}: required when security.curve is true")
+    return value
+
+
+def _read_pair(path: str, key: str) -> tuple[bytes, bytes]:
+    if not os.path.isfile(path):
+        raise SecurityError(f"security.{key}: key file {path} does not exist (make one with `tessera keys`)")
+    try:
+        public, secret = zmq.auth.load_certificate(path)
+    except (ValueError, OSError) as exc:
+        raise SecurityError(f"security.{key}: {path} is not a ZeroMQ key file ({exc})") from exc
+    if secret is None:
+        raise SecurityError(f"security.{key}: {path} holds only a public key; give the .key_secret file")
+    return public, secret
+
+
+def _read_public(path: str, key: str) -> bytes:
+    if not os.path.isfile(path):
+        raise SecurityError(f"security.{key}: key file {path} does not exist (copy it from the broker host)")
+    try:
+        public, _ = zmq.auth.load_certificate(path)
+    except (ValueError, OSError) as exc:
+        raise SecurityError(f"security.{key}: {path} is not a ZeroMQ key file ({exc})") from exc
+    return public
+
+
+def check(config: Mapping, role: str) -> None:
+    """Validate the key settings for ``role`` (``"broker"`` or ``"client"``) before anything starts."""
+    if not enabled(config):
+        return
+    if role == "broker":
+        _read_pair(_setting(config, "broker_secret_key"), "broker_secret_key")
+        keys = _setting(config, "authorized_keys")
+        if not os.path.isdir(keys):
+            raise SecurityError(f"security.authorized_keys: {keys} is not a directory")
+    else:
+        _read_public(_setting(config, "broker_public_key"), "broker_public_key")
+        _read_pair(_setting(config, "secret_key"), "secret_key")
+
+
+def secure_client_socket(sock: zmq.Socket, config: Mapping) -> zmq.Socket:
+    """Make ``sock`` a CURVE client of the broker (before ``connect``); no-op when security is off."""
+    if enabled(config):
+        public, secret = _read_pair(_setting(config, "secret_key"), "secret_key")
+        sock.curve_secretkey = secret
+        sock.curve_publickey = public
+        sock.curve_serverkey = _read_public(_setting(config, "broker_public_key"), "broker_public_key")
+    return sock
+
+
+def secure_server_socket(sock: zmq.Socket, config: Mapping) -> zmq.Socket:
+    """Make ``sock`` a CURVE server with the broker's key pair (before ``bind``); no-op when off."""
+    if enabled(config):
+        public, secret = _read_pair(_setting(config, "broker_secret_key"), "broker_secret_key")
+        sock.curve_secretkey = secret
+        sock.curve_publickey = public
+        sock.curve_server = True
+    return sock
+
+
+def start_authenticator(context: zmq.Context, config: Mapping) -> ThreadAuthenticator | None:
+    """Start the ZAP handler admitting the public keys in ``authorized_keys`` (None when off).
+
+    Keys added to the directory later are picked up by :func:`reload_keys` (the broker calls it
+    on SIGHUP-free restarts; a new worker host needs its key copied there first).
+    """
+    if not enabled(config):
+        return None
+    keys = _setting(config, "authorized_keys")
+    if not os.path.isdir(keys):
+        raise SecurityError(f"security.authorized_keys: {keys} is not a directory")
+    auth = ThreadAuthenticator(context, log=logging.getLogger("tessera.zap"))
+    auth.start()
+    auth.configure_curve(domain="*", location=keys)
+    n = len(list(Path(keys).glob("*.key")))
+    log.info("CURVE on: %d authorised key(s) in %s", n, keys)
+    return auth
+
+
+def reload_keys(auth: ThreadAuthenticator | None, config: Mapping) -> None:
+    """Re-read the authorised-keys directory (a key added or removed takes effect for new connections)."""
+    if auth is not None:
+        auth.configure_curve(domain="*", location=_setting(config, "authorized_keys"))
+
+
+def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: str | os.PathLike | None = None
+                     ) -> tuple[Path, Path]:
+    """Write a new CURVE key pair ``<directory>/<name>.key`` and ``<name>.key_secret`` (mode 0600).
+
+    Parameters
+    ----------
+    directory : path
+        Where to write; created if missing.
+    name : str
+        Key name: letters, digits, ``-``, ``_``, ``.`` (a host or role, e.g. ``lab-gpu1``).
+    authorize_in : path, optional
+        Also copy the public key into this authorised-keys directory (the broker's).
+
+    Returns
+    -------
+    (public_path, secret_path)
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is unsafe or the key pair exists already (keys are never overwritten).
+    """
+    if not name or not all(c.isalnum() or c in "-_." for c in name) or name.startswith("."):
+        raise ValueError(f"name: {name!r} must be letters, digits, '-', '_' or '.' (it names files)")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    public, secret = directory / f"{name}.key", directory / f"{name}.key_secret"
+    if public.exists() or secret.exists():
+        raise ValueError(f"name: key pair {public} exists already; remove it first to replace it")
+    old = os.umask(0o077)
+    try:
+        pub, sec = zmq.auth.create_certificates(str(directory), name)
+    finally:
+        os.umask(old)
+    os.chmod(sec, 0o600)
+    if authorize_in is not None:
+        authorize(public, authorize_in)
+    return Path(pub), Path(sec)
+
+
+def authorize(public_key: str | os.PathLike, directory: str | os.PathLike) -> Path:
+    """Copy a public key file into the broker's authorised-keys directory; returns the copy's path."""
+    public_key = Path(public_key)
+    if "secret-key" in public_key.read_text(errors="replace"):  # never spread a secret
+        raise ValueError(f"public_key: {public_key} contains a secret key; give the .key file")
+    pub, _ = zmq.auth.load_certificate(str(public_key))  # refuses what is not a key file
+    if not pub:
+        raise ValueError(f"public_key: {public_key} holds no public key")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    target = directory / public_key.name
+    shutil.copyfile(public_key, target)
+    return target
