@@ -1,0 +1,131 @@
+"""CURVE between hosts: only clients with an admitted key can submit jobs, publish verdicts, serve
+as workers or read the feed; what travels on the wire is encrypted (common/bus/security.py)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import threading
+import time
+
+import pytest
+import zmq
+
+from common.bus.client import BrokerClient, BrokerUnavailable
+from common.bus.security import SecurityError, check, generate_keypair, secure_client_socket
+from common.messages import new_message
+from services.cli import main as tessera
+
+from .conftest import collect, free_port, wait_for
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _security_section(keys, host="lab"):
+    return "\n".join(["[security]", "curve = true",
+                      f'broker_secret_key = "{keys / "broker.key_secret"}"', f'authorized_keys = "{keys / "authorized"}"',
+                      f'broker_public_key = "{keys / "broker.key"}"',
+                      f'secret_key = "{keys / "hosts" / (host + ".key_secret")}"']) + "\n"
+
+
+@pytest.fixture
+def keys(tmp_path):
+    d = tmp_path / "keys"
+    assert tessera(["keys", "init", str(d)]) == 0
+    assert tessera(["keys", "add", "lab", "--dir", str(d)]) == 0
+    return d
+
+
+def test_tessera_keys_makes_private_pairs_and_admits_only_added_hosts(keys, capsys):
+    assert stat.S_IMODE(os.stat(keys / "broker.key_secret").st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(keys / "hosts" / "lab.key_secret").st_mode) == 0o600
+    assert sorted(p.name for p in (keys / "authorized").iterdir()) == ["lab.key"]
+    assert "secret-key" not in (keys / "authorized" / "lab.key").read_text()
+    assert tessera(["keys", "add", "lab", "--dir", str(keys)]) == 2, "an existing pair is never overwritten"
+    assert tessera(["keys", "add", "../evil", "--dir", str(keys)]) == 2
+    assert tessera(["keys", "revoke", "lab", "--dir", str(keys)]) == 0
+    capsys.readouterr()
+    assert tessera(["keys", "list", "--dir", str(keys)]) == 0
+    assert capsys.readouterr().out.strip() == ""
+
+
+def test_missing_or_wrong_key_files_are_named(keys, tmp_path):
+    cfg = {"security": {"curve": True, "broker_public_key": str(keys / "broker.key"),
+                        "secret_key": str(keys / "hosts" / "nobody.key_secret")}}
+    with pytest.raises(SecurityError, match="nobody.key_secret"):
+        check(cfg, "client")
+    cfg["security"]["secret_key"] = str(keys / "broker.key")  # public half only
+    with pytest.raises(SecurityError, match="only a public key"):
+        check(cfg, "client")
+    with pytest.raises(SecurityError, match="authorized_keys"):
+        check({"security": {"curve": True, "broker_secret_key": str(keys / "broker.key_secret")}}, "broker")
+
+
+class _Tap(threading.Thread):
+    """A TCP relay that records every byte between a client and the broker."""
+
+    def __init__(self, target_port: int):
+        super().__init__(daemon=True)
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.target = target_port
+        self.seen = bytearray()
+
+    def run(self):
+        conn, _ = self.server.accept()
+        up = socket.create_connection(("127.0.0.1", self.target))
+
+        def pump(a, b):
+            try:
+                while data := a.recv(65536):
+                    self.seen += data
+                    b.sendall(data)
+            except OSError:
+                pass
+        threading.Thread(target=pump, args=(up, conn), daemon=True).start()
+        pump(conn, up)
+
+
+def test_only_admitted_keys_can_submit_serve_or_listen_and_the_wire_is_encrypted(make_station, keys, tmp_path):
+    st = make_station(extra=_security_section(keys))
+    st.broker()
+    st.worker()
+    st.workers_ready(1)
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    intruder = tmp_path / "intruder"
+    generate_keypair(intruder, "mallory")  # a valid key pair the broker was never told about
+    bad_cfg = {"security": dict(st.config["security"], secret_key=str(intruder / "mallory.key_secret"))}
+
+    ctx = zmq.Context()
+    spy = secure_client_socket(ctx.socket(zmq.SUB), bad_cfg)  # an unknown key reading the feed
+    spy.setsockopt(zmq.SUBSCRIBE, b"")
+    spy.connect(f"tcp://127.0.0.1:{st.config['broker']['feed_port']}")
+    try:
+        job = new_message("noop.job", n=1)
+        verdict = new_message("match.verified", fragment="A", other="B", verdict="confirmed", by="mallory")
+        for label, sec in (("unknown key", bad_cfg), ("no CURVE at all", {})):
+            with BrokerClient(endpoint, timeout_s=0.7, retries=2, security=sec) as c:
+                for ev in (new_message("noop.job", n=2), verdict):
+                    with pytest.raises(BrokerUnavailable):
+                        c.submit(ev)
+        intruder_worker = st.spawn("worker", "noop", "--set", f'security.secret_key="{intruder / "mallory.key_secret"}"')
+        tap = _Tap(st.config["broker"]["port"])
+        tap.start()
+        with BrokerClient(f"tcp://127.0.0.1:{tap.port}", timeout_s=2, retries=2, security=st.config) as c:
+            c.submit(job)  # the admitted key, through the tap
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: any(e["type"] == "noop.done" for _, e in ev), 20, "the admitted job")
+        time.sleep(1.0)
+        status = st.status()
+        assert spy.poll(200) == 0, "an unknown key receives nothing from the feed"
+    finally:
+        ctx.destroy(linger=0)
+    types = [e["type"] for _, e in events]
+    assert "match.verified" not in types and types.count("noop.job") == 1, f"only the admitted job got in: {types}"
+    assert [e["job"] for _, e in events if e["type"] == "noop.done"] == [job["uid"]]
+    workers = [w for ws in status["workers"].values() for w in ws]
+    assert len(workers) == 1 and workers[0]["pid"] != intruder_worker.pid, "the unknown worker was not admitted"
+    assert intruder_worker.poll() is None, "it keeps knocking, harmlessly"
+    assert len(tap.seen) > 200 and job["uid"].encode() not in tap.seen and b"noop.job" not in tap.seen, \
+        "the event crossed the wire encrypted"
