@@ -310,7 +310,7 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
     H, W = scans[0].shape[:2]
     idx = np.flatnonzero(masks[0].ravel())
     ys, xs = np.divmod(idx, W)
-    pts = np.stack([xs, ys, np.ones_like(xs)]).astype(np.float64)
+    xs, ys = xs.astype(np.float32), ys.astype(np.float32)
     K = len(scans)
     pix = np.empty((K, len(idx), 3), np.float32)
     valid = np.ones((K, len(idx)), bool)
@@ -321,7 +321,8 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
         if i == 0:
             pix[0] = s.reshape(-1, s.shape[2])[idx, :3] * scale
             continue
-        q = (r.affine @ pts).astype(np.float32)
+        m = r.affine.astype(np.float32)
+        q = np.stack([m[0, 0] * xs + m[0, 1] * ys + m[0, 2], m[1, 0] * xs + m[1, 1] * ys + m[1, 2]])
         pix[i] = _sample_rgb(np.ascontiguousarray(s[..., :3]), q) * scale
         valid[i] = (q[0] >= 0) & (q[1] >= 0) & (q[0] <= s.shape[1] - 1) & (q[1] <= s.shape[0] - 1)
     if progress:
