@@ -90,9 +90,9 @@ def fragment_contour(mask, pixel_mm, *, step_mm=0.25, smooth_mm=0.5, normal_smoo
         raise ValueError(f"pixel_mm must be a positive number, got {pixel_mm}")
     if not step_mm > 0:
         raise ValueError(f"step_mm must be positive, got {step_mm}")
-    # a Gaussian of one pixel anti-aliases the pixel staircase of a binary mask (a disc's flat
-    # bottom run of sqrt(r) pixels would otherwise read as zero curvature); it moves the 0.5
-    # iso-line of a curve of radius R by only ~1/(2R) pixel
+    # a one-pixel Gaussian softens the pixel staircase of a binary mask (it cannot restore a
+    # sagitta below one pixel: that needs an area-averaged mask); it moves the 0.5 iso-line of
+    # a curve of radius R pixels by only ~1/(2R) pixel
     f = ndi.gaussian_filter(m.astype(np.float32), 1.0)
     # keep only the largest region so holes or crumbs don't give the outline
     lab, n = ndi.label(f > 0.5)
