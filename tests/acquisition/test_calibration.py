@@ -76,3 +76,14 @@ def test_newest_valid_calibration_is_used_and_broken_ones_skipped(sim_calibratio
     store.path(new.path).write_bytes(b"not hdf5")                # the newest is broken: fall back
     got, ref = newest_calibration(store, "sim")
     assert ref.path == old.path
+
+
+def test_tessera_calibrate_stores_and_shows_the_simulated_scanners_model(tmp_path, capsys):
+    from services.cli import main
+    root = f'storage.root="{tmp_path}"'
+    assert main(["calibrate", "--set", root, "--azimuths", "0,90,180,270", "--tilts", "0,10,20"]) == 0
+    out = capsys.readouterr().out
+    assert "leave-one-out RMS error" in out and "stored calibration/sim/" in out
+    assert main(["calibrate", "--set", root, "--show"]) == 0
+    shown = capsys.readouterr().out
+    assert '"scanner": "sim"' in shown and '"a"' in shown

@@ -60,3 +60,28 @@ def test_unrecognised_sane_text_still_gives_a_message():
 
 def test_simulator_satisfies_the_scanner_interface():
     assert isinstance(SimulatedFlatbed(), Scanner)
+
+
+def test_usb_listing_keeps_imaging_devices_only(monkeypatch):
+    usb_core = pytest.importorskip("usb.core")
+
+    class Intf:
+        def __init__(self, cls):
+            self.bInterfaceClass = cls
+
+    class Dev:
+        def __init__(self, vendor, product_id, cls, product):
+            self.idVendor, self.idProduct, self.bDeviceClass = vendor, product_id, 0
+            self.bus, self.address, self.product = 1, product_id, product
+            self._cls = cls
+
+        def __iter__(self):
+            return iter([[Intf(self._cls)]])
+
+    devices = [Dev(0x04B8, 0x013A, 0xFF, "Perfection V600"),   # Epson, vendor-specific: a scanner
+               Dev(0x046D, 0xC077, 3, "USB mouse"),             # HID: not a scanner
+               Dev(0x1234, 0x0001, 6, "Still imaging device")]  # imaging class
+    monkeypatch.setattr(usb_core, "find", lambda find_all=True: devices)
+    from common.acquisition.scanners import list_usb_scanners
+    found = list_usb_scanners()
+    assert [d["product"] for d in found] == ["Perfection V600", "Still imaging device"]
