@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from common.features import (DESCRIPTORS, correspondence, extract_features,  # noqa: E402
+from common.features import (correspondence, extract_features,  # noqa: E402
                              fragment_descriptors, patch_descriptors)
 
 
