@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from common.features.registry import fragment_descriptors
 from common.matching.alignment import Alignment, align_fragments
@@ -55,6 +56,7 @@ class MatchIndex:
         self._order: list[str] = []
         self._dirty = True
         self._tree = None
+        self._tree_n = 0
         self._tree_weights = None
         self.contours: dict[str, np.ndarray] = {}
 
@@ -80,18 +82,19 @@ class MatchIndex:
         self._order.append(cues.fragment)
         self.cues[cues.fragment] = cues
         if not self._dirty:
-            self._append(cues)
-        self._tree = None
+            self._append(cues)   # the KD-tree stays; the new fragment is in its tail
 
     def remove(self, fragment: str) -> None:
         """Forget a fragment (full rebuild on next use)."""
         if fragment not in self.cues:
             return
         last = self._order[-1] == fragment
+        in_tail = last and len(self._order) - 1 >= self._tree_n
         self._order.remove(fragment)
         del self.cues[fragment]
         self.contours.pop(fragment, None)
-        self._tree = None
+        if not in_tail:
+            self._tree = None
         if last and not self._dirty:  # undo the last append without a rebuild
             self._n -= 1
             self._offsets_list.pop()
@@ -163,24 +166,47 @@ class MatchIndex:
         return np.where(np.isfinite(values), values, med) * w
 
     def candidates(self, cues: FragmentCues, model: MatchModel, n_candidates: int = 100) -> list[str]:
-        """Stage 1: the ``n_candidates`` fragments nearest in the weighted per-fragment space."""
+        """Stage 1: the ``n_candidates`` fragments nearest in the weighted per-fragment space.
+
+        The KD-tree covers the fragments present when it was built; fragments appended since (the
+        *tail*) are compared directly, and the tree is rebuilt once the tail exceeds 5 % of the
+        index, so a stream of new fragments costs O(log n) each, amortised.
+        """
         self._ensure()
         others = [f for f in self._order if f != cues.fragment]
         if len(others) <= n_candidates:
             return others
-        if self._tree is None or self._tree_weights != model.version:
+        n = len(self._order)
+        if (self._tree is None or self._tree_weights != model.version
+                or n - self._tree_n > max(32, n // 20)):
             w, med = self._prune_space(model)
             self._tree = cKDTree(self._point(self._values, w, med))
             self._tree_med, self._tree_w = med, w
             self._tree_weights = model.version
-        k = min(n_candidates + 1, len(self._order))
-        _, idx = self._tree.query(self._point(cues.values, self._tree_w, self._tree_med), k=k, p=1)
-        out = [self._order[i] for i in np.atleast_1d(idx) if i < len(self._order)]
+            self._tree_n = n
+        q = self._point(cues.values, self._tree_w, self._tree_med)
+        k = min(n_candidates + 1, self._tree_n)
+        d, idx = self._tree.query(q, k=k, p=1)
+        d, idx = np.atleast_1d(d), np.atleast_1d(idx)
+        if n > self._tree_n:
+            tail = np.arange(self._tree_n, n)
+            dt = np.abs(self._point(self._values[tail], self._tree_w, self._tree_med) - q).sum(axis=1)
+            d, idx = np.concatenate([d, dt]), np.concatenate([idx, tail])
+        order = idx[np.argsort(d, kind="stable")]
+        out = [self._order[i] for i in order if i < n]
         return [f for f in out if f != cues.fragment][:n_candidates]
 
     def score(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
-              chunk_rows: int = 400_000) -> list[Candidate]:
-        """Stage 2: probability of each (query, other) pair from all their patch pairs, best first."""
+              chunk_rows: int = 400_000, evidence_for: int | None = None) -> list[Candidate]:
+        """Stage 2: probability of each (query, other) pair from all their patch pairs, best first.
+
+        ``evidence_for``: attach the evidence rows to the best this many only (None: all).
+        """
+        # many small matrix products: BLAS threads only add overhead (and fight the other workers)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._score(cues, others, model, chunk_rows, evidence_for)
+
+    def _score(self, cues, others, model, chunk_rows, evidence_for):
         self._ensure()
         if len(cues) == 0 or not others:
             return []
@@ -200,9 +226,9 @@ class MatchIndex:
             rb = rows_b[c0:c0 + per_chunk]
             x = self._rows(cues, rb, owner[c0:c0 + per_chunk], fcol, nf, npd, pd)
             probs[:, c0:c0 + len(rb)] = model.probability(x).reshape(n_a, len(rb))
-        out = []
         m = model.top_m
         seg = np.concatenate([[0], np.cumsum(stops - starts)])
+        found = []
         for k, o in enumerate(idx):
             block = probs[:, seg[k]:seg[k + 1]]
             if block.size == 0:
@@ -210,32 +236,39 @@ class MatchIndex:
             flat = block.ravel()
             top = np.argpartition(-flat, min(m, flat.size) - 1)[:m] if flat.size > m else np.arange(flat.size)
             top = top[np.argsort(-flat[top])]
-            ia, ib = np.unravel_index(top, block.shape)
-            ev = self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
-            out.append(Candidate(cues.fragment, self._order[o], float(flat[top].mean()), int(ia[0]), int(ib[0]),
+            found.append((float(flat[top].mean()), k, o, np.unravel_index(top, block.shape)))
+        found.sort(key=lambda t: -t[0])
+        out = []
+        for rank, (p, k, o, (ia, ib)) in enumerate(found):
+            # evidence rows (what a verdict will teach) only for the candidates that are kept
+            ev = (self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
+                  if evidence_for is None or rank < evidence_for else None)
+            out.append(Candidate(cues.fragment, self._order[o], p, int(ia[0]), int(ib[0]),
                                  np.column_stack([ia, ib]), ev))
-        out.sort(key=lambda c: -c.probability)
         return out
 
     def _rows(self, cues, rows_b, owner, fcol, nf, npd, pd, ia=None):
         """Correspondence rows: every query patch × ``rows_b`` (or the pairs ``ia`` × ``rows_b``)."""
-        if ia is None:
-            ia = np.repeat(np.arange(len(cues)), len(rows_b))
-            rb = np.tile(rows_b, len(cues))
-            ob = np.tile(owner, len(cues))
-        else:
-            rb, ob = rows_b, owner
-        x = np.empty((len(ia), nf + npd + len(self._strips)))
-        x[:, :nf] = fcol[ob]
-        x[:, nf:nf + npd] = _columnwise(pd, cues.patches[ia], self._patches[rb])
+        if ia is not None:
+            x = np.empty((len(ia), nf + npd + len(self._strips)))
+            x[:, :nf] = fcol[owner]
+            x[:, nf:nf + npd] = _columnwise(pd, cues.patches[ia], self._patches[rows_b])
+            for m, s in enumerate(self._strips):
+                x[:, nf + npd + m] = strip_gap(cues.strips[m][ia], s[rows_b])
+            return x
+        # all pairs: broadcast instead of gathering repeated copies
+        na, nb = len(cues), len(rows_b)
+        x = np.empty((na, nb, nf + npd + len(self._strips)))
+        x[:, :, :nf] = fcol[owner][None, :, :]
+        x[:, :, nf:nf + npd] = _columnwise(pd, cues.patches[:, None, :], self._patches[rows_b][None, :, :])
         for m, s in enumerate(self._strips):
-            x[:, nf + npd + m] = strip_gap(cues.strips[m][ia], s[rb])
-        return x
+            x[:, :, nf + npd + m] = _strip_gap_all(cues.strips[m], s[rows_b])
+        return x.reshape(na * nb, -1)
 
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
                 check: int = 3, contour_mm: np.ndarray | None = None) -> list[Candidate]:
         """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned."""
-        ranked = self.score(cues, self.candidates(cues, model, n_candidates), model)[:top]
+        ranked = self.score(cues, self.candidates(cues, model, n_candidates), model, evidence_for=top)[:top]
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
         if contour_a is not None:
             for c in ranked[:check]:
@@ -246,3 +279,19 @@ class MatchIndex:
                 c.alignment = align_fragments(contour_a, contour_b,
                                               anchors=(cues.arc_mm[c.top_pairs[:, 0]], other.arc_mm[c.top_pairs[:, 1]]))
         return ranked
+
+
+def _strip_gap_all(strips_a: np.ndarray, strips_b: np.ndarray) -> np.ndarray:
+    """:func:`~common.matching.pairs.strip_gap` of every A strip with every B strip, (Na, Nb).
+
+    The Procrustes sums are matrix products (as in
+    :func:`~common.matching.alignment.procrustes_all_pairs`), so no pair is materialised.
+    """
+    b = strips_b[:, ::-1, :]
+    ax, ay, bx, by = strips_a[:, :, 0], strips_a[:, :, 1], b[:, :, 0], b[:, :, 1]
+    c = ax @ bx.T + ay @ by.T
+    sn = ay @ bx.T - ax @ by.T
+    na = (strips_a ** 2).sum(axis=(1, 2))
+    nb = (b ** 2).sum(axis=(1, 2))
+    res = na[:, None] + nb[None, :] - 2.0 * np.hypot(c, sn)
+    return np.sqrt(np.maximum(res, 0.0) / strips_a.shape[1])

@@ -83,8 +83,10 @@ class MatchModel:
         x = np.asarray(x, dtype=float)
         if x.ndim != 2 or x.shape[1] != len(self.columns):
             raise ValueError(f"x must be (K, {len(self.columns)}), got {x.shape}")
+        # folded: w·(x − μ)/s + b = x·(w/s) + (b − μ·w/s); missing values take the imputed value
+        w = self.coef / self.scale
         x = np.where(np.isnan(x), self.impute, x)
-        return ((x - self.mean) / self.scale) @ self.coef + self.intercept
+        return x @ w + (self.intercept - self.mean @ w)
 
     def probability(self, x: np.ndarray) -> np.ndarray:
         """Match probability of (K, D) correspondence rows."""

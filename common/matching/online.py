@@ -131,7 +131,7 @@ def rerank(index, model: MatchModel, pairs: list[tuple[str, str]]) -> dict:
             by_a.setdefault(a, []).append(b)
     out = {}
     for a, others in by_a.items():
-        for c in index.score(index.cues[a], others, model):
+        for c in index.score(index.cues[a], others, model, evidence_for=0):
             out[(a, c.other)] = c
     return out
 

@@ -39,9 +39,14 @@ def test_pruning_keeps_the_fragments_nearest_in_the_weighted_fragment_cues(small
     wall, tables, cues, poses = small_wall
     model = _model(small_wall)
     index = MatchIndex()
-    for f in cues:
+    ids = list(cues)
+    for f in ids[:25]:
         index.add(cues[f])
-    q = cues[next(iter(cues))]
+    q = cues[ids[0]]
+    index.candidates(q, model, n_candidates=5)   # builds the KD-tree over 25 fragments
+    for f in ids[25:]:                            # these go to the tree's tail
+        index.add(cues[f])
+    assert index._tree is not None and index._tree_n == 25
     cand = index.candidates(q, model, n_candidates=5)
     assert len(cand) == 5 and q.fragment not in cand
     # brute force: the fragment-level part of the model's logit, largest first
