@@ -8,8 +8,8 @@ poses; adjacency with shared crack length; contour correspondences), :func:`save
 from common.synth.wall import Fragment, Wall, generate_wall, pose_apply
 from common.synth.groundtruth import label_patch_pairs, load_groundtruth, save_groundtruth
 
-__all__ = ["Fragment", "Wall", "generate_wall", "pose_apply", "save_groundtruth", "load_groundtruth", "label_patch_pairs",
-           "import_dafne"]
+__all__ = ["Fragment", "Wall", "generate_wall", "pose_apply", "save_groundtruth", "load_groundtruth",
+           "label_patch_pairs", "import_dafne"]
 
 
 def __getattr__(name):

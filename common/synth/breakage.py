@@ -9,12 +9,11 @@ same function, each jag of one edge is the negative of its neighbour's.
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass, field
 
-import heapq
-
-import numpy as np
 import cv2
+import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.rgbn.image import RGBNImage
-from common.synth.wall import Fragment, Wall, pose_apply
+from common.synth.wall import Fragment, Wall
 
 _BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi  # see common.synth.wall
 

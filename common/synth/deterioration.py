@@ -67,7 +67,8 @@ def erode_edges(mask: np.ndarray, pixel_mm: float, rng: np.random.Generator, *, 
     if len(edge) and chips > 0:
         n = rng.poisson(chips * len(edge) * pixel_mm / 10.0)
         for r, c in edge[rng.integers(0, len(edge), n)]:
-            axes = (max(1, int(round(rng.uniform(0.4, 1.8) / pixel_mm))), max(1, int(round(rng.uniform(0.2, 0.9) / pixel_mm))))
+            axes = (max(1, int(round(rng.uniform(0.4, 1.8) / pixel_mm))),
+                    max(1, int(round(rng.uniform(0.2, 0.9) / pixel_mm))))
             cv2.ellipse(out.view(np.uint8), (int(c), int(r)), axes, float(rng.uniform(0, 180)), 0, 360, 0, -1)
     return largest_component(out)
 

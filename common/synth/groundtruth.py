@@ -65,7 +65,8 @@ def write_groundtruth(f: h5py.Group, wall: Wall, *, preview: bool = True) -> Non
     if preview and wall.preview:
         p = f.create_group("preview")
         p.attrs["grid_mm"] = float(wall.preview.get("grid_mm", 1.0))
-        p.create_dataset("albedo", data=np.clip(np.asarray(wall.preview["albedo"]) * 255 + 0.5, 0, 255).astype(np.uint8),
+        albedo8 = np.clip(np.asarray(wall.preview["albedo"]) * 255 + 0.5, 0, 255).astype(np.uint8)
+        p.create_dataset("albedo", data=albedo8,
                          compression="gzip", compression_opts=4)
         if "labels" in wall.preview:
             p.create_dataset("labels", data=np.asarray(wall.preview["labels"], np.int32), compression="gzip",

@@ -204,7 +204,8 @@ class WallRelief:
         h += self.grain.grid(G, shape)
         return h
 
-    def thickness_grid(self, G: np.ndarray, shape: tuple[int, int], *, back_rough: np.ndarray | None = None) -> np.ndarray:
+    def thickness_grid(self, G: np.ndarray, shape: tuple[int, int], *,
+                       back_rough: np.ndarray | None = None) -> np.ndarray:
         """:meth:`thickness` on an affine pixel grid (``back_rough``: that field on the grid, if at hand)."""
         if back_rough is None:
             back_rough = self.back_rough.grid(G, shape)

@@ -162,7 +162,8 @@ class _Plan:
 def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image, median_size_mm, sigma,
           jag_mm, aspect=1.5, image_width_mm=None) -> _Plan:
     if image is not None:
-        width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * image.shape[1] / image.shape[0])
+        aspect = image.shape[1] / image.shape[0]
+        width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * aspect)
         painting = painting_from_image(image, width)
         W, H = painting.size_mm
     else:

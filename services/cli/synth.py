@@ -44,7 +44,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scan-dpi", type=float, help="scan resolution with --as scans (default: --dpi)")
     p.add_argument("--colour-only", action="store_true", help="with --as scans: one scan per face")
     p.add_argument("--workers", type=int, default=1, help="render fragments in this many processes (same data)")
-    p.add_argument("--pictures", metavar="DIR", help="also write wall.png, cracks.png, fragments.png, reassembly.png here")
+    p.add_argument("--pictures", metavar="DIR",
+                   help="also write wall.png, cracks.png, fragments.png, reassembly.png here")
     p.set_defaults(func=run)
 
 
@@ -126,7 +127,8 @@ def run(args) -> int:
         figures.save_png(out / "wall.png", figures.wall_picture(wall))
         figures.save_png(out / "cracks.png", figures.crack_picture(wall))
         figures.save_png(out / "fragments.png", figures.fragment_sheet(keep[:6], tile=130, columns=2))
-        figures.save_png(out / "reassembly.png", figures.reassembly_picture(wall, keep, mm_per_px=max(0.5, wall.width_mm / 1200)))
+        figures.save_png(out / "reassembly.png",
+                         figures.reassembly_picture(wall, keep, mm_per_px=max(0.5, wall.width_mm / 1200)))
         print(f"pictures in {out}")
     areas = np.array([f.area_mm2 for f in wall.fragments])
     sizes = np.sqrt(areas) / 10.0

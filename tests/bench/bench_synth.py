@@ -78,7 +78,8 @@ def main() -> int:
     print("  size sqrt(area) cm: min {:.1f}  p5 {:.1f}  p25 {:.1f}  median {:.1f}  p75 {:.1f}  p95 {:.1f}  max {:.1f}"
           .format(*q))
     logs = np.log(sizes_cm)
-    print(f"  log-size mean {logs.mean():.2f} sd {logs.std():.2f} (log-normal fit: median {np.exp(logs.mean()):.1f} cm)")
+    print(f"  log-size mean {logs.mean():.2f} sd {logs.std():.2f} "
+          f"(log-normal fit: median {np.exp(logs.mean()):.1f} cm)")
     hist, edges = np.histogram(sizes_cm, bins=[0, 1, 2, 3, 4, 6, 8, 12, 20, 100])
     print("  histogram (cm): " + ", ".join(f"{a:g}-{b:g}: {h}" for a, b, h in zip(edges[:-1], edges[1:], hist)))
     deg = {}
