@@ -22,6 +22,19 @@ def output_path(fragment: str, face: str, rgbn_sha256: str) -> str:
     return f"fragments/{fragment}/features/{face}-{content_key(rgbn_sha256, SERVICE, VERSION)}.h5"
 
 
+def work_pixel_mm(config) -> float:
+    """``[services.features] work_pixel_mm`` (default 0.1 mm), checked."""
+    value = (config or {}).get("work_pixel_mm", 0.1)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not 0.01 <= value <= 1.0:
+        raise ValueError(f"services.features.work_pixel_mm must be a number of mm in [0.01, 1], "
+                         f"got {(config or {}).get('work_pixel_mm')!r}")
+    return value
+
+
 def handle(job: dict, ctx) -> list[dict]:
     """Describe the RGBN face named by an ``rgbn.ready`` job; return ``[features.ready]``."""
     if job.get("type") != "rgbn.ready":
@@ -31,7 +44,7 @@ def handle(job: dict, ctx) -> list[dict]:
     relpath = output_path(fragment, face, ref.sha256)
     if not ctx.store.exists(relpath):
         image = load_rgbn(ctx.store, ref)
-        work_mm = float((ctx.config or {}).get("work_pixel_mm", 0.1))
+        work_mm = work_pixel_mm(ctx.config)
         table = extract_features(image, face=face, fragment=fragment, work_pixel_mm=work_mm,
                                  progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
         ctx.log.info("fragment %s %s: %d patches, missing %s", fragment, face, table.n_patches,

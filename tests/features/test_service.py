@@ -70,6 +70,15 @@ def test_wrong_job_type_and_corrupt_input_are_refused(store_with_rgbn):
         stage.handle(new_message("rgbn.ready", fragment="F7", face="front", artifact=bad), _Ctx(store))
 
 
+def test_bad_work_pixel_setting_is_named(store_with_rgbn):
+    store, ref = store_with_rgbn
+    ctx = _Ctx(store)
+    ctx.config = {"work_pixel_mm": "fine"}
+    with pytest.raises(ValueError, match="services.features.work_pixel_mm"):
+        stage.handle(new_message("rgbn.ready", fragment="F7", face="front", artifact=ref), ctx)
+    assert stage.work_pixel_mm({}) == 0.1 and stage.work_pixel_mm({"work_pixel_mm": 0.2}) == 0.2
+
+
 def test_cli_describes_a_store_fragment_and_writes_debug_pictures(store_with_rgbn, tmp_path, capsys):
     store, _ = store_with_rgbn
     dbg = tmp_path / "dbg"
