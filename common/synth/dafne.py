@@ -24,7 +24,8 @@ from scipy.spatial import cKDTree
 from common.rgbn.image import RGBNImage
 from common.synth.wall import Fragment, Wall
 
-_BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi  # see common.synth.wall
+# a boundary at a random angle has max(|cos|, |sin|) contour pixels per pixel of length: mean 2 sqrt(2) / pi
+_BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi
 
 
 def _srgb_to_linear(img: np.ndarray) -> np.ndarray:

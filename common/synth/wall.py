@@ -38,8 +38,6 @@ log = logging.getLogger(__name__)
 
 # mean piece area / median size^2 of the recursive model (measured), used to size the wall
 _AREA_FACTOR = 1.2
-# a 4-connected inner boundary has max(|cos|, |sin|) pixels per pixel_mm of edge; mean 2*sqrt(2)/pi
-_BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi
 
 
 @dataclass
@@ -216,15 +214,20 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
         idx = np.concatenate(hits_idx).astype(np.int64)
         lab = np.concatenate(hits_lab).astype(np.int64)
         if idx.size:
+            faces = np.bincount(lab)  # pixel faces shared with each other piece
             keys = np.unique(lab * (H * W) + idx)  # (other piece, pixel) pairs, each once
             others, pix_all = keys // (H * W), keys % (H * W)
             for m in np.unique(others):
                 pix = pix_all[others == m]
+                # a digital curve with n_pix boundary pixels and n_faces boundary faces made
+                # n_pix steps along its major axis and n_faces - n_pix across: exact for straight
+                # cracks, within ~8 % for any mixture of directions
+                length = pm * np.hypot(pix.size, faces[m] - pix.size)
                 pts = np.column_stack([pix % W, pix // W, np.ones(pix.size)]) @ G.T  # wall mm
                 # about one sample per mm of crack
                 cell = np.floor(pts).astype(np.int64)
                 _, keep = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_index=True)
-                cracks[int(m)] = (pix.size * pm / _BOUNDARY_PX_PER_LENGTH, pts[np.sort(keep)])
+                cracks[int(m)] = (float(length), pts[np.sort(keep)])
 
     albedo = plan.painting.sample_grid(G, shape)
     height = plan.relief.height_grid(G, shape)

@@ -192,3 +192,18 @@ def test_colour_continues_across_true_joins_but_not_between_strangers(wall):
         rand_d.append(np.abs(edge_colour(fa, pa) - edge_colour(fb, pb)).sum(axis=1))
     assert len(true_d) >= 5
     assert np.median(np.concatenate(true_d)) < 0.5 * np.median(np.concatenate(rand_d))
+
+
+def test_shared_length_of_a_straight_crack_is_its_chord():
+    # no jaggedness and no erosion: two pieces split by one straight crack across the wall
+    w = generate_wall(2, seed=3, dpi=50, missing_fraction=0, spurious_fraction=0, jag_mm=0.0, erosion_mm=0.0)
+    (a, b, length), = w.adjacency
+    lab, g = w.preview["labels"], w.preview["grid_mm"]
+    h_edge = (lab[:, 1:] != lab[:, :-1]) & (lab[:, 1:] >= 0) & (lab[:, :-1] >= 0)
+    v_edge = (lab[1:] != lab[:-1]) & (lab[1:] >= 0) & (lab[:-1] >= 0)
+    (r1, c1), (r2, c2) = np.nonzero(h_edge), np.nonzero(v_edge)
+    pts = np.vstack([np.column_stack([c1 + 0.5, r1]), np.column_stack([c2, r2 + 0.5])]) * g
+    d = np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]  # the crack's direction
+    s = (pts - pts.mean(0)) @ d
+    chord = s.max() - s.min() + g
+    assert length == pytest.approx(chord, rel=0.05)  # the chord is read off a 1 mm map
