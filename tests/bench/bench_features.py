@@ -148,6 +148,15 @@ def make_pictures(out_dir: Path) -> None:
     table = extract_features(frag.rgbn)
     for p in save_debug_pictures(frag.rgbn, table, out_dir, prefix="synth-"):
         print(f"wrote {p} (fragment {frag.id})")
+    # the erosion map of the test fragment with a crack and pits (the synthetic wall has few)
+    from tests.features._fragments import textured_fragment
+    img = textured_fragment(dpi=300.0, size_mm=60.0, canvas=1.1, seed=0)
+    paths = save_debug_pictures(img, extract_features(img), out_dir, prefix="generated-")
+    for p in paths:
+        if p.name != "generated-erosion.png":
+            p.unlink()
+        else:
+            print(f"wrote {p} (tests/features/_fragments.py textured_fragment, seed 0, 300 dpi)")
 
 
 def main(argv=None) -> int:
