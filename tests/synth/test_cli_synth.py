@@ -47,3 +47,25 @@ def test_synth_as_scans_goes_through_the_simulated_flatbed(tmp_path):
 def test_synth_refuses_a_bad_fragment_count(tmp_path, capsys):
     assert main(["synth", "--fragments", "0", "--store", str(tmp_path)]) == 2
     assert "--fragments" in capsys.readouterr().err
+
+
+def test_synth_paints_a_user_picture(tmp_path):
+    import cv2
+    pic = np.zeros((40, 80, 3), np.uint8)
+    pic[:, :, 1] = 180  # a green wall (BGR order on disk)
+    cv2.imwrite(str(tmp_path / "wall.png"), pic)
+    store = tmp_path / "s"
+    assert main(["synth", "--fragments", "3", "--seed", "1", "--store", str(store), "--dpi", "30", "--image",
+                 str(tmp_path / "wall.png"), "--image-width-mm", "160", "--spurious", "0"]) == 0
+    rgbn = [f for f in _artifacts(store) if "/rgbn/" in f]
+    assert len(rgbn) == 3
+    for path in rgbn:
+        img = load_rgbn(Store(store), path)
+        mean = img.albedo[img.mask].mean(axis=0)
+        # green stays the strongest channel even on a faded or tinted fragment
+        assert mean[1] > 1.2 * max(mean[0], mean[2])
+
+
+def test_synth_refuses_a_missing_picture(tmp_path, capsys):
+    assert main(["synth", "--fragments", "2", "--store", str(tmp_path), "--image", str(tmp_path / "none.png")]) == 2
+    assert "cannot read picture" in capsys.readouterr().err
