@@ -207,3 +207,22 @@ def test_shared_length_of_a_straight_crack_is_its_chord():
     s = (pts - pts.mean(0)) @ d
     chord = s.max() - s.min() + g
     assert length == pytest.approx(chord, rel=0.05)  # the chord is read off a 1 mm map
+
+
+def test_the_simulated_flatbed_sees_the_rgbn_normals_on_the_surface():
+    """FragmentSurface (for the flatbed) and RGBNImage (direct) describe the same face."""
+    from common.acquisition.flatbed_sim import SimulatedFlatbed
+    w = generate_wall(3, seed=1, dpi=80, missing_fraction=0, spurious_fraction=0)
+    f = w.fragments[0]
+    H, W = f.rgbn.shape
+    pm = f.rgbn.pixel_mm
+    sim = SimulatedFlatbed(seed=0)
+    sim.place(f.surface, angle_deg=0.0, centre_mm=(100.0, 150.0))
+    left, top = 100 - W * pm / 2, 150 - H * pm / 2
+    truth = sim.truth((left, top, left + W * pm, top + H * pm), dpi=80)
+    assert truth.shape == (H, W)
+    inner = ndimage.binary_erosion(truth.mask & f.rgbn.mask, iterations=3)
+    assert inner.sum() > 0.5 * f.rgbn.mask.sum()
+    cos = np.sum(truth.normals[inner] * f.rgbn.normals[inner], axis=1)
+    assert np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))) < 0.5
+    assert np.median(np.abs(truth.albedo[inner] - f.rgbn.albedo[inner])) < 0.01
