@@ -12,7 +12,9 @@
 # HDF5 file locking off and refuses to create the root (a missing mount is "storage unreachable").
 #
 # Usage (root; every command takes the same --prefix/--state/--net):
-#   deploy/multihost.sh up      [--prefix tsl] [--state DIR] [--net 77]   create hosts, share, STATE/lab.toml
+#   deploy/multihost.sh up      [--prefix tsl] [--state DIR] [--net 77] [--curve]
+#                               create hosts, share, STATE/lab.toml; --curve: CURVE keys for every host
+#                               (`tessera keys`, STATE/keys) and per-host configs STATE/hosts/<host>/lab.toml
 #   deploy/multihost.sh exec    HOST COMMAND...     run a command on a host (ip netns exec)
 #   deploy/multihost.sh tessera HOST ARGS...        run `tessera ARGS --config STATE/lab.toml` on a host
 #   deploy/multihost.sh cut     HOST                cut the host's cable (link down at the switch)
@@ -30,6 +32,7 @@
 set -euo pipefail
 
 PREFIX=tsl
+CURVE=0
 STATE=/tmp/tessera-multihost
 NET=77
 HOSTS=(broker w1 w2 scanner)
@@ -44,6 +47,7 @@ while [ $# -gt 0 ]; do
     --prefix) PREFIX="$2"; shift 2 ;;
     --state) STATE="$2"; shift 2 ;;
     --net) NET="$2"; shift 2 ;;
+    --curve) CURVE=1; shift ;;
     *) args+=("$1"); shift ;;
   esac
 done
@@ -55,13 +59,15 @@ MOUNT="$STATE/mnt/tessera"     # where every host "mounts" it
 CONFIG="$STATE/lab.toml"
 
 ns() { echo "$PREFIX-$1"; }
+tessera_here() { PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}" "${PYTHON:-python3}" -c \
+  "import sys; from services.cli import main; sys.exit(main())" "$@"; }
 addr() { local i; for i in "${!HOSTS[@]}"; do [ "${HOSTS[$i]}" = "$1" ] && { echo "10.$NET.0.$((i + 1))"; return; }; done
          die "unknown host '$1' (hosts: ${HOSTS[*]})"; }
 need_root() { [ "$(id -u)" = 0 ] || die "needs root (network namespaces)"; ip netns list >/dev/null 2>&1 || die "ip netns unavailable"; }
 
 up() {
   need_root
-  ip netns list | grep -qw "^$SWITCH" && die "already up (prefix $PREFIX); run: $0 down --prefix $PREFIX --state $STATE"
+  [ -e "/run/netns/$SWITCH" ] && die "already up (prefix $PREFIX); run: $0 down --prefix $PREFIX --state $STATE"
   mkdir -p "$SHARE" "$MOUNT"
   mountpoint -q "$MOUNT" || mount --bind "$SHARE" "$MOUNT"
   ip netns add "$SWITCH"
@@ -109,14 +115,32 @@ retries = 3
 spool_dir = "$STATE/hosts/scanner/spool"
 drain_interval_s = 0.5
 EOF
-  echo "up: hosts ${HOSTS[*]} on 10.$NET.0.0/24 (namespaces $PREFIX-*), storage $MOUNT, config $CONFIG"
+  if [ "$CURVE" = 1 ]; then
+    # one key pair per host, all admitted by the broker; each host's config names its own secret key
+    local keys="$STATE/keys"
+    tessera_here keys init "$keys" >/dev/null
+    for h in "${HOSTS[@]}"; do
+      [ "$h" = broker ] || tessera_here keys add "$h" --dir "$keys" >/dev/null
+      { cat "$CONFIG"; echo; echo "[security]"; echo "curve = true"
+        if [ "$h" = broker ]; then
+          echo "broker_secret_key = \"$keys/broker.key_secret\""; echo "authorized_keys = \"$keys/authorized\""
+          # the broker host's own tools (tessera status there) use the broker's pair
+          echo "secret_key = \"$keys/broker.key_secret\""
+          cp "$keys/broker.key" "$keys/authorized/broker.key"
+        else
+          echo "secret_key = \"$keys/hosts/$h.key_secret\""
+        fi
+        echo "broker_public_key = \"$keys/broker.key\""; } > "$STATE/hosts/$h/lab.toml"
+    done
+  fi
+  echo "up: hosts ${HOSTS[*]} on 10.$NET.0.0/24 (namespaces $PREFIX-*), storage $MOUNT, config $CONFIG$([ "$CURVE" = 1 ] && echo ", CURVE keys $STATE/keys")"
 }
 
 down() {
   need_root
   for h in "${HOSTS[@]}" switch; do
     local n; n="$(ns "$h")"
-    if ip netns list | grep -qw "^$n"; then
+    if [ -e "/run/netns/$n" ]; then
       # whatever still runs in the host goes down with it (only processes inside this namespace)
       local pids; pids="$(ip netns pids "$n" 2>/dev/null || true)"
       [ -n "$pids" ] && kill -TERM $pids 2>/dev/null || true
@@ -125,7 +149,7 @@ down() {
   sleep 0.5
   for h in "${HOSTS[@]}" switch; do
     local n; n="$(ns "$h")"
-    if ip netns list | grep -qw "^$n"; then
+    if [ -e "/run/netns/$n" ]; then
       local pids; pids="$(ip netns pids "$n" 2>/dev/null || true)"
       [ -n "$pids" ] && kill -KILL $pids 2>/dev/null || true
       ip netns del "$n"
@@ -138,7 +162,7 @@ down() {
 status() {
   for h in "${HOSTS[@]}"; do
     local n; n="$(ns "$h")"
-    if ip netns list | grep -qw "^$n"; then
+    if [ -e "/run/netns/$n" ]; then
       local link; link="$(ip -n "$SWITCH" -br link show "$PREFIX-$h" 2>/dev/null | awk '{print $2}')"
       local ip4; ip4="$(ip -n "$n" -br -4 addr show eth0 2>/dev/null | awk '{print $3}')"
       printf '%-8s %-16s cable %-6s processes %s\n' "$h" "${ip4:-?}" "${link:-?}" "$(ip netns pids "$n" | wc -l)"
@@ -162,6 +186,7 @@ case "$cmd" in
     addr "${args[0]}" >/dev/null
     h="${args[0]}"
     cd "$STATE/hosts/$h"
+    [ -f "$STATE/hosts/$h/lab.toml" ] && CONFIG="$STATE/hosts/$h/lab.toml"   # per-host config (--curve)
     # own UTS namespace too, so the host name (what `tessera status` lists workers by) is the host's
     exec ip netns exec "$(ns "$h")" unshare --uts -- sh -c 'hostname "$0" && exec "$@"' "$PREFIX-$h" \
       env PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}" \

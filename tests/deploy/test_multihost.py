@@ -1,5 +1,6 @@
 """A lab in network namespaces (deploy/multihost.sh): broker on one host, workers on two others, the
-scanner on a fourth, storage shared as on NFS; fragments flow end to end over the veth network."""
+scanner on a fourth, storage shared as on NFS, CURVE keys per host; fragments flow end to end over
+the veth network, and a program on a lab host without a key is not let in."""
 
 from __future__ import annotations
 
@@ -76,7 +77,7 @@ def lab(tmp_path):
         pytest.skip(f"multi-host test skipped: {why}")
     lab = Lab(tmp_path / "lab")
     lab.state.mkdir()
-    lab.run("up")
+    lab.run("up", "--curve")
     try:
         yield lab
     finally:
@@ -88,7 +89,10 @@ def lab(tmp_path):
                 p.wait(15)
             except subprocess.TimeoutExpired:
                 p.kill()
-        lab.run("down", check=False)
+        lab.run("down")
+        prefix = lab.opts[1] + "-"
+        left = [n for n in os.listdir("/run/netns") if n.startswith(prefix)] if os.path.isdir("/run/netns") else []
+        assert not left, f"multihost.sh down left namespaces behind: {left}"
 
 
 EVENTS_SINCE = """
@@ -107,7 +111,7 @@ print(json.dumps(out))
 
 
 def test_fragments_flow_from_the_bench_through_workers_on_two_hosts(lab):
-    cfg = str(lab.state / "lab.toml")
+    cfg = str(lab.state / "hosts" / "scanner" / "lab.toml")  # the bench's own config, with its key
     share = lab.state / "mnt" / "tessera"
     lab.start("broker", "broker")
     wait_for(lambda: lab.status("w1") is not None, 40, "the broker to answer from host w1", interval=0.5)
@@ -115,6 +119,11 @@ def test_fragments_flow_from_the_bench_through_workers_on_two_hosts(lab):
     probe = lab.python("w1", "import socket; s = socket.socket(); s.settimeout(2); "
                              "print(s.connect_ex(('127.0.0.1', 5555)))")
     assert probe.strip() != "0", "the broker must not be reachable on a worker host's own loopback"
+    keyless = lab.run("exec", "w1", "env", f"PYTHONPATH={REPO}", sys.executable, "-c",
+                      "import sys; from services.cli import main; sys.exit(main())", "status",
+                      "--config", str(lab.state / "lab.toml"), "--set", "client.timeout_s=0.5", check=False)
+    assert keyless.returncode != 0 and "did not answer" in keyless.stderr + keyless.stdout, \
+        "a program on a lab host without a CURVE key gets no answer"
     for service in ("solver", "features"):
         lab.start("w1", "worker", service)
     for service in ("solver", "renderer", "matcher"):
