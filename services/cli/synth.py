@@ -1,6 +1,6 @@
 """``tessera synth``: a synthetic fresco with ground truth, written to the store.
 
-    tessera synth --fragments N --seed S --store DIR [--dpi 300] [--as rgbn|scans]
+    tessera synth --fragments N --seed S [--store DIR | --config station.toml] [--dpi 300] [--as rgbn|scans]
                   [--mode recursive|voronoi] [--style aegean|roman] [--image PICTURE --image-width-mm W]
                   [--missing 0.2] [--spurious 0.05] [--scan-dpi D] [--colour-only] [--workers K]
 
@@ -30,7 +30,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--dafne", metavar="DIR", help="instead of generating, import a DAFNE fragment set (colour only)")
     p.add_argument("--dafne-dpi", type=float, default=50.0, help="nominal dpi of the DAFNE images (default 50)")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed -> same data)")
-    p.add_argument("--store", required=True, help="storage root to write into")
+    p.add_argument("--store", help="storage root to write into (default: the station config's storage root)")
     p.add_argument("--dpi", type=float, default=300.0, help="fragment sampling in dpi (default 300)")
     p.add_argument("--as", dest="output", choices=("rgbn", "scans"), default="rgbn",
                    help="write RGBN images (fast) or simulated flatbed scans (whole station)")
@@ -46,7 +46,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--workers", type=int, default=1, help="render fragments in this many processes (same data)")
     p.add_argument("--pictures", metavar="DIR",
                    help="also write wall.png, cracks.png, fragments.png, reassembly.png here")
+    from common.config import add_config_arguments
+    add_config_arguments(p)
     p.set_defaults(func=run)
+
+
+def _store_root(args) -> str:
+    if args.store:
+        return args.store
+    from common.config import config_from_arguments
+    return str(config_from_arguments(args)["storage"]["root"])
 
 
 def run(args) -> int:
@@ -72,7 +81,7 @@ def run(args) -> int:
             print(f"tessera synth: cannot read picture {args.image}", file=sys.stderr)
             return 2
         image = bgr[..., ::-1]
-    store = Store(args.store)
+    store = Store(_store_root(args))
     written = []
     keep = []  # fragments kept for the pictures
     failed = []  # fragments the simulated bench could not capture
@@ -156,7 +165,7 @@ def _import_dafne(args) -> int:
     except ValueError as exc:
         print(f"tessera synth: {exc}", file=sys.stderr)
         return 2
-    store = Store(args.store)
+    store = Store(_store_root(args))
     for k, frag in enumerate(wall.fragments):
         key = content_key(_digest(frag.rgbn), "dafne")
         save_rgbn(store, f"fragments/{frag.id}/rgbn/front-{key}.h5", frag.rgbn,
