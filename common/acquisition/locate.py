@@ -77,7 +77,7 @@ def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float,
 
 def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray | None = None,
                      min_area_mm2: float = 20.0, max_elongation: float = 6.0, min_solidity: float = 0.5,
-                     k: float = 6.0) -> list[Blob]:
+                     k: float = 6.0, background_mm: float = 100.0, join_mm: float = 6.0) -> list[Blob]:
     """Every object on the glass in a pre-scan, by background subtraction.
 
     Parameters
@@ -87,7 +87,8 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
     dpi : float
         Pre-scan resolution.
     background : (H, W, 3) array or None
-        Pre-scan of the empty bed at the same dpi; None = estimate it (median filter of ~30 mm).
+        Pre-scan of the empty bed at the same dpi; None = estimate it (median filter over
+        ``background_mm``, which must exceed twice the largest fragment).
     min_area_mm2 : float
         Smaller blobs are dust.
     max_elongation : float
@@ -96,6 +97,10 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
         Blobs filling less than this fraction of their convex hull (rings, frames) are rejected.
     k : float
         Threshold in robust standard deviations of the background difference.
+    background_mm : float
+        Window of the estimated background (more than twice the largest fragment).
+    join_mm : float
+        Parts closer than this are one object (dark paint as dark as the lid splits a fragment).
 
     Returns
     -------
@@ -111,10 +116,11 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
             raise ValueError(f"background must have the pre-scan's shape {img.shape}, got {bg.shape}")
         bg = cv2.GaussianBlur(bg, (0, 0), max(0.6, 0.15 / pixel_mm))
     else:
-        # median filter larger than any fragment, on a coarse copy (fast), then back to full size
-        f = max(1, int(round(2.0 / pixel_mm)))   # ~2 mm cells
+        # median filter over ``background_mm``, more than twice a fragment's size (else the median
+        # at the fragment is the fragment), on a coarse copy (fast), then back to full size
+        f = max(1, int(round(background_mm / 25 / pixel_mm)))      # 25 cells across the window
         small = cv2.resize(img, (max(1, img.shape[1] // f), max(1, img.shape[0] // f)), interpolation=cv2.INTER_AREA)
-        ksz = int(round(30.0 / (pixel_mm * f))) | 1
+        ksz = int(round(background_mm / (pixel_mm * f))) | 1
         med = np.dstack([ndimage.median_filter(small[..., c], size=ksz, mode="reflect") for c in range(3)])
         bg = cv2.resize(med, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
     fg = _foreground(img, bg, pixel_mm, k)
@@ -124,10 +130,18 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
     # relief); then open: isolated dust specks vanish
     fg = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 1, 4 * r + 1)))
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, kernel)
-    n, labels, stats, cents = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    labels, n = _group(fg, join_mm / pixel_mm, int(2.0 / pixel_mm ** 2))
     blobs = []
-    for i in range(1, n):
-        x, y, w, h, area = stats[i]
+    areas = np.bincount(labels.ravel(), minlength=n + 1)
+    yy, xx = np.indices(labels.shape)
+    sx = np.bincount(labels.ravel(), weights=xx.ravel(), minlength=n + 1)
+    sy = np.bincount(labels.ravel(), weights=yy.ravel(), minlength=n + 1)
+    for i, sl in enumerate(ndimage.find_objects(labels), start=1):
+        if sl is None:
+            continue
+        y, x = sl[0].start, sl[1].start
+        h, w = sl[0].stop - y, sl[1].stop - x
+        area = int(areas[i])
         area_mm2 = area * pixel_mm ** 2
         if area_mm2 < min_area_mm2:
             continue
@@ -135,13 +149,13 @@ def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray 
             continue      # long thin or sparse: a frame, ruler or the bed edge
         if area > 0.5 * img.shape[0] * img.shape[1]:
             continue
-        comp = (labels[y:y + h, x:x + w] == i).astype(np.uint8)
+        comp = (labels[sl] == i).astype(np.uint8)
         contours, _ = cv2.findContours(comp, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         hull = cv2.contourArea(cv2.convexHull(np.vstack(contours)))
         if area < min_solidity * max(hull, 1.0):
             continue      # a ring or frame around the bed, not a fragment
         blobs.append(Blob((x * pixel_mm, y * pixel_mm, (x + w) * pixel_mm, (y + h) * pixel_mm),
-                          ((cents[i][0] + 0.5) * pixel_mm, (cents[i][1] + 0.5) * pixel_mm), float(area_mm2)))
+                          ((sx[i] / area + 0.5) * pixel_mm, (sy[i] / area + 0.5) * pixel_mm), float(area_mm2)))
     blobs.sort(key=lambda b: -b.area_mm2)
     return blobs
 
@@ -175,6 +189,24 @@ def locate_fragment(prescan: np.ndarray, dpi: float, *, background: np.ndarray |
     return (max(0.0, x0), max(0.0, y0), min(bed_mm[0], x1), min(bed_mm[1], y1))
 
 
+def _group(fg: np.ndarray, join_px: float, min_part_px: int = 0) -> tuple[np.ndarray, int]:
+    """Label foreground pixels so that parts closer than ``join_px`` share a label.
+
+    Parts smaller than ``min_part_px`` (noise speckles in a shadow, dust) are dropped first so
+    they do not join anything.
+    """
+    if min_part_px > 0:
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
+        keep = np.zeros(n, bool)
+        keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_part_px
+        fg = keep[lab]
+    r = max(0, int(round(join_px / 2)))
+    grown = cv2.dilate(fg.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) if r else fg
+    n, labels = cv2.connectedComponents(np.ascontiguousarray(grown, dtype=np.uint8), connectivity=8)
+    labels[fg == 0] = 0
+    return labels, n - 1
+
+
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
     """Fill enclosed holes (flood the background from a padded border; faster than scipy)."""
     m = np.pad(mask.astype(np.uint8), 1)
@@ -184,13 +216,13 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
 
 
 def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, k: float = 6.0,
-                  close_mm: float = 0.0, work_mm: float = 0.2) -> np.ndarray:
+                  close_mm: float = 0.0, work_mm: float = 0.2, join_mm: float = 6.0) -> np.ndarray:
     """Mask of the fragment in a full-dpi scan of its region (the outer ring is background).
 
     The background colour is the median of the outer ring; pixels differing beyond ``k`` robust
     standard deviations are foreground, the lamp's shadow is excluded, gaps up to ``close_mm`` are
     closed (for objects of the bed's own colour, e.g. a coin on grey), holes are filled, and the
-    largest connected object is kept. Computed on a copy reduced to about ``work_mm`` per pixel
+    largest object is kept with the parts within ``join_mm`` of it (gaps between them closed). Computed on a copy reduced to about ``work_mm`` per pixel
     and brought back to full size (the outline to a fraction of that).
     """
     if not dpi > 0:
@@ -218,11 +250,15 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
         fg = _fill_holes(fg).astype(np.uint8)
     r = max(1, int(round(0.3 / pixel_mm)))
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
-    if n <= 1:
+    labels, n = _group(fg, join_mm / pixel_mm, int(2.0 / pixel_mm ** 2))
+    if n < 1:
         return np.zeros((H0, W0), bool)
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    mask = _fill_holes(labels == best)
+    best = 1 + int(np.argmax(np.bincount(labels.ravel(), minlength=n + 1)[1:]))
+    mask = (labels == best).astype(np.uint8)
+    if join_mm > 0:      # bridge the gaps between its parts (e.g. a band of black paint)
+        rj = max(1, int(round(join_mm / 2 / pixel_mm)))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rj + 1,) * 2))
+    mask = _fill_holes(mask)
     if f == 1:
         return mask
     up = cv2.resize(mask.astype(np.float32), (W0, H0), interpolation=cv2.INTER_LINEAR)

@@ -162,7 +162,7 @@ def real_coin(figures=None, nominal_a=None):
     dpi = 100.0                                      # 826 × 1169 px of a letter platen
     crops, areas = [], []
     for raw in raws:
-        x0, y0, x1, y1 = locate_fragment(raw, dpi, margin_mm=6.0)
+        x0, y0, x1, y1 = locate_fragment(raw, dpi, margin_mm=6.0, background_mm=30.0)   # framed bed
         areas.append((x0, y0, x1, y1))
         p = 25.4 / dpi
         crops.append(raw[int(y0 / p):int(np.ceil(y1 / p)), int(x0 / p):int(np.ceil(x1 / p))])
