@@ -77,7 +77,7 @@ def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float,
 
 def locate_fragments(prescan: np.ndarray, dpi: float, *, background: np.ndarray | None = None,
                      min_area_mm2: float = 20.0, max_elongation: float = 6.0, min_solidity: float = 0.5,
-                     k: float = 6.0, background_mm: float = 100.0, join_mm: float = 6.0) -> list[Blob]:
+                     k: float = 6.0, background_mm: float = 100.0, join_mm: float = 10.0) -> list[Blob]:
     """Every object on the glass in a pre-scan, by background subtraction.
 
     Parameters
@@ -216,13 +216,14 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
 
 
 def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, k: float = 6.0,
-                  close_mm: float = 0.0, work_mm: float = 0.2, join_mm: float = 6.0) -> np.ndarray:
+                  close_mm: float = 0.0, work_mm: float = 0.2, join_mm: float = 10.0) -> np.ndarray:
     """Mask of the fragment in a full-dpi scan of its region (the outer ring is background).
 
     The background colour is the median of the outer ring; pixels differing beyond ``k`` robust
     standard deviations are foreground, the lamp's shadow is excluded, gaps up to ``close_mm`` are
     closed (for objects of the bed's own colour, e.g. a coin on grey), holes are filled, and the
-    largest object is kept with the parts within ``join_mm`` of it (gaps between them closed). Computed on a copy reduced to about ``work_mm`` per pixel
+    largest object is kept with the parts within ``join_mm`` of it (gaps up to 6 mm closed; wider
+    ones, e.g. a broad band of paint as dark as the lid, stay out of the mask). Computed on a copy reduced to about ``work_mm`` per pixel
     and brought back to full size (the outline to a fraction of that).
     """
     if not dpi > 0:
@@ -255,8 +256,8 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
         return np.zeros((H0, W0), bool)
     best = 1 + int(np.argmax(np.bincount(labels.ravel(), minlength=n + 1)[1:]))
     mask = (labels == best).astype(np.uint8)
-    if join_mm > 0:      # bridge the gaps between its parts (e.g. a band of black paint)
-        rj = max(1, int(round(join_mm / 2 / pixel_mm)))
+    if join_mm > 0:      # bridge narrow gaps between its parts (e.g. a band of black paint)
+        rj = max(1, int(round(min(join_mm / 2, 3.0) / pixel_mm)))
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rj + 1,) * 2))
     mask = _fill_holes(mask)
     if f == 1:
