@@ -13,6 +13,8 @@ from common.acquisition.scanners import SaneScanner, Scanner, sane_error, sane_t
 @pytest.fixture(scope="module")
 def sane_test_device(tmp_path_factory):
     sane = pytest.importorskip("sane", reason="python-sane not installed")
+    previous = os.environ.get("SANE_CONFIG_DIR")
+    # enable only SANE's test backend, without touching /etc/sane.d (read at sane.init)
     os.environ["SANE_CONFIG_DIR"] = sane_test_config(str(tmp_path_factory.mktemp("sane")))
     try:
         sane.init()
@@ -24,6 +26,10 @@ def sane_test_device(tmp_path_factory):
     dev = SaneScanner("test:0", options={"test_picture": "Color pattern"})
     yield dev
     dev.close()
+    if previous is None:
+        os.environ.pop("SANE_CONFIG_DIR", None)
+    else:
+        os.environ["SANE_CONFIG_DIR"] = previous
 
 
 def test_sane_test_backend_scans_16_bit_colour_of_the_requested_area(sane_test_device):
