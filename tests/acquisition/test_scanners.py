@@ -17,19 +17,21 @@ def sane_test_device(tmp_path_factory):
     # enable only SANE's test backend, without touching /etc/sane.d (read at sane.init)
     os.environ["SANE_CONFIG_DIR"] = sane_test_config(str(tmp_path_factory.mktemp("sane")))
     try:
-        sane.init()
-        names = [d[0] for d in sane.get_devices()]
-    except Exception as exc:   # pragma: no cover - depends on the machine
-        pytest.skip(f"SANE unavailable: {exc}")
-    if "test:0" not in names:
-        pytest.skip("SANE test backend not available (install libsane1/sane-utils)")
-    dev = SaneScanner("test:0", options={"test_picture": "Color pattern"})
-    yield dev
-    dev.close()
-    if previous is None:
-        os.environ.pop("SANE_CONFIG_DIR", None)
-    else:
-        os.environ["SANE_CONFIG_DIR"] = previous
+        try:
+            sane.init()
+            names = [d[0] for d in sane.get_devices()]
+        except Exception as exc:   # pragma: no cover - depends on the machine
+            pytest.skip(f"SANE unavailable: {exc}")
+        if "test:0" not in names:
+            pytest.skip("SANE test backend not available (install libsane1/sane-utils)")
+        dev = SaneScanner("test:0", options={"test_picture": "Color pattern"})
+        yield dev
+        dev.close()
+    finally:
+        if previous is None:
+            os.environ.pop("SANE_CONFIG_DIR", None)
+        else:
+            os.environ["SANE_CONFIG_DIR"] = previous
 
 
 def test_sane_test_backend_scans_16_bit_colour_of_the_requested_area(sane_test_device):
