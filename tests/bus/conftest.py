@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -12,29 +11,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import free_port, wait_for  # noqa: F401  (re-exported to the tests here)
+
 from common.bus.client import BrokerClient
 from common.bus.feed import FeedSubscriber
 from common.config import load_config
 
 REPO = Path(__file__).resolve().parents[2]
 HEARTBEAT_S = 0.2
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.05):
-    """Poll ``predicate`` until truthy (returned) or fail the test after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 class Station:

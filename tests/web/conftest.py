@@ -2,32 +2,15 @@
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 
 import pytest
+
+from tests.conftest import free_port, wait_for  # noqa: F401  (re-exported to the tests here)
 
 from common.config import load_config
 
 TOKEN = "test-token-" + "0123456789abcdef"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.05):
-    """Poll ``predicate`` until truthy (returned) or fail after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def station_overrides(root, **extra) -> dict:
