@@ -46,7 +46,7 @@ OUTPUT_DIRS = {"rgbn": "rgbn.ready", "features": "features.ready", "renders": "r
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--fragments", type=int, default=300)
-    ap.add_argument("--dpi", type=float, default=100.0, help="scan resolution (100: fast; the station default is 300)")
+    ap.add_argument("--dpi", type=int, default=100, help="scan resolution (100: fast; the station default is 300)")
     ap.add_argument("--batch", type=int, default=10, help="fragments per submission batch")
     ap.add_argument("--batch-every", type=float, default=5.0, help="seconds between batches")
     ap.add_argument("--kill-every", type=float, default=20.0)
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
                         p.send_signal(signal.SIGCONT)
                     cut_done = True
                     faults["host cut-offs"] += 1
-                elif time.monotonic() >= next_kill and not submitted_all.is_set():
+                elif time.monotonic() >= next_kill:
                     key = rng.choice(sorted(workers))
                     workers[key].send_signal(signal.SIGKILL)
                     workers[key].wait()
@@ -112,7 +112,6 @@ def main(argv=None) -> int:
                     next_kill = time.monotonic() + args.kill_every
 
     sent = [0]
-    submitted_all = threading.Event()
     chaos_thread = threading.Thread(target=chaos, daemon=True)
     chaos_thread.start()
     ok = True
@@ -129,8 +128,6 @@ def main(argv=None) -> int:
                         time.sleep(1.0)
                 sent[0] = i + len(batch)
                 time.sleep(args.batch_every)
-            submitted_all.set()
-            need = len(events) * (1 + 2 * 3)
             reran = False
             while True:
                 try:
@@ -145,7 +142,9 @@ def main(argv=None) -> int:
                     faults["parked then re-run"] += len(c.rerun("all"))
                     reran = True
                     continue
-                if idle and (s["completed"] >= need or reran) and time.time() - t0 > 5:
+                # every batch is in and nothing is queued or running: jobs live only in the broker's
+                # journal, so idle means done (its "completed" counter restarts with the broker)
+                if idle:
                     time.sleep(3.0)
                     s2 = c.status()
                     if not s2["in_flight"] and not any(s2["queues"].values()):
@@ -206,14 +205,18 @@ def _check(st, events, evs, parked_end, rss, faults, wall_s) -> bool:
     print(f"  proposal store: {len(fronts)} front faces, {n_prop} proposals; missing fronts: {missing_fronts[:5]}")
     print(f"  parked at the end: {len(parked_end)} {[p['error'][:80] for p in parked_end[:3]]}")
     ok &= not missing and not multi and not temps and not missing_fronts and not parked_end
-    print("  resident memory (MB), median first quarter -> last quarter of samples:")
+    print("  resident memory (MB), median of the 2nd fifth of the samples (after start-up) -> last fifth:")
     for name, vals in sorted(rss.items()):
         vals = [v for v in vals if v == v]
-        if len(vals) < 8:
+        if len(vals) < 10:
             continue
-        q = len(vals) // 4
-        a, b = statistics.median(vals[:q]), statistics.median(vals[-q:])
-        bounded = b <= 1.5 * a + 50
+        q = len(vals) // 5
+        a, b = statistics.median(vals[q:2 * q]), statistics.median(vals[-q:])
+        if name == "matcher":  # its index holds every fragment by design: report the growth per fragment
+            print(f"    {name:9s} {a:7.0f} -> {b:7.0f}  peak {max(vals):7.0f}  "
+                  f"({(b - a) / max(1, len(frags)) * 1000:.0f} kB per fragment: the index of all fragments)")
+            continue
+        bounded = b <= 1.25 * a + 30
         ok &= bounded
         print(f"    {name:9s} {a:7.0f} -> {b:7.0f}  peak {max(vals):7.0f}  {'ok' if bounded else 'GROWING'}")
     print("soak: PASS" if ok else "soak: FAIL")
