@@ -71,7 +71,6 @@ def main(argv=None) -> int:
     rss = collections.defaultdict(list)
     faults = collections.Counter()
     stop = threading.Event()
-    submitted = threading.Event()
     lock = threading.Lock()
 
     def chaos():
