@@ -43,8 +43,9 @@ def _host_snippet(d: Path, name: str) -> str:
             f'broker_public_key = "{d / "broker.key"}"\nsecret_key = "{d / "hosts" / (name + ".key_secret")}"')
 
 
-def run(args, out=sys.stdout) -> int:
+def run(args, out=None) -> int:
     from common.bus.security import generate_keypair
+    out = out or sys.stdout  # looked up per call: a default bound at import outlives a replaced stdout
     d = Path(args.dir).resolve()
     try:
         if args.verb == "init":
