@@ -215,6 +215,7 @@ def _demo(config, kids: Children, stages: list[str], n: int) -> int:
         ok &= complete and not failures[f]
         note = "; ".join(failures[f]) or (parked[f]["error"] if f in parked else "")
         print(f"{f:<20}" + "".join(f"{v:>10}" for v in row) + f"  {note}")
+    print("(events per stage: one per face from solver, features and renderer; one per join proposal from the matcher)")
     print(f"\n{len(frags)} of {n} fragments captured; "
           f"{'every stage done' if ok else 'some stages missing or failed'}; storage {Path(config['storage']['root']).resolve()}")
     return 0 if ok and not timed_out else 1
