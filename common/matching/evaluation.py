@@ -113,11 +113,15 @@ def grouped_cross_validation(x: np.ndarray, y: np.ndarray, groups: np.ndarray, c
 def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=None) -> dict:
     """Probability of every (candidate) fragment pair of an index under a model.
 
+    Every fragment's hubness is estimated first, as the matcher service does when it proposes the
+    fragment (:meth:`~common.matching.index.MatchIndex.refresh_hubness`, 100 pruned candidates).
     Returns ``{(a, b): probability}`` with ``a < b``; each unordered pair scored once (from the
     side that is first in the index order) unless ``n_candidates`` prunes, in which case both
     sides' candidate lists are scored and the larger probability kept.
     """
     order = list(index._order)
+    # each fragment's hubness as the matcher service has it: from its own proposal (pruned candidates)
+    index.refresh_hubness(order, model, n_candidates=100 if n_candidates is None else n_candidates)
     out: dict = {}
     for i, f in enumerate(order):
         cues = index.cues[f]

@@ -9,8 +9,17 @@ A KD-tree (scipy ``cKDTree``, Minkowski p = 1) over those points returns a new f
 
 Stage 2 — **rank** the candidates: every patch pair between the new fragment and all candidates is
 scored in one vectorised batch (:func:`common.matching.pairs.pair_rows` semantics); a fragment
-pair's probability is the mean of its ``top_m`` best patch-pair probabilities (a true join has
-several matching patch pairs along the shared break; a single chance coincidence does not make one).
+pair's *patch probability* is the mean of its ``top_m`` best patch-pair probabilities (a true join
+has several matching patch pairs along the shared break; a single chance coincidence does not make
+one). Its ranking **probability** then removes the *hubness* of the two fragments: some fragments
+(plain colour, straight cuts) look like a match to almost everything, so their best patch pairs are
+high against every fragment and crowd true neighbours out of other fragments' lists. Each fragment's
+hubness ``μ_f`` is the mean logit of its patch probability against its pruned candidates (kept
+from its last proposal under the current model), and the pair logit becomes
+``logit(p_ab) − ½(μ_a − μ̄) − ½(μ_b − μ̄)`` (``μ̄`` the median over the index, so the average
+calibration stays), i.e. the mean-centred similarity used against hubs in high-dimensional
+nearest-neighbour retrieval (Radovanović et al., JMLR 11, 2010; "CSLS", Conneau et al., ICLR 2018).
+On the synthetic walls it raises top-5 recall of true neighbours from 0.20 to 0.24 (docs/matching.md).
 
 Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
 (anchored at the best patch pairs), which gives the proposed pose and the gap/contact/overlap.
@@ -30,6 +39,10 @@ from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
 
 
+#: a query's hubness is (re)estimated only from at least this many scored candidates
+HUBNESS_MIN_OTHERS = 20
+
+
 @dataclass
 class Candidate:
     """A scored fragment pair from the index: ``fragment`` (the query) against ``other``."""
@@ -42,6 +55,7 @@ class Candidate:
     top_pairs: np.ndarray   # (m, 2) the top_m patch pairs (query patch, other patch)
     evidence: np.ndarray    # (m, D) their correspondence rows
     alignment: Alignment | None = None
+    patch_probability: float = float("nan")  # mean of the top_m patch-pair probabilities (before hubness)
 
 
 class MatchIndex:
@@ -51,7 +65,9 @@ class MatchIndex:
     lists, so a matcher worker can be killed at any time.
     """
 
-    def __init__(self):
+    def __init__(self, *, use_hubness: bool = True):
+        #: rank by the hubness-corrected probability (False: the patch probability, as before)
+        self.use_hubness = bool(use_hubness)
         self.cues: dict[str, FragmentCues] = {}
         self._order: list[str] = []
         self._dirty = True
@@ -59,6 +75,8 @@ class MatchIndex:
         self._tree_n = 0
         self._tree_weights = None
         self.contours: dict[str, np.ndarray] = {}
+        #: fragment → (model version, hubness μ: mean logit against its candidates)
+        self.hubness: dict[str, tuple[str, float]] = {}
 
     def __len__(self) -> int:
         return len(self._order)
@@ -77,6 +95,7 @@ class MatchIndex:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
+            self.hubness.pop(cues.fragment, None)
             self._dirty = True
             return
         self._order.append(cues.fragment)
@@ -93,6 +112,7 @@ class MatchIndex:
         self._order.remove(fragment)
         del self.cues[fragment]
         self.contours.pop(fragment, None)
+        self.hubness.pop(fragment, None)
         if not in_tail:
             self._tree = None
         if last and not self._dirty:  # undo the last append without a rebuild
@@ -237,15 +257,38 @@ class MatchIndex:
             top = np.argpartition(-flat, min(m, flat.size) - 1)[:m] if flat.size > m else np.arange(flat.size)
             top = top[np.argsort(-flat[top])]
             found.append((float(flat[top].mean()), k, o, np.unravel_index(top, block.shape)))
-        found.sort(key=lambda t: -t[0])
+        # hubness (module docstring): the query's μ from this list when it is long enough to be a
+        # fair sample, the others' from their own last proposal under this model
+        raw = np.array([t[0] for t in found])
+        logit = np.log(np.clip(raw, 1e-12, 1.0)) - np.log(np.clip(1.0 - raw, 1e-12, 1.0))
+        if len(found) >= HUBNESS_MIN_OTHERS:
+            self.hubness[cues.fragment] = (model.version, float(logit.mean()))
+        mu = {f: v for f, (ver, v) in self.hubness.items() if ver == model.version}
+        centre = float(np.median(list(mu.values()))) if mu else 0.0
+        mu_q = mu.get(cues.fragment, centre)
+        mu_o = np.array([mu.get(self._order[t[2]], centre) for t in found])
+        corrected = (1.0 / (1.0 + np.exp(-(logit - 0.5 * (mu_q - centre) - 0.5 * (mu_o - centre))))
+                     if self.use_hubness else raw)
+        order = np.argsort(-corrected, kind="stable")
         out = []
-        for rank, (p, k, o, (ia, ib)) in enumerate(found):
+        for rank, j in enumerate(order):
+            p, k, o, (ia, ib) = found[j]
             # evidence rows (what a verdict will teach) only for the candidates that are kept
             ev = (self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
                   if evidence_for is None or rank < evidence_for else None)
-            out.append(Candidate(cues.fragment, self._order[o], p, int(ia[0]), int(ib[0]),
-                                 np.column_stack([ia, ib]), ev))
+            out.append(Candidate(cues.fragment, self._order[o], float(corrected[j]), int(ia[0]), int(ib[0]),
+                                 np.column_stack([ia, ib]), ev, patch_probability=p))
         return out
+
+    def refresh_hubness(self, fragments, model: MatchModel, *, n_candidates: int = 100) -> int:
+        """Recompute the hubness of ``fragments`` whose value is missing or from another model
+        (after a model update), each against its pruned candidates; returns how many were refreshed."""
+        n = 0
+        for f in fragments:
+            if f in self.cues and self.hubness.get(f, ("", 0.0))[0] != model.version and len(self.cues[f]):
+                self.score(self.cues[f], self.candidates(self.cues[f], model, n_candidates), model, evidence_for=0)
+                n += 1
+        return n
 
     def _rows(self, cues, rows_b, owner, fcol, nf, npd, pd, ia=None):
         """Correspondence rows: every query patch × ``rows_b`` (or the pairs ``ia`` × ``rows_b``)."""

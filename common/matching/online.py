@@ -129,6 +129,8 @@ def rerank(index, model: MatchModel, pairs: list[tuple[str, str]]) -> dict:
     for a, b in pairs:
         if a in index and b in index:
             by_a.setdefault(a, []).append(b)
+    # hubness under the new model for every fragment involved (index.py: the ranking correction)
+    index.refresh_hubness(sorted({f for a, others in by_a.items() for f in [a, *others]}), model)
     out = {}
     for a, others in by_a.items():
         for c in index.score(index.cues[a], others, model, evidence_for=0):

@@ -77,8 +77,8 @@ def _plot_topk(series: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def _index_of(tables, cues):
-    idx = MatchIndex()
+def _index_of(tables, cues, use_hubness=True):
+    idx = MatchIndex(use_hubness=use_hubness)
     for fid, c in cues.items():
         idx.add(c, tables[fid].contour_mm)
     return idx
@@ -153,6 +153,9 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     idx2 = _index_of(tables2, cues2)
     scores = rank_all_pairs(idx2, model, progress=lambda f, t: say(0.72 + 0.15 * f, t))
     topk = {"synthetic (train seed %d, test seed %d)" % (seed, test_seed): top_k_recall(scores, wall2.adjacency, KS)}
+    # the ranking before the hubness correction (best-3 mean patch probability), for comparison
+    plain = rank_all_pairs(_index_of(tables2, cues2, use_hubness=False), model)
+    topk["synthetic, no hubness correction"] = top_k_recall(plain, wall2.adjacency, KS)
     ppr = pair_precision_recall(scores, wall2.adjacency)
     pair_curves = {"synthetic test wall": (ppr["precision"], ppr["recall"], ppr["ap"])}
     n_random = len(idx2) - 1
@@ -193,7 +196,7 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     cut = float(np.median(list(xs.values())))
     halves = [{f for f in xs if xs[f] < cut}, {f for f in xs if xs[f] >= cut}]
     spurious = {f.id for f in wall.fragments if f.pose is None}
-    all_scores = {}
+    all_scores, plain_scores = {}, {}
     for h in range(2):
         train_ids, test_ids = halves[h], halves[1 - h] | spurious
         adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
@@ -202,9 +205,12 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
         model, _ = train_model(ts_h)
         idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
         all_scores.update(rank_all_pairs(idx, model))
+        plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids},
+                                                     use_hubness=False), model))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
     rec = top_k_recall(all_scores, adj_te, KS)
     topk["DAFNE (train one half, rank the other)"] = rec
+    topk["DAFNE, no hubness correction"] = top_k_recall(plain_scores, adj_te, KS)
     ppr = pair_precision_recall(all_scores, adj_te)
     pair_curves["DAFNE halves"] = (ppr["precision"], ppr["recall"], ppr["ap"])
     return {"table": rows, "topk": rec, "pair_ap": ppr["ap"]}
