@@ -285,7 +285,8 @@ class MatchIndex:
         (after a model update), each against its pruned candidates; returns how many were refreshed."""
         n = 0
         for f in fragments:
-            if f in self.cues and self.hubness.get(f, ("", 0.0))[0] != model.version and len(self.cues[f]):
+            if self.use_hubness and f in self.cues and self.hubness.get(f, ("", 0.0))[0] != model.version \
+                    and len(self.cues[f]):
                 self.score(self.cues[f], self.candidates(self.cues[f], model, n_candidates), model, evidence_for=0)
                 n += 1
         return n
@@ -311,7 +312,12 @@ class MatchIndex:
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
                 check: int = 3, contour_mm: np.ndarray | None = None) -> list[Candidate]:
         """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned."""
-        ranked = self.score(cues, self.candidates(cues, model, n_candidates), model, evidence_for=top)[:top]
+        others = self.candidates(cues, model, n_candidates)
+        if self.use_hubness:
+            # candidates without a hubness under this model (a restarted worker, a new model) get one
+            # first: once per fragment and model, so a stream of new fragments stays O(candidates)
+            self.refresh_hubness(others, model, n_candidates=n_candidates)
+        ranked = self.score(cues, others, model, evidence_for=top)[:top]
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
         if contour_a is not None:
             for c in ranked[:check]:
