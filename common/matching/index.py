@@ -19,7 +19,7 @@ from its last proposal under the current model), and the pair logit becomes
 ``logit(p_ab) − ½(μ_a − μ̄) − ½(μ_b − μ̄)`` (``μ̄`` the median over the index, so the average
 calibration stays), i.e. the mean-centred similarity used against hubs in high-dimensional
 nearest-neighbour retrieval (Radovanović et al., JMLR 11, 2010; "CSLS", Conneau et al., ICLR 2018).
-On the synthetic walls it raises top-5 recall of true neighbours from 0.20 to 0.24 (docs/matching.md).
+On the synthetic test wall it raises top-5 recall of true neighbours from 0.22 to 0.24 (docs/matching.md).
 
 Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
 (anchored at the best patch pairs), which gives the proposed pose and the gap/contact/overlap.
