@@ -99,3 +99,38 @@ def test_hubness_ranking_finds_more_true_neighbours_than_the_patch_probability(s
     assert sum(r_new.values()) > sum(r_old.values()) + 0.05, (r_new, r_old)
     # every fragment with patches got its hubness under this model
     assert {f for f, c in cues.items() if len(c)} == {f for f, (v, _) in index.hubness.items() if v == model.version}
+
+
+def test_hubness_is_kept_per_model_version_and_centres_the_pair_logit(small_wall):
+    """μ of every fragment is the mean logit of its patch probability against its candidates; the
+    ranking logit is logit(p_ab) − ½(μ_a − μ̄) − ½(μ_b − μ̄) with μ̄ the median (index docstring)."""
+    import copy
+
+    wall, tables, cues, poses = small_wall
+    model = _model(small_wall)
+    ids = [f for f in cues if len(cues[f]) >= 3][:25]
+    index = MatchIndex()
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm)
+    assert index.refresh_hubness(ids, model) == len(ids)
+    assert index.refresh_hubness(ids, model) == 0          # already there under this model
+    q = ids[0]
+    found = index.score(cues[q], ids[1:], model)
+    logit = lambda p: np.log(p) - np.log1p(-p)              # noqa: E731
+    mu = {f: index.hubness[f][1] for f in ids}
+    assert mu[q] == __import__("pytest").approx(np.mean([logit(c.patch_probability) for c in found]))
+    centre = np.median(list(mu.values()))
+    for c in found:
+        want = logit(c.patch_probability) - 0.5 * (mu[q] - centre) - 0.5 * (mu[c.other] - centre)
+        assert logit(c.probability) == __import__("pytest").approx(want, abs=1e-9)
+    assert [c.probability for c in found] == sorted((c.probability for c in found), reverse=True)
+    # a new model version makes every hubness stale
+    model2 = copy.deepcopy(model)
+    model2.version = "0002-test"
+    assert index.refresh_hubness(ids, model2) == len(ids)
+    # without the correction the ranking probability is the patch probability
+    plain = MatchIndex(use_hubness=False)
+    for f in ids:
+        plain.add(cues[f], tables[f].contour_mm)
+    for c in plain.score(cues[q], ids[1:], model):
+        assert c.probability == c.patch_probability
