@@ -9,7 +9,8 @@
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
 feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
 ``crosswall.csv`` (train on one wall, test on another, §5.8.5), ``topk.csv``/``topk.png``
-(share of each fragment's true neighbours among its k best proposals) and, with ``--dafne``, the
+(share of each fragment's true neighbours among its k best proposals, for the matcher's
+hubness-corrected ranking and, for comparison, the uncorrected one) and, with ``--dafne``, the
 same for the colour-only DAFNE set. The second trains a model on a synthetic wall and installs it
 as the current model of a station's matcher (storage root ``ROOT``).
 """
