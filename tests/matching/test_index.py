@@ -116,7 +116,6 @@ def test_hubness_is_kept_per_model_version_and_centres_the_pair_logit(small_wall
     assert index.refresh_hubness(ids, model) == 0          # already there under this model
     q = ids[0]
     found = index.score(cues[q], ids[1:], model)
-    logit = lambda p: np.log(p) - np.log1p(-p)              # noqa: E731
     mu = {f: index.hubness[f][1] for f in ids}
     assert mu[q] == __import__("pytest").approx(np.mean([logit(c.patch_probability) for c in found]))
     centre = np.median(list(mu.values()))
@@ -134,3 +133,7 @@ def test_hubness_is_kept_per_model_version_and_centres_the_pair_logit(small_wall
         plain.add(cues[f], tables[f].contour_mm)
     for c in plain.score(cues[q], ids[1:], model):
         assert c.probability == c.patch_probability
+
+
+def logit(p):
+    return np.log(p) - np.log1p(-p)
