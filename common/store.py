@@ -264,6 +264,23 @@ class Store:
         finally:
             f.close()
 
+    def sweep_temporary(self, older_than_s: float = 3600.0) -> list[str]:
+        """Delete temporary files left by writers that died mid-write; return their paths.
+
+        A writer killed between ``mkstemp`` and the rename leaves ``.<name>.<random>.tmp`` beside
+        the artifact it never finished. Only files older than ``older_than_s`` are removed, so a
+        write in progress on another machine of the lab is never touched.
+        """
+        import time
+        cutoff = time.time() - float(older_than_s)
+        removed = []
+        for tmp in self.root.rglob(".*.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                if tmp.is_file() and tmp.stat().st_mtime < cutoff:
+                    tmp.unlink()
+                    removed.append(tmp.relative_to(self.root).as_posix())
+        return removed
+
     def provenance(self, f: h5py.File) -> dict:
         """The provenance attribute of an open artifact, decoded."""
         return json.loads(f.attrs.get("provenance", "{}"))

@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Installs everything Tessera needs on a fresh Debian machine (run as root, or with sudo):
-# Debian packages (SANE for real scanners and its `test` backend, Chromium for the browser tests),
+# Debian packages (SANE for real scanners and its `test` backend, Chromium for the browser tests,
+# iproute2 and util-linux for the multi-host test in network namespaces and CPU pinning),
 # then the Python package with its test extras into the current Python.
 # Safe to run again: it only installs what is missing.
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-debs=(libsane1 libsane-dev sane-utils chromium)
+debs=(libsane1 libsane-dev sane-utils chromium iproute2 util-linux)
 missing=()
 for p in "${debs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

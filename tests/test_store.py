@@ -111,3 +111,20 @@ def test_works_with_hdf5_file_locking_off_while_another_reader_holds_the_file(tm
     ref = store.write("a.h5", "s", 1, _fill)
     with store.open(ref) as f1, store.open(ref) as f2:
         assert f1["x"].shape == f2["x"].shape
+
+
+def test_sweep_removes_only_stale_temporary_files_of_dead_writers(tmp_path):
+    import os
+    import time
+    store = Store(tmp_path)
+    ref = store.write("fragments/F1/rgbn/front-a.h5", "tessera.test", 1, lambda f: f.create_dataset("x", data=[1]))
+    folder = tmp_path / "fragments" / "F1" / "rgbn"
+    stale = folder / ".front-b.h5.abc123.tmp"
+    fresh = folder / ".front-c.h5.def456.tmp"
+    stale.write_bytes(b"half an HDF5 file")
+    fresh.write_bytes(b"a write in progress")
+    old = time.time() - 7200
+    os.utime(stale, (old, old))
+    assert store.sweep_temporary(older_than_s=3600) == ["fragments/F1/rgbn/.front-b.h5.abc123.tmp"]
+    assert not stale.exists() and fresh.exists()
+    assert store.ref(ref.path) == ref  # finished artifacts are untouched

@@ -17,6 +17,7 @@ A stage module ``services/<name>.py`` exposes ``SERVICE``, ``VERSION`` and
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import os
@@ -165,6 +166,9 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
     st = config["storage"]
     store = Store(st["root"], file_locking=st["file_locking"], create=st["create_root"])
     stage_log = logging.getLogger(f"tessera.{service}")
+    with contextlib.suppress(OSError):  # storage may be away at start; the jobs will say so
+        for rel in store.sweep_temporary():
+            stage_log.warning("removed %s: left by a writer that died mid-write", rel)
     settings = service_config(config, service_module_name)
     ctx = context or zmq.Context.instance()
     endpoint = broker_endpoint(config)

@@ -22,6 +22,9 @@ def run(args) -> int:
     if not store.available():
         print(f"error: storage root {store.root} is not reachable")
         return 1
+    if not args.dry_run:
+        for rel in store.sweep_temporary():
+            print(f"removed {rel}: left by a writer that died mid-write")
     events = missing_stages(store)
     for e in events:
         print(f"{e['fragment']:<12} {e['type']:<15} {e.get('face', ''):<6} {e['artifact']['path']}")
