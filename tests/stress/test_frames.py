@@ -123,7 +123,13 @@ def test_malformed_frames_of_every_kind_each_give_an_input_rejected_event(make_s
             c.submit(good[1])
             wait_for(lambda: c.status()["completed"] >= 2, 20, "the good jobs to be done")
             assert broker.poll() is None, f"broker crashed:\n{st.logs()}"
+            # each bad frame came on its own new socket, whose connect may finish after the good
+            # jobs are done: wait (bounded) for the rejections rather than read the feed once
+            deadline = time.monotonic() + 10
             events = _events(st)
+            while len(_rejections(events)) < len(cases) and time.monotonic() < deadline:
+                time.sleep(0.1)
+                events = _events(st)
     finally:
         ctx.destroy(linger=0)
     assert broker.poll() is None and worker.poll() is None, st.logs()
