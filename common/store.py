@@ -102,6 +102,26 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
+@contextlib.contextmanager
+def _atomic_file(final: Path) -> Iterator[str]:
+    """Yield a temporary path beside ``final``; rename it into place if the block succeeds.
+
+    The temporary name is ``.<final name>.<random>.tmp`` (what :meth:`Store.sweep_temporary`
+    looks for); on any failure it is removed, so readers only ever see finished files.
+    """
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, final)
+        _fsync_dir(final.parent)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
 class Store:
     """Immutable HDF5 artifacts under ``root``.
 
@@ -175,10 +195,7 @@ class Store:
         if final.exists() and not overwrite:
             return self.ref(relpath)
         self._check_root()
-        final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
-        os.close(fd)
-        try:
+        with _atomic_file(final) as tmp:
             with h5py.File(tmp, "w", locking=self.file_locking) as f:
                 f.attrs["schema"] = schema
                 f.attrs["schema_version"] = int(version)
@@ -188,12 +205,6 @@ class Store:
                 fill(f)
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
-            os.replace(tmp, final)
-            _fsync_dir(final.parent)
-        except BaseException:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            raise
         return self.ref(relpath)
 
     def import_file(self, source: str | os.PathLike, relpath: str, sha256: str) -> ArtifactRef:
@@ -206,11 +217,9 @@ class Store:
         if final.is_file() and file_sha256(final) == sha256:
             return self.ref(relpath)
         self._check_root()
-        final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
-        try:
+        with _atomic_file(final) as tmp:
             h = hashlib.sha256()
-            with open(source, "rb") as src, os.fdopen(fd, "wb") as dst:
+            with open(source, "rb") as src, open(tmp, "wb") as dst:
                 for block in iter(lambda: src.read(_CHUNK), b""):
                     h.update(block)
                     dst.write(block)
@@ -218,12 +227,6 @@ class Store:
                 os.fsync(dst.fileno())
             if h.hexdigest() != sha256:
                 raise ArtifactError(f"{source} has sha256 {h.hexdigest()[:12]}…, expected {sha256[:12]}…: not copied")
-            os.replace(tmp, final)
-            _fsync_dir(final.parent)
-        except BaseException:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            raise
         return self.ref(relpath)
 
     # -- reading ---------------------------------------------------------------------------
