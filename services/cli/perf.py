@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import psutil
+
 from common.config import add_config_arguments, config_from_arguments
 
 REPO = Path(__file__).resolve().parents[2]
@@ -125,14 +127,11 @@ class _Station:
 
 
 def _rss_mb(pid: int) -> float:
+    """Resident memory of a process in MiB (NaN once it has gone)."""
     try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
+        return psutil.Process(pid).memory_info().rss / 2**20
+    except psutil.Error:
+        return float("nan")
 
 
 def _pipeline_run(base: Path, source: Path, name: str, events: list[dict], sets: list[int | None],
