@@ -18,7 +18,10 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import re
+import socket
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator, Mapping
@@ -102,15 +105,41 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
+def _host_label() -> str:
+    """This machine's name as it appears in temporary file names (dots and odd characters as
+    ``_``, so the name splits unambiguously at its dots)."""
+    return re.sub(r"[^A-Za-z0-9-]", "_", socket.gethostname()) or "unknown"
+
+
+# .<final name>.<host>.<pid>.<random>.tmp; older writers used .<final name>.<random>.tmp
+_TEMP_NAME = re.compile(r"^\.(?P<final>.+)\.(?P<host>[A-Za-z0-9_-]+)\.(?P<pid>[0-9]+)\.(?P<random>[A-Za-z0-9_]+)\.tmp$")
+
+
+def _writer_alive(pid: int, written_at: float) -> bool:
+    """True if process ``pid`` of this host may still be writing a file last modified at
+    ``written_at`` (epoch s). A pid that exists but started after the file was last written is
+    a reused pid, not the writer."""
+    import psutil
+    try:
+        started = psutil.Process(pid).create_time()
+    except psutil.NoSuchProcess:
+        return False
+    except (psutil.Error, OSError):  # cannot tell (e.g. access denied): assume alive
+        return True
+    return started <= written_at + 1.0  # create_time is rounded to clock ticks
+
+
 @contextlib.contextmanager
 def _atomic_file(final: Path) -> Iterator[str]:
     """Yield a temporary path beside ``final``; rename it into place if the block succeeds.
 
-    The temporary name is ``.<final name>.<random>.tmp`` (what :meth:`Store.sweep_temporary`
-    looks for); on any failure it is removed, so readers only ever see finished files.
+    The temporary name is ``.<final name>.<host>.<pid>.<random>.tmp`` (what
+    :meth:`Store.sweep_temporary` looks for: host and pid tell whether its writer is alive); on
+    any failure it is removed, so readers only ever see finished files.
     """
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.{_host_label()}.{os.getpid()}.", suffix=".tmp",
+                               dir=final.parent)
     os.close(fd)
     try:
         yield tmp
@@ -270,16 +299,25 @@ class Store:
     def sweep_temporary(self, older_than_s: float = 3600.0) -> list[str]:
         """Delete temporary files left by writers that died mid-write; return their paths.
 
-        A writer killed between ``mkstemp`` and the rename leaves ``.<name>.<random>.tmp`` beside
-        the artifact it never finished. Only files older than ``older_than_s`` are removed, so a
-        write in progress on another machine of the lab is never touched.
+        A writer killed between ``mkstemp`` and the rename leaves
+        ``.<name>.<host>.<pid>.<random>.tmp`` beside the artifact it never finished. A file
+        written from this host whose process is gone (or whose pid now belongs to a process
+        started after the file was last written: pid reuse) is removed at once. Files of other
+        hosts and old-format names (``.<name>.<random>.tmp``) are removed only when older than
+        ``older_than_s``, so a write in progress on another machine of the lab is never touched.
         """
-        import time
         cutoff = time.time() - float(older_than_s)
+        host = _host_label()
         removed = []
         for tmp in self.root.rglob(".*.tmp"):
             with contextlib.suppress(FileNotFoundError):
-                if tmp.is_file() and tmp.stat().st_mtime < cutoff:
+                if not tmp.is_file():
+                    continue
+                mtime = tmp.stat().st_mtime
+                m = _TEMP_NAME.match(tmp.name)
+                dead_here = (m is not None and m["host"] == host and int(m["pid"]) != os.getpid()
+                             and not _writer_alive(int(m["pid"]), mtime))
+                if dead_here or mtime < cutoff:
                     tmp.unlink()
                     removed.append(tmp.relative_to(self.root).as_posix())
         return removed

@@ -128,3 +128,83 @@ def test_sweep_removes_only_stale_temporary_files_of_dead_writers(tmp_path):
     assert store.sweep_temporary(older_than_s=3600) == ["fragments/F1/rgbn/.front-b.h5.abc123.tmp"]
     assert not stale.exists() and fresh.exists()
     assert store.ref(ref.path) == ref  # finished artifacts are untouched
+
+
+def test_temporary_name_carries_host_and_pid_of_the_writer(tmp_path):
+    from common.store import _TEMP_NAME, _host_label
+    seen = []
+    store = Store(tmp_path)
+    store.write("d/front-a.h5", "s", 1, lambda f: seen.extend(p.name for p in (tmp_path / "d").iterdir()))
+    m = _TEMP_NAME.match(seen[0])
+    assert m and m["final"] == "front-a.h5" and m["host"] == _host_label() and int(m["pid"]) == __import__("os").getpid()
+
+
+_WRITER = """
+import sys, time
+sys.path.insert(0, {repo!r})
+from common.store import Store
+def fill(f):
+    f.create_dataset("x", data=[1, 2, 3])
+    f.flush()
+    print("writing", flush=True)
+    time.sleep(600)
+Store({root!r}).write("fragments/F1/rgbn/front-k.h5", "tessera.test", 1, fill)
+"""
+
+
+def test_sweep_removes_at_once_the_temporary_file_of_a_writer_killed_mid_write(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+    repo = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen([sys.executable, "-c", _WRITER.format(repo=repo, root=str(tmp_path))],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "writing"
+        store = Store(tmp_path)
+        assert store.sweep_temporary() == [], "a live writer's file is kept"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        left = [p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob(".*.tmp")]
+        assert len(left) == 1, "SIGKILL mid-write leaves the temporary file"
+        assert store.sweep_temporary() == left  # fresh, but its writer is dead
+        assert not list(tmp_path.rglob(".*.tmp")) and not store.exists("fragments/F1/rgbn/front-k.h5")
+    finally:
+        proc.kill()
+        proc.wait(10)
+
+
+def test_sweep_keeps_fresh_files_of_other_hosts_and_live_writers_and_spots_reused_pids(tmp_path):
+    import os
+    import subprocess
+    import sys
+    import time
+    from common.store import _host_label
+    store = Store(tmp_path)
+    host = _host_label()
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        time.sleep(0.3)
+        folder = tmp_path / "fragments" / "F1" / "rgbn"
+        folder.mkdir(parents=True)
+        names = {
+            "mine": f".front-a.h5.{host}.{os.getpid()}.abc_123.tmp",        # this process: alive
+            "live": f".front-b.h5.{host}.{live.pid}.def456.tmp",             # another live process
+            "reused": f".front-c.h5.{host}.{live.pid}.ghi789.tmp",           # pid now of a newer process
+            "other_host": f".front-d.h5.{host}x.999999.jkl012.tmp",          # can't tell from here: age rule
+            "old_other_host": f".front-e.h5.{host}x.999999.mno345.tmp",
+            "old_format": ".front-f.h5.pqr678.tmp",
+        }
+        for n in names.values():
+            (folder / n).write_bytes(b"partial")
+        before_live = time.time() - 600  # written 10 min ago, before the live process started
+        os.utime(folder / names["reused"], (before_live, before_live))
+        ancient = time.time() - 7200
+        os.utime(folder / names["old_other_host"], (ancient, ancient))
+        removed = {p.rsplit("/", 1)[1] for p in store.sweep_temporary(older_than_s=3600)}
+        assert removed == {names["reused"], names["old_other_host"]}
+        assert {p.name for p in folder.iterdir()} == set(names.values()) - removed
+    finally:
+        live.kill()
+        live.wait(10)

@@ -12,8 +12,9 @@ loopback. Fragments are submitted in bench-like batches while a chaos thread
   SIGSTOP, so the broker sees them go silent as across a broken link, then SIGCONT: they come back
   with results for jobs the broker has meanwhile given to others).
 
-At the end (jobs parked after repeated kills are re-run once, as an operator would) it checks and
-prints: every fragment has exactly one RGBN, feature and rendering artifact per face on storage
+At the end (jobs parked after repeated kills are re-run once, as an operator would; after the
+workers stop, the temporary-file sweep of ``tessera reconcile`` runs and its removals are printed)
+it checks and prints: every fragment has exactly one RGBN, feature and rendering artifact per face on storage
 and the events announce no other; no temporary files are left; the proposal store holds every
 front face; the resident memory of the long-running processes did not keep growing
 (median of the last quarter of samples vs the first quarter). Exit status 0 if all hold.
@@ -37,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from common.bus.client import BrokerClient  # noqa: E402
 from common.config import load_config  # noqa: E402
 from common.messages import unpack  # noqa: E402
+from common.store import Store  # noqa: E402
 from services.cli.perf import _capture, _rss_mb, _Station  # noqa: E402
 
 STAGES = ("solver", "features", "renderer", "matcher")
@@ -164,6 +166,11 @@ def main(argv=None) -> int:
                 pass
         st.stop()
     wall_s = time.time() - t0
+    # what an operator runs after a crash (`tessera reconcile` sweeps first): temporary files of
+    # writers killed mid-write on this host go at once; whatever is left after it counts as a leak
+    swept = Store(st.config["storage"]["root"]).sweep_temporary()
+    print(f"\nsweep after the workers stopped (as tessera reconcile does): {len(swept)} temporary file(s) "
+          f"of writers killed mid-write removed{': ' + ', '.join(swept[:5]) if swept else ''}", flush=True)
     ok &= _check(st, events, evs, parked_end, rss, faults, wall_s)
     return 0 if ok else 1
 
@@ -195,7 +202,7 @@ def _check(st, events, evs, parked_end, rss, faults, wall_s) -> bool:
     else:
         n_prop = 0
     missing_fronts = sorted(set(frags) - fronts)
-    print(f"\nsoak: {len(frags)} fragments in {wall_s / 60:.1f} min ({3600 * len(frags) / wall_s:.0f} fragments/hour "
+    print(f"soak: {len(frags)} fragments in {wall_s / 60:.1f} min ({3600 * len(frags) / wall_s:.0f} fragments/hour "
           f"with the faults); faults: {dict(faults)}")
     print(f"  outputs: {sum(files.values())} artifacts, {len(missing)} (fragment, stage, face) not exactly once"
           f"{': ' + str(missing[:5]) if missing else ''}")
