@@ -338,8 +338,12 @@ class Broker:
             self.workers[identity] = worker
             busy = info.get("job")
             job = self.jobs.get(busy) if busy else None
-            if job is not None and job.state != "parked":  # a worker that reconnected mid-job keeps it
-                job.state, job.worker, worker.job = "inflight", identity, job.id
+            if busy:
+                # a worker that reconnected mid-job is busy with it: its RESULT/FAIL for that job is
+                # expected (even if the job was parked or completed meanwhile), nothing is dispatched
+                worker.job = str(busy)
+            if job is not None and job.state != "parked":  # ... and keeps a job still to be done
+                job.state, job.worker = "inflight", identity
             elif not busy:
                 self.waiting[worker.service].append(worker)
                 self._dirty.add(worker.service)
@@ -354,17 +358,25 @@ class Broker:
         worker.expiry = now + self.interval * self.liveness
         if command == P.HEARTBEAT:
             return
+        if command in (P.PROGRESS, P.RESULT, P.FAIL):
+            jid = rest[0].decode(errors="replace")
+            if jid != worker.job:
+                # not the job this worker holds (a confused or hostile peer, or a duplicate): it must
+                # neither touch that job nor make the worker look idle (it would get two jobs)
+                log.warning("worker %s:%d (%s) sent %s for job %r but holds %r: ignored", worker.host, worker.pid,
+                            worker.service, command.decode(errors="replace"), jid[:64], worker.job)
+                return
         if command == P.PROGRESS:
-            job = self.jobs.get(rest[0].decode())
-            if job is not None:
+            job = self.jobs.get(jid)
+            if job is not None and job.state == "inflight" and job.worker == identity:
                 p = P.loads(rest[1])
                 job.progress = (float(p.get("fraction", 0.0)), str(p.get("text", "")))
             return
         if command == P.RESULT:
-            self._complete(rest[0].decode(), rest[1])
+            self._complete(jid, rest[1])
             self._worker_idle(worker)
         elif command == P.FAIL:
-            jid, kind, error = rest[0].decode(), rest[1], rest[2].decode(errors="replace")
+            kind, error = rest[1], rest[2].decode(errors="replace")
             job = self.jobs.get(jid)
             if job is not None and job.state == "inflight" and job.worker == identity:
                 self._job_failed(job, error, rejected=(kind == P.FAIL_REJECTED), host=f"{worker.host}:{worker.pid}")

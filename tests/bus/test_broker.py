@@ -227,3 +227,95 @@ def test_stage_calling_exit_or_returning_bad_events_is_parked_and_worker_survive
     assert "SystemExit" in failed[bad[0]["uid"]]
     assert "invalid event" in failed[bad[1]["uid"]]
     assert _done(events) == {good["uid"]} and worker.poll() is None
+
+
+class _FakeWorker:
+    """A raw DEALER speaking the worker protocol (common/bus/protocol.py), heartbeating by hand."""
+
+    def __init__(self, endpoint: str, pid: int):
+        self.sock = zmq.Context.instance().socket(zmq.DEALER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.connect(endpoint)
+        self.pid = pid
+        self.jobs: list[str] = []
+        self.send(P.READY, b"noop", P.dumps({"host": "fake", "pid": pid}))
+
+    def send(self, command: bytes, *parts: bytes) -> None:
+        self.sock.send_multipart([b"", P.WORKER, command, *parts])
+
+    def pump(self, seconds: float) -> None:
+        """Heartbeat and collect JOB frames for ``seconds``."""
+        end = time.monotonic() + seconds
+        while True:
+            self.send(P.HEARTBEAT)
+            while self.sock.poll(20):
+                frames = self.sock.recv_multipart()
+                if frames[2] == P.JOB:
+                    self.jobs.append(frames[3].decode())
+            if time.monotonic() >= end:
+                return
+
+    def close(self) -> None:
+        self.send(P.DISCONNECT)
+        self.sock.close()
+
+
+def _pump(seconds: float, *workers: _FakeWorker) -> None:
+    end = time.monotonic() + seconds
+    while True:
+        for w in workers:
+            w.pump(0.0)
+        if time.monotonic() >= end:
+            return
+
+
+def test_worker_messages_for_a_job_it_does_not_hold_are_ignored(make_station):
+    st = make_station()
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    j1, j2, j3 = (new_message("noop.job", n=i) for i in range(3))
+    jid = {j["uid"]: f"{j['uid'][:12]}-noop" for j in (j1, j2, j3)}
+    a = _FakeWorker(endpoint, 111)
+    b = None
+    try:
+        with st.client() as c:
+            c.submit(j1)
+            wait_for(lambda: a.pump(0.1) or a.jobs, 10, "worker A to get j1")
+            b = _FakeWorker(endpoint, 222)
+            c.submit(j2)
+            wait_for(lambda: _pump(0.1, a, b) or b.jobs, 10, "worker B to get j2")
+            c.submit(j3)  # no idle worker: stays queued
+            assert (a.jobs, b.jobs) == ([jid[j1["uid"]]], [jid[j2["uid"]]])
+            # A meddles with B's job and with the queued one
+            forged = P.dumps([new_message("noop.done", job=j2["uid"], received=0.0, attempt=1)])
+            a.send(P.PROGRESS, jid[j2["uid"]].encode(), P.dumps({"fraction": 0.9, "text": "hijacked"}))
+            a.send(P.FAIL, jid[j2["uid"]].encode(), P.FAIL_ERROR, b"forged failure")
+            a.send(P.FAIL, jid[j3["uid"]].encode(), P.FAIL_REJECTED, b"forged rejection")
+            a.send(P.RESULT, jid[j2["uid"]].encode(), forged)
+            a.send(P.RESULT, b"no-such-job", P.dumps([]))
+            _pump(1.0, a, b)
+            s = c.status()
+            inflight = {f["job"]: f for f in s["in_flight"]}
+            assert set(inflight) == {jid[j1["uid"]], jid[j2["uid"]]}, "both jobs still in flight with their workers"
+            assert inflight[jid[j1["uid"]]]["worker"] == "fake:111" and inflight[jid[j2["uid"]]]["worker"] == "fake:222"
+            assert inflight[jid[j2["uid"]]]["progress"] is None, "another worker's progress is not shown"
+            assert s["queues"]["noop"] == 1 and s["parked"] == [] and s["completed"] == 0
+            assert a.jobs == [jid[j1["uid"]]], "A was not put on the idle list: it got no second job"
+            # the honest path still works: B finishes j2 and then gets j3; A finishes j1
+            b.send(P.PROGRESS, jid[j2["uid"]].encode(), P.dumps({"fraction": 0.5, "text": "half"}))
+            _pump(0.3, a, b)
+            assert {f["job"]: f["progress"] for f in c.status()["in_flight"]}[jid[j2["uid"]]] == [0.5, "half"]
+            b.send(P.RESULT, jid[j2["uid"]].encode(), forged)
+            wait_for(lambda: _pump(0.1, a, b) or len(b.jobs) == 2, 10, "worker B to get j3")
+            assert b.jobs[1] == jid[j3["uid"]]
+            a.send(P.RESULT, jid[j1["uid"]].encode(), P.dumps([]))
+            b.send(P.RESULT, jid[j3["uid"]].encode(), P.dumps([]))
+            wait_for(lambda: _pump(0.1, a, b) or c.status()["completed"] == 3, 10, "three jobs completed")
+            events = c.since(0, 100)["events"]
+        types = [P.loads(e)["type"] for _, e in events]
+        assert "stage.failed" not in types and "input.rejected" not in types
+        assert types.count("noop.done") == 1, "the forged result did not complete j2; B's did, once"
+    finally:
+        a.close()
+        if b is not None:
+            b.close()
