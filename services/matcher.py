@@ -34,7 +34,7 @@ from common.matching.proposals import Proposal, ProposalStore, ordered_pair
 from common.messages import MessageError, new_message
 
 SERVICE = "matcher"
-VERSION = "matcher-1.0"
+VERSION = "matcher-1.1"  # 1.1: colour-ribbon stage
 
 _STATES: dict = {}
 
@@ -66,7 +66,7 @@ def _sync(st: _State, ctx) -> None:
         f, art = row["fragment"], row["artifact"]
         if st.seen.get(f) != art["sha256"]:
             table = load_features(ctx.store, art, face="front")
-            st.index.add(fragment_cues(table, f), table.contour_mm)
+            st.index.add(fragment_cues(table, f), table.contour_mm, table.boundary_profile)
             st.seen[f] = art["sha256"]
     current = st.db.current_model()
     if current is None:
@@ -117,7 +117,9 @@ def _proposal(c, st: _State, columns) -> Proposal:
     a, b = ordered_pair(c.fragment, c.other)
     qa = st.index.cues[c.fragment].patch_index
     qb = st.index.cues[c.other].patch_index
-    patch_q, patch_o = int(qa[c.patch_a]), int(qb[c.patch_b])
+    # a candidate only the ribbon scored (a fragment without a valid patch) has no patch pair
+    patch_q = int(qa[c.patch_a]) if c.patch_a >= 0 else None
+    patch_o = int(qb[c.patch_b]) if c.patch_b >= 0 else None
     pose = None
     if c.alignment is not None:
         pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
@@ -148,7 +150,7 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     a, b = ordered_pair(job["fragment"], job["other"])
     if st.db.get(a, b) is None and a in st.index and b in st.index:
         # a verdict on a pair the matcher never proposed: score it so the verdict has evidence
-        found = st.index.score(st.index.cues[a], [b], st.model)
+        found = st.index.rank(st.index.cues[a], [b], st.model)
         if found:
             st.db.upsert([_proposal(found[0], st, correspondence_columns())])
     recorded = st.db.record_verdict(a, b, verdict, by=job.get("by"), note=job.get("note"),

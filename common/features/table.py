@@ -23,6 +23,7 @@ import h5py
 import numpy as np
 from scipy import ndimage as ndi
 
+from common.features.boundary import boundary_channel_names, boundary_profile
 from common.features.colour import colour_channels, colour_from_moments
 from common.features.contour import fragment_contour
 from common.features.curvature import area_curvature, three_point_curvature
@@ -37,7 +38,7 @@ from common.rgbn.image import RGBNImage
 from common.store import ArtifactError, ArtifactRef, Store
 
 SCHEMA = "tessera.features"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: boundary profile (colour and thickness along the contour)
 #: target pixel size of the working grid, mm (the actual one is an integer multiple of the scan's)
 WORK_PIXEL_MM = 0.1
 # fragment-level FFT runs on at most this many pixels per side, a patch's on at most that many
@@ -67,6 +68,14 @@ class FeatureTable:
         except the contour curvatures, which belong to the contour point)
     patch_contour_mm : (N, 2) the contour point of each patch
     contour_mm : (M, 2) the contour, uniformly sampled; contour_normals : (M, 2) outward normals
+    boundary_names : list of str
+        Columns of ``boundary_profile`` (:func:`~common.features.boundary.boundary_channel_names`).
+    boundary_profile : (K, C) float
+        Colour and thickness sampled along the contour every ``boundary_step_mm`` from its start,
+        just inside it (:func:`~common.features.boundary.boundary_profile`); (0, 0) when absent
+        (no contour, or a table written before schema version 2).
+    boundary_step_mm : float
+        Arc-length step of ``boundary_profile``, mm.
     dpi : float
         Scan dpi of the RGBN image.
     face : str
@@ -94,9 +103,14 @@ class FeatureTable:
     fragment: str = ""
     work_pixel_mm: float = WORK_PIXEL_MM
     missing_data: list = field(default_factory=list)
+    boundary_names: list = field(default_factory=list)
+    boundary_profile: np.ndarray = None
+    boundary_step_mm: float = float("nan")
 
     def __post_init__(self):
         n = len(self.patch_arc_mm)
+        if self.boundary_profile is None:
+            self.boundary_profile = np.zeros((0, len(self.boundary_names)), np.float32)
         if self.patch_coverage is None:
             self.patch_coverage = np.ones(n)
         if self.patch_contour_mm is None:
@@ -303,6 +317,10 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         for k, v in row.items():
             if k in col:
                 pv[i, col[k]] = v
+    boundary, step = np.zeros((0, 0), np.float32), float("nan")
+    if contour is not None:
+        thick = np.where(chans["hv"] > 0, chans["h"] / np.maximum(chans["hv"], 1e-6), np.nan) if has_h else None
+        boundary, step = boundary_profile(contour, albedo, wp, weight=M, thickness_mm=thick)
     report(1.0, "done")
     empty2 = np.zeros((0, 2))
     return FeatureTable(
@@ -315,7 +333,9 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
         patch_contour_mm=patches.contour_mm if n_p else empty2,
         contour_mm=contour.points_mm if contour is not None else empty2,
         contour_normals=contour.normals if contour is not None else empty2,
-        dpi=image.dpi, face=face, fragment=fragment, work_pixel_mm=wp, missing_data=missing)
+        dpi=image.dpi, face=face, fragment=fragment, work_pixel_mm=wp, missing_data=missing,
+        boundary_names=boundary_channel_names() if len(boundary) else [], boundary_profile=boundary,
+        boundary_step_mm=step)
 
 
 def _patch_orientation(z, region, wp, normal) -> dict:
@@ -367,6 +387,10 @@ def write_features(group: h5py.Group, table: FeatureTable) -> None:
         group.create_dataset(name, data=np.asarray(getattr(table, name), float).reshape(-1, 2))
     for name in ("patch_arc_mm", "patch_coverage"):
         group.create_dataset(name, data=np.asarray(getattr(table, name), float).reshape(-1))
+    group.attrs["boundary_step_mm"] = float(table.boundary_step_mm)
+    group.create_dataset("boundary_names", data=np.array(list(table.boundary_names), dtype=object), dtype=str_t)
+    group.create_dataset("boundary_profile", data=np.asarray(table.boundary_profile, np.float32)
+                         .reshape(-1, len(table.boundary_names)))
 
 
 def read_features(group: h5py.Group) -> FeatureTable:
@@ -391,7 +415,11 @@ def read_features(group: h5py.Group) -> FeatureTable:
             face=str(group.attrs["face"]),
             fragment=str(group.attrs.get("fragment", "")),
             work_pixel_mm=float(group.attrs["work_pixel_mm"]),
-            missing_data=json.loads(group.attrs.get("missing_data", "[]")))
+            missing_data=json.loads(group.attrs.get("missing_data", "[]")),
+            # schema 1 tables have no boundary profile: the matcher falls back to the patch ranking
+            boundary_names=dec(group["boundary_names"]) if "boundary_names" in group else [],
+            boundary_profile=group["boundary_profile"][()] if "boundary_profile" in group else None,
+            boundary_step_mm=float(group.attrs.get("boundary_step_mm", np.nan)))
     except KeyError as exc:
         raise ArtifactError(f"feature table in {group.file.filename} lacks {exc}") from exc
 

@@ -115,21 +115,22 @@ def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=No
 
     Every fragment's hubness is estimated first, as the matcher service does when it proposes the
     fragment (:meth:`~common.matching.index.MatchIndex.refresh_hubness`, 100 pruned candidates).
-    Returns ``{(a, b): probability}`` with ``a < b``; each unordered pair scored once (from the
-    side that is first in the index order) unless ``n_candidates`` prunes, in which case both
-    sides' candidate lists are scored and the larger probability kept.
+    Each fragment's candidates (all other fragments, or its ``n_candidates`` pruned ones) are
+    ranked as :meth:`~common.matching.index.MatchIndex.propose` ranks them: stage 2, then the
+    colour ribbon on the best :data:`~common.matching.index.RIBBON_CANDIDATES` when the fragment
+    has a boundary profile and the model a ribbon calibration
+    (:meth:`~common.matching.index.MatchIndex.rank`; pairs it drops are not proposed). Returns ``{(a, b): probability}`` with ``a < b``, the larger of the two sides'.
     """
+    from common.matching.index import RIBBON_CANDIDATES
+
     order = list(index._order)
     # each fragment's hubness as the matcher service has it: from its own proposal (pruned candidates)
     index.refresh_hubness(order, model, n_candidates=100 if n_candidates is None else n_candidates)
     out: dict = {}
     for i, f in enumerate(order):
         cues = index.cues[f]
-        if n_candidates is None:
-            others = order[i + 1:]
-        else:
-            others = index.candidates(cues, model, n_candidates)
-        for c in index.score(cues, others, model):
+        others = [o for o in order if o != f] if n_candidates is None else index.candidates(cues, model, n_candidates)
+        for c in index.rank(cues, others, model, ribbon_candidates=RIBBON_CANDIDATES):
             key = tuple(sorted((c.fragment, c.other)))
             out[key] = max(out.get(key, 0.0), c.probability)
         if progress and (i % 10 == 0 or i == len(order) - 1):

@@ -21,8 +21,17 @@ calibration stays), i.e. the mean-centred similarity used against hubs in high-d
 nearest-neighbour retrieval (Radovanović et al., JMLR 11, 2010; "CSLS", Conneau et al., ICLR 2018).
 On the synthetic test wall it raises top-5 recall of true neighbours from 0.22 to 0.24 (docs/matching.md).
 
+Stage 2½ — **ribbon**: the best ``RIBBON_CANDIDATES`` of stage 2 are re-ranked by the colour
+ribbon (:mod:`common.matching.ribbon`: do the paint and the plaster continue across the two
+boundaries?), whose score the model's calibration turns into the join probability. The patch
+classifier decides which candidates get this far (and learns from verdicts); the ribbon decides
+their order. On the synthetic test wall this raises top-5 recall of true neighbours from 0.24 to
+0.4 (docs/matching.md). Fragments without a boundary profile (feature tables older than schema
+version 2) or a model without a ribbon calibration keep the stage-2 ranking.
+
 Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
-(anchored at the best patch pairs), which gives the proposed pose and the gap/contact/overlap.
+(anchored at the ribbon's best run and the best patch pairs), which gives the proposed pose and the
+gap/contact/overlap.
 """
 
 from __future__ import annotations
@@ -33,14 +42,17 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from common.features.registry import fragment_descriptors
+from common.features.boundary import BOUNDARY_STEP_MM, boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
+from common.matching.ribbon import RIBBON_WINDOW_MM, ribbon_probability, ribbon_scores
 
 
 #: a query's hubness is (re)estimated only from at least this many scored candidates
 HUBNESS_MIN_OTHERS = 20
+#: stage 2 passes this many candidates per fragment to the ribbon (stage 2½)
+RIBBON_CANDIDATES = 50
 
 
 @dataclass
@@ -56,6 +68,8 @@ class Candidate:
     evidence: np.ndarray    # (m, D) their correspondence rows
     alignment: Alignment | None = None
     patch_probability: float = float("nan")  # mean of the top_m patch-pair probabilities (before hubness)
+    ribbon_score: float = float("nan")       # colour-ribbon score (stage 2½), NaN when not computed
+    ribbon_arc_mm: tuple | None = None       # (arc on the query, arc on the other) of the ribbon's best run
 
 
 class MatchIndex:
@@ -75,6 +89,8 @@ class MatchIndex:
         self._tree_n = 0
         self._tree_weights = None
         self.contours: dict[str, np.ndarray] = {}
+        #: fragment → boundary profile (features schema ≥ 2), columns boundary_channel_names()
+        self.profiles: dict[str, np.ndarray] = {}
         #: fragment → (model version, hubness μ: mean logit against its candidates)
         self.hubness: dict[str, tuple[str, float]] = {}
 
@@ -84,8 +100,9 @@ class MatchIndex:
     def __contains__(self, fragment: str) -> bool:
         return fragment in self.cues
 
-    def add(self, cues: FragmentCues, contour_mm: np.ndarray | None = None) -> None:
-        """Add (or replace) a fragment.
+    def add(self, cues: FragmentCues, contour_mm: np.ndarray | None = None,
+            boundary_profile: np.ndarray | None = None) -> None:
+        """Add (or replace) a fragment, with its contour (stage 3) and boundary profile (stage 2½).
 
         A new fragment is appended to the stacked arrays (amortised O(its own patches): buffers
         grow by doubling), so adding one to a large index does not copy the others; replacing a
@@ -93,6 +110,11 @@ class MatchIndex:
         """
         if contour_mm is not None:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
+        self.profiles.pop(cues.fragment, None)
+        if boundary_profile is not None:
+            p = np.asarray(boundary_profile, np.float32)
+            if p.ndim == 2 and len(p) >= 3 and p.shape[1] == len(boundary_channel_names()):
+                self.profiles[cues.fragment] = p
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
@@ -112,6 +134,7 @@ class MatchIndex:
         self._order.remove(fragment)
         del self.cues[fragment]
         self.contours.pop(fragment, None)
+        self.profiles.pop(fragment, None)
         self.hubness.pop(fragment, None)
         if not in_tail:
             self._tree = None
@@ -309,15 +332,66 @@ class MatchIndex:
             x[:, :, nf + npd + m] = _strip_gap_all(cues.strips[m], s[rows_b])
         return x.reshape(na * nb, -1)
 
+    def uses_ribbon(self, fragment: str, model: MatchModel) -> bool:
+        """Whether stage 2½ ranks this fragment's candidates (a boundary profile and a calibrated model)."""
+        return model.ribbon is not None and fragment in self.profiles
+
+    def rank_by_ribbon(self, candidates: list[Candidate], model: MatchModel) -> list[Candidate]:
+        """Stage 2½: colour-ribbon score and calibrated probability of each candidate, best first.
+
+        Candidates whose fragments have no boundary profile, or all of them under a model without a
+        ribbon calibration, keep their stage-2 probability.
+        """
+        if model.ribbon is None:
+            return list(candidates)
+        by_query: dict = {}
+        for c in candidates:
+            if c.fragment in self.profiles and c.other in self.profiles:
+                by_query.setdefault(c.fragment, []).append(c)
+        names = boundary_channel_names()
+        for q, group in by_query.items():
+            s, ia, ib = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group], names,
+                                      step_mm=BOUNDARY_STEP_MM)
+            p = ribbon_probability(s, model.ribbon)
+            half = RIBBON_WINDOW_MM / 2
+            for c, sc, pr, i, j in zip(group, s, p, ia, ib):
+                if np.isfinite(sc):
+                    c.ribbon_score, c.probability = float(sc), float(pr)
+                    # centres of the best run: forwards on the query, backwards on the other
+                    c.ribbon_arc_mm = (float(i * BOUNDARY_STEP_MM + half), float(j * BOUNDARY_STEP_MM - half))
+        return sorted(candidates, key=lambda c: -c.probability)
+
+    def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
+             ribbon_candidates: int = RIBBON_CANDIDATES, evidence_for: int | None = None) -> list[Candidate]:
+        """Stages 2 and 2½ for one fragment against ``others``, best first.
+
+        Stage 2 orders ``others`` by the patch classifier; where the ribbon applies, its best
+        ``ribbon_candidates`` — plus the others stage 2 cannot score because one of the two has no
+        valid patch (a small fragment still has a boundary) — are re-ranked by the ribbon and the
+        rest dropped. ``evidence_for``: attach evidence rows to the best this many of stage 2 (None: all).
+        """
+        if not self.uses_ribbon(cues.fragment, model):
+            return self.score(cues, others, model, evidence_for=evidence_for)
+        found = self.score(cues, others, model, evidence_for=evidence_for)
+        head = found[:ribbon_candidates]
+        scored = {c.other for c in found}
+        n_cols = len(model.columns)
+        head += [Candidate(cues.fragment, o, float("nan"), -1, -1, np.zeros((0, 2), int), np.zeros((0, n_cols)))
+                 for o in others if o != cues.fragment and o not in scored and o in self.profiles]
+        return self.rank_by_ribbon(head, model)
+
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
-                check: int = 3, contour_mm: np.ndarray | None = None) -> list[Candidate]:
+                check: int = 3, contour_mm: np.ndarray | None = None,
+                ribbon_candidates: int = RIBBON_CANDIDATES) -> list[Candidate]:
         """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned."""
         others = self.candidates(cues, model, n_candidates)
         if self.use_hubness:
             # candidates without a hubness under this model (a restarted worker, a new model) get one
             # first: once per fragment and model, so a stream of new fragments stays O(candidates)
             self.refresh_hubness(others, model, n_candidates=n_candidates)
-        ranked = self.score(cues, others, model, evidence_for=top)[:top]
+        ribbon = self.uses_ribbon(cues.fragment, model)
+        ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
+                           evidence_for=ribbon_candidates if ribbon else top)[:top]
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
         if contour_a is not None:
             for c in ranked[:check]:
@@ -325,8 +399,11 @@ class MatchIndex:
                 if contour_b is None:
                     continue
                 other = self.cues[c.other]
-                c.alignment = align_fragments(contour_a, contour_b,
-                                              anchors=(cues.arc_mm[c.top_pairs[:, 0]], other.arc_mm[c.top_pairs[:, 1]]))
+                arcs_a, arcs_b = cues.arc_mm[c.top_pairs[:, 0]], other.arc_mm[c.top_pairs[:, 1]]  # may be empty
+                if c.ribbon_arc_mm is not None:
+                    arcs_a = np.concatenate([[c.ribbon_arc_mm[0]], arcs_a])
+                    arcs_b = np.concatenate([[c.ribbon_arc_mm[1]], arcs_b])   # wrapped by the aligner
+                c.alignment = align_fragments(contour_a, contour_b, anchors=(arcs_a, arcs_b) if len(arcs_a) else None)
         return ranked
 
 

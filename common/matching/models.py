@@ -3,7 +3,8 @@
 A model file is a ``tessera.matchmodel`` HDF5 artifact under ``models/matcher/<version>.h5``
 holding only arrays and strings: the correspondence column names, the imputation values for
 missing features, the standardisation (mean, scale), the logistic-regression coefficients and
-intercept, the pair-aggregation rule and the per-fragment pruning weights. Loading reads those
+intercept, the pair-aggregation rule and the per-fragment pruning weights, and (attributes
+``ribbon_slope``, ``ribbon_intercept``, optional) the calibration of the colour-ribbon score. Loading reads those
 numbers back; nothing is executed, so a model file from another lab is safe to open (unlike a
 pickled scikit-learn estimator, which can run arbitrary code when loaded).
 """
@@ -47,6 +48,10 @@ class MatchModel:
         Provenance: training set, class weighting, number of verified pairs, ...
     training : (x, y, weight) or None
         The bootstrap training rows, kept so online refits start from them (stored as arrays).
+    ribbon : (slope, intercept) or None
+        Calibration of the colour-ribbon score into a join probability
+        (:func:`common.matching.ribbon.fit_ribbon_calibration`); None: rank by the patch
+        probability alone (a model trained without boundary profiles).
     """
 
     columns: list[str]
@@ -59,6 +64,7 @@ class MatchModel:
     top_m: int = 3
     info: dict = field(default_factory=dict)
     training: tuple | None = field(default=None, repr=False)
+    ribbon: tuple | None = None
 
     def __post_init__(self):
         self.columns = [str(c) for c in self.columns]
@@ -73,6 +79,11 @@ class MatchModel:
         self.intercept = float(self.intercept)
         if self.top_m < 1:
             raise ValueError(f"top_m must be ≥ 1, got {self.top_m}")
+        if self.ribbon is not None:
+            r = tuple(float(v) for v in self.ribbon)
+            if len(r) != 2 or not all(np.isfinite(r)):
+                raise ValueError(f"model ribbon calibration must be two finite numbers, got {self.ribbon}")
+            self.ribbon = r
 
     @property
     def sequence(self) -> int:
@@ -101,10 +112,11 @@ class MatchModel:
         from common.store import content_key
         return content_key(json.dumps(self.columns), self.impute.tobytes().hex(), self.mean.tobytes().hex(),
                            self.scale.tobytes().hex(), self.coef.tobytes().hex(), repr(self.intercept),
-                           str(self.top_m), length=8)
+                           str(self.top_m), *([repr(self.ribbon)] if self.ribbon is not None else []), length=8)
 
 
-def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: int = 3, info: dict | None = None) -> MatchModel:
+def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: int = 3, info: dict | None = None,
+                        ribbon: tuple | None = None) -> MatchModel:
     """Extract the numbers of a fitted logistic pipeline (from :func:`make_classifier`) into a model."""
     imp = pipeline.named_steps["impute"]
     sc = pipeline.named_steps["scale"]
@@ -112,7 +124,8 @@ def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: i
     if not hasattr(clf, "coef_"):
         raise ValueError("only a linear (logistic) classifier can be stored as a MatchModel")
     m = MatchModel(columns=list(columns), impute=imp.statistics_, mean=sc.mean_, scale=sc.scale_,
-                   coef=clf.coef_.ravel(), intercept=float(clf.intercept_[0]), top_m=top_m, info=dict(info or {}))
+                   coef=clf.coef_.ravel(), intercept=float(clf.intercept_[0]), top_m=top_m, info=dict(info or {}),
+                   ribbon=ribbon)
     m.version = f"{int(sequence):04d}-{m.digest()}"
     return m
 
@@ -126,6 +139,8 @@ def save_model(store: Store, model: MatchModel, *, provenance: dict | None = Non
         f.attrs["intercept"] = float(model.intercept)
         f.attrs["info"] = json.dumps(model.info, default=str, sort_keys=True)
         f.attrs["saved"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+        if model.ribbon is not None:
+            f.attrs["ribbon_slope"], f.attrs["ribbon_intercept"] = model.ribbon
         f.create_dataset("columns", data=np.array(model.columns, dtype=object), dtype=_str_dtype())
         for name in ("impute", "mean", "scale", "coef"):
             f.create_dataset(name, data=getattr(model, name).astype(np.float64))
@@ -152,7 +167,9 @@ def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
             return MatchModel(columns=cols, impute=f["impute"][()], mean=f["mean"][()], scale=f["scale"][()],
                               coef=f["coef"][()], intercept=float(f.attrs["intercept"]),
                               version=str(f.attrs["version"]), top_m=int(f.attrs["top_m"]),
-                              info=json.loads(f.attrs.get("info", "{}")), training=training)
+                              info=json.loads(f.attrs.get("info", "{}")), training=training,
+                              ribbon=((float(f.attrs["ribbon_slope"]), float(f.attrs["ribbon_intercept"]))
+                                      if "ribbon_slope" in f.attrs else None))
         except (KeyError, ValueError) as exc:
             raise ArtifactError(f"model {getattr(ref, 'path', ref)} is malformed: {exc}") from exc
 

@@ -10,6 +10,10 @@
   decision on a real fragment outweighs a synthetic example); the logistic regression is re-fitted
   on the union and becomes the next model version.
 * :func:`rerank` — new probabilities for stored proposals under the new model.
+
+The ribbon calibration (:func:`common.matching.ribbon.fit_ribbon_calibration`) is fitted once, on
+the bootstrap wall's fragment pairs, and carried over by every refit: verdicts teach the patch
+classifier, which chooses the candidates the ribbon ranks.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import numpy as np
 from common.matching.classifiers import make_classifier
 from common.matching.models import MatchModel, model_from_pipeline
 from common.matching.pairs import FragmentCues, TrainingSet, correspondence_columns, fragment_cues, training_set
+from common.matching.ribbon import fit_ribbon_calibration, pair_ribbon_scores
 
 #: sample weight of one verdict row relative to one bootstrap row
 VERDICT_WEIGHT = 5.0
@@ -48,8 +53,9 @@ def wall_cues(wall, *, progress=None, work_pixel_mm: float = 0.1):
 
 
 def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_weight=None, top_m: int = 3,
-                info: dict | None = None) -> tuple[MatchModel, object]:
-    """Fit the logistic regression (balanced class weights) and return (model, fitted pipeline)."""
+                info: dict | None = None, ribbon: tuple | None = None) -> tuple[MatchModel, object]:
+    """Fit the logistic regression (balanced class weights) and return (model, fitted pipeline);
+    ``ribbon`` is the ribbon calibration stored with it (:func:`ribbon_calibration`)."""
     if len(np.unique(ts.y)) < 2:
         raise ValueError("the training set needs both matches and non-matches")
     pipe = make_classifier("logistic", C=C)
@@ -58,9 +64,27 @@ def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_we
     meta = {"n_train": int(len(ts)), "n_match": int(ts.y.sum()), "class_weight": "balanced",
             "negatives_per_positive": float(ts.negatives_per_positive), "C": C}
     meta.update(info or {})
-    model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta)
+    model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta, ribbon=ribbon)
     model.training = (ts.x, ts.y, np.ones(len(ts.y)) if sample_weight is None else np.asarray(sample_weight, float))
     return model, pipe
+
+
+def ribbon_calibration(tables: dict, adjacency) -> tuple[float, float] | None:
+    """Ribbon calibration from a wall's feature tables (their boundary profiles) and its true
+    neighbour pairs: every fragment pair scored, joined = shares a crack. None when the tables
+    have no boundary profiles."""
+    from common.features.boundary import boundary_channel_names
+
+    profiles = {f: t.boundary_profile for f, t in tables.items() if len(t.boundary_profile)}
+    if len(profiles) < 3:
+        return None
+    scores = pair_ribbon_scores(profiles, boundary_channel_names())
+    joined = {frozenset(p[:2]) for p in adjacency}
+    keys = list(scores)
+    y = np.array([frozenset(k) in joined for k in keys])
+    if y.all() or not y.any():
+        return None
+    return fit_ribbon_calibration([scores[k] for k in keys], y)
 
 
 def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None) -> MatchModel:
@@ -68,9 +92,9 @@ def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0,
     from common.synth.wall import generate_wall
 
     wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
-    _, cues, poses = wall_cues(wall, progress=progress)
+    tables, cues, poses = wall_cues(wall, progress=progress)
     ts = training_set(cues, poses, wall.adjacency, seed=seed)
-    model, _ = train_model(ts, sequence=1, info={"trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, "
+    model, _ = train_model(ts, sequence=1, ribbon=ribbon_calibration(tables, wall.adjacency), info={"trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, "
                                                                f"seed {seed}, {dpi:g} dpi)"})
     return model
 
@@ -114,7 +138,7 @@ def refit_with_verdicts(base_x: np.ndarray, base_y: np.ndarray, verdicts: list[t
     info = dict(previous.info)
     info.update({"verdict_rows": n_v, "verdict_weight": float(verdict_weight), "previous": previous.version})
     model, _ = train_model(ts, sequence=previous.sequence + 1, C=float(C if C is not None else previous.info.get("C", 1.0)),
-                           sample_weight=w, top_m=previous.top_m, info=info)
+                           sample_weight=w, top_m=previous.top_m, info=info, ribbon=previous.ribbon)
     model.training = (np.asarray(base_x, float), np.asarray(base_y, int), np.ones(len(base_y)))
     return model
 
@@ -133,7 +157,8 @@ def rerank(index, model: MatchModel, pairs: list[tuple[str, str]]) -> dict:
     index.refresh_hubness(sorted({f for a, others in by_a.items() for f in [a, *others]}), model)
     out = {}
     for a, others in by_a.items():
-        for c in index.score(index.cues[a], others, model, evidence_for=0):
+        # the probability a proposal would get now: stage 2, then the ribbon where it applies
+        for c in index.rank(index.cues[a], others, model, ribbon_candidates=len(others), evidence_for=0):
             out[(a, c.other)] = c
     return out
 

@@ -11,15 +11,18 @@ from __future__ import annotations
 import csv
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from common.features.boundary import boundary_channel_names
 from common.matching.evaluation import (confusion_rates, grouped_cross_validation, pair_precision_recall,
                                         precision_recall, rank_all_pairs, top_k_recall)
 from common.matching.index import MatchIndex
-from common.matching.online import train_model, wall_cues
+from common.matching.online import ribbon_calibration, train_model, wall_cues
 from common.matching.pairs import training_set
+from common.matching.ribbon import pair_ribbon_scores
 
 log = logging.getLogger("tessera.matching.report")
 
@@ -80,7 +83,7 @@ def _plot_topk(series: dict, path: Path, title: str) -> None:
 def _index_of(tables, cues, use_hubness=True):
     idx = MatchIndex(use_hubness=use_hubness)
     for fid, c in cues.items():
-        idx.add(c, tables[fid].contour_mm)
+        idx.add(c, tables[fid].contour_mm, tables[fid].boundary_profile)
     return idx
 
 
@@ -139,7 +142,7 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     wall2 = generate_wall(n_fragments, seed=test_seed, dpi=dpi)
     tables2, cues2, poses2 = wall_cues(wall2, progress=lambda f, t: say(0.6 + 0.1 * f, t))
     ts2 = training_set(cues2, poses2, wall2.adjacency, negatives_per_positive=negatives_per_positive, seed=test_seed)
-    model, pipe = train_model(ts, info={"trained_on": wall.id})
+    model, pipe = train_model(ts, info={"trained_on": wall.id}, ribbon=ribbon_calibration(tables, wall.adjacency))
     pred = pipe.predict(ts2.x)
     rates = confusion_rates(ts2.y, pred)
     ap2 = precision_recall(ts2.y, model.probability(ts2.x))["ap"]
@@ -148,14 +151,16 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
                   "non_matches": rates["negatives"]}]
     write_csv(crosswall, out / "crosswall.csv")
 
-    # top-k recall: every fragment pair of the test wall ranked by the staged matcher's stage 2
+    # top-k recall: every fragment pair of the test wall ranked as the staged matcher ranks them
     say(0.72, "ranking every fragment pair of the test wall")
     idx2 = _index_of(tables2, cues2)
     scores = rank_all_pairs(idx2, model, progress=lambda f, t: say(0.72 + 0.15 * f, t))
     topk = {"synthetic (train seed %d, test seed %d)" % (seed, test_seed): top_k_recall(scores, wall2.adjacency, KS)}
-    # the ranking before the hubness correction (best-3 mean patch probability), for comparison
-    plain = rank_all_pairs(_index_of(tables2, cues2, use_hubness=False), model)
-    topk["synthetic, no hubness correction"] = top_k_recall(plain, wall2.adjacency, KS)
+    # for comparison: stage 2 alone (the ranking before the ribbon), and the ribbon alone on every pair
+    plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None))
+    topk["synthetic, stage 2 only (patch classifier)"] = top_k_recall(plain, wall2.adjacency, KS)
+    alone = pair_ribbon_scores({f: t.boundary_profile for f, t in tables2.items()}, boundary_channel_names())
+    topk["synthetic, colour ribbon alone (every pair)"] = top_k_recall(alone, wall2.adjacency, KS)
     ppr = pair_precision_recall(scores, wall2.adjacency)
     pair_curves = {"synthetic test wall": (ppr["precision"], ppr["recall"], ppr["ap"])}
     n_random = len(idx2) - 1
@@ -196,21 +201,23 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     cut = float(np.median(list(xs.values())))
     halves = [{f for f in xs if xs[f] < cut}, {f for f in xs if xs[f] >= cut}]
     spurious = {f.id for f in wall.fragments if f.pose is None}
-    all_scores, plain_scores = {}, {}
+    all_scores, plain_scores, alone_scores = {}, {}, {}
     for h in range(2):
         train_ids, test_ids = halves[h], halves[1 - h] | spurious
         adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
         ts_h = training_set({f: cues[f] for f in train_ids}, placed, adj_tr,
                             negatives_per_positive=negatives_per_positive, seed=h)
-        model, _ = train_model(ts_h)
+        model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr))
         idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
         all_scores.update(rank_all_pairs(idx, model))
-        plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids},
-                                                     use_hubness=False), model))
+        plain_scores.update(rank_all_pairs(idx, replace(model, ribbon=None)))
+        alone_scores.update(pair_ribbon_scores({f: tables[f].boundary_profile for f in test_ids},
+                                               boundary_channel_names()))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
     rec = top_k_recall(all_scores, adj_te, KS)
     topk["DAFNE (train one half, rank the other)"] = rec
-    topk["DAFNE, no hubness correction"] = top_k_recall(plain_scores, adj_te, KS)
+    topk["DAFNE, stage 2 only"] = top_k_recall(plain_scores, adj_te, KS)
+    topk["DAFNE, colour ribbon alone"] = top_k_recall(alone_scores, adj_te, KS)
     ppr = pair_precision_recall(all_scores, adj_te)
     pair_curves["DAFNE halves"] = (ppr["precision"], ppr["recall"], ppr["ap"])
     return {"table": rows, "topk": rec, "pair_ap": ppr["ap"]}
