@@ -114,3 +114,25 @@ def test_boundary_profile_rejects_bad_arguments():
         boundary_profile(contour, a, 0.0)
     with pytest.raises(ValueError, match="no pixels"):
         boundary_profile(contour, a, PX, weight=np.zeros(mask.shape))
+
+
+def test_a_table_written_before_boundary_profiles_reads_with_an_empty_profile(tmp_path):
+    """Schema-1 feature tables have no boundary datasets: they load, and the matcher falls back to
+    the patch ranking for them (an empty profile is not indexed)."""
+    import h5py
+
+    from common.features.table import read_features, write_features
+    from common.matching.index import MatchIndex
+    from common.matching.pairs import fragment_cues
+
+    x, y, mask = _disc(radius_mm=10.0, n=260)
+    img = RGBNImage(np.where(mask[..., None], (0.5, 0.4, 0.3), 0.0).astype(np.float32), mask, dpi=25.4 / PX)
+    with h5py.File(tmp_path / "old.h5", "w") as f:
+        write_features(f.create_group("front"), extract_features(img))
+        del f["front/boundary_names"], f["front/boundary_profile"]
+        del f["front"].attrs["boundary_step_mm"]
+        old = read_features(f["front"])
+    assert old.boundary_profile.shape == (0, 0) and old.boundary_names == []
+    index = MatchIndex()
+    index.add(fragment_cues(old, "old"), old.contour_mm, old.boundary_profile)
+    assert "old" in index and "old" not in index.profiles

@@ -137,3 +137,53 @@ def test_hubness_is_kept_per_model_version_and_centres_the_pair_logit(small_wall
 
 def logit(p):
     return np.log(p) - np.log1p(-p)
+
+
+def _ribbon_setup(small_wall):
+    """A model with the ribbon calibration of the training wall, and an index of a second wall."""
+    from common.matching.online import ribbon_calibration, wall_cues
+    from common.synth.wall import generate_wall
+
+    wall, tables, cues, poses = small_wall
+    cal = ribbon_calibration(tables, wall.adjacency)
+    model, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1), ribbon=cal)
+    wall2 = generate_wall(40, seed=5, dpi=60)
+    tables2, cues2, _ = wall_cues(wall2)
+    index = MatchIndex()
+    for f, c in cues2.items():
+        index.add(c, tables2[f].contour_mm, tables2[f].boundary_profile)
+    return model, wall2, cues2, index
+
+
+def test_colour_ribbon_ranks_more_true_neighbours_than_stage_2_alone(small_wall):
+    """Top-k recall of the ground-truth neighbours of a wall the model never saw: the staged ranking
+    with the colour ribbon (stage 2½) must beat stage 2 alone (the same model without calibration)."""
+    import dataclasses
+
+    from common.matching.evaluation import rank_all_pairs, top_k_recall
+
+    model, wall2, _, index = _ribbon_setup(small_wall)
+    assert model.ribbon is not None and model.ribbon[0] > 0   # a better fit is a likelier join
+    ks = (3, 5, 10)
+    with_ribbon = top_k_recall(rank_all_pairs(index, model), wall2.adjacency, ks)
+    stage2 = top_k_recall(rank_all_pairs(index, dataclasses.replace(model, ribbon=None)), wall2.adjacency, ks)
+    assert sum(with_ribbon.values()) > sum(stage2.values()) + 0.2, (with_ribbon, stage2)
+
+
+def test_propose_with_the_ribbon_gives_calibrated_probabilities_even_without_patches(small_wall):
+    from common.matching.ribbon import ribbon_probability
+
+    model, _, cues2, index = _ribbon_setup(small_wall)
+    q = max(cues2.values(), key=len)
+    found = index.propose(q, model, top=8, check=1)
+    assert len(found) == 8 and found[0].alignment is not None
+    probs = [c.probability for c in found]
+    assert probs == sorted(probs, reverse=True)
+    np.testing.assert_allclose(probs, ribbon_probability([c.ribbon_score for c in found], model.ribbon))
+    assert all(c.evidence is not None and len(c.evidence) == model.top_m for c in found if c.patch_a >= 0)
+    # a fragment too small for a valid patch: stage 2 cannot score it, the ribbon still ranks it
+    small = next(c for c in cues2.values() if len(c) == 0)
+    assert index.score(small, [f for f in cues2 if f != small.fragment], model) == []
+    found = index.propose(small, model, top=5, check=1)
+    assert len(found) == 5 and all(c.patch_a == -1 and np.isfinite(c.ribbon_score) for c in found)
+    assert found[0].alignment is not None

@@ -51,3 +51,15 @@ def test_tampered_model_file_is_refused(tmp_path):
 def test_model_refuses_wrong_shapes():
     with pytest.raises(ValueError, match="coef"):
         MatchModel(["a", "b"], [0, 0], [0, 0], [1, 1], [1, 2, 3], 0.0)
+
+
+def test_ribbon_calibration_is_stored_versioned_and_optional(tmp_path):
+    store = Store(tmp_path)
+    pipe, _ = fitted()
+    plain = model_from_pipeline(pipe, ["a", "b", "c", "d"], sequence=2)
+    cal = model_from_pipeline(pipe, ["a", "b", "c", "d"], sequence=2, ribbon=(17.5, -1.75))
+    assert plain.ribbon is None and cal.version != plain.version   # the calibration is part of the model
+    assert load_model(store, save_model(store, cal)).ribbon == (17.5, -1.75)
+    assert load_model(store, save_model(store, plain)).ribbon is None
+    with pytest.raises(ValueError, match="ribbon"):
+        model_from_pipeline(pipe, ["a", "b", "c", "d"], sequence=2, ribbon=(float("nan"), 0.0))

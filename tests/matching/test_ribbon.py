@@ -1,0 +1,118 @@
+"""The colour ribbon: two pieces of one painted slab match along their shared crack."""
+
+import numpy as np
+import pytest
+
+from common.features.boundary import boundary_channel_names, boundary_profile
+from common.features.contour import fragment_contour
+from common.matching.ribbon import fit_ribbon_calibration, pair_ribbon_scores, ribbon_probability, ribbon_scores
+
+PX = 0.2           # mm per pixel
+W, H = 300, 200    # a 60 × 40 mm slab
+NAMES = boundary_channel_names()
+
+
+def _painting(seed):
+    """Oblique stripes 3–8 mm wide in random colours (so they cross the crack and the slab's
+    edges alike), and a plaster thickness varying along x."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:H, :W] * PX
+    u = xx * np.cos(np.radians(30)) + yy * np.sin(np.radians(30))     # across the stripes, mm
+    edges = np.cumsum(rng.uniform(3, 8, 40))
+    palette = rng.uniform(0.1, 0.9, (len(edges) + 1, 3)).astype(np.float32)
+    albedo = palette[np.searchsorted(edges, u)]
+    thickness = (15 + 3 * np.sin(xx / 9 + seed)).astype(np.float32)
+    return albedo, thickness
+
+
+def _cut(seed):
+    """Row of a jagged crack across the slab for each column (a random walk around the middle)."""
+    rng = np.random.default_rng(100 + seed)
+    return np.clip(H / 2 + np.cumsum(rng.normal(0, 1.2, W)), 60, 140)
+
+
+def _piece(albedo, thickness, cut, upper, fade=0.0):
+    rows = np.arange(H)[:, None]
+    mask = rows < cut[None, :] - 1 if upper else rows > cut[None, :] + 1   # a thin gap: erosion
+    mask[:2], mask[-2:], mask[:, :2], mask[:, -2:] = False, False, False, False
+    a = albedo * (1 - fade) + fade * np.array([0.78, 0.75, 0.68], np.float32)
+    contour = fragment_contour(mask, PX)
+    prof, _ = boundary_profile(contour, a, PX, weight=mask.astype(float), thickness_mm=thickness)
+    return prof, contour
+
+
+def _decoys(n=6):
+    out = []
+    for s in range(1, n + 1):
+        albedo, thickness = _painting(s)
+        out.append(_piece(albedo, thickness, _cut(s), upper=False)[0])
+    return out
+
+
+def test_the_true_partner_ranks_first_and_the_best_run_lies_on_the_crack():
+    albedo, thickness = _painting(0)
+    cut = _cut(0)
+    a, ca = _piece(albedo, thickness, cut, upper=True)
+    b, cb = _piece(albedo, thickness, cut, upper=False)
+    s, ia, ib = ribbon_scores(a, [b] + _decoys(), NAMES)
+    assert np.argmax(s) == 0 and s[0] > np.sort(s)[-2] + 0.02, s
+    # both pieces are in the slab's frame: the run's middle points lie on the crack and face each other
+    step_a, step_b = ca.length_mm / len(a), cb.length_mm / len(b)
+    pa, _ = ca.at((ia[0] + 10) * step_a)
+    pb, _ = cb.at((ib[0] - 10) * step_b)
+    col = int(round(pa[0] / PX))
+    assert abs(pa[1] / PX - cut[col]) * PX < 1.5
+    assert np.hypot(*(pa - pb)) < 4.0
+
+
+def test_a_faded_partner_still_ranks_first():
+    albedo, thickness = _painting(0)
+    cut = _cut(0)
+    a, _ = _piece(albedo, thickness, cut, upper=True)
+    b, _ = _piece(albedo, thickness, cut, upper=False, fade=0.5)
+    s, _, _ = ribbon_scores(a, [b] + _decoys(), NAMES)
+    assert np.argmax(s) == 0, s
+
+
+def test_score_does_not_depend_on_where_a_contour_starts():
+    albedo, thickness = _painting(0)
+    cut = _cut(0)
+    a, _ = _piece(albedo, thickness, cut, upper=True)
+    b, _ = _piece(albedo, thickness, cut, upper=False)
+    s, ia, ib = ribbon_scores(a, [b, np.roll(b, 17, axis=0)], NAMES)
+    assert s[0] == pytest.approx(s[1], abs=1e-5)
+    assert (ib[1] - ib[0]) % len(b) == 17 and ia[0] == ia[1]
+
+
+def test_pair_scores_cover_every_pair_once_and_short_profiles_score_nan():
+    albedo, thickness = _painting(0)
+    cut = _cut(0)
+    a, _ = _piece(albedo, thickness, cut, upper=True)
+    b, _ = _piece(albedo, thickness, cut, upper=False)
+    scores = pair_ribbon_scores({"a": a, "b": b, "c": _decoys(1)[0]}, NAMES)
+    assert set(scores) == {("a", "b"), ("a", "c"), ("b", "c")}
+    assert max(scores, key=scores.get) == ("a", "b")
+    s, _, _ = ribbon_scores(a, [b[:2]], NAMES)
+    assert np.isnan(s[0])
+
+
+def test_calibration_recovers_a_known_logistic_relation():
+    rng = np.random.default_rng(0)
+    s = rng.normal(0, 1, 20000)
+    y = rng.random(20000) < 1 / (1 + np.exp(-(3.0 * s - 2.0)))
+    slope, intercept = fit_ribbon_calibration(s, y)
+    assert slope == pytest.approx(3.0, abs=0.25) and intercept == pytest.approx(-2.0, abs=0.15)
+    p = ribbon_probability([-10.0, 0.0, 10.0], (slope, intercept))
+    assert p[0] < 1e-6 and p[2] > 1 - 1e-6 and 0.05 < p[1] < 0.25
+    with pytest.raises(ValueError, match="both"):
+        fit_ribbon_calibration(s, np.zeros(len(s), bool))
+
+
+def test_ribbon_scores_reject_profiles_without_colour_channels_or_of_the_wrong_width():
+    a = np.zeros((30, len(NAMES)), np.float32)
+    with pytest.raises(ValueError, match="sqrt_"):
+        ribbon_scores(a[:, :2], [a[:, :2]], ["thickness@0.8", "thickness@1.6"])
+    with pytest.raises(ValueError, match="profile_a"):
+        ribbon_scores(a[:, :5], [a], NAMES)
+    with pytest.raises(ValueError, match="step_mm"):
+        ribbon_scores(a, [a], NAMES, step_mm=0)
