@@ -1,6 +1,7 @@
 """Solver service: on ``fragment.ready``, turn raw flatbed scans into RGBN faces (§3.3.6).
 
 Reads the ``tessera.scans`` artifact, takes the newest valid calibration of the scanning device,
+checks the declared dpi and sizes (:mod:`common.limits`: an absurd scan is rejected at once),
 registers each face's scans to its first scan and solves albedo + normals
 (:func:`common.acquisition.flatbed_normals.solve_face`), writes one ``tessera.rgbn`` artifact per
 face at a content-keyed path and returns one ``rgbn.ready`` per face. A colour-only capture gives
@@ -15,9 +16,10 @@ from __future__ import annotations
 
 from common.acquisition.calibration import (calibrate_scanner, newest_calibration, save_calibration,
                                             simulated_target_operator)
-from common.acquisition.capture import FACES, read_scans
+from common.acquisition.capture import FACES, SCHEMA as SCANS_SCHEMA, read_scans
 from common.acquisition.errors import CalibrationError
 from common.acquisition.flatbed_normals import colour_only_face, solve_face
+from common.limits import check_scans_file
 from common.messages import MessageError, new_message
 from common.rgbn.image import save_rgbn
 from common.store import ArtifactRef, content_key
@@ -52,6 +54,8 @@ def handle(job: dict, ctx) -> list[dict]:
     ref = ArtifactRef.from_dict(job["artifact"])
     fragment = str(job["fragment"])
     ctx.progress(0.0, "reading scans")
+    with ctx.store.open(ref, schema=SCANS_SCHEMA) as f:
+        check_scans_file(f)  # absurd dpi or sizes are rejected before a pixel is read
     capture = read_scans(ctx.store, ref)
     cal, cal_ref = _calibration(ctx, capture.device)
     events = []

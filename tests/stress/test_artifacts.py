@@ -61,6 +61,28 @@ def _blank_scans(dpi=100.0, h=64, w=64):
             for rot in (0, 90, 180, 270)]
 
 
+def _huge_rgbn(store: Store, rel: str, side: int = 200_000):
+    """An RGBN artifact declaring a side × side face (chunked, never written: the file stays tiny)."""
+    def fill(f):
+        f.attrs["dpi"] = 100.0
+        f.create_dataset("albedo", shape=(side, side, 3), dtype=np.float32, chunks=(64, 64, 3), compression="gzip")
+        f.create_dataset("mask", shape=(side, side), dtype=bool, chunks=(64, 64), compression="gzip")
+    return store.write(rel, "tessera.rgbn", 1, fill)
+
+
+def _huge_scans(store: Store, fid: str, side: int = 200_000):
+    """A scans artifact declaring four side × side scans of the front face (never written)."""
+    def fill(f):
+        f.attrs.update(fragment=fid, device="sim-stress", calibration="", colour_only=False)
+        g = f.create_group("front")
+        f.create_group("back")
+        for k, rot in enumerate((0, 90, 180, 270)):
+            d = g.create_dataset(f"scan_{k}", shape=(side, side, 3), dtype=np.uint16, chunks=(64, 64, 3),
+                                 compression="gzip")
+            d.attrs.update(dpi=100.0, rotation_deg=rot, area_mm=np.array([0.0, 0.0, 50.0, 50.0]), depth=16)
+    return store.write(f"fragments/{fid}/scans/scans-huge.h5", "tessera.scans", 1, fill)
+
+
 def _bad_rgbn(store: Store) -> dict[str, object]:
     """fragment id -> pointer of a bad RGBN face."""
     out = {}
@@ -77,6 +99,8 @@ def _bad_rgbn(store: Store) -> dict[str, object]:
                                      "dpi", float("nan"))
     # 1e9 dpi: a 64-px face 1.6 µm wide; resampled to the feature grid it would need TiB
     out["BAD-dpi-1e9"] = save_rgbn(store, "fragments/BAD-dpi-1e9/rgbn/front-1.h5", _disc(dpi=1e9))
+    out["BAD-dpi-0.001"] = save_rgbn(store, "fragments/BAD-dpi-0.001/rgbn/front-1.h5", _disc(dpi=0.001))
+    out["BAD-size-200000"] = _huge_rgbn(store, "fragments/BAD-size-200000/rgbn/front-1.h5")
     empty = _disc()
     empty.mask[:] = False
     out["BAD-nothing"] = save_rgbn(store, "fragments/BAD-nothing/rgbn/front-1.h5", empty)
@@ -86,8 +110,10 @@ def _bad_rgbn(store: Store) -> dict[str, object]:
 def _bad_scans(store: Store) -> dict[str, object]:
     """fragment id -> pointer of a bad scans artifact."""
     out = {}
-    for fid, scans in (("SCN-empty-glass", _blank_scans()), ("SCN-dpi-zero", _blank_scans(dpi=0.0))):
+    for fid, scans in (("SCN-empty-glass", _blank_scans()), ("SCN-dpi-zero", _blank_scans(dpi=0.0)),
+                       ("SCN-dpi-0.001", _blank_scans(dpi=0.001)), ("SCN-dpi-1e9", _blank_scans(dpi=1e9))):
         out[fid] = write_scans(store, fid, CaptureResult(fid, "sim-stress", {"front": scans, "back": []}))
+    out["SCN-size-200000"] = _huge_scans(store, "SCN-size-200000")
     ref = write_scans(store, "SCN-truncated", CaptureResult("SCN-truncated", "sim-stress",
                                                             {"front": _blank_scans(), "back": []}))
     out["SCN-truncated"] = _truncate(store, ref.path)
@@ -137,8 +163,19 @@ def test_bad_artifacts_each_end_in_one_error_event_and_a_good_face_still_goes_th
     for fid, words in (("BAD-truncated", "HDF5"), ("BAD-digest", "sha256"), ("BAD-schema", "schema"),
                        ("BAD-lacks-albedo", "albedo"), ("BAD-dpi-zero", "dpi"), ("BAD-dpi-nan", "dpi")):
         assert all(words in err for _, _, err in errors[fid]), f"{fid}: error does not say {words!r}: {errors[fid]}"
-    # images of nothing / of absurd scale: at least the feature stage says so (a blank drawing is harmless)
-    for fid, words in (("BAD-nothing", "empty"), ("BAD-dpi-1e9", "")):
+    # absurd dpi and sizes: both stages reject them at once (input.rejected), naming the value
+    for fid, words in (("BAD-dpi-1e9", "dpi 1e+09"), ("BAD-dpi-0.001", "dpi 0.001"),
+                       ("BAD-size-200000", "200000×200000")):
+        assert sorted((s, t) for s, t, _ in errors[fid]) == [("features", "input.rejected"),
+                                                             ("renderer", "input.rejected")], f"{fid}: {errors[fid]}"
+        assert all(words in err for _, _, err in errors[fid]), f"{fid}: error does not say {words!r}: {errors[fid]}"
+        assert not ready[fid]
+    for fid, words in (("SCN-dpi-1e9", "dpi 1e+09"), ("SCN-dpi-0.001", "dpi 0.001"),
+                       ("SCN-size-200000", "200000×200000")):
+        assert [(s, t) for s, t, _ in errors[fid]] == [("solver", "input.rejected")], f"{fid}: {errors[fid]}"
+        assert words in errors[fid][0][2], f"{fid}: error does not say {words!r}: {errors[fid]}"
+    # images of nothing: at least the feature stage says so (a blank drawing is harmless)
+    for fid, words in (("BAD-nothing", "empty"),):
         feats = [err for s, _, err in errors[fid] if s == "features"]
         assert len(feats) == 1 and words in feats[0], f"{fid}: {errors[fid]}"
     for fid in bad_scans:
