@@ -6,7 +6,9 @@ encrypted and the broker admits only peers whose public key is in its authorised
 * the broker's ROUTER and PUB sockets are CURVE servers with the broker's key pair, and a ZAP
   handler (:class:`zmq.auth.thread.ThreadAuthenticator`) checks each connecting peer's public key
   against ``authorized_keys``; an unknown key never completes the handshake, so its frames (job
-  submissions, verdicts, worker results, feed subscriptions) never reach the broker;
+  submissions, verdicts, worker results, feed subscriptions) never reach the broker; the
+  directory is re-read whenever it changes (:class:`AuthorizedKeys`), so a revoked key is
+  refused from its next connection on, without a broker restart;
 * workers, clients, the scanner and feed subscribers are CURVE clients: they know the broker's
   public key (``broker_public_key``) and present their own key pair (``secret_key``).
 
@@ -19,6 +21,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 from pathlib import Path
 from typing import Mapping
 
@@ -109,11 +112,84 @@ def secure_server_socket(sock: zmq.Socket, config: Mapping) -> zmq.Socket:
     return sock
 
 
+class AuthorizedKeys:
+    """The broker's authorised-keys directory as the ZAP handler sees it, re-read whenever it changes.
+
+    A ZAP credentials provider (:meth:`zmq.auth.Authenticator.configure_curve_callback`): on every
+    CURVE handshake :meth:`callback` compares the directory listing (name, inode, size, mtime of
+    each ``*.key``) with the one it last loaded and re-reads the keys if anything differs, so a
+    key copied in (``tessera keys add``) or removed (``tessera keys revoke``) decides the very next
+    connection without a broker restart. A connection already established keeps its session
+    (CURVE authenticates the handshake only) until it reconnects.
+
+    Fails closed: an unreadable or missing directory admits nobody; a malformed key file is
+    skipped (logged) and the others stay valid.
+    """
+
+    def __init__(self, directory: str | os.PathLike):
+        self.directory = Path(directory)
+        self._lock = threading.Lock()
+        self._listing: tuple | None = None
+        self._keys: dict[bytes, str] = {}   # z85 public key -> file name
+        self.refresh()
+
+    def _list(self) -> tuple | None:
+        try:
+            entries = []
+            for p in self.directory.glob("*.key"):
+                st = p.stat()
+                entries.append((p.name, st.st_ino, st.st_size, st.st_mtime_ns))
+            if not self.directory.is_dir():
+                return None
+            return tuple(sorted(entries))
+        except OSError:  # the directory or a file vanished while listing: treat as unreadable
+            return None
+
+    def refresh(self) -> bool:
+        """Re-read the keys if the directory changed; True if it did."""
+        with self._lock:
+            listing = self._list()
+            if listing == self._listing and listing is not None:
+                return False
+            keys: dict[bytes, str] = {}
+            for name, *_ in listing or ():
+                try:
+                    public, _ = zmq.auth.load_certificate(str(self.directory / name))
+                except (ValueError, OSError) as exc:
+                    log.warning("authorised key %s skipped: %s", self.directory / name, exc)
+                    continue
+                if public:
+                    keys[public] = name
+            if listing is None:
+                log.error("authorised-keys directory %s unreadable: refusing every CURVE client", self.directory)
+            added = sorted(set(keys.values()) - set(self._keys.values()))
+            removed = sorted(set(self._keys.values()) - set(keys.values()))
+            if self._listing is not None and (added or removed):
+                log.warning("authorised keys changed: %d now (added %s, removed %s)", len(keys),
+                            ", ".join(added) or "none", ", ".join(removed) or "none")
+            self._listing, self._keys = listing, keys
+            return True
+
+    def __contains__(self, z85_key: bytes) -> bool:
+        return z85_key in self._keys
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def callback(self, domain: str, z85_key: bytes) -> bool:
+        """ZAP decision for one handshake: is the client's public key authorised right now?"""
+        self.refresh()
+        if z85_key in self._keys:
+            return True
+        log.info("CURVE client refused: key %s is not authorised", z85_key[:8].decode(errors="replace") + "…")
+        return False
+
+
 def start_authenticator(context: zmq.Context, config: Mapping) -> ThreadAuthenticator | None:
     """Start the ZAP handler admitting the public keys in ``authorized_keys`` (None when off).
 
-    Keys added to the directory later are picked up by :func:`reload_keys` (the broker calls it
-    on SIGHUP-free restarts; a new worker host needs its key copied there first).
+    The directory is watched (:class:`AuthorizedKeys`): adding or removing a key file takes
+    effect for the next connection, without restarting the broker.
     """
     if not enabled(config):
         return None
@@ -122,16 +198,20 @@ def start_authenticator(context: zmq.Context, config: Mapping) -> ThreadAuthenti
         raise SecurityError(f"security.authorized_keys: {keys} is not a directory")
     auth = ThreadAuthenticator(context, log=logging.getLogger("tessera.zap"))
     auth.start()
-    auth.configure_curve(domain="*", location=keys)
-    n = len(list(Path(keys).glob("*.key")))
-    log.info("CURVE on: %d authorised key(s) in %s", n, keys)
+    provider = AuthorizedKeys(keys)
+    auth.configure_curve_callback(domain="*", credentials_provider=provider)
+    log.info("CURVE on: %d authorised key(s) in %s (re-read when it changes)", len(provider), keys)
     return auth
 
 
 def reload_keys(auth: ThreadAuthenticator | None, config: Mapping) -> None:
-    """Re-read the authorised-keys directory (a key added or removed takes effect for new connections)."""
+    """Re-read the authorised-keys directory now (it is also re-read on every handshake if changed)."""
     if auth is not None:
-        auth.configure_curve(domain="*", location=_setting(config, "authorized_keys"))
+        provider = auth.credentials_providers.get("*")
+        if isinstance(provider, AuthorizedKeys):
+            provider.refresh()
+        else:
+            auth.configure_curve(domain="*", location=_setting(config, "authorized_keys"))
 
 
 def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: str | os.PathLike | None = None

@@ -13,7 +13,8 @@ import pytest
 import zmq
 
 from common.bus.client import BrokerClient, BrokerUnavailable
-from common.bus.security import SecurityError, check, generate_keypair, secure_client_socket
+from common.bus.security import (AuthorizedKeys, SecurityError, authorize, check, generate_keypair,
+                                  secure_client_socket)
 from common.messages import new_message
 from services.cli import main as tessera
 
@@ -129,3 +130,46 @@ def test_only_admitted_keys_can_submit_serve_or_listen_and_the_wire_is_encrypted
     assert intruder_worker.poll() is None, "it keeps knocking, harmlessly"
     assert len(tap.seen) > 200 and job["uid"].encode() not in tap.seen and b"noop.job" not in tap.seen, \
         "the event crossed the wire encrypted"
+
+
+def test_revoked_key_is_refused_on_its_next_connection_without_broker_restart(make_station, keys):
+    assert tessera(["keys", "add", "desk", "--dir", str(keys)]) == 0
+    st = make_station(extra=_security_section(keys))
+    broker = st.broker()
+    st.worker()
+    st.workers_ready(1)
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    desk = {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / "desk.key_secret"))}
+    with BrokerClient(endpoint, timeout_s=2, retries=2, security=desk) as c:
+        c.submit(new_message("noop.job", n=1))  # admitted
+    assert tessera(["keys", "revoke", "desk", "--dir", str(keys)]) == 0
+    with BrokerClient(endpoint, timeout_s=0.7, retries=2, security=desk) as c:
+        with pytest.raises(BrokerUnavailable):
+            c.submit(new_message("noop.job", n=2))  # the same client, a new connection: refused
+    with BrokerClient(endpoint, timeout_s=2, retries=2, security=st.config) as c:
+        c.submit(new_message("noop.job", n=3))  # other hosts' keys are unaffected
+    authorize(keys / "hosts" / "desk.key", keys / "authorized")  # re-admitted: accepted again
+    with BrokerClient(endpoint, timeout_s=2, retries=2, security=desk) as c:
+        c.submit(new_message("noop.job", n=4))
+    with st.subscriber(0) as sub:
+        events = collect(sub, lambda ev: sum(e["type"] == "noop.done" for _, e in ev) >= 3, 20, "three jobs done")
+    assert sorted(e["n"] for _, e in events if e["type"] == "noop.job") == [1, 3, 4]
+    assert broker.poll() is None and st.procs[0] is broker, "the same broker process throughout"
+
+
+def test_authorized_keys_follow_the_directory_and_fail_closed(keys, tmp_path):
+    import zmq.auth
+    d = keys / "authorized"
+    provider = AuthorizedKeys(d)
+    lab, _ = zmq.auth.load_certificate(str(keys / "hosts" / "lab.key"))
+    assert provider.callback("*", lab)
+    generate_keypair(keys / "hosts", "desk", authorize_in=d)
+    desk, _ = zmq.auth.load_certificate(str(keys / "hosts" / "desk.key"))
+    assert provider.callback("*", desk), "a key copied in is admitted at its first handshake"
+    (d / "junk.key").write_text("not a key file\n")
+    assert provider.callback("*", lab) and provider.callback("*", desk), "a malformed file spoils nothing else"
+    (d / "lab.key").unlink()
+    assert not provider.callback("*", lab), "a removed key is refused at once"
+    assert provider.callback("*", desk)
+    d.rename(tmp_path / "moved")
+    assert not provider.callback("*", desk), "no directory: nobody is admitted"
