@@ -42,11 +42,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from common.features.boundary import BOUNDARY_STEP_MM, boundary_channel_names
+from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
-from common.matching.ribbon import RIBBON_WINDOW_MM, ribbon_probability, ribbon_scores
+from common.matching.ribbon import RIBBON_WINDOW_MM, prepare_ribbon, ribbon_probability, ribbon_scores
 
 
 #: a query's hubness is (re)estimated only from at least this many scored candidates
@@ -89,8 +89,8 @@ class MatchIndex:
         self._tree_n = 0
         self._tree_weights = None
         self.contours: dict[str, np.ndarray] = {}
-        #: fragment → boundary profile (features schema ≥ 2), columns boundary_channel_names()
-        self.profiles: dict[str, np.ndarray] = {}
+        #: fragment → its boundary profile prepared for the ribbon (features schema ≥ 2)
+        self.profiles: dict = {}
         #: fragment → (model version, hubness μ: mean logit against its candidates)
         self.hubness: dict[str, tuple[str, float]] = {}
 
@@ -114,7 +114,7 @@ class MatchIndex:
         if boundary_profile is not None:
             p = np.asarray(boundary_profile, np.float32)
             if p.ndim == 2 and len(p) >= 3 and p.shape[1] == len(boundary_channel_names()):
-                self.profiles[cues.fragment] = p
+                self.profiles[cues.fragment] = prepare_ribbon(p, boundary_channel_names())
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
@@ -348,17 +348,15 @@ class MatchIndex:
         for c in candidates:
             if c.fragment in self.profiles and c.other in self.profiles:
                 by_query.setdefault(c.fragment, []).append(c)
-        names = boundary_channel_names()
         for q, group in by_query.items():
-            s, ia, ib = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group], names,
-                                      step_mm=BOUNDARY_STEP_MM)
+            s, arc_a, arc_b = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group])
             p = ribbon_probability(s, model.ribbon)
             half = RIBBON_WINDOW_MM / 2
-            for c, sc, pr, i, j in zip(group, s, p, ia, ib):
+            for c, sc, pr, i, j in zip(group, s, p, arc_a, arc_b):
                 if np.isfinite(sc):
                     c.ribbon_score, c.probability = float(sc), float(pr)
                     # centres of the best run: forwards on the query, backwards on the other
-                    c.ribbon_arc_mm = (float(i * BOUNDARY_STEP_MM + half), float(j * BOUNDARY_STEP_MM - half))
+                    c.ribbon_arc_mm = (float(i + half), float(j - half))
         return sorted(candidates, key=lambda c: -c.probability)
 
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,

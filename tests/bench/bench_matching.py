@@ -7,8 +7,9 @@ synthetic feature tables (allowed for the scale test): each is a real fragment's
 of synthetic walls with its values jittered, so patch counts, value ranges and contours are
 realistic. For each n it prints
 
-* the time to propose joins for one new fragment (stage 1 prune + stage 2 rank, the ``features.ready``
-  path without the alignment check), and separately the alignment check of its best 3;
+* the time to propose joins for one new fragment (stage 1 prune + stage 2 rank + stage 2½ colour
+  ribbon on the best 50, the ``features.ready`` path without the alignment check), and separately
+  the alignment check of its best 3;
 * the full re-rank after a model update: every fragment's proposals recomputed under a new model
   (stage 1 + 2 for all n fragments) and the re-scoring of the stored proposals (10 per fragment);
 * peak resident memory of the process;
@@ -30,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from common.matching.index import MatchIndex  # noqa: E402
-from common.matching.online import rerank, train_model, wall_cues  # noqa: E402
+from common.matching.online import ribbon_calibration, rerank, train_model, wall_cues  # noqa: E402
 from common.matching.pairs import FragmentCues, training_set  # noqa: E402
 from common.synth.wall import generate_wall  # noqa: E402
 
@@ -59,13 +60,14 @@ def main() -> int:
     t = time.perf_counter()
     wall = generate_wall(60, seed=0, dpi=100)
     tables, cues, poses = wall_cues(wall)
-    model, _ = train_model(training_set(cues, poses, wall.adjacency))
+    model, _ = train_model(training_set(cues, poses, wall.adjacency), ribbon=ribbon_calibration(tables, wall.adjacency))
     model2 = copy.deepcopy(model)
     model2.coef = model.coef * (1 + 0.05 * rng.standard_normal(model.coef.shape))
     model2.version = "0002-bench"
-    pool = [(cues[f], tables[f].contour_mm) for f in cues if len(cues[f]) >= 3]
+    pool = [(cues[f], tables[f].contour_mm, tables[f].boundary_profile) for f in cues if len(cues[f]) >= 3]
     print(f"model trained on {wall.id} in {time.perf_counter() - t:.1f} s; pool of {len(pool)} fragments; "
-          f"median {int(np.median([len(c) for c, _ in pool]))} patches per fragment")
+          f"median {int(np.median([len(p[0]) for p in pool]))} patches, "
+          f"{int(np.median([len(p[2]) for p in pool]))} boundary samples per fragment")
     print("wall-clock times on a shared machine; 'cpu' columns are this process's CPU time")
     print(f"{'n':>6s} {'build s':>8s} {'propose ms med/p90':>21s} {'cpu ms':>8s} {'align3 ms':>10s} "
           f"{'full re-rank s/cpu s':>19s} {'re-score s':>10s} {'peak RSS MB':>12s}")
@@ -74,8 +76,8 @@ def main() -> int:
     for n in sizes:
         t = time.perf_counter()
         while n_done < n:
-            c, contour = pool[rng.integers(len(pool))]
-            index.add(jittered(c, f"F{n_done:05d}", rng), contour)
+            c, contour, profile = pool[rng.integers(len(pool))]
+            index.add(jittered(c, f"F{n_done:05d}", rng), contour, profile + 0.02 * rng.standard_normal(profile.shape))
             n_done += 1
         index._ensure()
         build = time.perf_counter() - t
@@ -87,10 +89,10 @@ def main() -> int:
         # one new fragment at a time: add, propose (stage 1 + 2), then remove it again
         times, cpu, align_times = [], [], []
         for r in range(args.repeats):
-            c, contour = pool[rng.integers(len(pool))]
+            c, contour, profile = pool[rng.integers(len(pool))]
             q = jittered(c, f"Q{n}-{r}", rng)
             t, tc = time.perf_counter(), time.process_time()
-            index.add(q, contour)
+            index.add(q, contour, profile + 0.02 * rng.standard_normal(profile.shape))
             found = index.propose(q, model, n_candidates=100, top=10, check=0)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - tc)
@@ -115,15 +117,8 @@ def main() -> int:
               f"{1e3 * np.median(cpu):8.1f} {1e3 * np.median(align_times):10.1f} {full:9.1f} / {full_cpu:7.1f} "
               f"{rescore:10.1f} {peak_rss_mb():12.0f}")
         sys.stdout.flush()
-        assert found  # the last query got proposals
+        assert found and np.isfinite(found[0].ribbon_score)  # the last query got ribbon-ranked proposals
     return 0
-
-
-def _remove(index: MatchIndex, fragment: str) -> None:
-    index._order.remove(fragment)
-    index.cues.pop(fragment)
-    index.contours.pop(fragment, None)
-    index._dirty = True
 
 
 if __name__ == "__main__":
