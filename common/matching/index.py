@@ -23,10 +23,12 @@ On the synthetic test wall it raises top-5 recall of true neighbours from 0.22 t
 
 Stage 2½ — **ribbon**: the best ``RIBBON_CANDIDATES`` of stage 2 are re-ranked by the colour
 ribbon (:mod:`common.matching.ribbon`: do the paint and the plaster continue across the two
-boundaries?), whose score the model's calibration turns into the join probability. The patch
+boundaries?), whose score the model's calibration turns into the join probability. The rarity of
+the query's boundary colours is measured against a reference sample of the index's boundaries,
+rebuilt whenever the index has grown or shrunk by a tenth. The patch
 classifier decides which candidates get this far (and learns from verdicts); the ribbon decides
-their order. On the synthetic test wall this raises top-5 recall of true neighbours from 0.24 to
-0.4 (docs/matching.md). Fragments without a boundary profile (feature tables older than schema
+their order. On the synthetic test wall this raises top-5 recall of true neighbours from 0.25 to
+about 0.5 (docs/matching.md). Fragments without a boundary profile (feature tables older than schema
 version 2) or a model without a ribbon calibration keep the stage-2 ranking.
 
 Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
@@ -46,7 +48,8 @@ from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
-from common.matching.ribbon import RIBBON_WINDOW_MM, prepare_ribbon, ribbon_probability, ribbon_scores
+from common.matching.ribbon import (RIBBON_WINDOW_MM, prepare_ribbon, ribbon_population, ribbon_probability,
+                                    ribbon_scores, sample_rarity)
 
 
 #: a query's hubness is (re)estimated only from at least this many scored candidates
@@ -91,6 +94,8 @@ class MatchIndex:
         self.contours: dict[str, np.ndarray] = {}
         #: fragment → its boundary profile prepared for the ribbon (features schema ≥ 2)
         self.profiles: dict = {}
+        self._population = None     # rarity reference (ribbon.py), rebuilt as the index grows
+        self._population_n = 0
         #: fragment → (model version, hubness μ: mean logit against its candidates)
         self.hubness: dict[str, tuple[str, float]] = {}
 
@@ -348,8 +353,12 @@ class MatchIndex:
         for c in candidates:
             if c.fragment in self.profiles and c.other in self.profiles:
                 by_query.setdefault(c.fragment, []).append(c)
+        n = len(self.profiles)
+        if self._population is None or abs(n - self._population_n) > max(2, n // 10):
+            self._population, self._population_n = ribbon_population(self.profiles), n
         for q, group in by_query.items():
-            s, arc_a, arc_b = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group])
+            rarity = sample_rarity(self.profiles[q], self._population, fragment=q)
+            s, arc_a, arc_b = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group], rarity=rarity)
             p = ribbon_probability(s, model.ribbon)
             half = RIBBON_WINDOW_MM / 2
             for c, sc, pr, i, j in zip(group, s, p, arc_a, arc_b):

@@ -128,3 +128,49 @@ def test_ribbon_profiles_without_colour_channels_or_of_the_wrong_width_are_refus
         prepare_ribbon(a, NAMES, step_mm=0)
     with pytest.raises(ValueError, match="window_mm"):
         ribbon_scores(_ribbon(a), [_ribbon(a)], window_mm=0)
+
+
+def _flat_profile(colours):
+    """A profile whose √albedo and standardised channels both hold ``colours`` (K, 3) at both
+    depths, without thickness."""
+    c = np.asarray(colours, np.float32)
+    p = np.full((len(c), len(NAMES)), np.nan, np.float32)
+    for k, name in enumerate(NAMES):
+        if not name.startswith("thickness@"):
+            p[:, k] = c[:, "rgb".index(name.split("_")[1][0])]
+    return _ribbon(p)
+
+
+def test_rarity_is_low_for_common_colours_and_ignores_the_fragments_own_samples():
+    from common.matching.ribbon import ribbon_population, sample_rarity
+
+    grey, red = np.full((40, 3), 0.6), np.tile([0.9, 0.2, 0.2], (40, 1))
+    profiles = {f"g{i}": _flat_profile(grey) for i in range(5)} | {"red": _flat_profile(red)}
+    pop = ribbon_population(profiles)
+    assert np.allclose(sample_rarity(profiles["g0"], pop, fragment="g0"), 0.0, atol=1e-6)
+    # the red fragment's own samples do not count: its nearest others are grey, |Δ| over 6 channels
+    expected = np.sqrt(2 * ((0.9 - 0.6) ** 2 + 2 * (0.2 - 0.6) ** 2))
+    np.testing.assert_allclose(sample_rarity(profiles["red"], pop, fragment="red"), expected, rtol=1e-4)
+    assert np.allclose(sample_rarity(profiles["red"], pop), 0.0, atol=1e-6)
+
+
+def test_rarity_lets_a_match_of_unusual_colours_beat_a_match_of_a_plain_field():
+    """Query A: half of its boundary plain grey (a field many fragments share), half painted bands.
+    C is plain grey and fits A's grey half exactly; B is the true partner, whose bands face A's
+    with a little noise. Without the rarity correction C wins, with it B."""
+    from common.matching.ribbon import ribbon_population, sample_rarity
+
+    rng = np.random.default_rng(0)
+    bands = np.repeat(rng.uniform(0.1, 0.9, (8, 3)), 6, axis=0)            # 48 samples, 6 mm bands
+    a = np.vstack([np.full((48, 3), 0.6), bands])
+    b = np.vstack([bands[::-1] + rng.normal(0, 0.02, bands.shape), np.tile([0.2, 0.5, 0.3], (48, 1))])
+    c = np.full((96, 3), 0.6) + rng.normal(0, 0.002, (96, 3))
+    profiles = {"a": _flat_profile(a), "b": _flat_profile(b), "c": _flat_profile(c)}
+    profiles |= {f"g{i}": _flat_profile(np.full((60, 3), 0.6) + rng.normal(0, 0.01, (60, 3))) for i in range(8)}
+    others = [profiles["b"], profiles["c"]]
+    plain, _, _ = ribbon_scores(profiles["a"], others)
+    assert plain[1] > plain[0], plain
+    rarity = sample_rarity(profiles["a"], ribbon_population(profiles), fragment="a")
+    assert rarity[30:].mean() > 5 * rarity[:20].mean()                     # bands rare, grey common
+    corrected, _, _ = ribbon_scores(profiles["a"], others, rarity=rarity)
+    assert corrected[0] > corrected[1], corrected
