@@ -1,6 +1,6 @@
 """Soak with faults (on demand): many synthetic fragments through every stage while things break.
 
-    python tests/bench/soak.py                      # 300 fragments at 100 dpi (about an hour on 2 busy cores)
+    python tests/bench/soak.py                      # 300 fragments at 100 dpi (capture ~13 min, then ~4 min of station on 2 busy cores)
     python tests/bench/soak.py --fragments 20       # a short run
     python tests/bench/soak.py --captured /tmp/tessera-soak-123/source   # reuse an earlier capture
 
