@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from common.rgbn.image import RGBNImage
+from common.threads import one_blas_thread
 
 #: Luminance weights (ITU-R BT.601, as MATLAB's rgb2gray) used to solve normals from colour
 #: images; with them the DiLiGenT least-squares baseline is reproduced.
@@ -38,19 +39,11 @@ _CHUNK = 1 << 14  # pixels per block: temporaries of N × 16 Ki floats stay in c
 
 
 def _one_blas_thread(func):
-    """Run ``func`` with BLAS limited to one thread.
-
-    The solvers' products are tall and skinny ((P, N) × (N, 6)): memory-bound, and OpenBLAS's
-    threads only contend (measured 5 ms vs 0.8 ms CPU per product on a shared 2-core machine).
-    threadpoolctl comes with scikit-learn; without it the limit is skipped.
-    """
+    """Run ``func`` with BLAS limited to one thread (:mod:`common.threads`): the solvers' products
+    are tall and skinny ((P, N) × (N, 6)), memory-bound."""
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        try:
-            from threadpoolctl import threadpool_limits
-        except ImportError:  # pragma: no cover - scikit-learn brings it
-            return func(*args, **kwargs)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             return func(*args, **kwargs)
     return wrapper
 

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from threadpoolctl import threadpool_limits
 
 from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
@@ -50,6 +49,7 @@ from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
 from common.matching.ribbon import (RIBBON_WINDOW_MM, prepare_ribbon, ribbon_population, ribbon_probability,
                                     ribbon_scores, sample_rarity)
+from common.threads import one_blas_thread
 
 
 #: a query's hubness is (re)estimated only from at least this many scored candidates
@@ -251,7 +251,7 @@ class MatchIndex:
         ``evidence_for``: attach the evidence rows to the best this many only (None: all).
         """
         # many small matrix products: BLAS threads only add overhead (and fight the other workers)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             return self._score(cues, others, model, chunk_rows, evidence_for)
 
     def _score(self, cues, others, model, chunk_rows, evidence_for):
@@ -398,7 +398,13 @@ class MatchIndex:
             self.refresh_hubness(others, model, n_candidates=n_candidates)
         ribbon = self.uses_ribbon(cues.fragment, model)
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
-                           evidence_for=ribbon_candidates if ribbon else top)[:top]
+                           evidence_for=0 if ribbon else top)[:top]
+        if ribbon:
+            # the evidence rows (what a verdict will teach) of the kept candidates only: a patch
+            # pair's rows do not depend on the other candidates, so a small second pass gives them
+            kept = {c.other: c for c in ranked if c.patch_a >= 0}
+            for e in self.score(cues, list(kept), model, evidence_for=None):
+                kept[e.other].evidence = e.evidence
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
         if contour_a is not None:
             for c in ranked[:check]:

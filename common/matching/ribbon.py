@@ -36,7 +36,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+
+from common.threads import one_blas_thread
 
 #: length of the compared run of facing samples, mm
 RIBBON_WINDOW_MM = 20.0
@@ -53,7 +54,7 @@ RIBBON_STEP_MM = 2.0
 RIBBON_RARITY_WEIGHT = 1.0
 RIBBON_RARITY_K = 10
 #: samples kept in the rarity reference population
-RIBBON_POPULATION_SAMPLES = 20000
+RIBBON_POPULATION_SAMPLES = 10000
 
 
 @dataclass
@@ -178,16 +179,16 @@ def sample_rarity(a: RibbonProfile, population: RibbonPopulation, *, fragment=No
     boundary samples.
     """
     flag = bool(a.has_thickness and True in population.owner)
-    d = None
-    for kind in ("sqrt", "std"):
-        m = a.rows[(kind, flag)][0] @ population.rows[(kind, flag)].T
-        d = m if d is None else np.minimum(d, m)
-    d = np.sqrt(np.maximum(d, 0.0))
+    with one_blas_thread():
+        d2 = None
+        for kind in ("sqrt", "std"):
+            m = a.rows[(kind, flag)][0] @ population.rows[(kind, flag)].T
+            d2 = m if d2 is None else np.minimum(d2, m)
     if fragment is not None:
-        d[:, population.owner[flag] == fragment] = np.inf
-    k = max(1, min(k, int(np.isfinite(d[0]).sum()) if len(d) else 1))
-    part = np.partition(d, k - 1, axis=1)[:, :k]
-    return np.where(np.isfinite(part), part, 0.0).mean(axis=1)
+        d2[:, population.owner[flag] == fragment] = np.inf
+    k = max(1, min(k, int(np.isfinite(d2[0]).sum()) if len(d2) else 1))
+    part = np.partition(d2, k - 1, axis=1)[:, :k]      # squared distances: the root of k only
+    return np.sqrt(np.maximum(np.where(np.isfinite(part), part, 0.0), 0.0)).mean(axis=1)
 
 
 def _shifted_min(d: np.ndarray, tol: int, axis: int) -> np.ndarray:
@@ -233,7 +234,7 @@ def ribbon_scores(a: RibbonProfile, others: list, *, rarity: np.ndarray | None =
     if not (window_mm > 0 and tolerance_mm >= 0):
         raise ValueError("window_mm must be positive and tolerance_mm non-negative")
     # small matrix products: BLAS threads only add overhead (and fight the other workers)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _ribbon_scores(a, others, window_mm, tolerance_mm,
                               None if rarity is None else rarity_weight * np.asarray(rarity, float))
 
