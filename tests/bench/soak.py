@@ -44,49 +44,10 @@ from common.bus.client import BrokerClient  # noqa: E402
 from common.config import load_config  # noqa: E402
 from common.messages import unpack  # noqa: E402
 from common.store import Store  # noqa: E402
-from services.cli.perf import _rss_mb, _Station  # noqa: E402
+from services.cli.perf import _capture, _rss_mb, _Station  # noqa: E402
 
 STAGES = ("solver", "features", "renderer", "matcher")
 OUTPUT_DIRS = {"rgbn": "rgbn.ready", "features": "features.ready", "renders": "render.ready"}
-
-
-def _capture(config, root: Path, n: int) -> tuple[list[dict], float]:
-    """Capture n synthetic fragments into ``root`` (plus a calibration); fragment.ready events, s/fragment.
-
-    As a bench operator would, pieces the capture refuses (larger than the bed; a pre-scan that
-    shows no or several objects, e.g. a sliver lying beside its fragment) are put aside and
-    counted, not scanned.
-    """
-    from common.acquisition.calibration import calibrate_scanner, save_calibration, simulated_target_operator
-    from common.acquisition.capture import capture_fragment, simulated_operator, write_scans
-    from common.acquisition.errors import CaptureError
-    from common.acquisition.flatbed_sim import SimulatedFlatbed
-    from common.messages import new_message
-    from services.scanner import fragments
-    sc = config["scanner"]
-    store = Store(root)
-    sim = SimulatedFlatbed("sim", seed=int(sc["seed"]))
-    save_calibration(store, calibrate_scanner(sim, simulated_target_operator(sim), area_mm=(50, 50, 70, 70)))
-    events, t0 = [], time.perf_counter()
-    refused = collections.Counter()
-    for fid, surface in fragments(config, 2 * n):
-        if len(events) == n:
-            break
-        try:
-            sim.place(surface)
-            res = capture_fragment(sim, fid, operator=simulated_operator(sim), dpi=sc["dpi"],
-                                   prescan_dpi=sc["prescan_dpi"], depth=sc["depth"], margin_mm=sc["margin_mm"])
-        except (ValueError, CaptureError) as exc:
-            refused[type(exc).__name__] += 1
-            print(f"  {fid} put aside: {exc}", flush=True)
-            continue
-        ref = write_scans(store, fid, res)
-        events.append(new_message("fragment.ready", fragment=fid, artifact=ref, device=res.device))
-    if len(events) < n:
-        raise RuntimeError(f"only {len(events)} of {n} synthetic fragments could be captured ({dict(refused)})")
-    if refused:
-        print(f"  {sum(refused.values())} piece(s) put aside: {dict(refused)}", flush=True)
-    return events, (time.perf_counter() - t0) / max(1, n)
 
 
 def _captured(source: Path, root: Path, n: int) -> list[dict]:
