@@ -4,9 +4,10 @@
 region in bed millimetres. The background is either an empty-bed pre-scan (best) or estimated
 from the pre-scan itself by a median filter much larger than a fragment. Dust (specks below
 ``min_area_mm2``), bed texture (robust noise threshold from the median absolute deviation) and
-the lamp's shadow (darker than the background, with no texture of its own) are rejected.
-:func:`fragment_mask` segments the fragment in a full-dpi scan of its region, whose outer ring is
-background.
+the lamp's shadow (darker than the background, neutral, with no texture of its own — measured on
+the dark pixels alone, so that the fragment's edge beside a narrow shadow band does not count)
+are rejected. :func:`fragment_mask` segments the fragment in a full-dpi scan of its region, whose
+outer ring is background.
 """
 
 from __future__ import annotations
@@ -69,9 +70,20 @@ def _foreground(img: np.ndarray, bg: np.ndarray, pixel_mm: float, k: float,
     # the lamp's shadow: darker than the background in every channel, with the background's hue
     lum, blum = sm.mean(axis=2), bg.mean(axis=2) + 1e-6
     chroma = np.abs(sm / (lum[..., None] + 1e-6) - bg / blum[..., None]).sum(axis=2)
-    tex = cv2.GaussianBlur(np.abs(cv2.Laplacian(lum, cv2.CV_32F)), (0, 0), max(1.0, 0.5 / pixel_mm))
+    dark = (lum < 0.85 * blum) & (chroma < 0.15)
+    lap = np.abs(cv2.Laplacian(lum, cv2.CV_32F))
+    s = max(1.0, 0.5 / pixel_mm)
+    tex = cv2.GaussianBlur(lap, (0, 0), s)
     btex = np.median(tex)
-    shadow = (lum < 0.85 * blum) & (chroma < 0.15) & (tex < 3 * btex + 1e-4)
+    # the texture of the dark pixels themselves: the Laplacian only where its 3×3 stencil lies in
+    # dark pixels, averaged over them (normalised convolution). Blurred over all pixels, the bright
+    # fragment edge beside a shadow band a few pixels wide (a small, thick fragment at 100 dpi)
+    # passes for texture and the shadow for fragment.
+    inner = cv2.erode(dark.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
+    den = cv2.GaussianBlur(inner, (0, 0), s)
+    own = cv2.GaussianBlur(lap * inner, (0, 0), s) / np.maximum(den, 1e-6)
+    tex = np.where(den > 0.1, own, tex)
+    shadow = dark & (tex < 3 * btex + 1e-4)
     return fg & ~shadow
 
 
@@ -189,16 +201,29 @@ def locate_fragment(prescan: np.ndarray, dpi: float, *, background: np.ndarray |
     return (max(0.0, x0), max(0.0, y0), min(bed_mm[0], x1), min(bed_mm[1], y1))
 
 
-def _group(fg: np.ndarray, join_px: float, min_part_px: int = 0) -> tuple[np.ndarray, int]:
+def _group(fg: np.ndarray, join_px: float, min_part_px: int = 0, min_part_fraction: float = 0.0,
+           drop_edge: bool = False) -> tuple[np.ndarray, int]:
     """Label foreground pixels so that parts closer than ``join_px`` share a label.
 
     Parts smaller than ``min_part_px`` (noise speckles in a shadow, dust) are dropped first so
-    they do not join anything.
+    they do not join anything; with ``min_part_fraction`` > 0 the limit is at most that fraction
+    of the largest part (a small fragment's own pieces, cut off by paint as dark as the lid, are
+    not dust). With ``drop_edge``, parts touching the image's edge other than the largest are
+    dropped too (in a scan of the fragment's region plus a margin they are the bed: a patch of
+    lid texture or shadow).
     """
-    if min_part_px > 0:
+    if min_part_px > 0 or drop_edge:
         n, lab, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
+        area = stats[1:, cv2.CC_STAT_AREA]
+        if min_part_fraction > 0 and len(area):
+            min_part_px = min(min_part_px, max(1.0, min_part_fraction * float(area.max())))
         keep = np.zeros(n, bool)
-        keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_part_px
+        keep[1:] = area >= min_part_px
+        if drop_edge and n > 2:
+            x, y, w, h = (stats[1:, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            edge = (x == 0) | (y == 0) | (x + w == fg.shape[1]) | (y + h == fg.shape[0])
+            edge[int(np.argmax(area))] = False
+            keep[1:] &= ~edge
         fg = keep[lab]
     r = max(0, int(round(join_px / 2)))
     grown = cv2.dilate(fg.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) if r else fg
@@ -223,8 +248,10 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
     standard deviations are foreground, the lamp's shadow is excluded, gaps up to ``close_mm`` are
     closed (for objects of the bed's own colour, e.g. a coin on grey), holes are filled, and the
     largest object is kept with the parts within ``join_mm`` of it (gaps up to 6 mm closed; wider
-    ones, e.g. a broad band of paint as dark as the lid, stay out of the mask). Computed on a copy reduced to about ``work_mm`` per pixel
-    and brought back to full size (the outline to a fraction of that).
+    ones, e.g. a broad band of paint as dark as the lid, stay out of the mask). Parts under 2 mm²
+    (or, for a small fragment, under 2 % of its largest part) are dust; parts other than the
+    largest that reach the region's edge are the bed. Computed on a copy reduced to about
+    ``work_mm`` per pixel and brought back to full size (the outline to a fraction of that).
     """
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi}")
@@ -251,7 +278,10 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
         fg = _fill_holes(fg).astype(np.uint8)
     r = max(1, int(round(0.3 / pixel_mm)))
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
-    labels, n = _group(fg, join_mm / pixel_mm, int(2.0 / pixel_mm ** 2))
+    # parts under 2 mm² are dust or speckle, but under 2 % of the fragment only for a small one
+    # (at 100 dpi, 2 mm² is 31 pixels: the tip of a 60 mm² piece beyond a black band); parts
+    # reaching the region's edge are bed, not fragment
+    labels, n = _group(fg, join_mm / pixel_mm, int(2.0 / pixel_mm ** 2), min_part_fraction=0.02, drop_edge=True)
     if n < 1:
         return np.zeros((H0, W0), bool)
     best = 1 + int(np.argmax(np.bincount(labels.ravel(), minlength=n + 1)[1:]))

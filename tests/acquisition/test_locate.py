@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from common.acquisition.errors import MultipleFragmentsError, NoFragmentError
+from common.acquisition.flatbed_normals import solve_face
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 from common.acquisition.locate import fragment_mask, locate_fragment, locate_fragments
+from common.acquisition.surface import FragmentSurface
 
 
 def _bed(seed=4):
@@ -89,3 +91,87 @@ def test_real_coin_is_found_in_each_raw_platen_scan(shared_data):
         # the coin lies near (400, 450) px in all four, inside the grey field
         assert 330 < cx < 480 and 380 < cy < 520, (rot, cx, cy)
         assert 15 < x1 - x0 < 40 and 15 < y1 - y0 < 40           # a coin of about 24 mm
+
+
+# Outline (mm) of soak fragment s1n600-f880af-045 (generate_wall(600, seed=1)): about 9 × 9 mm,
+# 41 mm², standing 20.5 mm tall. Its lamp shadow along a long edge was kept as fragment in one
+# rotation (mask 20-40 % larger), so registration refused the face.
+_SMALL_OUTLINE_MM = [(1.5, 2.8), (2.5, 5.3), (2.8, 7.4), (4.6, 9.7), (5.1, 11.2), (7.1, 9.4), (10.7, 8.1),
+                     (9.7, 7.4), (7.6, 4.6), (4.6, 3.8), (2.8, 2.3), (2.0, 2.3)]
+# the soak's four placements (angle °, centre mm) that put the shadow along a long edge in the last
+_SMALL_POSES = [(43.8, (36.5, 47.6)), (131.9, (35.9, 51.2)), (222.8, (32.6, 54.5)), (307.5, (36.0, 57.1))]
+
+
+@pytest.fixture(scope="module")
+def small_thick_fragment_scans():
+    """Four rotations of a small, thick ochre fragment at 100 dpi, captured as the station does
+    (pre-scan at 25 dpi, region = located fragment + 5 mm), with the ground-truth masks."""
+    dpi = 100
+    p = 25.4 / dpi
+    n = int(np.ceil(13 / p))
+    mask = np.zeros((n, n), np.uint8)
+    cv2.fillPoly(mask, [np.round(np.array(_SMALL_OUTLINE_MM) / p).astype(np.int32)], 1)
+    albedo = np.empty((n, n, 3), np.float32)
+    albedo[:] = (0.63, 0.46, 0.17)
+    height = cv2.GaussianBlur((0.04 * np.random.default_rng(0).standard_normal((n, n))).astype(np.float32), (0, 0), 1.0)
+    surface = FragmentSurface(albedo, height, mask.astype(bool), dpi, thickness_mm=20.5)
+    sim = SimulatedFlatbed(bed_mm=(100, 100), seed=20)
+    scans, truths = [], []
+    for angle, centre in _SMALL_POSES:
+        sim.place(surface, angle_deg=angle, centre_mm=centre)
+        area = locate_fragment(sim.scan(None, 25), 25, margin_mm=5.0)
+        scans.append(sim.scan(area, dpi))
+        truths.append(sim.truth(area, dpi).mask)
+    return scans, truths, dpi
+
+
+def test_small_thick_fragment_masks_leave_out_the_lamp_shadow_in_every_rotation(small_thick_fragment_scans):
+    scans, truths, dpi = small_thick_fragment_scans
+    areas = []
+    for scan, truth in zip(scans, truths):
+        m = fragment_mask(scan, dpi)
+        # (at 100 dpi the outline is uncertain by about a pixel: 1 px all round is ~15 % of 41 mm²)
+        assert (m & truth).sum() / (m | truth).sum() > 0.8
+        assert (m & ~cv2.dilate(truth.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)).sum() < 10
+        areas.append(int(m.sum()))
+    assert max(areas) / min(areas) < 1.06, areas
+
+
+def test_small_thick_fragment_with_a_shadow_along_its_edge_is_registered_and_solved(small_thick_fragment_scans):
+    scans, truths, dpi = small_thick_fragment_scans
+    a = np.array([0.0, 0.33, 0.54, 0.21])        # a typical simulated-flatbed calibration
+    out, regs = solve_face(scans, dpi, a, nominal_deg=[0, 90, 180, 270])
+    for reg, (angle, _) in zip(regs[1:], _SMALL_POSES[1:]):
+        assert (reg.angle_deg - (angle - _SMALL_POSES[0][0]) + 180) % 360 - 180 == pytest.approx(0, abs=1.0)
+    assert (out.mask & truths[0]).sum() / (out.mask | truths[0]).sum() > 0.8
+
+
+def _region_scan(shape=(80, 80), lid=0.04):
+    """A 100-dpi region scan: dark lid with sensor noise, an ochre fragment body (rows 25-55, cols 15-45)."""
+    img = np.full(shape + (3,), lid, np.float32)
+    img[25:55, 15:45] = (0.45, 0.33, 0.12)
+    return img
+
+
+def _as_scan(img, rng):
+    return np.clip((img + rng.normal(0, 0.001, img.shape)) * 65535, 0, 65535).astype(np.uint16)
+
+
+def test_a_small_fragments_tip_beyond_a_black_band_is_not_dust():
+    rng = np.random.default_rng(1)
+    img = _region_scan()
+    # a tip of dark green paint (4 × 3 px, 0.8 mm²; about 30 px in the blurred difference, under the
+    # 2 mm² = 31 px dust limit) beyond 5 px of black paint as dark as the lid: soak fragment -080
+    img[35:39, 50:53] = (0.05, 0.12, 0.05)
+    m = fragment_mask(_as_scan(img, rng), 100)
+    assert m[35:39, 50:53].all() and m[35:39, 45:50].all()
+    assert not m[:20].any() and not m[60:].any()
+
+
+def test_lid_texture_reaching_the_region_edge_is_not_fragment():
+    rng = np.random.default_rng(2)
+    img = _region_scan()
+    img[0:14, 25:60] = 0.09                     # a brighter patch of lid, neutral and smooth, at the edge
+    m = fragment_mask(_as_scan(img, rng), 100)
+    assert not m[:18].any()
+    assert m[27:53, 17:43].all()
