@@ -80,6 +80,58 @@ def _plot_topk(series: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _run_points(contour_mm: np.ndarray, centre_mm: float, half_mm: float) -> np.ndarray:
+    """Contour points within ``half_mm`` of arc ``centre_mm`` (wrapped), in contour order."""
+    closed = np.vstack([contour_mm, contour_mm[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(closed, axis=0).T))])[:-1]
+    length = arc[-1] + np.hypot(*(contour_mm[0] - contour_mm[-1]))
+    off = (arc - centre_mm + length / 2) % length - length / 2
+    sel = np.flatnonzero(np.abs(off) <= half_mm)
+    return contour_mm[sel[np.argsort(off[sel])]]
+
+
+def _plot_ribbon_examples(wall, tables, index, model, path: Path, n: int = 4) -> None:
+    """The fragments of the test wall whose first proposal is a true neighbour (longest shared
+    crack first), each beside that neighbour, with the ribbon's best 20 mm run drawn on both."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from common.matching.ribbon import RIBBON_WINDOW_MM
+
+    shared = {frozenset(p[:2]): p[2] for p in wall.adjacency}
+    images = {f.id: f.rgbn for f in wall.fragments}
+    hits, seen = [], set()
+    for f in index._order:
+        if not index.uses_ribbon(f, model):
+            continue
+        best = index.rank(index.cues[f], [o for o in index._order if o != f], model)[:1]
+        pair = frozenset((f, best[0].other)) if best else None
+        if pair in shared and pair not in seen:   # each pair once, from the side that found it first
+            seen.add(pair)
+            hits.append((shared[pair], f, best[0]))
+    hits = sorted(hits, key=lambda h: -h[0])[:n]
+    if not hits:
+        return
+    fig, axes = plt.subplots(len(hits), 2, figsize=(6.4, 2.9 * len(hits)), dpi=80, squeeze=False)
+    for row, (length, f, c) in enumerate(hits):
+        for ax, fid, centre in ((axes[row, 0], f, c.ribbon_arc_mm[0]), (axes[row, 1], c.other, c.ribbon_arc_mm[1])):
+            img = images[fid]
+            px = img.pixel_mm
+            rgb = np.clip(img.albedo, 0, 1) ** (1 / 2.2)
+            ax.imshow(np.where(img.mask[..., None], rgb, 1.0), extent=(0, img.shape[1] * px, img.shape[0] * px, 0))
+            run = _run_points(tables[fid].contour_mm, centre, RIBBON_WINDOW_MM / 2)
+            ax.plot(run[:, 0], run[:, 1], color="#e6007e", lw=3)
+            ax.set_title(f"{fid}" + (f"\nproposal 1: p = {c.probability:.2f}, shares {length:.0f} mm" if fid == c.other
+                                      else "\nquery"), fontsize=7)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("Colour ribbon: best 20 mm run (magenta) of true neighbours ranked first", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def _index_of(tables, cues, use_hubness=True):
     idx = MatchIndex(use_hubness=use_hubness)
     for fid, c in cues.items():
@@ -96,7 +148,7 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     ----------
     out_dir : path
         Where ``table_5_3.csv``, ``pr_subsets.png``, ``pr_classifiers.png``, ``crosswall.csv``,
-        ``topk.csv``, ``topk.png`` (and ``dafne_*.csv|png``) go.
+        ``topk.csv``, ``topk.png``, ``pr_pairs.png``, ``ribbon_examples.png`` (and ``dafne_*.csv|png``) go.
     n_fragments, seed, test_seed, dpi : synthetic walls (training wall ``seed``, test wall ``test_seed``)
     folds : cross-validation folds, grouped by fragment pair
     classifiers : classifier kinds compared on all features (logistic also on every subset)
@@ -161,6 +213,7 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     topk["synthetic, stage 2 only (patch classifier)"] = top_k_recall(plain, wall2.adjacency, KS)
     alone = pair_ribbon_scores({f: t.boundary_profile for f, t in tables2.items()}, boundary_channel_names())
     topk["synthetic, colour ribbon alone (every pair)"] = top_k_recall(alone, wall2.adjacency, KS)
+    _plot_ribbon_examples(wall2, tables2, idx2, model, out / "ribbon_examples.png")
     ppr = pair_precision_recall(scores, wall2.adjacency)
     pair_curves = {"synthetic test wall": (ppr["precision"], ppr["recall"], ppr["ap"])}
     n_random = len(idx2) - 1
