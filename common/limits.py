@@ -4,7 +4,8 @@ A flatbed scans between 25 and 4800 dpi; a fresco fragment is at most a metre ac
 of a face stays within a few hundred megapixels. An artifact outside these ranges (a corrupted
 ``dpi`` attribute, a declared 200000 × 200000 dataset) would make a stage resample into terabytes
 or run for hours, so each stage checks the *declared* shapes and attributes of its input before
-reading a pixel (:func:`check_scans_file`, :func:`check_rgbn_file`). A violation raises
+reading a pixel (:func:`check_scans_file`, :func:`check_rgbn_file`; stages call them through
+``read_scans(..., check_limits=True)`` and ``load_rgbn(..., check_limits=True)``). A violation raises
 :class:`~common.store.ArtifactError` naming the value, which the worker reports as rejected: the
 broker parks the job at once with an ``input.rejected`` event.
 

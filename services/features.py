@@ -9,9 +9,8 @@ from __future__ import annotations
 
 from common.features import extract_features, save_features
 from common.features.table import SCHEMA_VERSION
-from common.limits import check_rgbn_file
 from common.messages import MessageError, new_message
-from common.rgbn.image import SCHEMA as RGBN_SCHEMA, read_rgbn
+from common.rgbn.image import load_rgbn
 from common.store import ArtifactRef, content_key
 
 SERVICE = "features"
@@ -44,9 +43,7 @@ def handle(job: dict, ctx) -> list[dict]:
     fragment, face = str(job["fragment"]), str(job.get("face", "front"))
     relpath = output_path(fragment, face, ref.sha256)
     if not ctx.store.exists(relpath):
-        with ctx.store.open(ref, schema=RGBN_SCHEMA) as f:
-            check_rgbn_file(f)  # absurd dpi or sizes are rejected before a pixel is read
-            image = read_rgbn(f)
+        image = load_rgbn(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
         work_mm = work_pixel_mm(ctx.config)
         table = extract_features(image, face=face, fragment=fragment, work_pixel_mm=work_mm,
                                  progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import hashlib
 
-from common.limits import check_rgbn_file
 from common.messages import MessageError, new_message
 from common.render.artifact import SCHEMA_VERSION, save_rendering
 from common.render.recipes import load_recipe, render
-from common.rgbn.image import SCHEMA as RGBN_SCHEMA, read_rgbn
+from common.rgbn.image import load_rgbn
 from common.store import ArtifactRef, content_key
 
 SERVICE = "renderer"
@@ -37,9 +36,7 @@ def handle(job: dict, ctx) -> list[dict]:
     recipe = load_recipe((ctx.config or {}).get("recipe", "default"))
     relpath = output_path(fragment, face, ref.sha256, recipe.source)
     if not ctx.store.exists(relpath):
-        with ctx.store.open(ref, schema=RGBN_SCHEMA) as f:
-            check_rgbn_file(f)  # absurd dpi or sizes are rejected before a pixel is read
-            image = read_rgbn(f)
+        image = load_rgbn(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
         drawn = render(image, recipe, progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
         if drawn.skipped:
             ctx.log.warning("fragment %s %s has no normals: skipped %s", fragment, face, ", ".join(drawn.skipped))

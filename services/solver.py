@@ -16,10 +16,9 @@ from __future__ import annotations
 
 from common.acquisition.calibration import (calibrate_scanner, newest_calibration, save_calibration,
                                             simulated_target_operator)
-from common.acquisition.capture import FACES, SCHEMA as SCANS_SCHEMA, read_scans
+from common.acquisition.capture import FACES, read_scans
 from common.acquisition.errors import CalibrationError
 from common.acquisition.flatbed_normals import colour_only_face, solve_face
-from common.limits import check_scans_file
 from common.messages import MessageError, new_message
 from common.rgbn.image import save_rgbn
 from common.store import ArtifactRef, content_key
@@ -54,9 +53,7 @@ def handle(job: dict, ctx) -> list[dict]:
     ref = ArtifactRef.from_dict(job["artifact"])
     fragment = str(job["fragment"])
     ctx.progress(0.0, "reading scans")
-    with ctx.store.open(ref, schema=SCANS_SCHEMA) as f:
-        check_scans_file(f)  # absurd dpi or sizes are rejected before a pixel is read
-    capture = read_scans(ctx.store, ref)
+    capture = read_scans(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
     cal, cal_ref = _calibration(ctx, capture.device)
     events = []
     faces = [f for f in FACES if capture.scans.get(f)]

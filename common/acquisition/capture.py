@@ -21,6 +21,7 @@ import numpy as np
 from common.acquisition.errors import (CaptureError, MultipleFragmentsError, NoFragmentError,  # noqa: F401
                                        ScannerError)
 from common.acquisition.locate import locate_fragment
+from common.limits import check_scans_file
 from common.store import ArtifactError, ArtifactRef, Store, content_key
 
 SCHEMA = "tessera.scans"
@@ -196,9 +197,15 @@ def write_scans(store: Store, fragment_id: str, result: CaptureResult) -> Artifa
                        provenance={"device": result.device, "calibration": result.calibration, "fragment": fragment_id})
 
 
-def read_scans(store: Store, ref) -> CaptureResult:
-    """Read a ``tessera.scans`` artifact (digest-checked when given a pointer)."""
+def read_scans(store: Store, ref, *, check_limits: bool = False) -> CaptureResult:
+    """Read a ``tessera.scans`` artifact (digest-checked when given a pointer).
+
+    ``check_limits``: first check every scan's declared dpi, size and area against the sane ranges
+    of :mod:`common.limits` (as the solver does with its input), before a pixel is read.
+    """
     with store.open(ref, schema=SCHEMA) as f:
+        if check_limits:
+            check_scans_file(f)
         try:
             res = CaptureResult(str(f.attrs["fragment"]), str(f.attrs["device"]), {},
                                 colour_only=bool(f.attrs["colour_only"]),

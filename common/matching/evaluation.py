@@ -121,8 +121,6 @@ def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=No
     has a boundary profile and the model a ribbon calibration
     (:meth:`~common.matching.index.MatchIndex.rank`; pairs it drops are not proposed). Returns ``{(a, b): probability}`` with ``a < b``, the larger of the two sides'.
     """
-    from common.matching.index import RIBBON_CANDIDATES
-
     order = list(index._order)
     # each fragment's hubness as the matcher service has it: from its own proposal (pruned candidates)
     index.refresh_hubness(order, model, n_candidates=100 if n_candidates is None else n_candidates)
@@ -130,7 +128,7 @@ def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=No
     for i, f in enumerate(order):
         cues = index.cues[f]
         others = [o for o in order if o != f] if n_candidates is None else index.candidates(cues, model, n_candidates)
-        for c in index.rank(cues, others, model, ribbon_candidates=RIBBON_CANDIDATES):
+        for c in index.rank(cues, others, model):
             key = tuple(sorted((c.fragment, c.other)))
             out[key] = max(out.get(key, 0.0), c.probability)
         if progress and (i % 10 == 0 or i == len(order) - 1):

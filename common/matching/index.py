@@ -341,31 +341,22 @@ class MatchIndex:
         """Whether stage 2½ ranks this fragment's candidates (a boundary profile and a calibrated model)."""
         return model.ribbon is not None and fragment in self.profiles
 
-    def rank_by_ribbon(self, candidates: list[Candidate], model: MatchModel) -> list[Candidate]:
-        """Stage 2½: colour-ribbon score and calibrated probability of each candidate, best first.
-
-        Candidates whose fragments have no boundary profile, or all of them under a model without a
-        ribbon calibration, keep their stage-2 probability.
-        """
-        if model.ribbon is None:
-            return list(candidates)
-        by_query: dict = {}
-        for c in candidates:
-            if c.fragment in self.profiles and c.other in self.profiles:
-                by_query.setdefault(c.fragment, []).append(c)
+    def _rank_by_ribbon(self, fragment: str, candidates: list[Candidate], model: MatchModel) -> list[Candidate]:
+        """Stage 2½ for one query fragment (which :meth:`uses_ribbon`): colour-ribbon score and
+        calibrated probability of each candidate, best first; a candidate without a boundary profile
+        keeps its stage-2 probability."""
         n = len(self.profiles)
         if self._population is None or abs(n - self._population_n) > max(2, n // 10):
             self._population, self._population_n = ribbon_population(self.profiles), n
-        for q, group in by_query.items():
-            rarity = sample_rarity(self.profiles[q], self._population, fragment=q)
-            s, arc_a, arc_b = ribbon_scores(self.profiles[q], [self.profiles[c.other] for c in group], rarity=rarity)
-            p = ribbon_probability(s, model.ribbon)
-            half = RIBBON_WINDOW_MM / 2
-            for c, sc, pr, i, j in zip(group, s, p, arc_a, arc_b):
-                if np.isfinite(sc):
-                    c.ribbon_score, c.probability = float(sc), float(pr)
-                    # centres of the best run: forwards on the query, backwards on the other
-                    c.ribbon_arc_mm = (float(i + half), float(j - half))
+        group = [c for c in candidates if c.other in self.profiles]
+        rarity = sample_rarity(self.profiles[fragment], self._population, fragment=fragment)
+        s, arc_a, arc_b = ribbon_scores(self.profiles[fragment], [self.profiles[c.other] for c in group], rarity=rarity)
+        half = RIBBON_WINDOW_MM / 2
+        for c, sc, pr, i, j in zip(group, s, ribbon_probability(s, model.ribbon), arc_a, arc_b):
+            if np.isfinite(sc):
+                c.ribbon_score, c.probability = float(sc), float(pr)
+                # centres of the best run: forwards on the query, backwards on the other
+                c.ribbon_arc_mm = (float(i + half), float(j - half))
         return sorted(candidates, key=lambda c: -c.probability)
 
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
@@ -377,15 +368,15 @@ class MatchIndex:
         valid patch (a small fragment still has a boundary) — are re-ranked by the ribbon and the
         rest dropped. ``evidence_for``: attach evidence rows to the best this many of stage 2 (None: all).
         """
-        if not self.uses_ribbon(cues.fragment, model):
-            return self.score(cues, others, model, evidence_for=evidence_for)
         found = self.score(cues, others, model, evidence_for=evidence_for)
+        if not self.uses_ribbon(cues.fragment, model):
+            return found
         head = found[:ribbon_candidates]
         scored = {c.other for c in found}
         n_cols = len(model.columns)
         head += [Candidate(cues.fragment, o, float("nan"), -1, -1, np.zeros((0, 2), int), np.zeros((0, n_cols)))
                  for o in others if o != cues.fragment and o not in scored and o in self.profiles]
-        return self.rank_by_ribbon(head, model)
+        return self._rank_by_ribbon(cues.fragment, head, model)
 
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
                 check: int = 3, contour_mm: np.ndarray | None = None,

@@ -132,8 +132,8 @@ def _plot_ribbon_examples(wall, tables, index, model, path: Path, n: int = 4) ->
     plt.close(fig)
 
 
-def _index_of(tables, cues, use_hubness=True):
-    idx = MatchIndex(use_hubness=use_hubness)
+def _index_of(tables, cues):
+    idx = MatchIndex()
     for fid, c in cues.items():
         idx.add(c, tables[fid].contour_mm, tables[fid].boundary_profile)
     return idx

@@ -18,6 +18,7 @@ from typing import Mapping
 import h5py
 import numpy as np
 
+from common.limits import check_rgbn_file
 from common.store import ArtifactError, ArtifactRef, Store
 
 SCHEMA = "tessera.rgbn"
@@ -130,7 +131,13 @@ def save_rgbn(store: Store, relpath: str, image: RGBNImage, *, provenance: Mappi
     return store.write(relpath, SCHEMA, SCHEMA_VERSION, lambda f: write_rgbn(f, image), provenance=provenance)
 
 
-def load_rgbn(store: Store, ref: ArtifactRef | Mapping | str) -> RGBNImage:
-    """Load (and digest-check, when given a pointer) a ``tessera.rgbn`` artifact."""
+def load_rgbn(store: Store, ref: ArtifactRef | Mapping | str, *, check_limits: bool = False) -> RGBNImage:
+    """Load (and digest-check, when given a pointer) a ``tessera.rgbn`` artifact.
+
+    ``check_limits``: first check its declared dpi and sizes against the sane ranges of
+    :mod:`common.limits` (as a stage does with its input), before a pixel is read.
+    """
     with store.open(ref, schema=SCHEMA) as f:
+        if check_limits:
+            check_rgbn_file(f)
         return read_rgbn(f)
