@@ -263,7 +263,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
         model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr))
         idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
         all_scores.update(rank_all_pairs(idx, model))
-        plain_scores.update(rank_all_pairs(idx, replace(model, ribbon=None)))
+        plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids}),
+                                           replace(model, ribbon=None)))
         alone_scores.update(pair_ribbon_scores({f: tables[f].boundary_profile for f in test_ids},
                                                boundary_channel_names()))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
