@@ -329,6 +329,8 @@ def test_a_browser_without_the_token_cannot_change_anything(browser, live):
     page = ctx.new_page()
     try:
         page.goto(f"{live.url}/bench")
+        # bench.js shows the notice once it has drawn the page: wait for it, then check both
+        page.wait_for_selector("#login-needed", state="visible", timeout=10_000)
         assert page.is_disabled("#scan-button") and page.is_visible("#login-needed")
         codes = page.evaluate("""async () => {
             const out = [];
