@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import errno
 import hashlib
+import io
 import json
 import os
 import re
@@ -44,6 +46,52 @@ class ArtifactMissing(ArtifactError):
 
 class StorageUnavailable(ArtifactMissing, OSError):
     """The storage root (a mount point, ``create=False``) is not there: nothing can be written."""
+
+
+class StorageError(OSError):
+    """Storage refused a write for a reason of its own, not of the artifact: full or read-only.
+
+    Transient from a worker's point of view (an operator frees space or remounts the share), so
+    it is retried with back-off, never counted as a bad input. Nothing is left behind: the
+    temporary file is removed, the final name never appears.
+    """
+
+
+class StorageFull(StorageError):
+    """Not enough free space on the storage (checked before writing, or ENOSPC/EDQUOT while writing)."""
+
+
+class StorageReadOnly(StorageError):
+    """The storage is mounted read-only or refuses writes (EROFS, EACCES/EPERM on the directory)."""
+
+
+# free space kept in reserve beyond the artifact's own size (file system metadata, other writers)
+FREE_SPACE_MARGIN_BYTES = 1 << 20
+_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+_READONLY_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def _storage_error(exc: OSError, what: str) -> OSError:
+    """The :class:`StorageError` an OS error of a write means, or ``exc`` unchanged."""
+    if isinstance(exc, StorageError):
+        return exc
+    if exc.errno in _FULL_ERRNOS:
+        return StorageFull(exc.errno, f"storage full: cannot write {what} ({os.strerror(exc.errno)})")
+    if exc.errno in _READONLY_ERRNOS:
+        return StorageReadOnly(exc.errno, f"storage read-only: cannot write {what} ({os.strerror(exc.errno)})")
+    return exc
+
+
+def _check_free_space(directory: Path, nbytes: int, what: str) -> None:
+    """Raise :class:`StorageFull` if ``directory``'s file system lacks ``nbytes`` + the margin."""
+    try:
+        st = os.statvfs(directory)
+    except OSError:  # some network file systems do not answer: the write itself will tell
+        return
+    free = st.f_bavail * st.f_frsize
+    if free < nbytes + FREE_SPACE_MARGIN_BYTES:
+        raise StorageFull(errno.ENOSPC, f"storage full: {what} needs {nbytes} bytes, "
+                                        f"{free} free on {directory} (keeping {FREE_SPACE_MARGIN_BYTES} in reserve)")
 
 
 @dataclass(frozen=True)
@@ -137,18 +185,36 @@ def _atomic_file(final: Path) -> Iterator[str]:
     :meth:`Store.sweep_temporary` looks for: host and pid tell whether its writer is alive); on
     any failure it is removed, so readers only ever see finished files.
     """
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.{_host_label()}.{os.getpid()}.", suffix=".tmp",
-                               dir=final.parent)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.{_host_label()}.{os.getpid()}.", suffix=".tmp",
+                                   dir=final.parent)
+    except OSError as exc:
+        raise _storage_error(exc, str(final)) from exc
     os.close(fd)
     try:
         yield tmp
         os.replace(tmp, final)
         _fsync_dir(final.parent)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            mapped = _storage_error(exc, str(final))
+            if mapped is not exc:
+                raise mapped from exc
         raise
+
+
+def _write_bytes(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` with ordinary file I/O and fsync it (errors surface as OSError)."""
+    with open(path, "wb") as fh:
+        view = memoryview(data)
+        while view:
+            n = fh.write(view[:_CHUNK])
+            view = view[n:]
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 class Store:
@@ -219,22 +285,41 @@ class Store:
         ``fill(h5file)`` writes the datasets. If ``relpath`` already exists the artifact is
         immutable: its pointer is returned unchanged (a re-delivered job is harmless), unless
         ``overwrite`` is set (only for files that are not content-keyed, e.g. models).
+
+        The HDF5 file is built in memory (libhdf5 never writes to storage: on a full or
+        read-only file system it can crash the process instead of failing), then the free
+        space is checked and the bytes are written with ordinary file I/O to a temporary name,
+        fsynced and renamed.
+
+        Raises
+        ------
+        StorageFull, StorageReadOnly
+            The storage refused the write; nothing is left behind (no temporary, no final file).
+        StorageUnavailable
+            The root of a mount point is not there.
         """
         final = self.path(relpath)
         if final.exists() and not overwrite:
             return self.ref(relpath)
         self._check_root()
+        image = io.BytesIO()
+        with h5py.File(image, "w") as f:
+            f.attrs["schema"] = schema
+            f.attrs["schema_version"] = int(version)
+            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+            f.attrs["software_version"] = __version__
+            f.attrs["provenance"] = json.dumps(dict(provenance or {}), default=str, sort_keys=True)
+            fill(f)
+        data = image.getbuffer()
+        try:
+            final.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise _storage_error(exc, relpath) from exc
+        _check_free_space(final.parent, len(data), relpath)
         with _atomic_file(final) as tmp:
-            with h5py.File(tmp, "w", locking=self.file_locking) as f:
-                f.attrs["schema"] = schema
-                f.attrs["schema_version"] = int(version)
-                f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
-                f.attrs["software_version"] = __version__
-                f.attrs["provenance"] = json.dumps(dict(provenance or {}), default=str, sort_keys=True)
-                fill(f)
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-        return self.ref(relpath)
+            _write_bytes(tmp, data)
+        digest = hashlib.sha256(data).hexdigest()
+        return ArtifactRef(relpath, digest, len(data))
 
     def import_file(self, source: str | os.PathLike, relpath: str, sha256: str) -> ArtifactRef:
         """Copy a finished artifact file (e.g. from a local spool) to ``relpath``, atomically.
@@ -246,6 +331,12 @@ class Store:
         if final.is_file() and file_sha256(final) == sha256:
             return self.ref(relpath)
         self._check_root()
+        size = os.stat(source).st_size
+        try:
+            final.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise _storage_error(exc, relpath) from exc
+        _check_free_space(final.parent, size, relpath)
         with _atomic_file(final) as tmp:
             h = hashlib.sha256()
             with open(source, "rb") as src, open(tmp, "wb") as dst:

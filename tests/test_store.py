@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from common.store import ArtifactError, ArtifactRef, Store, StorageUnavailable, content_key
+from common.store import (ArtifactError, ArtifactRef, Store, StorageError, StorageFull, StorageReadOnly,
+                          StorageUnavailable, content_key)
 
 
 def _fill(f):
@@ -44,7 +45,7 @@ def test_failed_fill_leaves_nothing(tmp_path):
         raise RuntimeError("disk full")
     with pytest.raises(RuntimeError):
         store.write("d/b.h5", "s", 1, boom)
-    assert list((tmp_path / "d").iterdir()) == []
+    assert not (tmp_path / "d").exists() or list((tmp_path / "d").iterdir()) == []
 
 
 def test_digest_size_truncation_and_schema_are_checked_on_read(tmp_path):
@@ -132,9 +133,19 @@ def test_sweep_removes_only_stale_temporary_files_of_dead_writers(tmp_path):
 
 def test_temporary_name_carries_host_and_pid_of_the_writer(tmp_path):
     from common.store import _TEMP_NAME, _host_label
+    import common.store as cs
     seen = []
     store = Store(tmp_path)
-    store.write("d/front-a.h5", "s", 1, lambda f: seen.extend(p.name for p in (tmp_path / "d").iterdir()))
+    real = cs._write_bytes
+
+    def spy(path, data):
+        seen.extend(p.name for p in (tmp_path / "d").iterdir())
+        real(path, data)
+    cs._write_bytes = spy
+    try:
+        store.write("d/front-a.h5", "s", 1, _fill)
+    finally:
+        cs._write_bytes = real
     m = _TEMP_NAME.match(seen[0])
     assert m and m["final"] == "front-a.h5" and m["host"] == _host_label() and int(m["pid"]) == __import__("os").getpid()
 
@@ -142,13 +153,15 @@ def test_temporary_name_carries_host_and_pid_of_the_writer(tmp_path):
 _WRITER = """
 import sys, time
 sys.path.insert(0, {repo!r})
-from common.store import Store
-def fill(f):
-    f.create_dataset("x", data=[1, 2, 3])
-    f.flush()
+import common.store as cs
+def stalled_write(path, data):  # the file is built in memory; the process dies while writing it out
+    with open(path, "wb") as fh:
+        fh.write(bytes(data[:10]))
+        fh.flush()
     print("writing", flush=True)
     time.sleep(600)
-Store({root!r}).write("fragments/F1/rgbn/front-k.h5", "tessera.test", 1, fill)
+cs._write_bytes = stalled_write
+cs.Store({root!r}).write("fragments/F1/rgbn/front-k.h5", "tessera.test", 1, lambda f: f.create_dataset("x", data=[1, 2, 3]))
 """
 
 
@@ -208,3 +221,98 @@ def test_sweep_keeps_fresh_files_of_other_hosts_and_live_writers_and_spots_reuse
     finally:
         live.kill()
         live.wait(10)
+
+
+# -- full and read-only storage (issue 19: libhdf5 crashed the process with SIGSEGV on ENOSPC) -------
+
+@pytest.fixture
+def tiny_mount(tmp_path):
+    """A 2 MB tmpfs mounted at a fresh directory (needs root; skipped, saying why, otherwise)."""
+    import os
+    import subprocess
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tiny tmpfs needs root")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _big_fill(nbytes):
+    def fill(f):  # incompressible: the file really is this large
+        f.create_dataset("x", data=np.random.default_rng(0).integers(0, 255, nbytes, dtype=np.uint8))
+    return fill
+
+
+_FULL_WRITER = """
+import sys
+sys.path.insert(0, {repo!r})
+import numpy as np
+import common.store as cs
+if {skip_check}:
+    cs._check_free_space = lambda *a: None   # reach the write itself: ENOSPC from the kernel
+store = cs.Store({root!r})
+data = np.random.default_rng(0).integers(0, 255, 3_000_000, dtype=np.uint8)
+try:
+    store.write("fragments/F1/scans/scans-k.h5", "tessera.test", 1, lambda f: f.create_dataset("x", data=data))
+except cs.StorageFull as exc:
+    print("StorageFull:", exc)
+    sys.exit(3)
+print("written?")
+"""
+
+
+@pytest.mark.parametrize("skip_check", [False, True], ids=["free-space-check", "enospc-while-writing"])
+def test_full_disk_raises_storage_full_and_the_process_survives(tiny_mount, skip_check):
+    import subprocess
+    import sys
+    from pathlib import Path
+    repo = str(Path(__file__).resolve().parents[1])
+    r = subprocess.run([sys.executable, "-c", _FULL_WRITER.format(repo=repo, root=str(tiny_mount), skip_check=skip_check)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3, f"exit {r.returncode} (139 = the segfault of issue 19): {r.stdout}{r.stderr}"
+    assert "storage full" in r.stdout
+    assert not [p for p in tiny_mount.rglob("*") if p.is_file()], "nothing half-written left behind"
+
+
+def test_full_disk_check_names_the_artifact_and_sizes(tiny_mount):
+    store = Store(tiny_mount)
+    with pytest.raises(StorageFull, match=r"fragments/F1/rgbn/front-k.h5 needs \d+ bytes, \d+ free"):
+        store.write("fragments/F1/rgbn/front-k.h5", "tessera.test", 1, _big_fill(3_000_000))
+    small = store.write("fragments/F1/rgbn/front-s.h5", "tessera.test", 1, _fill)  # still usable for what fits
+    assert store.ref(small.path) == small
+
+
+def test_read_only_storage_raises_storage_read_only(tiny_mount):
+    import subprocess
+    store = Store(tiny_mount)
+    store.write("fragments/F1/rgbn/front-a.h5", "tessera.test", 1, _fill)
+    subprocess.run(["mount", "-o", "remount,ro", str(tiny_mount)], check=True)
+    with pytest.raises(StorageReadOnly, match="read-only"):
+        store.write("fragments/F1/rgbn/front-b.h5", "tessera.test", 1, _fill)
+    with pytest.raises(StorageReadOnly):
+        store.write("fragments/F2/rgbn/front-b.h5", "tessera.test", 1, _fill)  # a folder to create
+    assert isinstance(StorageReadOnly(), StorageError) and isinstance(StorageFull(), OSError)
+    with store.open("fragments/F1/rgbn/front-a.h5") as f:  # reading still works
+        assert f["x"].shape == (100,)
+
+
+def test_import_file_on_full_disk_raises_storage_full_and_leaves_nothing(tiny_mount, tmp_path):
+    src = Store(tmp_path / "spool")
+    ref = src.write("fragments/F1/scans/scans-k.h5", "tessera.test", 1, _big_fill(3_000_000))
+    dst = Store(tiny_mount)
+    with pytest.raises(StorageFull):
+        dst.import_file(src.path(ref.path), ref.path, ref.sha256)
+    assert not [p for p in tiny_mount.rglob("*") if p.is_file()]
+
+
+def test_write_returns_the_digest_of_the_bytes_on_disk(tmp_path):
+    store = Store(tmp_path)
+    ref = store.write("a.h5", "s", 1, _big_fill(50_000))
+    assert ref == ArtifactRef("a.h5", hashlib.sha256((tmp_path / "a.h5").read_bytes()).hexdigest(),
+                              (tmp_path / "a.h5").stat().st_size)
