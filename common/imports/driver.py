@@ -1,0 +1,287 @@
+"""The shared import driver: items in, content-keyed artifacts and events out, resumable.
+
+Every ``tessera import <kind>`` describes its work as a list of :class:`ImportItem` (the files
+of one fragment face, its id, the options that change the result) and one ``convert`` function
+that reads an item's files, checks them at the door and writes the artifacts. :func:`run_import`
+does the rest, the same way for every kind:
+
+* **content keys** -- an item's key is the sha256 of its source files, the kind, the kind's
+  algorithm version and its options (:func:`item_key`); ``convert`` names its artifacts with it,
+  so writing one again is a no-op (:meth:`common.store.Store.write` keeps an existing file);
+* **resumable** -- a ledger in the destination (:class:`Ledger`, JSON lines, one fsynced line per
+  item imported) lists the keys done; an interrupted run (Ctrl-C, a killed process, a power cut)
+  started again skips them and imports the rest; nothing is imported twice, and an item whose
+  files changed has a new key and is imported again. Refused items are not recorded: they are
+  tried again on the next run (after the operator fixed them);
+* **sinks** -- where artifacts and events go is a *sink*: :class:`StoreSink` writes straight into a
+  storage root (no events); the bus sink of ``services/cli/imports.py`` writes to shared storage or,
+  when it is unreachable, to the bench's spool, and puts each event into the durable outbox the
+  scanner service uses (:class:`common.bus.outbox.Outbox`), so nothing is lost while the lab is down;
+* **summary** -- :class:`ImportSummary` counts imported / already imported / refused, with each
+  refusal's reason naming the file.
+
+Interface for a kind (see ``services/cli/import_images.py`` for a complete one)::
+
+    from common.imports import ImportItem, ImportRefused, Output
+
+    def convert(item: ImportItem, store: Store) -> list[Output]:
+        image = read_image_checked(item.sources[0])          # raises ImportRefused with the reason
+        ...
+        ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", rgbn)
+        return [Output("rgbn.ready", ref, {"face": item.face})]
+
+    summary = run_import(items, convert, sink, kind="images", version=VERSION, progress=bar)
+
+``convert`` raises :class:`ImportRefused` (or ``ValueError``) for bad input: the item is refused
+with that message and the run goes on. An ``OSError`` while writing to shared storage makes the
+driver try the sink's next store (the spool). Any other exception is a bug: the item is refused
+with the exception's type and message and the run goes on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Mapping, Protocol, Sequence
+
+from common.messages import new_message
+from common.store import ArtifactRef, Store, content_key, file_sha256
+
+log = logging.getLogger("tessera.imports")
+
+
+class ImportRefused(ValueError):
+    """An input that must not be imported; the message names the file and the reason."""
+
+
+@dataclass
+class ImportItem:
+    """One unit of import: the files of one fragment (face), and how to read them.
+
+    Attributes
+    ----------
+    name : str
+        Shown in the progress bar and the summary (usually the main file's name).
+    sources : sequence of path
+        Every file read; their digests key the item.
+    fragment : str
+        Fragment id (inventory id) the artifacts belong to.
+    face : str
+        ``front`` or ``back`` (or what the kind uses).
+    options : dict
+        JSON-serialisable settings that change the result (dpi, convention, metadata, ...):
+        part of the key.
+    key : str
+        Filled in by :func:`run_import` (:func:`item_key`); name artifacts with it.
+    """
+
+    name: str
+    sources: Sequence[str | os.PathLike]
+    fragment: str
+    face: str = "front"
+    options: dict = field(default_factory=dict)
+    key: str = ""
+
+
+@dataclass
+class Output:
+    """One artifact written by ``convert`` and the event that announces it.
+
+    ``fields`` go into the event besides ``fragment`` (the item's) and ``artifact`` (``ref``),
+    e.g. ``{"face": "front"}`` for ``rgbn.ready``.
+    """
+
+    type: str
+    ref: ArtifactRef
+    fields: dict = field(default_factory=dict)
+
+
+@dataclass
+class ImportSummary:
+    """What a run did: keys imported now, skipped as already imported, refused with reasons."""
+
+    imported: list[str] = field(default_factory=list)      # item names
+    skipped: list[str] = field(default_factory=list)       # already in the ledger
+    refused: list[tuple[str, str]] = field(default_factory=list)   # (item name, reason)
+    events: int = 0
+    interrupted: bool = False
+
+    @property
+    def exit_status(self) -> int:
+        """0 when everything is in, 1 when something was refused, 130 when interrupted."""
+        return 130 if self.interrupted else (1 if self.refused else 0)
+
+    def lines(self) -> list[str]:
+        """The summary as lines for a terminal."""
+        out = [f"imported {len(self.imported)}, already imported {len(self.skipped)}, refused {len(self.refused)}"
+               + (f"; {self.events} event(s) queued" if self.events else "")]
+        out += [f"  refused {name}: {reason}" for name, reason in self.refused]
+        if self.interrupted:
+            out.append("interrupted: run the same command again to import the rest")
+        return out
+
+
+class Sink(Protocol):
+    """Where a run's artifacts and events go."""
+
+    def stores(self) -> list[Store]:
+        """Stores to write into, in order of preference (shared storage first, then a fallback)."""
+
+    def emit(self, event: dict, ref: ArtifactRef, store: Store) -> bool:
+        """Announce ``event`` (its artifact ``ref`` was written into ``store``); True if queued."""
+
+    @property
+    def ledger_dir(self) -> Path:
+        """Directory holding the ledger of this destination."""
+
+
+class StoreSink:
+    """Write into a storage root; no events (``tessera import ... --store DIR``).
+
+    The ledger is ``<root>/imports/ledger.jsonl``. ``tessera reconcile`` (or the station) queues the
+    fragments for the later stages.
+    """
+
+    def __init__(self, store: Store):
+        self.store = store
+
+    def stores(self) -> list[Store]:
+        return [self.store]
+
+    def emit(self, event: dict, ref: ArtifactRef, store: Store) -> bool:
+        return False
+
+    @property
+    def ledger_dir(self) -> Path:
+        return self.store.root / "imports"
+
+
+class Ledger:
+    """Keys of the items imported into one destination: an append-only JSON-lines file.
+
+    Each line is written and fsynced after the item's artifacts and events are durable, so a
+    key in the ledger means the item is completely in. A line torn by a crash is ignored.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.done: dict[str, dict] = {}
+        if self.path.is_file():
+            for line in self.path.read_text(errors="replace").splitlines():
+                with contextlib.suppress(ValueError, TypeError, KeyError):
+                    rec = json.loads(line)
+                    self.done[str(rec["key"])] = rec
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.done
+
+    def add(self, record: Mapping) -> None:
+        """Append one record (must carry ``key``), durably."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        line = json.dumps(dict(record), sort_keys=True, default=str)
+        with open(self.path, "a", encoding="utf-8") as fh:
+            # a torn line from an earlier crash must not swallow this one
+            if fh.tell() > 0:
+                with open(self.path, "rb") as rd:
+                    rd.seek(-1, os.SEEK_END)
+                    if rd.read(1) != b"\n":
+                        fh.write("\n")
+            fh.write(line + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.done[str(record["key"])] = dict(record)
+
+
+def item_key(item: ImportItem, kind: str, version: str) -> str:
+    """Content key of an item: digests of its files, the kind, its version and its options."""
+    digests = [file_sha256(p) for p in item.sources]
+    opts = json.dumps(item.options, sort_keys=True, default=str)
+    return content_key(kind, version, item.fragment, item.face, opts, *digests)
+
+
+def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], sink: Sink, *,
+               kind: str, version: str, progress=None, ledger: Ledger | None = None) -> ImportSummary:
+    """Import ``items`` through ``convert`` into ``sink``; resumable, never stops on a bad item.
+
+    Parameters
+    ----------
+    items : iterable of ImportItem
+        The work; a list gives the progress bar its total.
+    convert : callable ``(item, store) -> list[Output]``
+        Reads and checks the item's files, writes its artifacts into ``store`` (content-keyed by
+        ``item.key``), returns what it wrote. Raises :class:`ImportRefused` for bad input.
+    sink : Sink
+        :class:`StoreSink` or the bus sink of ``services/cli/imports.py``.
+    kind, version : str
+        Name of the kind (``"images"``) and its algorithm version: part of every key.
+    progress : ProgressBar, optional
+        Updated after every item (``update(done, name)``).
+    ledger : Ledger, optional
+        Default: ``<sink.ledger_dir>/ledger.jsonl``.
+
+    Returns
+    -------
+    ImportSummary
+        ``interrupted`` is set on KeyboardInterrupt (the ledger then holds every item finished).
+    """
+    items = list(items)
+    ledger = ledger if ledger is not None else Ledger(Path(sink.ledger_dir) / "ledger.jsonl")
+    summary = ImportSummary()
+    try:
+        for i, item in enumerate(items):
+            _one(item, convert, sink, kind, version, ledger, summary)
+            if progress is not None:
+                progress.update(i + 1, item.name)
+    except KeyboardInterrupt:
+        summary.interrupted = True
+    finally:
+        if progress is not None:
+            progress.close()
+    return summary
+
+
+def _one(item, convert, sink, kind, version, ledger, summary) -> None:
+    try:
+        item.key = item_key(item, kind, version)
+    except OSError as exc:
+        summary.refused.append((item.name, f"cannot read {exc.filename or item.name}: {exc.strerror or exc}"))
+        return
+    if item.key in ledger:
+        summary.skipped.append(item.name)
+        return
+    stores = sink.stores()
+    outputs, used = None, None
+    for k, store in enumerate(stores):
+        try:
+            outputs, used = convert(item, store), store
+            break
+        except ValueError as exc:  # ImportRefused and the library's ValueErrors: bad input
+            summary.refused.append((item.name, str(exc)))
+            return
+        except OSError as exc:
+            if k + 1 < len(stores) and not isinstance(exc, FileNotFoundError):
+                log.warning("writing %s to %s failed (%s); using %s", item.name, store.root, exc, stores[k + 1].root)
+                continue
+            summary.refused.append((item.name, f"{type(exc).__name__}: {exc}"))
+            return
+        except Exception as exc:  # a bug must not stop a folder of hundreds; it is reported
+            log.exception("import of %s failed", item.name)
+            summary.refused.append((item.name, f"internal error {type(exc).__name__}: {exc}"))
+            return
+    events = []
+    for out in outputs or []:
+        fields = {"fragment": item.fragment, **out.fields}
+        event = new_message(out.type, artifact=out.ref, **fields)
+        if sink.emit(event, out.ref, used):
+            events.append(event["uid"])
+    summary.events += len(events)
+    ledger.add({"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
+                "face": item.face, "sources": [os.fspath(p) for p in item.sources],
+                "artifacts": [o.ref.path for o in outputs or []], "events": events,
+                "time": _dt.datetime.now(_dt.timezone.utc).isoformat()})
+    summary.imported.append(item.name)
