@@ -51,6 +51,11 @@ class Calibration:
     normals, intensities : (N, 3), (N,)
         The calibration samples.
     dpi, depth : scan settings used.
+    report : list of dict
+        Per target scan: name, tilt, direction, reading, clipped pixels, used or dropped (why), fit
+        residual (:func:`fit_target_readings`).
+    fit_rms : float
+        RMS residual of the first-order fit over the used target scans (full scale 1, albedo 1).
     date : str
         UTC ISO date-time of the calibration.
     """
@@ -67,6 +72,8 @@ class Calibration:
     date: str = field(default_factory=lambda: _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     target_albedo: float = 0.8
     id: str = ""
+    report: list = field(default_factory=list)
+    fit_rms: float = float("nan")
 
     def predict(self, normals: np.ndarray, order: int = 1) -> np.ndarray:
         """Predicted reading of an albedo-1 surface with these normals (..., 3)."""
@@ -132,28 +139,92 @@ def cross_validate(normals: np.ndarray, intensities: np.ndarray) -> dict:
 
 
 def target_normal(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
-    """Normal of a target tilted by ``tilt_deg`` towards ``azimuth_deg`` (x right, y up)."""
+    """Normal of a target tilted by ``tilt_deg`` towards ``azimuth_deg`` (x right, y up).
+
+    ``(sin t cos φ, sin t sin φ, cos t)``: the normal leans towards the direction ``φ`` on the
+    scan image, measured from the image's +x axis (columns, to the right) towards the image's
+    top (rows decreasing), i.e. counter-clockwise as the image is displayed. The target lies
+    face down on the glass, so its edge on that side is the one lifted off the glass. This is the
+    convention of the ``tilt_direction_deg`` column of ``tessera calibrate --from-files``.
+    """
     t, p = np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg)
     return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
 
 
-def measure_target(scan: np.ndarray, dpi: float) -> float:
-    """Mean reading (full scale = 1) over the central part of the target in a scan."""
-    img = to_float(scan).mean(axis=2)
+@dataclass
+class TargetReading:
+    """The target's reading in one scan (§3.3.5), with what the clipping check saw.
+
+    Attributes
+    ----------
+    value : float
+        Median reading over the central part of the target, full scale = 1 (mean of R, G, B).
+    pixels : int
+        Target pixels measured.
+    clipped : int
+        Of those, pixels with a channel at or above ``saturation`` of full scale or at 0 (the
+        sensor's range clipped them: the median of such a scan is not the target's reading).
+    whole_image : bool
+        No background ring was found: the scan is a tight crop of the target, measured whole.
+    """
+
+    value: float
+    pixels: int
+    clipped: int
+    whole_image: bool = False
+
+    @property
+    def clipped_fraction(self) -> float:
+        return self.clipped / max(self.pixels, 1)
+
+
+def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98) -> TargetReading:
+    """Median reading of the calibration target over its central part, with its clipped pixels counted.
+
+    The target is found by :func:`~common.acquisition.locate.fragment_mask` (the scan's outer ring
+    is the bed); a scan cropped to the target itself (no ring of bed) has no such mask and is
+    measured whole. The central half of the target (between the 25th and 75th percentiles of its
+    rows and columns) is used: away from its edges and their shadows.
+
+    Parameters
+    ----------
+    scan : (H, W, 3) or (H, W) array
+        uint8, uint16 or float (full scale 1).
+    dpi : float
+        Scan resolution.
+    saturation : float
+        A pixel with any channel at or above this fraction of full scale counts as clipped.
+    """
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    if not 0 < saturation <= 1:
+        raise ValueError(f"saturation must be in (0, 1], got {saturation}")
+    img = to_float(scan)
     mask = fragment_mask(scan, dpi)
+    whole = False
     if mask.sum() < 16:
-        raise CalibrationError("calibration target not visible in its scan")
-    # keep the central half of the target: away from its edges and their shadows
+        # no target standing out from a ring of bed: a tight crop of the target (uniform), measured whole
+        whole = True
+        mask = np.ones(img.shape[:2], bool)
     rows, cols = np.nonzero(mask)
-    r0, r1 = np.percentile(rows, [25, 75])
-    c0, c1 = np.percentile(cols, [25, 75])
-    sel = mask[int(r0):int(r1) + 1, int(c0):int(c1) + 1]
-    return float(np.median(img[int(r0):int(r1) + 1, int(c0):int(c1) + 1][sel]))
+    r0, r1 = (int(v) for v in np.percentile(rows, [25, 75]))
+    c0, c1 = (int(v) for v in np.percentile(cols, [25, 75]))
+    sel = mask[r0:r1 + 1, c0:c1 + 1]
+    px = img[r0:r1 + 1, c0:c1 + 1][sel]
+    if len(px) < 16:
+        raise CalibrationError("calibration target not visible in its scan")
+    clipped = int(((px >= saturation) | (px <= 0)).any(axis=1).sum())
+    return TargetReading(float(np.median(px.mean(axis=1))), int(len(px)), clipped, whole)
+
+
+def measure_target(scan: np.ndarray, dpi: float) -> float:
+    """Mean reading (full scale = 1) over the central part of the target in a scan (:func:`read_target`)."""
+    return read_target(scan, dpi).value
 
 
 def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilts=DEFAULT_TILTS,
                       azimuths=DEFAULT_AZIMUTHS, dpi: float = 150, depth: int = 16, prescan_dpi: float = 50,
-                      area_mm=None, target_albedo: float = 0.8,
+                      area_mm=None, target_albedo: float = 0.8, saturation: float = 0.98, max_clipped: float = 0.01,
                       progress: Callable[[float, str], None] | None = None) -> Calibration:
     """Scan the target at every tilt × rotation and fit the lamp model (§3.3.5).
 
@@ -168,11 +239,15 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
         Where the calibration jig holds the target; None = find it with a pre-scan each time.
     target_albedo : float
         Diffuse reflectance of the target (readings are divided by it).
+    saturation, max_clipped : float
+        A target scan with more than ``max_clipped`` of its pixels clipped (a channel at or above
+        ``saturation`` of full scale, or at 0) is dropped from the fit and listed in
+        ``Calibration.report`` (:func:`fit_target_readings`).
     """
     poses = [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
     if len(poses) < 6:
         raise ValueError("need at least 6 target poses (tilts × azimuths) to fit and cross-validate")
-    normals, values = [], []
+    readings = []
     for i, (t, a) in enumerate(poses):
         if progress:
             progress(i / len(poses), f"target at tilt {t:g}°, rotation {a:g}°")
@@ -182,11 +257,77 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
             pre = scanner.scan(None, prescan_dpi, depth)
             area = locate_fragment(pre, prescan_dpi, margin_mm=3.0, bed_mm=scanner.bed_mm)
         img = scanner.scan(area, dpi, depth)
-        normals.append(target_normal(t, a))
-        values.append(measure_target(img, dpi) / target_albedo)
-    normals, values = np.array(normals), np.array(values)
-    return fit_calibration(getattr(scanner, "name", "scanner"), normals, values, dpi=dpi, depth=depth,
-                           target_albedo=target_albedo)
+        readings.append(read_target(img, dpi, saturation=saturation))
+    return fit_target_readings(getattr(scanner, "name", "scanner"), readings, [p[0] for p in poses],
+                               [p[1] for p in poses], names=[f"tilt {t:g}° rotation {a:g}°" for t, a in poses],
+                               dpi=dpi, depth=depth, target_albedo=target_albedo, max_clipped=max_clipped)
+
+
+def fit_target_readings(scanner: str, readings: list, tilts_deg, directions_deg, *, names=None,
+                        target_albedo: float = 0.8, max_clipped: float = 0.01, dpi: float = 150.0,
+                        depth: int = 16) -> Calibration:
+    """Fit the lamp model to target readings, dropping clipped ones; per-reading report (§3.3.5).
+
+    Parameters
+    ----------
+    scanner : str
+        Device name the calibration is stored under.
+    readings : list of TargetReading
+        One per target scan (:func:`read_target`).
+    tilts_deg, directions_deg : sequences of float
+        The target's tilt and tilt direction in each scan (:func:`target_normal`: the normal leans
+        towards ``direction`` measured from the image's +x axis, counter-clockwise on the image).
+    names : list of str or None
+        How each reading is called in the report (file names).
+    target_albedo : float
+        Diffuse reflectance of the target; readings are divided by it.
+    max_clipped : float
+        Readings with a larger fraction of clipped pixels are dropped (a clipped median is not the
+        target's reading; the issue measured 0.36° → 0.29° median normal error by dropping them).
+
+    Returns
+    -------
+    Calibration
+        With ``report``: one dict per reading — ``name, tilt_deg, direction_deg, value, pixels,
+        clipped, used, reason, residual`` (measured minus first-order prediction, albedo 1, full
+        scale 1) — and ``fit_rms`` (RMS residual over the used readings).
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than 6 usable readings, or an unphysical fit.
+    """
+    n = len(readings)
+    tilts = np.asarray(tilts_deg, float)
+    dirs = np.asarray(directions_deg, float)
+    if tilts.shape != (n,) or dirs.shape != (n,):
+        raise ValueError(f"tilts_deg and directions_deg must have {n} entries (one per reading), "
+                         f"got {tilts.shape} and {dirs.shape}")
+    if not 0 < target_albedo <= 1:
+        raise ValueError(f"target_albedo must be in (0, 1], got {target_albedo}")
+    names = list(names) if names is not None else [f"reading {i}" for i in range(n)]
+    normals = np.array([target_normal(t, d) for t, d in zip(tilts, dirs)]).reshape(n, 3)
+    values = np.array([r.value for r in readings], float) / target_albedo
+    used = np.array([r.clipped_fraction <= max_clipped for r in readings], bool)
+    report = []
+    for i, r in enumerate(readings):
+        reason = "" if used[i] else (f"{r.clipped} of {r.pixels} target pixels clipped "
+                                     f"({r.clipped_fraction:.1%} > {max_clipped:.1%})")
+        report.append({"name": names[i], "tilt_deg": float(tilts[i]), "direction_deg": float(dirs[i]),
+                       "value": float(r.value), "pixels": int(r.pixels), "clipped": int(r.clipped),
+                       "whole_image": bool(r.whole_image), "used": bool(used[i]), "reason": reason})
+    if used.sum() < 6:
+        dropped = "; ".join(f"{e['name']}: {e['reason']}" for e in report if not e["used"])
+        raise CalibrationError(f"only {int(used.sum())} of {n} target scans are usable, at least 6 are needed"
+                               + (f" (dropped: {dropped})" if dropped else "")
+                               + "; lower the scanner's exposure or add target scans")
+    cal = fit_calibration(scanner, normals[used], values[used], dpi=dpi, depth=depth, target_albedo=target_albedo)
+    resid = values - cal.predict(normals)
+    for e, r in zip(report, resid):
+        e["residual"] = float(r)
+    cal.report = report
+    cal.fit_rms = float(np.sqrt(np.mean(resid[used] ** 2)))
+    return cal
 
 
 def fit_calibration(scanner: str, normals: np.ndarray, intensities: np.ndarray, **kw) -> Calibration:
@@ -230,6 +371,8 @@ def save_calibration(store: Store, cal: Calibration) -> ArtifactRef:
         f.attrs["depth"] = cal.depth
         f.attrs["target_albedo"] = cal.target_albedo
         f.attrs["model"] = "I(n) = a . (nx, ny, nz, 1), normals x right, y up, z to sensor, I full scale = 1"
+        f.attrs["report"] = json.dumps(cal.report)
+        f.attrs["fit_rms"] = float(cal.fit_rms)
         f.create_dataset("a", data=np.asarray(cal.a, float))
         f.create_dataset("second_order", data=np.asarray(cal.second_order, float))
         f.create_dataset("normals", data=cal.normals)
@@ -247,7 +390,9 @@ def load_calibration(store: Store, ref) -> Calibration:
                               cv_rmse=json.loads(f.attrs["cv_rmse"]), order=int(f.attrs["order"]),
                               normals=f["normals"][()], intensities=f["intensities"][()], dpi=float(f.attrs["dpi"]),
                               depth=int(f.attrs["depth"]), date=str(f.attrs["date"]),
-                              target_albedo=float(f.attrs["target_albedo"]))
+                              target_albedo=float(f.attrs["target_albedo"]),
+                              report=json.loads(f.attrs.get("report", "[]")),
+                              fit_rms=float(f.attrs.get("fit_rms", float("nan"))))
         except KeyError as exc:
             raise ArtifactError(f"calibration {f.filename} lacks {exc}") from exc
     cal.id = ref.path if isinstance(ref, ArtifactRef) else str(ref)

@@ -3,11 +3,30 @@
     tessera calibrate                         # the simulated scanner (default [scanner] device)
     tessera calibrate --device sane --sane-device epson2:libusb:001:004
     tessera calibrate --show                  # print the newest valid calibration
+    tessera calibrate --from-files targets.csv --device epson-v850 --dpi 300   # scans of a target made elsewhere
 
 Scans the target at tilts 0–25° and eight rotations (a real scanner asks the operator to set up
 each pose), fits I(n) = a·(nx, ny, nz, 1), prints the leave-one-out error of the first- and
 second-order models and stores ``calibration/<scanner>/<UTC date>-<key>.h5`` under the storage
 root. The solver uses the newest valid calibration of the device that made the scans.
+
+``--from-files MANIFEST`` fits the same model to target scans already on disk (any scanner; PNG or
+TIFF, 8/16-bit, grey or RGB). The manifest is a CSV file with a header and the columns
+
+    file,tilt_deg,tilt_direction_deg
+    flat.png,0,0
+    t10_a0.png,10,0
+    t10_a90.png,10,90
+
+``file`` is relative to the manifest's folder; ``tilt_deg`` is the angle between the target's
+normal and the glass's normal; ``tilt_direction_deg`` is the direction, on the scan image as it
+is displayed, towards which the normal leans: 0 = towards the image's right edge (increasing
+column), 90 = towards its top edge (decreasing row), counter-clockwise on screen — the target's
+edge on that side is the one lifted off the glass. Each scan shows the target with a ring of bed
+around it, or is a crop of the target alone. Scans with more than ``--max-clipped`` of the target's
+pixels clipped (saturated, or at 0) are dropped and listed; the report gives each file's reading,
+clipped pixels and fit residual. Every file is checked at the door (decodes fully, not blank);
+a refused file stops the calibration and nothing is stored.
 """
 
 from __future__ import annotations
@@ -20,7 +39,12 @@ from common.config import add_config_arguments, config_from_arguments
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("calibrate", help="calibrate the scanner's lamp model (§3.3.5)",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--device", choices=["simulated", "sane"], help="scanner backend (default: [scanner] device)")
+    p.add_argument("--device", help="scanner backend, simulated | sane (default: [scanner] device); with "
+                                    "--from-files the device's name, under which the calibration is stored")
+    p.add_argument("--from-files", metavar="MANIFEST",
+                   help="fit from target scans on disk listed in a CSV manifest (file,tilt_deg,tilt_direction_deg)")
+    p.add_argument("--max-clipped", type=float, default=0.01,
+                   help="drop target scans with more than this fraction of clipped pixels (default 0.01)")
     p.add_argument("--sane-device", help="SANE device name (default: [scanner] sane_device)")
     p.add_argument("--name", help="scanner name to store the calibration under (default: the device's name)")
     p.add_argument("--tilts", default="0,5,10,15,20,25", help="target tilts in degrees (comma-separated)")
@@ -47,7 +71,12 @@ def run(args) -> int:
 
     cfg = config_from_arguments(args)
     store = Store(cfg["storage"]["root"])
+    if args.from_files:
+        return _from_files(args, store)
     device = args.device or cfg["scanner"]["device"]
+    if device not in ("simulated", "sane"):
+        print(f"--device must be simulated or sane (or a device name with --from-files), got {device!r}")
+        return 2
     if device == "simulated":
         from common.acquisition.flatbed_sim import SimulatedFlatbed
         scanner = SimulatedFlatbed(args.name or "sim", seed=int(cfg["scanner"]["seed"]))
@@ -98,3 +127,112 @@ def run(args) -> int:
           + ("" if cal.order == 1 else "; the solver still uses the first-order model of eq. 3.4"))
     print(f"stored {ref.path}")
     return 0
+
+
+def read_manifest(path) -> list[tuple]:
+    """Rows ``(file path, tilt_deg, tilt_direction_deg)`` of a target manifest (see the module doc).
+
+    Raises ValueError naming the manifest, the line and what is wrong.
+    """
+    import csv
+    import math
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: manifest does not exist")
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        rows = list(csv.reader(fh))
+    rows = [r for r in rows if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise ValueError(f"{path}: manifest is empty")
+    header = [c.strip().lower() for c in rows[0]]
+    need = ("file", "tilt_deg", "tilt_direction_deg")
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise ValueError(f"{path}: header must name the columns {', '.join(need)}; missing {', '.join(missing)} "
+                         f"(got {', '.join(header)})")
+    col = {c: header.index(c) for c in need}
+    out = []
+    for line, r in enumerate(rows[1:], start=2):
+        try:
+            name = r[col["file"]].strip()
+            tilt, direction = float(r[col["tilt_deg"]]), float(r[col["tilt_direction_deg"]])
+        except (IndexError, ValueError):
+            raise ValueError(f"{path}, line {line}: expected a file name and two numbers, got {r}") from None
+        if not name:
+            raise ValueError(f"{path}, line {line}: empty file name")
+        if not (math.isfinite(tilt) and 0 <= tilt < 60):
+            raise ValueError(f"{path}, line {line}: tilt_deg must be in [0, 60), got {tilt}")
+        if not math.isfinite(direction):
+            raise ValueError(f"{path}, line {line}: tilt_direction_deg must be a number, got {direction}")
+        out.append((path.parent / name, tilt, direction))
+    return out
+
+
+def _from_files(args, store) -> int:
+    from common.acquisition.calibration import TargetReading, fit_target_readings, read_target, save_calibration
+    from common.acquisition.errors import CalibrationError
+    from common.imports import ImportRefused, ProgressBar
+    from common.imports.door import BLACK_FRACTION, read_image_checked
+
+    if not args.device or args.device in ("simulated", "sane"):
+        print("--from-files needs --device NAME: the name of the scanner that made the target scans "
+              "(the calibration is stored under it, and `tessera import scans --device NAME` uses it)")
+        return 2
+    if not args.dpi > 0:
+        print(f"--dpi must be positive, got {args.dpi}")
+        return 2
+    try:
+        rows = read_manifest(args.from_files)
+    except ValueError as exc:
+        print(f"calibration failed: {exc}")
+        return 1
+    readings: list[TargetReading] = []
+    bar = ProgressBar(len(rows), "target scans")
+    try:
+        for i, (path, tilt, direction) in enumerate(rows):
+            # a tight crop of a plain target may look "blank" to the door: check black here instead
+            img = read_image_checked(path, channels=(1, 3, 4), allow_blank=True)
+            px = img.pixels[..., :3] if img.pixels.ndim == 3 else img.pixels
+            if float(px.max()) < BLACK_FRACTION * img.full_scale:
+                raise ImportRefused(f"{path}: is all black: lamp off or lid open?")
+            try:
+                readings.append(read_target(px, args.dpi))
+            except CalibrationError as exc:
+                raise ImportRefused(f"{path}: {exc}") from exc
+            bar.update(i + 1)
+    except ImportRefused as exc:
+        bar.close()
+        print(f"calibration failed, nothing stored: {exc}")
+        return 1
+    bar.close()
+    try:
+        cal = fit_target_readings(args.device, readings, [r[1] for r in rows], [r[2] for r in rows],
+                                  names=[str(r[0].name) for r in rows], target_albedo=args.target_albedo,
+                                  max_clipped=args.max_clipped, dpi=args.dpi,
+                                  depth=16)
+    except (CalibrationError, ValueError) as exc:
+        print(f"calibration failed, nothing stored: {exc}")
+        return 1
+    print(format_report(cal))
+    ref = save_calibration(store, cal)
+    print(f"stored {ref.path}")
+    return 0
+
+
+def format_report(cal) -> str:
+    """The fit-quality report: one line per target scan, dropped ones with the reason, then the model."""
+    lines = [f"{'file':<28} {'tilt':>5} {'dir':>6} {'reading':>8} {'clipped':>9} {'residual':>9}  status"]
+    for e in cal.report:
+        lines.append(f"{e['name'][:28]:<28} {e['tilt_deg']:5.1f} {e['direction_deg']:6.1f} {e['value']:8.4f} "
+                     f"{e['clipped']:>4}/{e['pixels']:<4} {e.get('residual', float('nan')):+9.4f}  "
+                     + ("used" + (" (whole image)" if e["whole_image"] else "") if e["used"]
+                        else f"DROPPED: {e['reason']}"))
+    dropped = sum(not e["used"] for e in cal.report)
+    a = ", ".join(f"{v:+.4f}" for v in cal.a)
+    lines.append(f"scanner {cal.scanner}: a = ({a}) from {len(cal.report) - dropped} target scans"
+                 + (f", {dropped} dropped (clipped)" if dropped else ""))
+    lines.append(f"fit RMS residual {cal.fit_rms:.4f}; leave-one-out RMS error: first order {cal.cv_rmse['first']:.4f}, "
+                 f"second order {cal.cv_rmse['second']:.4f} (full scale 1, albedo 1)")
+    return "\n".join(lines)

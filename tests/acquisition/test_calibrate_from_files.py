@@ -1,0 +1,127 @@
+"""Tests of ``tessera calibrate --from-files`` (services/cli/calibrate.py, common/acquisition/calibration.py).
+
+The target scans are written by the simulated flatbed, whose lamp lies on the image's top side
+(light from +y); the manifest's tilt-direction convention is checked against it.
+"""
+
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+from common.acquisition.calibration import (calibrate_scanner, newest_calibration, read_target,
+                                            simulated_target_operator)
+from common.acquisition.flatbed_sim import SimulatedFlatbed, calibration_target
+from common.store import Store
+from services.cli import main
+
+AREA = (50.0, 50.0, 70.0, 70.0)
+DPI = 150
+POSES = [(0.0, 0.0)] + [(t, a) for t in (10.0, 20.0) for a in (0.0, 90.0, 180.0, 270.0)]
+
+
+def _scan(sim, tilt, direction, crop=False):
+    sim.place(calibration_target(tilt, direction, size_mm=4.0, dpi=300), angle_deg=0.0, centre_mm=(60, 60))
+    img = sim.scan(AREA, DPI)
+    if crop:      # the target alone, no ring of bed
+        n = img.shape[0]
+        img = img[n // 2 - 5:n // 2 + 5, n // 2 - 5:n // 2 + 5]
+    return img
+
+
+def _write_targets(folder, sim, poses=POSES, grey=False, clip=(), crop=False):
+    rows = []
+    for k, (t, a) in enumerate(poses):
+        img = _scan(sim, t, a, crop=crop)
+        if k in clip:
+            img = np.clip(img.astype(np.float64) * 3.0, 0, 65535).astype(np.uint16)
+        name = f"t{t:g}_d{a:g}.png"
+        cv2.imwrite(str(folder / name), img.mean(axis=2).astype(np.uint16) if grey else img[..., ::-1])
+        rows.append((name, t, a))
+    manifest = folder / "targets.csv"
+    with open(manifest, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["file", "tilt_deg", "tilt_direction_deg"])
+        w.writerows(rows)
+    return manifest
+
+
+def test_tilt_direction_convention_matches_the_simulator():
+    # the simulator's lamp is on the image's top side: a target whose normal leans towards the image's
+    # top (direction 90, counter-clockwise from +x on screen) faces the lamp and reads brighter than one
+    # leaning towards the bottom (270); left and right (180, 0) read alike
+    sim = SimulatedFlatbed("conv", bed_mm=(120, 120), seed=1, dust=0)
+    v = {a: read_target(_scan(sim, 20.0, a), DPI).value for a in (0.0, 90.0, 180.0, 270.0)}
+    assert v[90.0] > v[270.0] * 1.1
+    assert v[0.0] == pytest.approx(v[180.0], rel=0.02)
+
+
+def test_from_files_reproduces_the_direct_calibration_of_the_same_scanner(tmp_path):
+    sim = SimulatedFlatbed("sim-files", bed_mm=(120, 120), seed=2, dust=0)
+    manifest = _write_targets(tmp_path, sim)
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-a", "--dpi", str(DPI)]) == 0
+    cal, _ = newest_calibration(Store(store), "bench-a")
+    sim_d = SimulatedFlatbed("d", bed_mm=(120, 120), seed=3, dust=0)
+    direct = calibrate_scanner(sim_d, simulated_target_operator(sim_d, size_mm=4.0), area_mm=AREA,
+                               tilts=(0, 10, 20), azimuths=(0, 90, 180, 270), dpi=DPI)
+    assert np.allclose(cal.a, direct.a, atol=0.01), (cal.a, direct.a)
+    assert cal.a[1] > 0.1          # light from the image's top = +y of the normal frame
+    assert len(cal.report) == len(POSES) and all(e["used"] for e in cal.report)
+    assert cal.fit_rms < 0.01
+
+
+def test_clipped_target_scans_are_dropped_and_reported_per_file(tmp_path, capsys):
+    sim = SimulatedFlatbed("sim-clip", bed_mm=(120, 120), seed=4, dust=0)
+    manifest = _write_targets(tmp_path, sim, clip=(2, 6))
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-b", "--dpi", str(DPI)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("DROPPED") == 2 and "2 dropped (clipped)" in out
+    cal, _ = newest_calibration(Store(store), "bench-b")
+    dropped = [e for e in cal.report if not e["used"]]
+    assert [e["name"] for e in dropped] == ["t10_d90.png", "t20_d90.png"]
+    assert all(e["clipped"] > 0.01 * e["pixels"] for e in dropped)
+    assert all(e["clipped"] == 0 for e in cal.report if e["used"])
+    assert cal.a[1] > 0.1 and cal.fit_rms < 0.01
+
+
+def test_grey_files_and_tight_crops_of_the_target_are_accepted(tmp_path):
+    sim = SimulatedFlatbed("sim-grey", bed_mm=(120, 120), seed=5, dust=0)
+    manifest = _write_targets(tmp_path, sim, grey=True, crop=True)
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-c", "--dpi", str(DPI)]) == 0
+    cal, _ = newest_calibration(Store(store), "bench-c")
+    assert all(e["whole_image"] for e in cal.report)
+    assert cal.a[1] > 0.1
+
+
+@pytest.mark.parametrize("problem", ["missing column", "missing file", "truncated file", "too few"])
+def test_bad_manifest_or_files_are_refused_and_nothing_is_stored(tmp_path, capsys, problem):
+    sim = SimulatedFlatbed("sim-bad", bed_mm=(120, 120), seed=6, dust=0)
+    manifest = _write_targets(tmp_path, sim, poses=POSES[:5] if problem == "too few" else POSES)
+    text = manifest.read_text()
+    if problem == "missing column":
+        manifest.write_text(text.replace("tilt_direction_deg", "azimuth"))
+    elif problem == "missing file":
+        (tmp_path / "t10_d90.png").unlink()
+    elif problem == "truncated file":
+        p = tmp_path / "t10_d90.png"
+        p.write_bytes(p.read_bytes()[:-200])
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-d", "--dpi", str(DPI)]) == 1
+    out = capsys.readouterr().out
+    expected = {"missing column": "tilt_direction_deg", "missing file": "t10_d90.png",
+                "truncated file": "t10_d90.png", "too few": "at least 6"}[problem]
+    assert "calibration failed" in out and expected in out
+    assert not (store / "calibration").exists() or not any((store / "calibration").rglob("*.h5"))
+
+
+def test_from_files_needs_a_device_name(tmp_path, capsys):
+    assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--from-files", "x.csv"]) == 2
+    assert "--device NAME" in capsys.readouterr().out
