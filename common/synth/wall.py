@@ -32,6 +32,7 @@ from common.store import content_key
 from common.synth import deterioration as det
 from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
 from common.synth.painting import Painting, paint_wall, painting_from_image
+from common.synth.realistic import PRESETS, MaterialLoss, lose_material, paint_plaster, plaster_palette, round_outline
 from common.synth.relief import WallRelief, normals_from_height
 
 log = logging.getLogger(__name__)
@@ -153,12 +154,27 @@ class Wall:
 @dataclass
 class _Plan:
     painting: Painting
-    relief: WallRelief
+    relief: WallRelief | None
     fracture: Fracture
+    loss: MaterialLoss | None = None
+
+
+@dataclass
+class _Look:
+    """How fragments are cut out and deteriorated (the same for every fragment of a wall)."""
+    erosion_mm: float
+    surfaces: bool
+    chips_per_cm: float = 0.2
+    round_mm: float = 0.0
+    colour_only: bool = False
+    fade_fraction: float = 0.15
+    discolour_fraction: float = 0.15
+    realistic: bool = False
 
 
 def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image, median_size_mm, sigma,
-          jag_mm, aspect=1.5, image_width_mm=None) -> _Plan:
+          jag_mm, aspect=1.5, image_width_mm=None, palette=None, fracture_kw=None, relief_res_mm=0.25,
+          relief=True, loss=None) -> _Plan:
     if image is not None:
         aspect = image.shape[1] / image.shape[0]
         width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * aspect)
@@ -168,19 +184,23 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
         area = n_pieces * _AREA_FACTOR * median_size_mm ** 2
         H = float(np.sqrt(area / aspect)) + 8.0
         W = float(aspect * (H - 8.0)) + 8.0
-        painting = paint_wall(W, H, rng_paint, style=style)
-    relief = WallRelief(painting, rng_relief)
-    kw = dict(median_size_mm=median_size_mm, sigma=sigma, n_pieces=n_pieces, jag_mm=jag_mm)
+        if style == "pompeii":
+            painting = paint_plaster(W, H, rng_paint, palette=palette)
+        else:
+            painting = paint_wall(W, H, rng_paint, style=style)
+    wall_relief = WallRelief(painting, rng_relief, res_mm=relief_res_mm) if relief else None
+    kw = dict(median_size_mm=median_size_mm, sigma=sigma, n_pieces=n_pieces, jag_mm=jag_mm, **(fracture_kw or {}))
     fracture = (fracture_recursive if mode == "recursive" else fracture_voronoi)(W, H, rng_break, **kw)
-    return _Plan(painting, relief, fracture)
+    return _Plan(painting, wall_relief, fracture, loss)
 
 
-def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Generator, *, erosion_mm: float,
-                  spurious: bool, surfaces: bool = True):
+def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Generator, *, look: _Look,
+                  spurious: bool):
     """Cut one piece out of the wall into its own (rotated) frame and deteriorate it.
 
     Returns (Fragment without id, crack samples {other label: (crack length mm, (K, 2) wall mm)}).
     """
+    erosion_mm, surfaces = look.erosion_mm, look.surfaces and not look.colour_only
     pm = 25.4 / dpi
     g = plan.fracture.grid_mm
     (r0, r1), (c0, c1) = bbox
@@ -230,29 +250,42 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
                 cracks[int(m)] = (float(length), pts[np.sort(keep)])
 
     albedo = plan.painting.sample_grid(G, shape)
-    height = plan.relief.height_grid(G, shape)
-    back_rough = plan.relief.back_rough.grid(G, shape)
-    thick = plan.relief.thickness_grid(G, shape, back_rough=back_rough)
+    if look.colour_only:
+        height = np.zeros(shape, np.float32)
+    else:
+        height = plan.relief.height_grid(G, shape)
+        back_rough = plan.relief.back_rough.grid(G, shape)
+        thick = plan.relief.thickness_grid(G, shape, back_rough=back_rough)
     # deterioration (per fragment: neighbours now differ)
-    mask = det.erode_edges(mask0, pm, rng, depth_mm=erosion_mm) if erosion_mm > 0 else mask0
+    if look.realistic:
+        # plaster lost along each crack (both sides, unevenly), chipped, then worn round
+        mask = lose_material(mask0, labels, label, G, plan.loss) if plan.loss is not None else mask0
+        mask = det.erode_edges(mask, pm, rng, depth_mm=erosion_mm, chips=look.chips_per_cm)
+        mask = det.largest_component(round_outline(mask, look.round_mm / pm))
+    else:
+        mask = det.erode_edges(mask0, pm, rng, depth_mm=erosion_mm) if erosion_mm > 0 else mask0
     if not mask.any():
         mask = mask0
-    height = det.wear_edges(height, mask, pm, radius_mm=max(0.3, erosion_mm))
+    if not look.colour_only:
+        height = det.wear_edges(height, mask, pm, radius_mm=max(0.3, erosion_mm, look.round_mm))
     det.pit_surface(height, albedo, mask, pm, rng)
     det.crack_surface(height, albedo, mask, pm, rng)
     u = rng.random()
     notes = {}
-    if u < 0.15:
+    if u < look.fade_fraction:
         notes["fade"] = float(rng.uniform(0.2, 0.6))
         albedo = det.fade(albedo, notes["fade"])
-    elif u < 0.30:
+    elif u < look.fade_fraction + look.discolour_fraction:
         notes["discolour"] = str(rng.choice(sorted(det.DISCOLOURATIONS)))
         notes["strength"] = float(rng.uniform(0.5, 1.0))
         albedo = det.discolour(albedo, notes["discolour"], notes["strength"])
+    albedo[~mask] = 0.0
+    if look.colour_only:
+        rgbn = RGBNImage(albedo=albedo, mask=mask, dpi=dpi, attrs={"source": "synthetic fresco", "face": "front"})
+        return _finish(rgbn, None, mask, pm, pose, spurious, notes), cracks
     # normals from the height gradient: x right, y up (towards row 0), z to the viewer
     n = normals_from_height(height, pm)
     n[~mask] = (0.0, 0.0, 1.0)
-    albedo[~mask] = 0.0
     med_t = float(np.median(thick[mask]))
     thickness_map = np.where(mask, thick + height - float(np.median(height[mask])), 0.0).astype(np.float32)
     rgbn = RGBNImage(albedo=albedo, mask=mask, dpi=dpi, normals=n, confidence=mask.astype(np.float32),
@@ -269,20 +302,30 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
         back = FragmentSurface(np.fliplr(back_albedo).copy(), np.fliplr(back_h).copy(), np.fliplr(mask).copy(), dpi,
                                thickness_mm=med_t)
         surface = FragmentSurface(albedo, front_h, mask, dpi, thickness_mm=med_t, back=back)
+    return _finish(rgbn, surface, mask, pm, pose, spurious, notes), cracks
+
+
+def _finish(rgbn, surface, mask, pm, pose, spurious, notes) -> Fragment:
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cont = max(contours, key=len).reshape(-1, 2).astype(np.float64) * pm
-    frag = Fragment(id="", rgbn=rgbn, surface=surface, pose=None if spurious else pose, spurious=spurious,
+    return Fragment(id="", rgbn=rgbn, surface=surface, pose=None if spurious else pose, spurious=spurious,
                     area_mm2=float(mask.sum() * pm * pm), contour_mm=cont, notes=notes)
-    return frag, cracks
+
+
+_LEGACY = dict(style="aegean", median_size_mm=30.0, sigma=1.0, missing_fraction=0.2, spurious_fraction=0.05,
+               erosion_mm=0.6, jag_mm=1.5, min_shared_mm=3.0)
 
 
 def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = "recursive",
-                  style: str = "aegean", image: np.ndarray | None = None, image_width_mm: float | None = None,
-                  median_size_mm: float = 30.0, sigma: float = 1.0, missing_fraction: float = 0.2,
-                  spurious_fraction: float = 0.05, erosion_mm: float = 0.6, jag_mm: float = 1.5,
-                  min_shared_mm: float = 3.0, keep_images: bool = True, surfaces: bool = True, workers: int = 1,
+                  style: str | None = None, image: np.ndarray | None = None, image_width_mm: float | None = None,
+                  median_size_mm: float | None = None, sigma: float | None = None,
+                  missing_fraction: float | None = None, spurious_fraction: float | None = None,
+                  erosion_mm: float | None = None, jag_mm: float | None = None, min_shared_mm: float | None = None,
+                  keep_images: bool = True, surfaces: bool = True, workers: int = 1,
                   on_fragment: Callable[[Fragment], None] | None = None,
-                  progress: Callable[[float, str], None] | None = None) -> Wall:
+                  progress: Callable[[float, str], None] | None = None, preset: str | None = None,
+                  palette_seed: int | None = None, colour_only: bool = False, gap_median_mm: float | None = None,
+                  **preset_overrides) -> Wall:
     """Paint, relieve, break and deteriorate a wall; return its fragments and ground truth.
 
     Parameters
@@ -295,14 +338,15 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Sampling of the fragment images (pixel = 25.4 / dpi mm).
     mode : {'recursive', 'voronoi'}
         Breakage model: recursive perpendicular splitting (Shin et al. 2012) or a power diagram.
-    style : {'aegean', 'roman'}
-        Painting style (ignored with ``image``).
+    style : {'aegean', 'roman', 'pompeii'}
+        Painting style (ignored with ``image``); default 'aegean' ('pompeii' with that preset).
     image : (H, W, 3) array, optional
         A user-supplied painting (sRGB) instead of the generated one.
     image_width_mm : float, optional
         Physical width of ``image`` on the wall (default: sized for the fragment count).
     median_size_mm, sigma : float
-        Log-normal fragment size (square root of area): median and log-sd, clipped to 1-20 cm.
+        Log-normal fragment size (square root of area): median and log-sd, clipped to 1-20 cm
+        (default 30 mm and 1.0; the 'pompeii' preset 70 mm and 0.45, clipped to 2-20 cm).
     missing_fraction : float
         Fraction of the broken pieces that are lost (0.1-0.3 is typical of excavations).
     spurious_fraction : float
@@ -325,6 +369,26 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Progress report per fragment.
     workers : int
         Render fragments in this many forked processes (same data as with one).
+    preset : {None, 'pompeii'}
+        None: the original synthetic fresco (colourful Aegean/Roman painting, cm pieces, sub-mm
+        erosion). 'pompeii': looks like RePAIR's real broken Pompeii frescoes -- 2-20 cm pieces,
+        plaster lost along every crack (gaps of a few mm, uneven along the crack, see
+        :class:`~common.synth.realistic.MaterialLoss`), chipped and rounded outlines, mostly plain
+        plaster with sparse faded painting (:func:`~common.synth.realistic.paint_plaster`),
+        spurious fragments from another wall of the same palette, neighbours sharing >= 10 mm of
+        crack. Explicit arguments override the preset's values.
+    palette_seed : int, optional
+        'pompeii' style: walls with the same palette seed share one palette (default: ``seed``).
+    colour_only : bool
+        Fragments without normals, height or surfaces (colour and mask only, like RePAIR);
+        faster.
+    gap_median_mm : float, optional
+        Median gap scale of the material loss (preset 'pompeii': 3.0 mm).
+    **preset_overrides
+        Further preset values: ``min_size_mm``, ``max_size_mm``, ``jag_scale_mm``,
+        ``chips_per_cm``, ``round_mm``, ``fade_fraction``, ``discolour_fraction``,
+        ``relief_res_mm``, ``loss`` (None, 'pompeii' or a dict of
+        :class:`~common.synth.realistic.MaterialLoss` arguments).
 
     Returns
     -------
@@ -341,6 +405,23 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     >>> len(wall.fragments)
     6
     """
+    if preset is not None and preset not in PRESETS:
+        raise ValueError(f"preset must be None or one of {sorted(PRESETS)}, got {preset!r}")
+    known = {"min_size_mm", "max_size_mm", "jag_scale_mm", "chips_per_cm", "round_mm", "fade_fraction",
+             "discolour_fraction", "relief_res_mm", "loss"}
+    if set(preset_overrides) - known:
+        raise ValueError(f"unknown argument(s) {sorted(set(preset_overrides) - known)}; known: {sorted(known)}")
+    base = dict(_LEGACY, **(PRESETS[preset] if preset else {}))
+    base.update({k: v for k, v in preset_overrides.items()})
+    given = dict(style=style, median_size_mm=median_size_mm, sigma=sigma, missing_fraction=missing_fraction,
+                 spurious_fraction=spurious_fraction, erosion_mm=erosion_mm, jag_mm=jag_mm, min_shared_mm=min_shared_mm)
+    base.update({k: v for k, v in given.items() if v is not None})
+    style, median_size_mm, sigma = base["style"], base["median_size_mm"], base["sigma"]
+    missing_fraction, spurious_fraction = base["missing_fraction"], base["spurious_fraction"]
+    erosion_mm, jag_mm, min_shared_mm = base["erosion_mm"], base["jag_mm"], base["min_shared_mm"]
+    realistic = preset is not None or bool(preset_overrides) or colour_only
+    if style not in ("aegean", "roman", "pompeii"):
+        raise ValueError(f"style must be 'aegean', 'roman' or 'pompeii', got {style!r}")
     if int(n_fragments) != n_fragments or n_fragments < 1:
         raise ValueError(f"n_fragments must be a positive integer, got {n_fragments}")
     if not dpi > 0:
@@ -359,6 +440,17 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
                                                                str(np.shape(image))),
                   median_size_mm=median_size_mm, sigma=sigma, missing_fraction=missing_fraction,
                   spurious_fraction=spurious_fraction, erosion_mm=erosion_mm, jag_mm=jag_mm)
+    loss_kw = None
+    if realistic:
+        # (the original walls keep their parameters, hence their ids)
+        loss_kw = base.get("loss")
+        if loss_kw == "pompeii":
+            loss_kw = {}
+        if loss_kw is not None and gap_median_mm is not None:
+            loss_kw = dict(loss_kw, median_mm=float(gap_median_mm))
+        params.update(preset=preset, palette_seed=int(seed if palette_seed is None else palette_seed),
+                      colour_only=bool(colour_only), min_shared_mm=min_shared_mm, loss=loss_kw,
+                      **{k: base.get(k) for k in sorted(known - {"loss"})})
     wall_id = f"s{int(seed)}n{n_fragments}-{content_key(json.dumps(params, sort_keys=True), length=6)}"
     ss = np.random.SeedSequence(int(seed))
     s_paint, s_relief, s_break, s_choice, s_spur, s_frag = ss.spawn(6)
@@ -369,10 +461,17 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     n_pieces = int(np.ceil(n_present / (1.0 - missing_fraction))) if n_present else 0
     rng_choice = np.random.default_rng(s_choice)
 
+    extra = {}
+    if realistic:
+        palette = plaster_palette(params["palette_seed"]) if style == "pompeii" else None
+        fkw = {k: base[k] for k in ("min_size_mm", "max_size_mm", "jag_scale_mm") if base.get(k) is not None}
+        extra = dict(palette=palette, fracture_kw=fkw, relief_res_mm=base.get("relief_res_mm") or 0.25,
+                     relief=not colour_only)
     plan = _plan(max(n_pieces, 1), np.random.default_rng(s_paint), np.random.default_rng(s_relief),
                  np.random.default_rng(s_break), mode=mode, style=style,
                  image=None if image is None else np.asarray(image), median_size_mm=median_size_mm, sigma=sigma,
-                 jag_mm=jag_mm, image_width_mm=image_width_mm)
+                 jag_mm=jag_mm, image_width_mm=image_width_mm,
+                 loss=MaterialLoss(int(seed), **loss_kw) if loss_kw is not None else None, **extra)
     coarse = plan.fracture.coarse_labels
     areas = np.bincount(coarse[coarse >= 0].ravel(), minlength=plan.fracture.n_pieces)
     usable = np.nonzero(areas * plan.fracture.grid_mm ** 2 >= 25.0)[0]  # at least ~5x5 mm
@@ -383,9 +482,11 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     jobs = [(plan, int(lab), False) for lab in present]
     if n_spur:
         sr = np.random.default_rng(s_spur)
-        other = "roman" if style == "aegean" else "aegean"
+        # another wall: the other style, or for 'pompeii' another wall of the same palette
+        other = "pompeii" if style == "pompeii" else ("roman" if style == "aegean" else "aegean")
         splan = _plan(n_spur + 4, sr, sr, sr, mode=mode, style=other, image=None, median_size_mm=median_size_mm,
-                      sigma=sigma, jag_mm=jag_mm)
+                      sigma=sigma, jag_mm=jag_mm,
+                      loss=MaterialLoss(int(seed) + 7919, **loss_kw) if loss_kw is not None else None, **extra)
         sc = splan.fracture.coarse_labels
         sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)
         cand = np.nonzero(sareas * splan.fracture.grid_mm ** 2 >= 25.0)[0]
@@ -403,7 +504,13 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         sl = ndimage.find_objects((pl.fracture.coarse_labels == lab).astype(np.int32))[0]
         tasks.append((j, ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))))
     global _POOL_STATE
-    _POOL_STATE = (jobs, frag_seeds, float(dpi), erosion_mm, surfaces)
+    look = _Look(erosion_mm=erosion_mm, surfaces=surfaces)
+    if realistic:
+        look = _Look(erosion_mm=erosion_mm, surfaces=surfaces and not colour_only,
+                     chips_per_cm=base.get("chips_per_cm", 0.2), round_mm=base.get("round_mm") or 0.0,
+                     colour_only=colour_only, fade_fraction=base.get("fade_fraction", 0.15),
+                     discolour_fraction=base.get("discolour_fraction", 0.15), realistic=True)
+    _POOL_STATE = (jobs, frag_seeds, float(dpi), look)
     pool = None
     try:
         if workers > 1 and len(jobs) > 1 and "fork" in mp.get_all_start_methods():
@@ -432,7 +539,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
             pool.terminate()
         _POOL_STATE = None
 
-    adjacency, corr = _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm)
+    gap_mm = 0.0 if plan.loss is None else 4.0 * plan.loss.median_mm
+    adjacency, corr = _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm, gap_mm)
     order = np.argsort([f.id for f in frags])
     frags = [frags[i] for i in order]
     id_of_label = {lab: fid for fid, lab in label_of.items()}
@@ -450,20 +558,19 @@ _POOL_STATE = None
 
 def _render_task(task):
     j, bbox = task
-    jobs, seeds, dpi, erosion_mm, surfaces = _POOL_STATE
+    jobs, seeds, dpi, look = _POOL_STATE
     pl, lab, spur = jobs[j]
-    return _render_piece(pl, lab, bbox, dpi, np.random.default_rng(seeds[j]), erosion_mm=erosion_mm, spurious=spur,
-                         surfaces=surfaces)
+    return _render_piece(pl, lab, bbox, dpi, np.random.default_rng(seeds[j]), look=look, spurious=spur)
 
 
-def _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm):
+def _ground_truth(frags, label_of, crack_by_label, min_shared_mm, erosion_mm, gap_mm=0.0):
     """Adjacency (shared crack length) and contour correspondences of the present pieces."""
     by_id = {f.id: f for f in frags}
     id_of_label = {lab: fid for fid, lab in label_of.items()}
     trees = {}
     adjacency, corr = [], {}
     done = set()
-    max_gap = 3.0 * erosion_mm + 2.5 + 2.0  # erosion, chips, edge wear
+    max_gap = 3.0 * erosion_mm + 2.5 + 2.0 + gap_mm  # erosion, chips, edge wear, lost material
     for la, cracks in crack_by_label.items():
         for lb, (len_ab, pts) in cracks.items():
             if lb not in id_of_label or (min(la, lb), max(la, lb)) in done:

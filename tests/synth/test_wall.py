@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from common.synth.wall import _plan, _render_piece, generate_wall
+from common.synth.wall import _Look, _plan, _render_piece, generate_wall
 
 
 @pytest.fixture(scope="module")
@@ -98,8 +98,8 @@ def test_normals_are_rotated_with_the_fragment():
     lab = int(np.argmax(np.bincount(c[c >= 0])))
     sl = ndimage.find_objects((c == lab).astype(int))[0]
     bbox = ((sl[0].start, sl[0].stop), (sl[1].start, sl[1].stop))
-    f1, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(1), erosion_mm=0.0, spurious=False)
-    f2, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(2), erosion_mm=0.0, spurious=False)
+    f1, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(1), look=_Look(0.0, True), spurious=False)
+    f2, _ = _render_piece(plan, lab, bbox, 80.0, np.random.default_rng(2), look=_Look(0.0, True), spurious=False)
     assert abs(f1.pose[0] - f2.pose[0]) > 20
 
     def wall_normals(f, p):

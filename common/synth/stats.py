@@ -1,0 +1,386 @@
+"""Statistics of a broken-fresco collection, real or synthetic, measured the same way on both.
+
+A *collection* is a list of pieces -- each an RGBA image (8-bit sRGB colour, alpha = the
+fragment) with, where known, its placement on its object's canvas. :func:`read_collection`
+reads one laid out as ``../shared/data/repair-dev`` (RePAIR: one folder per object, ``truth.csv``
+``rpf,x,y,rot``); :func:`wall_collection` turns a synthetic :class:`~common.synth.wall.Wall` into
+the same form. :func:`collection_statistics` then measures what makes real joins hard:
+
+- **gaps between true neighbours** -- neighbours are pieces whose placed outlines come within
+  ``near_px`` (48 px at 187 dpi, 6.5 mm) of each other along at least ``min_run_px`` (100 px,
+  13.6 mm); for each pair the smallest distance between the placed masks (alpha >= 128), and the
+  median distance along the close run (how much material is lost along the crack);
+- **fragment size** -- square root of the area, and the largest diameter (mm);
+- **contour roughness** -- turning angles of the outline resampled every 0.5 mm, at chord
+  lengths 1, 3 and 10 mm (mean absolute angle, degrees), and the rms distance (mm) between the
+  outline and the outline smoothed by a 5 mm Gaussian along its arc;
+- **plain edge** -- the share of outline length whose band 0.5-3 mm inside the edge is plain
+  plaster: CIELAB chroma ``C* < plain_chroma`` (8) and lightness ``L* > 45``;
+- **colour** -- CIELAB lightness and chroma of the fragment faces (median, 90th percentile), the
+  share of face area with ``C* >= 15`` ("painted");
+- **soft alpha edge** -- width (px) of the band where 0 < alpha < 255: partial pixels / outline.
+
+Pixel figures are given at the collection's own sampling; mm figures use its dpi (RePAIR:
+7.369 px/mm, about 187 dpi, the conversion of RePAIR's own evaluation code).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
+
+REPAIR_DPI = 7.369 * 25.4  # RePAIR's evaluation code: 7.369 px/mm
+
+
+@dataclass
+class Piece:
+    """One fragment of a collection.
+
+    Attributes
+    ----------
+    id : str
+    object : str
+        The object (fresco) it belongs to.
+    rgba : (H, W, 4) uint8
+        sRGB colour and alpha (0 outside, 255 inside, a soft ramp at the edge), cropped.
+    matrix : (2, 3) float array or None
+        Crop pixel (col, row, 1) -> object canvas pixel; None when its place is unknown
+        (a distractor).
+    """
+
+    id: str
+    object: str
+    rgba: np.ndarray
+    matrix: np.ndarray | None = None
+
+
+def _crop(rgba: np.ndarray, pad: int = 2):
+    ys, xs = np.nonzero(rgba[..., 3] > 0)
+    if not ys.size:
+        raise ValueError("the image has no opaque pixel (alpha is 0 everywhere)")
+    r0, c0 = max(int(ys.min()) - pad, 0), max(int(xs.min()) - pad, 0)
+    r1, c1 = int(ys.max()) + pad + 1, int(xs.max()) + pad + 1
+    return rgba[r0:r1, c0:c1].copy(), c0, r0
+
+
+def read_collection(path: str | os.PathLike) -> list[Piece]:
+    """Read a collection laid out as ``repair-dev``: one folder per object with RGBA PNG fragments
+    and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
+    counter-clockwise by ``rot`` degrees about its centre, canvas kept, then put its top-left
+    corner at ``(x, y)``). Folders without ``truth.csv`` give distractors (``matrix`` None).
+
+    Parameters
+    ----------
+    path : path
+        The collection directory.
+
+    Returns
+    -------
+    list of Piece
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise ValueError(f"path {root} is not a directory")
+    pieces = []
+    for obj in sorted(p for p in root.iterdir() if p.is_dir()):
+        truth = {}
+        if (obj / "truth.csv").is_file():
+            with open(obj / "truth.csv", newline="") as fh:
+                for row in csv.DictReader(fh):
+                    truth[row["rpf"]] = (float(row["x"]), float(row["y"]), float(row["rot"]))
+        for png in sorted(obj.glob("*.png")):
+            img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+            if img is None or img.ndim != 3 or img.shape[2] != 4:
+                raise ValueError(f"fragment image {png} is missing or not RGBA")
+            h, w = img.shape[:2]
+            rgba = np.concatenate([img[..., 2::-1], img[..., 3:]], axis=2)
+            crop, c0, r0 = _crop(rgba)
+            M = None
+            if png.name in truth:
+                x, y, rot = truth[png.name]
+                R = cv2.getRotationMatrix2D((w / 2.0, h / 2.0), rot, 1.0)
+                R[:, 2] += (x, y)
+                M = R.copy()
+                M[:, 2] = R[:, :2] @ (c0, r0) + R[:, 2]  # crop pixel -> canvas
+            pieces.append(Piece(png.stem, obj.name, crop, M))
+    if not pieces:
+        raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png)")
+    return pieces
+
+
+def wall_collection(wall, fragments=None, *, alpha_px: float | None = None) -> list[Piece]:
+    """A synthetic (or imported) wall as a collection: each fragment with an image as RGBA
+    (:func:`fragment_rgba`), placed by its pose on a canvas at the wall's dpi.
+
+    Parameters
+    ----------
+    wall : Wall
+    fragments : list of Fragment, optional
+        Fragments with images (default: ``wall.fragments``).
+    alpha_px : float, optional
+        Soft alpha edge width (px) given to the RGBA images (default: what the fragment has).
+    """
+    from common.synth.realistic import fragment_rgba
+
+    out = []
+    for f in (wall.fragments if fragments is None else fragments):
+        if f.rgbn is None:
+            continue
+        rgba = fragment_rgba(f.rgbn, edge_px=alpha_px)
+        crop, c0, r0 = _crop(rgba)
+        M = None
+        if f.pose is not None:
+            pm = f.rgbn.pixel_mm
+            a = np.deg2rad(f.pose[0])
+            R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+            # canvas px = wall mm / pm = R @ (col, row) + t / pm
+            M = np.hstack([R, (np.asarray(f.pose[1:]) / pm)[:, None]])
+            M[:, 2] = R @ (c0, r0) + M[:, 2]
+        out.append(Piece(f.id, wall.id, crop, M))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ gaps
+def _placed(piece: Piece):
+    """Placed mask (alpha >= 128) in a canvas window, its offset, and its outline (canvas px)."""
+    a = piece.rgba[..., 3]
+    h, w = a.shape
+    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float) @ piece.matrix.T
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 2
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 2
+    M = piece.matrix.copy()
+    M[:, 2] -= (x0, y0)
+    warped = cv2.warpAffine(a, M, (int(x1 - x0), int(y1 - y0)), flags=cv2.INTER_LINEAR)
+    mask = warped >= 128
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(cs, key=len).reshape(-1, 2).astype(float) + (x0, y0) if cs else np.zeros((0, 2))
+    return mask, (int(x0), int(y0)), outline
+
+
+def _step_lengths(outline: np.ndarray) -> np.ndarray:
+    """Length of outline attributed to each point (half the steps to both neighbours)."""
+    d = np.hypot(*(np.roll(outline, -1, axis=0) - outline).T)
+    return 0.5 * (d + np.roll(d, 1))
+
+
+def neighbour_gaps(pieces: list[Piece], *, near_px: float = 48.0, min_run_px: float = 100.0) -> list[dict]:
+    """True neighbours of a placed collection and the gaps between them.
+
+    Two pieces of one object are neighbours when each one's placed outline comes within
+    ``near_px`` of the other's along at least ``min_run_px`` (outline length, mean of the two).
+
+    Parameters
+    ----------
+    pieces : list of Piece
+        Pieces with a placement (others are ignored).
+    near_px, min_run_px : float
+        Neighbour definition, canvas pixels.
+
+    Returns
+    -------
+    list of dict
+        One per neighbour pair: ``a``, ``b``, ``object``, ``run_px`` (close outline length),
+        ``min_gap_px`` (smallest distance between the placed masks; 0 where they touch or overlap),
+        ``median_gap_px`` (median distance of the close run to the other outline), ``within3``
+        (share of the close run within 3 px).
+    """
+    if near_px <= 0 or min_run_px <= 0:
+        raise ValueError(f"near_px and min_run_px must be positive, got {near_px}, {min_run_px}")
+    placed = {}
+    for p in pieces:
+        if p.matrix is not None:
+            placed[(p.object, p.id)] = _placed(p)
+    keys = sorted(placed)
+    trees = {k: cKDTree(v[2]) for k, v in placed.items() if len(v[2])}
+    out = []
+    for i, ka in enumerate(keys):
+        ma, (xa, ya), oa = placed[ka]
+        for kb in keys[i + 1:]:
+            if kb[0] != ka[0] or ka not in trees or kb not in trees:
+                continue
+            mb, (xb, yb), ob = placed[kb]
+            if (xb > xa + ma.shape[1] + near_px or xa > xb + mb.shape[1] + near_px
+                    or yb > ya + ma.shape[0] + near_px or ya > yb + mb.shape[0] + near_px):
+                continue
+            da, _ = trees[kb].query(oa, distance_upper_bound=near_px + 1)
+            db, _ = trees[ka].query(ob, distance_upper_bound=near_px + 1)
+            close_a, close_b = da <= near_px, db <= near_px
+            run = 0.5 * (_step_lengths(oa)[close_a].sum() + _step_lengths(ob)[close_b].sum())
+            if run < min_run_px:
+                continue
+            # masks overlapping or touching -> gap 0; else outline-to-outline distance
+            x0, y0 = max(xa, xb), max(ya, yb)
+            x1, y1 = min(xa + ma.shape[1], xb + mb.shape[1]), min(ya + ma.shape[0], yb + mb.shape[0])
+            overlap = x1 > x0 and y1 > y0 and bool(np.any(
+                ma[y0 - ya:y1 - ya, x0 - xa:x1 - xa] & mb[y0 - yb:y1 - yb, x0 - xb:x1 - xb]))
+            gap = 0.0 if overlap else max(0.0, float(min(da.min(), db.min())) - 1.0)
+            dd = np.concatenate([da[close_a], db[close_b]])
+            out.append(dict(object=ka[0], a=ka[1], b=kb[1], run_px=float(run), min_gap_px=gap,
+                            median_gap_px=float(max(0.0, np.median(dd) - 1.0)),
+                            within3=float(np.mean(dd - 1.0 <= 3.0))))
+    return out
+
+
+# -------------------------------------------------------------------------------- per piece
+def _lab(rgb8: np.ndarray) -> np.ndarray:
+    """8-bit sRGB (N, 3) -> CIELAB (N, 3) with L in 0-100 (D65)."""
+    lab = cv2.cvtColor(rgb8.reshape(-1, 1, 3).astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)
+    return lab.reshape(-1, 3)
+
+
+def _turning(outline_mm: np.ndarray, chord_mm: float, step_mm: float) -> float:
+    k = max(1, int(round(chord_mm / step_mm)))
+    if len(outline_mm) < 2 * k + 3:
+        return float("nan")
+    u = np.roll(outline_mm, -k, axis=0) - outline_mm
+    v = outline_mm - np.roll(outline_mm, k, axis=0)
+    ang = np.arctan2(v[:, 0] * u[:, 1] - v[:, 1] * u[:, 0], (u * v).sum(axis=1))
+    return float(np.degrees(np.mean(np.abs(ang))))
+
+
+def _resample(outline: np.ndarray, step: float) -> np.ndarray:
+    closed = np.vstack([outline, outline[:1]])
+    seg = np.hypot(*np.diff(closed, axis=0).T)
+    s = np.concatenate([[0], np.cumsum(seg)])
+    t = np.arange(0.0, s[-1], step)
+    return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
+
+
+def piece_statistics(rgba: np.ndarray, dpi: float, *, plain_chroma: float = 8.0) -> dict:
+    """Size, outline roughness, plain-edge share, colour and alpha-edge width of one fragment.
+
+    Parameters
+    ----------
+    rgba : (H, W, 4) uint8
+        sRGB colour and alpha.
+    dpi : float
+        Sampling (pixel = 25.4 / dpi mm).
+    plain_chroma : float
+        CIELAB chroma below which the edge band counts as plain plaster (with L* > 45).
+
+    Returns
+    -------
+    dict
+        ``size_mm`` (sqrt area), ``diameter_mm``, ``turn1_deg``, ``turn3_deg``, ``turn10_deg``,
+        ``rough_mm``, ``plain_edge``, ``L_median``, ``C_median``, ``C_p90``, ``painted``,
+        ``alpha_edge_px``, ``perimeter_mm``.
+    """
+    rgba = np.asarray(rgba)
+    if rgba.ndim != 3 or rgba.shape[2] != 4 or rgba.dtype != np.uint8:
+        raise ValueError(f"rgba must be an (H, W, 4) uint8 image, got {rgba.shape} {rgba.dtype}")
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    pm = 25.4 / dpi
+    alpha = rgba[..., 3]
+    mask = alpha >= 128
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not cs:
+        raise ValueError("rgba has no pixel with alpha >= 128")
+    outline = max(cs, key=len).reshape(-1, 2).astype(float)
+    perim_px = float(_step_lengths(outline).sum())
+    hull = cv2.convexHull(outline.astype(np.float32)).reshape(-1, 2)
+    diam = float(np.max(np.hypot(*(hull[:, None] - hull[None]).transpose(2, 0, 1)))) if len(hull) > 1 else 0.0
+    step = 0.5
+    o_mm = _resample(outline * pm, step)
+    # roughness: distance to the outline smoothed along its arc (5 mm Gaussian)
+    sm = gaussian_filter1d(o_mm, 5.0 / step, axis=0, mode="wrap")
+    rough = float(np.sqrt(np.mean(np.sum((o_mm - sm) ** 2, axis=1))))
+    # edge band 0.5-3 mm inside; each band pixel belongs to its nearest outline sample
+    dist = cv2.distanceTransform(np.pad(mask.astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1] * pm
+    band = mask & (dist >= 0.5) & (dist <= 3.0)
+    rgb = rgba[..., :3]
+    lab_face = _lab(rgb[mask & (alpha == 255)] if np.any(mask & (alpha == 255)) else rgb[mask])
+    chroma = np.hypot(lab_face[:, 1], lab_face[:, 2])
+    plain = float("nan")
+    yy, xx = np.nonzero(band)
+    if yy.size:
+        samples = _resample(outline, 1.0 / pm)  # one per mm, px
+        _, nearest = cKDTree(samples).query(np.column_stack([xx, yy]))
+        lab_b = _lab(rgb[yy, xx])
+        n = len(samples)
+        cnt = np.bincount(nearest, minlength=n)
+        mean = np.stack([np.bincount(nearest, lab_b[:, j], minlength=n) for j in range(3)], 1) / np.maximum(cnt, 1)[:, None]
+        ok = cnt > 0
+        c_b = np.hypot(mean[ok, 1], mean[ok, 2])
+        plain = float(np.mean((c_b < plain_chroma) & (mean[ok, 0] > 45)))
+    partial = int(np.count_nonzero((alpha > 0) & (alpha < 255)))
+    return dict(size_mm=float(np.sqrt(mask.sum()) * pm), diameter_mm=diam * pm, perimeter_mm=perim_px * pm,
+                turn1_deg=_turning(o_mm, 1.0, step), turn3_deg=_turning(o_mm, 3.0, step),
+                turn10_deg=_turning(o_mm, 10.0, step), rough_mm=rough, plain_edge=plain,
+                L_median=float(np.median(lab_face[:, 0])), C_median=float(np.median(chroma)),
+                C_p90=float(np.percentile(chroma, 90)), painted=float(np.mean(chroma >= 15.0)),
+                alpha_edge_px=partial / max(perim_px, 1.0))
+
+
+# ------------------------------------------------------------------------------ whole collection
+def _q(values, qs=(25, 50, 75)):
+    v = np.asarray([x for x in values if np.isfinite(x)], float)
+    return [float(np.percentile(v, q)) for q in qs] if v.size else [float("nan")] * len(qs)
+
+
+def collection_statistics(pieces: list[Piece], dpi: float, *, near_mm: float = 48 / 7.369,
+                          min_run_mm: float = 100 / 7.369, plain_chroma: float = 8.0,
+                          min_size_mm: float = 10.0) -> dict:
+    """Summary statistics of a collection (see the module notes for the definitions).
+
+    Parameters
+    ----------
+    pieces : list of Piece
+    dpi : float
+        Sampling of the images.
+    near_mm, min_run_mm : float
+        Neighbour definition in mm (default: RePAIR's 48 px and 100 px at 7.369 px/mm).
+    plain_chroma : float
+        Chroma threshold of a plain edge.
+    min_size_mm : float
+        Pieces smaller than this (sqrt area) are crumbs: counted, left out of the per-piece figures.
+
+    Returns
+    -------
+    dict
+        ``n_pieces``, ``n_crumbs``, ``n_pairs``, ``pieces`` (per-piece dicts), ``pairs`` (from
+        :func:`neighbour_gaps`), and quartiles ``[q25, median, q75]`` of ``min_gap_mm``,
+        ``median_gap_mm``, ``size_mm``, ``diameter_mm``, ``turn1_deg``, ``turn3_deg``,
+        ``turn10_deg``, ``rough_mm``, ``plain_edge``, ``L_median``, ``C_median``, ``C_p90``,
+        ``painted``, ``alpha_edge_px``; ``min_gap_within3px`` (share of pairs whose smallest gap is
+        at most 3 px at 187 dpi, 0.41 mm), ``run_within3px`` (share of the close runs within it),
+        ``plain_edge_all`` (outline-length-weighted plain share).
+    """
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    pm = 25.4 / dpi
+    per = []
+    crumbs = 0
+    for p in pieces:
+        s = piece_statistics(p.rgba, dpi, plain_chroma=plain_chroma)
+        s.update(id=p.id, object=p.object)
+        if s["size_mm"] < min_size_mm:
+            crumbs += 1
+            continue
+        per.append(s)
+    pairs = neighbour_gaps(pieces, near_px=near_mm / pm, min_run_px=min_run_mm / pm)
+    for q in pairs:
+        q["min_gap_mm"] = q["min_gap_px"] * pm
+        q["median_gap_mm"] = q["median_gap_px"] * pm
+    out = dict(n_pieces=len(pieces), n_crumbs=crumbs, n_pairs=len(pairs), pieces=per, pairs=pairs, dpi=float(dpi))
+    out["min_gap_mm"] = _q([q["min_gap_mm"] for q in pairs])
+    out["median_gap_mm"] = _q([q["median_gap_mm"] for q in pairs])
+    tol = 3.0 / 7.369
+    out["min_gap_within3px"] = float(np.mean([q["min_gap_mm"] <= tol for q in pairs])) if pairs else float("nan")
+    out["run_within3px"] = float(np.average([q["within3"] for q in pairs], weights=[q["run_px"] for q in pairs])) \
+        if pairs else float("nan")
+    for k in ("size_mm", "diameter_mm", "turn1_deg", "turn3_deg", "turn10_deg", "rough_mm", "plain_edge",
+              "L_median", "C_median", "C_p90", "painted", "alpha_edge_px"):
+        out[k] = _q([s[k] for s in per])
+    w = np.array([s["perimeter_mm"] for s in per])
+    pe = np.array([s["plain_edge"] for s in per])
+    ok = np.isfinite(pe)
+    out["plain_edge_all"] = float(np.average(pe[ok], weights=w[ok])) if ok.any() else float("nan")
+    return out
