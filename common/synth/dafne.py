@@ -21,16 +21,12 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from common.rgbn.image import RGBNImage
+from common.imports.fragments import fragment_from_image
+from common.rgbn.io import srgb_to_linear
 from common.synth.wall import Fragment, Wall
 
 # a boundary at a random angle has max(|cos|, |sin|) contour pixels per pixel of length: mean 2 sqrt(2) / pi
 _BOUNDARY_PX_PER_LENGTH = 2 * np.sqrt(2) / np.pi
-
-
-def _srgb_to_linear(img: np.ndarray) -> np.ndarray:
-    x = img.astype(np.float32) / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def _read_table(path: Path) -> list[list[str]]:
@@ -101,10 +97,9 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
         cont_px = max(contours, key=len).reshape(-1, 2).astype(np.float64) if contours else np.zeros((0, 2))
         fid = f"{wall_id}-{i}"
         rgbn = None
-        if load_images:
-            albedo = _srgb_to_linear(img[..., 2::-1])
-            albedo[~mask] = 0
-            rgbn = RGBNImage(albedo=albedo, mask=mask, dpi=dpi, attrs={"source": "DAFNE", "face": "front"})
+        if load_images:  # the importers' cut-out path: mask alpha > 50 %, albedo linear from sRGB
+            rgbn = fragment_from_image(img[..., [2, 1, 0, 3]], dpi=dpi, background="alpha")
+            rgbn.attrs = {"source": "DAFNE", "face": "front"}
         pose = None
         if i in placements and i not in spurious:
             x, y, ang = placements[i]
@@ -130,7 +125,7 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
     if fresco.is_file():
         img = cv2.imread(str(fresco), cv2.IMREAD_COLOR)
         if img is not None:
-            preview = dict(albedo=_srgb_to_linear(img[..., ::-1]), grid_mm=pm)
+            preview = dict(albedo=srgb_to_linear(img[..., ::-1] / np.float32(255)), grid_mm=pm)
             height, width = img.shape[:2]
     return Wall(wall_id, frags, adjacency, corr, width * pm, height * pm, float(dpi), n_missing=0,
                 params={"source": "DAFNE", "path": str(root), "dpi": dpi, "neighbour_px": neighbour_px},

@@ -1,0 +1,224 @@
+"""Colour-only fragments from photographs or scans: alpha, or a plain background removed.
+
+A lab's fragment collection is often a folder of pictures: RGBA cut-outs (the alpha channel is
+the fragment, possibly with a soft edge), or photographs and scans of each piece on a plain
+background. :func:`fragment_from_image` turns one such picture into a colour-only
+:class:`~common.rgbn.image.RGBNImage` (linear albedo + mask, no normals), the form every later
+stage reads; implausible pictures are refused with the reason instead of giving a wrong mask.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from common.imports.driver import ImportRefused
+from common.rgbn.image import RGBNImage
+from common.rgbn.io import srgb_to_linear
+
+BACKGROUNDS = ("auto", "alpha", "plain")
+
+
+def _full_scale(arr: np.ndarray) -> float:
+    if arr.dtype == np.uint8:
+        return 255.0
+    if arr.dtype == np.uint16:
+        return 65535.0
+    if np.issubdtype(arr.dtype, np.floating):
+        return 1.0
+    raise ValueError(f"image must be uint8, uint16 or float, got {arr.dtype}")
+
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """Holes of a mask filled: background is what the image border reaches."""
+    flood = np.pad((~mask).astype(np.uint8), 1, constant_values=1)
+    cv2.floodFill(flood, None, (0, 0), 2)
+    return flood[1:-1, 1:-1] != 2
+
+
+def _largest_component(fg: np.ndarray) -> np.ndarray:
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros(fg.shape, bool)
+    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+
+
+def _border(a: np.ndarray, width: int) -> np.ndarray:
+    """Pixels (..., C) of the border strip of ``width`` pixels, as rows."""
+    h, w = a.shape[:2]
+    keep = np.zeros((h, w), bool)
+    keep[:width] = keep[-width:] = True
+    keep[:, :width] = keep[:, -width:] = True
+    return keep
+
+
+def background_mask(rgb: np.ndarray, *, margin: float = 6.0, min_contrast: float = 0.06,
+                    border_px: int | None = None) -> tuple[np.ndarray, dict]:
+    """Fragment mask of a picture on a plain background, by its distance from the background colour.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) float array
+        Colour in [0, 1] as stored (sRGB-encoded for photographs: roughly perceptual steps).
+    margin : float
+        The threshold is the background's robust spread (1.4826 MAD of the border pixels'
+        distance from the background model) times ``margin``...
+    min_contrast : float
+        ...but never below this distance in [0, 1] colour units (a perfectly flat synthetic
+        background has zero spread).
+    border_px : int, optional
+        Width of the border strip that samples the background (default 2 % of the smaller side,
+        at least 2 pixels).
+
+    Returns
+    -------
+    mask : (H, W) bool
+        The largest connected region that differs from the background, holes filled.
+    info : dict
+        ``background`` (mean colour), ``threshold``, ``spread`` (units of [0, 1] colour).
+
+    Notes
+    -----
+    The background is modelled per channel as a plane ``c0 + c1 x + c2 y`` fitted to the border
+    strip by least squares, refitted once without the border pixels farther than 3 MAD from the
+    first fit (parts of the fragment reaching the border, dust), so a lamp gradient or vignetting
+    across a scan or photograph does not read as fragment.
+    """
+    rgb = np.asarray(rgb, np.float32)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got shape {rgb.shape}")
+    h, w = rgb.shape[:2]
+    if min(h, w) < 8:
+        raise ValueError(f"rgb is {w}x{h} px: too small to tell a fragment from its background")
+    b = border_px or max(2, int(round(0.02 * min(h, w))))
+    strip = _border(rgb, b)
+    yy, xx = np.nonzero(strip)
+    design = np.stack([np.ones(len(xx)), xx / w - 0.5, yy / h - 0.5], axis=1)
+    samples = rgb[strip].astype(np.float64)
+    keep = np.ones(len(samples), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(design[keep], samples[keep], rcond=None)
+        dist = np.linalg.norm(samples - design @ coef, axis=1)
+        med = float(np.median(dist[keep]))
+        mad = 1.4826 * float(np.median(np.abs(dist[keep] - med))) + 1e-6
+        keep = dist <= med + 3.0 * mad
+    spread = med + mad
+    threshold = max(float(min_contrast), med + margin * mad)
+    c = coef.astype(np.float32)
+    gx = (np.arange(w, dtype=np.float32) / w - 0.5)[None, :, None]
+    gy = (np.arange(h, dtype=np.float32) / h - 0.5)[:, None, None]
+    diff = rgb - c[0]
+    diff -= gx * c[1]
+    diff -= gy * c[2]
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    fg = (dist > threshold).astype(np.uint8)
+    k = max(1, int(round(min(h, w) / 300)))  # specks of noise and dust out, thin necks kept
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((2 * k + 1, 2 * k + 1), np.uint8)) > 0
+    mask = _fill_holes(_largest_component(fg))
+    return mask, {"background": [float(v) for v in coef[0]], "threshold": float(threshold), "spread": float(spread)}
+
+
+def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "auto", alpha_threshold: float = 0.5,
+                        srgb: bool = True, margin: float = 6.0, min_area_fraction: float = 0.001,
+                        max_cover: float = 0.9, max_border_touch: float = 0.1) -> RGBNImage:
+    """A colour-only RGBN image of one fragment from a picture with alpha or on a plain background.
+
+    Parameters
+    ----------
+    image : (H, W), (H, W, 2), (H, W, 3) or (H, W, 4) array
+        Grey, grey + alpha, RGB or RGBA samples, uint8, uint16 or float in [0, 1] (channel order
+        RGB, as :func:`common.imports.door.read_image_checked` returns).
+    dpi : float
+        Sampling density of the picture, dots per inch (pixel = 25.4 / dpi mm).
+    background : {'auto', 'alpha', 'plain'}
+        Where the mask comes from. ``alpha``: alpha above ``alpha_threshold`` of full scale (the
+        soft edge of a cut-out split at half coverage). ``plain``: the picture's background is
+        estimated from its border and removed (:func:`background_mask`). ``auto``: alpha when the
+        image has an alpha channel that is not opaque everywhere, else plain.
+    alpha_threshold : float
+        Fraction of full scale in (0, 1).
+    srgb : bool
+        Decode the sRGB transfer curve to linear albedo (photographs, 8/16-bit scans). False for
+        data that is linear already.
+    margin : float
+        Background threshold in robust spreads (see :func:`background_mask`).
+    min_area_fraction, max_cover : float
+        The fragment must cover at least / at most this fraction of the picture.
+    max_border_touch : float
+        At most this fraction of the picture's border may be fragment (more: the piece is cut
+        off by the frame, or the background is not plain). This and ``max_cover`` apply to a
+        plain background only: a cut-out's alpha may be cropped tight to the piece.
+
+    Returns
+    -------
+    RGBNImage
+        ``albedo`` linear RGB (0 outside the mask), ``mask``, ``dpi``; no normals.
+        ``attrs['mask_from']`` is ``"alpha"`` or ``"plain background"``.
+
+    Raises
+    ------
+    ValueError
+        A bad argument (named). :class:`~common.imports.driver.ImportRefused` (a ValueError) for a
+        picture that gives no plausible fragment: none found, too much of the picture, or cut by
+        the border; the message gives the measured figure.
+
+    Examples
+    --------
+    >>> img = np.full((60, 80, 3), 30, np.uint8); img[15:45, 20:60] = (200, 150, 90)
+    >>> frag = fragment_from_image(img, dpi=300)
+    >>> int(frag.mask.sum()), frag.has_normals
+    (1200, False)
+    """
+    if background not in BACKGROUNDS:
+        raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    if not 0.0 < alpha_threshold < 1.0:
+        raise ValueError(f"alpha_threshold must be in (0, 1), got {alpha_threshold}")
+    if not (np.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi}")
+    arr = np.asarray(image)
+    full = _full_scale(arr)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
+        raise ValueError(f"image must be (H, W[, 1|2|3|4]), got shape {np.asarray(image).shape}")
+    has_alpha = arr.shape[2] in (2, 4)
+    colour = arr[..., :-1] if has_alpha else arr
+    if colour.shape[2] == 1:
+        colour = np.repeat(colour, 3, axis=2)
+    rgb = colour.astype(np.float32) / np.float32(full)
+    alpha = arr[..., -1].astype(np.float32) / np.float32(full) if has_alpha else None
+    if background == "alpha" and alpha is None:
+        raise ValueError("background='alpha' but the image has no alpha channel")
+    use_alpha = background == "alpha" or (background == "auto" and alpha is not None
+                                          and bool((alpha <= alpha_threshold).any()))
+    if use_alpha:
+        mask = alpha > alpha_threshold
+        how = "alpha"
+    else:
+        mask, info = background_mask(rgb, margin=margin)
+        how = "plain background"
+    area = float(mask.mean())
+    if area < min_area_fraction or not mask.any():
+        why = ("alpha is below the threshold everywhere" if use_alpha else
+               "nothing differs from the background colour "
+               f"{np.round(np.array(info['background']) * 255).astype(int).tolist()} "
+               f"by more than {info['threshold'] * 255:.0f}/255")
+        raise ImportRefused(f"no fragment found ({area * 100:.2f} % of the picture; {why})")
+    if not use_alpha:
+        _check_plausible(mask, area, max_cover, max_border_touch)
+    albedo = srgb_to_linear(rgb) if srgb else np.clip(rgb, 0.0, 1.0)
+    albedo[~mask] = 0.0
+    return RGBNImage(albedo=albedo, mask=mask, dpi=float(dpi), attrs={"mask_from": how})
+
+
+def _check_plausible(mask, area, max_cover, max_border_touch) -> None:
+    """A mask cut from a plain background must leave background all round (a cut-out's alpha may be cropped tight)."""
+    if area > max_cover:
+        raise ImportRefused(f"the fragment would cover {area * 100:.0f} % of the picture (more than "
+                            f"{max_cover * 100:.0f} %): the background is not plain or the piece fills the frame")
+    edge = _border(mask, 1)
+    touch = float(mask[edge].mean())
+    if touch > max_border_touch:
+        raise ImportRefused(f"the fragment touches the picture's border along {touch * 100:.0f} % of it (more than "
+                            f"{max_border_touch * 100:.0f} %): the piece is cut off by the frame or the background "
+                            "is not plain")
