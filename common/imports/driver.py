@@ -78,6 +78,8 @@ class ImportItem:
         part of the key.
     key : str
         Filled in by :func:`run_import` (:func:`item_key`); name artifacts with it.
+    digests : list of str
+        Filled in by :func:`run_import`: the sha256 of each source, in order (for provenance).
     """
 
     name: str
@@ -86,6 +88,7 @@ class ImportItem:
     face: str = "front"
     options: dict = field(default_factory=dict)
     key: str = ""
+    digests: list = field(default_factory=list)
 
 
 @dataclass
@@ -198,8 +201,13 @@ class Ledger:
 
 
 def item_key(item: ImportItem, kind: str, version: str) -> str:
-    """Content key of an item: digests of its files, the kind, its version and its options."""
-    digests = [file_sha256(p) for p in item.sources]
+    """Content key of an item: digests of its files, the kind, its version and its options.
+
+    Fills ``item.digests`` (the files' sha256) when it is empty.
+    """
+    if len(item.digests) != len(item.sources):
+        item.digests = [file_sha256(p) for p in item.sources]
+    digests = item.digests
     opts = json.dumps(item.options, sort_keys=True, default=str)
     return content_key(kind, version, item.fragment, item.face, opts, *digests)
 

@@ -1,0 +1,196 @@
+"""``tessera import images``: pictures -> colour-only RGBN faces, manifests, resumable, the bus path."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from common.bus.outbox import Outbox
+from common.rgbn.image import load_rgbn
+from common.store import Store
+from services.cli import main
+from tests.bus.conftest import collect, make_station, wait_for  # noqa: F401  (fixture)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _blob(h, w, seed):
+    """Ground-truth mask: an ellipse with a notch, placed away from the border."""
+    rng = np.random.default_rng(seed)
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (w // 2, h // 2), (int(w * rng.uniform(0.2, 0.3)), int(h * rng.uniform(0.2, 0.3))),
+                float(rng.uniform(0, 180)), 0, 360, 1, -1)
+    cv2.circle(m, (w // 2 + w // 5, h // 2), h // 10, 0, -1)
+    return m > 0
+
+
+def _picture(path, seed=0, h=240, w=320, alpha=False, bits=8):
+    truth = _blob(h, w, seed)
+    rng = np.random.default_rng(seed)
+    paint = np.array([180, 120, 70]) + rng.normal(0, 8, (h, w, 3))
+    paint[:, w // 2: w // 2 + 20] = (90, 30, 30)
+    if alpha:
+        img = np.dstack([np.where(truth[..., None], paint, 0), truth * 255.0])
+    else:
+        img = np.where(truth[..., None], paint, np.array([235, 235, 230]) + rng.normal(0, 2, (h, w, 3)))
+    img = np.clip(img, 0, 255)
+    if bits == 16:
+        img = (img * 257).astype(np.uint16)
+    else:
+        img = img.astype(np.uint8)
+    bgr = img[..., [2, 1, 0, 3]] if alpha else img[..., ::-1]
+    assert cv2.imwrite(str(path), bgr)
+    return truth
+
+
+def _rgbn_files(root):
+    return sorted((Path(root) / "fragments").rglob("*.h5"))
+
+
+def test_alpha_and_plain_pictures_become_rgbn_faces_with_the_true_mask(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    truths = {"A1": _picture(src / "A1.png", 1, alpha=True), "B2": _picture(src / "B2.png", 2),
+              "C3": _picture(src / "C3.tif", 3, bits=16)}
+    assert main(["import", "images", str(src), "--dpi", "300", "--store", str(tmp_path / "st")]) == 0
+    store = Store(tmp_path / "st")
+    files = _rgbn_files(tmp_path / "st")
+    assert [f.parts[-3] for f in files] == ["A1", "B2", "C3"]
+    for f in files:
+        img = load_rgbn(store, f.relative_to(tmp_path / "st").as_posix())
+        truth = truths[f.parts[-3]]
+        iou = (img.mask & truth).sum() / (img.mask | truth).sum()
+        assert iou > 0.98, (f, iou)
+        assert img.dpi == 300 and img.normals is None
+
+
+def test_manifest_metadata_is_kept_with_the_fragment(tmp_path, capsys):
+    _picture(tmp_path / "p1.jpg", 4)
+    _picture(tmp_path / "p2.png", 5, alpha=True)
+    (tmp_path / "finds.csv").write_text(
+        "File;Inventory number;Find-spot;Context;Date;Notes;dpi;Conservator\n"
+        "p1.jpg;Inv. 1998/12;Room 4, north wall;US 102;1998-05-02;red band, burnt edge;150;M. Rossi\n"
+        "p2.png;Inv. 1998/13;Room 4;US 103;1998-05-03;;600;\n", encoding="utf-8")
+    assert main(["import", "images", "--manifest", str(tmp_path / "finds.csv"), "--store", str(tmp_path / "st")]) == 0
+    store = Store(tmp_path / "st")
+    files = {f.parts[-3]: f for f in _rgbn_files(tmp_path / "st")}
+    assert sorted(files) == ["Inv.-1998-12", "Inv.-1998-13"]
+    img = load_rgbn(store, files["Inv.-1998-12"].relative_to(tmp_path / "st").as_posix())
+    meta = json.loads(img.attrs["metadata"])
+    assert meta == {"inventory": "Inv. 1998/12", "find_spot": "Room 4, north wall", "context": "US 102",
+                    "date": "1998-05-02", "notes": "red band, burnt edge", "conservator": "M. Rossi",
+                    "source_file": "p1.jpg"}
+    assert img.dpi == 150
+    assert load_rgbn(store, files["Inv.-1998-13"].relative_to(tmp_path / "st").as_posix()).dpi == 600
+
+
+def test_bad_pictures_are_refused_by_name_and_nothing_is_written_for_them(tmp_path, capsys):
+    src = tmp_path / "in"
+    src.mkdir()
+    _picture(src / "good.png", 6)
+    cv2.imwrite(str(src / "blank.png"), np.full((100, 100, 3), 200, np.uint8))
+    _picture(src / "cut.png", 7)
+    data = (src / "cut.png").read_bytes()
+    (src / "cut.png").write_bytes(data[: len(data) // 2])
+    plain = np.full((200, 300, 3), 230, np.uint8) + np.random.default_rng(0).integers(0, 4, (200, 300, 3)).astype(np.uint8)
+    cv2.imwrite(str(src / "nothing.png"), plain)
+    assert main(["import", "images", str(src), "--dpi", "300", "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "refused blank.png:" in err and "is blank" in err
+    assert "refused cut.png:" in err and "truncated" in err
+    assert "refused nothing.png:" in err and "no fragment found" in err
+    assert [f.parts[-3] for f in _rgbn_files(tmp_path / "st")] == ["good"]
+    assert not list((tmp_path / "st").rglob("*.tmp"))
+
+
+def test_missing_dpi_and_duplicate_ids_stop_before_anything_is_imported(tmp_path, capsys):
+    _picture(tmp_path / "a.png", 1)
+    assert main(["import", "images", str(tmp_path / "a.png"), "--store", str(tmp_path / "st")]) == 2
+    assert "no dpi" in capsys.readouterr().err
+    (tmp_path / "b").mkdir()
+    _picture(tmp_path / "b" / "a.png", 2)
+    assert main(["import", "images", str(tmp_path / "a.png"), str(tmp_path / "b" / "a.png"), "--dpi", "300",
+                 "--store", str(tmp_path / "st")]) == 2
+    assert "fragment a (front) is also given by" in capsys.readouterr().err
+    assert not (tmp_path / "st" / "fragments").exists()
+
+
+def test_import_killed_half_way_resumes_and_imports_nothing_twice(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    n = 8
+    for i in range(n):
+        _picture(src / f"F{i:02d}.png", i, h=1200, w=1600)
+    store = tmp_path / "st"
+    ledger = store / "imports" / "ledger.jsonl"
+    cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
+           "import", "images", str(src), "--dpi", "300", "--store", str(store)]
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wait_for(lambda: ledger.is_file() and len(ledger.read_text().splitlines()) >= 2, 120, "two pictures imported")
+    p.send_signal(signal.SIGKILL)
+    p.wait(10)
+    done_first = len(ledger.read_text().splitlines())
+    assert done_first < n, "the import was killed half-way"
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert f"imported {n - done_first}, already imported {done_first}" in out.stdout
+    keys = [json.loads(line)["key"] for line in ledger.read_text().splitlines()]
+    assert len(keys) == n and len(set(keys)) == n
+    files = _rgbn_files(store)
+    assert sorted(f.parts[-3] for f in files) == [f"F{i:02d}" for i in range(n)]   # one face each, none twice
+    for f in files:   # every artifact complete (a write cut by the kill never reached its final name)
+        assert load_rgbn(Store(store), f.relative_to(store).as_posix()).mask.any()
+
+
+def test_with_the_broker_down_events_wait_in_the_outbox_then_go_out(make_station, tmp_path):
+    st = make_station(routing={"rgbn.ready": ["noop"], "noop.job": ["noop"]})
+    src = tmp_path / "in"
+    src.mkdir()
+    for i in range(3):
+        _picture(src / f"P{i}.png", 10 + i)
+    args = ["import", "images", str(src), "--dpi", "200", "--config", str(st.config_path), "--wait", "0"]
+    assert main(args) == 0          # imported: artifacts on storage, events safe in the outbox
+    box = Outbox(st.root / "bench")
+    pending = [e for _, e, _ in box.pending()]
+    box.close()
+    assert [e["type"] for e in pending] == ["rgbn.ready"] * 3
+    assert [e["fragment"] for e in pending] == ["P0", "P1", "P2"]
+    storage = Store(st.root / "storage")
+    for e in pending:
+        with storage.open(e["artifact"], schema="tessera.rgbn") as f:
+            assert f.attrs["face"] == "front"
+    assert main(args) == 0          # a second run imports nothing and queues nothing twice
+    box = Outbox(st.root / "bench")
+    assert len(box) == 3
+    box.close()
+    st.broker()
+    with st.subscriber(0) as sub:
+        assert main(args[:-1] + ["20"]) == 0     # the next run drains the outbox
+        events = collect(sub, lambda ev: sum(e["type"] == "rgbn.ready" for _, e in ev) == 3, 30, "3 rgbn.ready")
+    assert sorted(e["fragment"] for _, e in events if e["type"] == "rgbn.ready") == ["P0", "P1", "P2"]
+    box = Outbox(st.root / "bench")
+    assert len(box) == 0
+    box.close()
+
+
+def test_with_storage_unreachable_artifacts_go_to_the_spool(make_station, tmp_path):
+    st = make_station()
+    _picture(tmp_path / "S1.png", 20)
+    missing = tmp_path / "nfs-not-mounted"
+    assert main(["import", "images", str(tmp_path / "S1.png"), "--dpi", "200", "--config", str(st.config_path),
+                 "--set", f'storage.root="{missing}"', "--set", "storage.create_root=false", "--wait", "0"]) == 0
+    assert not missing.exists()
+    box = Outbox(st.root / "bench")
+    (_, event, spooled), = box.pending()
+    assert spooled == event["artifact"]["path"] and box.spool.exists(spooled)
+    box.close()
