@@ -56,19 +56,22 @@ class Registration:
     residual: float
 
 
-def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.3,
+def registration_image(scan: np.ndarray, sigma_px: float = 1.5, luminance_weight: float = 0.1,
                        chroma_weight: float = 1.0) -> np.ndarray:
     """Shading-tolerant image for registration (float32).
 
-    ``sqrt(|∇ log chromaticity|² + w² |∇ log luminance|²)``, smoothed: under one white lamp a
+    ``sqrt(|∇ G_σ * log chromaticity|² + w² |∇ G_σ * log luminance|²)``, smoothed (the log is
+    taken before the blur ``G_σ``): under one white lamp a
     Lambertian surface's chromaticity does not depend on the shading, so painted edges register
     regardless of the light; the luminance term (weight ``w``) keeps the outline and the relief of
     unpainted surfaces.
     """
     img = to_float(scan)
-    img = cv2.GaussianBlur(img, (0, 0), sigma_px)
     eps = 1e-3
-    log = np.log(img + eps)
+    # log first, then blur: blurring the linear image mixes a bright lit flank with a dark one
+    # across a groove, and the log of that mixture moves with the lamp side (a 0.35–0.6 px bias
+    # between scans lit from different sides); the blurred log stays put (0.06–0.14 px)
+    log = cv2.GaussianBlur(np.log(img + eps), (0, 0), sigma_px)
     lum = log.mean(axis=2)
     def grad2(a):
         gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
@@ -185,7 +188,7 @@ def _refine_lk(template: np.ndarray, moving: np.ndarray, tmask: np.ndarray, mmas
         resid = float(np.sqrt(max(2.0 - 2.0 * corr, 0.0)))     # RMS of the difference of the z-scores
         if alpha <= 0:
             raise RegistrationError(f"the scans do not match (correlation {corr:.2f}): they may show different "
-                                    "faces or fragments; refusing to solve normals — rescan this face")
+                                    "faces or fragments; refusing to solve normals")
         err = ii / alpha - ti
         sd = SD[use]
         dp = np.linalg.solve(sd.T @ sd + 1e-9 * np.eye(3), sd.T @ err)
@@ -282,7 +285,7 @@ def _register(t: _Prepared, m: _Prepared, dpi: float, nominal_deg, search_deg, m
     if corr < min_correlation:
         raise RegistrationError(f"registration correlation {corr:.2f} is below {min_correlation:.2f} "
                                 f"(rotation {angle_deg:.1f}°, residual {residual:.2f}); refusing to solve normals "
-                                "from misaligned scans — rescan this face")
+                                "from misaligned scans")
     return Registration(M, angle_deg, float(corr), float(residual))
 
 
@@ -317,32 +320,144 @@ def register_scan(target: np.ndarray, moving: np.ndarray, dpi: float, *, nominal
                      min_correlation)
 
 
+class TurnDirectionError(RegistrationError):
+    """The scans do not register with the turns given, but do with turns the other way round.
+
+    Attributes
+    ----------
+    turn : str
+        ``"cw"`` or ``"ccw"``: the direction the scans were actually turned (clockwise on the image).
+    registrations : list of Registration
+        The registrations with that direction.
+    """
+
+    def __init__(self, message: str, turn: str, registrations: list):
+        super().__init__(message)
+        self.turn = turn
+        self.registrations = registrations
+
+
+class ScanOrderError(RegistrationError):
+    """The scans register, but not in the order of their nominal rotations.
+
+    Attributes
+    ----------
+    angles_deg : list of float
+        Measured rotation of each scan relative to the first, clockwise on the image, in [0, 360).
+    """
+
+    def __init__(self, message: str, angles_deg: list):
+        super().__init__(message)
+        self.angles_deg = angles_deg
+
+
+def _register_sequence(target, prepared, dpi, nominal_deg, search_deg, min_correlation, progress):
+    out = [Registration(np.array([[1.0, 0, 0], [0, 1.0, 0]]), 0.0, 1.0, 0.0)]
+    for i in range(1, len(prepared)):
+        # each turn is ~90° ± 10°, so errors add up: expect this scan relative to the previous
+        # scan's measured angle rather than to the nominal angle alone
+        nom = None if nominal_deg is None else out[-1].angle_deg + nominal_deg[i] - nominal_deg[i - 1]
+        try:
+            out.append(_register(target, prepared[i], dpi, nom, search_deg, min_correlation))
+        except RegistrationError as exc:
+            where = f"nominal {nom:g}°" if nom is not None else "searched all round"
+            raise RegistrationError(f"scan {i} ({where}): {exc}") from exc
+        if progress:
+            progress(i / max(1, len(prepared) - 1), f"registered scan {i}")
+    return out
+
+
+def _turn_name(nominal_deg) -> str:
+    steps = np.diff(np.asarray(nominal_deg, float))
+    return "cw" if steps.sum() >= 0 else "ccw"
+
+
+_TURN_WORDS = {"cw": "clockwise", "ccw": "counter-clockwise"}
+
+
+def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation):
+    """Why a sequence with nominal rotations failed: turned the other way, or out of order? (None = neither.)"""
+    given = _turn_name(nominal_deg)
+    other = "ccw" if given == "cw" else "cw"
+    try:
+        regs = _register_sequence(target, prepared, dpi, [-v for v in nominal_deg], search_deg, min_correlation, None)
+        return TurnDirectionError(
+            f"the scans look turned {_TURN_WORDS[other]}, not {_TURN_WORDS[given]} as their nominal rotations "
+            f"{[float(v) for v in nominal_deg]} say: they register with {_TURN_WORDS[other]} turns (correlation "
+            f"{min(r.correlation for r in regs[1:]):.2f}); give the turn direction as {other} "
+            f"(tessera import scans --turn {other}) — rescanning is not needed", other, regs)
+    except RegistrationError:
+        pass
+    try:
+        regs = _register_sequence(target, prepared, dpi, None, search_deg, min_correlation, None)
+    except RegistrationError:
+        return None
+    measured = [float(r.angle_deg % 360) for r in regs]
+    return ScanOrderError(
+        f"the scans register, but their rotations relative to the first are {[round(v) for v in measured]}° "
+        f"(clockwise), not the nominal {[float(v) for v in nominal_deg]}: they are out of turning order; give the "
+        "scans in the order they were taken (or their rotations) — rescanning is not needed", measured)
+
+
 def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, masks: list | None = None,
-                   progress=None, search_deg: float = 20.0, min_correlation: float = 0.6) -> list[Registration]:
+                   progress=None, search_deg: float = 20.0, min_correlation: float = 0.6,
+                   diagnose: bool = True, ambiguous_below: float = 0.95) -> list[Registration]:
     """Register every scan to the first (the target scan); the first gets the identity.
 
-    ``nominal_deg`` are the nominal rotations of the scans (e.g. 0, 90, 180, 270); scan i is
-    searched around the measured angle of scan i−1 plus the nominal step, since a person's
-    errors in turning the fragment accumulate.
+    ``nominal_deg`` are the nominal rotations of the scans (e.g. 0, 90, 180, 270, clockwise on
+    the image); scan i is searched around the measured angle of scan i−1 plus the nominal step,
+    since a person's errors in turning the fragment accumulate.
+
+    When the scans do not register with the nominal rotations and ``diagnose`` is true, the
+    failure is explained if it can be: :class:`TurnDirectionError` when they register with the
+    turns the other way round (its ``registrations`` are usable), :class:`ScanOrderError` when
+    they register searched all round but out of order. Otherwise the registration error stands
+    (different faces or objects, a moved or broken fragment: that needs a rescan). A fragment that
+    looks alike turned by 180° can also register the wrong way round, with a lower correlation:
+    when the worst correlation is below ``ambiguous_below`` the other turn direction is tried too,
+    and :class:`TurnDirectionError` raised if it fits clearly (by 0.05) better.
     """
     if len(scans) < 1:
         raise ValueError("scans must not be empty")
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi}")
+    if nominal_deg is not None and len(nominal_deg) != len(scans):
+        raise ValueError(f"nominal_deg must have one angle per scan ({len(scans)}), got {len(nominal_deg)}")
     masks = masks or [fragment_mask(s, dpi) for s in scans]
-    target = _prepare(scans[0], masks[0], dpi)
-    out = [Registration(np.array([[1.0, 0, 0], [0, 1.0, 0]]), 0.0, 1.0, 0.0)]
-    for i in range(1, len(scans)):
-        # each turn is ~90° ± 10°, so errors add up: expect this scan relative to the previous
-        # scan's measured angle rather than to the nominal angle alone
-        nom = None if nominal_deg is None else out[-1].angle_deg + nominal_deg[i] - nominal_deg[i - 1]
+    prepared = [_prepare(s, m, dpi) for s, m in zip(scans, masks)]
+    try:
+        regs = _register_sequence(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation, progress)
+    except RegistrationError as exc:
+        if not diagnose or nominal_deg is None or len(scans) < 2:
+            raise
+        found = _diagnose(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation)
+        if isinstance(found, TurnDirectionError):
+            raise TurnDirectionError(f"{found} (with the nominal turns: {exc})", found.turn,
+                                     found.registrations) from exc
+        if isinstance(found, ScanOrderError):
+            raise ScanOrderError(f"{found} (with the nominal turns: {exc})", found.angles_deg) from exc
+        raise RegistrationError(f"{exc}; the scans register neither turned the other way nor in another order "
+                                "— rescan this face (all scans of one face, turning it the same way each time)") from exc
+    # a fragment that looks alike turned by 180° (an oval, stripes) may also register, worse, with
+    # turns the wrong way round: when the fit is not clearly good, compare with the other direction
+    steps = np.diff(np.asarray(nominal_deg, float)) if nominal_deg is not None else np.zeros(0)
+    worst = min((r.correlation for r in regs[1:]), default=1.0)
+    if diagnose and worst < ambiguous_below and np.any(np.abs((steps + 90) % 180 - 90) > 1):
         try:
-            out.append(_register(target, _prepare(scans[i], masks[i], dpi), dpi, nom, search_deg, min_correlation))
-        except RegistrationError as exc:
-            raise RegistrationError(f"scan {i} (nominal {nom}°): {exc}") from exc
-        if progress:
-            progress(i / max(1, len(scans) - 1), f"registered scan {i}")
-    return out
+            other = _register_sequence(prepared[0], prepared, dpi, [-v for v in nominal_deg], search_deg,
+                                       min_correlation, None)
+        except RegistrationError:
+            return regs
+        other_worst = min(r.correlation for r in other[1:])
+        if other_worst > worst + 0.05:
+            given = _turn_name(nominal_deg)
+            turn = "ccw" if given == "cw" else "cw"
+            raise TurnDirectionError(
+                f"the scans look turned {_TURN_WORDS[turn]}, not {_TURN_WORDS[given]} as their nominal rotations "
+                f"{[float(v) for v in nominal_deg]} say: they register with correlation {other_worst:.2f} turned "
+                f"{_TURN_WORDS[turn]} against {worst:.2f} as given; give the turn direction as {turn} "
+                f"(tessera import scans --turn {turn}) — rescanning is not needed", turn, other)
+    return regs
 
 
 def warp_to_target(scan: np.ndarray, reg: Registration, shape: tuple[int, int]) -> np.ndarray:

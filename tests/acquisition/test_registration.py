@@ -6,18 +6,19 @@ import pytest
 from common.acquisition.errors import RegistrationError
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface, scan_to_scan_affine
 from common.acquisition.locate import fragment_mask
-from common.acquisition.registration import register_scan, register_scans, warp_to_target
+from common.acquisition.registration import (ScanOrderError, TurnDirectionError, register_scan, register_scans,
+                                             registration_image, warp_to_target)
 
 DPI = 150
 
 
-def _rotated_scans(seed=3, n=4, surface_seed=2):
+def _rotated_scans(seed=3, n=4, surface_seed=2, turn=90):
     sim = SimulatedFlatbed(bed_mm=(100, 100), seed=seed)
     sim.place(demo_surface(25, DPI, seed=surface_seed), centre_mm=(50, 50))
     scans = []
     for k in range(n):
         if k:
-            sim.rotate(90)
+            sim.rotate(turn)
         scans.append(sim.scan((28, 28, 72, 72), DPI))
     return sim, scans
 
@@ -66,3 +67,41 @@ def test_a_different_fragment_is_refused_with_a_clear_error():
     _, b = _rotated_scans(seed=6, n=1, surface_seed=9)
     with pytest.raises(RegistrationError, match="rescan|different|refusing"):
         register_scan(a[0], b[0], DPI, nominal_deg=90)
+
+
+def test_counter_clockwise_turns_are_named_with_what_to_do_not_rescan():
+    sim, scans = _rotated_scans(seed=7, n=4, turn=-90)
+    with pytest.raises(TurnDirectionError, match=r"counter-clockwise.*--turn ccw") as info:
+        register_scans(scans, DPI, nominal_deg=[0, 90, 180, 270])
+    assert info.value.turn == "ccw" and "rescanning is not needed" in str(info.value)
+    # the registrations found the other way round are right
+    mask = fragment_mask(scans[0], DPI)
+    for i in range(1, 4):
+        err = _error_px(info.value.registrations[i].affine, scan_to_scan_affine(sim.history[i], sim.history[0]), mask)
+        assert err.mean() < 0.3
+
+
+def test_scans_out_of_turning_order_are_named_as_such():
+    sim, scans = _rotated_scans(seed=8, n=3)
+    shuffled = [scans[0], scans[2], scans[1]]          # 0°, 180°, 90°
+    with pytest.raises(ScanOrderError, match="out of turning order") as info:
+        register_scans(shuffled, DPI, nominal_deg=[0, 90, 180])
+    true = [(sim.history[k].poses[0][0] - sim.history[0].poses[0][0]) % 360 for k in (0, 2, 1)]
+    assert np.allclose(info.value.angles_deg, true, atol=1.0)
+
+
+def test_registration_image_chroma_term_does_not_change_with_the_lamp_side_across_a_groove():
+    # a paint edge (red-brown | blue-grey) with a groove's two flanks beside it, lit from one side and
+    # from the other. Under one white lamp the log chromaticity of every pixel is independent of the
+    # shading, so with the log taken before the blur the chroma term is the same image for both lamp
+    # sides; blurring the linear image first mixes a bright and a dark flank and moves the edge
+    # (the 0.35-0.6 px registration bias of issue 16)
+    x = np.arange(200)
+    paint = np.where(x[:, None] < 100, [0.7, 0.45, 0.3], [0.35, 0.45, 0.6])
+    def scan(side):
+        shade = np.ones(200)
+        shade[96:100], shade[100:104] = 1.0 + 0.6 * side, 1.0 - 0.6 * side
+        return np.repeat((paint * shade[:, None] * 0.6)[None], 40, axis=0).astype(np.float32)
+    a = registration_image(scan(+1), luminance_weight=0.0)
+    b = registration_image(scan(-1), luminance_weight=0.0)
+    assert np.abs(a - b).max() < 0.01 * a.max()        # blurring first: 0.59 of the peak
