@@ -18,6 +18,7 @@ the path can be checked end to end without a camera.
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -38,19 +39,117 @@ METHODS = ("robust", "least_squares")
 VERSION = "handheld-ps-1"
 
 
-def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False,
-                saturation: float = 0.995) -> tuple[np.ndarray, np.ndarray]:
-    """Read one view's flash images (8/16-bit PNG or TIFF, JPEG; grey, RGB or RGBA).
+#: An image whose brightest pixels (99.9th percentile of the brightest channel) stay below this
+#: fraction of full scale is black (flash did not fire, lens cap); one whose 0.1–99.9 percentile
+#: spread is below it has no contrast (blank).
+BLACK_LEVEL = 0.004
+
+#: An image with more than this share of saturated pixels is overexposed: refused.
+MAX_SATURATED_SHARE = 0.5
+
+_PNG_END = b"IEND"
+_JPEG_END = b"\xff\xd9"
+
+
+def _decode(path: str) -> np.ndarray:
+    """Decode one image file completely, or raise ValueError naming the file and the reason.
+
+    OpenCV fills the missing rows of a truncated PNG or JPEG with grey and says nothing: the
+    file's end marker (PNG ``IEND`` chunk, JPEG ``EOI``) is checked before decoding. Entropy-coded
+    JPEG data never contains ``FF D9``, so finding it near the end means the scan data is complete.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"image {path} does not exist")
+    if not p.is_file():
+        raise ValueError(f"image {path} is not a file")
+    buf = np.fromfile(path, np.uint8)
+    if buf.size == 0:
+        raise ValueError(f"image {path} is empty (0 bytes)")
+    head, tail = buf[:8].tobytes(), buf[-256:].tobytes()
+    if head.startswith(b"\x89PNG") and _PNG_END not in tail:
+        raise ValueError(f"image {path} is truncated: the PNG has no IEND chunk (incomplete copy or download)")
+    if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
+        raise ValueError(f"image {path} is truncated: the JPEG has no end-of-image marker (incomplete copy or download)")
+    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"cannot decode image {path} (damaged, or not PNG/TIFF/JPEG)")
+    return raw
+
+
+def _full_scale(raw: np.ndarray, path: str) -> float:
+    if raw.dtype == np.uint8:
+        return 255.0
+    if raw.dtype == np.uint16:
+        return 65535.0
+    if np.issubdtype(raw.dtype, np.floating):
+        return 1.0
+    raise ValueError(f"image {path} has unsupported sample type {raw.dtype} (8/16-bit or float)")
+
+
+def _depth_name(dtype) -> str:
+    return {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(np.dtype(dtype), f"{np.dtype(dtype)}")
+
+
+def _channels_name(raw) -> str:
+    return "grey" if raw.ndim == 2 else {1: "grey", 3: "RGB", 4: "RGBA"}.get(raw.shape[2], f"{raw.shape[2]}-channel")
+
+
+def _convert(raw, path, first, out, sat_out, scale, srgb, saturation):
+    """Check one decoded image against the first of the stack; write linear RGB and saturation into the slots."""
+    if raw.dtype != first.dtype:
+        raise ValueError(f"image {path} is {_depth_name(raw.dtype)}, the first image is {_depth_name(first.dtype)}: "
+                         "all images of a view must have the same bit depth")
+    if _channels_name(raw) != _channels_name(first):
+        raise ValueError(f"image {path} is {_channels_name(raw)}, the first image is {_channels_name(first)}: "
+                         "all images of a view must have the same channels")
+    if raw.shape[:2] != first.shape[:2]:
+        raise ValueError(f"image {path} is {raw.shape[1]}x{raw.shape[0]}, the first is "
+                         f"{first.shape[1]}x{first.shape[0]}: all images of a view must have the same size")
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[..., 0]
+    if raw.ndim == 2:
+        out[...] = (raw / np.float32(scale))[..., None]
+    elif raw.shape[2] in (3, 4):
+        np.multiply(raw[..., 2::-1], np.float32(1.0 / scale), out=out, casting="unsafe")  # OpenCV gives BGR(A)
+    else:
+        raise ValueError(f"image {path} has {raw.shape[2]} channels: expected grey, RGB or RGBA")
+    peak = out.max(axis=2)
+    np.greater_equal(peak, saturation, out=sat_out)
+    if srgb:
+        out[...] = srgb_to_linear(out)
+    small = peak[::4, ::4] if peak.size >= 1 << 16 else peak
+    lo, hi = np.percentile(small, (0.1, 99.9))
+    if hi < BLACK_LEVEL:
+        raise ValueError(f"image {path} is black (brightest pixels at {100 * hi:.2f}% of full scale): "
+                         "the flash did not fire, or the lens was covered")
+    if hi - lo < BLACK_LEVEL:
+        raise ValueError(f"image {path} is blank (every pixel at {100 * lo:.1f}% of full scale, no contrast)")
+    share = float(sat_out.mean())
+    if share > MAX_SATURATED_SHARE:
+        raise ValueError(f"image {path} is saturated on {100 * share:.0f}% of its pixels (overexposed)")
+
+
+def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False, saturation: float = 0.995,
+                bit_depth: int | None = None, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read one view's flash images (8/16-bit PNG or TIFF, JPEG; grey, RGB or RGBA), checked at the door.
 
     Parameters
     ----------
     paths : sequence of paths
-        Image files, all of the same size.
+        Image files, all of the same size, bit depth and channels.
     srgb : bool
         Decode the sRGB transfer curve to linear intensities (camera JPEGs). Raw-developed
         16-bit TIFF/PNG are usually linear already (default).
     saturation : float
         A pixel whose brightest channel reaches this fraction of full scale is saturated.
+    bit_depth : {8, 16}, optional
+        Declared bit depth of the capture. A file of another depth is refused. Without it a
+        16-bit stack whose values all fit in 8 bits is refused (8-bit data stored in 16-bit
+        files: every value would read 256 times too dark); declare ``bit_depth=8`` to read such
+        files with 255 as full scale.
+    threads : int, optional
+        Decoding threads (default: the CPU count; OpenCV releases the GIL while decoding).
 
     Returns
     -------
@@ -58,39 +157,57 @@ def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False,
         Linear RGB in [0, 1] (full scale of the file's bit depth = 1).
     saturated : (N, H, W) bool
         Clipped measurements, to exclude from the solve.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the reason: missing, not a file, truncated (PNG without ``IEND``,
+        JPEG without end-of-image marker), undecodable, a bit depth, channel layout or size
+        other than the first image's (or the declared depth), black, blank (no contrast), more
+        than :data:`MAX_SATURATED_SHARE` saturated.
+
+    Notes
+    -----
+    Files are decoded by a thread pool straight into the preallocated float32 stack, so the
+    peak memory is the stack plus one decoded file per thread.
     """
     paths = [os.fspath(p) for p in paths]
     if not paths:
         raise ValueError("paths is empty: give at least 3 images")
-    images, shape = None, None
-    for i, p in enumerate(paths):
-        raw = cv2.imread(p, cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise ValueError(f"cannot read image {p} (missing or not PNG/TIFF/JPEG)")
-        if raw.dtype == np.uint8:
-            scale = 255.0
-        elif raw.dtype == np.uint16:
-            scale = 65535.0
-        elif np.issubdtype(raw.dtype, np.floating):
-            scale = 1.0
-        else:
-            raise ValueError(f"image {p} has unsupported sample type {raw.dtype} (8/16-bit or float)")
-        if raw.ndim == 2:
-            raw = np.repeat(raw[..., None], 3, axis=2)
-        elif raw.ndim == 3 and raw.shape[2] == 4:
-            raw = raw[..., :3]
-        if raw.ndim != 3 or raw.shape[2] != 3:
-            raise ValueError(f"image {p} has shape {raw.shape}: expected grey, RGB or RGBA")
-        if shape is None:
-            shape = raw.shape[:2]
-            images = np.empty((len(paths),) + shape + (3,), np.float32)
-        elif raw.shape[:2] != shape:
-            raise ValueError(f"image {p} is {raw.shape[1]}x{raw.shape[0]}, the first is {shape[1]}x{shape[0]}: "
-                             "all images of a view must have the same size")
-        images[i] = raw[..., ::-1] / np.float32(scale)  # OpenCV gives BGR
-    saturated = images.max(axis=3) >= saturation
-    if srgb:
-        images = srgb_to_linear(images)
+    if bit_depth not in (None, 8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
+    first = _decode(paths[0])
+    scale = _full_scale(first, paths[0])
+    if bit_depth is not None and first.dtype != np.uint16 and _depth_name(first.dtype) != f"{bit_depth}-bit":
+        raise ValueError(f"image {paths[0]} is {_depth_name(first.dtype)}, the capture is declared {bit_depth}-bit")
+    if bit_depth == 8 and first.dtype == np.uint16:
+        scale = 255.0  # 8-bit values in 16-bit files, declared as such (checked below)
+    n, (h, w) = len(paths), first.shape[:2]
+    images = np.empty((n, h, w, 3), np.float32)
+    saturated = np.empty((n, h, w), bool)
+
+    def one(i, raw=None):
+        raw = _decode(paths[i]) if raw is None else raw
+        if raw.dtype == np.uint16:
+            peak = int(raw.max())
+            if bit_depth is None and peak < 256:
+                raise ValueError(f"image {paths[i]} is a 16-bit file whose values never exceed {peak}: 8-bit data "
+                                 "stored as 16-bit (it would read 256 times too dark) or a black frame; "
+                                 "declare the capture 8-bit (--bit-depth 8) or export it again")
+            if bit_depth == 8 and peak > 255:
+                raise ValueError(f"image {paths[i]} holds values up to {peak}, the capture is declared 8-bit")
+        _convert(raw, paths[i], first, images[i], saturated[i], scale, srgb, saturation)
+
+    workers = max(1, min(n, threads or os.cpu_count() or 1))
+    one(0, first)
+    if workers == 1:
+        for i in range(1, n):
+            one(i)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            futures = [pool.submit(one, i) for i in range(1, n)]
+            for f in futures:  # the first failure in list order is the one reported
+                f.result()
     return images, saturated
 
 
@@ -107,24 +224,115 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     return m
 
 
-def object_mask(images, *, exclude=None) -> np.ndarray:
-    """Automatic object mask: Otsu threshold of the max composite, largest region, holes filled.
+#: The automatic mask refuses (asks for a mask file) when it keeps less than this share of the frame.
+MIN_MASK_SHARE = 0.05
+
+
+def light_modulation(images) -> np.ndarray:
+    """How much each pixel's brightness changes with the light: 90th − 10th percentile over the lights.
 
     Parameters
     ----------
     images : (N, H, W, 3) or (N, H, W) float array
+        Linear flash images.
+
+    Returns
+    -------
+    (H, W) float32
+        Modulation of the luminance (BT.601), in the images' units. Constant light (ambient,
+        glare on a lid that no flash moves) cancels; a surface the flashes shade has a large
+        value whatever its albedo is relative to the rest of the frame, a background that
+        receives no light keeps the sensor's noise.
+    """
+    from common.acquisition.photometric import LUMA
+
+    a = np.asarray(images, np.float32)
+    grey = a @ LUMA if a.ndim == 4 else a
+    n = len(grey)
+    lo, hi = int(0.1 * (n - 1)), int(np.ceil(0.9 * (n - 1)))
+    part = np.partition(grey, (lo, hi), axis=0)
+    return (part[hi] - part[lo]).astype(np.float32)
+
+
+def _log_otsu(values, floor):
+    """Otsu threshold of log10(values) with everything below ``floor`` lumped at the floor."""
+    from skimage.filters import threshold_otsu
+
+    lv = np.log10(np.maximum(values, floor))
+    if float(lv.max() - lv.min()) < 1e-6:
+        return float(floor)
+    return float(10 ** threshold_otsu(lv))
+
+
+def object_mask(images, *, exclude=None, min_share: float = MIN_MASK_SHARE, info: dict | None = None) -> np.ndarray:
+    """Automatic object mask from what varies with the light, not from brightness.
+
+    Parameters
+    ----------
+    images : (N, H, W, 3) or (N, H, W) float array
+        Linear flash images (N ≥ 3).
     exclude : (H, W) bool, optional
         Pixels never part of the object (e.g. the calibration spheres).
+    min_share : float in [0, 1)
+        A mask keeping less than this share of the frame is refused (ValueError asking for a
+        mask file) rather than returned.
+    info : dict, optional
+        Filled with the figures of the decision (``background``, ``threshold``,
+        ``background_level``, ``object_level``, ``top``, ``share``).
+
+    Returns
+    -------
+    (H, W) bool
+        The object: the largest connected region, holes filled.
+
+    Notes
+    -----
+    1. Per pixel the light modulation *m* (:func:`light_modulation`): a surface the flashes
+       shade changes by a share of its albedo; an unlit backdrop only by its noise.
+    2. Otsu's threshold on log *m* (values below the median of the frame's 2-pixel border
+       lumped together, so a backdrop's cast shadows and noise form one class; log scale, so
+       dark paint counts by its ratio to the backdrop, not its distance from white).
+    3. A background is accepted only if it is one: the lower class's median 4× below the upper
+       class's, and the lower class holding at least 75 % of the border (a backdrop surrounds
+       the object). The threshold is then the geometric mean of the lower class's 95th and the
+       upper class's 5th percentile, or 3× the border's 99th percentile if lower (dark paint
+       well above the backdrop stays in). Otherwise the object fills the frame (RTI captures of
+       paintings, slabs, coins, dark passages reaching the edge: there is no backdrop to cut
+       away) and the mask is every pixel whose modulation exceeds 2 % of the 99th percentile.
+    4. Opening (3×3), largest 8-connected region, holes filled (dark paint and cast shadows
+       inside the object stay in).
+
+    Raises
+    ------
+    ValueError
+        If nothing is found, or the mask keeps less than ``min_share`` of the frame.
     """
     a = np.asarray(images, np.float32)
-    grey = a.max(axis=0)
-    if grey.ndim == 3:
-        grey = grey.max(axis=2)
-    g = np.sqrt(np.clip(grey, 0, None))
-    u8 = np.clip(g / max(float(g.max()), 1e-12) * 255, 0, 255).astype(np.uint8)
-    _, fg = cv2.threshold(u8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    if exclude is not None:
-        fg[np.asarray(exclude, bool)] = 0
+    if a.ndim not in (3, 4) or len(a) < 3:
+        raise ValueError(f"images must be (N, H, W[, 3]) with N >= 3, got shape {a.shape}")
+    if not 0.0 <= min_share < 1.0:
+        raise ValueError(f"min_share must be in [0, 1), got {min_share}")
+    m = light_modulation(a)
+    keep = np.ones(m.shape, bool) if exclude is None else ~np.asarray(exclude, bool)
+    top = float(np.percentile(m[keep], 99)) if keep.any() else 0.0
+    if top <= 0:
+        raise ValueError("nothing in the images changes with the light: no object to find; give a mask")
+    ring = np.zeros(m.shape, bool)
+    ring[:2], ring[-2:], ring[:, :2], ring[:, -2:] = True, True, True, True
+    ring &= keep
+    edge = m[ring] if ring.any() else m[keep]
+    edge_median, edge_high = float(np.median(edge)), float(np.percentile(edge, 99))
+    t = _log_otsu(m[keep], max(edge_median, 0.01 * top))
+    lower, upper = m[keep & (m <= t)], m[keep & (m > t)]
+    bg_level = float(np.median(lower)) if lower.size else 0.0
+    fg_level = float(np.median(upper)) if upper.size else top
+    border_low = float((edge <= t).mean())
+    background = lower.size > 0 and upper.size > 0 and fg_level > 4 * bg_level and border_low >= 0.75
+    if background:  # the middle (in log) of the gap between the classes' facing tails, or just above the border
+        threshold = min(float(np.sqrt(np.percentile(lower, 95) * np.percentile(upper, 5))), 3 * edge_high)
+    else:
+        threshold = 0.02 * top
+    fg = ((m > threshold) & keep).astype(np.uint8)
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
     if n <= 1:
@@ -133,7 +341,16 @@ def object_mask(images, *, exclude=None) -> np.ndarray:
     # fill holes: the background is what the border reaches
     flood = np.pad(1 - obj, 1, constant_values=1)
     cv2.floodFill(flood, None, (0, 0), 2)
-    return (flood[1:-1, 1:-1] != 2)
+    mask = (flood[1:-1, 1:-1] != 2) & keep
+    share = float(mask.mean())
+    if info is not None:
+        info.update(background=bool(background), threshold=float(threshold), background_level=bg_level,
+                    object_level=fg_level, top=top, border_background=border_low, share=share)
+    if share < min_share:
+        raise ValueError(f"the automatic mask covers only {100 * share:.1f}% of the frame (less than "
+                         f"{100 * min_share:.0f}%): the object could not be told from the background; "
+                         "give a mask image (--mask FILE)")
+    return mask
 
 
 def sphere_lights(chrome_images, chrome_circle, *, diffuse_images=None, diffuse_circle=None,
