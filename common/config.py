@@ -53,11 +53,15 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "feed_history": 100000,          # events kept for subscribers catching up
         "compact_interval_s": 60.0,      # journal compaction period
         "batch_max": 2000,               # messages handled per poll-loop batch (one fsync)
+        "refusal_event_interval_s": 60.0,  # refused frames: at most one input.rejected summary per this
     },
     "worker": {
         "reconnect_min_s": 0.25,
         "reconnect_max_s": 8.0,
         "shutdown_grace_s": 30.0,        # SIGTERM: finish the job within this, else hand it back
+        "storage_retry_min_s": 1.0,      # storage full/read-only/away: first wait before retrying the job here
+        "storage_retry_max_s": 30.0,     # ... doubling up to this
+        "storage_retry_budget_s": 600.0,  # ... for at most this long, then one failed attempt is reported
     },
     "client": {
         "timeout_s": 2.5,

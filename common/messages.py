@@ -10,6 +10,8 @@ bumps ``v``. ``docs/messages.md`` documents each type with an example and is che
 
 from __future__ import annotations
 
+import math
+import re
 import time as _time
 import uuid
 from typing import Any, Mapping
@@ -17,6 +19,20 @@ from typing import Any, Mapping
 import msgpack
 
 VERSION = 1
+
+#: limits every message must respect (checked by :func:`validate` and :func:`unpack`)
+MAX_MESSAGE_BYTES = 256 * 1024    # packed size of one message
+MAX_DEPTH = 16                    # nesting of maps and lists (the message itself is depth 1)
+MAX_STRING_CHARS = 16384          # any one string (an error text is cut to this by its sender)
+MAX_ITEMS = 10000                 # entries of any one map or list
+INT_RANGE = (-(2 ** 63), 2 ** 63 - 1)  # integers a journal, SQLite or a JSON reader can hold
+#: ``uid``: 32 lower-case hex digits (a UUID4 ``hex``)
+UID_PATTERN = re.compile(r"^[0-9a-f]{32}$")
+#: ``fragment`` and ``other``: 1-64 letters, digits, '.', '_' or '-', starting with a letter or digit
+FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+#: ``face``: 1-32 lower-case letters, digits, '_' or '-' (``front``, ``back``)
+FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
 class MessageError(ValueError):
@@ -54,24 +70,97 @@ def new_message(type: str, **fields: Any) -> dict:
     return msg
 
 
+def _check_shape(msg: Mapping) -> None:
+    """Depth, sizes, key types and integer ranges of a whole document, without recursion."""
+    stack = [(msg, 1)]
+    while stack:
+        obj, depth = stack.pop()
+        if isinstance(obj, (Mapping, list, tuple)):
+            if depth > MAX_DEPTH:
+                raise MessageError(f"message nested deeper than {MAX_DEPTH} levels")
+            if len(obj) > MAX_ITEMS:
+                raise MessageError(f"message holds a map or list of {len(obj)} entries (at most {MAX_ITEMS})")
+            if isinstance(obj, Mapping):
+                for k in obj:
+                    if not isinstance(k, str):
+                        raise MessageError(f"message has a non-text key {str(k)[:40]!r}")
+                    if len(k) > 256:
+                        raise MessageError("message has a key longer than 256 characters")
+                stack.extend((v, depth + 1) for v in obj.values())
+            else:
+                stack.extend((v, depth + 1) for v in obj)
+        elif isinstance(obj, bool) or obj is None:
+            continue
+        elif isinstance(obj, int):
+            if not INT_RANGE[0] <= obj <= INT_RANGE[1]:
+                raise MessageError("message holds an integer outside the signed 64-bit range")
+        elif isinstance(obj, float):
+            if not math.isfinite(obj):
+                raise MessageError("message holds a number that is not finite (nan or inf)")
+        elif isinstance(obj, (str, bytes)):
+            if len(obj) > MAX_STRING_CHARS:
+                raise MessageError(f"message holds a string of {len(obj)} characters (at most {MAX_STRING_CHARS})")
+        else:
+            raise MessageError(f"message holds a value of type {type(obj).__name__}")
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _check_name(msg: Mapping, key: str, pattern: re.Pattern, what: str) -> None:
+    if key in msg and not (isinstance(msg[key], str) and pattern.match(msg[key])):
+        raise MessageError(f"{msg['type']} message: {key} {str(msg[key])[:80]!r} is not {what}")
+
+
 def validate(msg: Any) -> dict:
-    """Check a decoded message against its declared type; return it or raise :class:`MessageError`."""
+    """Check a decoded message against its declared type; return it or raise :class:`MessageError`.
+
+    Besides the required fields of its type: ``uid`` is 32 hex digits (:data:`UID_PATTERN`),
+    ``time`` a finite number of seconds, ``fragment``/``other`` match :data:`FRAGMENT_PATTERN`,
+    ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
+    ``sha256`` and a non-negative ``bytes``, ``probability`` is in [0, 1]; the whole document is
+    at most :data:`MAX_DEPTH` deep, with strings, maps and lists within :data:`MAX_STRING_CHARS`
+    and :data:`MAX_ITEMS` and integers within 64 bits.
+    """
     if not isinstance(msg, Mapping):
         raise MessageError(f"message must be a map, got {type(msg).__name__}")
     for key in ("v", "type", "uid", "time"):
         if key not in msg:
             raise MessageError(f"message lacks required field {key!r}")
-    if msg["v"] != VERSION:
-        raise MessageError(f"message schema version {msg['v']!r} not supported (this reader speaks v{VERSION})")
+    if msg["v"] != VERSION or isinstance(msg["v"], bool):
+        raise MessageError(f"message schema version {_short(msg['v'])} not supported (this reader speaks v{VERSION})")
     kind = msg["type"]
-    if kind not in EVENT_TYPES:
-        raise MessageError(f"unknown message type {kind!r}")
+    if not isinstance(kind, str) or kind not in EVENT_TYPES:
+        raise MessageError(f"unknown message type {str(kind)[:64]!r}")
     missing = [f for f in EVENT_TYPES[kind][1] if f not in msg]
     if missing:
         raise MessageError(f"{kind} message lacks {', '.join(missing)}")
+    _check_shape(msg)
+    _check_name(msg, "fragment", FRAGMENT_PATTERN, "a fragment id (1-64 letters, digits, '.', '_', '-')")
+    _check_name(msg, "other", FRAGMENT_PATTERN, "a fragment id (1-64 letters, digits, '.', '_', '-')")
+    _check_name(msg, "face", FACE_PATTERN, "a face name (lower-case letters, digits, '_', '-')")
     art = msg.get("artifact")
-    if art is not None and not (isinstance(art, Mapping) and {"path", "sha256", "bytes"} <= set(art)):
-        raise MessageError(f"{kind} message has a malformed artifact pointer {art!r}")
+    if art is not None:
+        if not (isinstance(art, Mapping) and {"path", "sha256", "bytes"} <= set(art)):
+            raise MessageError(f"{kind} message has a malformed artifact pointer {str(art)[:120]!r}")
+        path, sha, size = art["path"], art["sha256"], art["bytes"]
+        if not isinstance(path, str) or not path or path.startswith("/") or ".." in path.split("/") or len(path) > 1024:
+            raise MessageError(f"{kind} message: artifact path {str(path)[:120]!r} must be relative to the storage root")
+        if not (isinstance(sha, str) and _SHA256.match(sha)):
+            raise MessageError(f"{kind} message: artifact sha256 {str(sha)[:80]!r} is not 64 hex digits")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise MessageError(f"{kind} message: artifact bytes {str(size)[:40]!r} is not a size")
+    if "probability" in msg:
+        p = msg["probability"]
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:
+            raise MessageError(f"{kind} message: probability {str(p)[:40]!r} is not in [0, 1]")
+    if not (isinstance(msg["uid"], str) and UID_PATTERN.match(msg["uid"])):
+        raise MessageError(f"{kind} message: uid {str(msg['uid'])[:80]!r} is not 32 lower-case hex digits")
+    t = msg["time"]
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < 1e11:
+        raise MessageError(f"{kind} message: time {str(t)[:40]!r} is not UNIX seconds")
     return dict(msg)
 
 
@@ -81,7 +170,12 @@ def pack(msg: Mapping) -> bytes:
 
 
 def unpack(data: bytes) -> dict:
-    """Decode and validate msgpack bytes; any defect raises :class:`MessageError`."""
+    """Decode and validate msgpack bytes; any defect raises :class:`MessageError`.
+
+    More than :data:`MAX_MESSAGE_BYTES` is refused before decoding.
+    """
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise MessageError(f"message of {len(data)} bytes refused (at most {MAX_MESSAGE_BYTES})")
     try:
         msg = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types for garbage

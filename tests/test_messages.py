@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from common.messages import EVENT_TYPES, VERSION, MessageError, new_message, pack, unpack, validate
+from common.messages import (EVENT_TYPES, MAX_DEPTH, MAX_MESSAGE_BYTES, VERSION, MessageError, new_message, pack,
+                             unpack, validate)
 from common.store import ArtifactRef
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "messages.md"
@@ -55,3 +56,63 @@ def test_docs_describe_every_message_type_with_a_valid_example():
         assert validate(example)["type"] == kind
         for field in required:
             assert field in example
+
+
+# -- field validation by type and range (issue 19) -----------------------------------------------
+
+def _doc(**over):
+    d = {"v": VERSION, "type": "noop.job", "uid": "0123456789abcdef" * 2, "time": 1.7e9}
+    d.update(over)
+    return d
+
+
+@pytest.mark.parametrize("over, phrase", [
+    ({"uid": 2 ** 64 - 1}, "64-bit"),
+    ({"uid": 12345}, "32 lower-case hex"),
+    ({"uid": "x" * 32}, "32 lower-case hex"),
+    ({"uid": "ABCDEF0123456789" * 2}, "32 lower-case hex"),
+    ({"time": "yesterday"}, "UNIX seconds"),
+    ({"time": float("nan")}, "not finite"),
+    ({"time": True}, "UNIX seconds"),
+    ({"fragment": "a/b/c"}, "fragment id"),
+    ({"fragment": "<script>"}, "fragment id"),
+    ({"fragment": ".."}, "fragment id"),
+    ({"fragment": "F" * 65}, "fragment id"),
+    ({"other": 7}, "fragment id"),
+    ({"face": "Front/../x"}, "face name"),
+    ({"artifact": {"path": "/etc/passwd", "sha256": "0" * 64, "bytes": 1}}, "relative"),
+    ({"artifact": {"path": "a/../../b", "sha256": "0" * 64, "bytes": 1}}, "relative"),
+    ({"artifact": {"path": "a.h5", "sha256": "xyz", "bytes": 1}}, "64 hex"),
+    ({"artifact": {"path": "a.h5", "sha256": "0" * 64, "bytes": -1}}, "not a size"),
+    ({"probability": 1.5}, r"\[0, 1\]"),
+    ({"x": "y" * 20000}, "string of 20000"),
+    ({"x": list(range(20000))}, "20000 entries"),
+    ({"x": {1: 2}}, "non-text key"),
+])
+def test_fields_are_validated_by_type_and_range(over, phrase):
+    with pytest.raises(MessageError, match=phrase):
+        validate(_doc(**over))
+
+
+def test_nesting_is_capped_without_recursion():
+    deep = []
+    for _ in range(100000):  # deeper than Python's recursion limit: the check must not recurse
+        deep = [deep]
+    with pytest.raises(MessageError, match="deeper than"):
+        validate(_doc(x=deep))
+    ok = []
+    for _ in range(MAX_DEPTH - 2):
+        ok = [ok]
+    assert validate(_doc(x=ok))["x"] == ok
+
+
+def test_oversized_message_is_refused_before_decoding():
+    body = pack(_doc(x=["y" * 1000] * 300))
+    assert len(body) > MAX_MESSAGE_BYTES
+    with pytest.raises(MessageError, match=f"at most {MAX_MESSAGE_BYTES}"):
+        unpack(body)
+
+
+def test_fragment_ids_the_station_makes_are_valid():
+    for fid in ("F0001", "wall-3-0042", "DAFNE_adam-12", "a.b_c-d"):
+        assert validate(_doc(fragment=fid, face="front"))["fragment"] == fid

@@ -16,8 +16,17 @@ Tessera adds what a station needs on top:
   digest mismatch, truncated HDF5) is parked at once with an ``input.rejected`` event; parked jobs
   are listed by STATUS and re-run by RERUN;
 * **event feed** — every event is published on a PUB socket with a per-stream sequence number and
-  idle heartbeats; SINCE requests return retained events after a sequence number (the Guide's
-  Clone pattern), so a subscriber that reconnects misses nothing.
+  a heartbeat every interval; SINCE requests return retained events after a sequence number (the
+  Guide's Clone pattern), so a subscriber that reconnects misses nothing;
+* **defence** — every frame is checked before anything is journaled: message fields by type and
+  range (:func:`common.messages.validate`), sizes and nesting capped; every refusal that can be
+  answered gets an ``ERR`` reply; refused frames are counted (STATUS ``refused``) and summarised in
+  at most one ``input.rejected`` event per ``refusal_event_interval_s``, so garbage never pushes
+  the catch-up history out; a result is accepted only from the worker holding the job; with CURVE
+  on, a key's role (``tessera keys add --role``) decides what it may register as and submit;
+* **idempotent announcements** — an output event a worker returns is announced once: the same
+  output (same fields apart from ``uid`` and ``time``) returned again, e.g. after a re-submitted
+  ``fragment.ready``, is dropped, so no stage downstream runs twice for it.
 
 The wire protocol is in :mod:`common.bus.protocol` and ``docs/messages.md``.
 """
@@ -25,8 +34,10 @@ The wire protocol is in :mod:`common.bus.protocol` and ``docs/messages.md``.
 from __future__ import annotations
 
 import collections
+import hashlib
 import logging
 import os
+import re
 import socket as _socket
 import threading
 import time
@@ -46,6 +57,35 @@ log = logging.getLogger("tessera.broker")
 HEARTBEAT_INTERVAL_S = 1.0
 HEARTBEAT_LIVENESS = 3
 DONE_DELAY_S = 0.05      # completions alone are journaled at most this late (group commit)
+REFUSAL_LOG_INTERVAL_S = 5.0   # refused frames: one log line per this, with the count
+MAX_FRAME_BYTES = 4 * messages.MAX_MESSAGE_BYTES  # a peer sending a larger frame is disconnected by ZeroMQ
+MAX_ERROR_CHARS = 2000   # a worker's error text is cut to this before it goes into an event
+SERVICE_NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+
+# what a CURVE key of each role may do (docs/security.md); "admin" is the lab's own tools
+# (reconcile, imports, re-runs); any role may ask STATUS, SINCE and PENDING
+ROLE_SUBMITS: dict[str, frozenset] = {
+    "scanner": frozenset({"fragment.ready", "rgbn.ready"}),
+    "web": frozenset({"match.verified"}),
+    "admin": frozenset(messages.EVENT_TYPES),
+}
+ROLE_SERVES: dict[str, frozenset] = {r: frozenset({r}) for r in ("solver", "features", "matcher", "renderer")}
+ROLE_SERVES["admin"] = frozenset({"*"})
+ROLE_RERUNS = frozenset({"web", "admin"})
+
+
+def output_key(event: Mapping) -> str:
+    """Identity of an output event: digest of its fields other than ``uid`` and ``time``."""
+    core = {k: v for k, v in event.items() if k not in ("uid", "time")}
+    return hashlib.sha256(P.dumps(_canonical(core))).hexdigest()[:32]
+
+
+def _canonical(obj):
+    if isinstance(obj, Mapping):
+        return [[k, _canonical(obj[k])] for k in sorted(obj)]
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v) for v in obj]
+    return obj
 
 
 @dataclass
@@ -124,6 +164,14 @@ class Broker:
         self._uid_order: collections.deque = collections.deque()
         for uid, seq in state.uids:
             self._remember(uid, seq)
+        self._outputs: set[str] = set(state.outputs)
+        self.duplicates_dropped = 0
+        self.refused: collections.Counter = collections.Counter()   # reason kind -> count
+        self._refused_window = 0          # refusals since the last summary event
+        self._refused_last = ""
+        self._refusal_logged = 0.0
+        self._refusal_evented = 0.0
+        self.refusal_interval = float(b.get("refusal_event_interval_s", 60.0))
         for jid, seq, service, st, failures, error, body in state.jobs:
             job = Job(jid, seq, service, bytes(body), failures=failures, error=error,
                       state="parked" if st == "parked" else "queued")
@@ -158,6 +206,7 @@ class Broker:
         self.router.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self.router.setsockopt(zmq.SNDHWM, 100000)
         self.router.setsockopt(zmq.RCVHWM, 100000)
+        self.router.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
         self.router.bind(f"tcp://{b['bind']}:{b['port']}")
         self.feed = security.secure_server_socket(self.ctx.socket(zmq.PUB), self.config)
         self.feed.setsockopt(zmq.LINGER, 0)
@@ -200,10 +249,14 @@ class Broker:
                 if self.router in ready:
                     for _ in range(self.batch_max):
                         try:
-                            frames = self.router.recv_multipart(zmq.NOBLOCK)
+                            frames = self.router.recv_multipart(zmq.NOBLOCK, copy=self._auth is None)
                         except zmq.Again:
                             break
-                        self._handle(frames)
+                        role = None
+                        if self._auth is not None:  # CURVE: the ZAP handler's User-Id is the peer's public key
+                            role = self._role_of(frames[0])
+                            frames = [f.bytes for f in frames]
+                        self._handle(frames, role)
                     self._dispatch_dirty()
                     self._flush()
                 if self._signal in ready:
@@ -252,8 +305,11 @@ class Broker:
     def _on_durable(self, frame: bytes) -> None:
         if frame == b"FAILED":
             self._journal_ok = False
-            log.error("journal failed: no further event is acknowledged")
+            log.error("journal cannot write: submissions are refused until it can")
             return
+        if not self._journal_ok:
+            log.warning("journal writable again: submissions accepted")
+        self._journal_ok = True
         upto = int(frame)
         while self._waiting_batches:
             bid = next(iter(self._waiting_batches))
@@ -302,42 +358,100 @@ class Broker:
         return seq
 
     def _reject(self, error: str, **fields) -> None:
+        """Publish an ``input.rejected`` about a job's input or output (bounded by the jobs there are)."""
         log.warning("rejected: %s", error)
-        self.accept_event(messages.new_message("input.rejected", error=error, broker=_socket.gethostname(), **fields))
+        self.accept_event(messages.new_message("input.rejected", error=error[:MAX_ERROR_CHARS],
+                                               broker=_socket.gethostname(), **fields))
+
+    def _refuse(self, identity: bytes | None, kind: str, error: str, tag: bytes = b"") -> None:
+        """Refuse one frame: ERR reply when it can be answered, counted, logged and summarised at a
+        bounded rate (never one journaled event per frame: a flood must not push history out)."""
+        error = error[:MAX_ERROR_CHARS]
+        if identity is not None:
+            self.router.send_multipart([identity, b"", P.CLIENT, P.ERR, tag[:256], P.dumps({"error": error})])
+        self.refused[kind] += 1
+        self._refused_window += 1
+        self._refused_last = error
+        now = time.monotonic()
+        if now - self._refusal_logged >= REFUSAL_LOG_INTERVAL_S:
+            log.warning("refused %s: %s (%d refusal(s) since the last line)", kind, error, self._refused_window)
+            self._refusal_logged = now
+        self._refusal_summary(now)
+
+    def _refusal_summary(self, now: float) -> None:
+        if self._refused_window and now - self._refusal_evented >= self.refusal_interval:
+            n, self._refused_window = self._refused_window, 0
+            self._refusal_evented = now
+            self.accept_event(messages.new_message(
+                "input.rejected", error=f"{n} frame(s) refused; last: {self._refused_last}"[:MAX_ERROR_CHARS],
+                source="broker", refused=n, broker=_socket.gethostname()))
+
+    def _role_of(self, frame) -> str | None:
+        """Role of the CURVE key that sent ``frame`` ("" when unknown: allowed nothing but reading)."""
+        try:
+            key = frame.get("User-Id")
+        except (zmq.ZMQError, AttributeError, ValueError):
+            return ""
+        provider = self._auth.credentials_providers.get("*") if self._auth is not None else None
+        role_of = getattr(provider, "role_of", None)
+        return (role_of(key.encode() if isinstance(key, str) else key) if role_of else "") or ""
 
     # -- frames ----------------------------------------------------------------------------
-    def _handle(self, frames: list[bytes]) -> None:
+    def _handle(self, frames: list[bytes], role: str | None = None) -> None:
+        """One message from the ROUTER; ``role`` is the CURVE key's role (None: security off)."""
         if len(frames) < 4 or frames[1] != b"":
-            self._reject(f"malformed frame: {len(frames)} parts, expected identity, empty, header, command",
-                         source="broker")
+            self._refuse(frames[0] if frames else None, "malformed",
+                         f"malformed frame: {len(frames)} parts, expected identity, empty, header, command")
             return
         identity, header, command, rest = frames[0], frames[2], frames[3], frames[4:]
         try:
             if header == P.WORKER:
-                self._worker_message(identity, command, rest)
+                self._worker_message(identity, command, rest, role)
             elif header == P.CLIENT:
-                self._client_message(identity, command, rest)
+                self._client_message(identity, command, rest, role)
             else:
-                self._reject(f"unknown protocol header {header[:16]!r}", source="broker")
-        except Exception as exc:  # any defect of one message (wrong shapes too) rejects it, never the broker
-            self._reject(f"malformed {header[:8]!r} {command[:16]!r} message: {type(exc).__name__}: {exc}",
-                         source="broker")
+                self._refuse(identity, "malformed", f"unknown protocol header {header[:16]!r}")
+        except Exception as exc:  # any defect of one message (wrong shapes too) refuses it, never the broker
+            tag = rest[0] if header == P.CLIENT and rest else b""
+            self._refuse(identity, "malformed", f"malformed {header[:8]!r} {command[:16]!r} message: "
+                                                f"{type(exc).__name__}: {str(exc)[:300]}", tag)
 
     def _send_worker(self, identity: bytes, command: bytes, *parts: bytes) -> None:
         self.router.send_multipart([identity, b"", P.WORKER, command, *parts])
 
-    def _worker_message(self, identity: bytes, command: bytes, rest: list[bytes]) -> None:
+    def _worker_message(self, identity: bytes, command: bytes, rest: list[bytes], role: str | None = None) -> None:
         now = time.monotonic()
         worker = self.workers.get(identity)
         if command == P.READY:
+            service = rest[0].decode(errors="replace") if rest else ""
+            if not SERVICE_NAME.match(service):
+                self._refuse(identity, "malformed", f"READY for {service[:40]!r}: not a service name")
+                return
+            if role is not None and not ({service, "*"} & ROLE_SERVES.get(role, frozenset())):
+                self._refuse(identity, "role", f"a key of role {role or 'none'!r} may not serve {service!r}")
+                self._send_worker(identity, P.DISCONNECT)
+                return
+            info = P.loads(rest[1]) if len(rest) > 1 else {}
+            if not isinstance(info, dict):
+                raise ValueError(f"READY info must be a map, got {type(info).__name__}")
+            pid = info.get("pid", 0)
+            if isinstance(pid, bool) or not isinstance(pid, int) or not 0 <= pid < 2 ** 31:
+                raise ValueError(f"READY pid {str(pid)[:20]!r} is not a process id")
+            busy = info.get("job")
+            if busy is not None and not isinstance(busy, str):
+                raise ValueError("READY job must be a job id")
             if worker is not None:  # a second READY is a protocol error (MDP): start afresh
                 self._drop_worker(worker, "announced READY twice", count_failure=False)
-            info = P.loads(rest[1]) if len(rest) > 1 else {}
-            worker = Worker(identity, rest[0].decode(), host=str(info.get("host", "?")), pid=int(info.get("pid", 0)),
+            worker = Worker(identity, service, host=str(info.get("host", "?"))[:64], pid=pid,
                             expiry=now + self.interval * self.liveness)
             self.workers[identity] = worker
-            busy = info.get("job")
             job = self.jobs.get(busy) if busy else None
+            if job is not None and (job.service != service or (job.state == "inflight" and job.worker in self.workers
+                                                               and job.worker != identity)):
+                # a claim on another service's job, or on a job a live worker holds: not this worker's
+                log.warning("worker %s:%d (%s) claimed job %s it cannot hold: ignored", worker.host, worker.pid,
+                            service, busy[:64])
+                busy, job = None, None
             if busy:
                 # a worker that reconnected mid-job is busy with it: its RESULT/FAIL for that job is
                 # expected (even if the job was parked or completed meanwhile), nothing is dispatched
@@ -350,8 +464,13 @@ class Broker:
             log.info("worker %s:%d ready for %s", worker.host, worker.pid, worker.service)
             return
         if worker is None:
-            if command == P.RESULT:  # result of a job from before a broker restart
-                self._complete(rest[0].decode(), rest[1])
+            # not a registered worker: nothing it says touches a job (a peer that never said READY
+            # cannot complete a job, issue 19). A real worker after a broker restart is told to
+            # reconnect; its job was re-queued from the journal and runs again (outputs are
+            # content-keyed, announcements de-duplicated).
+            if command in (P.RESULT, P.FAIL, P.PROGRESS):
+                self._refuse(None, "not-worker", f"{command.decode(errors='replace')} from a peer that is not a "
+                                                 "registered worker: ignored")
             if command != P.DISCONNECT:
                 self._send_worker(identity, P.DISCONNECT)
             return
@@ -363,8 +482,9 @@ class Broker:
             if jid != worker.job:
                 # not the job this worker holds (a confused or hostile peer, or a duplicate): it must
                 # neither touch that job nor make the worker look idle (it would get two jobs)
-                log.warning("worker %s:%d (%s) sent %s for job %r but holds %r: ignored", worker.host, worker.pid,
-                            worker.service, command.decode(errors="replace"), jid[:64], worker.job)
+                self._refuse(None, "not-holder", f"worker {worker.host}:{worker.pid} ({worker.service}) sent "
+                                                 f"{command.decode(errors='replace')} for job {jid[:64]!r} but holds "
+                                                 f"{worker.job!r}: ignored")
                 return
         if command == P.PROGRESS:
             job = self.jobs.get(jid)
@@ -376,7 +496,7 @@ class Broker:
             self._complete(jid, rest[1])
             self._worker_idle(worker)
         elif command == P.FAIL:
-            kind, error = rest[1], rest[2].decode(errors="replace")
+            kind, error = rest[1], rest[2][:MAX_ERROR_CHARS].decode(errors="replace")
             job = self.jobs.get(jid)
             if job is not None and job.state == "inflight" and job.worker == identity:
                 self._job_failed(job, error, rejected=(kind == P.FAIL_REJECTED), host=f"{worker.host}:{worker.pid}")
@@ -387,7 +507,7 @@ class Broker:
             if handed_back:
                 log.info("worker %s:%d handed back job %s", worker.host, worker.pid, handed_back)
         else:
-            raise ValueError(f"unknown worker command {command[:16]!r}")
+            self._refuse(identity, "malformed", f"unknown worker command {command[:16]!r}")
 
     def _worker_idle(self, worker: Worker) -> None:
         worker.job = None
@@ -431,7 +551,7 @@ class Broker:
         except Exception as exc:
             self._reject(f"undecodable result of job {jid}: {exc}", job=jid, service=job.service)
             return
-        for ev in events:
+        for ev in events[:1000]:
             try:
                 ev = messages.validate(ev)
             except messages.MessageError as exc:
@@ -439,7 +559,14 @@ class Broker:
                 continue
             if ev["uid"] in self._uids:
                 continue
-            self.accept_event(ev)
+            key = output_key(ev)
+            if key in self._outputs:  # the same output announced before (a re-run of the same inputs)
+                self.duplicates_dropped += 1
+                log.info("job %s: %s for %s already announced; not again", jid, ev["type"], ev.get("fragment", "-"))
+                continue
+            seq = self.accept_event(ev)
+            self._outputs.add(key)
+            self._ops.append(("output", key, seq))
 
     def _job_failed(self, job: Job, error: str, *, rejected: bool = False, host: str = "") -> None:
         job.failures += 1
@@ -481,26 +608,42 @@ class Broker:
                 self._drop_worker(worker, "stopped responding (heartbeat lost)", count_failure=True)
             else:
                 self._send_worker(worker.identity, P.HEARTBEAT)
-        if now - self._last_feed >= self.interval:
-            self.feed.send_multipart([P.FEED_HEARTBEAT, self.stream, str(self.published_seq).encode(), b""])
-            self._last_feed = now
+        # every interval, whatever else flows: a subscriber of some types only still hears the position
+        self.feed.send_multipart([P.FEED_HEARTBEAT, self.stream, str(self.published_seq).encode(), b""])
+        self._last_feed = now
+        self._refusal_summary(now)
 
     # -- clients ---------------------------------------------------------------------------
-    def _client_message(self, identity: bytes, command: bytes, rest: list[bytes]) -> None:
+    def _client_message(self, identity: bytes, command: bytes, rest: list[bytes], role: str | None = None) -> None:
         tag, body = (rest + [b"", b""])[:2]
 
         def reply(status: bytes, obj) -> tuple:
             return ("reply", identity, status, tag, P.dumps(obj))
 
+        def request_map() -> dict:
+            req = P.loads(body) if body else {}
+            if not isinstance(req, dict):
+                raise ValueError(f"{command.decode(errors='replace')} body must be a map, got {type(req).__name__}")
+            return req
+
+        def number(req: dict, key: str, default: int) -> int:
+            value = req.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2 ** 63:
+                raise ValueError(f"{command.decode(errors='replace')} {key} must be a non-negative integer")
+            return value
+
         if command == P.SUBMIT:
             if not self._journal_ok:
-                self._run_actions([reply(P.ERR, {"error": "broker journal failed; see the broker log"})])
+                self._refuse(identity, "journal", "broker journal cannot write (disk full?); see the broker log; "
+                                                  "submissions resume when it can", tag)
                 return
             try:
                 event = messages.unpack(body)
             except messages.MessageError as exc:
-                self._run_actions([reply(P.ERR, {"error": str(exc)})])
-                self._reject(f"submitted message refused: {exc}", source="client")
+                self._refuse(identity, "invalid", f"submitted message refused: {exc}", tag)
+                return
+            if role is not None and event["type"] not in ROLE_SUBMITS.get(role, frozenset()):
+                self._refuse(identity, "role", f"a key of role {role or 'none'!r} may not submit {event['type']}", tag)
                 return
             seq = self._uids.get(event["uid"])
             if seq is None:
@@ -509,16 +652,33 @@ class Broker:
         elif command == P.STATUS:
             self._run_actions([reply(P.OK, self.status())])
         elif command == P.SINCE:
-            req = P.loads(body) if body else {}
-            after = int(req.get("after", 0))
-            limit = max(1, min(int(req.get("limit", 1000)), 10000))
-            events = self.journal.events_since(after, limit, self.published_seq)
+            req = request_map()
+            after = number(req, "after", 0)
+            limit = max(1, min(number(req, "limit", 1000), 10000))
+            types = req.get("types")
+            if types is not None and not (isinstance(types, list) and len(types) <= 64
+                                          and all(isinstance(t, str) and len(t) <= 64 for t in types)):
+                raise ValueError("SINCE types must be a list of event type names")
+            upto = self.published_seq
+            events = self.journal.events_since(after, limit, upto, types or None)
+            # with a type filter the reply says how far it looked, so the caller moves past the rest
+            scanned = events[-1][0] if len(events) >= limit else max(upto, after)
             first = self.journal.first_seq()
-            self._run_actions([reply(P.OK, {"stream": self.stream.decode(), "last_seq": self.published_seq,
+            self._run_actions([reply(P.OK, {"stream": self.stream.decode(), "last_seq": upto, "scanned_to": scanned,
                                              "first_seq": first, "events": [[s, b] for s, b in events]})])
+        elif command == P.PENDING:
+            pending = [[j.service, j.state, j.event.get("type"), j.event.get("fragment"), j.event.get("face")]
+                       for j in self.jobs.values() if j.state in ("queued", "inflight")]
+            self._run_actions([reply(P.OK, {"pending": pending})])
         elif command == P.RERUN:
-            req = P.loads(body) if body else {}
-            which = str(req.get("job", "all"))
+            if role is not None and role not in ROLE_RERUNS:
+                self._refuse(identity, "role", f"a key of role {role or 'none'!r} may not re-run jobs", tag)
+                return
+            req = request_map()
+            which = req.get("job")
+            if not isinstance(which, str) or not which:
+                self._refuse(identity, "invalid", "RERUN needs {job: <job id> | \"all\"}", tag)
+                return
             rerun = []
             for job in self.jobs.values():
                 if job.state == "parked" and (which == "all" or job.id == which):
@@ -529,8 +689,7 @@ class Broker:
                     rerun.append(job.id)
             self._after.append(reply(P.OK, {"rerun": rerun}))
         else:
-            self._run_actions([reply(P.ERR, {"error": f"unknown command {command[:16]!r}"})])
-            self._reject(f"unknown client command {command[:16]!r}", source="client")
+            self._refuse(identity, "malformed", f"unknown client command {command[:16]!r}", tag)
 
     def status(self) -> dict:
         """Queues, workers per host, jobs in flight, parked failures, throughput."""
@@ -565,4 +724,6 @@ class Broker:
             "in_flight": inflight, "parked": parked,
             "completed": self._completed, "jobs_per_s": round(recent / span, 2),
             "journal_bytes": self.journal.size_bytes(), "routing": self.routing,
+            "journal_ok": self._journal_ok, "refused": dict(self.refused),
+            "duplicates_dropped": self.duplicates_dropped,
         }

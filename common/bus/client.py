@@ -165,10 +165,18 @@ class BrokerClient:
         """Re-queue a parked job (``"all"``: every parked job); returns the job ids re-queued."""
         return list(self.request(P.RERUN, P.dumps({"job": job}))["rerun"])
 
-    def since(self, after: int, limit: int = 1000) -> dict:
+    def since(self, after: int, limit: int = 1000, types: Iterable[str] | None = None) -> dict:
         """Retained events with sequence number > ``after``: ``{stream, last_seq, first_seq,
-        events: [[seq, msgpack bytes], ...]}`` (oldest first, at most ``limit``)."""
-        return self.request(P.SINCE, P.dumps({"after": int(after), "limit": int(limit)}))
+        scanned_to, events: [[seq, msgpack bytes], ...]}`` (oldest first, at most ``limit``; of
+        ``types`` only if given, and then ``scanned_to`` is how far the broker looked)."""
+        req = {"after": int(after), "limit": int(limit)}
+        if types:
+            req["types"] = sorted(types)
+        return self.request(P.SINCE, P.dumps(req))
+
+    def pending(self) -> list[tuple]:
+        """Queued and in-flight jobs: ``(service, state, event type, fragment, face)`` each."""
+        return [tuple(x) for x in self.request(P.PENDING)["pending"]]
 
 
 def submit(event: Mapping, config: Mapping) -> int:

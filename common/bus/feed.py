@@ -112,7 +112,7 @@ class FeedSubscriber:
         try:
             while True:
                 after = self.last if self.last is not None else 1 << 62
-                r = self.client.since(after, 1000)
+                r = self.client.since(after, 1000, self.types)
                 if self.stream is not None and r["stream"] != self.stream:
                     log.warning("feed stream changed %s -> %s (new broker journal): starting over at 0",
                                 self.stream, r["stream"])
@@ -129,6 +129,9 @@ class FeedSubscriber:
                 for seq, body in events:
                     if seq > self.last:
                         self._deliver(seq, body)
+                scanned = r.get("scanned_to")  # with a type filter: the broker looked this far
+                if self.types is not None and isinstance(scanned, int) and scanned > self.last:
+                    self.last = scanned
                 if not events or self.last >= r["last_seq"]:
                     break
         except BrokerUnavailable:
@@ -142,6 +145,9 @@ class FeedSubscriber:
             event = P.loads(body)
         except Exception:
             log.warning("undecodable event %d skipped", seq)
+            return
+        if not isinstance(event, dict):
+            log.warning("event %d is not a map: skipped", seq)
             return
         if self.types is None or event.get("type") in self.types:
             self._ready.append((seq, event))

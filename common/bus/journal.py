@@ -15,6 +15,13 @@ Tables
 ``jobs(id, seq, service, state, failures, error)``  pending (``queued``) and ``parked`` jobs; a
                                  finished job's row is deleted. In-flight jobs are ``queued`` on disk,
                                  so a broker restart re-queues them.
+``outputs(key, seq)``            identity of every output event a worker announced (a digest of the
+                                 event without ``uid`` and ``time``): the same output is never
+                                 announced twice, across restarts too.
+
+A batch the database cannot take (disk full, I/O error) is retried every second; the broker is
+told (``FAILED``) and refuses submissions until a batch is durable again. An operation SQLite
+refuses on its own (a value it cannot hold) is logged and skipped; the others are written.
 
 Compaction deletes events beyond the history and checkpoints the WAL, so the journal's size is
 bounded by the history and the backlog, not by the station's lifetime.
@@ -43,6 +50,7 @@ CREATE INDEX IF NOT EXISTS events_uid ON events(uid);
 CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, seq INTEGER NOT NULL, service TEXT NOT NULL,
                                  state TEXT NOT NULL, failures INTEGER NOT NULL DEFAULT 0,
                                  error TEXT NOT NULL DEFAULT '');
+CREATE TABLE IF NOT EXISTS outputs (key TEXT PRIMARY KEY, seq INTEGER NOT NULL);
 """
 
 
@@ -54,6 +62,7 @@ class JournalState:
     last_seq: int
     jobs: list = field(default_factory=list)        # (id, seq, service, state, failures, error, body)
     uids: list = field(default_factory=list)        # (uid, seq) of retained events, oldest first
+    outputs: set = field(default_factory=set)       # keys of output events already announced
 
 
 def _connect(path: Path) -> sqlite3.Connection:
@@ -108,10 +117,11 @@ class Journal:
                 "SELECT j.id, j.seq, j.service, j.state, j.failures, j.error, e.body FROM jobs j "
                 "JOIN events e ON e.seq = j.seq ORDER BY j.seq, j.id").fetchall()
             uids = con.execute("SELECT uid, seq FROM events ORDER BY seq DESC LIMIT ?", (self.history,)).fetchall()
+            outputs = {k for (k,) in con.execute("SELECT key FROM outputs")}
         finally:
             con.close()
         self._last_seq_written = last
-        return JournalState(stream=stream, last_seq=int(last), jobs=jobs, uids=list(reversed(uids)))
+        return JournalState(stream=stream, last_seq=int(last), jobs=jobs, uids=list(reversed(uids)), outputs=outputs)
 
     def start(self, context: zmq.Context, signal_endpoint: str) -> None:
         """Start the writer thread; it reports durable batch ids on ``signal_endpoint`` (inproc PAIR)."""
@@ -125,7 +135,7 @@ class Journal:
 
         Operations: ``("event", seq, uid, type, time, body)``, ``("job", id, seq, service)``,
         ``("done", id)``, ``("fail", id, failures, error)``, ``("park", id, failures, error)``,
-        ``("requeue", id)``.
+        ``("requeue", id)``, ``("output", key, seq)``.
         """
         self._queue.put((batch_id, ops))
 
@@ -140,10 +150,17 @@ class Journal:
             self._reader = None
 
     # -- reading (broker thread) -----------------------------------------------------------
-    def events_since(self, after: int, limit: int, upto: int) -> list[tuple[int, bytes]]:
-        """Retained events with ``after < seq <= upto``, oldest first, at most ``limit``."""
-        rows = self._reader.execute("SELECT seq, body FROM events WHERE seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
-                                    (int(after), int(upto), int(limit))).fetchall()
+    def events_since(self, after: int, limit: int, upto: int, types: list[str] | None = None
+                     ) -> list[tuple[int, bytes]]:
+        """Retained events with ``after < seq <= upto`` (of ``types`` only, if given), oldest first,
+        at most ``limit``."""
+        if types:
+            marks = ",".join("?" * len(types))
+            rows = self._reader.execute(f"SELECT seq, body FROM events WHERE seq > ? AND seq <= ? AND type IN ({marks}) "
+                                        "ORDER BY seq LIMIT ?", (int(after), int(upto), *types, int(limit))).fetchall()
+        else:
+            rows = self._reader.execute("SELECT seq, body FROM events WHERE seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
+                                        (int(after), int(upto), int(limit))).fetchall()
         return [(int(s), bytes(b)) for s, b in rows]
 
     def first_seq(self) -> int:
@@ -177,10 +194,7 @@ class Journal:
                     stopping = True
                     items = [i for i in items if i is not None]
                 if items:
-                    con.execute("BEGIN")
-                    self._apply(con, [op for _batch_id, ops in items for op in ops])
-                    con.execute("INSERT OR REPLACE INTO meta VALUES ('last_seq', ?)", (str(self._last_seq_written),))
-                    con.execute("COMMIT")
+                    self._commit(con, [op for _batch_id, ops in items for op in ops], signal)
                     self.batches_committed += 1
                     signal.send(str(items[-1][0]).encode())
                 if time.monotonic() - last_compact > self.compact_interval_s:
@@ -193,14 +207,66 @@ class Journal:
             signal.close(linger=0)
             con.close()
 
+    def _commit(self, con: sqlite3.Connection, ops: list, signal) -> None:
+        """Write ``ops`` in one transaction; never give up on the journal because of one of them.
+
+        The database refusing everything (disk full, I/O error) is retried every second after
+        telling the broker (``FAILED``); an operation refused on its own is skipped, logged.
+        """
+        failed = False
+        while True:
+            try:
+                con.execute("BEGIN")
+                self._apply(con, ops)
+                con.execute("INSERT OR REPLACE INTO meta VALUES ('last_seq', ?)", (str(self._last_seq_written),))
+                con.execute("COMMIT")
+                if failed:
+                    log.warning("journal writable again: the broker acknowledges events again")
+                return
+            except sqlite3.OperationalError as exc:  # the disk, not the data: wait until it takes writes
+                self._rollback(con)
+                if not failed:
+                    log.error("journal write failed (%s): retrying every second; the broker refuses submissions", exc)
+                    signal.send(b"FAILED")
+                    failed = True
+                time.sleep(1.0)
+            except Exception as exc:  # a value SQLite cannot hold: write the others one by one
+                self._rollback(con)
+                log.error("journal batch refused (%s: %s): writing its %d operations one by one",
+                          type(exc).__name__, exc, len(ops))
+                good = []
+                for op in ops:
+                    try:
+                        con.execute("SAVEPOINT one")
+                        self._apply(con, [op])
+                        con.execute("ROLLBACK TO one")
+                        good.append(op)
+                    except sqlite3.OperationalError:
+                        raise
+                    except Exception as one:
+                        con.execute("ROLLBACK TO one")
+                        log.error("journal operation %r skipped: %s", str(op)[:200], one)
+                    finally:
+                        con.execute("RELEASE one")
+                ops = good
+
+    @staticmethod
+    def _rollback(con: sqlite3.Connection) -> None:
+        try:
+            con.execute("ROLLBACK")
+        except sqlite3.Error:
+            pass
+
     def _apply(self, con: sqlite3.Connection, ops: list) -> None:
         # Grouped by kind, in an order that gives the same end state as the original sequence:
         # a job is inserted before it is updated, updated (in order) before it is deleted.
-        events, jobs, updates, done = [], [], [], []
+        events, jobs, updates, done, outputs = [], [], [], [], []
         for op in ops:
             kind = op[0]
             if kind == "event":
                 events.append(op[1:])
+            elif kind == "output":
+                outputs.append(op[1:])
             elif kind == "job":
                 jobs.append(op[1:])
             elif kind == "done":
@@ -212,6 +278,8 @@ class Journal:
         if events:
             con.executemany("INSERT OR IGNORE INTO events VALUES (?, ?, ?, ?, ?)", events)
             self._last_seq_written = max(self._last_seq_written, max(e[0] for e in events))
+        if outputs:
+            con.executemany("INSERT OR IGNORE INTO outputs VALUES (?, ?)", outputs)
         if jobs:
             con.executemany("INSERT OR IGNORE INTO jobs (id, seq, service, state) VALUES (?, ?, ?, 'queued')", jobs)
         for op in updates:

@@ -20,10 +20,13 @@ Client <-> broker (header ``TC1``): request ``[b"", TC1, command, tag, body]``, 
 ``[b"", TC1, b"OK" | b"ERR", tag, body]`` where ``tag`` is the caller's correlation id, so a
 DEALER client may pipeline requests. Commands: ``SUBMIT`` (body: one msgpack event; reply
 ``{seq}``), ``STATUS`` (reply: status map), ``RERUN`` (body ``{job}``; ``"all"`` for every parked
-job), ``SINCE`` (body ``{after, limit}``; reply ``{stream, last_seq, events: [[seq, event], ...]}``).
+job; a body without ``job`` is refused), ``SINCE`` (body ``{after, limit, types?}``; reply ``{stream,
+last_seq, first_seq, scanned_to, events: [[seq, event], ...]}``), ``PENDING`` (reply ``{pending:
+[[service, state, type, fragment, face], ...]}``: queued and in-flight jobs). Every refused request
+gets ``ERR`` with ``{error}``; so does any other frame the broker refuses, where it can answer.
 
 Event feed (PUB): ``[topic, stream, seq(ascii), event(msgpack)]`` with ``topic`` the event type;
-idle heartbeats ``[b"HEARTBEAT", stream, last_seq(ascii), b""]``.
+a heartbeat every interval ``[b"HEARTBEAT", stream, last_seq(ascii), b""]``.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ SUBMIT = b"SUBMIT"
 STATUS = b"STATUS"
 RERUN = b"RERUN"
 SINCE = b"SINCE"
+PENDING = b"PENDING"
 OK = b"OK"
 ERR = b"ERR"
 

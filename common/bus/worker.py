@@ -37,12 +37,15 @@ from common import messages
 from common.bus import protocol as P
 from common.bus.security import secure_client_socket
 from common.config import broker_endpoint, service_config
-from common.store import ArtifactError, ArtifactMissing, Store
+from common.store import ArtifactError, ArtifactMissing, StorageError, StorageUnavailable, Store
 
 log = logging.getLogger("tessera.worker")
 
 # errors that mean "this input is bad": retrying will not help, so the broker parks at once
 REJECTED_ERRORS: tuple[type[BaseException], ...] = (messages.MessageError, ArtifactError)
+# errors that mean "the storage refuses writes right now" (full, read-only, unmounted): the job is
+# retried in this worker with back-off (heartbeats go on) instead of burning the broker's attempts
+STORAGE_ERRORS: tuple[type[BaseException], ...] = (StorageError, StorageUnavailable)
 
 
 @dataclass
@@ -92,9 +95,11 @@ def load_stage(name: str):
 class _JobRunner(threading.Thread):
     """Runs jobs one at a time in its own thread; outcomes and progress go to :attr:`outcomes`."""
 
-    def __init__(self, handle, make_context):
+    def __init__(self, handle, make_context, *, retry=(1.0, 30.0, 600.0), stop: threading.Event | None = None):
         super().__init__(name="job-runner", daemon=True)
         self.handle, self.make_context = handle, make_context
+        self.retry_min, self.retry_max, self.retry_budget = (float(x) for x in retry)
+        self.stop = stop or threading.Event()
         self.jobs: queue.Queue = queue.Queue()
         self.outcomes: queue.Queue = queue.Queue()
 
@@ -115,7 +120,7 @@ class _JobRunner(threading.Thread):
 
             try:
                 stage_ctx = self.make_context(jid, attempt, progress)
-                result = self.handle(event, stage_ctx) or []
+                result = self._handle_retrying_storage(jid, event, stage_ctx, progress)
                 try:
                     payload = P.dumps([messages.validate(e) for e in result])
                 except Exception as exc:  # the stage's fault, not its input's: an ordinary failure
@@ -132,6 +137,29 @@ class _JobRunner(threading.Thread):
                 where = "; ".join(f"{os.path.basename(f.filename)}:{f.lineno} in {f.name}" for f in tb)
                 log.exception("job %s failed", jid)
                 self.outcomes.put(("fail", jid, P.FAIL_ERROR, f"{type(exc).__name__}: {exc} (at {where})"))
+
+
+    def _handle_retrying_storage(self, jid: str, event: dict, stage_ctx, progress) -> list:
+        """Run the stage; while the storage refuses writes, wait (doubling) and run it again.
+
+        Stage outputs are content-keyed, so re-running after a refused write redoes only what is
+        missing. After ``retry_budget`` seconds (or when the worker stops) the storage error is
+        raised: the broker counts one failed attempt.
+        """
+        wait, started = self.retry_min, time.monotonic()
+        while True:
+            try:
+                return self.handle(event, stage_ctx) or []
+            except STORAGE_ERRORS as exc:
+                spent = time.monotonic() - started
+                if spent + wait > self.retry_budget or self.stop.is_set():
+                    raise
+                log.warning("job %s: %s; retrying in %.1f s (%.0f of %.0f s spent)", jid, exc, wait, spent,
+                            self.retry_budget)
+                progress(0.0, f"storage refuses writes ({type(exc).__name__}); retrying in {wait:.0f} s")
+                if self.stop.wait(wait):
+                    raise
+                wait = min(wait * 2, self.retry_max)
 
 
 def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Event | None = None,
@@ -178,7 +206,8 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
         return StageContext(store=store, config=settings, log=stage_log, progress=progress,
                             service=service, job_id=jid, attempt=attempt, stopping=stop)
 
-    runner = _JobRunner(module.handle, make_context)
+    runner = _JobRunner(module.handle, make_context, stop=stop,
+                        retry=(w["storage_retry_min_s"], w["storage_retry_max_s"], w["storage_retry_budget_s"]))
     runner.start()
 
     sock = None

@@ -103,7 +103,7 @@ def _raw_send(endpoint: str, *frames: bytes) -> None:
     s.close()
 
 
-def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station):
+def test_bad_inputs_are_refused_or_reported_and_nothing_else_is_lost(make_station):
     st = make_station(services={"noop": {"schema": "tessera.scans", "schema_version": 1}})
     st.broker()
     worker = st.worker()
@@ -139,13 +139,17 @@ def test_bad_inputs_are_reported_as_events_and_nothing_else_is_lost(make_station
         want = {g["uid"] for g in good} | {fine["uid"]}
         with st.subscriber(0) as sub:
             events = collect(sub, lambda ev: _done(ev) >= want and
-                             sum(e["type"] == "input.rejected" for _, e in ev) >= 8, 20, "good jobs and rejections")
+                             sum(e["type"] == "input.rejected" for _, e in ev) >= 4, 20, "good jobs and rejections")
         rejected = [e for _, e in events if e["type"] == "input.rejected"]
         errors = " | ".join(e["error"] for e in rejected)
-        for phrase in ("malformed frame", "unknown protocol header", "unknown message type",
-                       "schema version 99", "undecodable", "not a readable HDF5", "sha256",
-                       "schema version 7; this reader understands up to 1"):
+        # bad artifacts: one input.rejected per job, with the reason
+        for phrase in ("not a readable HDF5", "sha256", "schema version 7; this reader understands up to 1"):
             assert phrase in errors, f"no input.rejected saying {phrase!r}: {errors}"
+        # refused frames: ERR to the sender (BrokerRefused above), counted, one summary event per interval
+        summaries = [e for e in rejected if e.get("refused")]
+        assert len(summaries) == 1 and "frame(s) refused" in summaries[0]["error"], errors
+        refused = c.status()["refused"]
+        assert sum(refused.values()) >= 6 and refused.get("invalid", 0) >= 3 and refused.get("malformed", 0) >= 2, refused
         parked = {p["fragment"] for p in c.status()["parked"]}
         assert parked == {"F0002", "F0003", "F0004"}, "bad artifacts are parked at once, not retried"
     assert _done(events) == want
@@ -312,10 +316,82 @@ def test_worker_messages_for_a_job_it_does_not_hold_are_ignored(make_station):
             b.send(P.RESULT, jid[j3["uid"]].encode(), P.dumps([]))
             wait_for(lambda: _pump(0.1, a, b) or c.status()["completed"] == 3, 10, "three jobs completed")
             events = c.since(0, 100)["events"]
-        types = [P.loads(e)["type"] for _, e in events]
-        assert "stage.failed" not in types and "input.rejected" not in types
+        docs = [P.loads(e) for _, e in events]
+        types = [d["type"] for d in docs]
+        assert "stage.failed" not in types
+        assert all(d.get("refused") for d in docs if d["type"] == "input.rejected"), "only the refusal summary"
         assert types.count("noop.done") == 1, "the forged result did not complete j2; B's did, once"
     finally:
         a.close()
         if b is not None:
             b.close()
+
+
+def test_result_from_a_peer_that_never_registered_cannot_complete_a_job(make_station):
+    """Issue 19, job hijack: job ids are derivable from the public feed; a RESULT for one from a
+    peer that never said READY must neither complete the job nor route its forged events."""
+    st = make_station()
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    job = new_message("noop.job", n=1)
+    jid = f"{job['uid'][:12]}-noop".encode()
+    ctx = zmq.Context()
+    rogue = ctx.socket(zmq.DEALER)
+    rogue.setsockopt(zmq.LINGER, 0)
+    rogue.connect(endpoint)
+    try:
+        with st.client() as c:
+            c.submit(job)  # no worker yet: the job is queued
+            forged = new_message("noop.done", job=job["uid"], received=0.0, attempt=1, forged=True)
+            rogue.send_multipart([b"", P.WORKER, P.RESULT, jid, P.dumps([forged])])
+            rogue.send_multipart([b"", P.WORKER, P.FAIL, jid, P.FAIL_REJECTED, b"forged"])
+            assert rogue.poll(3000), "the rogue is answered (told to DISCONNECT)"
+            assert rogue.recv_multipart()[2] == P.DISCONNECT
+            time.sleep(0.3)
+            s = c.status()
+            assert s["queues"]["noop"] == 1 and s["completed"] == 0 and s["parked"] == []
+            assert s["refused"].get("not-worker", 0) == 2
+            st.worker()  # the real worker runs the job
+            with st.subscriber(0) as sub:
+                events = collect(sub, lambda ev: _done(ev), 20, "the real noop.done")
+        done = [e for _, e in events if e["type"] == "noop.done"]
+        assert len(done) == 1 and not done[0].get("forged") and done[0]["uid"] != forged["uid"]
+    finally:
+        ctx.destroy(linger=0)
+
+
+def test_ready_claiming_another_services_job_does_not_take_it(make_station):
+    st = make_station()
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    job = new_message("noop.job", n=2)
+    jid = f"{job['uid'][:12]}-noop"
+    ctx = zmq.Context()
+    rogue = ctx.socket(zmq.DEALER)
+    rogue.setsockopt(zmq.LINGER, 0)
+    rogue.connect(endpoint)
+    try:
+        with st.client() as c:
+            c.submit(job)
+            rogue.send_multipart([b"", P.WORKER, P.READY, b"other", P.dumps({"host": "rogue", "pid": 9, "job": jid})])
+            time.sleep(0.3)
+            rogue.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), P.dumps([])])
+            time.sleep(0.3)
+            s = c.status()
+            assert s["queues"]["noop"] == 1 and s["completed"] == 0 and s["in_flight"] == []
+    finally:
+        ctx.destroy(linger=0)
+
+
+def test_rerun_without_a_job_is_refused_not_a_rerun_of_everything(make_station):
+    st = make_station()
+    st.broker()
+    with st.client() as c:
+        c.submit(new_message("noop.job", fail=True))
+        st.worker()
+        wait_for(lambda: c.status()["parked"], 30, "the failing job to be parked")
+        for body in (b"", P.dumps({}), P.dumps({"job": 3}), P.dumps("all")):
+            with pytest.raises(BrokerRefused):
+                c.request(P.RERUN, body)
+        assert len(c.status()["parked"]) == 1, "nothing was re-run"
+        assert len(c.rerun("all")) == 1
