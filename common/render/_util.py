@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,10 +19,15 @@ class Layer:
     alpha : (H, W) float32
         Coverage in [0, 1]: 1 on the fragment for shading styles, the line/shadow strength for
         line and shadow styles (which may extend beyond the fragment mask).
+    resolved : dict
+        The values the style chose for its ``"auto"`` parameters (exposure, smoothing scale,
+        gain, threshold, palette): drawing again with them gives the same picture, which is how
+        tiles of a large image share one exposure.
     """
 
     rgb: np.ndarray
     alpha: np.ndarray
+    resolved: dict = field(default_factory=dict)
 
 
 def light_vector(azimuth_deg: float = 135.0, elevation_deg: float = 45.0) -> np.ndarray:

@@ -14,11 +14,10 @@ SCHEMA_VERSION = 1
 
 
 def to_integer(values: np.ndarray, bits: int) -> np.ndarray:
-    """[0, 1] floats as uint8 / uint16."""
-    if bits not in (8, 16):
-        raise ValueError(f"bits must be 8 or 16, got {bits}")
-    full = 255.0 if bits == 8 else 65535.0
-    return np.round(np.clip(np.nan_to_num(values), 0, 1) * full).astype(np.uint8 if bits == 8 else np.uint16)
+    """[0, 1] floats (or an 8/16-bit image drawn in tiles) as uint8 / uint16."""
+    from common.rgbn.io import to_bits
+
+    return to_bits(values, bits)
 
 
 def save_rendering(store: Store, relpath: str, rendering: Rendering, *, dpi: float,

@@ -89,7 +89,7 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
 
 def suggestive_contours(normals: np.ndarray, *, mask: np.ndarray | None = None, radius_px: float = 4.0,
                         fraction: float = 0.2, depth: float = 0.04, min_length_px: int = 12,
-                        sigma_px: float = 1.0, width_px: float = 1.0) -> np.ndarray:
+                        sigma_px: float = 1.0, width_px: float = 1.0, fade_deg: float = 0.0) -> np.ndarray:
     """Image-space suggestive contours with length pruning (DeCarlo et al. 2003, §4; §7.3.4).
 
     Suggestive contours are the valleys of the image lit from the viewer, ``I = n . v = nz``. A
@@ -116,6 +116,10 @@ def suggestive_contours(normals: np.ndarray, *, mask: np.ndarray | None = None, 
         Foreshortening-corrected smoothing of the normals first.
     width_px : float
         Drawn line width.
+    fade_deg : float
+        Lines fade where the surface faces the viewer: full strength where the smoothed normal
+        turns at least ``fade_deg`` degrees from the view, falling linearly in ``1 - nz`` to 0
+        facing it (a painting seen head-on draws almost none); 0 = no fading.
 
     Returns
     -------
@@ -146,12 +150,13 @@ def suggestive_contours(normals: np.ndarray, *, mask: np.ndarray | None = None, 
     inner = cv2.erode(mask.astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
     line &= inner
     line = prune_short_lines(line, min_length_px)
-    return _thicken(line.astype(np.float32), width_px)
+    return _thicken(line.astype(np.float32), width_px) * facing_fade(n, fade_deg, width_px)
 
 
 def suggestive_contours_object(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
                                sigma_px: float = 2.0, threshold: float = 0.05,
-                               min_length_px: int = 12, width_px: float = 1.0) -> np.ndarray:
+                               min_length_px: int = 12, width_px: float = 1.0,
+                               fade_deg: float = 0.0) -> np.ndarray:
     """Object-space suggestive contours from curvature derivatives (DeCarlo et al. 2003, §3).
 
     With the view ``v = (0, 0, 1)`` projected into the tangent plane, ``w ∝ -(nx, ny)`` in the
@@ -176,6 +181,8 @@ def suggestive_contours_object(normals: np.ndarray, dpi: float, *, mask: np.ndar
         Pruning length.
     width_px : float
         Drawn line width.
+    fade_deg : float
+        Fading where the surface faces the viewer, as in :func:`suggestive_contours`.
 
     Returns
     -------
@@ -209,12 +216,25 @@ def suggestive_contours_object(normals: np.ndarray, dpi: float, *, mask: np.ndar
     line &= cv2.erode(mask.astype(np.uint8), disc, iterations=max(1, int(np.ceil(2 * sigma_px))),
                       borderType=cv2.BORDER_REPLICATE) > 0
     line = prune_short_lines(line, min_length_px)
-    return _thicken(line.astype(np.float32), width_px)
+    return _thicken(line.astype(np.float32), width_px) * facing_fade(n, fade_deg, width_px)
+
+
+def facing_fade(normals: np.ndarray, fade_deg: float, width_px: float = 1.0) -> np.ndarray:
+    """Line strength factor: 1 where the normal turns >= ``fade_deg`` from the view (0, 0, 1),
+    linear in ``1 - nz`` down to 0 facing the viewer; all ones when ``fade_deg`` is 0."""
+    if not 0 <= fade_deg < 90:
+        raise ValueError(f"fade_deg must be in [0, 90), got {fade_deg}")
+    if fade_deg == 0:
+        return np.ones(normals.shape[:2], np.float32)
+    f = np.clip((1.0 - normals[..., 2]) / np.float32(1.0 - np.cos(np.radians(fade_deg))), 0.0, 1.0)
+    # the lines were thickened: spread the factor as far (a line keeps one strength across)
+    k = 2 * int(np.ceil(max(width_px, 1.0))) + 1
+    return cv2.dilate(f.astype(np.float32), np.ones((k, k), np.uint8))
 
 
 def ridges_valleys(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None, sigma_px: float = 1.5,
                    threshold: float | None = None, percentile: float = 90.0, min_length_px: int = 8,
-                   width_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                   width_px: float = 1.0, return_threshold: bool = False):
     """Ridge and valley lines: local extrema of principal curvature along its direction (§7.3.4).
 
     A ridge pixel has ``k1 > threshold``, a dominant curvature (``k1 - k2 > k1 / 4``: no lines at
@@ -246,6 +266,8 @@ def ridges_valleys(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
     Returns
     -------
     ridges, valleys : (H, W) float32 in [0, 1]
+    threshold : float
+        Only with ``return_threshold``: the threshold used (1/mm).
 
     References
     ----------
@@ -274,7 +296,8 @@ def ridges_valleys(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
         & inner
     ridge = prune_short_lines(ridge, min_length_px)
     valley = prune_short_lines(valley, min_length_px)
-    return _thicken(ridge.astype(np.float32), width_px), _thicken(valley.astype(np.float32), width_px)
+    out = _thicken(ridge.astype(np.float32), width_px), _thicken(valley.astype(np.float32), width_px)
+    return out + (float(threshold),) if return_threshold else out
 
 
 def prune_short_lines(lines: np.ndarray, min_length_px: int) -> np.ndarray:
@@ -331,11 +354,20 @@ def _extremum_along(values: np.ndarray, direction: np.ndarray, *, maximum: bool)
 
 
 def _thicken(lines: np.ndarray, width_px: float) -> np.ndarray:
+    """Binary or soft line pixels drawn as anti-aliased strokes about ``width_px`` wide: dilated to
+    the width, then softened by a Gaussian of 0.3 x width (>= 0.5 px) and renormalised so a
+    stroke's centre keeps full strength (its flanks are partial coverage, not jagged steps)."""
     if width_px < 0:
         raise ValueError(f"width_px must be >= 0, got {width_px}")
     lines = np.asarray(lines, np.float32)
+    if width_px == 0 or not lines.any():
+        return np.clip(lines, 0.0, 1.0)
     if width_px > 1.0:
         k = int(np.ceil(width_px))
         lines = cv2.dilate(lines, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-        lines = gaussian_blur(lines, 0.3 * width_px)
-    return np.clip(lines, 0.0, 1.0)
+    sigma = max(0.3 * width_px, 0.5)
+    soft = gaussian_blur(lines, sigma)
+    # a one-pixel line blurred at sigma keeps 1 / (sqrt(2 pi) sigma) of its peak: give it back
+    peak = 1.0 / min(1.0, max(width_px, 1.0) / (np.sqrt(2 * np.pi) * sigma))
+    # the stroke's own pixels keep their strength; the blur adds the partial coverage around them
+    return np.clip(np.maximum(soft * np.float32(peak), lines), 0.0, 1.0)

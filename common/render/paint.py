@@ -24,19 +24,42 @@ def pigment_density(colour: np.ndarray, density: np.ndarray) -> np.ndarray:
     return np.clip(c - (c - c * c) * (d - 1.0), 0.0, 1.0)
 
 
-def paper_texture(shape, *, seed: int = 0, grain_px: float = 1.0, turbulence_px: float = 24.0) -> np.ndarray:
-    """Zero-mean paper texture in about [-1, 1]: fine grain plus low-frequency turbulence."""
+#: Side of the periodic paper sheet, pixels: the texture repeats every PAPER_PERIOD pixels, so any
+#: window of a large image (a tile) gets the same paper as the whole image would.
+PAPER_PERIOD = 1024
+
+
+def paper_texture(shape, *, seed: int = 0, grain_px: float = 1.0, turbulence_px: float = 24.0,
+                  origin=(0, 0)) -> np.ndarray:
+    """Zero-mean paper texture in about [-1, 1]: fine grain plus low-frequency turbulence.
+
+    The texture is one periodic sheet of ``PAPER_PERIOD`` pixels (blurred with wrap-around, so it
+    tiles seamlessly) addressed by absolute position: ``origin`` (row, column) of the window in
+    the whole image.
+    """
+    import cv2
+
     rng = np.random.default_rng(seed)
-    grain = gaussian_blur(rng.standard_normal(shape).astype(np.float32), grain_px)
-    turb = gaussian_blur(rng.standard_normal(shape).astype(np.float32), turbulence_px)
+    p = PAPER_PERIOD
+
+    def wrap(a, sigma):  # Gaussian blur of a periodic sheet (OpenCV has no wrap border for it)
+        m = int(np.ceil(4 * sigma)) + 1
+        return cv2.GaussianBlur(np.pad(a, m, mode="wrap"), (0, 0), sigma)[m:-m, m:-m]
+
+    grain = wrap(rng.standard_normal((p, p)).astype(np.float32), grain_px)
+    turb = wrap(rng.standard_normal((p, p)).astype(np.float32), turbulence_px)
     grain = (grain - grain.mean()) / max(float(grain.std()), 1e-6)
     turb = (turb - turb.mean()) / max(float(turb.std()), 1e-6)
-    return np.clip(0.35 * grain + 0.65 * turb, -3, 3) / 3.0
+    sheet = np.clip(0.35 * grain + 0.65 * turb, -3, 3) / 3.0
+    h, w = shape
+    rows = (np.arange(h) + int(origin[0])) % p
+    cols = (np.arange(w) + int(origin[1])) % p
+    return sheet[rows[:, None], cols[None, :]].astype(np.float32)
 
 
 def watercolour(colour: np.ndarray, normals: np.ndarray | None = None, light=(135.0, 45.0), *,
                 mask: np.ndarray | None = None, relief: float = 0.6, paper: float = 0.25,
-                edge_darkening: float = 0.8, edge_px: float = 2.0, seed: int = 0) -> np.ndarray:
+                edge_darkening: float = 0.8, edge_px: float = 2.0, seed: int = 0, origin=(0, 0)) -> np.ndarray:
     """Watercolour look from flat colour washes, relief shading and paper texture (§7.3.8).
 
     Parameters
@@ -55,6 +78,8 @@ def watercolour(colour: np.ndarray, normals: np.ndarray | None = None, light=(13
         Width of the pigment accumulation at the edges of washes.
     seed : int
         Paper texture seed (the result is deterministic).
+    origin : (int, int)
+        Position (row, column) of this window in the whole image, for the paper texture.
 
     Returns
     -------
@@ -79,7 +104,7 @@ def watercolour(colour: np.ndarray, normals: np.ndarray | None = None, light=(13
         normals = check_normals(normals)
         density += np.float32(relief) * (0.5 - np.clip(dot_light(normals, as_light(light)), 0.0, 1.0))
     if paper > 0:
-        density += np.float32(paper) * paper_texture(shape, seed=seed)
+        density += np.float32(paper) * paper_texture(shape, seed=seed, origin=origin)
     if edge_darkening > 0:
         # pigment gathers where the wash changes: the colour gradient after a small blur
         lum = colour @ np.array([0.299, 0.587, 0.114], np.float32)

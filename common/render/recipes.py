@@ -45,6 +45,7 @@ import numpy as np
 from common.render import lines as _lines
 from common.render import paint as _paint
 from common.render import shading as _shading
+from common.render import enhance as _enhance
 from common.render import shadows as _shadows
 from common.render._util import Layer, display_albedo, grey
 from common.rgbn.image import RGBNImage
@@ -53,7 +54,7 @@ log = logging.getLogger(__name__)
 
 #: Directory of the recipes shipped with Tessera (``configs/recipes/<name>.toml``).
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "configs" / "recipes"
-BLENDS = ("normal", "multiply", "screen", "darken", "lighten")
+BLENDS = ("normal", "multiply", "screen", "darken", "lighten", "overlay", "soft_light", "lightness")
 _LAYER_KEYS = ("style", "blend", "opacity", "segments", "exclude_segments")
 
 
@@ -73,118 +74,365 @@ class Style:
 
 
 # ---- style adapters: RGBNImage -> Layer (thin; the algorithms live in the style modules) ----------
+#
+# Parameters whose default is "auto" are chosen from the data (robust percentiles, the noise of
+# the normal map, the dpi); the value chosen is returned in Layer.resolved, so that drawing again
+# with it (another tile of the same image) gives the same tones.
 
-def _cover(image: RGBNImage, rgb) -> Layer:
+AUTO = "auto"
+_cache: dict = {}
+
+
+def _is_auto(value) -> bool:
+    return isinstance(value, str) and value == AUTO
+
+
+def _cover(image: RGBNImage, rgb, resolved=None) -> Layer:
     rgb = np.asarray(rgb, np.float32)
-    return Layer(rgb if rgb.ndim == 3 else grey(rgb), image.mask.astype(np.float32))
+    return Layer(rgb if rgb.ndim == 3 else grey(rgb), image.mask.astype(np.float32), resolved or {})
 
 
-def _ink(strength, colour) -> Layer:
+def _ink(strength, colour, resolved=None) -> Layer:
     s = np.asarray(strength, np.float32)
-    return Layer(np.broadcast_to(np.asarray(colour, np.float32), s.shape + (3,)).copy(), s)
+    return Layer(np.broadcast_to(np.asarray(colour, np.float32), s.shape + (3,)).copy(), s, resolved or {})
 
 
 def _colour(image: RGBNImage, use_albedo: bool):
     return display_albedo(image.albedo) if use_albedo else None
 
 
-def draw_albedo(image: RGBNImage) -> Layer:
-    """The colour of the fragment (display-encoded albedo)."""
-    return _cover(image, display_albedo(image.albedo))
+def _noise_px(image: RGBNImage, value, resolved: dict, key: str, *, factor: float = 1.0, floor: float = 0.0) -> float:
+    """A smoothing scale in pixels: ``value``, or for "auto" ``factor`` x the scale that brings the
+    normal map's noise down (:func:`common.render.enhance.relief_scale_px`), at least ``floor``."""
+    if _is_auto(value):
+        k = (id(image.normals), image.shape)
+        if k not in _cache:
+            _cache[k] = _enhance.relief_scale_px(image.normals, image.dpi, image.mask)
+            log.info("noise of the normal map: %s -> smoothing %.2f px", _cache[k][1], _cache[k][0])
+        value = max(factor * _cache[k][0], floor)
+    resolved[key] = round(float(value), 4)
+    return float(value)
 
 
-def draw_lambertian(image: RGBNImage, light=(135.0, 45.0), ambient: float = 0.15, colour: bool = True) -> Layer:
-    """Lambertian shading of the colour (or of grey) under any light (§7.3.1)."""
-    return _cover(image, _shading.lambertian(image.normals, light, albedo=_colour(image, colour), ambient=ambient))
+def _range(values, mask, value, resolved: dict, key: str, clip_percent: float = 0.5) -> tuple[float, float]:
+    """``[low, high]`` of a robust stretch: ``value`` or, for "auto", the ``clip_percent`` and
+    ``100 - clip_percent`` percentiles."""
+    lo, hi = (_enhance.robust_range(values, mask, clip_percent=clip_percent) if _is_auto(value)
+              else (float(value[0]), float(value[1])))
+    resolved[key] = [lo, hi]
+    return lo, hi
+
+
+def _zero_scale(values, mask, value, resolved: dict, key: str, clip_percent: float = 5.0) -> float:
+    """Scale of a zero-centred signal: ``value`` or, for "auto", the ``100 - clip_percent``
+    percentile of |values| (the tone curve puts it at 0.2 / 0.8)."""
+    ref = _enhance.symmetric_scale(values, mask, clip_percent=clip_percent) if _is_auto(value) else float(value)
+    resolved[key] = ref
+    return ref
+
+
+def _exposed_colour(image: RGBNImage, value, resolved: dict, key: str = "exposure") -> np.ndarray:
+    """Display colour of the fragment with its lightness exposed (:func:`_lightness_exposure`)."""
+    rng = _lightness_exposure(image, value, resolved, key)
+    if rng is None:
+        return display_albedo(image.albedo)
+    return _enhance.lightness_relief(image.albedo, np.zeros(image.shape, np.float32), strength=0.0, exposure=rng)
+
+
+def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exposure"):
+    """CIELAB L* of the colour: the 5th / 95th percentiles drawn at L* 20 / 80 ("auto"), a given
+    [low, high], or as captured ("none")."""
+    if isinstance(value, str) and value == "none":
+        resolved[key] = "none"
+        return None
+    rng = _enhance.lightness_range(image.albedo, image.mask) if _is_auto(value) else (float(value[0]), float(value[1]))
+    resolved[key] = [float(rng[0]), float(rng[1])]
+    return rng
+
+
+def _smoothed(image: RGBNImage, sigma_px: float, level=None, resolved: dict | None = None) -> np.ndarray:
+    """Normals smoothed at ``sigma_px``; with ``level`` ("auto", true/false or a sigma in px)
+    also levelled (:func:`common.render.enhance.level_normals`): "auto" levels a near-flat
+    surface — the coarse normals all point nearly one way (length of their mean > 0.95: a
+    painting, a relief, even when near lights tilted the whole solve) — and leaves a curved
+    object (a ball: about 0.7) alone."""
+    from common.rgbn.smoothing import smooth_normals
+
+    n = smooth_normals(image.normals, sigma_px, mask=image.mask) if sigma_px > 0 else image.normals
+    if level is None:
+        return n
+    if _is_auto(level):
+        sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
+        coarse = smooth_normals(image.normals, sigma, mask=image.mask)
+        mean = [float(np.mean(_enhance._sample(coarse[..., i], image.mask))) for i in range(3)] \
+            if image.mask.any() else [0.0, 0.0, 0.0]
+        flat = float(np.linalg.norm(mean)) > 0.95
+        level = sigma if flat else 0.0
+    elif level is True:
+        level = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
+    elif level is False:
+        level = 0.0
+    if resolved is not None:
+        resolved["level"] = float(level)
+    return _enhance.level_normals(n, float(level), mask=image.mask) if level > 0 else n
+
+
+def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
+    """The colour of the fragment; exposure stretches CIELAB lightness only ("none" = as captured)."""
+    r = {}
+    return _cover(image, _exposed_colour(image, exposure, r), r)
+
+
+def _lit(image, light, ambient, colour, exposure, sigma_px, level, colour_exposure) -> Layer:
+    r = {}
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"), level, r)
+    shade = _shading.lambertian(n, light, ambient=ambient)
+    if colour:
+        # the exposed colour, lit: relief on the lightness, the shade's median = the colour as is
+        lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
+        relief = 2.0 * _enhance.tone_curve(shade, lo, hi) - 1.0
+        rng = _lightness_exposure(image, colour_exposure, r, "colour_exposure")
+        return _cover(image, _enhance.lightness_relief(image.albedo, relief, strength=0.8, exposure=rng), r)
+    if isinstance(exposure, str) and exposure == "none":
+        r["exposure"] = "none"
+        return _cover(image, shade, r)
+    lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
+    return _cover(image, _enhance.tone_curve(shade, lo, hi), r)
+
+
+def draw_lambertian(image: RGBNImage, light=(135.0, 45.0), ambient: float = 0.15, colour: bool = True,
+                    exposure="auto", sigma_px="auto", level="auto", colour_exposure="auto") -> Layer:
+    """Lambertian shading of the colour (or of grey) under any light, exposed from robust percentiles;
+    with colour it is drawn on the colour's lightness (§7.3.1)."""
+    return _lit(image, light, ambient, colour, exposure, sigma_px, level, colour_exposure)
 
 
 def draw_raking(image: RGBNImage, azimuth_deg: float = 135.0, elevation_deg: float = 12.0, ambient: float = 0.05,
-                colour: bool = False) -> Layer:
-    """Raking light: Lambertian shading from a low elevation; shows tool marks and impressions."""
-    return _cover(image, _shading.lambertian(image.normals, (azimuth_deg, elevation_deg),
-                                             albedo=_colour(image, colour), ambient=ambient))
+                colour: bool = False, exposure="auto", sigma_px="auto", level="auto",
+                colour_exposure="auto") -> Layer:
+    """Raking light: Lambertian shading from a low elevation (relative to a near-flat surface's own
+    plane, level), exposed from robust percentiles."""
+    return _lit(image, (azimuth_deg, elevation_deg), ambient, colour, exposure, sigma_px, level, colour_exposure)
 
 
-def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: float = 0.02, dark: float = 0.4,
-              n_colours: int = 6, seed: int = 0) -> Layer:
-    """Toon shading with smooth steps on k-means-quantized colour (n_colours = 0: grey) (§7.3.2)."""
+def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: float = 0.05, dark: float = 0.55,
+              n_colours: int = 6, seed: int = 0, sigma_px="auto", palette="auto", level="auto",
+              colour_exposure="auto") -> Layer:
+    """Toon shading with smooth steps on k-means-quantized colour (n_colours = 0: grey) (§7.3.2).
+
+    The normals are smoothed at 3x the noise scale first, so bands follow the shape, not noise."""
+    r = {}
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=3.0), level, r)
     colours = None
     if n_colours > 0:
-        colours = _shading.quantize_colours(display_albedo(image.albedo), n_colours, mask=image.mask, seed=seed)
-    return _cover(image, _shading.toon(image.normals, light, levels=levels, softness=softness, dark=dark,
-                                       colours=colours))
+        shown = _exposed_colour(image, colour_exposure, r, "colour_exposure")
+        if _is_auto(palette):
+            centres = _shading.kmeans_palette(shown, n_colours, mask=image.mask, seed=seed)
+        else:
+            centres = np.asarray(palette, np.float32).reshape(-1, 3)
+        r["palette"] = centres.round(6).tolist()
+        colours = _shading.nearest_colours(shown, centres, mask=image.mask)
+    return _cover(image, _shading.toon(n, light, levels=levels, softness=softness, dark=dark, colours=colours), r)
 
 
-def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue: float = 0.4, yellow: float = 0.4,
-               alpha: float = 0.2, beta: float = 0.6) -> Layer:
-    """Gooch warm/cool shading."""
-    return _cover(image, _shading.gooch(image.normals, light, albedo=_colour(image, colour), blue=blue,
-                                        yellow=yellow, alpha=alpha, beta=beta))
+def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue: float = 0.15,
+               yellow: float = 0.15, alpha: float = 0.5, beta: float = 0.8, sigma_px="auto", level="auto",
+               colour_exposure="auto", exposure="auto") -> Layer:
+    """Gooch warm/cool shading (technical illustration of shape: its hues are not the object's)."""
+    r = {}
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=2.0), level, r)
+    kd = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
+    out = _shading.gooch(n, light, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
+    # Gooch compresses lightness into its warm-cool ramp: expose the result's lightness (hues kept)
+    from common.rgbn.io import srgb_to_linear
+
+    if isinstance(exposure, str) and exposure == "none":
+        r["exposure"] = "none"
+        return _cover(image, out, r)
+    lin = srgb_to_linear(out)
+    rng = _enhance.lightness_range(lin, image.mask) if _is_auto(exposure) else (float(exposure[0]), float(exposure[1]))
+    r["exposure"] = [float(rng[0]), float(rng[1])]
+    return _cover(image, _enhance.lightness_relief(lin, np.zeros(image.shape, np.float32), strength=0.0,
+                                                   exposure=rng), r)
 
 
-def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 8, sigma0_px: float = 1.0,
+def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r):
+    s0 = _noise_px(image, sigma0_px, r, "sigma0_px")
+    return _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=s0,
+                                        sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
+                                        base_weight=base_weight) - np.float32(0.5)
+
+
+def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 6, sigma0_px="auto",
                      sigma_ratio: float = 2.0, contrast: float = 10.0, detail: float = 0.5,
-                     base_weight: float = 0.3, colour: bool = False) -> Layer:
-    """Exaggerated shading (Rusinkiewicz et al. 2006), optionally multiplied with the colour (§7.3.5)."""
-    s = _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=sigma0_px,
-                                     sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
-                                     base_weight=base_weight)
-    return _cover(image, display_albedo(image.albedo) * s[..., None] if colour else s)
+                     base_weight: float = 0.3, colour: bool = False, tones="auto", strength: float = 0.7,
+                     exposure="auto") -> Layer:
+    """Exaggerated shading (Rusinkiewicz et al. 2006) stretched to the tone range; with colour = true
+    it is drawn on the colour's lightness only (hue and chroma kept) (§7.3.5)."""
+    r = {}
+    d = _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r)
+    lo, hi = _range(d, image.mask, tones, r, "tones", clip_percent=5.0)
+    tone = _enhance.tone_curve(d, lo, hi)
+    if colour:
+        rng = _lightness_exposure(image, exposure, r)
+        return _cover(image, _enhance.lightness_relief(image.albedo, 2.0 * tone - 1.0, strength=strength,
+                                                       exposure=rng), r)
+    return _cover(image, tone, r)
 
 
-def draw_mean_curvature(image: RGBNImage, sigma_mm: float = 0.05, radius_mm: float = -1.0) -> Layer:
-    """Mean curvature shading: convex light, concave dark, flat 0.5; radius_mm < 0 = auto contrast (§7.3.6)."""
-    return _cover(image, _shading.mean_curvature_shading(image.normals, image.dpi, mask=image.mask,
-                                                         sigma_mm=sigma_mm,
-                                                         radius_mm=None if radius_mm < 0 else radius_mm))
+def draw_colour_relief(image: RGBNImage, light=(135.0, 35.0), sigma_mm: float = 1.0, fine_px="auto",
+                       strength: float = 0.6, gain="auto", exposure="auto") -> Layer:
+    """Colour plus relief: normal unsharp masking drawn on the lightness of the colour only (CIELAB
+    L*), so the paint keeps its hue; the default illustration of a painted surface."""
+    r = {}
+    fine = _noise_px(image, fine_px, r, "fine_px")
+    sigma = max(float(sigma_mm) * image.dpi / 25.4, 2.0 * fine + 1.0)
+    d = _enhance.detail_shading(image.normals, light, mask=image.mask, sigma_px=sigma, fine_px=fine)
+    s = _zero_scale(d, image.mask, gain, r, "gain")
+    rng = _lightness_exposure(image, exposure, r)
+    relief = 2.0 * _enhance.tone_curve(d, -s, s) - 1.0
+    return _cover(image, _enhance.lightness_relief(image.albedo, relief, strength=strength, exposure=rng), r)
 
 
-def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm: float = 0.1,
-                                   sigma_ratio: float = 2.0, gain: float = -1.0, detail: float = 0.0) -> Layer:
-    """Multiscale mean curvature shading (eq. 7.8); gain < 0 = auto contrast."""
-    return _cover(image, _shading.multiscale_mean_curvature_shading(
-        image.normals, image.dpi, mask=image.mask, scales=scales, sigma0_mm=sigma0_mm, sigma_ratio=sigma_ratio,
-        gain=None if gain < 0 else gain, detail=detail))
+def draw_normal_unsharp(image: RGBNImage, light=(135.0, 45.0), sigma_mm: float = 1.0, gain: float = 3.0,
+                        colour: bool = True, exposure="auto") -> Layer:
+    """RTIViewer's normal unsharp masking: detail of the normals amplified, relit, times the colour."""
+    r = {}
+    sigma = max(float(sigma_mm) * image.dpi / 25.4, 1.0)
+    shade = _enhance.normal_unsharp_masking(image.normals, light, mask=image.mask, sigma_px=sigma, gain=gain)
+    if not colour:
+        lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
+        return _cover(image, _enhance.tone_curve(shade, lo, hi), r)
+    # RTIViewer's picture (colour x shading), then exposed on its lightness (hue kept)
+    from common.rgbn.io import srgb_to_linear
+
+    lit = srgb_to_linear(display_albedo(image.albedo) * shade[..., None])
+    rng = (_enhance.lightness_range(lit, image.mask) if _is_auto(exposure)
+           else (float(exposure[0]), float(exposure[1])))
+    r["exposure"] = [float(rng[0]), float(rng[1])]
+    return _cover(image, _enhance.lightness_relief(lit, np.zeros(image.shape, np.float32), strength=0.0,
+                                                   exposure=rng), r)
+
+
+def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: float = 0.6, exponent: float = 30.0,
+                  colour: bool = True, sigma_px="auto", exposure="auto", level="auto",
+                  colour_exposure="auto") -> Layer:
+    """Specular enhancement (Malzbender et al. 2001): the surface drawn as glossy, highlights show slope."""
+    r = {}
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"), level, r)
+    base = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
+    out = _enhance.specular_enhancement(n, light, albedo=base, kd=kd, ks=ks, exponent=exponent,
+                                        clip=False)
+    lum = out @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    lo, hi = _range(lum, image.mask, exposure, r, "exposure")
+    return _cover(image, _enhance.shoulder(out / np.float32(max(hi, 1e-6))), r)
+
+
+def draw_mean_curvature(image: RGBNImage, sigma_mm="auto", radius_mm="auto") -> Layer:
+    """Mean curvature shading: convex light, concave dark, flat 0.5; radius_mm = the radius drawn at
+    0.8 / 0.2, "auto" = the 95th percentile of |H| (§7.3.6)."""
+    from common.rgbn.curvature import mean_curvature
+
+    r = {}
+    if _is_auto(sigma_mm):
+        sigma_px = _noise_px(image, AUTO, {}, "sigma_px", factor=2.0)
+        sigma_mm = sigma_px * 25.4 / image.dpi
+    r["sigma_mm"] = float(sigma_mm)
+    H = mean_curvature(image.normals, image.dpi, mask=image.mask, sigma_px=float(sigma_mm) * image.dpi / 25.4)
+    if isinstance(radius_mm, (int, float)) and radius_mm < 0:
+        radius_mm = AUTO
+    # radius_mm: the radius of curvature drawn at 0.8 (convex) / 0.2 (concave)
+    # the 90th percentile of |H| is about the 95th of H for convex and concave alike
+    scale = _zero_scale(H, image.mask, AUTO if _is_auto(radius_mm) else 1.0 / float(radius_mm), r, "_scale",
+                        clip_percent=10.0)
+    r["radius_mm"] = 1.0 / scale
+    r.pop("_scale")
+    return _cover(image, _enhance.tone_curve(H, -scale, scale), r)
+
+
+def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm="auto",
+                                   sigma_ratio: float = 2.0, gain="auto", detail: float = 0.0) -> Layer:
+    """Multiscale mean curvature shading (eq. 7.8); "auto" gain draws the 5th / 95th percentiles of the sum
+    at 0.2 / 0.8; a number g draws 0 (flat) at 0.5 and 1/g at 0.8."""
+    r = {}
+    if _is_auto(sigma0_mm):
+        sigma_px = _noise_px(image, AUTO, {}, "sigma_px", factor=2.0)
+        sigma0_mm = max(0.1, sigma_px * 25.4 / image.dpi)
+    r["sigma0_mm"] = float(sigma0_mm)
+    acc = _shading.multiscale_mean_curvature_shading(
+        image.normals, image.dpi, mask=image.mask, scales=scales, sigma0_mm=float(sigma0_mm),
+        sigma_ratio=sigma_ratio, gain=1.0, detail=detail, raw=True)
+    if isinstance(gain, (int, float)) and gain < 0:
+        gain = AUTO
+    # the sum is not symmetric about 0 (coarse scales add a bias): its 5th / 95th percentiles are
+    # drawn at 0.2 / 0.8; a number for gain keeps 0 = flat at 0.5 and draws 1 / gain at 0.8
+    if _is_auto(gain):
+        lo, hi = _range(acc, image.mask, AUTO, r, "gain", clip_percent=5.0)
+    elif isinstance(gain, (list, tuple)):
+        lo, hi = _range(acc, image.mask, gain, r, "gain")
+    else:
+        lo, hi = -1.0 / float(gain), 1.0 / float(gain)
+        r["gain"] = float(gain)
+    return _cover(image, _enhance.tone_curve(acc, lo, hi), r)
 
 
 def draw_discontinuity_lines(image: RGBNImage, threshold_deg: float = 20.0, softness_deg: float = 10.0,
                              outline: bool = True, width_px: float = 1.5, flash_gain: float = 2.5,
-                             colour=(0.0, 0.0, 0.0)) -> Layer:
+                             line_colour=(0.0, 0.0, 0.0)) -> Layer:
     """Lines along normal and depth discontinuities (flash map if any) and the outline (§7.3.3)."""
     return _ink(_lines.discontinuity_lines(image.normals, mask=image.mask, discontinuity=image.discontinuity,
                                            threshold_deg=threshold_deg, softness_deg=softness_deg,
-                                           outline=outline, width_px=width_px, flash_gain=flash_gain), colour)
+                                           outline=outline, width_px=width_px, flash_gain=flash_gain), line_colour)
 
 
 def draw_suggestive_contours(image: RGBNImage, radius_px: float = 4.0, fraction: float = 0.2, depth: float = 0.02,
-                             min_length_px: int = 12, sigma_px: float = 1.0, width_px: float = 1.0,
-                             colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Image-space suggestive contours with length pruning (DeCarlo et al. 2003) (§7.3.4)."""
-    return _ink(_lines.suggestive_contours(image.normals, mask=image.mask, radius_px=radius_px, fraction=fraction,
-                                           depth=depth, min_length_px=min_length_px, sigma_px=sigma_px,
-                                           width_px=width_px), colour)
+                             min_length_px: int = 12, sigma_px="auto", width_px: float = 1.0,
+                             fade_deg: float = 25.0, line_colour=(0.0, 0.0, 0.0), level="auto") -> Layer:
+    """Image-space suggestive contours (DeCarlo et al. 2003), faded where the surface faces the viewer (§7.3.4)."""
+    r = {}
+    s = _noise_px(image, sigma_px, r, "sigma_px", factor=2.0)
+    n = _smoothed(image, 0.0, level, r)  # "facing the viewer" relative to a near-flat surface's plane
+    return _ink(_lines.suggestive_contours(n, mask=image.mask, radius_px=radius_px, fraction=fraction,
+                                           depth=depth, min_length_px=min_length_px, sigma_px=s,
+                                           width_px=width_px, fade_deg=fade_deg), line_colour, r)
 
 
-def draw_suggestive_contours_object(image: RGBNImage, sigma_px: float = 3.0, threshold: float = 0.05,
-                                    min_length_px: int = 20, width_px: float = 1.0,
-                                    colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Object-space suggestive contours from curvature derivatives (§7.3.4)."""
-    return _ink(_lines.suggestive_contours_object(image.normals, image.dpi, mask=image.mask, sigma_px=sigma_px,
+def draw_suggestive_contours_object(image: RGBNImage, sigma_px="auto", threshold: float = 0.05,
+                                    min_length_px: int = 20, width_px: float = 1.0, fade_deg: float = 25.0,
+                                    line_colour=(0.0, 0.0, 0.0), level="auto") -> Layer:
+    """Object-space suggestive contours from curvature derivatives, faded where facing the viewer (§7.3.4)."""
+    r = {}
+    s = _noise_px(image, sigma_px, r, "sigma_px", factor=2.0, floor=2.0)
+    n = _smoothed(image, 0.0, level, r)
+    return _ink(_lines.suggestive_contours_object(n, image.dpi, mask=image.mask, sigma_px=s,
                                                   threshold=threshold, min_length_px=min_length_px,
-                                                  width_px=width_px), colour)
+                                                  width_px=width_px, fade_deg=fade_deg), line_colour, r)
 
 
-def draw_ridges_valleys(image: RGBNImage, sigma_px: float = 1.5, threshold: float = -1.0, percentile: float = 90.0,
-                        min_length_px: int = 8, width_px: float = 1.0, ridge_colour=(0.55, 0.1, 0.05),
-                        valley_colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Ridge (convex crest) and valley (trough) lines; threshold < 0 picks the percentile (§7.3.4)."""
-    ridge, valley = _lines.ridges_valleys(image.normals, image.dpi, mask=image.mask, sigma_px=sigma_px,
-                                          threshold=None if threshold < 0 else threshold, percentile=percentile,
-                                          min_length_px=min_length_px, width_px=width_px)
+def draw_ridges_valleys(image: RGBNImage, sigma_px="auto", threshold="auto", percentile: float = 97.0,
+                        min_length_px="auto", width_px: float = 1.0, ridges: bool = True, valleys: bool = True,
+                        ridge_colour=(0.55, 0.1, 0.05), valley_colour=(0.0, 0.0, 0.0)) -> Layer:
+    """Ridge (convex crest) and valley (trough) lines at a scale from the noise (2x, >= 1.5 px),
+    each with its own switch and colour; "auto" threshold = the percentile of |k| (§7.3.4)."""
+    r = {}
+    s = _noise_px(image, sigma_px, r, "sigma_px", factor=2.0, floor=1.5)
+    length = int(round(10 * s)) if _is_auto(min_length_px) else int(min_length_px)
+    r["min_length_px"] = length
+    if isinstance(threshold, (int, float)) and threshold < 0:
+        threshold = AUTO
+    ridge, valley, t = _lines.ridges_valleys(image.normals, image.dpi, mask=image.mask, sigma_px=s,
+                                             threshold=None if _is_auto(threshold) else float(threshold),
+                                             percentile=percentile, min_length_px=length, width_px=width_px,
+                                             return_threshold=True)
+    r["threshold"] = float(t)
+    if not ridges:
+        ridge = np.zeros_like(ridge)
+    if not valleys:
+        valley = np.zeros_like(valley)
     alpha = np.maximum(ridge, valley)
     rgb = np.where((valley >= ridge)[..., None], np.asarray(valley_colour, np.float32),
                    np.asarray(ridge_colour, np.float32)).astype(np.float32)
-    return Layer(rgb, alpha)
+    return Layer(rgb, alpha, r)
 
 
 def draw_discontinuity_shadows(image: RGBNImage, light=(135.0, 45.0), length_px: float = 12.0,
@@ -199,25 +447,29 @@ def draw_discontinuity_shadows(image: RGBNImage, light=(135.0, 45.0), length_px:
 
 def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0, sigma_c: float = 0.08,
                      sigma_n: float = 0.3, relief: float = 0.6, paper: float = 0.25, edge_darkening: float = 0.8,
-                     seed: int = 0) -> Layer:
+                     seed: int = 0, colour_exposure="auto") -> Layer:
     """Watercolour: bilateral-flattened washes, relief density, paper texture, edge darkening (§7.3.8)."""
     from common.rgbn.bilateral import joint_bilateral
 
+    r = {}
     washes, _ = joint_bilateral(image.albedo, image.normals, sigma_x=sigma_x, sigma_c=sigma_c,
                                 sigma_n=sigma_n if image.normals is not None else np.inf, mask=image.mask)
-    return _cover(image, _paint.watercolour(display_albedo(washes), image.normals, light, mask=image.mask,
-                                            relief=relief, paper=paper, edge_darkening=edge_darkening, seed=seed))
+    shown = _exposed_colour(replace(image, albedo=washes), colour_exposure, r, "colour_exposure")
+    return _cover(image, _paint.watercolour(shown, image.normals, light, mask=image.mask,
+                                            relief=relief, paper=paper, edge_darkening=edge_darkening, seed=seed,
+                                            origin=image.attrs.get("tile_origin", (0, 0))), r)
 
 
-def draw_segment_boundaries(image: RGBNImage, labels=None, width_px: float = 1.0, colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Lines between the recipe's colour+normal segments (needs a [segmentation] section)."""
+def draw_segment_boundaries(image: RGBNImage, labels=None, width_px: float = 1.0,
+                            line_colour=(0.0, 0.0, 0.0)) -> Layer:
+    """Lines between the recipe's colour+normal segments (a [segmentation] section; --style adds one)."""
     if labels is None:
         raise ValueError("style 'segment_boundaries' needs a [segmentation] section in the recipe")
     edge = np.zeros(labels.shape, bool)
     edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
     edge[1:] |= labels[1:] != labels[:-1]
     edge &= image.mask
-    return _ink(_lines._thicken(edge.astype(np.float32), width_px), colour)
+    return _ink(_lines._thicken(edge.astype(np.float32), width_px), line_colour)
 
 
 def draw_normals(image: RGBNImage) -> Layer:
@@ -226,8 +478,12 @@ def draw_normals(image: RGBNImage) -> Layer:
 
 
 _N, _C = frozenset({"normal"}), frozenset({"colour"})
+_NC = frozenset({"normal", "colour"})
 STYLES: dict[str, Style] = {s.name: s for s in (
     Style("albedo", draw_albedo, _C, draw_albedo.__doc__),
+    Style("colour_relief", draw_colour_relief, _N, draw_colour_relief.__doc__),
+    Style("normal_unsharp", draw_normal_unsharp, _N, draw_normal_unsharp.__doc__),
+    Style("specular", draw_specular, _N, draw_specular.__doc__),
     Style("lambertian", draw_lambertian, _N, draw_lambertian.__doc__),
     Style("raking", draw_raking, _N, draw_raking.__doc__),
     Style("toon", draw_toon, _N, draw_toon.__doc__),
@@ -245,6 +501,10 @@ STYLES: dict[str, Style] = {s.name: s for s in (
     Style("segment_boundaries", draw_segment_boundaries, frozenset({"segments"}), draw_segment_boundaries.__doc__),
     Style("normals", draw_normals, _N, draw_normals.__doc__),
 )}
+
+#: Line and shadow styles: ink over whatever lies below (``--style`` draws them on the colour).
+INK_STYLES = ("discontinuity_lines", "suggestive_contours", "suggestive_contours_object", "ridges_valleys",
+              "discontinuity_shadows", "segment_boundaries")
 
 
 # ---- recipes -------------------------------------------------------------------------------
@@ -302,10 +562,47 @@ def validate_recipe(recipe: Recipe) -> None:
                 and recipe.segmentation is None:
             raise ValueError(f"{lw}: per-segment drawing needs a [segmentation] section")
         params = set(layer) - set(_LAYER_KEYS)
-        bad = params - set(style.parameters())
+        defaults = style.parameters()
+        bad = params - set(defaults)
         if bad:
             raise ValueError(f"{lw}: style {style.name!r} has no parameter(s) {sorted(bad)}; "
-                             f"it takes {', '.join(style.parameters()) or 'none'}")
+                             f"it takes {', '.join(defaults) or 'none'}")
+        for name in sorted(params):
+            problem = _type_problem(layer[name], defaults[name])
+            if problem:
+                raise ValueError(f"{lw}: style {style.name!r} parameter {name!r} {problem}, got {layer[name]!r}")
+
+
+def _type_problem(value, default) -> str | None:
+    """Why ``value`` cannot stand for a parameter whose default is ``default`` (None if it can)."""
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+    if isinstance(value, str) and value == AUTO and isinstance(default, str) and default == AUTO:
+        return None
+    if isinstance(default, str) and default == AUTO:
+        # "auto" or what the style resolves it to: a number, or a list of numbers / of lists
+        if number(value) or (isinstance(value, (list, tuple)) and value and all(
+                number(x) or (isinstance(x, (list, tuple)) and all(number(y) for y in x)) for x in value)):
+            return None
+        if isinstance(value, str) and value == "none":
+            return None
+        return 'must be "auto" or a number (a [low, high] pair for an exposure)'
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else "must be true or false"
+    if isinstance(default, int):
+        return None if number(value) and float(value) == int(value) else "must be a whole number"
+    if isinstance(default, float):
+        return None if number(value) else "must be a number"
+    if isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)) or not all(number(x) for x in value):
+            return "must be a list of numbers"
+        if len(default) == 2 and len(value) in (2, 3):
+            return None  # a light: [azimuth_deg, elevation_deg] or a 3-vector
+        if len(default) == 3 and (len(value) != 3 or not all(0 <= x <= 1 for x in value)):
+            return "must be an RGB colour: three numbers in [0, 1]"
+        return None if len(value) == len(default) else f"must be a list of {len(default)} numbers"
+    return None
 
 
 def parse_recipe(text: str, *, name: str = "recipe") -> Recipe:
@@ -373,29 +670,46 @@ def style_recipe(style: str, **params) -> Recipe:
     if style not in STYLES:
         raise ValueError(f"unknown style {style!r}; known: {', '.join(sorted(STYLES))}")
     layers = [dict(style=style, **params)]
-    if style in ("discontinuity_lines", "suggestive_contours", "suggestive_contours_object", "ridges_valleys",
-                 "discontinuity_shadows"):
+    if style in INK_STYLES:
         layers.insert(0, {"style": "albedo"})
-    recipe = Recipe(name=style, layers=layers)
+    segmentation = dict(DEFAULT_SEGMENTATION) if "segments" in STYLES[style].needs else None
+    recipe = Recipe(name=style, layers=layers, segmentation=segmentation)
     recipe.source = recipe_to_toml(recipe)
     return recipe
 
 
+#: The [segmentation] a recipe gets from ``style_recipe("segment_boundaries")``.
+DEFAULT_SEGMENTATION = {"scale": 400.0, "sigma_px": 1.0, "min_size": 400}
+
+
 @dataclass
 class Rendering:
-    """A drawn illustration: display RGB in [0, 1] and coverage, on the input's pixel grid."""
+    """A drawn illustration: display RGB in [0, 1] and coverage, on the input's pixel grid.
+
+    ``resolved`` holds, per drawn layer, the values its "auto" parameters took (see
+    :class:`Layer`)."""
 
     rgb: np.ndarray
     alpha: np.ndarray
     recipe: Recipe
     skipped: list = field(default_factory=list)
+    resolved: list = field(default_factory=list)
 
 
-def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float, str], None] | None = None) -> Rendering:
+def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float, str], None] | None = None,
+           resolved: list | None = None, tile: int | None = None) -> Rendering:
     """Draw ``image`` with a recipe (or a recipe name / file / style name).
 
     Layers whose style needs normals are skipped (and listed in ``Rendering.skipped``) for a
-    colour-only image; if none remains the albedo is drawn.
+    colour-only image; if none remains the albedo is drawn. Images larger than one tile are drawn
+    tile by tile in bounded memory (:func:`common.render.tiles.render_tiled`); ``tile`` sets the
+    tile side (None: :data:`common.render.tiles.TILE_MPX` decides).
+
+    Parameters
+    ----------
+    resolved : list of dict, optional
+        Per layer, values for its "auto" parameters (``Rendering.resolved`` of an earlier
+        drawing): the tiles of one image share them.
 
     References
     ----------
@@ -405,6 +719,19 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
     if not isinstance(image, RGBNImage):
         raise ValueError(f"image must be an RGBNImage, got {type(image).__name__}")
+    if resolved is None:
+        from common.render.tiles import needs_tiles, render_tiled
+
+        if needs_tiles(image, recipe, tile):
+            return render_tiled(image, recipe, tile=tile, progress=progress)
+    _cache.clear()
+    try:
+        return _render_whole(image, recipe, progress, resolved)
+    finally:
+        _cache.clear()
+
+
+def _render_whole(image, recipe, progress, resolved) -> Rendering:
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]
@@ -420,14 +747,18 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
     canvas = np.empty(image.shape + (3,), np.float32)
     canvas[:] = np.asarray(recipe.background, np.float32)
     cover = np.zeros(image.shape, np.float32)
+    chosen = []
     for i, layer in enumerate(layers):
         if progress:
             progress(i / len(layers), f"drawing {layer['style']}")
         style = STYLES[layer["style"]]
         params = {k: (tuple(v) if isinstance(v, list) else v) for k, v in layer.items() if k not in _LAYER_KEYS}
+        if resolved is not None and i < len(resolved):
+            params.update({k: v for k, v in resolved[i].items() if k in params or k in style.parameters()})
         if "segments" in style.needs:
             params["labels"] = labels
         drawn = style.draw(image, **params)
+        chosen.append(dict(drawn.resolved))
         a = drawn.alpha * np.float32(layer.get("opacity", 1.0))
         if labels is not None and "segments" in layer:
             a = a * np.isin(labels, layer["segments"])
@@ -437,7 +768,8 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         np.maximum(cover, a, out=cover)
     if progress:
         progress(1.0, "done")
-    return Rendering(np.clip(canvas, 0.0, 1.0), np.clip(np.maximum(cover, image.mask), 0.0, 1.0), recipe, skipped)
+    return Rendering(np.clip(canvas, 0.0, 1.0), np.clip(np.maximum(cover, image.mask), 0.0, 1.0), recipe, skipped,
+                     chosen)
 
 
 def _preprocess(image: RGBNImage, pre: dict) -> RGBNImage:
@@ -468,6 +800,19 @@ def _blend(base: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, mode: str) -> n
         top = np.minimum(base, rgb)
     elif mode == "lighten":
         top = np.maximum(base, rgb)
+    elif mode == "overlay":
+        top = np.where(base <= 0.5, 2.0 * base * rgb, 1.0 - 2.0 * (1.0 - base) * (1.0 - rgb))
+    elif mode == "soft_light":
+        # W3C Compositing Level 1 soft-light
+        d = np.where(base <= 0.25, ((16.0 * base - 12.0) * base + 4.0) * base, np.sqrt(base))
+        top = np.where(rgb <= 0.5, base - (1.0 - 2.0 * rgb) * base * (1.0 - base),
+                       base + (2.0 * rgb - 1.0) * (d - base))
+    elif mode == "lightness":
+        # the layer's grey (0.5 = none) as relief on the lightness of what lies below (CIELAB L*)
+        from common.rgbn.io import srgb_to_linear
+
+        relief = 2.0 * rgb.mean(axis=2) - 1.0
+        top = _enhance.lightness_relief(srgb_to_linear(np.clip(base, 0.0, 1.0)), relief, strength=0.7)
     else:
         raise ValueError(f"blend must be one of {BLENDS}, got {mode!r}")
     return base + (top - base) * a

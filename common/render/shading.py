@@ -115,6 +115,17 @@ def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarra
     Clusters are fitted on at most ``sample`` random mask pixels (deterministic for a ``seed``),
     then every pixel takes its nearest centre. Pixels outside the mask are returned unchanged.
     """
+    colours = np.asarray(colours, dtype=np.float32)
+    if colours.ndim != 3 or colours.shape[2] != 3:
+        raise ValueError(f"colours must be (H, W, 3), got shape {colours.shape}")
+    return nearest_colours(colours, kmeans_palette(colours, n_colours, mask=mask, sample=sample, seed=seed),
+                           mask=mask)
+
+
+def kmeans_palette(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray | None = None,
+                   sample: int = 20000, seed: int = 0) -> np.ndarray:
+    """The k-means palette (k, 3) of an (H, W, 3) colour image, fitted on at most ``sample`` mask
+    pixels (deterministic for a ``seed``); an all-background image gives an empty palette."""
     import cv2
 
     colours = np.asarray(colours, dtype=np.float32)
@@ -125,7 +136,7 @@ def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarra
     mask = check_mask(mask, colours.shape[:2])
     pix = colours[mask]
     if pix.shape[0] == 0:
-        return colours.copy()
+        return np.zeros((0, 3), np.float32)
     rng = np.random.default_rng(seed)
     fit = pix if pix.shape[0] <= sample else pix[rng.choice(pix.shape[0], sample, replace=False)]
     k = int(min(n_colours, len(np.unique(fit, axis=0))))
@@ -134,8 +145,17 @@ def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarra
     cv2.setRNGSeed(int(seed))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-5)
     _, _, centres = cv2.kmeans(np.ascontiguousarray(fit), k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
-    centres = centres.astype(np.float32)
+    return centres.astype(np.float32)
+
+
+def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarray | None = None) -> np.ndarray:
+    """Each mask pixel of an (H, W, 3) image replaced by the nearest of ``centres`` (k, 3)."""
+    colours = np.asarray(colours, dtype=np.float32)
+    centres = np.asarray(centres, np.float32).reshape(-1, 3)
+    mask = check_mask(mask, colours.shape[:2])
     out = colours.copy()
+    if centres.shape[0] == 0:
+        return out
     # nearest centre in chunks keeps a 16-Mpx image within memory
     flat_idx = np.flatnonzero(mask.ravel())
     flat = out.reshape(-1, 3)
@@ -323,7 +343,8 @@ def auto_gain(values: np.ndarray, mask: np.ndarray, *, percentile: float = 95.0,
 
 def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
                                       scales: int = 5, sigma0_mm: float = 0.1, sigma_ratio: float = 2.0,
-                                      gain: float | None = None, detail: float = 0.0) -> np.ndarray:
+                                      gain: float | None = None, detail: float = 0.0,
+                                      raw: bool = False) -> np.ndarray:
     """Multiscale mean curvature shading (eq. 7.8): curvature at all scales in one picture.
 
     ``shade = 0.5 + 0.5 * tanh(gain * sum_i w_i * sigma_i * H_i)`` where ``H_i`` is the mean
@@ -331,6 +352,7 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     ``w_i ∝ sigma_i^-detail`` sum to 1. Multiplying by ``sigma_i`` makes each term dimensionless
     (a bump of width sigma_i contributes about equally at its own scale), so coarse shape and fine
     tool marks appear together. ``gain=None`` adapts the contrast to the data (:func:`auto_gain`).
+    ``raw=True`` returns the weighted sum itself (before gain and tanh).
 
     Returns
     -------
@@ -360,6 +382,8 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     acc = np.zeros(normals.shape[:2], np.float32)
     for wi, s in zip(w, sigmas):
         acc += np.float32(wi * s) * mean_curvature(normals, dpi, mask=mask, sigma_px=s * dpi / 25.4)
+    if raw:
+        return acc
     g = auto_gain(acc, mask) if gain is None else np.float32(gain)
     return (0.5 + 0.5 * np.tanh(g * acc)).astype(np.float32)
 

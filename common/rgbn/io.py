@@ -15,7 +15,16 @@ import numpy as np
 
 from common.rgbn.image import RGBNImage
 
+import logging
+
+log = logging.getLogger(__name__)
+
 CONVENTIONS = ("opengl", "directx")
+#: A decoded normal map is refused when fewer than this share of its pixels are unit vectors
+#: (length within 15 %) ...
+MIN_UNIT_SHARE = 0.6
+#: ... or more than this share point away from the viewer (nz < -0.05).
+MAX_BACKFACING_SHARE = 0.05
 _TIFF = (".tif", ".tiff")
 
 
@@ -59,7 +68,7 @@ def _read_raw(path: Path) -> tuple[np.ndarray, float]:
     raise ValueError(f"image {path} has unsupported sample type {arr.dtype} (8/16-bit or float expected)")
 
 
-def read_normal_map(path, convention: str = "opengl") -> tuple[np.ndarray, np.ndarray]:
+def read_normal_map(path, convention: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Read a normal map (8/16-bit PNG/TIFF, or float .npy/.tif holding the vectors themselves).
 
     Parameters
@@ -67,8 +76,10 @@ def read_normal_map(path, convention: str = "opengl") -> tuple[np.ndarray, np.nd
     path : path
         The file. Integer images are decoded as ``n = 2 v / full_scale - 1``; float images are
         taken as the vectors themselves.
-    convention : {'opengl', 'directx'}
+    convention : {'auto', 'opengl', 'directx'}
         OpenGL: green is y up (Tessera's convention). DirectX: green is y down (negated here).
+        'auto' decides by the integrability of the two readings (:func:`detect_convention`) and
+        logs the evidence.
 
     Returns
     -------
@@ -76,27 +87,117 @@ def read_normal_map(path, convention: str = "opengl") -> tuple[np.ndarray, np.nd
         Unit normals, x right, y up, z to viewer (``(0, 0, 1)`` outside the mask).
     mask : (H, W) bool
         Valid pixels: alpha > 0 if there is an alpha channel, and decoded length in [0.5, 1.5].
+
+    Raises
+    ------
+    ValueError
+        When the image is not plausibly a normal map (fewer than 60 % unit vectors, or more than
+        5 % pointing away from the viewer — a photograph, say), naming the file and the reason.
     """
-    if convention not in CONVENTIONS:
-        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    if convention not in CONVENTIONS + ("auto",):
+        raise ValueError(f"convention must be one of {CONVENTIONS + ('auto',)}, got {convention!r}")
     path = Path(path)
     arr, full = _read_raw(path)
     if arr.ndim != 3 or arr.shape[2] not in (3, 4):
         raise ValueError(f"normal map {path} must have 3 or 4 channels, got shape {arr.shape}")
     alpha = arr[..., 3] > 0 if arr.shape[2] == 4 else None
+    # an all-black pixel is the background of many maps, not a vector
+    carrying = np.any(arr[..., :3] != 0, axis=2)
+    alpha = carrying if alpha is None else alpha & carrying
     v = arr[..., :3].astype(np.float32)
     if full != 1.0:
         v = v * np.float32(2.0 / full) - 1.0
-    if convention == "directx":
-        v[..., 1] = -v[..., 1]
     length = np.sqrt(np.einsum("...i,...i->...", v, v))
+    check_normal_map(v, length, alpha, name=str(path))
     mask = (length > 0.5) & (length < 1.5) & np.isfinite(length)
     if alpha is not None:
         mask &= alpha
     normals = np.zeros_like(v)
     normals[..., 2] = 1.0
     normals[mask] = v[mask] / length[mask][:, None]
+    if convention == "auto":
+        convention, evidence = detect_convention(normals, mask)
+        log.info("normal map %s: %s convention (%s)", path, convention, evidence)
+    if convention == "directx":
+        normals[..., 1] = -normals[..., 1]
     return normals, mask
+
+
+def check_normal_map(v: np.ndarray, length: np.ndarray | None = None, alpha: np.ndarray | None = None, *,
+                     name: str = "normal map") -> None:
+    """Refuse decoded vectors that are not plausibly a normal map, with the reason.
+
+    A normal map stores unit vectors facing the viewer: at least :data:`MIN_UNIT_SHARE` of the
+    pixels inside ``alpha`` (the caller leaves an all-black background out) must have a length within 15 %
+    of 1, and at most :data:`MAX_BACKFACING_SHARE` may have nz < -0.05. A photograph decoded as
+    ``2 v - 1`` fails one or both (its grey pixels give vectors along (1, 1, 1) of any length).
+    """
+    if length is None:
+        length = np.sqrt(np.einsum("...i,...i->...", v, v))
+    use = np.isfinite(length) & (length > 0.05)  # a zero vector carries nothing
+    if alpha is not None:
+        use &= alpha
+    n = int(use.sum())
+    if n == 0:
+        return  # all background: an empty mask, nothing to judge
+    unit = float(np.mean(np.abs(length[use] - 1.0) < 0.15))
+    back = float(np.mean(v[..., 2][use] < -0.05 * length[use]))
+    if unit < MIN_UNIT_SHARE:
+        raise ValueError(f"{name} does not look like a normal map: only {100 * unit:.0f} % of its pixels decode "
+                         f"to unit vectors (a normal map has nearly all; >= {100 * MIN_UNIT_SHARE:.0f} % needed) "
+                         "— is it a photograph or an albedo?")
+    if back > MAX_BACKFACING_SHARE:
+        raise ValueError(f"{name} does not look like a normal map: {100 * back:.0f} % of its pixels point away "
+                         f"from the viewer (blue < 0.5; at most {100 * MAX_BACKFACING_SHARE:.0f} % allowed)")
+
+
+def detect_convention(normals: np.ndarray, mask: np.ndarray | None = None, *,
+                      sigma_px: float = 2.0) -> tuple[str, dict]:
+    """Tell an OpenGL (green = y up) from a DirectX (green = y down) normal map read as OpenGL,
+    by integrability: the normals of a real surface are the gradient of a height, so the curl
+    of the gradient field ``(p, q) = (-nx / nz, -ny / nz)``, ``dp/dy - dq/dx``, vanishes; read
+    with the wrong y sign, ``q`` changes sign and the curl becomes ``dp/dy + dq/dx``, which does
+    not. The reading with the smaller median |curl| wins.
+
+    Returns
+    -------
+    convention : 'opengl' or 'directx'
+        How the given normals (decoded as OpenGL) were really stored; 'opengl' when the test
+        cannot decide (ratio < 1.2: a surface without relief in both directions).
+    evidence : dict
+        ``curl_opengl``, ``curl_directx`` (median |curl| per pixel) and their ``ratio``.
+
+    References
+    ----------
+    R. Frankot, R. Chellappa, "A method for enforcing integrability in shape from shading
+    algorithms", IEEE PAMI 10(4), 1988.
+    """
+    import cv2
+
+    from common.rgbn._filters import gaussian_blur
+
+    n = np.asarray(normals, np.float32)
+    m = np.ones(n.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    if sigma_px > 0:
+        n = gaussian_blur(n, sigma_px)
+    nz = np.maximum(n[..., 2], 0.2)
+    p = -n[..., 0] / nz
+    q = -n[..., 1] / nz
+    # y up: d/dy = -d/drow
+    dp_dy = -cv2.Sobel(p, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    dq_dx = cv2.Sobel(q, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    use = cv2.erode(m.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    use &= n[..., 2] > 0.3
+    if use.sum() < 100:
+        return "opengl", {"curl_opengl": None, "curl_directx": None, "ratio": None, "note": "too few pixels"}
+    gl = float(np.median(np.abs(dp_dy - dq_dx)[use]))
+    dx = float(np.median(np.abs(dp_dy + dq_dx)[use]))
+    ratio = max(gl, dx) / max(min(gl, dx), 1e-12)
+    evidence = {"curl_opengl": round(gl, 6), "curl_directx": round(dx, 6), "ratio": round(ratio, 2)}
+    if ratio < 1.2:
+        evidence["note"] = "undecided, assuming opengl"
+        return "opengl", evidence
+    return ("opengl" if gl <= dx else "directx"), evidence
 
 
 def read_albedo(path, *, srgb: bool | None = None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -123,7 +224,7 @@ def read_albedo(path, *, srgb: bool | None = None) -> tuple[np.ndarray, np.ndarr
     return (srgb_to_linear(v) if srgb else np.clip(v, 0, 1).astype(np.float32)), alpha
 
 
-def load_rgbn_files(normals_path, albedo_path=None, *, convention: str = "opengl", dpi: float = 300.0,
+def load_rgbn_files(normals_path, albedo_path=None, *, convention: str = "auto", dpi: float = 300.0,
                     srgb: bool | None = None) -> RGBNImage:
     """An :class:`RGBNImage` from a normal map file plus an optional albedo image.
 
@@ -152,20 +253,21 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
     path = Path(path)
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits}")
-    img = np.asarray(image, dtype=np.float32)
+    img = np.asarray(image)
+    if img.dtype.kind not in "ui":
+        img = img.astype(np.float32, copy=False)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
         raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {img.shape}")
+    data = to_bits(img, bits)
     if alpha is not None:
-        alpha = np.asarray(alpha, dtype=np.float32)
+        alpha = to_bits(np.asarray(alpha), bits)
         if alpha.shape != img.shape[:2]:
             raise ValueError(f"alpha must be {img.shape[:2]}, got {alpha.shape}")
-        if img.ndim == 2:
-            img = np.repeat(img[..., None], 3, axis=2)
-        img = np.concatenate([img, alpha[..., None]], axis=2)
-    full = 255.0 if bits == 8 else 65535.0
-    data = np.round(np.clip(np.nan_to_num(img), 0.0, 1.0) * full).astype(np.uint8 if bits == 8 else np.uint16)
+        if data.ndim == 2:
+            data = np.repeat(data[..., None], 3, axis=2)
+        data = np.concatenate([data, alpha[..., None]], axis=2)
     suffix = path.suffix.lower()
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix in _TIFF:
@@ -181,6 +283,23 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
     else:
         raise ValueError(f"output {path} must end in .png, .tif or .tiff")
     return path
+
+
+def to_bits(values: np.ndarray, bits: int) -> np.ndarray:
+    """Display values as uint8 / uint16: floats in [0, 1] are scaled and rounded; integer arrays
+    (an image drawn in tiles is already 8/16-bit) are rescaled only if their depth differs."""
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits}")
+    v = np.asarray(values)
+    want = np.uint8 if bits == 8 else np.uint16
+    if v.dtype == want:
+        return v
+    if v.dtype == np.uint8:
+        return (v.astype(np.uint16) * 257).astype(want)
+    if v.dtype == np.uint16:
+        return ((v.astype(np.uint32) + 128) // 257).astype(want)
+    full = 255.0 if bits == 8 else 65535.0
+    return np.round(np.clip(np.nan_to_num(v.astype(np.float32, copy=False)), 0.0, 1.0) * full).astype(want)
 
 
 def encode_normal_map(normals: np.ndarray, mask: np.ndarray | None = None, convention: str = "opengl") -> np.ndarray:

@@ -32,8 +32,9 @@ def add_parser(subparsers) -> None:
     src = p.add_argument_group("input from common files")
     src.add_argument("--normals", metavar="FILE", help="normal map: 8/16-bit PNG/TIFF, or float .npy/.tif")
     src.add_argument("--albedo", metavar="FILE", help="albedo/colour image on the same pixel grid")
-    src.add_argument("--convention", choices=("opengl", "directx"), default="opengl",
-                     help="normal-map green axis: opengl = y up (default), directx = y down")
+    src.add_argument("--convention", choices=("auto", "opengl", "directx"), default="auto",
+                     help="normal-map green axis: opengl = y up, directx = y down; auto (default) decides by "
+                          "the curl of the two readings and logs the evidence")
     src.add_argument("--dpi", type=float, default=300.0, help="sampling density for file input (nominal if unknown)")
     src.add_argument("--linear-albedo", action="store_true", help="the albedo file is linear, not sRGB")
     how = p.add_argument_group("what to draw")
@@ -113,7 +114,10 @@ def run(args) -> int:
         recipe = style_recipe(args.style, **_parse_params(args.param)) if args.style else load_recipe(args.recipe)
         image = _load_input(args)
         log.info("drawing %dx%d px (%.0f dpi) with %s", image.shape[1], image.shape[0], image.dpi, recipe.name)
-        drawn = render(image, recipe, progress=lambda f, t: log.debug("%3.0f%% %s", 100 * f, t))
+        drawn = render(image, recipe, progress=lambda f, t: log.info("%3.0f%% %s", 100 * f, t))
+        for layer, chosen in zip(recipe.layers, drawn.resolved):
+            if chosen:
+                log.info("%s chose %s", layer["style"], chosen)
         bits = args.bits or recipe.bits
         path = write_image(args.output, drawn.rgb, bits=bits, alpha=drawn.alpha if args.alpha else None)
     except (ValueError, FileNotFoundError) as exc:

@@ -36,7 +36,7 @@ def test_object_space_suggestive_contours_lie_on_the_inflection_circle_of_a_bump
     n = gaussian_bump(128, 0.04, 0.8, s)
     lines = suggestive_contours_object(n, 25.4 / 0.04, sigma_px=1.0, min_length_px=20)
     x, y = grid_mm(128, 0.04)
-    r = np.hypot(x, y)[lines > 0]
+    r = np.hypot(x, y)[lines > 0.5]
     assert r.size > 100
     # radial curvature vanishes at r = s (inflection of exp(-r^2/2s^2))
     assert np.abs(r - s).max() < 0.1
@@ -58,7 +58,7 @@ def test_image_space_suggestive_contours_mark_a_valley_of_n_dot_v_and_prune_shor
     n = normals_from_height(-x / s ** 2 * z, np.zeros_like(z))
     lines = suggestive_contours(n, radius_px=4, depth=0.01, min_length_px=40, sigma_px=0)
     nz = n[..., 2]
-    cols = np.flatnonzero(lines[48] > 0)
+    cols = np.flatnonzero(lines[48] > 0.5)
     assert cols.size >= 2
     darkest = np.argsort(nz[48])[:2]
     assert all(np.min(np.abs(cols - c)) <= 1 for c in darkest)
@@ -73,15 +73,15 @@ def test_ridges_and_valleys_of_a_crest_and_a_trough():
     z = h * np.exp(-x * x / (2 * s * s))
     crest = normals_from_height(-x / s ** 2 * z, np.zeros_like(z))
     ridge, valley = ridges_valleys(crest, 25.4 / pixel_mm, sigma_px=0.5, threshold=0.5)
-    ridge_cols = np.unique(np.nonzero(ridge[10:-10] > 0)[1])
+    ridge_cols = np.unique(np.nonzero(ridge[10:-10] > 0.5)[1])
     assert set(ridge_cols) <= {39, 40}  # the crest line x = 0 lies between columns 39 and 40
     # the crest's flanks turn concave at its foot: valleys there, symmetric
-    vcols = np.unique(np.nonzero(valley[10:-10] > 0)[1])
+    vcols = np.unique(np.nonzero(valley[10:-10] > 0.5)[1])
     assert vcols.size and np.all(np.abs(np.abs(x[0, vcols]) - np.sqrt(3) * s) < 0.1)
     trough = crest.copy()
     trough[..., :2] *= -1
     r2, v2 = ridges_valleys(trough, 25.4 / pixel_mm, sigma_px=0.5, threshold=0.5)
-    assert set(np.unique(np.nonzero(v2[10:-10] > 0)[1])) <= {39, 40}
+    assert set(np.unique(np.nonzero(v2[10:-10] > 0.5)[1])) <= {39, 40}
 
 
 def test_prune_short_lines_keeps_long_pieces():

@@ -51,6 +51,7 @@ def test_per_segment_layers_draw_only_on_their_segments():
     yellow = 0.0
     alpha = 0.0
     beta = 0.0
+    exposure = "none"
     segments = [0]
     [[layer]]
     style = "gooch"
@@ -58,6 +59,7 @@ def test_per_segment_layers_draw_only_on_their_segments():
     yellow = 1.0
     alpha = 0.0
     beta = 0.0
+    exposure = "none"
     exclude_segments = [0]
     """
     out = render(img, parse_recipe(text)).rgb
@@ -76,11 +78,13 @@ def test_blend_modes_and_opacity_compose_as_documented():
     light = [0.0, 90.0]
     ambient = 0.0
     colour = false
+    exposure = "none"
     [[layer]]
     style = "lambertian"
     light = [0.0, 30.0]
     ambient = 0.0
     colour = false
+    exposure = "none"
     blend = "multiply"
     opacity = 0.5
     """
@@ -99,7 +103,7 @@ def test_colour_only_image_skips_normal_styles_instead_of_failing():
 @pytest.mark.parametrize("text,match", [
     ("name='x'\n[[layer]]\nstyle='nope'", "unknown style 'nope'"),
     ("name='x'\n[[layer]]\nstyle='toon'\nlvls=3", r"no parameter\(s\) \['lvls'\]"),
-    ("name='x'\n[[layer]]\nstyle='toon'\nblend='overlay'", "blend"),
+    ("name='x'\n[[layer]]\nstyle='toon'\nblend='hard_light'", "blend"),
     ("name='x'\n[[layer]]\nstyle='toon'\nsegments=[0]", r"\[segmentation\]"),
     ("name='x'\nbits=12\n[[layer]]\nstyle='toon'", "bits"),
     ("name='x'", "at least one"),

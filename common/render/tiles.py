@@ -1,0 +1,192 @@
+"""Rendering of any size in bounded memory: overlapping tiles that share one exposure.
+
+A recipe is drawn tile by tile. Each tile is read with a *halo* — a margin wide enough for every
+filter of the recipe (4 sigma of the widest Gaussian, plus line lengths and widths, shadow
+lengths) — drawn, and only its core is kept, so neighbouring tiles agree where they meet. Before
+the tiles, the recipe is drawn once on a *calibration window* (the centred crop of at most
+:data:`CALIBRATION_MPX`, the whole image when it is smaller), and the values its ``"auto"``
+parameters take there (exposure, noise scale, gains, thresholds, palette) are imposed on every
+tile: without that each tile would pick its own exposure and the seams would show. An image that
+fits the calibration window is therefore drawn with exactly the values a whole-image drawing
+picks. Recipes with a ``[segmentation]`` section are drawn whole (the graph of a segmentation does
+not split); :func:`common.rgbn.segmentation.segment_rgbn` bounds their memory itself.
+
+The output is kept as 8/16-bit integers (the recipe's ``bits``): 200 Mpx of 8-bit RGB + alpha is
+800 MB; the input is read window by window from an :class:`RGBNImage` in memory or, for faces
+larger than memory, from an HDF5 RGBN artifact (:class:`H5Source`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+
+from common.rgbn.image import RGBNImage
+
+log = logging.getLogger(__name__)
+
+#: Largest tile, halo included, megapixels: about 100-150 bytes a pixel at the heaviest style
+#: keeps one tile's work within ~2.5 GB.
+TILE_MPX = 16.0
+#: Largest calibration window, megapixels.
+CALIBRATION_MPX = 4.0
+
+
+class MemorySource:
+    """Windows of an :class:`RGBNImage` held in memory."""
+
+    def __init__(self, image: RGBNImage):
+        self.image = image
+        self.shape = image.shape
+        self.dpi = image.dpi
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> RGBNImage:
+        im = self.image
+        cut = lambda a: None if a is None else a[r0:r1, c0:c1]  # noqa: E731
+        return RGBNImage(albedo=im.albedo[r0:r1, c0:c1], mask=im.mask[r0:r1, c0:c1], dpi=im.dpi,
+                         normals=cut(im.normals), confidence=cut(im.confidence),
+                         discontinuity=cut(im.discontinuity), height_mm=cut(im.height_mm),
+                         attrs=dict(im.attrs, tile_origin=(r0, c0)))
+
+
+class H5Source:
+    """Windows of an RGBN artifact read from its (chunked) HDF5 datasets, so that a face larger
+    than memory can be drawn: only one tile with its halo is ever in memory."""
+
+    def __init__(self, group):
+        from common.rgbn.image import _OPTIONAL
+
+        self.group = group
+        self.shape = tuple(group["mask"].shape)
+        self.dpi = float(group.attrs["dpi"])
+        self._optional = [name for name in _OPTIONAL if name in group]
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> RGBNImage:
+        g = self.group
+        kw = {name: g[name][r0:r1, c0:c1] for name in self._optional}
+        return RGBNImage(albedo=g["albedo"][r0:r1, c0:c1], mask=g["mask"][r0:r1, c0:c1], dpi=self.dpi,
+                         attrs={"tile_origin": (r0, c0)}, **kw)
+
+
+def halo_px(recipe, dpi: float, resolved: list | None = None) -> int:
+    """Margin (pixels) a tile needs so that every layer of ``recipe`` sees all it reads: 4 sigma
+    of its widest Gaussian plus its line lengths, widths and shadow lengths (``resolved``: the
+    values of "auto" parameters, see :class:`common.render.Layer`)."""
+    from common.render.recipes import _LAYER_KEYS
+
+    mm = dpi / 25.4
+    reach = 0.0
+    pre = recipe.preprocess or {}
+    reach += 4.0 * float(pre.get("smooth_mm", 0.0)) * mm
+    if pre.get("bilateral"):
+        reach += 3.0 * float(dict(pre["bilateral"]).get("sigma_x", 3.0)) + 2
+    worst = 0.0
+    for i, layer in enumerate(recipe.layers):
+        from common.render.recipes import STYLES
+
+        params = dict(STYLES[layer["style"]].parameters())
+        params.update({k: v for k, v in layer.items() if k not in _LAYER_KEYS})
+        if resolved is not None and i < len(resolved):
+            params.update(resolved[i])
+        num = {k: float(v) for k, v in params.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        sigma = max([v for k, v in num.items() if k.startswith("sigma") and k.endswith("_px")] + [0.0])
+        sigma = max([sigma] + [v * mm for k, v in num.items() if k.startswith("sigma") and k.endswith("_mm")])
+        sigma = max(sigma, num.get("sigma_x", 0.0), num.get("fine_px", 0.0), num.get("level", 0.0))
+        style = layer["style"]
+        if style == "exaggerated":
+            sigma = num.get("sigma0_px", 2.0) * num.get("sigma_ratio", 2.0) ** num.get("scales", 6)
+        elif style == "multiscale_mean_curvature":
+            sigma = num.get("sigma0_mm", 0.1) * mm * num.get("sigma_ratio", 2.0) ** (num.get("scales", 5) - 1)
+        elif style in ("colour_relief", "normal_unsharp"):
+            sigma = max(sigma, num.get("sigma_mm", 1.0) * mm, 2.0 * num.get("fine_px", 0.0) + 1.0)
+        extra = sum(num.get(k, 0.0) for k in ("width_px", "min_length_px", "length_px", "radius_px", "edge_px"))
+        if style == "watercolour":
+            extra += 3 * 2.0 + 2  # edge darkening blur and gradient
+        worst = max(worst, 4.0 * sigma + extra + 4.0)
+    return int(np.ceil(reach + worst))
+
+
+def needs_tiles(image: RGBNImage, recipe, tile: int | None = None) -> bool:
+    """Whether :func:`common.render.render` should draw ``image`` in tiles."""
+    if recipe.segmentation is not None:
+        return False
+    h, w = image.shape
+    if tile is not None:
+        return max(h, w) > tile
+    return h * w > TILE_MPX * 1e6
+
+
+def _spans(length: int, core: int) -> list[tuple[int, int]]:
+    n = max(1, int(np.ceil(length / core)))
+    edges = np.linspace(0, length, n + 1).round().astype(int)
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[[float, str], None] | None = None,
+                 calibration_mpx: float = CALIBRATION_MPX):
+    """Draw ``source`` (an :class:`RGBNImage`, :class:`MemorySource` or :class:`H5Source`) with a
+    recipe in overlapping tiles; see the module docstring.
+
+    Parameters
+    ----------
+    source : RGBNImage or a window source
+    recipe : Recipe or str
+    tile : int, optional
+        Side of a tile's core, pixels; None chooses it so a tile with its halo stays within
+        :data:`TILE_MPX`.
+    calibration_mpx : float
+        Size of the calibration window, megapixels.
+
+    Returns
+    -------
+    Rendering
+        ``rgb`` (H, W, 3) and ``alpha`` (H, W) as uint8 / uint16 (the recipe's ``bits``).
+    """
+    from common.render.recipes import STYLES, Rendering, _render_whole, load_recipe, style_recipe
+
+    if isinstance(recipe, str):
+        recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
+    if isinstance(source, RGBNImage):
+        source = MemorySource(source)
+    h, w = source.shape
+    if recipe.segmentation is not None:
+        raise ValueError(f"recipe {recipe.name!r} has a [segmentation] section: it is drawn whole, not in tiles")
+    # 1. calibration on the centred window
+    side_h = min(h, int(np.sqrt(calibration_mpx * 1e6 * h / w)))
+    side_w = min(w, int(calibration_mpx * 1e6 / max(side_h, 1)))
+    r0, c0 = (h - side_h) // 2, (w - side_w) // 2
+    if progress:
+        progress(0.0, f"calibrating exposure on {side_w}x{side_h} px")
+    calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None)
+    resolved = calib.resolved
+    skipped = calib.skipped
+    del calib
+    layers_drawn = [layer for layer in recipe.layers if layer["style"] not in skipped] or [{"style": "albedo"}]
+    drawn_recipe = replace(recipe, layers=layers_drawn) if skipped else recipe
+    log.info("exposure and scales from the %dx%d calibration window: %s", side_w, side_h, resolved)
+    # 2. tiles
+    halo = halo_px(drawn_recipe, source.dpi, resolved)
+    if tile is None:
+        tile = max(256, int(np.sqrt(TILE_MPX * 1e6)) - 2 * halo)
+    bits = recipe.bits
+    dtype = np.uint8 if bits == 8 else np.uint16
+    full = np.float32(255.0 if bits == 8 else 65535.0)
+    rgb = np.empty((h, w, 3), dtype)
+    alpha = np.empty((h, w), dtype)
+    spans = [(rs, cs) for rs in _spans(h, tile) for cs in _spans(w, tile)]
+    log.info("drawing %dx%d px in %d tiles (core <= %d px, halo %d px)", w, h, len(spans), tile, halo)
+    for i, ((a, b), (c, d)) in enumerate(spans):
+        if progress:
+            progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
+        ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
+        part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved)
+        core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
+        rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
+        alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)
+        del part
+    if progress:
+        progress(1.0, "done")
+    return Rendering(rgb, alpha, recipe, skipped, resolved)
