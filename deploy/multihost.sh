@@ -120,7 +120,8 @@ EOF
     local keys="$STATE/keys"
     tessera_here keys init "$keys" >/dev/null
     for h in "${HOSTS[@]}"; do
-      [ "$h" = broker ] || tessera_here keys add "$h" --dir "$keys" >/dev/null
+      # a host here runs several stages and tools: its key may do everything (docs/security.md, roles)
+      [ "$h" = broker ] || tessera_here keys add "$h" --role admin --dir "$keys" >/dev/null
       { cat "$CONFIG"; echo; echo "[security]"; echo "curve = true"
         if [ "$h" = broker ]; then
           echo "broker_secret_key = \"$keys/broker.key_secret\""; echo "authorized_keys = \"$keys/authorized\""

@@ -14,12 +14,18 @@ encrypted and the broker admits only peers whose public key is in its authorised
 
 Key files are ZeroMQ's certificate format (``<name>.key`` public, ``<name>.key_secret`` both
 halves; :func:`zmq.auth.create_certificates`), written by ``tessera keys`` (``docs/security.md``).
+
+Every admitted key has a **role** (:data:`ROLES`), a ``role = "<role>"`` line in the metadata
+section of its public key file: the broker lets a key register only as its role's service and
+submit only its role's event types (:data:`common.bus.broker.ROLE_SUBMITS`). A key without a
+role may connect and read (STATUS, SINCE, the feed) and nothing else.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import threading
 from pathlib import Path
@@ -38,6 +44,33 @@ DEFAULTS = {
     "broker_public_key": "",   # everyone else: the broker's public key file (broker.key)
     "secret_key": "",          # everyone else: this host's key pair file (<name>.key_secret)
 }
+
+
+#: roles a key can have: a stage's workers, the bench, the web pages, a read-only subscriber, and
+#: the lab's own tools (reconcile, imports, re-runs)
+ROLES = ("solver", "features", "matcher", "renderer", "scanner", "web", "subscriber", "admin")
+_ROLE_LINE = re.compile(r'^\s*role\s*=\s*"([a-z]+)"\s*$', re.M)
+
+
+def read_role(path: str | os.PathLike) -> str:
+    """The role written in a public key file ("" if it has none)."""
+    m = _ROLE_LINE.search(Path(path).read_text(errors="replace"))
+    return m.group(1) if m else ""
+
+
+def set_role(path: str | os.PathLike, role: str) -> None:
+    """Write ``role`` into the metadata section of a public key file (replacing any earlier role)."""
+    if role not in ROLES:
+        raise ValueError(f"role: {role!r} is not one of {', '.join(ROLES)}")
+    path = Path(path)
+    lines = [ln for ln in path.read_text().splitlines() if not _ROLE_LINE.match(ln)]
+    if "metadata" in lines:
+        lines.insert(lines.index("metadata") + 1, f'    role = "{role}"')
+    else:
+        lines += ["metadata", f'    role = "{role}"']
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, path)
 
 
 class SecurityError(ValueError):
@@ -131,6 +164,7 @@ class AuthorizedKeys:
         self._lock = threading.Lock()
         self._listing: tuple | None = None
         self._keys: dict[bytes, str] = {}   # z85 public key -> file name
+        self._roles: dict[bytes, str] = {}  # z85 public key -> role ("" when the file names none)
         self.refresh()
 
     def _list(self) -> tuple | None:
@@ -152,14 +186,20 @@ class AuthorizedKeys:
             if listing == self._listing and listing is not None:
                 return False
             keys: dict[bytes, str] = {}
+            roles: dict[bytes, str] = {}
             for name, *_ in listing or ():
                 try:
                     public, _ = zmq.auth.load_certificate(str(self.directory / name))
+                    role = read_role(self.directory / name)
                 except (ValueError, OSError) as exc:
                     log.warning("authorised key %s skipped: %s", self.directory / name, exc)
                     continue
                 if public:
                     keys[public] = name
+                    roles[public] = role if role in ROLES else ""
+                    if not roles[public]:
+                        log.warning("authorised key %s has no role: it may only read (tessera keys role %s ROLE)",
+                                    name, name[:-4])
             if listing is None:
                 log.error("authorised-keys directory %s unreadable: refusing every CURVE client", self.directory)
             added = sorted(set(keys.values()) - set(self._keys.values()))
@@ -167,8 +207,12 @@ class AuthorizedKeys:
             if self._listing is not None and (added or removed):
                 log.warning("authorised keys changed: %d now (added %s, removed %s)", len(keys),
                             ", ".join(added) or "none", ", ".join(removed) or "none")
-            self._listing, self._keys = listing, keys
+            self._listing, self._keys, self._roles = listing, keys, roles
             return True
+
+    def role_of(self, z85_key: bytes) -> str:
+        """Role of an admitted key ("" if unknown or without a role)."""
+        return self._roles.get(z85_key, "")
 
     def __contains__(self, z85_key: bytes) -> bool:
         return z85_key in self._keys
@@ -214,8 +258,8 @@ def reload_keys(auth: ThreadAuthenticator | None, config: Mapping) -> None:
             auth.configure_curve(domain="*", location=_setting(config, "authorized_keys"))
 
 
-def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: str | os.PathLike | None = None
-                     ) -> tuple[Path, Path]:
+def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: str | os.PathLike | None = None,
+                     role: str | None = None) -> tuple[Path, Path]:
     """Write a new CURVE key pair ``<directory>/<name>.key`` and ``<name>.key_secret`` (mode 0600).
 
     Parameters
@@ -226,6 +270,8 @@ def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: s
         Key name: letters, digits, ``-``, ``_``, ``.`` (a host or role, e.g. ``lab-gpu1``).
     authorize_in : path, optional
         Also copy the public key into this authorised-keys directory (the broker's).
+    role : str, optional
+        One of :data:`ROLES`, written into the public key file: what the key may do at the broker.
 
     Returns
     -------
@@ -238,6 +284,8 @@ def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: s
     """
     if not name or not all(c.isalnum() or c in "-_." for c in name) or name.startswith("."):
         raise ValueError(f"name: {name!r} must be letters, digits, '-', '_' or '.' (it names files)")
+    if role is not None and role not in ROLES:
+        raise ValueError(f"role: {role!r} is not one of {', '.join(ROLES)}")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     public, secret = directory / f"{name}.key", directory / f"{name}.key_secret"
@@ -249,6 +297,8 @@ def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: s
     finally:
         os.umask(old)
     os.chmod(sec, 0o600)
+    if role is not None:
+        set_role(pub, role)
     if authorize_in is not None:
         authorize(public, authorize_in)
     return Path(pub), Path(sec)

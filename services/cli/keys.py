@@ -6,8 +6,10 @@ Layout of a key directory (keep it on the broker host; only public keys ever lea
     DIR/hosts/<name>.key, <name>.key_secret  one pair per host or program (worker host, bench, web)
     DIR/authorized/<name>.key                public keys the broker admits
 
-``tessera keys init DIR`` makes the broker pair; ``tessera keys add NAME --dir DIR`` a host pair,
-admitted at once; ``revoke`` removes a host from ``authorized``; ``list`` shows who is admitted.
+``tessera keys init DIR`` makes the broker pair; ``tessera keys add NAME --role ROLE --dir DIR`` a
+host pair with its role (what it may register as or submit at the broker), admitted at once;
+``role NAME ROLE`` changes an admitted key's role; ``revoke`` removes a host from ``authorized``;
+``list`` shows who is admitted, with roles.
 Each prints the ``[security]`` lines for the config of the host concerned.
 """
 
@@ -15,6 +17,8 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+from common.bus.security import ROLES
 
 
 def add_parser(sub) -> None:
@@ -25,6 +29,13 @@ def add_parser(sub) -> None:
     a = verbs.add_parser("add", help="make a key pair for a host or program and admit it")
     a.add_argument("name", help="host or program name, e.g. lab-gpu1, bench, web")
     a.add_argument("--dir", required=True, help="key directory made by `tessera keys init`")
+    a.add_argument("--role", required=True, choices=ROLES,
+                   help="what the key may do: serve that stage (solver, features, matcher, renderer), submit "
+                        "captures (scanner), verdicts and re-runs (web), only read (subscriber), everything (admin)")
+    ro = verbs.add_parser("role", help="change the role of an admitted key")
+    ro.add_argument("name")
+    ro.add_argument("role", choices=ROLES)
+    ro.add_argument("--dir", required=True)
     r = verbs.add_parser("revoke", help="stop admitting a host (restart the broker to drop live connections)")
     r.add_argument("name")
     r.add_argument("--dir", required=True)
@@ -44,7 +55,7 @@ def _host_snippet(d: Path, name: str) -> str:
 
 
 def run(args, out=None) -> int:
-    from common.bus.security import generate_keypair
+    from common.bus.security import generate_keypair, read_role, set_role
     out = out or sys.stdout  # looked up per call: a default bound at import outlives a replaced stdout
     d = Path(args.dir).resolve()
     try:
@@ -57,8 +68,9 @@ def run(args, out=None) -> int:
             if not (d / "broker.key").is_file():
                 print(f"error: {d} has no broker.key; run `tessera keys init {d}` first", file=sys.stderr)
                 return 2
-            pub, sec = generate_keypair(d / "hosts", args.name, authorize_in=d / "authorized")
-            print(f"key pair of {args.name}: {sec} (secret: copy to that host only); admitted by the broker", file=out)
+            pub, sec = generate_keypair(d / "hosts", args.name, authorize_in=d / "authorized", role=args.role)
+            print(f"key pair of {args.name}: {sec} (secret: copy to that host only); admitted by the broker "
+                  f"as {args.role}", file=out)
             print(_host_snippet(d, args.name), file=out)
         elif args.verb == "revoke":
             target = d / "authorized" / f"{args.name}.key"
@@ -67,9 +79,16 @@ def run(args, out=None) -> int:
                 return 2
             target.unlink()
             print(f"{args.name} revoked; restart the broker to drop its live connections", file=out)
+        elif args.verb == "role":
+            target = d / "authorized" / f"{args.name}.key"
+            if not target.is_file():
+                print(f"error: {args.name} is not admitted (no {target})", file=sys.stderr)
+                return 2
+            set_role(target, args.role)
+            print(f"{args.name} is now {args.role} (from its next connection)", file=out)
         elif args.verb == "list":
             for k in sorted((d / "authorized").glob("*.key")):
-                print(k.stem, file=out)
+                print(f"{k.stem:<24} {read_role(k) or '(no role: read only)'}", file=out)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -12,7 +12,7 @@ import time
 import pytest
 import zmq
 
-from common.bus.client import BrokerClient, BrokerUnavailable
+from common.bus.client import BrokerClient, BrokerRefused, BrokerUnavailable
 from common.bus.security import (AuthorizedKeys, SecurityError, authorize, check, generate_keypair,
                                   secure_client_socket)
 from common.messages import new_message
@@ -34,7 +34,7 @@ def _security_section(keys, host="lab"):
 def keys(tmp_path):
     d = tmp_path / "keys"
     assert tessera(["keys", "init", str(d)]) == 0
-    assert tessera(["keys", "add", "lab", "--dir", str(d)]) == 0
+    assert tessera(["keys", "add", "lab", "--role", "admin", "--dir", str(d)]) == 0
     return d
 
 
@@ -43,8 +43,8 @@ def test_tessera_keys_makes_private_pairs_and_admits_only_added_hosts(keys, caps
     assert stat.S_IMODE(os.stat(keys / "hosts" / "lab.key_secret").st_mode) == 0o600
     assert sorted(p.name for p in (keys / "authorized").iterdir()) == ["lab.key"]
     assert "secret-key" not in (keys / "authorized" / "lab.key").read_text()
-    assert tessera(["keys", "add", "lab", "--dir", str(keys)]) == 2, "an existing pair is never overwritten"
-    assert tessera(["keys", "add", "../evil", "--dir", str(keys)]) == 2
+    assert tessera(["keys", "add", "lab", "--role", "admin", "--dir", str(keys)]) == 2, "an existing pair is never overwritten"
+    assert tessera(["keys", "add", "../evil", "--role", "web", "--dir", str(keys)]) == 2
     assert tessera(["keys", "revoke", "lab", "--dir", str(keys)]) == 0
     capsys.readouterr()
     assert tessera(["keys", "list", "--dir", str(keys)]) == 0
@@ -133,7 +133,7 @@ def test_only_admitted_keys_can_submit_serve_or_listen_and_the_wire_is_encrypted
 
 
 def test_revoked_key_is_refused_on_its_next_connection_without_broker_restart(make_station, keys):
-    assert tessera(["keys", "add", "desk", "--dir", str(keys)]) == 0
+    assert tessera(["keys", "add", "desk", "--role", "admin", "--dir", str(keys)]) == 0
     st = make_station(extra=_security_section(keys))
     broker = st.broker()
     st.worker()
@@ -173,3 +173,56 @@ def test_authorized_keys_follow_the_directory_and_fail_closed(keys, tmp_path):
     assert provider.callback("*", desk)
     d.rename(tmp_path / "moved")
     assert not provider.callback("*", desk), "no directory: nobody is admitted"
+
+
+def test_a_key_may_only_serve_and_submit_as_its_role(make_station, keys, tmp_path):
+    """Issue 19: with CURVE on, the web host's key registered as a solver. Now a key's role decides."""
+    for name, role in (("web1", "web"), ("solver1", "solver"), ("bench1", "scanner"), ("reader", "subscriber")):
+        assert tessera(["keys", "add", name, "--role", role, "--dir", str(keys)]) == 0
+    st = make_station(extra=_security_section(keys), routing={"noop.job": ["noop"], "fragment.ready": ["solver"],
+                                                                "match.verified": ["noop"]})
+    st.broker()
+    as_key = lambda name: ["--set", f'security.secret_key="{keys / "hosts" / (name + ".key_secret")}"']  # noqa: E731
+    web_worker = st.spawn("worker", "noop", *as_key("web1"))        # the web host's key as a worker
+    st.worker()                                                     # the admin key serves noop
+    st.workers_ready(1)
+    time.sleep(1.5)
+    workers = [w for ws in st.status()["workers"].values() for w in ws]
+    assert [w["service"] for w in workers] == ["noop"] and workers[0]["pid"] != web_worker.pid
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+
+    def client(name):
+        return BrokerClient(endpoint, timeout_s=2, retries=1,
+                            security={"security": dict(st.config["security"],
+                                                       secret_key=str(keys / "hosts" / f"{name}.key_secret"))})
+    verdict = new_message("match.verified", fragment="A", other="B", verdict="confirmed")
+    with client("web1") as c:
+        with pytest.raises(BrokerRefused, match="role 'web' may not submit noop.job"):
+            c.submit(new_message("noop.job"))
+        c.submit(verdict)
+        assert c.status()["workers"], "any role may read the status"
+    with client("reader") as c:
+        with pytest.raises(BrokerRefused, match="may not submit"):
+            c.submit(new_message("match.verified", fragment="A", other="C", verdict="rejected"))
+        with pytest.raises(BrokerRefused, match="may not re-run"):
+            c.rerun("all")
+        assert c.since(0)["events"], "a subscriber reads the history"
+    with client("bench1") as c:
+        with pytest.raises(BrokerRefused, match="may not submit match.verified"):
+            c.submit(new_message("match.verified", fragment="A", other="D", verdict="rejected"))
+    s = st.status()
+    assert s["refused"].get("role", 0) >= 4, s["refused"]
+    assert web_worker.poll() is None, "the refused worker keeps knocking, harmlessly"
+
+
+def test_keys_list_shows_roles_and_role_changes_them(keys, capsys):
+    assert tessera(["keys", "add", "w", "--role", "web", "--dir", str(keys)]) == 0
+    assert tessera(["keys", "role", "w", "subscriber", "--dir", str(keys)]) == 0
+    capsys.readouterr()
+    assert tessera(["keys", "list", "--dir", str(keys)]) == 0
+    listing = capsys.readouterr().out
+    assert "w " in listing and "subscriber" in listing and "admin" in listing
+    provider = AuthorizedKeys(keys / "authorized")
+    from common.bus.security import read_role
+    assert read_role(keys / "authorized" / "w.key") == "subscriber"
+    assert sorted(provider._roles.values()) == ["admin", "subscriber"]
