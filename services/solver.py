@@ -5,8 +5,13 @@ checks the declared dpi and sizes (:mod:`common.limits`: an absurd scan is rejec
 registers each face's scans to its first scan and solves albedo + normals
 (:func:`common.acquisition.flatbed_normals.solve_face`), writes one ``tessera.rgbn`` artifact per
 face at a content-keyed path and returns one ``rgbn.ready`` per face. A colour-only capture gives
-albedo only. A face whose scans cannot be registered fails the job with the reason (no
-embossed normals are published).
+albedo only — and only an explicitly colour-only one: a face with one or two scans in a capture
+for normals is rejected (normals need three), never published as albedo alone. Scans are checked
+first (:func:`~common.acquisition.capture.check_capture`: grey scans get three channels, float
+scans become 16-bit; 8-bit values in a 16-bit scan, black or blank scans are rejected naming
+``<face> scan <k>``, counted from 0). A face whose scans cannot be registered fails the job with
+the reason (no embossed normals are published); a face with no fragment pixel is never written
+or announced.
 
 Config (``[services.solver]``): ``auto_calibrate_simulator`` (default true: a simulated device
 without a calibration is calibrated on first use).
@@ -16,15 +21,15 @@ from __future__ import annotations
 
 from common.acquisition.calibration import (calibrate_scanner, newest_calibration, save_calibration,
                                             simulated_target_operator)
-from common.acquisition.capture import FACES, read_scans
+from common.acquisition.capture import FACES, check_capture, read_scans
 from common.acquisition.errors import CalibrationError
 from common.acquisition.flatbed_normals import colour_only_face, solve_face
 from common.messages import MessageError, new_message
 from common.rgbn.image import save_rgbn
-from common.store import ArtifactRef, content_key
+from common.store import ArtifactError, ArtifactRef, content_key
 
 SERVICE = "solver"
-VERSION = "flatbed-ps-1.0"
+VERSION = "flatbed-ps-1.1"   # 1.1: registration image log-before-blur (issue 16)
 
 
 def output_path(fragment: str, face: str, scans_sha256: str, calibration_id: str) -> str:
@@ -54,6 +59,10 @@ def handle(job: dict, ctx) -> list[dict]:
     fragment = str(job["fragment"])
     ctx.progress(0.0, "reading scans")
     capture = read_scans(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
+    try:  # float, grey, 8-bit-in-16, blank scans; a face with 1-2 scans that is not colour-only
+        capture = check_capture(capture)
+    except ValueError as exc:
+        raise ArtifactError(f"scans {ref.path}: {exc}") from exc
     cal, cal_ref = _calibration(ctx, capture.device)
     events = []
     faces = [f for f in FACES if capture.scans.get(f)]
@@ -63,12 +72,15 @@ def handle(job: dict, ctx) -> list[dict]:
         if not ctx.store.exists(relpath):
             base = k / len(faces)
             report = lambda f, t: ctx.progress(base + f / len(faces), f"{face}: {t}")
-            if capture.colour_only or len(scans) < 3:
+            if capture.colour_only:
                 image = colour_only_face(scans[0].image, scans[0].dpi, cal.a)
                 regs = []
             else:
                 image, regs = solve_face([s.image for s in scans], scans[0].dpi, cal.a,
                                          nominal_deg=[s.rotation for s in scans], progress=report)
+            if not image.mask.any():   # never write or announce a face with nothing in it
+                raise ArtifactError(f"scans {ref.path}: {face} face: no fragment pixel found or solved; nothing "
+                                    "written")
             image.attrs["face"] = face
             image.attrs["calibration"] = cal_ref.path
             ctx.log.info("fragment %s %s: %d scans, registration residual %s", fragment, face, len(scans),

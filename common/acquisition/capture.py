@@ -27,8 +27,13 @@ from common.store import ArtifactError, ArtifactRef, Store, content_key
 SCHEMA = "tessera.scans"
 SCHEMA_VERSION = 1
 FACES = ("front", "back")
+#: Scans of a face needed for normals (three unknowns per pixel, eq. 3.6); fewer is colour only.
+MIN_SCANS_FOR_NORMALS = 3
+#: A scan whose brightest sample is below this fraction of full scale is "all black".
+BLACK_FRACTION = 2.0 / 255.0
 
-__all__ = ["CaptureStep", "Scan", "CaptureResult", "capture_fragment", "write_scans", "read_scans",
+__all__ = ["CaptureStep", "Scan", "CaptureResult", "capture_fragment", "write_scans", "read_scans", "check_scan",
+           "check_capture", "MIN_SCANS_FOR_NORMALS",
            "simulated_operator", "CaptureError", "NoFragmentError", "MultipleFragmentsError", "ScannerError"]
 
 
@@ -80,6 +85,76 @@ class CaptureResult:
     colour_only: bool = False
     calibration: str | None = None
     bed_mm: tuple | None = None
+
+
+def check_scan(image: np.ndarray, what: str = "scan", *, depth: int | None = None) -> np.ndarray:
+    """A scan as the station stores it, (H, W, 3) uint8 or uint16, or ValueError naming ``what`` and why.
+
+    Grey scans (H, W) or (H, W, 1) become three equal channels; an alpha channel is dropped; float
+    scans (full scale 1) become 16-bit. Refused: other sample types, NaN or values outside [0, 1] in
+    a float scan, a declared ``depth`` the samples do not have, 8-bit values stored in a 16-bit scan
+    (the largest sample under 256 of 65535: the scan would read as nearly black), all-black and
+    blank (uniform) scans.
+    """
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] not in (3, 4) or min(image.shape[:2]) < 1:
+        raise ValueError(f"{what}: shape {image.shape} is not a grey, RGB or RGBA image")
+    image = image[..., :3]
+    if image.dtype.kind == "f":
+        if not np.isfinite(image).all():
+            raise ValueError(f"{what}: float samples include NaN or infinity")
+        lo, hi = float(image.min()), float(image.max())
+        if lo < 0 or hi > 1.0 + 1e-6:
+            raise ValueError(f"{what}: float samples span {lo:g}..{hi:g}; a float scan must be linear with full "
+                             "scale 1")
+        image = np.rint(np.clip(image, 0, 1) * 65535).astype(np.uint16)
+    elif image.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"{what}: samples of type {image.dtype}; scans must be 8/16-bit integers or float")
+    bits = 8 if image.dtype == np.uint8 else 16
+    if depth is not None and depth != bits:
+        raise ValueError(f"{what}: {bits}-bit samples but {depth}-bit was declared")
+    full = 255 if bits == 8 else 65535
+    hi, lo = int(image.max()), int(image.min())
+    if bits == 16 and 0 < hi < 256:
+        raise ValueError(f"{what}: a 16-bit scan holding 8-bit values (largest sample {hi} of 65535); save it "
+                         "again at 16 bits, or as 8-bit")
+    if hi < BLACK_FRACTION * full:
+        raise ValueError(f"{what}: all black (no sample above {BLACK_FRACTION:.1%} of full scale): lamp off or "
+                         "lid open?")
+    if hi - lo < BLACK_FRACTION * full:
+        raise ValueError(f"{what}: blank (every sample within {BLACK_FRACTION:.1%} of full scale of {lo / full:.3f})")
+    return np.ascontiguousarray(image)
+
+
+def check_capture(result: "CaptureResult") -> "CaptureResult":
+    """Every scan of a capture checked (:func:`check_scan`) and enough of them per face, or ValueError.
+
+    Scans are named ``<face> scan <k>`` with ``k`` counted from 0 as stored. A face of a capture
+    that is not colour-only needs :data:`MIN_SCANS_FOR_NORMALS` scans (or none: a missing back);
+    a colour-only capture's faces use their first scan. Returns the capture with the checked
+    (converted) scans.
+    """
+    faces = {f: list(result.scans.get(f) or []) for f in FACES}
+    if not any(faces.values()):
+        raise ValueError(f"capture of {result.fragment_id} holds no scans")
+    for face, scans in faces.items():
+        if scans and not result.colour_only and len(scans) < MIN_SCANS_FOR_NORMALS:
+            raise ValueError(f"{face} face has {len(scans)} scan(s): normals need at least {MIN_SCANS_FOR_NORMALS} "
+                             "scans turned about 90° apart (4 in the thesis); add scans or import it colour-only")
+        for k, s in enumerate(scans):
+            img = check_scan(s.image, f"{face} scan {k}", depth=s.depth)
+            if not (np.isfinite(s.dpi) and s.dpi > 0):
+                raise ValueError(f"{face} scan {k}: dpi must be positive, got {s.dpi}")
+            if scans[0].dpi != s.dpi:
+                raise ValueError(f"{face} scan {k}: {s.dpi:g} dpi but {face} scan 0 is {scans[0].dpi:g} dpi; "
+                                 "every scan of a face must have the same resolution")
+            scans[k] = Scan(img, s.dpi, s.rotation, s.area_mm, 8 if img.dtype == np.uint8 else 16)
+    result.scans = faces
+    return result
 
 
 def _steps(colour_only: bool) -> list[tuple[str, int, str, str]]:
@@ -148,7 +223,15 @@ def capture_fragment(scanner, fragment_id: str, *, operator: Callable[[CaptureSt
         if progress:
             progress((i + 0.3) / len(steps), f"scanning {face} {rot}° at {dpi:g} dpi")
         img = scanner.scan(area, dpi, depth)
-        result.scans[face].append(Scan(np.asarray(img), float(dpi), rot, tuple(float(v) for v in area), depth))
+        k = len(result.scans[face])
+        try:   # a backend in grey mode, at another depth, or giving a black frame: said now, not at the solver
+            img = check_scan(img, f"{face} scan {k}", depth=depth)
+        except ValueError as exc:
+            raise ScannerError(f"the scanner returned an unusable scan: {exc}",
+                               f"The scanner returned an unusable scan ({exc}). Check the scanner's colour "
+                               f"mode ({depth}-bit colour), the lamp and the lid, then press Scan again.",
+                               status="bad_scan") from exc
+        result.scans[face].append(Scan(img, float(dpi), rot, tuple(float(v) for v in area), depth))
     if progress:
         progress(1.0, "capture complete")
     return result
@@ -164,18 +247,24 @@ def simulated_operator(sim) -> Callable[[CaptureStep], None]:
     return act
 
 
-def write_scans(store: Store, fragment_id: str, result: CaptureResult) -> ArtifactRef:
+def write_scans(store: Store, fragment_id: str, result: CaptureResult, *, key: str | None = None,
+                provenance: dict | None = None) -> ArtifactRef:
     """Store every raw scan of a fragment as ``fragments/<id>/scans/scans-<key>.h5`` (``tessera.scans``).
 
     Layout: group per face, dataset ``scan_<k>`` (H, W, 3) uint8/uint16 with attributes ``dpi``,
     ``rotation_deg`` (nominal), ``area_mm`` (left, top, right, bottom), ``depth``; root attributes
-    ``fragment``, ``device``, ``calibration``, ``colour_only``. The key is a digest of the pixels.
+    ``fragment``, ``device``, ``calibration``, ``colour_only``. The key is a digest of the pixels,
+    or ``key`` when given (an importer's content key of its source files); ``provenance`` adds
+    entries to the artifact's provenance (e.g. the source files, a detected turn direction).
     """
-    h = hashlib.sha256()
-    for f in FACES:
-        for s in result.scans.get(f, []):
-            h.update(s.image.tobytes())
-    digest = content_key(fragment_id, result.device, h.hexdigest())
+    if key is None:
+        h = hashlib.sha256()
+        for f in FACES:
+            for s in result.scans.get(f, []):
+                h.update(s.image.tobytes())
+        digest = content_key(fragment_id, result.device, h.hexdigest())
+    else:
+        digest = key
     relpath = f"fragments/{fragment_id}/scans/scans-{digest}.h5"
 
     def fill(f):
@@ -194,7 +283,8 @@ def write_scans(store: Store, fragment_id: str, result: CaptureResult) -> Artifa
                 d.attrs["area_mm"] = np.asarray(s.area_mm, float)
                 d.attrs["depth"] = s.depth
     return store.write(relpath, SCHEMA, SCHEMA_VERSION, fill,
-                       provenance={"device": result.device, "calibration": result.calibration, "fragment": fragment_id})
+                       provenance={"device": result.device, "calibration": result.calibration, "fragment": fragment_id,
+                                   **(provenance or {})})
 
 
 def read_scans(store: Store, ref, *, check_limits: bool = False) -> CaptureResult:

@@ -425,6 +425,10 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
         raise ValueError(f"nominal_deg must have one angle per scan ({len(scans)}), got {len(nominal_deg)}")
     masks = masks or [fragment_mask(s, dpi) for s in scans]
     prepared = [_prepare(s, m, dpi) for s, m in zip(scans, masks)]
+    for i, p in enumerate(prepared):     # named by its own index (counted from 0), not as "one of the scans"
+        if p.area_px * (25.4 / dpi) ** 2 < 4:
+            raise RegistrationError(f"scan {i}: no fragment visible (mask under 4 mm²); cannot register — is the "
+                                    "scan blank, or of an empty bed?")
     try:
         regs = _register_sequence(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation, progress)
     except RegistrationError as exc:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from common.acquisition.capture import (CaptureStep, NoFragmentError, capture_fragment, read_scans,
+from common.acquisition.capture import (CaptureStep, NoFragmentError, ScannerError, capture_fragment, read_scans,
                                         simulated_operator, write_scans)
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 from common.store import ArtifactError, Store
@@ -78,3 +78,43 @@ def test_scans_artifact_round_trip_and_digest_check(sim, tmp_path):
         fh.write(bytes([b[0] ^ 0xFF]))
     with pytest.raises(ArtifactError):
         read_scans(store, ref)
+
+
+def test_check_scan_converts_grey_float_and_rgba_and_refuses_the_rest():
+    from common.acquisition.capture import check_scan
+    rng = np.random.default_rng(0)
+    grey = rng.integers(1000, 60000, (20, 30)).astype(np.uint16)
+    out = check_scan(grey, "g")
+    assert out.shape == (20, 30, 3) and out.dtype == np.uint16 and (out[..., 1] == grey).all()
+    f = rng.uniform(0.1, 0.9, (20, 30, 3)).astype(np.float32)
+    assert np.allclose(check_scan(f).astype(np.float64) / 65535, f, atol=1e-5)
+    rgba = np.dstack([grey, grey, grey, np.full_like(grey, 65535)])
+    assert check_scan(rgba).shape == (20, 30, 3)
+    for bad, reason in [((grey // 300).astype(np.uint16), "front scan 1: a 16-bit scan holding 8-bit values"),
+                        (np.zeros((20, 30, 3), np.uint8), "front scan 1: all black"),
+                        (np.full((20, 30, 3), 128, np.uint8), "front scan 1: blank"),
+                        (f * 3, "front scan 1: float samples span"),
+                        (grey.astype(np.int32), "front scan 1: samples of type int32"),
+                        (np.zeros((20, 30, 5), np.uint8), "front scan 1: shape")]:
+        with pytest.raises(ValueError, match=reason):
+            check_scan(bad, "front scan 1")
+    with pytest.raises(ValueError, match="8-bit samples but 16-bit was declared"):
+        check_scan(f.astype(np.uint8) + 1, "x", depth=16)
+
+
+def test_a_scanner_in_grey_mode_is_handled_and_one_giving_black_frames_is_named(sim):
+    class Grey:
+        def __init__(self, inner, black=False):
+            self.inner, self.black, self.name, self.bed_mm = inner, black, "grey", inner.bed_mm
+
+        def scan(self, area, dpi, depth):
+            img = self.inner.scan(area, dpi, depth)
+            if self.black and area is not None:
+                return np.zeros_like(img)
+            return img.mean(axis=2).astype(img.dtype)
+    res = capture_fragment(Grey(sim), "F9", operator=simulated_operator(sim), dpi=100, prescan_dpi=25,
+                           colour_only=True)
+    assert res.scans["front"][0].image.ndim == 3 and res.scans["front"][0].image.shape[2] == 3
+    with pytest.raises(ScannerError, match="front scan 0: all black"):
+        capture_fragment(Grey(sim, black=True), "F9", operator=simulated_operator(sim), dpi=100, prescan_dpi=25,
+                         colour_only=True)

@@ -105,3 +105,13 @@ def test_registration_image_chroma_term_does_not_change_with_the_lamp_side_acros
     a = registration_image(scan(+1), luminance_weight=0.0)
     b = registration_image(scan(-1), luminance_weight=0.0)
     assert np.abs(a - b).max() < 0.01 * a.max()        # blurring first: 0.59 of the peak
+
+
+def test_a_scan_without_the_fragment_is_named_by_its_own_index():
+    sim, scans = _rotated_scans(seed=9, n=3)
+    sim.clear()
+    empty = sim.scan((28, 28, 72, 72), DPI)                # the lid only
+    with pytest.raises(RegistrationError, match=r"^scan 0: no fragment visible"):
+        register_scans([empty, scans[1], scans[2]], DPI, nominal_deg=[0, 90, 180])
+    with pytest.raises(RegistrationError, match=r"^scan 2: no fragment visible"):
+        register_scans([scans[0], scans[1], empty], DPI, nominal_deg=[0, 90, 180])

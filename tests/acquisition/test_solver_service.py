@@ -70,3 +70,82 @@ def test_wrong_message_type_is_rejected(tmp_path):
     with pytest.raises(MessageError):
         solver.handle(new_message("rgbn.ready", fragment="F", face="front",
                                   artifact={"path": "x", "sha256": "0", "bytes": 1}), Ctx(Store(tmp_path)))
+
+
+# -- door checks: whatever producer wrote the scans, the solver refuses or handles them with the reason --
+
+@pytest.fixture(scope="module")
+def captured():
+    sim = SimulatedFlatbed("sim", bed_mm=(100, 100), seed=8)
+    sim.place(demo_surface(20, 150, seed=3), centre_mm=(50, 50))
+    res = capture_fragment(sim, "F0200", operator=simulated_operator(sim), dpi=150, prescan_dpi=25)
+    res.scans["back"] = []
+    return res
+
+
+def _job_with(store, captured, change):
+    import copy
+    res = copy.deepcopy(captured)
+    change(res.scans["front"])
+    ref = write_scans(store, "F0200", res)
+    return new_message("fragment.ready", fragment="F0200", artifact=ref)
+
+
+def _no_rgbn(tmp_path):
+    return not list(tmp_path.glob("fragments/*/rgbn/*.h5"))
+
+
+def _set(scans, k, image, depth=None):
+    s = scans[k]
+    scans[k] = type(s)(image, s.dpi, s.rotation, s.area_mm, depth or s.depth)
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("two scans", "front face has 2 scan\\(s\\): normals need at least 3"),
+    ("8-bit values in 16 bits", "front scan 2: a 16-bit scan holding 8-bit values"),
+    ("blank scan 0", "front scan 0: (blank|all black)"),
+    ("float out of range", "front scan 1: float samples span"),
+])
+def test_bad_scans_are_rejected_naming_the_scan_and_nothing_is_written(tmp_path, captured, case, expected):
+    from common.store import ArtifactError
+    store = Store(tmp_path)
+
+    def change(scans):
+        if case == "two scans":
+            del scans[2:]
+        elif case == "8-bit values in 16 bits":
+            _set(scans, 2, (scans[2].image // 257).astype(np.uint16))
+        elif case == "blank scan 0":
+            _set(scans, 0, np.full_like(scans[0].image, 9000))
+        else:
+            _set(scans, 1, scans[1].image.astype(np.float32) / 30000.0, depth=16)
+    with pytest.raises(ArtifactError, match=expected):
+        solver.handle(_job_with(store, captured, change), Ctx(store))
+    assert _no_rgbn(tmp_path)
+
+
+@pytest.mark.parametrize("case", ["grey", "float"])
+def test_grey_and_float_scans_are_handled(tmp_path, captured, case):
+    store = Store(tmp_path)
+
+    def change(scans):
+        for k, s in enumerate(scans):
+            img = s.image.mean(axis=2).astype(np.uint16) if case == "grey" else s.image.astype(np.float32) / 65535
+            _set(scans, k, img)
+    events = solver.handle(_job_with(store, captured, change), Ctx(store))
+    img = load_rgbn(store, events[0]["artifact"])
+    assert img.has_normals and img.mask.sum() > 1000
+    assert (img.normals[img.mask][:, 2] > 0.5).mean() > 0.95
+
+
+def test_a_face_with_no_fragment_pixel_is_never_written_or_announced(tmp_path):
+    from common.store import ArtifactError
+    store = Store(tmp_path)
+    sim = SimulatedFlatbed("sim", bed_mm=(100, 100), seed=9)
+    from common.acquisition.capture import CaptureResult, Scan
+    empty = sim.scan((20, 20, 60, 60), 150)            # the lid only: textured, not blank, no fragment
+    res = CaptureResult("F0300", "sim", {"front": [Scan(empty, 150.0, 0, (20, 20, 60, 60), 16)]}, colour_only=True)
+    job = new_message("fragment.ready", fragment="F0300", artifact=write_scans(store, "F0300", res))
+    with pytest.raises(ArtifactError, match="no fragment pixel"):
+        solver.handle(job, Ctx(store))
+    assert _no_rgbn(tmp_path)
