@@ -15,7 +15,7 @@ import sys
 # module names in services/cli/, in the order shown by --help
 COMMANDS = [
     "station", "broker", "worker", "scanner", "events", "status", "reconcile",
-    "calibrate", "ps", "imports", "synth", "features", "evaluate", "render", "web", "keys", "perf",
+    "calibrate", "ps", "imports", "export", "synth", "features", "evaluate", "render", "web", "keys", "perf",
 ]
 
 

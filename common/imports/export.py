@@ -1,0 +1,133 @@
+"""A fragment's faces as files other tools read: normal map, albedo, renders, metadata.
+
+For each face of a fragment on storage (the newest ``tessera.rgbn`` artifact of that face) the
+folder ``<out>/<fragment id>/`` receives
+
+* ``<face>-normals.png`` -- 16-bit RGBA PNG, **OpenGL convention**: ``R, G, B = (n + 1) / 2 * 65535``
+  with x to the right, y **up** (green grows towards the top of the image), z towards the viewer;
+  alpha 65535 on the fragment, 0 elsewhere (and RGB 0). DirectX tools flip green. Only for faces
+  with normals (not colour-only ones);
+* ``<face>-albedo.png`` -- RGBA PNG, sRGB-encoded albedo (8 or 16 bit), alpha = mask;
+* ``<face>-render-<recipe>.png`` -- every illustration of the face on storage (bits as drawn);
+* ``metadata.json`` -- id, per face: dpi, pixel size, size, mask area, source artifact (path,
+  sha256), the importer's metadata (inventory, find-spot, ...), provenance; the conventions.
+
+The folder is written under a temporary name and renamed into place, so it is complete or absent.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from common import __version__
+from common.store import ArtifactError, Store
+
+NORMAL_MAP_CONVENTION = ("16-bit RGBA PNG, OpenGL convention: RGB = (n + 1) / 2 * 65535, x right, y up (green grows "
+                         "towards the top row), z towards the viewer; alpha 65535 on the fragment, 0 (and RGB 0) "
+                         "outside")
+
+
+def fragment_ids(store: Store) -> list[str]:
+    """Ids of the fragments that have at least one RGBN face on storage, sorted."""
+    root = store.root / "fragments"
+    if not root.is_dir():
+        return []
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and any((p / "rgbn").glob("*.h5")))
+
+
+def _created(path: Path) -> str:
+    with contextlib.suppress(OSError, KeyError):
+        with h5py.File(path, "r", locking=False) as f:
+            return str(f.attrs["created"])
+    return ""
+
+
+def latest_faces(store: Store, fragment: str) -> dict[str, str]:
+    """``{face: relative path}`` of the newest RGBN artifact of each face of ``fragment``."""
+    folder = store.path(f"fragments/{fragment}/rgbn")
+    faces: dict[str, tuple[str, str]] = {}
+    for p in sorted(folder.glob("*.h5")) if folder.is_dir() else []:
+        face = p.name.split("-", 1)[0]
+        stamp = (_created(p), p.name)
+        if face not in faces or stamp > faces[face][0]:
+            faces[face] = (stamp, p.relative_to(store.root).as_posix())
+    return {face: rel for face, (_, rel) in sorted(faces.items())}
+
+
+def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, albedo_bits: int = 16,
+                    overwrite: bool = False) -> Path:
+    """Write ``<out_dir>/<fragment>/`` (see the module docstring); return its path.
+
+    Raises ValueError naming the fragment when it has no RGBN face on storage, or when the folder
+    exists and ``overwrite`` is False.
+    """
+    from common.render.artifact import load_rendering
+    from common.rgbn.image import load_rgbn
+    from common.rgbn.io import encode_normal_map, linear_to_srgb, write_image
+
+    if albedo_bits not in (8, 16):
+        raise ValueError(f"albedo_bits must be 8 or 16, got {albedo_bits}")
+    faces = latest_faces(store, fragment)
+    if not faces:
+        raise ValueError(f"fragment {fragment} has no RGBN face under {store.root}/fragments/{fragment}/rgbn")
+    out_dir = Path(out_dir)
+    final = out_dir / fragment
+    if final.exists() and not overwrite:
+        raise ValueError(f"{final} exists; remove it or pass overwrite (--force)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{fragment}.", suffix=".tmp", dir=out_dir))
+    try:
+        meta = {"fragment": fragment, "exported": _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                "software_version": __version__, "normal_map": NORMAL_MAP_CONVENTION,
+                "albedo": f"{albedo_bits}-bit RGBA PNG, sRGB-encoded reflectance, alpha = mask", "faces": {}}
+        for face, rel in faces.items():
+            ref = store.ref(rel)
+            img = load_rgbn(store, ref)
+            with store.open(ref) as f:
+                prov = store.provenance(f)
+            mask = img.mask
+            files = []
+            if img.normals is not None:
+                write_image(tmp / f"{face}-normals.png", encode_normal_map(img.normals, mask, "opengl"), bits=16,
+                            alpha=mask.astype(np.float32))
+                files.append(f"{face}-normals.png")
+            write_image(tmp / f"{face}-albedo.png", linear_to_srgb(img.albedo) * mask[..., None], bits=albedo_bits,
+                        alpha=mask.astype(np.float32))
+            files.append(f"{face}-albedo.png")
+            renders = store.path(f"fragments/{fragment}/renders")
+            for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
+                try:
+                    image, alpha, attrs = load_rendering(store, rp.relative_to(store.root).as_posix())
+                except ArtifactError:
+                    continue
+                name = f"{face}-render-{attrs.get('recipe', 'render')}-{rp.stem.split('-', 1)[-1][:8]}.png"
+                write_image(tmp / name, image, bits=int(attrs.get("bits", 8)), alpha=alpha)
+                files.append(name)
+            user = img.attrs.get("metadata")
+            user = json.loads(user) if isinstance(user, (str, bytes)) and user else {}
+            meta["faces"][face] = {
+                "artifact": ref.to_dict(), "dpi": img.dpi, "pixel_mm": img.pixel_mm,
+                "size_px": [int(mask.shape[1]), int(mask.shape[0])], "mask_px": int(mask.sum()),
+                "area_mm2": float(mask.sum() * img.pixel_mm ** 2), "has_normals": img.normals is not None,
+                "metadata": user, "provenance": prov, "files": files}
+        (tmp / "metadata.json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
+                                           + "\n", encoding="utf-8")
+        for p in tmp.iterdir():
+            with open(p, "rb") as fh:
+                os.fsync(fh.fileno())
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final

@@ -1,0 +1,82 @@
+"""``tessera export``: fragments' faces as files other tools read (normal map, albedo, renders, metadata).
+
+    tessera export FRAGMENT... -o OUT [--store DIR | --config station.toml] [--albedo-bits 8|16] [--force]
+    tessera export --all -o OUT                  # the whole collection, one folder per fragment
+
+Writes ``OUT/<id>/<face>-normals.png`` (16-bit RGBA, OpenGL convention: green = y up),
+``<face>-albedo.png`` (sRGB), ``<face>-render-<recipe>-<key>.png`` and ``metadata.json``; with
+several fragments also ``OUT/collection.json`` listing them. See ``docs/import.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("export", help="a fragment's faces as PNG normal map, albedo, renders + JSON metadata",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("fragments", nargs="*", metavar="FRAGMENT", help="fragment ids")
+    p.add_argument("--all", action="store_true", help="every fragment with an RGBN face on storage")
+    p.add_argument("-o", "--out", required=True, metavar="DIR", help="output folder (one sub-folder per fragment)")
+    p.add_argument("--store", metavar="DIR", help="storage root (default: the station config's)")
+    p.add_argument("--albedo-bits", type=int, choices=(8, 16), default=16, help="albedo PNG depth (default 16)")
+    p.add_argument("--force", action="store_true", help="replace fragment folders that exist in OUT")
+    from common.config import add_config_arguments
+    add_config_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from common.imports import ProgressBar
+    from common.imports.export import export_fragment, fragment_ids
+    from common.store import Store
+
+    if args.store:
+        root = args.store
+    else:
+        from common.config import config_from_arguments
+        root = config_from_arguments(args)["storage"]["root"]
+    if not Path(root).is_dir():
+        print(f"tessera export: storage root {root} does not exist", file=sys.stderr)
+        return 2
+    store = Store(root, create=False)
+    ids = fragment_ids(store) if args.all else list(dict.fromkeys(args.fragments))
+    if not ids:
+        print("tessera export: name fragments or --all" if not args.all else
+              f"tessera export: no fragment with an RGBN face under {root}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        print(f"tessera export: {out} exists and is not a folder", file=sys.stderr)
+        return 2
+    bar = ProgressBar(len(ids), "export")
+    done, failed = [], []
+    try:
+        for i, fid in enumerate(ids):
+            try:
+                export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force)
+                done.append(fid)
+            except (ValueError, OSError) as exc:
+                failed.append((fid, str(exc)))
+            bar.update(i + 1, fid)
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"interrupted after {len(done)} fragment(s); each folder written is complete", file=sys.stderr)
+        return 130
+    bar.close()
+    if len(ids) > 1 and done:
+        index = out / "collection.json"
+        listed = json.loads(index.read_text()) if index.is_file() else {"fragments": []}
+        listed["fragments"] = sorted(set(listed.get("fragments", [])) | set(done))
+        listed["storage_root"] = str(Path(root).resolve())
+        tmp = index.with_name(".collection.json.tmp")
+        tmp.write_text(json.dumps(listed, indent=2) + "\n")
+        tmp.replace(index)
+    print(f"exported {len(done)} fragment(s) to {out}" + (f"; {len(failed)} failed" if failed else ""))
+    for fid, why in failed:
+        print(f"  not exported {fid}: {why}", file=sys.stderr)
+    return 1 if failed else 0

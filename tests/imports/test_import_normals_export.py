@@ -1,0 +1,128 @@
+"""``tessera import normals`` and ``tessera export``: files of other tools in, the same files out."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from common.rgbn.image import RGBNImage, load_rgbn, save_rgbn
+from common.rgbn.io import encode_normal_map, linear_to_srgb, write_image
+from common.store import Store
+from services.cli import main
+from tests.imports.test_normals import _angle_deg, _surface_normals
+
+
+def _albedo(mask):
+    h, w = mask.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    a = np.dstack([0.5 + 0.3 * np.sin(xx / 20.0), 0.3 + 0.1 * np.cos(yy / 9.0), np.full((h, w), 0.15)])
+    return (a * mask[..., None]).astype(np.float32)
+
+
+def _write_capture(folder, convention="opengl", bits=16):
+    """A Relight-like output folder: normals.png (with alpha) and albedo.png (sRGB)."""
+    n, mask = _surface_normals()
+    folder.mkdir(parents=True, exist_ok=True)
+    write_image(folder / "normals.png", encode_normal_map(n, mask, convention), bits=bits, alpha=mask.astype(float))
+    write_image(folder / "albedo.png", linear_to_srgb(_albedo(mask)), bits=8)
+    return n, mask
+
+
+def _faces(root):
+    return sorted((root / "fragments").rglob("rgbn/*.h5"))
+
+
+@pytest.mark.parametrize("convention", ["opengl", "directx"])
+def test_relight_folder_is_imported_with_its_convention(tmp_path, convention):
+    n, mask = _write_capture(tmp_path / "in" / "T-0042", convention)
+    args = ["import", "normals", str(tmp_path / "in" / "T-0042"), "--dpi", "600", "--store", str(tmp_path / "st")]
+    assert main(args + ["--convention", convention]) == 0
+    (face,) = _faces(tmp_path / "st")
+    assert face.parts[-3] == "T-0042"
+    img = load_rgbn(Store(tmp_path / "st"), face.relative_to(tmp_path / "st").as_posix())
+    np.testing.assert_array_equal(img.mask, mask)
+    assert _angle_deg(img.normals[mask], n[mask]).max() < 0.01
+    np.testing.assert_allclose(img.albedo[mask], _albedo(mask)[mask], atol=0.01)   # 8-bit sRGB
+    assert img.attrs["source_convention"] == convention and img.dpi == 600
+
+
+def test_directx_map_declared_opengl_is_refused_and_auto_finds_it(tmp_path, capsys):
+    _write_capture(tmp_path / "in" / "dx", "directx", bits=8)
+    base = ["import", "normals", str(tmp_path / "in" / "dx"), "--dpi", "300", "--store", str(tmp_path / "st")]
+    assert main(base) == 1
+    assert "declared opengl but the map reads as directx" in capsys.readouterr().err
+    assert not _faces(tmp_path / "st")
+    assert main(base + ["--convention", "auto"]) == 0
+    (face,) = _faces(tmp_path / "st")
+    assert load_rgbn(Store(tmp_path / "st"), face.relative_to(tmp_path / "st").as_posix()).attrs[
+        "source_convention"] == "directx"
+
+
+def test_photograph_given_as_normal_map_is_refused(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    photo = np.clip(rng.normal([60, 110, 170], 20, (120, 160, 3)), 0, 255).astype(np.uint8)  # BGR: ochre
+    cv2.imwrite(str(tmp_path / "P7_normals.png"), photo)
+    assert main(["import", "normals", str(tmp_path / "P7_normals.png"), "--dpi", "300",
+                 "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "P7_normals.png" in err and "not a normal map" in err
+    assert not (tmp_path / "st" / "fragments").exists()
+
+
+def test_albedo_of_another_size_is_refused(tmp_path, capsys):
+    _write_capture(tmp_path / "in")
+    cv2.imwrite(str(tmp_path / "small.png"), np.repeat(np.linspace(40, 200, 50, dtype=np.uint8)[None, :, None], 50, 0)
+                .repeat(3, 2))
+    assert main(["import", "normals", str(tmp_path / "in" / "normals.png"), "--albedo", str(tmp_path / "small.png"),
+                 "--fragment", "F1", "--dpi", "300", "--store", str(tmp_path / "st")]) == 1
+    assert "must share a pixel grid" in capsys.readouterr().err
+
+
+def test_export_then_import_gives_the_same_face(tmp_path):
+    """Round trip: the 16-bit OpenGL normal map and the albedo of an export read back within quantisation."""
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    face = RGBNImage(albedo=_albedo(mask), mask=mask, dpi=450.0, normals=np.where(mask[..., None], n, (0, 0, 1)),
+                     attrs={"metadata": json.dumps({"inventory": "Inv. 7", "find_spot": "Room 2"})})
+    save_rgbn(store, "fragments/Inv.-7/rgbn/front-abc.h5", face)
+    save_rgbn(store, "fragments/Inv.-8/rgbn/front-def.h5",
+              RGBNImage(albedo=_albedo(mask), mask=mask, dpi=450.0))            # colour-only
+    assert main(["export", "--all", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    out = tmp_path / "out"
+    assert sorted(p.name for p in (out / "Inv.-7").iterdir()) == ["front-albedo.png", "front-normals.png",
+                                                                 "metadata.json"]
+    assert sorted(p.name for p in (out / "Inv.-8").iterdir()) == ["front-albedo.png", "metadata.json"]
+    assert json.loads((out / "collection.json").read_text())["fragments"] == ["Inv.-7", "Inv.-8"]
+    raw = cv2.imread(str(out / "Inv.-7" / "front-normals.png"), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16 and raw.shape[2] == 4
+    # OpenGL: green grows towards the top row where the surface faces up (ny > 0)
+    up = mask & (n[..., 1] > 0.3)
+    assert (raw[..., 1][up] > 32768).all()
+    meta = json.loads((out / "Inv.-7" / "metadata.json").read_text())
+    assert meta["faces"]["front"]["metadata"] == {"inventory": "Inv. 7", "find_spot": "Room 2"}
+    assert meta["faces"]["front"]["dpi"] == 450.0 and "OpenGL" in meta["normal_map"]
+    # back in through the importer (dpi and metadata from metadata.json)
+    assert main(["import", "normals", str(out / "Inv.-7"), "--store", str(tmp_path / "st2")]) == 0
+    (back,) = _faces(tmp_path / "st2")
+    assert back.parts[-3] == "Inv.-7"
+    img = load_rgbn(Store(tmp_path / "st2"), back.relative_to(tmp_path / "st2").as_posix())
+    np.testing.assert_array_equal(img.mask, mask)
+    assert _angle_deg(img.normals[mask], n[mask]).max() < np.degrees(np.sqrt(3) / 65535)
+    np.testing.assert_allclose(img.albedo[mask], face.albedo[mask], atol=2e-4)  # 16-bit sRGB
+    assert img.dpi == 450.0
+    assert json.loads(img.attrs["metadata"])["inventory"] == "Inv. 7"
+
+
+def test_export_refuses_unknown_fragment_and_existing_folder(tmp_path, capsys):
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    save_rgbn(store, "fragments/A/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0))
+    assert main(["export", "A", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    assert main(["export", "A", "NOPE", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "not exported A:" in err and "exists" in err
+    assert "not exported NOPE: fragment NOPE has no RGBN face" in err
+    assert not [p for p in (tmp_path / "out").iterdir() if p.name.startswith(".")]   # no temporary left
