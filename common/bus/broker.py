@@ -363,12 +363,13 @@ class Broker:
         self.accept_event(messages.new_message("input.rejected", error=error[:MAX_ERROR_CHARS],
                                                broker=_socket.gethostname(), **fields))
 
-    def _refuse(self, identity: bytes | None, kind: str, error: str, tag: bytes = b"") -> None:
+    def _refuse(self, identity: bytes | None, kind: str, error: str, tag: bytes = b"", *, retry: bool = False) -> None:
         """Refuse one frame: ERR reply when it can be answered, counted, logged and summarised at a
         bounded rate (never one journaled event per frame: a flood must not push history out)."""
         error = error[:MAX_ERROR_CHARS]
         if identity is not None:
-            self.router.send_multipart([identity, b"", P.CLIENT, P.ERR, tag[:256], P.dumps({"error": error})])
+            body = {"error": error, "retry": True} if retry else {"error": error}
+            self.router.send_multipart([identity, b"", P.CLIENT, P.ERR, tag[:256], P.dumps(body)])
         self.refused[kind] += 1
         self._refused_window += 1
         self._refused_last = error
@@ -635,7 +636,7 @@ class Broker:
         if command == P.SUBMIT:
             if not self._journal_ok:
                 self._refuse(identity, "journal", "broker journal cannot write (disk full?); see the broker log; "
-                                                  "submissions resume when it can", tag)
+                                                  "submissions resume when it can", tag, retry=True)
                 return
             try:
                 event = messages.unpack(body)

@@ -36,7 +36,21 @@ class BrokerUnavailable(ConnectionError):
 
 
 class BrokerRefused(RuntimeError):
-    """The broker answered with an error (e.g. a malformed event); the message says why."""
+    """The broker answered with an error (e.g. a malformed event); the message says why.
+
+    ``retry`` is True when the refusal is the broker's own, passing state (its journal cannot
+    write): the same request will be accepted later, so a sender keeps it.
+    """
+
+    def __init__(self, message: str, *, retry: bool = False):
+        super().__init__(message)
+        self.retry = bool(retry)
+
+
+def _refused(reply) -> BrokerRefused:
+    if isinstance(reply, dict):
+        return BrokerRefused(str(reply.get("error", "refused")), retry=bool(reply.get("retry", False)))
+    return BrokerRefused(str(reply))
 
 
 class BrokerClient:
@@ -106,7 +120,7 @@ class BrokerClient:
                     continue  # a late reply to an earlier, timed-out request
                 reply = P.loads(frames[4])
                 if frames[2] != P.OK:
-                    raise BrokerRefused(reply.get("error", "refused") if isinstance(reply, dict) else str(reply))
+                    raise _refused(reply)
                 return reply
             self.close()  # Lazy Pirate: a fresh socket for the retry
         raise BrokerUnavailable(f"broker at {self.endpoint} did not answer {command.decode()} "
@@ -150,7 +164,7 @@ class BrokerClient:
                     continue
                 reply = P.loads(frames[4])
                 if frames[2] != P.OK:
-                    raise BrokerRefused(reply.get("error", "refused"))
+                    raise _refused(reply)
                 seqs[i] = int(reply["seq"])
                 deadline = time.monotonic() + self.timeout_s
         return [int(s) for s in seqs]

@@ -6,7 +6,10 @@ emits goes first into the **outbox**, an SQLite table on local disk committed wi
 ``synchronous=FULL`` (fsynced), and is removed only after the broker acknowledged it. A drain
 walks the outbox in order: upload the entry's spooled artifact (copy, fsync, digest check,
 rename), submit the event, delete the entry; it stops at the first entry that cannot be done
-yet, so order is kept and nothing is lost when the broker or the storage is down.
+yet, so order is kept and nothing is lost when the broker or the storage is down. Storage that
+refuses the upload (full, read-only) and a broker that cannot journal just now are "not yet"
+too. An event the broker refuses for good (invalid) is moved to the ``refused`` table with the
+reason — kept on the bench for a person to look at, never silently dropped.
 """
 
 from __future__ import annotations
@@ -53,6 +56,8 @@ class Outbox:
         self._con.execute("PRAGMA synchronous=FULL")
         self._con.execute("CREATE TABLE IF NOT EXISTS outbox (id INTEGER PRIMARY KEY AUTOINCREMENT, "
                           "body BLOB NOT NULL, spooled TEXT, sha256 TEXT)")
+        self._con.execute("CREATE TABLE IF NOT EXISTS refused (id INTEGER PRIMARY KEY, body BLOB NOT NULL, "
+                          "spooled TEXT, sha256 TEXT, error TEXT NOT NULL, time REAL NOT NULL)")
 
     def close(self) -> None:
         with self._lock:
@@ -71,6 +76,22 @@ class Outbox:
         with self._lock:
             rows = self._con.execute("SELECT id, body, spooled FROM outbox ORDER BY id").fetchall()
         return [(i, messages.unpack(b), s) for i, b, s in rows]
+
+    def refused(self) -> list[tuple[int, dict, str]]:
+        """Entries the broker refused for good: ``(id, event, reason)``, kept for a person to see."""
+        import msgpack
+        with self._lock:
+            rows = self._con.execute("SELECT id, body, error FROM refused ORDER BY id").fetchall()
+        return [(i, msgpack.unpackb(b, raw=False, strict_map_key=False), e) for i, b, e in rows]
+
+    def _set_aside(self, oid: int, reason: str) -> None:
+        """Move an entry from the outbox to the refused table (its spooled artifact stays)."""
+        with self._lock:
+            self._con.execute("BEGIN")
+            self._con.execute("INSERT INTO refused SELECT id, body, spooled, sha256, ?, strftime('%s','now') "
+                              "FROM outbox WHERE id = ?", (reason, oid))
+            self._con.execute("DELETE FROM outbox WHERE id = ?", (oid,))
+            self._con.execute("COMMIT")
 
     def __len__(self) -> int:
         with self._lock:
@@ -100,11 +121,23 @@ class Outbox:
                     return done
             try:
                 client.submit(messages.unpack(body))
+            except messages.MessageError as exc:  # written by an older, laxer version: not sendable
+                log.error("outbox entry %d is not a valid message (%s); kept in the refused table", oid, exc)
+                self._set_aside(oid, f"not a valid message: {exc}")
+                done += 1
+                continue
             except BrokerUnavailable:
                 log.debug("broker unreachable; %d entries wait", len(self))
                 return done
-            except BrokerRefused as exc:  # the broker published input.rejected with the reason
-                log.error("broker refused outbox entry %d (%s); dropped", oid, exc)
+            except BrokerRefused as exc:
+                if exc.retry:  # the broker's own trouble (journal cannot write): keep it, try later
+                    log.warning("broker cannot take outbox entry %d now (%s); will retry", oid, exc)
+                    return done
+                log.error("broker refused outbox entry %d for good (%s); kept in the outbox's refused table",
+                          oid, exc)
+                self._set_aside(oid, str(exc))
+                done += 1
+                continue  # its spooled artifact stays in the spool with it
             with self._lock:
                 self._con.execute("DELETE FROM outbox WHERE id = ?", (oid,))
             if spooled:

@@ -74,3 +74,61 @@ def test_outbox_spools_when_storage_is_unreachable_and_drains_in_order(tmp_path)
     finally:
         client.close()
         st.stop()
+
+
+class _Refusing:
+    """A stand-in broker client answering every submit with one refusal."""
+
+    def __init__(self, exc):
+        self.exc, self.calls = exc, 0
+
+    def submit(self, event):
+        self.calls += 1
+        raise self.exc
+
+
+def test_outbox_keeps_an_event_the_broker_cannot_journal_now(tmp_path):
+    """Issue 19: the broker's journal failed; the outbox logged "refused ... dropped" and lost a
+    fragment.ready. A refusal marked retry keeps the entry in place, in order."""
+    from common.bus.client import BrokerRefused
+    box = Outbox(tmp_path / "bench")
+    events = [new_message("fragment.ready", fragment=f"F{i}", artifact={"path": f"f{i}.h5", "sha256": "0" * 64,
+                                                                         "bytes": 1}) for i in range(2)]
+    for e in events:
+        box.put(e)
+    storage = Store(tmp_path / "storage")
+    client = _Refusing(BrokerRefused("broker journal cannot write", retry=True))
+    assert box.drain(client, storage) == 0 and len(box) == 2 and client.calls == 1
+    client = _Refusing(BrokerRefused("fragment.ready message: fragment 'x' is wrong"))
+    assert box.drain(client, storage) == 2 and len(box) == 0
+    kept = box.refused()
+    assert [e["uid"] for _, e, _ in kept] == [e["uid"] for e in events], "refused for good: set aside, not dropped"
+    assert "is wrong" in kept[0][2]
+    box.close()
+
+
+def test_scanner_spools_when_the_storage_refuses_the_write(tmp_path, monkeypatch):
+    """A storage that is there but refuses writes (full or read-only) sends the scans to the spool."""
+    import errno
+
+    import common.acquisition.capture as capture
+    from common.store import StorageFull
+    from services.scanner import store_scans
+
+    def write_scans(store, fragment_id, result):
+        return store.write(f"fragments/{fragment_id}/scans/scans-k.h5", "tessera.scans", 1,
+                           lambda f: f.create_dataset("x", data=[1]))
+
+    class FullStore(Store):
+        def write(self, *a, **kw):
+            raise StorageFull(errno.ENOSPC, "storage full: test")
+
+    class Result:
+        fragment_id, device, colour_only = "F0001", "sim", True
+
+    monkeypatch.setattr(capture, "write_scans", write_scans)
+    box = Outbox(tmp_path / "bench")
+    event, spooled = store_scans(Result(), FullStore(tmp_path / "storage"), box)
+    assert spooled and box.spool.exists(event["artifact"]["path"])
+    assert [e["uid"] for _, e, s in box.pending()] == [event["uid"]]
+    box.close()
