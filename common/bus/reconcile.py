@@ -1,53 +1,129 @@
-"""Find fragments whose later stages are missing on storage, and the events that would redo them.
+"""Find what is missing on storage, stage by stage and face by face, and the events that redo it.
 
-Storage layout (``docs/storage.md``): ``fragments/<id>/<stage>/<face>-<key>.h5``. A stage's
-output is missing when its input exists but its folder holds no artifact; re-submitting the
-input's event is harmless because every stage's output is content-keyed.
+Storage layout (``docs/storage.md``): ``fragments/<id>/<stage>/<face>-<key>.h5``. Checked per
+fragment:
+
+* **solver** — every face the scans artifact holds scans of (groups ``front``/``back`` with at
+  least one scan) has an RGBN artifact; else the scans' ``fragment.ready`` is re-submitted (an
+  unreadable scans file counts as "some face expected": its ``rgbn`` folder must not be empty);
+* **features, renderer** — every RGBN face has a feature table and an illustration; else that
+  face's ``rgbn.ready`` (newest RGBN artifact of the face);
+* **matcher** — every front face's feature table is recorded in the matcher's proposal store
+  (``fragments`` table: fragment, face, sha256); else its ``features.ready``.
+
+Nothing is re-submitted for a fragment that already has a job queued or in flight at the same or
+an earlier stage (the broker's PENDING list): that job will produce the output, and a second one
+would only duplicate work. Re-submitting is otherwise harmless: outputs are content-keyed and the
+broker announces an output only once.
 """
 
 from __future__ import annotations
 
+import contextlib
+import sqlite3
 from pathlib import Path
+from typing import Iterable
 
 from common.messages import new_message
 from common.store import Store
 
-# (input folder, event announcing it, output folders that event should eventually produce)
-PIPELINE: list[tuple[str, str, tuple[str, ...]]] = [
-    ("scans", "fragment.ready", ("rgbn",)),
-    ("rgbn", "rgbn.ready", ("features", "renders")),
-]
+FACES = ("front", "back")
+# event type -> its stage's place in the pipeline (a pending job at a place <= this covers it)
+LEVEL = {"fragment.ready": 0, "rgbn.ready": 1, "features.ready": 2}
 
 
 def _artifacts(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.glob("*.h5") if not p.name.startswith("."))
+    return sorted((p for p in folder.glob("*.h5") if not p.name.startswith(".")), key=lambda p: (p.stat().st_mtime, p.name))
 
 
-def missing_stages(store: Store) -> list[dict]:
+def _face(path: Path) -> str:
+    return path.stem.split("-", 1)[0]
+
+
+def _faces_scanned(store: Store, rel: str) -> set[str] | None:
+    """Faces a scans artifact holds scans of; None if it cannot be read as one."""
+    try:
+        with store.open(rel) as f:
+            faces = {face for face in FACES if face in f and len(f[face]) > 0}
+    except Exception:  # noqa: BLE001 - any unreadable file: fall back to "some output expected"
+        return None
+    return faces or None
+
+
+def matched_faces(db_path: str | Path | None) -> set[tuple[str, str, str]] | None:
+    """(fragment, face, sha256) the matcher's proposal store has recorded; None without a store."""
+    if db_path is None or not Path(db_path).is_file():
+        return None
+    with contextlib.closing(sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=10)) as con:
+        try:
+            return {(str(a), str(b), str(c)) for a, b, c in con.execute("SELECT fragment, face, sha256 FROM fragments")}
+        except sqlite3.Error:
+            return None
+
+
+def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
+                   matcher_db: str | Path | None = None) -> list[dict]:
     """Events to submit so that every fragment's later stages get computed.
+
+    Parameters
+    ----------
+    store : Store
+        The storage to inspect.
+    pending : iterable of (service, state, type, fragment, face), optional
+        The broker's queued and in-flight jobs (:meth:`BrokerClient.pending`); an event is not
+        proposed for a fragment face that has a job pending at the same or an earlier stage.
+    matcher_db : path, optional
+        The matcher's proposal store; without it the matcher step is not checked.
 
     Returns
     -------
     list of dict
-        ``fragment.ready``/``rgbn.ready`` events (with the input's artifact pointer, digest
-        checked from the file) for every input whose output folder(s) are empty, oldest first.
+        ``fragment.ready`` / ``rgbn.ready`` / ``features.ready`` events with the input's artifact
+        pointer (digest computed from the file), fragment by fragment, earlier stages first.
+        Each carries ``reconciled: true`` and ``missing``: the stages (folders) it is for.
     """
+    busy: dict[tuple[str, str | None], int] = {}
+    for _service, _state, etype, fragment, face in pending or ():
+        level = LEVEL.get(etype)
+        if level is not None and fragment is not None:
+            key = (str(fragment), face)
+            busy[key] = min(busy.get(key, 99), level)
+    matched = matched_faces(matcher_db)
+
+    def covered(fragment: str, face: str | None, level: int) -> bool:
+        return min(busy.get((fragment, face), 99), busy.get((fragment, None), 99)) <= level
+
     events = []
     root = store.root / "fragments"
     if not root.is_dir():
         return events
     for frag_dir in sorted(p for p in root.iterdir() if p.is_dir()):
-        for src, etype, outputs in PIPELINE:
-            inputs = _artifacts(frag_dir / src)
-            if not inputs or all(_artifacts(frag_dir / o) for o in outputs):
-                continue
-            for path in inputs:
+        frag = frag_dir.name
+        rgbn = _artifacts(frag_dir / "rgbn")
+        rgbn_faces = {_face(p) for p in rgbn}
+        for scans in _artifacts(frag_dir / "scans")[-1:]:  # the newest capture of the fragment
+            rel = scans.relative_to(store.root).as_posix()
+            expected = _faces_scanned(store, rel)
+            missing = sorted(expected - rgbn_faces) if expected is not None else ([] if rgbn else ["?"])
+            if missing and not covered(frag, None, 0):
+                events.append(new_message("fragment.ready", fragment=frag, artifact=store.ref(rel), reconciled=True,
+                                          missing=[f"rgbn/{m}" for m in missing]))
+        newest_rgbn = {_face(p): p for p in rgbn}  # sorted oldest first: the last one wins
+        for face, path in sorted(newest_rgbn.items()):
+            missing = [d for d in ("features", "renders")
+                       if not any(_face(p) == face for p in _artifacts(frag_dir / d))]
+            if missing and not covered(frag, face, 1):
                 rel = path.relative_to(store.root).as_posix()
-                face = path.stem.split("-", 1)[0]
-                fields = {"fragment": frag_dir.name, "artifact": store.ref(rel), "reconciled": True}
-                if etype != "fragment.ready" or face in ("front", "back"):
-                    fields["face"] = face
-                events.append(new_message(etype, **fields))
+                events.append(new_message("rgbn.ready", fragment=frag, face=face, artifact=store.ref(rel),
+                                          reconciled=True, missing=[f"{d}/{face}" for d in missing]))
+        if matched is not None:
+            feats = {_face(p): p for p in _artifacts(frag_dir / "features")}
+            path = feats.get("front")
+            if path is not None and not covered(frag, "front", 2):
+                ref = store.ref(path.relative_to(store.root).as_posix())
+                if (frag, "front", ref.sha256) not in matched:
+                    events.append(new_message("features.ready", fragment=frag, face="front", artifact=ref,
+                                              reconciled=True, missing=["matcher/front"]))
     return events

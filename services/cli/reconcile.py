@@ -1,4 +1,5 @@
-"""tessera reconcile — queue fragments whose later stages are missing on storage."""
+"""tessera reconcile — queue what is missing on storage, per stage and face (common/bus/reconcile.py),
+skipping fragments with a job already queued or in flight."""
 
 from __future__ import annotations
 
@@ -25,9 +26,20 @@ def run(args) -> int:
     if not args.dry_run:
         for rel in store.sweep_temporary():
             print(f"removed {rel}: left by a writer that died mid-write")
-    events = missing_stages(store)
+    try:
+        with BrokerClient.from_config(config) as bus:
+            pending = bus.pending()
+    except BrokerUnavailable as exc:
+        if not args.dry_run:
+            print(f"error: {exc}")
+            return 1
+        print(f"warning: {exc}; jobs already queued or in flight are not known, so they are listed too")
+        pending = []
+    db = (config.get("services", {}).get("matcher", {}) or {}).get("db") or store.root / "matches" / "proposals.sqlite"
+    events = missing_stages(store, pending=pending, matcher_db=db)
     for e in events:
-        print(f"{e['fragment']:<12} {e['type']:<15} {e.get('face', ''):<6} {e['artifact']['path']}")
+        print(f"{e['fragment']:<12} {e['type']:<15} {e.get('face', ''):<6} {e['artifact']['path']}  "
+              f"(missing {', '.join(e['missing'])})")
     if args.dry_run or not events:
         print(f"{len(events)} event(s) {'would be ' if args.dry_run else ''}queued")
         return 0

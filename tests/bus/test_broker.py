@@ -395,3 +395,45 @@ def test_rerun_without_a_job_is_refused_not_a_rerun_of_everything(make_station):
                 c.request(P.RERUN, body)
         assert len(c.status()["parked"]) == 1, "nothing was re-run"
         assert len(c.rerun("all")) == 1
+
+
+def test_the_same_output_is_announced_once_even_for_a_resubmitted_input(make_station):
+    """Issue 19: a re-submitted fragment.ready (fresh uid) re-announced every downstream event.
+    A worker returning the same output again (same fields but uid and time) is not announced again,
+    not even after a broker restart."""
+    st = make_station()
+    broker = st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    art = {"path": "fragments/F1/noop/front-k.h5", "sha256": "ab" * 32, "bytes": 10}
+
+    def run_once(worker):
+        job = new_message("noop.job", fragment="F1", face="front")
+        with st.client() as c:
+            c.submit(job)
+        wait_for(lambda: worker.pump(0.1) or len(worker.jobs) > run_once.n, 10, "the job")
+        out = new_message("noop.done", job="same", received=0.0, attempt=1, fragment="F1", face="front", artifact=art)
+        worker.send(P.RESULT, worker.jobs[-1].encode(), P.dumps([out]))
+        run_once.n += 1
+        wait_for(lambda: worker.pump(0.05) or st.status()["queues"]["noop"] == 0 and not st.status()["in_flight"],
+                 10, "the result")
+    run_once.n = 0
+    w = _FakeWorker(endpoint, 1)
+    try:
+        run_once(w)
+        run_once(w)
+    finally:
+        w.close()
+    broker.send_signal(signal.SIGTERM)
+    broker.wait(10)
+    st.broker()
+    w = _FakeWorker(endpoint, 2)
+    try:
+        run_once.n = 0
+        run_once(w)
+        s = st.status()
+    finally:
+        w.close()
+    with st.client() as c:
+        types = [P.loads(b)["type"] for _, b in c.since(0, 100)["events"]]
+    assert types.count("noop.job") == 3 and types.count("noop.done") == 1, types
+    assert s["duplicates_dropped"] == 1, "the third one, after the restart, was recognised from the journal"

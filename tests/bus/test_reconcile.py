@@ -59,3 +59,56 @@ def test_reconcile_command_queues_missing_stages_and_status_shows_them(make_stat
     down = _tessera(st, "status", "--set", f"broker.port={free_port()}", "--set", "client.timeout_s=0.2",
                     "--set", "client.retries=1")
     assert down.returncode == 1 and "did not answer" in down.stdout
+
+
+def _scans(store: Store, fragment: str, faces: tuple[str, ...]):
+    def fill(f):
+        for face in ("front", "back"):
+            g = f.create_group(face)
+            if face in faces:
+                g.create_dataset("scan_0", data=[1, 2, 3])
+    return store.write(f"fragments/{fragment}/scans/scans-{fragment.lower()}.h5", "tessera.scans", 1, fill)
+
+
+def _matcher_db(path, rows):
+    import sqlite3
+    path.parent.mkdir(parents=True, exist_ok=True)
+    con = sqlite3.connect(path)
+    con.execute("CREATE TABLE fragments (fragment TEXT, face TEXT, artifact TEXT, sha256 TEXT, bytes INTEGER, added REAL)")
+    con.executemany("INSERT INTO fragments VALUES (?, ?, ?, ?, ?, 0)", [(f, fa, r.path, r.sha256, r.bytes) for f, fa, r in rows])
+    con.commit()
+    con.close()
+
+
+def test_reconcile_checks_each_face_and_each_stage_including_the_matcher(tmp_path):
+    """Issue 19: a missing face was missed (only empty folders counted) and features -> matcher
+    was not checked at all."""
+    store = Store(tmp_path / "storage")
+    a = _scans(store, "A", ("front", "back"))                  # both faces scanned, only the front solved
+    for d in ("rgbn", "features", "renders"):
+        _h5(store, f"fragments/A/{d}/front-1.h5")
+    _scans(store, "B", ("front", "back"))                      # complete, but the back has no illustration
+    for d in ("rgbn", "features", "renders"):
+        _h5(store, f"fragments/B/{d}/front-2.h5")
+    back = _h5(store, "fragments/B/rgbn/back-2.h5")
+    _h5(store, "fragments/B/features/back-2.h5")
+    _scans(store, "C", ("front",))                             # complete, but the matcher never saw it
+    c_rgbn = _h5(store, "fragments/C/rgbn/front-3.h5")
+    c_feat = _h5(store, "fragments/C/features/front-3.h5")
+    _h5(store, "fragments/C/renders/front-3.h5")
+    db = tmp_path / "proposals.sqlite"
+    a_feat = store.ref("fragments/A/features/front-1.h5")
+    b_feat = store.ref("fragments/B/features/front-2.h5")
+    _matcher_db(db, [("A", "front", a_feat), ("B", "front", b_feat)])
+    got = sorted((e["type"], e["fragment"], e.get("face"), e["artifact"]["path"], tuple(e["missing"]))
+                 for e in missing_stages(store, matcher_db=db))
+    assert got == [("features.ready", "C", "front", c_feat.path, ("matcher/front",)),
+                   ("fragment.ready", "A", None, a.path, ("rgbn/back",)),
+                   ("rgbn.ready", "B", "back", back.path, ("renders/back",))]
+    assert c_rgbn.path not in {g[3] for g in got}
+    # the same storage with jobs already waiting at the broker: nothing is queued twice
+    pending = [("solver", "queued", "fragment.ready", "A", None),
+               ("renderer", "inflight", "rgbn.ready", "B", "back"),
+               ("solver", "queued", "fragment.ready", "C", None)]  # an earlier stage of C covers the matcher step
+    assert missing_stages(store, pending=pending, matcher_db=db) == []
+    assert [e["fragment"] for e in missing_stages(store, pending=pending[:1], matcher_db=db)] == ["B", "C"]
