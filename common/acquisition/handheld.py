@@ -39,52 +39,8 @@ METHODS = ("robust", "least_squares")
 VERSION = "handheld-ps-1"
 
 
-#: An image whose brightest pixels (99.9th percentile of the brightest channel) stay below this
-#: fraction of full scale is black (flash did not fire, lens cap); one whose 0.1–99.9 percentile
-#: spread is below it has no contrast (blank).
-BLACK_LEVEL = 0.004
-
 #: An image with more than this share of saturated pixels is overexposed: refused.
 MAX_SATURATED_SHARE = 0.5
-
-_PNG_END = b"IEND"
-_JPEG_END = b"\xff\xd9"
-
-
-def _decode(path: str) -> np.ndarray:
-    """Decode one image file completely, or raise ValueError naming the file and the reason.
-
-    OpenCV fills the missing rows of a truncated PNG or JPEG with grey and says nothing: the
-    file's end marker (PNG ``IEND`` chunk, JPEG ``EOI``) is checked before decoding. Entropy-coded
-    JPEG data never contains ``FF D9``, so finding it near the end means the scan data is complete.
-    """
-    p = Path(path)
-    if not p.exists():
-        raise ValueError(f"image {path} does not exist")
-    if not p.is_file():
-        raise ValueError(f"image {path} is not a file")
-    buf = np.fromfile(path, np.uint8)
-    if buf.size == 0:
-        raise ValueError(f"image {path} is empty (0 bytes)")
-    head, tail = buf[:8].tobytes(), buf[-256:].tobytes()
-    if head.startswith(b"\x89PNG") and _PNG_END not in tail:
-        raise ValueError(f"image {path} is truncated: the PNG has no IEND chunk (incomplete copy or download)")
-    if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
-        raise ValueError(f"image {path} is truncated: the JPEG has no end-of-image marker (incomplete copy or download)")
-    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"cannot decode image {path} (damaged, or not PNG/TIFF/JPEG)")
-    return raw
-
-
-def _full_scale(raw: np.ndarray, path: str) -> float:
-    if raw.dtype == np.uint8:
-        return 255.0
-    if raw.dtype == np.uint16:
-        return 65535.0
-    if np.issubdtype(raw.dtype, np.floating):
-        return 1.0
-    raise ValueError(f"image {path} has unsupported sample type {raw.dtype} (8/16-bit or float)")
 
 
 def _depth_name(dtype) -> str:
@@ -96,7 +52,7 @@ def _channels_name(raw) -> str:
 
 
 def _convert(raw, path, first, out, sat_out, scale, srgb, saturation):
-    """Check one decoded image against the first of the stack; write linear RGB and saturation into the slots."""
+    """Check one decoded image (RGB(A) order) against the first of the stack; write linear RGB and saturation."""
     if raw.dtype != first.dtype:
         raise ValueError(f"image {path} is {_depth_name(raw.dtype)}, the first image is {_depth_name(first.dtype)}: "
                          "all images of a view must have the same bit depth")
@@ -106,25 +62,15 @@ def _convert(raw, path, first, out, sat_out, scale, srgb, saturation):
     if raw.shape[:2] != first.shape[:2]:
         raise ValueError(f"image {path} is {raw.shape[1]}x{raw.shape[0]}, the first is "
                          f"{first.shape[1]}x{first.shape[0]}: all images of a view must have the same size")
-    if raw.ndim == 3 and raw.shape[2] == 1:
-        raw = raw[..., 0]
+    if raw.ndim == 3 and raw.shape[2] <= 2:
+        raw = raw[..., 0]  # grey (+ alpha)
     if raw.ndim == 2:
         out[...] = (raw / np.float32(scale))[..., None]
-    elif raw.shape[2] in (3, 4):
-        np.multiply(raw[..., 2::-1], np.float32(1.0 / scale), out=out, casting="unsafe")  # OpenCV gives BGR(A)
     else:
-        raise ValueError(f"image {path} has {raw.shape[2]} channels: expected grey, RGB or RGBA")
-    peak = out.max(axis=2)
-    np.greater_equal(peak, saturation, out=sat_out)
+        np.multiply(raw[..., :3], np.float32(1.0 / scale), out=out, casting="unsafe")
+    np.greater_equal(out.max(axis=2), saturation, out=sat_out)
     if srgb:
         out[...] = srgb_to_linear(out)
-    small = peak[::4, ::4] if peak.size >= 1 << 16 else peak
-    lo, hi = np.percentile(small, (0.1, 99.9))
-    if hi < BLACK_LEVEL:
-        raise ValueError(f"image {path} is black (brightest pixels at {100 * hi:.2f}% of full scale): "
-                         "the flash did not fire, or the lens was covered")
-    if hi - lo < BLACK_LEVEL:
-        raise ValueError(f"image {path} is blank (every pixel at {100 * lo:.1f}% of full scale, no contrast)")
     share = float(sat_out.mean())
     if share > MAX_SATURATED_SHARE:
         raise ValueError(f"image {path} is saturated on {100 * share:.0f}% of its pixels (overexposed)")
@@ -144,10 +90,7 @@ def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False, satur
     saturation : float
         A pixel whose brightest channel reaches this fraction of full scale is saturated.
     bit_depth : {8, 16}, optional
-        Declared bit depth of the capture. A file of another depth is refused. Without it a
-        16-bit stack whose values all fit in 8 bits is refused (8-bit data stored in 16-bit
-        files: every value would read 256 times too dark); declare ``bit_depth=8`` to read such
-        files with 255 as full scale.
+        Declared bit depth of the capture: a file of another depth is refused.
     threads : int, optional
         Decoding threads (default: the CPU count; OpenCV releases the GIL while decoding).
 
@@ -161,42 +104,33 @@ def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False, satur
     Raises
     ------
     ValueError
-        Naming the file and the reason: missing, not a file, truncated (PNG without ``IEND``,
-        JPEG without end-of-image marker), undecodable, a bit depth, channel layout or size
-        other than the first image's (or the declared depth), black, blank (no contrast), more
-        than :data:`MAX_SATURATED_SHARE` saturated.
+        Naming the file and the reason. Each file goes through the importers' door
+        (:func:`common.imports.door.read_image_checked`: missing, truncated, corrupt, 8-bit
+        values in a 16-bit file, a depth other than ``bit_depth``, all black, blank); then the
+        stack: a bit depth, channel layout or size other than the first image's, more than
+        :data:`MAX_SATURATED_SHARE` saturated pixels.
 
     Notes
     -----
-    Files are decoded by a thread pool straight into the preallocated float32 stack, so the
-    peak memory is the stack plus one decoded file per thread.
+    Files are decoded by a thread pool (the decoders release the GIL) straight into the
+    preallocated float32 stack, so the peak memory is the stack plus one decoded file per thread.
     """
+    from common.imports.door import read_image_checked
+
     paths = [os.fspath(p) for p in paths]
     if not paths:
         raise ValueError("paths is empty: give at least 3 images")
     if bit_depth not in (None, 8, 16):
         raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
-    first = _decode(paths[0])
-    scale = _full_scale(first, paths[0])
-    if bit_depth is not None and first.dtype != np.uint16 and _depth_name(first.dtype) != f"{bit_depth}-bit":
-        raise ValueError(f"image {paths[0]} is {_depth_name(first.dtype)}, the capture is declared {bit_depth}-bit")
-    if bit_depth == 8 and first.dtype == np.uint16:
-        scale = 255.0  # 8-bit values in 16-bit files, declared as such (checked below)
-    n, (h, w) = len(paths), first.shape[:2]
+    first = read_image_checked(paths[0], bits=bit_depth)
+    n, (h, w) = len(paths), first.pixels.shape[:2]
     images = np.empty((n, h, w, 3), np.float32)
     saturated = np.empty((n, h, w), bool)
 
-    def one(i, raw=None):
-        raw = _decode(paths[i]) if raw is None else raw
-        if raw.dtype == np.uint16:
-            peak = int(raw.max())
-            if bit_depth is None and peak < 256:
-                raise ValueError(f"image {paths[i]} is a 16-bit file whose values never exceed {peak}: 8-bit data "
-                                 "stored as 16-bit (it would read 256 times too dark) or a black frame; "
-                                 "declare the capture 8-bit (--bit-depth 8) or export it again")
-            if bit_depth == 8 and peak > 255:
-                raise ValueError(f"image {paths[i]} holds values up to {peak}, the capture is declared 8-bit")
-        _convert(raw, paths[i], first, images[i], saturated[i], scale, srgb, saturation)
+    def one(i, checked=None):
+        checked = read_image_checked(paths[i], bits=bit_depth) if checked is None else checked
+        _convert(checked.pixels, paths[i], first.pixels, images[i], saturated[i], checked.full_scale, srgb,
+                 saturation)
 
     workers = max(1, min(n, threads or os.cpu_count() or 1))
     one(0, first)
@@ -387,6 +321,7 @@ def sphere_lights(chrome_images, chrome_circle, *, diffuse_images=None, diffuse_
 
 def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated=None,
                   method: str = "robust", dpi: float = 96.0, discontinuities: bool = True,
+                  dome_radius: float | None = None,
                   progress: Callable[[float, str], None] | None = None, **solver_options) -> RGBNImage:
     """RGBN image of a hand-held flash capture (thesis §3.2).
 
@@ -407,6 +342,11 @@ def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated
         Sampling density of the view (nominal when the capture has no scale).
     discontinuities : bool
         Also compute the directional depth-discontinuity map (Raskar et al. 2004).
+    dome_radius : float, optional
+        Near lights: the lights sit on a dome of this radius (pixels) centred on the image
+        centre, at ``dome_radius × direction``; each pixel gets its own light directions and
+        1/r² fall-off (:func:`~common.acquisition.photometric.point_light_field`). Default:
+        distant lights.
     progress : callable(fraction, text), optional
     **solver_options
         Passed to :func:`~common.acquisition.photometric.robust_normals`.
@@ -436,18 +376,92 @@ def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated
     report = progress or (lambda f, t: None)
     solve_share = 0.85 if discontinuities else 1.0
     sub = lambda f, t: report(solve_share * f, t)  # noqa: E731
+    if dome_radius is not None and not (np.isfinite(dome_radius) and dome_radius > 0):
+        raise ValueError(f"dome_radius must be a positive number of pixels, got {dome_radius!r}")
+    where = ({"directions": lights.directions} if dome_radius is None
+             else {"positions": float(dome_radius) * lights.directions})
     if method == "robust":
-        out = robust_normals(imgs, lights.directions, mask=mask, valid=valid, dpi=dpi, progress=sub, **solver_options)
+        out = robust_normals(imgs, **where, mask=mask, valid=valid, dpi=dpi, progress=sub, **solver_options)
     else:
         if solver_options:
             raise ValueError(f"least_squares takes no solver options, got {sorted(solver_options)}")
-        out = least_squares_normals(imgs, lights.directions, mask=mask, valid=valid, dpi=dpi, progress=sub)
+        out = least_squares_normals(imgs, **where, mask=mask, valid=valid, dpi=dpi, progress=sub)
     if discontinuities:
         report(solve_share, "depth discontinuities")
         out.discontinuity = depth_discontinuities(imgs, lights.directions, mask=mask)
     out.attrs.update({"capture": "handheld-flash", "lights_calibrated": lights.intensities is not None})
+    if dome_radius is not None:
+        out.attrs["dome_radius_px"] = float(dome_radius)
     report(1.0, "done")
     return out
+
+
+def rerender_residual(images, lights: LightSet | np.ndarray, image: RGBNImage, *,
+                      dome_radius: float | None = None) -> np.ndarray:
+    """Relative re-render residual of every flash image: how well the solved faces explain them.
+
+    Parameters
+    ----------
+    images : (N, H, W, 3) float array
+        The linear flash images that were solved (before division by the light intensities).
+    lights : LightSet or (N, 3) array
+        Their lights (as given to :func:`handheld_rgbn`).
+    image : RGBNImage
+        The solved normals, RGB albedo and mask.
+    dome_radius : float, optional
+        Near lights on a dome of this radius in pixels (as given to :func:`handheld_rgbn`).
+
+    Returns
+    -------
+    (N,) float64
+        ``Σ |I − ρ e max(0, l·n) f| / Σ I`` over the mask's pixels and the three channels, per
+        image (e the light's intensity, f the near lights' fall-off, 1 for distant lights).
+    """
+    if not isinstance(lights, LightSet):
+        lights = LightSet(np.asarray(lights, dtype=np.float64))
+    imgs = np.asarray(images, np.float32)
+    idx = np.flatnonzero(image.mask)
+    if idx.size == 0:
+        raise ValueError("image has an empty mask: nothing to re-render")
+    n = len(imgs)
+    e = np.ones((n, 3)) if lights.intensities is None else lights.intensities
+    normals = image.normals.reshape(-1, 3)[idx]
+    albedo = image.albedo.reshape(-1, 3)[idx]
+    flat = imgs.reshape(n, -1, 3)
+    out = np.zeros(n)
+    for start in range(0, idx.size, 1 << 15):
+        sl = slice(start, start + (1 << 15))
+        if dome_radius is None:
+            shade = np.clip(normals[sl] @ lights.directions.T.astype(np.float32), 0, None).T  # (N, P)
+        else:
+            from common.acquisition.photometric import point_light_field
+            d, f = point_light_field(float(dome_radius) * lights.directions, image.mask.shape, idx[sl])
+            shade = (np.clip(np.einsum("pk,pnk->pn", normals[sl], d), 0, None) * f).T
+        pred = shade[..., None] * albedo[sl][None] * e[:, None, :].astype(np.float32)
+        measured = flat[:, idx[sl]]
+        out += np.abs(measured - pred).sum(axis=(1, 2))
+    total = flat[:, idx].sum(axis=(1, 2))
+    return out / np.maximum(total, 1e-12)
+
+
+def normal_tilt_gradient(image: RGBNImage) -> tuple[float, float]:
+    """The slow tilt of the normals across the frame, in degrees per frame width and height.
+
+    Fits ``n_x ≈ a + b·x`` and ``n_y ≈ c + d·y`` (x, y in frame widths/heights from the centre)
+    over the mask by least squares; returns ``(degrees(b), degrees(d))`` — for a flat object under
+    distant lights that really were near, the normals swing outwards across the frame
+    (b, d > 0 when the lights are nearer than assumed).
+    """
+    h, w = image.mask.shape
+    rows, cols = np.nonzero(image.mask)
+    if rows.size < 3:
+        raise ValueError("image has fewer than 3 masked pixels")
+    x = cols / max(w - 1, 1) - 0.5
+    y = 0.5 - rows / max(h - 1, 1)
+    n = image.normals[rows, cols]
+    slope_x = np.polyfit(x, np.arcsin(np.clip(n[:, 0], -1, 1)), 1)[0]
+    slope_y = np.polyfit(y, np.arcsin(np.clip(n[:, 1], -1, 1)), 1)[0]
+    return float(np.degrees(slope_x)), float(np.degrees(slope_y))
 
 
 def surface_normals(surface: FragmentSurface) -> np.ndarray:

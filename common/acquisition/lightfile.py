@@ -17,6 +17,7 @@ optionally preceded by the count. Directions are normalised to unit length on re
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath, PureWindowsPath
 
@@ -80,6 +81,29 @@ class LightSet:
         return LightSet(self.directions[order],
                         None if self.filenames is None else [self.filenames[i] for i in order],
                         None if self.intensities is None else self.intensities[order])
+
+
+def natural_key(name: str) -> list:
+    """Sort key of a file name with its digit runs compared as numbers ('img2' before 'img10')."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", _basename(os.fspath(name)))]
+
+
+def shell_sorted(names) -> bool:
+    """True if ``names`` are in plain character order but not in natural order: 1, 10, 11, 2, ...
+
+    That is what a shell glob (``shots/*.jpg``) gives for unpadded numbers; images matched to
+    lights by position would then be paired with the wrong lights.
+    """
+    names = [os.fspath(n) for n in names]
+    plain = sorted(names, key=lambda n: _basename(n).lower())
+    natural = sorted(names, key=natural_key)
+    return names == plain and names != natural
+
+
+def natural_order(names) -> np.ndarray:
+    """Indices that put ``names`` in natural order (:func:`natural_key`)."""
+    names = [os.fspath(n) for n in names]
+    return np.asarray(sorted(range(len(names)), key=lambda i: natural_key(names[i])), dtype=int)
 
 
 def _basename(name: str) -> str:

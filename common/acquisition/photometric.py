@@ -48,7 +48,14 @@ def _one_blas_thread(func):
     return wrapper
 
 
-def _check_inputs(images, directions, mask, valid):
+def _check_inputs(images, directions, mask, valid, positions=None):
+    if (directions is None) == (positions is None):
+        raise ValueError("give exactly one of directions (distant lights) or positions (near lights)")
+    if positions is not None:
+        positions = np.asarray(positions, np.float64)
+        if positions.ndim != 2 or positions.shape[1] != 3 or np.any(positions[:, 2] <= 0):
+            raise ValueError(f"positions must be (N, 3) with z > 0 (in front of the object), got {positions.shape}")
+        directions = positions
     images = np.asarray(images)
     if images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[3] != 3):
         raise ValueError(f"images must be (N, H, W) or (N, H, W, 3), got shape {images.shape}")
@@ -131,15 +138,56 @@ _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 def _weighted_solve(grey, lights, weights):
     """Per-pixel weighted least squares: g_p = (Σ w l lᵀ)⁻¹ Σ w I l, batched (eq. 3.2).
 
-    ``grey`` and ``weights`` are pixel-major (P, N).
+    ``grey`` and ``weights`` are pixel-major (P, N); ``lights`` is (N, 3) shared by every pixel,
+    or (P, N, 3) per pixel (near lights).
     """
+    if lights.ndim == 3:
+        outer = np.stack([lights[..., i] * lights[..., j] for i, j in _SYM], axis=2)  # (P, N, 6)
+        return _solve_sym3(np.einsum("pn,pnk->pk", weights, outer), np.einsum("pn,pnk->pk", weights * grey, lights))
     outer = np.stack([lights[:, i] * lights[:, j] for i, j in _SYM], axis=1)  # (N, 6)
     return _solve_sym3(weights @ outer, (weights * grey) @ lights)
 
 
+def _predict(g, lights):
+    """l·g per pixel and light, (P, N), for shared (N, 3) or per-pixel (P, N, 3) lights."""
+    return np.einsum("pk,pnk->pn", g, lights) if lights.ndim == 3 else g @ lights.T
+
+
+def point_light_field(positions, shape, idx=None):
+    """Per-pixel direction and 1/r² fall-off of near point lights over the image plane z = 0.
+
+    Parameters
+    ----------
+    positions : (N, 3) array
+        Light positions in pixels: x right and y up from the image centre, z towards the camera.
+    shape : (H, W)
+        Image size.
+    idx : (P,) int array, optional
+        Flat pixel indices (default all).
+
+    Returns
+    -------
+    directions : (P, N, 3) float32
+        Unit vectors from each pixel to each light.
+    falloff : (P, N) float32
+        ``(|p_i| / |p_i − x|)²``: the irradiance relative to the image centre's.
+    """
+    pos = np.asarray(positions, np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 3 or not np.all(np.isfinite(pos)) or np.any(pos[:, 2] <= 0):
+        raise ValueError(f"positions must be (N, 3), finite, in front of the plane (z > 0), got {pos.shape}")
+    h, w = shape
+    idx = np.arange(h * w) if idx is None else np.asarray(idx)
+    rows, cols = np.divmod(idx, w)
+    x = np.stack([cols - (w - 1) / 2.0, (h - 1) / 2.0 - rows, np.zeros(len(idx))], axis=1)  # (P, 3)
+    v = pos[None, :, :] - x[:, None, :]
+    r2 = np.einsum("pnk,pnk->pn", v, v)
+    d = (v / np.sqrt(r2)[..., None]).astype(np.float32)
+    return d, ((pos ** 2).sum(1)[None, :] / r2).astype(np.float32)
+
+
 def _albedo_rgb(colour, lights, normals, weights):
     """Per-channel albedo with the normal fixed: ρ_c = Σ w I_c s / Σ w s², s = max(0, l·n)."""
-    shade = np.clip(normals @ lights.T, 0.0, None)  # (P, N)
+    shade = np.clip(_predict(normals, lights), 0.0, None)  # (P, N)
     ws = weights * shade
     den = np.maximum(np.einsum("pn,pn->p", ws, shade), 1e-12)
     return np.einsum("pn,npc->pc", ws, colour) / den[:, None]
@@ -204,6 +252,16 @@ def _least_squares_linear(images, lights, idx_all):
     return normals, albedo, conf
 
 
+def _near(images, idx, lights, positions, shape):
+    """Pixels ``idx`` (:func:`_pixels`) and their lights: shared directions, or near lights'
+    per-pixel directions with the measurements divided by the fall-off."""
+    grey, colour = _pixels(images, idx)
+    if positions is None:
+        return grey, colour, lights
+    here, falloff = point_light_field(positions, shape, idx)
+    return grey / falloff, colour / falloff.T[..., None], here
+
+
 def _assemble(shape, mask, idx, normals, albedo, confidence, dpi, attrs):
     h, w = shape
     n_img = np.zeros((h * w, 3), np.float32)
@@ -223,7 +281,7 @@ def _assemble(shape, mask, idx, normals, albedo, confidence, dpi, attrs):
 
 
 @_one_blas_thread
-def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: float = 96.0,
+def least_squares_normals(images, directions=None, *, positions=None, mask=None, valid=None, dpi: float = 96.0,
                           progress: Callable[[float, str], None] | None = None) -> RGBNImage:
     """Lambertian photometric stereo by least squares (Woodham; thesis eq. 3.2).
 
@@ -232,7 +290,12 @@ def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: flo
     images : (N, H, W) or (N, H, W, 3) float array
         Linear intensities, already divided by each light's intensity.
     directions : (N, 3) array
-        Light directions (x right, y up, z towards the camera); normalised here.
+        Distant light directions (x right, y up, z towards the camera); normalised here.
+    positions : (N, 3) array, optional
+        Near point lights instead of ``directions``: positions in pixels, x right and y up from
+        the image centre, z towards the camera (a dome of radius R: R × the unit directions of
+        its ``.lp`` file). Each pixel then has its own light directions and each measurement is
+        divided by its 1/r² fall-off (:func:`point_light_field`), relative to the image centre.
     mask : (H, W) bool, optional
         Pixels to solve (default all).
     valid : (N, H, W) bool, optional
@@ -269,10 +332,10 @@ def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: flo
     >>> [round(float(v), 3) + 0.0 for v in out.normals[0, 0]], round(float(out.albedo[0, 0, 0]), 3)
     ([0.0, 0.6, 0.8], 0.5)
     """
-    images, lights, mask, valid = _check_inputs(images, directions, mask, valid)
+    images, lights, mask, valid = _check_inputs(images, directions, mask, valid, positions)
     n_img, h, w = images.shape[:3]
     idx_all = np.flatnonzero(mask)
-    if valid is None:
+    if valid is None and positions is None:
         normals, albedo, conf = _least_squares_linear(images, lights, idx_all)
         if progress:
             progress(1.0, "least-squares normals")
@@ -282,22 +345,23 @@ def least_squares_normals(images, directions, *, mask=None, valid=None, dpi: flo
         conf = np.empty(len(idx_all), np.float32)
         for start in range(0, len(idx_all), _CHUNK):
             idx = idx_all[start:start + _CHUNK]
-            grey, colour = _pixels(images, idx)
-            weights = np.ascontiguousarray(valid.reshape(n_img, -1)[:, idx].T, dtype=np.float32)
-            g = _weighted_solve(grey, lights, weights)
+            grey, colour, here = _near(images, idx, lights, positions, (h, w))
+            weights = (np.ones(grey.shape, np.float32) if valid is None
+                       else np.ascontiguousarray(valid.reshape(n_img, -1)[:, idx].T, dtype=np.float32))
+            g = _weighted_solve(grey, here, weights)
             nrm, _ = _unit(g)
             sl = slice(start, start + len(idx))
             normals[sl] = nrm
-            albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, lights, nrm, weights))
-            conf[sl] = _confidence(grey, g @ lights.T, weights, n_img)
+            albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, here, nrm, weights))
+            conf[sl] = _confidence(grey, _predict(g, here), weights, n_img)
             if progress:
                 progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "least-squares normals")
     return _assemble((h, w), mask, idx_all, normals, albedo, conf, dpi,
-                     {"normal_solver": "least_squares", "n_lights": n_img})
+                     {"normal_solver": "least_squares", "n_lights": n_img, "near_lights": positions is not None})
 
 
 @_one_blas_thread
-def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96.0,
+def robust_normals(images, directions=None, *, positions=None, mask=None, valid=None, dpi: float = 96.0,
                    shadow_fraction: float = 0.2, highlight_fraction: float = 0.1,
                    iterations: int = 3, min_shading: float = 0.3, residual_cutoff: float = 2.0,
                    progress: Callable[[float, str], None] | None = None) -> RGBNImage:
@@ -308,7 +372,9 @@ def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96
     images : (N, H, W) or (N, H, W, 3) float array
         Linear intensities, already divided by each light's intensity.
     directions : (N, 3) array
-        Light directions (x right, y up, z towards the camera).
+        Distant light directions (x right, y up, z towards the camera).
+    positions : (N, 3) array, optional
+        Near point lights instead of ``directions`` (see :func:`least_squares_normals`).
     mask : (H, W) bool, optional
         Pixels to solve (default all).
     valid : (N, H, W) bool, optional
@@ -363,7 +429,7 @@ def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96
     >>> bool(np.degrees(np.arccos(np.clip(out.normals[0, 0] @ n, -1, 1))) < 0.5)
     True
     """
-    images, lights, mask, valid = _check_inputs(images, directions, mask, valid)
+    images, lights, mask, valid = _check_inputs(images, directions, mask, valid, positions)
     for name, v in (("shadow_fraction", shadow_fraction), ("highlight_fraction", highlight_fraction)):
         if not 0.0 <= v < 1.0:
             raise ValueError(f"{name} must be in [0, 1), got {v}")
@@ -383,20 +449,20 @@ def robust_normals(images, directions, *, mask=None, valid=None, dpi: float = 96
     inliers = 0.0
     for start in range(0, len(idx_all), _CHUNK):
         idx = idx_all[start:start + _CHUNK]
-        grey, colour = _pixels(images, idx)
+        grey, colour, here = _near(images, idx, lights, positions, (h, w))
         ok = None if valid is None else np.ascontiguousarray(valid.reshape(n_img, -1)[:, idx].T)
-        g, weights = _robust_block(grey, ok, lights, shadow_fraction, highlight_fraction, iterations,
+        g, weights = _robust_block(grey, ok, here, shadow_fraction, highlight_fraction, iterations,
                                    min_shading, residual_cutoff)
         nrm, _ = _unit(g)
         sl = slice(start, start + len(idx))
         normals[sl] = nrm
-        albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, lights, nrm, weights))
-        conf[sl] = _confidence(grey, g @ lights.T, weights, n_img)
+        albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, here, nrm, weights))
+        conf[sl] = _confidence(grey, _predict(g, here), weights, n_img)
         inliers += float(weights.sum())
         if progress:
             progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "robust normals")
     return _assemble((h, w), mask, idx_all, normals, albedo, conf, dpi,
-                     {"normal_solver": "robust", "n_lights": n_img,
+                     {"normal_solver": "robust", "n_lights": n_img, "near_lights": positions is not None,
                       "mean_inliers": inliers / max(len(idx_all), 1)})
 
 
@@ -432,7 +498,7 @@ def _robust_block(grey, ok, lights, lo, hi, iterations, min_shading, cutoff):
     cut2 = np.float32(cutoff * cutoff)
     for _ in range(iterations):
         rho = np.linalg.norm(g, axis=1)
-        pred = g @ lights.T  # = rho · (l·n): the shading test below needs no second product
+        pred = _predict(g, lights)  # = rho · (l·n): the shading test below needs no second product
         r2 = grey - pred
         r2 *= r2
         dof = np.maximum(weights.sum(1) - 3.0, 1.0)

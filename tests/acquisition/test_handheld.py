@@ -69,7 +69,7 @@ def test_image_of_another_size_is_named(tmp_path):
     cv2.imwrite(str(tmp_path / "b.png"), np.arange(20, dtype=np.uint8).reshape(5, 4) * 9)
     with pytest.raises(ValueError, match="b.png"):
         read_images([tmp_path / "a.png", tmp_path / "b.png"])
-    with pytest.raises(ValueError, match="missing.png does not exist"):
+    with pytest.raises(ValueError, match="missing.png: does not exist"):
         read_images([tmp_path / "missing.png"])
 
 

@@ -6,7 +6,7 @@ import pytest
 
 from common.acquisition.handheld import read_images, simulate_flash_capture
 from common.acquisition.lightfile import read_lights
-from common.acquisition.photometric import least_squares_normals, robust_normals
+from common.acquisition.photometric import least_squares_normals, robust_normals, point_light_field
 from common.acquisition.surface import FragmentSurface
 
 
@@ -167,3 +167,37 @@ def test_robust_solver_beats_the_diligent_target(diligent_ball):
     out = robust_normals(images, lights, mask=mask, valid=~saturated)
     err = _angles(out.normals, truth)[mask].mean()
     assert err <= 2.5, err  # measured 1.93°
+
+
+def _dome_capture(h=80, w=100, radius=120.0, n=30, seed=1):
+    """A flat plane (albedo 0.5, normal +z) under point lights on a dome of ``radius`` pixels."""
+    rng = np.random.default_rng(seed)
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(25, 80, n))
+    dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    lights, falloff = point_light_field(radius * dirs, (h, w))
+    shade = np.clip(lights[..., 2], 0, None) * falloff  # n = (0, 0, 1)
+    return dirs, (0.5 * shade.T).reshape(n, h, w).astype(np.float32)
+
+
+def test_point_light_field_of_a_light_straight_above_the_centre():
+    d, f = point_light_field([[0.0, 0.0, 10.0]], (3, 3))
+    np.testing.assert_allclose(d[4, 0], [0, 0, 1], atol=1e-7)  # the centre pixel
+    np.testing.assert_allclose(d[0, 0], np.array([1, -1, 10]) / np.sqrt(102), atol=1e-6)  # top-left: light to the right, below
+    np.testing.assert_allclose(f[0, 0], 100 / 102, rtol=1e-6)
+
+
+@pytest.mark.parametrize("solver", [least_squares_normals, robust_normals])
+def test_near_lights_remove_the_tilt_across_a_dome_capture(solver):
+    radius = 120.0
+    dirs, images = _dome_capture(radius=radius)
+    far = solver(images, dirs)
+    near = solver(images, positions=radius * dirs)
+    tilt_far = np.degrees(np.arccos(np.clip(far.normals[..., 2], -1, 1)))
+    tilt_near = np.degrees(np.arccos(np.clip(near.normals[..., 2], -1, 1)))
+    # distant lights: the plane seems to bend, tilting by degrees towards the edges of the frame
+    assert tilt_far[40, 50] < 1.0 and tilt_far[:, 0].mean() > 5 and tilt_far[:, -1].mean() > 5
+    assert np.sign(far.normals[40, 0, 0]) != np.sign(far.normals[40, -1, 0])  # a gradient, not a uniform tilt
+    # the near-light model recovers the plane everywhere
+    assert tilt_near.max() < 0.05
+    np.testing.assert_allclose(near.albedo[..., 0], 0.5, atol=1e-3)
