@@ -1,13 +1,13 @@
-"""Normal maps made by other tools: decoded, checked for being normal maps, convention told apart.
+"""Normal maps made by other tools: decoded, checked for being normal maps, convention checked.
 
 A normal map stores ``n`` as colour ``(n + 1) / 2`` (:mod:`common.rgbn.io`): OpenGL maps have
-green = y up (Tessera's convention), DirectX maps green = y down. A photograph passed by mistake
-decodes to vectors of every length pointing anywhere; a map in the other convention decodes to a
-field that is not the gradient of any surface. :func:`normals_from_map` refuses the first and
-measures the second (:func:`convention_curl`): the normals of a real surface give a gradient
-field ``(p, q) = (-nx/nz, -ny/nz)`` whose curl ``dp/dy - dq/dx`` vanishes (Frankot & Chellappa
-1988 integrate exactly this field); with y negated the curl becomes ``dp/dy + dq/dx``, as large
-as the relief itself.
+green = y up (Tessera's convention), DirectX maps green = y down. The two tests are the ones
+every reader of normal maps in Tessera uses: :func:`common.rgbn.io.check_normal_map` (a
+photograph decodes to vectors of every length, many facing away) and
+:func:`common.rgbn.io.detect_convention` (the normals of a real surface are integrable only in
+their own convention: the curl of ``(p, q) = (-nx/nz, -ny/nz)`` vanishes; Frankot & Chellappa
+1988). The importer adds its policy: a declared convention the data clearly contradicts is
+refused, and ``auto`` refuses a map too flat to tell rather than guess.
 """
 
 from __future__ import annotations
@@ -15,72 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from common.imports.driver import ImportRefused
+from common.rgbn.io import check_normal_map, detect_convention
 
 CONVENTIONS = ("opengl", "directx", "auto")
-#: a mask pixel's decoded length must be within this of 1 to count as a unit vector
-UNIT_TOLERANCE = 0.12
-#: share of mask pixels that must be unit vectors, and that must face the viewer (nz > 0)
-MIN_UNIT_SHARE = 0.85
-MIN_FACING_SHARE = 0.9
-#: curl ratio beyond which one convention is clearly the right one
+#: ratio of the two readings' curl from which a declared convention counts as contradicted
 CURL_RATIO = 2.5
-
-
-def convention_curl(normals: np.ndarray, mask: np.ndarray, *, scale: int = 3) -> tuple[float, float]:
-    """Median |curl| of the gradient field of ``normals`` read as OpenGL and as DirectX.
-
-    Parameters
-    ----------
-    normals : (H, W, 3) float
-        Vectors decoded in the OpenGL convention (x right, y up, z to the viewer).
-    mask : (H, W) bool
-    scale : int
-        Half-size in pixels of the square over which the gradient field is averaged before the
-        curl is taken (quantisation noise of 8-bit maps swamps a one-pixel curl).
-
-    Returns
-    -------
-    curl_opengl, curl_directx : float
-        Mean absolute curl (1/pixel; the top 1 % left out) over pixels whose whole neighbourhood is
-        in the mask and faces the viewer (nz > 0.2); NaN when fewer than 100 such pixels. The right convention has the
-        smaller one.
-
-    References
-    ----------
-    R. T. Frankot, R. Chellappa, "A method for enforcing integrability in shape from shading
-    algorithms", IEEE PAMI 10(4), 1988.
-    """
-    import cv2
-    n = np.asarray(normals, np.float64)
-    ok = np.asarray(mask, bool) & (n[..., 2] > 0.2)
-    nz = np.where(ok, n[..., 2], 1.0)
-    p = np.where(ok, -n[..., 0] / nz, 0.0)
-    q = np.where(ok, -n[..., 1] / nz, 0.0)   # y up
-    # average over (2k+1)^2 pixels inside the mask, then difference across 2k pixels: the curl over a
-    # few pixels outgrows the quantisation noise of 8-bit maps (a 1-pixel curl is mostly noise)
-    k = scale
-    box = (2 * k + 1, 2 * k + 1)
-    w = cv2.boxFilter(ok.astype(np.float64), -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    full = w >= box[0] * box[1] - 0.5
-    ps = cv2.boxFilter(p, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT) / np.maximum(w, 1)
-    qs = cv2.boxFilter(q, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT) / np.maximum(w, 1)
-    dp_drow = np.zeros_like(p)
-    dq_dcol = np.zeros_like(q)
-    dp_drow[k:-k] = (ps[2 * k:] - ps[:-2 * k]) / (2 * k)
-    dq_dcol[:, k:-k] = (qs[:, 2 * k:] - qs[:, :-2 * k]) / (2 * k)
-    inner = np.zeros_like(ok)
-    inner[k:-k, k:-k] = (full[2 * k:, k:-k] & full[:-2 * k, k:-k] & full[k:-k, 2 * k:] & full[k:-k, :-2 * k])
-    if inner.sum() < 100:
-        return float("nan"), float("nan")
-    # y up: d/dy = -d/drow
-    gl = np.abs(-dp_drow - dq_dcol)[inner]
-    dx = np.abs(-dp_drow + dq_dcol)[inner]
-    return _trimmed_mean(gl), _trimmed_mean(dx)
-
-
-def _trimmed_mean(a: np.ndarray) -> float:
-    """Mean below the 99th percentile: the occasional crease or map seam does not decide."""
-    return float(a[a <= np.percentile(a, 99)].mean())
+#: below this ratio ``auto`` cannot tell the conventions apart
+UNDECIDED_RATIO = 1.5
 
 
 def decode_normal_map(pixels: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray | None]:
@@ -106,7 +47,8 @@ def normals_from_map(pixels: np.ndarray, full_scale: float, *, convention: str =
     full_scale : float
         255, 65535 or 1.0.
     convention : {'opengl', 'directx', 'auto'}
-        Green = y up (OpenGL), y down (DirectX), or told from the data (:func:`convention_curl`).
+        Green = y up (OpenGL), y down (DirectX), or told from the data
+        (:func:`common.rgbn.io.detect_convention`).
     mask : (H, W) bool, optional
         Further restriction (e.g. the albedo's alpha).
 
@@ -115,52 +57,59 @@ def normals_from_map(pixels: np.ndarray, full_scale: float, *, convention: str =
     normals : (H, W, 3) float32
         Unit vectors, x right, y up, z to the viewer; ``(0, 0, 1)`` outside the mask.
     mask : (H, W) bool
-        Alpha > 0 (if any), decoded length within 0.5 of 1 (the black or white background of
-        many maps is out), and ``mask``.
+        Alpha > 0 (if any), not all-zero (the black background of many maps), decoded length
+        within 0.5 of 1, and ``mask``.
     info : dict
-        ``convention`` used, ``curl_opengl``, ``curl_directx``, ``unit_share``, ``facing_share``.
+        ``convention`` used; ``curl_opengl``, ``curl_directx`` and their ``ratio`` (the evidence).
 
     Raises
     ------
     ImportRefused
-        Not a normal map (too few unit vectors, too many facing away: a photograph), nothing
-        valid, or the declared convention contradicted by the data (its curl ``CURL_RATIO``
-        times the other's), or ``auto`` unable to tell.
+        Not a normal map (:func:`common.rgbn.io.check_normal_map`: too few unit vectors, too many
+        facing away -- a photograph), nothing valid, a declared convention whose curl is
+        ``CURL_RATIO`` times the other reading's, or ``auto`` on a map too flat to tell.
+
+    Examples
+    --------
+    >>> px = np.zeros((40, 40, 3), np.uint8); px[..., 2] = 255; px[..., :2] = 128
+    >>> n, m, info = normals_from_map(px, 255.0)
+    >>> bool(m.all()), info["convention"]
+    (True, 'opengl')
     """
     if convention not in CONVENTIONS:
         raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
     v, alpha = decode_normal_map(pixels, full_scale)
     length = np.sqrt(np.einsum("...i,...i->...", v, v))
-    shown = np.ones(length.shape, bool) if alpha is None else alpha.copy()
+    shown = np.any(np.asarray(pixels)[..., :3] != 0, axis=2)   # all-zero: background, not a vector
+    if alpha is not None:
+        shown &= alpha
     if mask is not None:
         shown &= np.asarray(mask, bool)
     valid = shown & np.isfinite(length) & (length > 0.5) & (length < 1.5)
     if valid.sum() < max(16, 0.01 * shown.sum()):
         raise ImportRefused("not a normal map: almost no pixel decodes to a unit vector "
                             f"({valid.sum()} of {shown.sum()} shown pixels)")
-    unit_share = float((np.abs(length[valid] - 1.0) < UNIT_TOLERANCE).mean())
-    facing_share = float((v[..., 2][valid] > 0).mean())
-    if unit_share < MIN_UNIT_SHARE or facing_share < MIN_FACING_SHARE:
-        raise ImportRefused(f"not a normal map (a photograph?): only {unit_share * 100:.0f} % of its pixels decode "
-                            f"to unit vectors (a normal map: over {MIN_UNIT_SHARE * 100:.0f} %) and "
-                            f"{facing_share * 100:.0f} % face the viewer (blue above half scale; a normal map: "
-                            f"over {MIN_FACING_SHARE * 100:.0f} %)")
+    try:
+        check_normal_map(v, length, shown, name="it")
+    except ValueError as exc:
+        raise ImportRefused(str(exc)) from None
     normals = np.zeros_like(v)
     normals[..., 2] = 1.0
     normals[valid] = v[valid] / length[valid][:, None]
-    c_gl, c_dx = convention_curl(normals, valid)
-    info = {"curl_opengl": c_gl, "curl_directx": c_dx, "unit_share": unit_share, "facing_share": facing_share}
-    clear = np.isfinite(c_gl) and max(c_gl, c_dx) > CURL_RATIO * min(c_gl, c_dx) and max(c_gl, c_dx) > 1e-3
-    looks = ("opengl" if c_gl < c_dx else "directx") if clear else None
+    looks, evidence = detect_convention(normals, valid)
+    ratio = float(evidence.get("ratio") or 0.0)
+    info = {"curl_opengl": evidence.get("curl_opengl"), "curl_directx": evidence.get("curl_directx"), "ratio": ratio}
+    curls = (f"median curl {evidence.get('curl_opengl')} read as OpenGL, {evidence.get('curl_directx')} "
+             "as DirectX")
     if convention == "auto":
-        if looks is None:
-            raise ImportRefused(f"cannot tell OpenGL from DirectX (curl {c_gl:.2g} read as OpenGL, {c_dx:.2g} as "
-                                "DirectX: too little relief); give --convention opengl or directx")
+        if ratio < UNDECIDED_RATIO:
+            raise ImportRefused(f"cannot tell OpenGL from DirectX ({curls}: too little relief); "
+                                "give --convention opengl or directx")
         convention = looks
-    elif looks is not None and looks != convention:
+    elif looks != convention and ratio >= CURL_RATIO:
         raise ImportRefused(f"declared {convention} but the map reads as {looks} (green = y "
                             f"{'up' if looks == 'opengl' else 'down'}): its normals are integrable only that way "
-                            f"(curl {c_gl:.2g} as OpenGL, {c_dx:.2g} as DirectX); give --convention {looks}")
+                            f"({curls}); give --convention {looks}")
     if convention == "directx":
         normals[..., 1] = -normals[..., 1]
     info["convention"] = convention
