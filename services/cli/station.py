@@ -7,6 +7,13 @@ missing one is skipped with a log line), and the scanner on the simulated flatbe
 idle (every stage's output exists or the failure is parked), prints a per-fragment summary and
 exits 0 if every fragment went through every stage, else 1. Without ``--demo`` it runs until
 Ctrl-C and then stops every child cleanly (SIGTERM, then SIGKILL after a grace period).
+
+A child that dies (a worker, or the broker) is started again after a back-off that doubles
+with each death in the last ``CRASH_WINDOW_S`` (``RESTART_MIN_S`` up to ``RESTART_MAX_S``); the
+station goes on meanwhile (the broker re-queues a dead worker's job; its journal makes a broker
+restart lose nothing). ``CRASH_LOOP_DEATHS`` deaths within the window is a crash loop: reported
+on the terminal and in the log at every restart, never hidden; the demo's summary lists it and
+fails. The scanner is not restarted (it ends when its capture is done).
 """
 
 from __future__ import annotations
@@ -31,6 +38,12 @@ OUTPUT_EVENT = {"solver": "rgbn.ready", "features": "features.ready", "renderer"
                 "matcher": "match.proposed", "noop": "noop.done"}
 _LAUNCH = "import sys; from services.cli import main; sys.exit(main())"
 
+# supervision of the children (restart with back-off, crash-loop report)
+RESTART_MIN_S = 1.0
+RESTART_MAX_S = 60.0
+CRASH_WINDOW_S = 300.0
+CRASH_LOOP_DEATHS = 5
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("station", help="run broker, scanner and one worker per stage on this machine")
@@ -47,14 +60,54 @@ class Children:
         self.config_args = config_args
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen] = {}
+        self.args: dict[str, tuple] = {}
+        self.deaths: dict[str, collections.deque] = collections.defaultdict(collections.deque)
+        self.restart_at: dict[str, float] = {}
+        self.crash_loops: set[str] = set()
+        self.restarts: collections.Counter = collections.Counter()
+
+    def command(self, *args: str) -> list[str]:
+        """The command line of a child running ``tessera <args>`` with the station's config."""
+        return [sys.executable, "-c", _LAUNCH, *args, *self.config_args]
 
     def start(self, name: str, *args: str, to_terminal: bool = False) -> subprocess.Popen:
         out = None if to_terminal else open(self.log_dir / f"{name}.log", "ab")
-        p = subprocess.Popen([sys.executable, "-c", _LAUNCH, *args, *self.config_args], stdout=out,
+        p = subprocess.Popen(self.command(*args), stdout=out,
                              stderr=subprocess.STDOUT if out else None, start_new_session=True)
+        if out is not None:
+            out.close()  # the child holds its own descriptor
         self.procs[name] = p
+        self.args[name] = (args, to_terminal)
         log.info("started %s (pid %d)%s", name, p.pid, "" if to_terminal else f", log {self.log_dir / (name + '.log')}")
         return p
+
+    def supervise(self, now: float | None = None, out=None) -> None:
+        """Restart dead children (not the scanner) with back-off; report crash loops. Call it often."""
+        now = time.monotonic() if now is None else now
+        out = out or sys.stdout
+        for name, p in list(self.procs.items()):
+            if name == "scanner" or p.poll() is None:
+                continue
+            if name not in self.restart_at:
+                deaths = self.deaths[name]
+                deaths.append(now)
+                while deaths and deaths[0] < now - CRASH_WINDOW_S:
+                    deaths.popleft()
+                wait = min(RESTART_MAX_S, RESTART_MIN_S * 2 ** (len(deaths) - 1))
+                self.restart_at[name] = now + wait
+                msg = (f"{name} exited with status {p.returncode}; restarting it in {wait:.0f} s "
+                       f"(log {self.log_dir / (name + '.log')})")
+                if len(deaths) >= CRASH_LOOP_DEATHS:
+                    self.crash_loops.add(name)
+                    msg = (f"CRASH LOOP: {name} died {len(deaths)} times in the last {CRASH_WINDOW_S:.0f} s "
+                           f"(status {p.returncode}); restarting it in {wait:.0f} s; see {self.log_dir / (name + '.log')}")
+                log.error("%s", msg)
+                print(f"station: {msg}", file=out, flush=True)
+            elif now >= self.restart_at[name]:
+                del self.restart_at[name]
+                args, to_terminal = self.args[name]
+                self.start(name, *args, to_terminal=to_terminal)
+                self.restarts[name] += 1
 
     def stop(self, grace_s: float = 10.0) -> None:
         order = [n for n in self.procs if n not in ("broker",)] + [n for n in self.procs if n == "broker"]
@@ -148,11 +201,8 @@ def run(args) -> int:
                 print(f"station running (storage {root.resolve()}); `tessera status` and `tessera events` "
                       f"show what it does; Ctrl-C stops it", flush=True)
                 while True:
-                    time.sleep(1.0)
-                    dead = [n for n, p in kids.procs.items() if n != "scanner" and p.poll() is not None]
-                    if dead:
-                        log.error("%s exited; stopping the station (see %s)", ", ".join(dead), log_dir)
-                        return 1
+                    time.sleep(0.5)
+                    kids.supervise()
             status = _demo(config, kids, stages, args.demo)
     except KeyboardInterrupt:
         print("stopping the station", flush=True)
@@ -174,6 +224,7 @@ def _demo(config, kids: Children, stages: list[str], n: int) -> int:
     timed_out = False
     with FeedSubscriber.from_config(config, since=0) as feed, BrokerClient.from_config(config) as bus:
         while time.monotonic() < deadline:
+            kids.supervise()
             item = feed.next(0.5)
             if item is not None:
                 _, ev = item
@@ -216,6 +267,10 @@ def _demo(config, kids: Children, stages: list[str], n: int) -> int:
         note = "; ".join(failures[f]) or (parked[f]["error"] if f in parked else "")
         print(f"{f:<20}" + "".join(f"{v:>10}" for v in row) + f"  {note}")
     print("(events per stage: one per face from solver, features and renderer; one per join proposal from the matcher)")
+    for name in sorted(kids.restarts):
+        print(f"{name} was restarted {kids.restarts[name]} time(s)"
+              f"{' (CRASH LOOP)' if name in kids.crash_loops else ''}; see its log in {Path(config['storage']['root']) / 'logs'}")
+    ok &= not kids.crash_loops
     print(f"\n{len(frags)} of {n} fragments captured; "
           f"{'every stage done' if ok else 'some stages missing or failed'}; storage {Path(config['storage']['root']).resolve()}")
     return 0 if ok and not timed_out else 1

@@ -70,3 +70,51 @@ def _answers(st) -> bool:
         return any(w["service"] == "noop" for ws in st.status()["workers"].values() for w in ws)
     except Exception:
         return False
+
+
+def test_station_restarts_a_killed_worker_and_keeps_running(make_station, stations):
+    """Issue 19: one worker dying stopped the whole station."""
+    import os
+    import time
+    st = make_station(routing={"fragment.ready": ["noop"]})
+    p = _station(st, "--set", "scanner.fragments=1")
+    stations.append(p)
+    wait_for(lambda: _answers(st), 60, "the station's noop worker")
+    first = [w["pid"] for ws in st.status()["workers"].values() for w in ws if w["service"] == "noop"][0]
+    os.kill(first, signal.SIGKILL)
+    t0 = time.monotonic()
+    again = wait_for(lambda: [w["pid"] for ws in _status(st).get("workers", {}).values() for w in ws
+                              if w["service"] == "noop" and w["pid"] != first], 60, "a new noop worker")
+    assert again and p.poll() is None, "the station is still running"
+    assert time.monotonic() - t0 >= 0.9, "restarted after the back-off, not at once"
+
+
+def _status(st) -> dict:
+    try:
+        return st.status()
+    except Exception:
+        return {}
+
+
+def test_a_crash_loop_is_reported_with_growing_back_off(tmp_path, monkeypatch):
+    import io
+
+    from services.cli import station
+    kids = station.Children([], tmp_path)
+    monkeypatch.setattr(kids, "command", lambda *a: [sys.executable, "-c", "import sys; sys.exit(3)"])
+    out = io.StringIO()
+    kids.start("solver", "worker", "solver")
+    now, starts, waits = 0.0, 1, []
+    while now < 200 and len(kids.crash_loops) == 0:
+        kids.procs["solver"].wait(10)
+        kids.supervise(now, out)
+        waits.append(kids.restart_at["solver"] - now)
+        now = kids.restart_at["solver"]
+        kids.supervise(now, out)
+        starts += 1
+    kids.procs["solver"].wait(10)
+    assert waits[:5] == [1.0, 2.0, 4.0, 8.0, 16.0], waits
+    assert "solver" in kids.crash_loops and kids.restarts["solver"] == starts - 1
+    text = out.getvalue()
+    assert "solver exited with status 3; restarting it in 1 s" in text
+    assert "CRASH LOOP: solver died 5 times" in text
