@@ -294,3 +294,49 @@ def fragment_mask(scan: np.ndarray, dpi: float, *, ring_fraction: float = 0.04, 
         return mask
     up = cv2.resize(mask.astype(np.float32), (W0, H0), interpolation=cv2.INTER_LINEAR)
     return up > 0.5
+
+
+def crop_to_fragment(scan: np.ndarray, dpi: float, *, margin_mm: float = 5.0, prescan_dpi: float = 50.0,
+                     **kw) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The fragment's region of a whole-bed scan, as the capture would have scanned it (§3.3.4).
+
+    The scan is reduced to ``prescan_dpi`` (a pre-scan), :func:`locate_fragment` finds the one
+    fragment on it, and that region plus ``margin_mm`` is cut from the full-resolution scan.
+
+    Parameters
+    ----------
+    scan : (H, W, 3) array
+        A scan of the whole bed (or a large part of it) at ``dpi``.
+    dpi : float
+    margin_mm : float
+        Margin around the fragment (its outer ring is the background :func:`fragment_mask` needs).
+    prescan_dpi : float
+        Resolution the fragment is located at.
+    **kw
+        Passed to :func:`locate_fragments` (e.g. ``background_mm``).
+
+    Returns
+    -------
+    crop : array
+        The region, same dtype as ``scan``.
+    area_mm : (left, top, right, bottom)
+        The region in the scan's millimetres (origin at its top-left corner).
+
+    Raises
+    ------
+    NoFragmentError, MultipleFragmentsError
+        As :func:`locate_fragment`.
+    """
+    if not dpi > 0 or not prescan_dpi > 0:
+        raise ValueError(f"dpi and prescan_dpi must be positive, got {dpi} and {prescan_dpi}")
+    scan = np.asarray(scan)
+    H, W = scan.shape[:2]
+    f = max(1.0, dpi / prescan_dpi)
+    pre = cv2.resize(np.ascontiguousarray(scan), (max(8, int(round(W / f))), max(8, int(round(H / f)))),
+                     interpolation=cv2.INTER_AREA) if f > 1 else scan
+    pre_dpi = dpi * pre.shape[1] / W
+    x0, y0, x1, y1 = locate_fragment(pre, pre_dpi, margin_mm=margin_mm, **kw)
+    p = 25.4 / dpi
+    c0, r0 = max(0, int(np.floor(x0 / p))), max(0, int(np.floor(y0 / p)))
+    c1, r1 = min(W, int(np.ceil(x1 / p))), min(H, int(np.ceil(y1 / p)))
+    return scan[r0:r1, c0:c1], (c0 * p, r0 * p, c1 * p, r1 * p)

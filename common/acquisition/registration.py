@@ -361,7 +361,9 @@ def _register_sequence(target, prepared, dpi, nominal_deg, search_deg, min_corre
             out.append(_register(target, prepared[i], dpi, nom, search_deg, min_correlation))
         except RegistrationError as exc:
             where = f"nominal {nom:g}°" if nom is not None else "searched all round"
-            raise RegistrationError(f"scan {i} ({where}): {exc}") from exc
+            err = RegistrationError(f"scan {i} ({where}): {exc}")
+            err.index = i                # how far the sequence got: the best-explained failure is reported
+            raise err from exc
         if progress:
             progress(i / max(1, len(prepared) - 1), f"registered scan {i}")
     return out
@@ -375,8 +377,11 @@ def _turn_name(nominal_deg) -> str:
 _TURN_WORDS = {"cw": "clockwise", "ccw": "counter-clockwise"}
 
 
-def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation):
-    """Why a sequence with nominal rotations failed: turned the other way, or out of order? (None = neither.)"""
+def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation, failures):
+    """Why a sequence with nominal rotations failed: turned the other way, or out of order? (None = neither.)
+
+    The failures of the other attempts are appended to ``failures``.
+    """
     given = _turn_name(nominal_deg)
     other = "ccw" if given == "cw" else "cw"
     try:
@@ -386,11 +391,12 @@ def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation):
             f"{[float(v) for v in nominal_deg]} say: they register with {_TURN_WORDS[other]} turns (correlation "
             f"{min(r.correlation for r in regs[1:]):.2f}); give the turn direction as {other} "
             f"(tessera import scans --turn {other}) — rescanning is not needed", other, regs)
-    except RegistrationError:
-        pass
+    except RegistrationError as exc:
+        failures.append(exc)
     try:
         regs = _register_sequence(target, prepared, dpi, None, search_deg, min_correlation, None)
-    except RegistrationError:
+    except RegistrationError as exc:
+        failures.append(exc)
         return None
     measured = [float(r.angle_deg % 360) for r in regs]
     return ScanOrderError(
@@ -434,12 +440,15 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
     except RegistrationError as exc:
         if not diagnose or nominal_deg is None or len(scans) < 2:
             raise
-        found = _diagnose(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation)
+        failures = [exc]
+        found = _diagnose(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation, failures)
         if isinstance(found, TurnDirectionError):
             raise TurnDirectionError(f"{found} (with the nominal turns: {exc})", found.turn,
                                      found.registrations) from exc
         if isinstance(found, ScanOrderError):
             raise ScanOrderError(f"{found} (with the nominal turns: {exc})", found.angles_deg) from exc
+        # report the attempt that got furthest (turned the other way, it may fail only at the odd scan out)
+        exc = max(failures, key=lambda e: getattr(e, "index", 0))
         raise RegistrationError(f"{exc}; the scans register neither turned the other way nor in another order "
                                 "— rescan this face (all scans of one face, turning it the same way each time)") from exc
     # a fragment that looks alike turned by 180° (an oval, stripes) may also register, worse, with
@@ -462,6 +471,56 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
                 f"{_TURN_WORDS[turn]} against {worst:.2f} as given; give the turn direction as {turn} "
                 f"(tessera import scans --turn {turn}) — rescanning is not needed", turn, other)
     return regs
+
+
+def turn_rotations(n: int, turn: str, step_deg: float = 90.0) -> list[float]:
+    """Nominal rotations (clockwise on the image, in [0, 360)) of ``n`` scans turned by ``step_deg`` each time.
+
+    ``turn`` is ``"cw"`` (0, 90, 180, 270) or ``"ccw"`` (0, 270, 180, 90).
+    """
+    if turn not in ("cw", "ccw"):
+        raise ValueError(f"turn must be 'cw' or 'ccw', got {turn!r}")
+    sign = 1.0 if turn == "cw" else -1.0
+    return [float((sign * k * step_deg) % 360) for k in range(n)]
+
+
+def register_turned(scans: list, dpi: float, turn: str = "auto", *, step_deg: float = 90.0,
+                    masks: list | None = None, progress=None) -> tuple[str, list[Registration]]:
+    """Register scans turned by ``step_deg`` between scans, clockwise, counter-clockwise or either.
+
+    Parameters
+    ----------
+    scans : list of (H, W, 3) arrays
+        The scans of one face in the order they were taken.
+    dpi : float
+    turn : {"cw", "ccw", "auto"}
+        Direction the fragment was turned between scans, clockwise as seen on the scan image. With
+        ``"auto"`` both are tried and the one that registers (better) is kept.
+
+    Returns
+    -------
+    turn : str
+        ``"cw"`` or ``"ccw"``: the direction used.
+    registrations : list of Registration
+
+    Raises
+    ------
+    TurnDirectionError
+        ``turn`` was given, but the scans register (clearly better) the other way round; the
+        message says which direction to give.
+    ScanOrderError, RegistrationError
+        As :func:`register_scans`.
+    """
+    if turn not in ("cw", "ccw", "auto"):
+        raise ValueError(f"turn must be 'cw', 'ccw' or 'auto', got {turn!r}")
+    first = "cw" if turn == "auto" else turn
+    nominal = [k * step_deg * (1 if first == "cw" else -1) for k in range(len(scans))]
+    try:
+        return first, register_scans(scans, dpi, nominal_deg=nominal, masks=masks, progress=progress)
+    except TurnDirectionError as exc:
+        if turn == "auto":
+            return exc.turn, exc.registrations
+        raise
 
 
 def warp_to_target(scan: np.ndarray, reg: Registration, shape: tuple[int, int]) -> np.ndarray:

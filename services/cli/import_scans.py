@@ -1,0 +1,216 @@
+"""``tessera import scans``: flatbed scans of fragments from files, as the scanner service would store them.
+
+    tessera import scans S0.png S90.png S180.png S270.png --fragment F12 --device epson-v850 --dpi 600
+                         [--back B0.png B90.png ...] [--turn cw|ccw|auto] [--crop] [--srgb] [--store DIR]
+    tessera import scans --manifest scans.csv --device epson-v850 [--dpi 600] [--store DIR]
+
+Each fragment becomes one ``tessera.scans`` artifact ``fragments/<id>/scans/scans-<key>.h5`` and
+one ``fragment.ready`` event naming ``--device``: the solver registers the scans, takes the
+newest calibration of that device (``tessera calibrate --from-files MANIFEST --device NAME``)
+and solves the normals, exactly as for a capture at the bench.
+
+The scans of a face are given in the order they were taken, the fragment turned by about 90°
+between them; ``--turn`` says which way, clockwise or counter-clockwise as seen on the scan
+image, or ``auto`` (default): both are tried in registration and the one that registers is kept
+(and recorded). A given direction the scans contradict is refused with the direction to give.
+Files: PNG or TIFF, 8 or 16-bit (float TIFF: linear, full scale 1), RGB, RGBA (alpha dropped)
+or grey (three equal channels: grey albedo). Values are taken as linear (what a scanner gives
+with its gamma set to 1.0); ``--srgb`` decodes sRGB-encoded files first. ``--crop`` finds the
+fragment in whole-bed scans and keeps its region plus a margin (scans must otherwise show the
+fragment with a ring of bed around it). Normals need at least 3 scans per face; one scan per
+face is imported colour-only with ``--colour-only``.
+
+The manifest is a CSV file with the columns ``file`` and ``fragment`` (or ``inventory``), and
+optionally ``face`` (front/back, default front), ``dpi`` and ``turn``; rows of one face in scan
+order. Every file is checked at the door (decodes fully, bit depth, not black or blank) and a
+refused fragment names the file and the reason; nothing of it is written. See docs/flatbed.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from common.imports import ImportItem, ImportRefused, Output
+
+#: algorithm version of this importer: part of every content key
+VERSION = "scans-1"
+log = logging.getLogger("tessera.import.scans")
+
+
+def add_parser(subparsers) -> None:
+    from services.cli.imports import add_sink_arguments
+    p = subparsers.add_parser("scans", help="flatbed scans of fragments from files (4 turned scans per face)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("paths", nargs="*", metavar="SCAN", help="scans of the front face, in the order taken")
+    p.add_argument("--back", nargs="+", default=[], metavar="SCAN", help="scans of the back face, in the order taken")
+    p.add_argument("--fragment", help="fragment (inventory) id of the scans given as arguments")
+    p.add_argument("--manifest", metavar="CSV", help="file, fragment[, face, dpi, turn] columns, one row per scan")
+    p.add_argument("--device", required=True,
+                   help="name of the scanner that made the scans: its calibration is used (tessera calibrate)")
+    p.add_argument("--dpi", type=float, help="resolution of the scans (unless the manifest has a dpi column)")
+    p.add_argument("--turn", choices=("cw", "ccw", "auto"), default="auto",
+                   help="way the fragment was turned between scans, as seen on the image (default auto: detected)")
+    p.add_argument("--crop", action="store_true", help="whole-bed scans: find the fragment and keep its region")
+    p.add_argument("--srgb", action="store_true", help="the files are sRGB-encoded (decode to linear first)")
+    p.add_argument("--colour-only", action="store_true", help="one scan per face, albedo only (no normals)")
+    add_sink_arguments(p)
+    p.set_defaults(func=run)
+
+
+def _items(args) -> list[ImportItem]:
+    from common.imports.manifest import fragment_id, read_manifest
+    from common.limits import check_dpi
+    from common.store import ArtifactError
+
+    groups: dict = {}           # fragment -> {"front": [paths], "back": [paths], "dpi":, "turn":, "where":}
+    if args.manifest:
+        if args.paths or args.back:
+            raise ValueError("give scans as arguments or --manifest, not both")
+        for row in read_manifest(args.manifest):
+            where = f"{args.manifest} line {row['line']}"
+            if "inventory" not in row:
+                raise ValueError(f"{where}: no fragment (a 'fragment' or 'inventory' column)")
+            fid = fragment_id(row["inventory"])
+            face = row.get("face", "front").lower()
+            if face not in ("front", "back"):
+                raise ValueError(f"{where}: face {face!r} must be front or back")
+            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": row.get("dpi", args.dpi),
+                                        "turn": row.get("turn", args.turn).lower(), "where": where})
+            if row.get("dpi") is not None and g["dpi"] is not None and float(row["dpi"]) != float(g["dpi"]):
+                raise ValueError(f"{where}: dpi {row['dpi']} differs from the fragment's other scans ({g['dpi']})")
+            g[face].append(Path(row["file"]))
+    else:
+        if not args.fragment:
+            raise ValueError("--fragment ID is needed with scans given as arguments")
+        groups[fragment_id(args.fragment)] = {"front": [Path(p) for p in args.paths],
+                                              "back": [Path(p) for p in args.back], "dpi": args.dpi,
+                                              "turn": args.turn, "where": "arguments"}
+    items = []
+    for fid, g in groups.items():
+        if g["dpi"] is None:
+            raise ValueError(f"{fid} ({g['where']}): no dpi: give --dpi or a dpi column in the manifest")
+        try:
+            dpi = check_dpi(g["dpi"], f"{fid} dpi")
+        except ArtifactError as exc:
+            raise ValueError(str(exc)) from None
+        if g["turn"] not in ("cw", "ccw", "auto"):
+            raise ValueError(f"{fid} ({g['where']}): turn {g['turn']!r} must be cw, ccw or auto")
+        items.append(ImportItem(name=fid, sources=g["front"] + g["back"], fragment=fid, face="front",
+                                options={"dpi": dpi, "turn": g["turn"], "device": args.device,
+                                         "faces": {"front": len(g["front"]), "back": len(g["back"])},
+                                         "crop": bool(args.crop), "srgb": bool(args.srgb),
+                                         "colour_only": bool(args.colour_only)}))
+    return items
+
+
+def _read_scan(path: Path, opts: dict) -> tuple[np.ndarray, tuple]:
+    """One file -> (H, W, 3) uint8/uint16 linear scan and its area in mm, or ImportRefused naming the file."""
+    from common.acquisition.capture import check_scan
+    from common.acquisition.errors import CaptureError
+    from common.acquisition.locate import crop_to_fragment
+    from common.imports.door import read_image_checked
+    from common.rgbn.io import srgb_to_linear
+
+    img = read_image_checked(path, channels=(1, 3, 4))
+    try:
+        px = check_scan(img.pixels, str(path))
+    except ValueError as exc:
+        raise ImportRefused(str(exc)) from None
+    if opts["srgb"]:
+        px = np.rint(srgb_to_linear(px.astype(np.float32) / img.full_scale) * 65535).astype(np.uint16)
+    dpi = opts["dpi"]
+    area = (0.0, 0.0, px.shape[1] * 25.4 / dpi, px.shape[0] * 25.4 / dpi)
+    if opts["crop"]:
+        try:
+            px, area = crop_to_fragment(px, dpi)
+        except CaptureError as exc:
+            raise ImportRefused(f"{path}: {exc}") from None
+    return np.ascontiguousarray(px), area
+
+
+def convert(item: ImportItem, store) -> list[Output]:
+    """The scans of one fragment -> checked, turn direction found, one ``tessera.scans`` artifact."""
+    from common.acquisition.capture import CaptureResult, Scan, check_capture, write_scans
+    from common.acquisition.errors import RegistrationError
+    from common.acquisition.registration import TurnDirectionError, register_turned, turn_rotations
+
+    opts = item.options
+    n_front, n_back = opts["faces"]["front"], opts["faces"]["back"]
+    files = {"front": list(item.sources[:n_front]), "back": list(item.sources[n_front:n_front + n_back])}
+    result = CaptureResult(item.fragment, opts["device"], {}, colour_only=opts["colour_only"])
+    turns = {}
+    for face, paths in files.items():
+        scans = [_read_scan(Path(p), opts) for p in paths]
+        if scans and len({s[0].dtype for s in scans}) > 1:
+            raise ImportRefused(f"{paths[0]}: the {face} scans mix 8-bit and 16-bit files; export them alike")
+        if opts["colour_only"]:
+            if len(scans) > 1:
+                raise ImportRefused(f"{paths[1]}: --colour-only takes one scan per face, {len(scans)} given for "
+                                    f"the {face}")
+            rotations = [0.0] * len(scans)
+        elif len(scans) >= 3:
+            try:
+                turn, regs = register_turned([s[0] for s in scans], opts["dpi"], opts["turn"])
+            except TurnDirectionError as exc:
+                raise ImportRefused(f"{paths[0]} ... {Path(paths[-1]).name} ({face}): {exc}; pass --turn {exc.turn}"
+                                    ) from None
+            except RegistrationError as exc:
+                raise ImportRefused(f"{paths[0]} ... {Path(paths[-1]).name} ({face}): {exc}") from None
+            turns[face] = {"turn": turn, "angles_deg": [round(r.angle_deg, 2) for r in regs],
+                           "correlation_min": round(min(r.correlation for r in regs), 4)}
+            rotations = turn_rotations(len(scans), turn)
+        else:
+            rotations = [0.0] * len(scans)      # too few: check_capture says so below
+        result.scans[face] = [Scan(px, opts["dpi"], int(round(rot)), area, 8 if px.dtype == np.uint8 else 16)
+                              for (px, area), rot in zip(scans, rotations)]
+    try:
+        check_capture(result)
+    except ValueError as exc:
+        raise ImportRefused(f"{item.sources[0]}: {exc}") from None
+    for face, t in turns.items():
+        log.info("%s %s: turned %s, measured rotations %s, correlation >= %.2f", item.fragment, face, t["turn"],
+                 t["angles_deg"], t["correlation_min"])
+    prov = {"importer": "tessera import scans", "version": VERSION,
+            "source_files": [str(p) for p in item.sources], "source_sha256": list(item.digests),
+            "turn": {f: t["turn"] for f, t in turns.items()}, "registration_check": turns}
+    ref = write_scans(store, item.fragment, result, key=item.key, provenance=prov)
+    return [Output("fragment.ready", ref, {"device": opts["device"], "colour_only": bool(opts["colour_only"])})]
+
+
+def _warn_if_uncalibrated(args) -> None:
+    """Say so when the device has no calibration where the solver will look (it would refuse the scans)."""
+    from common.acquisition.calibration import newest_calibration
+    from common.acquisition.errors import CalibrationError
+    from common.store import Store
+    try:
+        if args.store:
+            root = args.store
+        else:
+            from common.config import config_from_arguments
+            root = config_from_arguments(args)["storage"]["root"]
+        newest_calibration(Store(root), args.device)
+    except CalibrationError:
+        print(f"warning: no calibration of device {args.device!r} in {root}: the solver will refuse these scans "
+              f"until you run `tessera calibrate --from-files MANIFEST --device {args.device}`", file=sys.stderr)
+    except Exception:  # storage unreachable: the bench spools; the solver checks later
+        pass
+
+
+def run(args) -> int:
+    from services.cli.imports import run_items
+    if not args.paths and not args.manifest:
+        print("tessera import scans: give the scans of a face (in the order taken), or --manifest CSV",
+              file=sys.stderr)
+        return 2
+    try:
+        items = _items(args)
+    except ValueError as exc:
+        print(f"tessera import scans: {exc}", file=sys.stderr)
+        return 2
+    _warn_if_uncalibrated(args)
+    return run_items(args, items, convert, kind="scans", version=VERSION)

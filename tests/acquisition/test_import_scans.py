@@ -1,0 +1,143 @@
+"""Tests of ``tessera import scans`` (services/cli/import_scans.py) on files written from the simulated flatbed."""
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from common.acquisition.calibration import calibrate_scanner, save_calibration, simulated_target_operator
+from common.acquisition.capture import read_scans
+from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
+from common.messages import new_message
+from common.rgbn.image import load_rgbn
+from common.store import Store
+from services import solver
+from services.cli import main
+
+DPI = 150
+AREA = (28.0, 28.0, 72.0, 72.0)
+
+
+@pytest.fixture(scope="module")
+def turned_scans():
+    """Four scans of a fragment turned counter-clockwise (as seen on the image), and the simulator."""
+    sim = SimulatedFlatbed("files", bed_mm=(100, 100), seed=11)
+    sim.place(demo_surface(25, DPI, seed=4), centre_mm=(50, 50))
+    scans = []
+    for k in range(4):
+        if k:
+            sim.rotate(-90)
+        scans.append(sim.scan(AREA, DPI))
+    return sim, scans
+
+
+def _write(folder, scans, grey=False, eight=False):
+    paths = []
+    for k, s in enumerate(scans):
+        img = (s // 257).astype(np.uint8) if eight else s
+        p = folder / f"scan_{k}.png"
+        cv2.imwrite(str(p), img.mean(axis=2).astype(img.dtype) if grey else img[..., ::-1])
+        paths.append(str(p))
+    return paths
+
+
+def _calibrated_store(root):
+    store = Store(root)
+    sim = SimulatedFlatbed("files", bed_mm=(120, 120), seed=12)
+    save_calibration(store, calibrate_scanner(sim, simulated_target_operator(sim), area_mm=(50, 50, 70, 70)))
+    return store
+
+
+def _scans_files(root):
+    return sorted((root / "fragments").rglob("scans-*.h5")) if (root / "fragments").exists() else []
+
+
+def test_counter_clockwise_scans_are_detected_imported_and_solved(tmp_path, turned_scans):
+    sim, scans = turned_scans
+    store = _calibrated_store(tmp_path / "store")
+    paths = _write(tmp_path, scans)
+    assert main(["import", "scans", *paths, "--fragment", "F-imp-1", "--device", "files", "--dpi", str(DPI),
+                 "--store", str(tmp_path / "store")]) == 0
+    [art] = _scans_files(tmp_path / "store")
+    ref = store.ref(str(art.relative_to(tmp_path / "store")))
+    cap = read_scans(store, ref)
+    assert cap.device == "files" and [s.rotation for s in cap.scans["front"]] == [0, 270, 180, 90]
+    with h5py.File(art) as f:
+        assert '"turn": {"front": "ccw"}' in f.attrs["provenance"] or "ccw" in str(f.attrs["provenance"])
+    # the solver takes it from there, as for a capture at the bench
+    events = solver.handle(new_message("fragment.ready", fragment="F-imp-1", artifact=ref), _Ctx(store))
+    img = load_rgbn(store, events[0]["artifact"])
+    assert img.has_normals and img.mask.sum() > 0.5 * np.pi * (12.5 / 25.4 * DPI) ** 2
+    assert (img.normals[img.mask][:, 2] > 0.5).mean() > 0.95
+    # the detected rotations are the simulator's
+    regs = [r["angle_deg"] for r in load_rgbn(store, events[0]["artifact"]).attrs.get("registration", [])] or None
+    true = [(h.poses[0][0] - sim.history[0].poses[0][0]) for h in sim.history]
+    with h5py.File(art) as f:
+        import json
+        measured = json.loads(f.attrs["provenance"])["registration_check"]["front"]["angles_deg"]
+    assert np.allclose((np.array(measured) - true + 180) % 360 - 180, 0, atol=0.5), (measured, true, regs)
+    # importing again is a no-op (resumable, content-keyed)
+    assert main(["import", "scans", *paths, "--fragment", "F-imp-1", "--device", "files", "--dpi", str(DPI),
+                 "--store", str(tmp_path / "store")]) == 0
+    assert len(_scans_files(tmp_path / "store")) == 1
+
+
+class _Ctx:
+    def __init__(self, store):
+        import logging
+        self.store, self.config, self.log = store, {}, logging.getLogger("test")
+
+    def progress(self, *a):
+        pass
+
+
+def test_a_wrong_turn_direction_is_refused_with_the_one_to_give(tmp_path, turned_scans, capsys):
+    _, scans = turned_scans
+    paths = _write(tmp_path, scans)
+    assert main(["import", "scans", *paths, "--fragment", "F-imp-2", "--device", "files", "--dpi", str(DPI),
+                 "--turn", "cw", "--store", str(tmp_path / "store")]) == 1
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert "--turn ccw" in text and "counter-clockwise" in text and "rescan this face" not in text
+    assert not _scans_files(tmp_path / "store")
+
+
+def test_grey_eight_bit_files_are_imported_with_three_equal_channels(tmp_path, turned_scans):
+    _, scans = turned_scans
+    paths = _write(tmp_path, scans, grey=True, eight=True)
+    assert main(["import", "scans", *paths, "--fragment", "F-imp-3", "--device", "files", "--dpi", str(DPI),
+                 "--turn", "ccw", "--store", str(tmp_path / "store")]) == 0
+    [art] = _scans_files(tmp_path / "store")
+    with h5py.File(art) as f:
+        d = f["front/scan_0"]
+        assert d.dtype == np.uint8 and d.shape[2] == 3 and (d[..., 0] == d[..., 2]).all()
+
+
+@pytest.mark.parametrize("problem, expected", [
+    ("truncated", "scan_2.png"),
+    ("two scans", "normals need at least 3"),
+    ("8-bit in 16", "8-bit values"),
+    ("other face", "scan 3 "),
+])
+def test_bad_scans_are_refused_naming_the_file_and_nothing_is_written(tmp_path, turned_scans, capsys, problem,
+                                                                      expected):
+    _, scans = turned_scans
+    scans = list(scans)
+    if problem == "8-bit in 16":
+        scans[1] = (scans[1] // 257).astype(np.uint16)
+    if problem == "other face":      # the fragment flipped before the last scan
+        other = SimulatedFlatbed("files", bed_mm=(100, 100), seed=13)
+        other.place(demo_surface(25, DPI, seed=4), centre_mm=(50, 50))
+        other.flip()
+        scans[3] = other.scan(AREA, DPI)
+    paths = _write(tmp_path, scans)
+    if problem == "truncated":
+        data = open(paths[2], "rb").read()
+        open(paths[2], "wb").write(data[:len(data) // 2])
+    if problem == "two scans":
+        paths = paths[:2]
+    assert main(["import", "scans", *paths, "--fragment", "F-imp-4", "--device", "files", "--dpi", str(DPI),
+                 "--store", str(tmp_path / "store")]) == 1
+    out = capsys.readouterr()
+    assert expected in out.out + out.err
+    assert not _scans_files(tmp_path / "store")
