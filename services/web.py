@@ -134,7 +134,7 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
         """A write is allowed with the bearer token, or a logged-in session echoing its CSRF value."""
         bearer = auth.bearer_token(request.headers.get("Authorization"))
         if bearer is not None:
-            return auth.token_matches(bearer, token)
+            return auth.check_token_slowly(bearer, token)  # a wrong Bearer token is slowed like /login
         if not logged_in():
             return False
         return auth.token_matches(request.headers.get("X-CSRF-Token"), session.get("csrf", ""))
@@ -328,7 +328,7 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     @app.get("/api/review/picture/<int:pid>/<view>.png")
     def review_picture(pid, view):
         need_review()
-        if view not in ReviewViews:
+        if view not in ReviewViews or not 0 <= pid < 2 ** 63:  # no proposal id beyond SQLite's integers
             abort(404)
         try:
             png = review.picture(pid, view, max_side_px=int(settings["picture_px"]))
@@ -663,7 +663,11 @@ def build_bench(cfg: Mapping, *, link: StationLink, scanner=None, surface_for=No
 
         event, spooled = store_scans(result, link.storage, link.outbox)
         sent = link.drain()
-        return {"sent": sent, "artifact": event["artifact"]["path"], "spooled": spooled}
+        out = {"sent": sent, "artifact": event["artifact"]["path"], "spooled": spooled}
+        if not sent and not spooled:  # the scans are on the lab's storage; only the broker is away
+            out["message"] = (f"Fragment {fid} is captured and its scans are on the lab's storage. The broker cannot "
+                              "be reached: the announcement waits on this machine and is sent automatically.")
+        return out
 
     def prescan(fid):
         if surface_for is not None:

@@ -14,10 +14,12 @@ import hashlib
 import hmac
 import os
 import secrets
+import time
 from pathlib import Path
 
 TOKEN_BYTES = 32
 MIN_TOKEN_CHARS = 16
+FAILED_ATTEMPT_DELAY_S = 0.5   # a wrong token (login form or Bearer header) is answered this late
 
 
 def generate_token() -> str:
@@ -74,6 +76,15 @@ def token_matches(given: str | bytes | None, expected: str) -> bool:
     if isinstance(given, str):
         given = given.encode("utf-8", "surrogatepass")
     return hmac.compare_digest(given, expected.encode("utf-8"))
+
+
+def check_token_slowly(given: str | bytes | None, expected: str) -> bool:
+    """:func:`token_matches`, but a wrong token costs ``FAILED_ATTEMPT_DELAY_S`` (slows guessing;
+    the token's 256 bits do the real work). Use it wherever a request presents a token."""
+    if token_matches(given, expected):
+        return True
+    time.sleep(FAILED_ATTEMPT_DELAY_S)
+    return False
 
 
 def bearer_token(authorization: str | None) -> str | None:

@@ -29,6 +29,17 @@ def _plain(obj):
     return str(obj)
 
 
+def event_line(seq: int, stream: str | None, event: dict) -> str:
+    """One JSON line for an event; an event JSON cannot hold (e.g. nested deeper than the encoder
+    goes, from a journal older than the broker's depth check) gives a line saying so, never a crash."""
+    try:
+        return json.dumps({"seq": seq, "stream": stream, **event}, default=_plain)
+    except (RecursionError, ValueError, TypeError) as exc:
+        return json.dumps({"seq": seq, "stream": stream, "type": str(event.get("type", "?"))[:64],
+                           "uid": str(event.get("uid", ""))[:64], "error": f"event not representable as JSON: "
+                                                                           f"{type(exc).__name__}"})
+
+
 def run(args) -> int:
     from common.bus.feed import FeedSubscriber
     config = config_from_arguments(args)
@@ -36,11 +47,13 @@ def run(args) -> int:
     with FeedSubscriber.from_config(config, since=args.since, types=args.type) as sub:
         try:
             for seq, event in sub.events(timeout_s=args.idle_exit):
-                sys.stdout.write(json.dumps({"seq": seq, "stream": sub.stream, **event}, default=_plain) + "\n")
+                sys.stdout.write(event_line(seq, sub.stream, event) + "\n")
                 sys.stdout.flush()
                 n += 1
                 if args.count is not None and n >= args.count:
                     break
-        except BrokenPipeError:
+        except BrokenPipeError:  # `tessera events | head`: the reader left
+            import os
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no complaint at exit
             return 0
     return 0

@@ -29,6 +29,11 @@ def format_status(s: dict) -> str:
         prog = f" {j['progress'][0]:.0%} {j['progress'][1]}" if j.get("progress") else ""
         lines.append(f"  {j['job']:<24} {j['service']:<10} {j['fragment'] or '':<10} {j['worker']} "
                      f"{j['running_s']:.1f} s attempt {j['attempt']}{prog}")
+    if not s.get("journal_ok", True):
+        lines.append("JOURNAL CANNOT WRITE (disk full?): submissions are refused; see the broker log")
+    refused = s.get("refused") or {}
+    if refused:
+        lines.append("refused frames: " + "  ".join(f"{k}={v}" for k, v in sorted(refused.items())))
     lines.append(f"parked: {len(s['parked'])}")
     for j in s["parked"]:
         lines.append(f"  {j['job']:<24} {j['service']:<10} {j['fragment'] or '':<10} after {j['attempts']}: {j['error']}")
@@ -48,5 +53,10 @@ def run(args) -> int:
     except BrokerUnavailable as exc:
         print(f"error: {exc}")
         return 1
-    print(json.dumps(s, indent=2, default=str) if args.json else format_status(s))
+    try:
+        print(json.dumps(s, indent=2, default=str) if args.json else format_status(s), flush=True)
+    except BrokenPipeError:  # `tessera status | head`: the reader left; that is not an error
+        import os
+        import sys
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second complaint at exit
     return 0

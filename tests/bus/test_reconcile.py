@@ -112,3 +112,28 @@ def test_reconcile_checks_each_face_and_each_stage_including_the_matcher(tmp_pat
                ("solver", "queued", "fragment.ready", "C", None)]  # an earlier stage of C covers the matcher step
     assert missing_stages(store, pending=pending, matcher_db=db) == []
     assert [e["fragment"] for e in missing_stages(store, pending=pending[:1], matcher_db=db)] == ["B", "C"]
+
+
+def test_status_into_a_closed_pipe_prints_no_traceback(make_station):
+    """Issue 19: `tessera status | head` printed a BrokenPipe traceback."""
+    st = make_station()
+    st.broker()
+    cmd = (f"{sys.executable} -c 'import sys; from services.cli import main; sys.exit(main())' status --json "
+           f"--config {st.config_path} | true")
+    for _ in range(3):
+        r = subprocess.run(["bash", "-c", f"set -o pipefail; {cmd}"], capture_output=True, text=True, timeout=60, cwd=REPO)
+        assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
+        assert r.returncode == 0, r.stderr
+
+
+def test_an_event_json_cannot_hold_is_printed_as_a_line_saying_so():
+    """Issue 19: an event nested 1,000 deep crashed `tessera events` with RecursionError."""
+    import json
+
+    from services.cli.events import event_line
+    deep = []
+    for _ in range(100000):
+        deep = [deep]
+    line = json.loads(event_line(7, "s", {"type": "noop.job", "uid": "u", "x": deep}))
+    assert line["seq"] == 7 and line["type"] == "noop.job" and "not representable" in line["error"]
+    assert json.loads(event_line(8, "s", {"type": "noop.job", "x": [[1]]}))["x"] == [[1]]
