@@ -222,3 +222,35 @@ def _check_plausible(mask, area, max_cover, max_border_touch) -> None:
         raise ImportRefused(f"the fragment touches the picture's border along {touch * 100:.0f} % of it (more than "
                             f"{max_border_touch * 100:.0f} %): the piece is cut off by the frame or the background "
                             "is not plain")
+
+
+def mask_picture(rgb: np.ndarray, mask: np.ndarray, *, max_side: int = 800) -> np.ndarray:
+    """A picture for checking a mask by eye: the background dimmed, the outline in magenta.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) array
+        The picture as shown (display values: uint8, uint16 or float in [0, 1]).
+    mask : (H, W) bool
+    max_side : int
+        The result is scaled down so its longer side is at most this (pixels).
+
+    Returns
+    -------
+    (h, w, 3) uint8 RGB
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[:2] != np.shape(mask):
+        raise ValueError(f"rgb must be (H, W, 3) matching mask {np.shape(mask)}, got {rgb.shape}")
+    img = np.clip(rgb.astype(np.float32) / np.float32(_full_scale(rgb)) * 255.0, 0, 255).astype(np.uint8)
+    m = np.asarray(mask, bool)
+    scale = min(1.0, max_side / max(m.shape))
+    if scale < 1.0:
+        size = (max(1, round(m.shape[1] * scale)), max(1, round(m.shape[0] * scale)))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        m = cv2.resize(m.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    out = img.copy()
+    out[~m] = (out[~m] * 0.35).astype(np.uint8)
+    contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, (255, 0, 255), max(1, round(max(out.shape) / 400)))
+    return out

@@ -13,6 +13,7 @@ The fragment id is the file's stem, or the manifest's inventory number; the mani
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -35,6 +36,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--background", choices=("auto", "alpha", "plain"), default="auto",
                    help="mask from the alpha channel, from a plain background, or auto (default)")
     p.add_argument("--linear", action="store_true", help="the pictures hold linear values (no sRGB decoding)")
+    p.add_argument("--pictures", metavar="DIR", help="also write each imported mask over its picture, <id>-<face>.png")
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -74,11 +76,14 @@ def _items(args) -> list[ImportItem]:
     return items
 
 
-def convert(item: ImportItem, store) -> list[Output]:
-    """One picture -> one colour-only RGBN face (door checks, mask, metadata)."""
+def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Output]:
+    """One picture -> one colour-only RGBN face (door checks, mask, metadata); ``pictures``: a
+    folder for the mask drawn over the picture."""
     from common.imports.door import read_image_checked
     from common.imports.fragments import fragment_from_image
     from common.rgbn.image import save_rgbn
+
+    import numpy as np
 
     src = Path(item.sources[0])
     image = read_image_checked(src)
@@ -95,6 +100,12 @@ def convert(item: ImportItem, store) -> list[Output]:
     prov = {"importer": "tessera import images", "version": VERSION, "source_file": str(src),
             "source_sha256": item.digests[0], "dpi": opts["dpi"], "mask_from": rgbn.attrs["mask_from"]}
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", rgbn, provenance=prov)
+    if pictures:
+        from common.imports.fragments import mask_picture
+        from common.synth.figures import save_png
+        colour = image.pixels if image.pixels.ndim == 3 else image.pixels[..., None]
+        colour = colour[..., :3] if colour.shape[2] >= 3 else np.repeat(colour[..., :1], 3, axis=2)
+        save_png(Path(pictures) / f"{item.fragment}-{item.face}.png", mask_picture(colour, rgbn.mask))
     return [Output("rgbn.ready", ref, {"face": item.face, "colour_only": True, "metadata": opts["metadata"]})]
 
 
@@ -108,4 +119,8 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"tessera import images: {exc}", file=sys.stderr)
         return 2
-    return run_items(args, items, convert, kind="images", version=VERSION)
+    if args.pictures and Path(args.pictures).exists() and not Path(args.pictures).is_dir():
+        print(f"tessera import images: --pictures {args.pictures} is a file, not a folder", file=sys.stderr)
+        return 2
+    return run_items(args, items, functools.partial(convert, pictures=args.pictures), kind="images",
+                     version=VERSION)

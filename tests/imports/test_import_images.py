@@ -194,3 +194,22 @@ def test_with_storage_unreachable_artifacts_go_to_the_spool(make_station, tmp_pa
     (_, event, spooled), = box.pending()
     assert spooled == event["artifact"]["path"] and box.spool.exists(spooled)
     box.close()
+
+
+def test_pictures_show_each_mask_and_a_file_in_their_place_is_refused(tmp_path, capsys):
+    truth = _picture(tmp_path / "M1.png", 30)
+    pics = tmp_path / "pics"
+    assert main(["import", "images", str(tmp_path / "M1.png"), "--dpi", "300", "--store", str(tmp_path / "st"),
+                 "--pictures", str(pics)]) == 0
+    pic = cv2.imread(str(pics / "M1-front.png"))[..., ::-1]
+    assert pic.shape[:2] == truth.shape
+    outline = (pic[..., 0] == 255) & (pic[..., 1] == 0) & (pic[..., 2] == 255)
+    edge = truth ^ cv2.erode(truth.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    near = cv2.dilate(outline.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert near[edge].mean() > 0.95                   # the magenta outline follows the true edge (1 px)
+    assert edge[outline].mean() > 0.9
+    (tmp_path / "afile").write_text("x")
+    assert main(["import", "images", str(tmp_path / "M1.png"), "--dpi", "300", "--store", str(tmp_path / "st2"),
+                 "--pictures", str(tmp_path / "afile")]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "st2").exists()
