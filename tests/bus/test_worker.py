@@ -79,3 +79,120 @@ def test_a_stopping_worker_stops_retrying():
     t0 = time.monotonic()
     outcomes = _run(handle, retry=(5.0, 5.0, 60.0), stop=stop)
     assert outcomes[-1][0] == "fail" and time.monotonic() - t0 < 2.0
+
+
+# -- end to end, on a real read-only and a real full file system (root: a tmpfs mount) --------------
+
+import os  # noqa: E402
+import subprocess  # noqa: E402
+
+import pytest  # noqa: E402
+
+from common.messages import new_message  # noqa: E402
+
+from .conftest import collect, wait_for  # noqa: E402
+
+
+def _mount_tmpfs(path, size="2m"):
+    path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True, text=True)
+    if r.returncode:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+
+
+@pytest.fixture
+def mounts():
+    made = []
+    yield made
+    for m in made:
+        subprocess.run(["umount", "-l", str(m)], check=False)
+
+
+def _fast_retry(st):
+    text = st.config_path.read_text().replace(
+        "shutdown_grace_s = 5.0", "shutdown_grace_s = 5.0\nstorage_retry_min_s = 0.2\nstorage_retry_max_s = 0.5\n"
+                                  "storage_retry_budget_s = 60.0")
+    st.config_path.write_text(text)
+
+
+def test_a_job_on_read_only_storage_waits_and_finishes_on_its_first_attempt(make_station, mounts):
+    """Issue 19: a job failing on EROFS burned its 3 attempts within milliseconds and was parked."""
+    st = make_station(services={"noop": {"write_output": True}})
+    storage = st.root / "storage"
+    _mount_tmpfs(storage)
+    mounts.append(storage)
+    _fast_retry(st)
+    subprocess.run(["mount", "-o", "remount,ro", str(storage)], check=True)
+    st.broker()
+    worker = st.worker()
+    st.workers_ready(1)
+    job = new_message("noop.job", fragment="F0001", face="front")
+    with st.client() as c:
+        c.submit(job)
+        inflight = wait_for(lambda: c.status()["in_flight"], 10, "the job in flight")
+        time.sleep(2.0)  # several refused writes
+        s = c.status()
+        assert s["parked"] == [] and s["in_flight"][0]["attempt"] == 1, s
+        assert "retrying" in (s["in_flight"][0]["progress"] or ["", ""])[1]
+    subprocess.run(["mount", "-o", "remount,rw", str(storage)], check=True)
+    with st.subscriber(0) as sub:
+        events = collect(sub, lambda ev: any(e["type"] == "noop.done" for _, e in ev), 20, "noop.done")
+    done = [e for _, e in events if e["type"] == "noop.done"]
+    assert len(done) == 1 and done[0]["attempt"] == 1 and not any(e["type"] == "stage.failed" for _, e in events)
+    assert worker.poll() is None and inflight
+
+
+def test_broker_journal_on_a_full_disk_refuses_with_retry_and_recovers(make_station, mounts):
+    """The broker's journal disk fills: submissions get ERR (retry), STATUS says so, nothing is
+    lost, and it accepts again once space is freed."""
+    from common.bus.client import BrokerRefused
+    st = make_station()
+    journal = st.root / "journal"
+    _mount_tmpfs(journal, size="4m")
+    mounts.append(journal)
+    st.broker()
+    st.worker()
+    st.workers_ready(1)
+    ok = new_message("noop.job", n=0)
+    with st.client() as c:
+        c.submit(ok)
+        ballast = journal / "ballast"
+        with open(ballast, "wb") as fh:  # fill the disk
+            try:
+                while True:
+                    fh.write(b"\0" * 65536)
+                    fh.flush()
+            except OSError:
+                pass
+        refused, accepted = None, []
+        for i in range(200):  # the WAL has some room left: keep submitting until the journal fails
+            try:
+                e = new_message("noop.job", n=i + 1, pad="x" * 8000)
+                c.submit(e)
+                accepted.append(e["uid"])
+            except BrokerRefused as exc:
+                refused, refused_event = exc, e
+                break
+        assert refused is not None and refused.retry and "journal" in str(refused)
+        assert c.status()["journal_ok"] is False
+        ballast.unlink()
+        later = new_message("noop.job", n=999)
+        wait_for(lambda: _submits(c, later), 30, "the broker to accept again")
+        assert c.status()["journal_ok"] is True
+        c.submit(refused_event)  # what the outbox does with a refusal marked retry: harmless if it got in
+    with st.subscriber(0) as sub:
+        want = {ok["uid"], later["uid"], refused_event["uid"], *accepted}
+        events = collect(sub, lambda ev: {e["job"] for _, e in ev if e["type"] == "noop.done"} >= want, 60,
+                         "every accepted job done")
+    assert len([e for _, e in events if e["type"] == "noop.done"]) == len(want), "each once"
+
+
+def _submits(c, event) -> bool:
+    from common.bus.client import BrokerRefused
+    try:
+        c.submit(event)
+        return True
+    except BrokerRefused:
+        return False
