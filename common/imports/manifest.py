@@ -89,14 +89,14 @@ def read_manifest(path: str | os.PathLike) -> list[dict]:
     except csv.Error:
         dialect = csv.excel
     reader = csv.reader(text.splitlines(), dialect)
-    rows = [r for r in reader if any(c.strip() for c in r)]
+    rows = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]
     if not rows:
         raise ValueError(f"manifest {path} is empty")
-    header = [_column(h) for h in rows[0]]
+    header = [_column(h) for h in rows[0][1]]
     if "file" not in header:
-        raise ValueError(f"manifest {path} has no 'file' column (columns: {', '.join(rows[0])})")
+        raise ValueError(f"manifest {path} has no 'file' column (columns: {', '.join(rows[0][1])})")
     out = []
-    for n, r in enumerate(rows[1:], start=2):
+    for n, r in rows[1:]:
         if len(r) > len(header):
             raise ValueError(f"manifest {path} line {n} has {len(r)} cells, the header has {len(header)}")
         row = {k: v.strip() for k, v in zip(header, r) if v.strip()}

@@ -141,7 +141,12 @@ def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Stor
     if not items:
         print(f"tessera import {kind}: nothing to import", file=sys.stderr)
         return 2
-    sink = open_sink(args)
+    try:
+        sink = open_sink(args)
+    except OSError as exc:
+        print(f"tessera import {kind}: cannot use the destination {getattr(args, 'store', None) or ''}: {exc}",
+              file=sys.stderr)
+        return 2
     bar = ProgressBar(len(items), f"import {kind}")
     try:
         summary = run_import(items, convert, sink, kind=kind, version=version, progress=bar)
