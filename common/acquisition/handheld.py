@@ -223,10 +223,10 @@ def object_mask(images, *, exclude=None, min_share: float = MIN_MASK_SHARE, info
     -----
     1. Per pixel the light modulation *m* (:func:`light_modulation`): a surface the flashes
        shade changes by a share of its albedo; an unlit backdrop only by its noise.
-    2. Otsu's threshold on log *m* (values below the median of the frame's 2-pixel border
-       lumped together, so a backdrop's cast shadows and noise form one class; log scale, so
+    2. Otsu's threshold on log *m* (values below the 90th percentile of the frame's 2-pixel
+       border lumped together, so a backdrop's cast shadows and noise form one class; log scale, so
        dark paint counts by its ratio to the backdrop, not its distance from white).
-    3. A background is accepted only if it is one: the lower class's median 4× below the upper
+    3. A background is accepted only if it is one: the lower class's median 5× below the upper
        class's, and the lower class holding at least 75 % of the border (a backdrop surrounds
        the object). The threshold is then the geometric mean of the lower class's 95th and the
        upper class's 5th percentile, or 3× the border's 99th percentile if lower (dark paint
@@ -255,13 +255,13 @@ def object_mask(images, *, exclude=None, min_share: float = MIN_MASK_SHARE, info
     ring[:2], ring[-2:], ring[:, :2], ring[:, -2:] = True, True, True, True
     ring &= keep
     edge = m[ring] if ring.any() else m[keep]
-    edge_median, edge_high = float(np.median(edge)), float(np.percentile(edge, 99))
-    t = _log_otsu(m[keep], max(edge_median, 0.01 * top))
+    edge_level, edge_high = float(np.percentile(edge, 90)), float(np.percentile(edge, 99))
+    t = _log_otsu(m[keep], max(edge_level, 0.01 * top))
     lower, upper = m[keep & (m <= t)], m[keep & (m > t)]
     bg_level = float(np.median(lower)) if lower.size else 0.0
     fg_level = float(np.median(upper)) if upper.size else top
     border_low = float((edge <= t).mean())
-    background = lower.size > 0 and upper.size > 0 and fg_level > 4 * bg_level and border_low >= 0.75
+    background = lower.size > 0 and upper.size > 0 and fg_level > 5 * bg_level and border_low >= 0.75
     if background:  # the middle (in log) of the gap between the classes' facing tails, or just above the border
         threshold = min(float(np.sqrt(np.percentile(lower, 95) * np.percentile(upper, 5))), 3 * edge_high)
     else:
@@ -442,6 +442,64 @@ def rerender_residual(images, lights: LightSet | np.ndarray, image: RGBNImage, *
         out += np.abs(measured - pred).sum(axis=(1, 2))
     total = flat[:, idx].sum(axis=(1, 2))
     return out / np.maximum(total, 1e-12)
+
+
+#: Dome radii tried by :func:`estimate_dome_radius`, in frame widths (the larger side).
+DOME_RADII = (1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0)
+
+
+def estimate_dome_radius(images, lights: LightSet | np.ndarray, *, mask=None, saturated=None,
+                         radii=DOME_RADII, min_gain: float = 0.005, max_pixels: int = 40000):
+    """The dome radius whose near-light solve re-renders a capture best (or None: distant lights).
+
+    Parameters
+    ----------
+    images : (N, H, W, 3) float array
+        Linear flash images.
+    lights : LightSet or (N, 3) array
+        Unit light directions from the dome's centre (the ``.lp`` file).
+    mask, saturated : optional
+        Object pixels, saturated measurements (as for :func:`handheld_rgbn`).
+    radii : sequence of float
+        Candidate radii in frame widths (the frame's larger side).
+    min_gain : float
+        A near-light radius is chosen only if it lowers the mean relative re-render residual by
+        more than this share of the distant-light residual (else None).
+    max_pixels : int
+        The frame is subsampled to about this many pixels for the search.
+
+    Returns
+    -------
+    radius : float or None
+        Pixels of the full frame; None = distant lights fit as well.
+    table : list of (radius or None, mean residual)
+        Every candidate's mean re-render residual (least squares, :func:`rerender_residual`).
+
+    Notes
+    -----
+    A least-squares solve per candidate on the subsampled frame; the radius assumes the dome is
+    centred on the image centre and the object is near the plane z = 0.
+    """
+    if not isinstance(lights, LightSet):
+        lights = LightSet(np.asarray(lights, dtype=np.float64))
+    imgs = np.asarray(images, np.float32)
+    n, h, w = imgs.shape[:3]
+    step = max(1, int(round(np.sqrt(h * w / max_pixels))))
+    sub = imgs[:, ::step, ::step]
+    m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    m = m[::step, ::step]
+    sat = None if saturated is None else np.asarray(saturated, bool)[:, ::step, ::step]
+    table = []
+    for k in (None, *radii):
+        r_sub = None if k is None else k * max(h, w) / step
+        solved = handheld_rgbn(sub, lights, mask=m, saturated=sat, method="least_squares", discontinuities=False,
+                               dome_radius=r_sub)
+        table.append((None if k is None else k * max(h, w),
+                      float(rerender_residual(sub, lights, solved, dome_radius=r_sub).mean())))
+    far = table[0][1]
+    best = min(table, key=lambda t: t[1])
+    radius = best[0] if best[1] < far * (1.0 - min_gain) else None
+    return radius, table
 
 
 def normal_tilt_gradient(image: RGBNImage) -> tuple[float, float]:

@@ -30,7 +30,9 @@ import argparse
 import hashlib
 import json
 import logging
+import os
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +56,12 @@ def add_parser(subparsers) -> None:
     lights.add_argument("--write-lp", metavar="FILE", help="save the lights used as an .lp file")
     solve = p.add_argument_group("solve")
     solve.add_argument("--mask", metavar="FILE", help="object mask image (default: found automatically)")
+    solve.add_argument("--min-mask-share", type=float, default=None, metavar="F",
+                       help="refuse an automatic mask keeping less than this share of the frame (default 0.05)")
+    solve.add_argument("--dome-radius", metavar="PX|auto",
+                       help="near lights on a dome of this radius in pixels (dome RTI captures), or 'auto': "
+                            "the radius that re-renders the images best (default: distant lights)")
+    solve.add_argument("--bit-depth", type=int, choices=(8, 16), help="declared bit depth: other files are refused")
     solve.add_argument("--method", choices=("robust", "least_squares"), default="robust")
     solve.add_argument("--srgb", action="store_true", help="images are sRGB-encoded (camera JPEGs): linearise")
     solve.add_argument("--dpi", type=float, default=96.0, help="sampling density of the view (nominal if unknown)")
@@ -110,13 +118,170 @@ def run(args) -> int:
         return 2
 
 
+@dataclass
+class Solved:
+    """A solved capture: the RGBN image and what a writer needs to store and announce it."""
+
+    rgbn: object
+    provenance: dict
+    digest: str
+    method: str
+    residual: np.ndarray
+    warnings: list = field(default_factory=list)
+
+
+def _check_outputs(output=None, pictures=None) -> None:
+    """Refuse unusable output paths before any work, so nothing is half-written."""
+    if pictures is not None:
+        pic = Path(pictures)
+        if pic.exists() and not pic.is_dir():
+            raise ValueError(f"--pictures {pictures} is a file, not a directory: give a directory for the PNGs")
+        parent = next((q for q in [pic, *pic.parents] if q.exists()), Path("."))
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise ValueError(f"--pictures {pictures}: {parent} is not a writable directory")
+    if output is not None:
+        out = Path(output)
+        if out.is_dir():
+            raise ValueError(f"-o {output} is a directory: give the name of the HDF5 file to write")
+        if not out.parent.is_dir():
+            raise ValueError(f"-o {output}: the directory {out.parent} does not exist")
+
+
+def _position_order(paths: list[Path], what: str, warnings: list) -> list[Path]:
+    """Images matched to lights by position: a shell-sorted list (1, 10, 11, 2, ...) is put in natural order."""
+    from common.acquisition.lightfile import natural_order, shell_sorted
+
+    if shell_sorted(paths):
+        fixed = [paths[i] for i in natural_order(paths)]
+        warnings.append(f"the {what} were listed in character order ({', '.join(p.name for p in paths[:4])}, ...), "
+                        f"as a shell glob gives unpadded numbers; they are matched to the lights in natural order "
+                        f"({', '.join(p.name for p in fixed[:4])}, ...)")
+        return fixed
+    return paths
+
+
+def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_images=None, diffuse=None,
+                  diffuse_images=None, mask=None, method: str = "robust", srgb: bool = False, dpi: float = 96.0,
+                  bit_depth: int | None = None, min_mask_share: float | None = None, dome_radius=None,
+                  discontinuities: bool = True, write_lp=None, progress=None) -> Solved:
+    """Read, check and solve one flash/RTI capture: the one code path of ``tessera ps`` and ``tessera import rti``.
+
+    Raises ValueError naming the file and the reason for anything refused (see docs/handheld.md,
+    "Checked at the door"); an image with no solved pixel is refused, never returned.
+    """
+    from common.acquisition import handheld as hh
+    from common.acquisition.lightfile import LightSet, read_intensities, read_lights, write_lp as save_lp
+    from common.acquisition.spheres import sphere_normals
+
+    if bool(lights) == bool(chrome):
+        raise ValueError("give exactly one of --lights FILE or --spheres/--chrome SPEC")
+    warnings: list[str] = []
+    paths = [Path(p) for p in images]
+    if len(paths) < 3:
+        raise ValueError(f"{len(paths)} image(s) given: photometric stereo needs at least 3 (30-100 for a robust solve)")
+    light_set = read_lights(lights) if lights else None
+    if light_set is None or light_set.filenames is None:  # matched by position
+        paths = _position_order(paths, "images", warnings)
+    chrome_paths = [Path(p) for p in chrome_images or []]
+    diffuse_paths = [Path(p) for p in diffuse_images or []]
+    if chrome_paths:
+        chrome_paths = _position_order(chrome_paths, "mirror-sphere images", warnings)
+    if diffuse_paths:
+        diffuse_paths = _position_order(diffuse_paths, "diffuse-sphere images", warnings)
+    for extra, what in ((chrome_paths, "--chrome-images"), (diffuse_paths, "--diffuse-images")):
+        if extra and len(extra) != len(paths):
+            raise ValueError(f"{len(paths)} images but {len(extra)} {what}: one per flash")
+
+    imgs, saturated = hh.read_images(paths, srgb=srgb, bit_depth=bit_depth)
+    log.info("read %d images of %dx%d", len(paths), imgs.shape[2], imgs.shape[1])
+    inputs = list(paths)
+    exclude = np.zeros(imgs.shape[1:3], bool)
+    if light_set is not None:
+        light_set = light_set.subset(light_set.order_for(paths))
+        inputs.append(Path(lights))
+    else:
+        chrome_imgs = imgs if not chrome_paths else hh.read_images(chrome_paths, srgb=srgb, bit_depth=bit_depth)[0]
+        circle = _sphere_circle(chrome, chrome_imgs, "mirror")
+        if not chrome_paths:
+            exclude |= sphere_normals(exclude.shape, circle, shrink=1.05)[1]
+        diffuse_imgs = diffuse_sat = dcircle = None
+        if diffuse:
+            if diffuse_paths:
+                diffuse_imgs, diffuse_sat = hh.read_images(diffuse_paths, srgb=srgb, bit_depth=bit_depth)
+            else:
+                diffuse_imgs, diffuse_sat = imgs, saturated
+            dcircle = _sphere_circle(diffuse, diffuse_imgs, "diffuse")
+            if not diffuse_paths:
+                exclude |= sphere_normals(exclude.shape, dcircle, shrink=1.05)[1]
+        light_set = hh.sphere_lights(chrome_imgs, circle, diffuse_images=diffuse_imgs, diffuse_circle=dcircle,
+                                     diffuse_saturated=diffuse_sat)
+        inputs += chrome_paths + diffuse_paths
+        log.info("mirror sphere at (%.1f, %.1f) r=%.1f px", *circle)
+    if len(light_set) != len(imgs):
+        raise ValueError(f"{len(imgs)} images but {len(light_set)} lights")
+    if intensities:
+        light_set = LightSet(light_set.directions, light_set.filenames, read_intensities(intensities))
+        inputs.append(Path(intensities))
+    if write_lp:
+        save_lp(write_lp, [p.name for p in paths], light_set.directions)
+
+    if mask:
+        obj = hh.read_mask(mask, imgs.shape[1:3])
+        inputs.append(Path(mask))
+        if not obj.any():
+            raise ValueError(f"mask {mask} is empty: no object pixel")
+    else:
+        share = hh.MIN_MASK_SHARE if min_mask_share is None else min_mask_share
+        obj = hh.object_mask(imgs, exclude=exclude, min_share=share)
+        log.info("automatic mask: %.1f%% of the frame", 100 * obj.mean())
+
+    radius = None
+    if dome_radius not in (None, ""):
+        if str(dome_radius).lower() == "auto":
+            radius, table = hh.estimate_dome_radius(imgs, light_set, mask=obj, saturated=saturated)
+            log.info("dome radius: %s (re-render residual %s)", "distant" if radius is None else f"{radius:.0f} px",
+                     ", ".join(f"{'inf' if r is None else f'{r:.0f}'}: {v:.4f}" for r, v in table))
+        else:
+            try:
+                radius = float(dome_radius)
+            except ValueError:
+                raise ValueError(f"--dome-radius {dome_radius!r}: expected pixels or 'auto'") from None
+
+    rgbn = hh.handheld_rgbn(imgs, light_set, mask=obj, saturated=saturated, method=method, dpi=dpi,
+                            discontinuities=discontinuities, dome_radius=radius, progress=progress)
+    solved = rgbn.mask & (rgbn.confidence > 0)
+    if not solved.any():
+        raise ValueError(f"no pixel of the {'mask ' + str(mask) if mask else 'object'} could be solved "
+                         f"({int(rgbn.mask.sum())} pixels, every one dark or unusable under all {len(imgs)} lights): "
+                         "nothing written")
+    residual = hh.rerender_residual(imgs, light_set, rgbn, dome_radius=radius)
+    digest = _digest(inputs)
+    provenance = {"device": "hand-held flash camera", "stage": "handheld", "version": hh.VERSION,
+                  "method": method, "inputs_sha256": digest, "images": [p.name for p in paths],
+                  "lights": light_set.directions.round(6).tolist(), "dpi_nominal": True,
+                  "rerender_residual": residual.round(5).tolist()}
+    if radius is not None:
+        provenance["dome_radius_px"] = radius
+    log.info("solved %d pixels, mean confidence %.2f, re-render residual median %.3f (max %.3f)",
+             int(solved.sum()), float(rgbn.confidence[rgbn.mask].mean()), float(np.median(residual)),
+             float(residual.max()))
+    return Solved(rgbn, provenance, digest, method, residual, warnings)
+
+
+def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=None) -> str:
+    """Content-keyed path of a hand-held capture's RGBN artifact."""
+    from common.acquisition.handheld import VERSION
+    from common.store import content_key
+
+    parts = (digest, method, "handheld", VERSION) + ((f"dome={dome_radius}",) if dome_radius not in (None, "") else ())
+    return f"fragments/{fragment}/rgbn/{face}-{content_key(*parts)}.h5"
+
+
 def _run(args) -> int:
     from common.acquisition import handheld as hh
-    from common.acquisition.lightfile import LightSet, read_intensities, read_lights, write_lp
-    from common.acquisition.spheres import sphere_normals
     from common.messages import new_message
     from common.rgbn.image import SCHEMA, SCHEMA_VERSION, save_rgbn, write_rgbn
-    from common.store import Store, content_key
+    from common.store import Store
 
     if args.spheres:
         if args.chrome or args.diffuse or len(args.spheres) > 2:
@@ -135,60 +300,19 @@ def _run(args) -> int:
         raise ValueError("--store and --submit need --fragment ID")
     if not (args.store or args.output or args.pictures):
         raise ValueError("nothing to write: give --store, -o OUT.h5 or --pictures DIR")
-
-    paths = [Path(p) for p in args.images]
-    images, saturated = hh.read_images(paths, srgb=args.srgb)
-    log.info("read %d images of %dx%d", len(paths), images.shape[2], images.shape[1])
-    inputs = list(paths)
-    exclude = np.zeros(images.shape[1:3], bool)
-
-    if args.lights:
-        lights = read_lights(args.lights)
-        lights = lights.subset(lights.order_for(paths))
-        inputs.append(Path(args.lights))
-    else:
-        chrome_imgs = images if not args.chrome_images else hh.read_images(args.chrome_images, srgb=args.srgb)[0]
-        circle = _sphere_circle(args.chrome, chrome_imgs, "mirror")
-        if not args.chrome_images:
-            exclude |= sphere_normals(exclude.shape, circle, shrink=1.05)[1]
-        diffuse_imgs = diffuse_sat = dcircle = None
-        if args.diffuse:
-            if args.diffuse_images:
-                diffuse_imgs, diffuse_sat = hh.read_images(args.diffuse_images, srgb=args.srgb)
-            else:
-                diffuse_imgs, diffuse_sat = images, saturated
-            dcircle = _sphere_circle(args.diffuse, diffuse_imgs, "diffuse")
-            if not args.diffuse_images:
-                exclude |= sphere_normals(exclude.shape, dcircle, shrink=1.05)[1]
-        lights = hh.sphere_lights(chrome_imgs, circle, diffuse_images=diffuse_imgs, diffuse_circle=dcircle,
-                                  diffuse_saturated=diffuse_sat)
-        inputs += [Path(p) for p in (args.chrome_images or []) + (args.diffuse_images or [])]
-        log.info("mirror sphere at (%.1f, %.1f) r=%.1f px", *circle)
-    if len(lights) != len(images):
-        raise ValueError(f"{len(images)} images but {len(lights)} lights")
-    if args.intensities:
-        lights = LightSet(lights.directions, lights.filenames, read_intensities(args.intensities))
-        inputs.append(Path(args.intensities))
-    if args.write_lp:
-        write_lp(args.write_lp, [p.name for p in paths], lights.directions)
-
-    if args.mask:
-        mask = hh.read_mask(args.mask, images.shape[1:3])
-        inputs.append(Path(args.mask))
-    else:
-        mask = hh.object_mask(images, exclude=exclude)
+    _check_outputs(args.output, args.pictures)
 
     def progress(fraction, text):
         log.debug("%3.0f%% %s", 100 * fraction, text)
 
-    rgbn = hh.handheld_rgbn(images, lights, mask=mask, saturated=saturated, method=args.method, dpi=args.dpi,
-                            discontinuities=not args.no_discontinuities, progress=progress)
-    digest = _digest(inputs)
-    provenance = {"device": "hand-held flash camera", "stage": "handheld", "version": hh.VERSION,
-                  "method": args.method, "inputs_sha256": digest, "images": [p.name for p in paths],
-                  "lights": lights.directions.round(6).tolist(), "dpi_nominal": True}
-    conf = float(rgbn.confidence[rgbn.mask].mean()) if rgbn.mask.any() else 0.0
-    log.info("solved %d pixels, mean confidence %.2f", int(rgbn.mask.sum()), conf)
+    done = solve_capture(args.images, lights=args.lights, intensities=args.intensities, chrome=args.chrome,
+                         chrome_images=args.chrome_images, diffuse=args.diffuse, diffuse_images=args.diffuse_images,
+                         mask=args.mask, method=args.method, srgb=args.srgb, dpi=args.dpi, bit_depth=args.bit_depth,
+                         min_mask_share=args.min_mask_share, dome_radius=args.dome_radius,
+                         discontinuities=not args.no_discontinuities, write_lp=args.write_lp, progress=progress)
+    for w in done.warnings:
+        print(f"tessera ps: warning: {w}", file=sys.stderr)
+    rgbn, provenance = done.rgbn, done.provenance
 
     if args.output:
         out = Path(args.output)
@@ -200,8 +324,7 @@ def _run(args) -> int:
             print(f"wrote {p}")
     if args.store:
         store = Store(args.store)
-        key = content_key(digest, args.method, "handheld", hh.VERSION)
-        relpath = f"fragments/{args.fragment}/rgbn/{args.face}-{key}.h5"
+        relpath = rgbn_path(args.fragment, args.face, done.digest, args.method, args.dome_radius)
         ref = save_rgbn(store, relpath, rgbn, provenance=provenance)
         event = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=ref,
                             source="handheld", method=args.method)
