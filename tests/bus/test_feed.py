@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import signal
+import time
 
 from common.messages import new_message
 
@@ -78,3 +79,35 @@ def test_live_subscriber_without_since_sees_only_new_events(make_station):
             c.submit(new_message("noop.job", n=99))
             seq, ev = collect(sub, lambda ev: len(ev) == 1, 10, "the new event")[0]
     assert (seq, ev["n"]) == (6, 99)
+
+
+def test_since_filters_types_and_heartbeats_flow_while_other_events_do(make_station):
+    """Issue 19: SINCE had no type filter, and feed heartbeats stopped while other types flowed
+    (a SUB socket subscribed to a few topics heard nothing)."""
+    import zmq
+
+    from common.bus import protocol as P
+    st = make_station(routing={})
+    st.broker()
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, P.FEED_HEARTBEAT)  # heartbeats only
+    sub.connect(f"tcp://127.0.0.1:{st.config['broker']['feed_port']}")
+    beats = []
+    try:
+        with st.client() as c:
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:  # a steady flow of other events, faster than the heartbeat
+                c.submit(new_message("noop.job"))
+                while sub.poll(0):
+                    beats.append(sub.recv_multipart())
+                time.sleep(0.02)
+            c.submit(new_message("match.verified", fragment="A", other="B", verdict="confirmed"))
+            r = c.since(0, 1000, types=["match.verified"])
+            assert [P.loads(b)["type"] for _, b in r["events"]] == ["match.verified"]
+            assert r["scanned_to"] == r["last_seq"] and r["last_seq"] > 20
+            few = c.since(0, 5, types=["noop.job"])
+            assert len(few["events"]) == 5 and few["scanned_to"] == few["events"][-1][0]
+    finally:
+        ctx.destroy(linger=0)
+    assert len(beats) >= 2 * 2.0 / 0.2 * 0.5, f"{len(beats)} heartbeats in 2 s of traffic (interval 0.2 s)"
