@@ -55,6 +55,8 @@ class Fracture:
     leaf_label: np.ndarray = None
     # voronoi mode: power diagram seeds (x, y, lift)
     seeds: np.ndarray = None
+    # optional recovered area: keep(x_warped, y_warped) -> bool; outside it is lost plaster (-1)
+    keep: object = field(default=None, repr=False)
     _tree: object = field(default=None, repr=False)
 
     @property
@@ -113,6 +115,8 @@ class Fracture:
         xw, yw = xw.ravel(), yw.ravel()
         m = self.inset_mm
         inside = (xw > m) & (xw < self.width_mm - m) & (yw > m) & (yw < self.height_mm - m)
+        if self.keep is not None:
+            inside &= np.asarray(self.keep(xw, yw), bool).ravel()
         out = np.full(xw.shape, -1, np.int32)
         idx = np.nonzero(inside)[0]
         if self.mode == "recursive":

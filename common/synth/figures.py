@@ -168,3 +168,37 @@ def reassembly_picture(wall: Wall, fragments: list[Fragment], *, mm_per_px: floa
         wm = cv2.warpAffine(msk * 255, M, (W, H), flags=cv2.INTER_LINEAR) > 127
         canvas[wm] = warped[wm]
     return canvas
+
+
+def collection_picture(pieces, dpi: float, *, mm_per_px: float = 0.5, title: str = "",
+                       background: int = 24) -> np.ndarray:
+    """Placed pieces of one object of a collection (:mod:`common.synth.stats`), alpha-composited
+    at their true places, with a 5 cm scale bar -- e.g. a RePAIR object beside a synthetic wall."""
+    placed = [p for p in pieces if p.matrix is not None]
+    if not placed:
+        raise ValueError("no placed piece to show")
+    s = (25.4 / dpi) / mm_per_px
+    boxes = []
+    for p in placed:
+        h, w = p.rgba.shape[:2]
+        c = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float) @ p.matrix.T
+        boxes.append(c)
+    allc = np.vstack(boxes) * s
+    x0, y0 = allc.min(axis=0) - 10
+    x1, y1 = allc.max(axis=0) + 10
+    W, H = int(x1 - x0), int(y1 - y0) + 40
+    canvas = np.full((H, W, 3), background, np.float32)
+    for p in placed:
+        M = p.matrix * s
+        M[:, 2] -= (x0, y0 - 30)
+        rgba = p.rgba.astype(np.float32)
+        warped = cv2.warpAffine(rgba, M, (W, H), flags=cv2.INTER_AREA, borderValue=0)
+        a = warped[..., 3:] / 255.0
+        canvas = canvas * (1 - a) + warped[..., :3] * a
+    img = np.clip(canvas, 0, 255).astype(np.uint8)
+    bar = int(round(50 / mm_per_px))
+    cv2.rectangle(img, (10, H - 14), (10 + bar, H - 8), (235, 235, 235), -1)
+    cv2.putText(img, "5 cm", (14 + bar, H - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (235, 235, 235), 1, cv2.LINE_AA)
+    if title:
+        cv2.putText(img, title, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (235, 235, 235), 1, cv2.LINE_AA)
+    return img

@@ -16,7 +16,8 @@ several frescoes painted with one palette.
 - :func:`lose_material` -- applies it to one fragment's mask;
 - :func:`round_outline` -- rounds a mask's outline (worn edges);
 - :func:`fragment_rgba` -- a fragment as an 8-bit RGBA image with a soft alpha edge (RePAIR-like);
-- :func:`write_collection` -- a wall written as a RePAIR-layout collection (PNG + ``truth.csv``).
+- :func:`write_collection` -- a wall written as a RePAIR-layout collection (PNG + ``truth.csv``;
+  :func:`write_fragment_png` and :func:`write_truth_csv` to stream it fragment by fragment).
 """
 
 from __future__ import annotations
@@ -28,14 +29,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common.store import _atomic_file  # the project's one atomic write (temporary name, then rename)
 from common.synth.noise import FractalField
 from common.synth.painting import Painting
 
 # generate_wall keyword arguments of the presets (explicit arguments override them)
 PRESETS = {
-    "pompeii": dict(style="pompeii", median_size_mm=70.0, sigma=0.45, min_size_mm=20.0, max_size_mm=200.0,
-                    erosion_mm=0.0, chips_per_cm=0.12, jag_mm=3.0, jag_scale_mm=40.0, round_mm=0.5,
-                    loss="pompeii", min_shared_mm=10.0, missing_fraction=0.25, spurious_fraction=0.05,
+    "pompeii": dict(style="pompeii", median_size_mm=80.0, sigma=0.4, min_size_mm=20.0, max_size_mm=200.0,
+                    erosion_mm=0.0, chips_per_cm=0.12, jag_mm=3.0, jag_scale_mm=40.0, round_mm=0.3,
+                    edge_noise_mm=0.45, border_weight=0.25, irregular_area=True, surface_wear=False,
+                    loss=dict(median_mm=4.2, sigma=0.45, touch_fraction=0.3), min_shared_mm=10.0,
+                    missing_fraction=0.25, spurious_fraction=0.05,
                     fade_fraction=0.1, discolour_fraction=0.1, relief_res_mm=0.5),
 }
 
@@ -69,7 +73,10 @@ def plaster_palette(palette_seed: int) -> dict:
         ``grounds`` (list of linear RGB), ``paints`` (dict name -> linear RGB, 4-6 of them).
     """
     rng = np.random.default_rng([int(palette_seed), 7411])
-    jitter = lambda c, s: np.clip(_lin(np.asarray(c) + rng.normal(0, s, 3)), 0, 1).astype(np.float32)  # noqa: E731
+
+    def jitter(c, s):  # brightness and (less) hue
+        return np.clip(_lin(np.asarray(c) + rng.normal(0, s) + rng.normal(0, s / 4, 3)), 0, 1).astype(np.float32)
+
     grounds = [jitter(c, 3.0) for c in _GROUNDS.values()]
     names = sorted(_PAINTS)
     chosen = ["red ochre"] + list(rng.choice([n for n in names if n != "red ochre"], int(rng.integers(3, 6)),
@@ -122,6 +129,9 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     # centimetre-scale mottling (lime wash, dirt) and a second, greyer blotching
     lum = FractalField(rng, 30.0, octaves=4, persistence=0.6, amplitude=0.05).grid(G, (H, W))
     img *= (1.0 + lum)[..., None]
+    warm = FractalField(rng, 25.0, octaves=4, persistence=0.7, amplitude=0.02).grid(G, (H, W))
+    img[..., 0] *= 1.0 + warm
+    img[..., 2] *= 1.0 - warm
     paints = palette["paints"]
     names = list(paints)
     strings: list = []
@@ -143,7 +153,7 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     area = width_mm * height_mm
     tilt = np.deg2rad(rng.normal(0, 1.5))
     # horizontal bands and borders (a band with thin lines beside it)
-    n_bands = int(rng.poisson(area / 250_000.0)) + int(rng.random() < 0.7)
+    n_bands = int(rng.poisson(area / 150_000.0)) + int(rng.random() < 0.7)
     for _ in range(n_bands):
         y = rng.uniform(0.05, 0.95) * height_mm
         h = float(np.exp(rng.uniform(np.log(5.0), np.log(45.0))))
@@ -159,7 +169,7 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
                 yy = (ys - off) if side < 0 else (ys + h + off)
                 line(other, np.column_stack([xs, yy]), rng.uniform(0.8, 2.5))
     # framing lines (horizontal / vertical, sometimes a rectangle)
-    for _ in range(int(rng.poisson(area / 150_000.0)) + 1):
+    for _ in range(int(rng.poisson(area / 100_000.0)) + 1):
         name, w = pick(), rng.uniform(0.8, 3.0)
         if rng.random() < 0.4:
             x0, y0 = rng.uniform(0, width_mm), rng.uniform(0, height_mm)
@@ -189,7 +199,7 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
                 cv2.ellipse(layer, (int(c[0] * k), int(c[1] * k)), ax, float(rng.uniform(0, 180)), 0, 360,
                             1.0, -1, cv2.LINE_AA)
     # small motifs: leaves, dots, rosettes
-    for _ in range(int(rng.poisson(area / 40_000.0))):
+    for _ in range(int(rng.poisson(area / 25_000.0))):
         cx, cy = rng.uniform(0, width_mm), rng.uniform(0, height_mm)
         name = pick()
         kind = rng.random()
@@ -211,9 +221,20 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
             p0 = np.array([cx, cy])
             p1, p2 = p0 + rng.normal(0, 15, 2), p0 + rng.normal(0, 25, 2)
             line(name, (1 - t) ** 2 * p0 + 2 * t * (1 - t) * p1 + t ** 2 * p2, rng.uniform(0.8, 2.5))
+    # faint washes and stains: large soft patches of a pigment at low opacity
+    wash = {}
+    for _ in range(int(rng.poisson(area / 60_000.0))):
+        name = pick()
+        layer = wash.setdefault(name, np.zeros((H, W), np.float32))
+        r = rng.uniform(15, 80)
+        cv2.circle(layer, (int(rng.uniform(0, width_mm) * k), int(rng.uniform(0, height_mm) * k)), int(r * k),
+                   float(rng.uniform(0.08, 0.25)), -1, cv2.LINE_AA)
+    for n, a in wash.items():
+        a = cv2.GaussianBlur(a, (0, 0), 8.0 * k)
+        img += a[..., None] * (np.asarray(paints[n], np.float32) - img)
     # composite with patchy opacity (faded, worn paint)
     patch = FractalField(rng, 6.0, octaves=3, persistence=0.6, amplitude=0.25).grid(G, (H, W))
-    opacity = np.clip(rng.uniform(0.55, 0.8) + patch, 0.1, 1.0)
+    opacity = np.clip(rng.uniform(0.35, 0.65) + patch, 0.05, 1.0)
     for n, a in list(cover.items()) + list(spots.items()):
         if not a.any():
             continue
@@ -225,10 +246,53 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     idx = rng.integers(0, H * W, n_grain)
     spk.ravel()[idx] = rng.normal(0, 1.0, n_grain).astype(np.float32)
     spk = cv2.GaussianBlur(spk, (0, 0), max(0.3 * k, 0.5)) * (0.3 * k)
-    img *= (1.0 + np.clip(spk, -0.25, 0.25))[..., None]
+    img *= (1.0 + np.clip(spk, -0.12, 0.12))[..., None]
     img *= 1.0 + FractalField(rng, 1.0, octaves=2, amplitude=0.015).grid(G, (H, W))[..., None]
     np.clip(img, 0.0, 1.0, out=img)
     return Painting(img, float(res_mm), strings, [])
+
+
+# ------------------------------------------------------------------------- recovered area
+REGION_FRACTION = 0.55  # about the share of the wall rectangle that recover_region keeps
+
+
+def recover_region(fracture, rng: np.random.Generator, *, roughness: float = 0.5) -> None:
+    """Make the recovered part of a broken wall an irregular patch instead of a rectangle.
+
+    Real collapsed frescoes are recovered as irregular groups of pieces; a piece on the
+    rectangle's edge would show a long straight side no real fragment has. The wall is kept where
+    ``1 - r^2 + F > 0.3`` (``r`` the elliptical radius from the centre, ``F`` a fractal field of
+    std ``roughness`` at a third of the wall's size), evaluated at the fracture's warped
+    coordinates so that the new outer edge is as jagged as the cracks. Changes ``fracture`` in
+    place (its ``keep`` and coarse labels); about :data:`REGION_FRACTION` of the rectangle remains.
+
+    Parameters
+    ----------
+    fracture : Fracture
+    rng : numpy.random.Generator
+    roughness : float
+        Irregularity of the patch outline.
+    """
+    from common.synth.breakage import _coarse_grid
+
+    if roughness < 0:
+        raise ValueError(f"roughness must be >= 0, got {roughness}")
+    W, H = fracture.width_mm, fracture.height_mm
+    field = FractalField(rng, max(W, H) / 3.0, octaves=3, persistence=0.5, amplitude=roughness)
+
+    def keep(x, y):
+        shape = np.shape(x)
+        x, y = np.ravel(x).astype(np.float32), np.ravel(y).astype(np.float32)
+        n = x.size
+        pad = (-n) % 1024  # the field is sampled with cv2.remap: rows of at most 1024 points
+        xr, yr = np.pad(x, (0, pad)).reshape(-1, 1024), np.pad(y, (0, pad)).reshape(-1, 1024)
+        f = field(xr, yr).ravel()[:n]
+        r2 = ((x - W / 2) / (W / 2)) ** 2 + ((y - H / 2) / (H / 2)) ** 2
+        return (1.0 - r2 + f > 0.3).reshape(shape)
+
+    fracture.keep = keep
+    gx, gy = _coarse_grid(W, H, fracture.grid_mm)
+    fracture.coarse_labels = fracture.labels(gx, gy)
 
 
 # ---------------------------------------------------------------------------- material loss
@@ -332,13 +396,31 @@ def lose_material(mask: np.ndarray, labels: np.ndarray, label: int, G: np.ndarra
     return mask & (dist > depth)
 
 
-def round_outline(mask: np.ndarray, radius_px: float) -> np.ndarray:
-    """Round a mask's outline: blur by ``radius_px`` and re-threshold (convex tips and narrow
-    notches soften, as on worn fragments)."""
-    if radius_px <= 0:
-        return mask.copy()
-    soft = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), float(radius_px))
-    return (soft > 0.5) & mask
+def round_outline(mask: np.ndarray, radius_px: float, *, noise_px: np.ndarray | None = None) -> np.ndarray:
+    """Round a mask's outline, optionally roughening it first.
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+    radius_px : float
+        Gaussian blur radius; the blurred mask is re-thresholded at 0.5, so convex tips and
+        narrow notches soften, as on worn fragments.
+    noise_px : (H, W) float array, optional
+        Outward displacement of the outline (px) before rounding: fine jaggedness (crumbled edge).
+
+    Returns
+    -------
+    (H, W) bool
+        Never larger than ``mask``.
+    """
+    out = mask
+    if noise_px is not None:
+        m8 = np.pad(mask.astype(np.uint8), 1)
+        sd = (cv2.distanceTransform(m8, cv2.DIST_L2, 5) - cv2.distanceTransform(1 - m8, cv2.DIST_L2, 5))[1:-1, 1:-1]
+        out = (sd + noise_px - 0.5 > 0) & mask
+    if radius_px > 0:
+        out = (cv2.GaussianBlur(out.astype(np.float32), (0, 0), float(radius_px)) > 0.5) & out
+    return out
 
 
 # ------------------------------------------------------------------------------------ output
@@ -350,8 +432,9 @@ def fragment_rgba(rgbn, *, edge_px: float | None = None) -> np.ndarray:
     rgbn : RGBNImage
         The fragment (colour and mask).
     edge_px : float, optional
-        Width of the alpha ramp across the outline (px; default ~4 px at 187 dpi, i.e. 0.55 mm
-        at the image's dpi, at least 1.5 px).
+        Width of the band of partial alpha across the outline (px; default 0.46 mm at the
+        image's dpi, at least 1.5 px: 3.4 px at 187 dpi, RePAIR's measured 3.4 partial pixels
+        per pixel of outline). The ramp is the mask blurred by a Gaussian of edge_px / 5.3.
 
     Returns
     -------
@@ -361,17 +444,16 @@ def fragment_rgba(rgbn, *, edge_px: float | None = None) -> np.ndarray:
     from common.synth.figures import to_srgb8
 
     if edge_px is None:
-        edge_px = max(1.5, 0.55 / rgbn.pixel_mm)
+        edge_px = max(1.5, 0.46 / rgbn.pixel_mm)
     if edge_px < 0:
         raise ValueError(f"edge_px must be >= 0, got {edge_px}")
     p = int(np.ceil(edge_px)) + 1
     mask = np.pad(rgbn.mask, p)
     albedo = np.pad(rgbn.albedo, ((p, p), (p, p), (0, 0)))
-    m8 = mask.astype(np.uint8)
-    d_in = cv2.distanceTransform(m8, cv2.DIST_L2, 5)
-    d_out = cv2.distanceTransform(1 - m8, cv2.DIST_L2, 5)
-    sd = np.where(mask, d_in - 0.5, 0.5 - d_out)  # signed distance to the outline, + inside
-    alpha = np.clip(0.5 + sd / max(edge_px, 1e-6), 0.0, 1.0) if edge_px > 0 else mask.astype(np.float32)
+    # a blurred mask: a sub-pixel ramp with soft tails, partial (0 < alpha < 255) over ~edge_px
+    # (a Gaussian step is between 0.5/255 and 254.5/255 over 5.3 sigma)
+    alpha = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), edge_px / 5.3) if edge_px > 0 \
+        else mask.astype(np.float32)
     # colour just outside: the nearest inside colour (dilated)
     rgb = to_srgb8(albedo)
     ring = (alpha > 0) & ~mask
@@ -398,41 +480,66 @@ def write_collection(wall, directory: str | os.PathLike, fragments=None, *, edge
     on the wall canvas at the wall's dpi). Spurious fragments go to ``<dir>/<wall id>-spurious/``
     without a ``truth.csv`` (distractors).
 
+    Parameters
+    ----------
+    wall : Wall
+    directory : path
+    fragments : list of Fragment, optional
+        Fragments with images (default ``wall.fragments``).
+    edge_px : float, optional
+        Soft alpha edge (see :func:`fragment_rgba`).
+
     Returns
     -------
     Path
         The wall's folder.
     """
-    out = Path(directory) / wall.id
-    spur = Path(directory) / f"{wall.id}-spurious"
-    rows = []
-    for f in (wall.fragments if fragments is None else fragments):
-        if f.rgbn is None:
-            raise ValueError(f"fragment {f.id} has no image (generate with keep_images=True)")
-        rgba = fragment_rgba(f.rgbn, edge_px=edge_px)
-        h, w = rgba.shape[:2]
-        side = int(np.ceil(np.hypot(h, w))) + 2
-        side += side % 2
-        r0, c0 = (side - h) // 2, (side - w) // 2
-        canvas = np.zeros((side, side, 4), np.uint8)
-        canvas[r0:r0 + h, c0:c0 + w] = rgba
-        p = int(np.ceil(edge_px if edge_px is not None else max(1.5, 0.55 / f.rgbn.pixel_mm))) + 1
-        folder = spur if f.pose is None else out
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / f".{f.id}.png.tmp"
-        cv2.imwrite(str(tmp), np.ascontiguousarray(canvas[..., [2, 1, 0, 3]]), [cv2.IMWRITE_PNG_COMPRESSION, 3])
-        os.replace(tmp, folder / f"{f.id}.png")
-        if f.pose is None:
-            continue
-        # canvas pixel (u, v) = fragment pixel (u - c0 - p, v - r0 - p); wall px = R (col, row) + t / pm
-        pm = f.rgbn.pixel_mm
-        a = np.deg2rad(f.pose[0])
-        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        t = np.asarray(f.pose[1:]) / pm - R @ (c0 + p, r0 + p)  # canvas px -> wall px: R u + t
-        c = np.array([side / 2.0, side / 2.0])
-        xy = t - c + R @ c  # getRotationMatrix2D(c, rot) = [R | c - R c]; then + (x, y)
-        rows.append((f"{f.id}.png", float(xy[0]), float(xy[1]), float(-f.pose[0])))
-    if rows:
-        lines = ["rpf,x,y,rot"] + [f"{n},{x:.3f},{y:.3f},{r:.6f}" for n, x, y, r in rows]
-        (out / "truth.csv").write_text("\n".join(lines) + "\n")
+    rows = [write_fragment_png(f, directory, wall.id, edge_px=edge_px)
+            for f in (wall.fragments if fragments is None else fragments)]
+    return write_truth_csv(directory, wall.id, [r for r in rows if r is not None])
+
+
+def write_fragment_png(fragment, directory: str | os.PathLike, wall_id: str, *,
+                       edge_px: float | None = None) -> tuple | None:
+    """Write one fragment of :func:`write_collection` (atomically); return its ``truth.csv`` row
+    ``(file, x, y, rot)``, or None for a spurious fragment."""
+    f = fragment
+    if f.rgbn is None:
+        raise ValueError(f"fragment {f.id} has no image (generate with keep_images=True)")
+    if edge_px is None:
+        edge_px = max(1.5, 0.46 / f.rgbn.pixel_mm)
+    rgba = fragment_rgba(f.rgbn, edge_px=edge_px)
+    p = int(np.ceil(edge_px)) + 1  # fragment_rgba's padding
+    h, w = rgba.shape[:2]
+    side = int(np.ceil(np.hypot(h, w))) + 2
+    side += side % 2
+    r0, c0 = (side - h) // 2, (side - w) // 2
+    canvas = np.zeros((side, side, 4), np.uint8)
+    canvas[r0:r0 + h, c0:c0 + w] = rgba
+    folder = Path(directory) / (wall_id if f.pose is not None else f"{wall_id}-spurious")
+    folder.mkdir(parents=True, exist_ok=True)
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(canvas[..., [2, 1, 0, 3]]), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:
+        raise ValueError(f"fragment {f.id}: PNG encoding failed")
+    with _atomic_file(folder / f"{f.id}.png") as tmp:
+        Path(tmp).write_bytes(png.tobytes())
+    if f.pose is None:
+        return None
+    # canvas pixel u = fragment pixel + (c0 + p, r0 + p); wall px = R (col, row) + t / pm
+    pm = f.rgbn.pixel_mm
+    a = np.deg2rad(f.pose[0])
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    t = np.asarray(f.pose[1:]) / pm - R @ (c0 + p, r0 + p)  # canvas px -> wall px: R u + t
+    c = np.array([side / 2.0, side / 2.0])
+    xy = t - c + R @ c  # getRotationMatrix2D(c, rot) = [R | c - R c], then + (x, y)
+    return (f"{f.id}.png", float(xy[0]), float(xy[1]), float(-f.pose[0]))
+
+
+def write_truth_csv(directory: str | os.PathLike, wall_id: str, rows: list) -> Path:
+    """Write ``<dir>/<wall id>/truth.csv`` from :func:`write_fragment_png` rows (atomically)."""
+    out = Path(directory) / wall_id
+    out.mkdir(parents=True, exist_ok=True)
+    lines = ["rpf,x,y,rot"] + [f"{n},{x:.3f},{y:.3f},{r:.6f}" for n, x, y, r in rows]
+    with _atomic_file(out / "truth.csv") as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
     return out

@@ -11,9 +11,9 @@ the same form. :func:`collection_statistics` then measures what makes real joins
   13.6 mm); for each pair the smallest distance between the placed masks (alpha >= 128), and the
   median distance along the close run (how much material is lost along the crack);
 - **fragment size** -- square root of the area, and the largest diameter (mm);
-- **contour roughness** -- turning angles of the outline resampled every 0.5 mm, at chord
+- **contour roughness** -- turning angles of the outline (smoothed by 1 px) resampled every 0.5 mm, at chord
   lengths 1, 3 and 10 mm (mean absolute angle, degrees), and the rms distance (mm) between the
-  outline and the outline smoothed by a 5 mm Gaussian along its arc;
+  outline and the outline smoothed by a 2 mm Gaussian along its arc;
 - **plain edge** -- the share of outline length whose band 0.5-3 mm inside the edge is plain
   plaster: CIELAB chroma ``C* < plain_chroma`` (8) and lightness ``L* > 45``;
 - **colour** -- CIELAB lightness and chroma of the fragment faces (median, 90th percentile), the
@@ -127,24 +127,30 @@ def wall_collection(wall, fragments=None, *, alpha_px: float | None = None) -> l
     alpha_px : float, optional
         Soft alpha edge width (px) given to the RGBA images (default: what the fragment has).
     """
+    return [fragment_piece(f, wall.id, alpha_px=alpha_px)
+            for f in (wall.fragments if fragments is None else fragments) if f.rgbn is not None]
+
+
+def fragment_piece(fragment, object_name: str, *, alpha_px: float | None = None) -> Piece:
+    """One fragment with an image as a :class:`Piece` (RGBA with a soft edge, placed by its pose
+    on a canvas at its own dpi; spurious fragments unplaced)."""
     from common.synth.realistic import fragment_rgba
 
-    out = []
-    for f in (wall.fragments if fragments is None else fragments):
-        if f.rgbn is None:
-            continue
-        rgba = fragment_rgba(f.rgbn, edge_px=alpha_px)
-        crop, c0, r0 = _crop(rgba)
-        M = None
-        if f.pose is not None:
-            pm = f.rgbn.pixel_mm
-            a = np.deg2rad(f.pose[0])
-            R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-            # canvas px = wall mm / pm = R @ (col, row) + t / pm
-            M = np.hstack([R, (np.asarray(f.pose[1:]) / pm)[:, None]])
-            M[:, 2] = R @ (c0, r0) + M[:, 2]
-        out.append(Piece(f.id, wall.id, crop, M))
-    return out
+    f = fragment
+    if f.rgbn is None:
+        raise ValueError(f"fragment {f.id} has no image")
+    rgba = fragment_rgba(f.rgbn, edge_px=alpha_px)
+    pad = (rgba.shape[0] - f.rgbn.shape[0]) // 2  # fragment_rgba pads evenly
+    crop, c0, r0 = _crop(rgba)
+    M = None
+    if f.pose is not None:
+        pm = f.rgbn.pixel_mm
+        a = np.deg2rad(f.pose[0])
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        # canvas px = wall mm / pm = R @ (col, row) + t / pm, (col, row) = crop px + offset - pad
+        M = np.hstack([R, (np.asarray(f.pose[1:]) / pm)[:, None]])
+        M[:, 2] = R @ (c0 - pad, r0 - pad) + M[:, 2]
+    return Piece(f.id, object_name, crop, M)
 
 
 # ------------------------------------------------------------------------------------------ gaps
@@ -288,9 +294,11 @@ def piece_statistics(rgba: np.ndarray, dpi: float, *, plain_chroma: float = 8.0)
     hull = cv2.convexHull(outline.astype(np.float32)).reshape(-1, 2)
     diam = float(np.max(np.hypot(*(hull[:, None] - hull[None]).transpose(2, 0, 1)))) if len(hull) > 1 else 0.0
     step = 0.5
-    o_mm = _resample(outline * pm, step)
-    # roughness: distance to the outline smoothed along its arc (5 mm Gaussian)
-    sm = gaussian_filter1d(o_mm, 5.0 / step, axis=0, mode="wrap")
+    # the pixel staircase, lightly smoothed (1 px), resampled every 0.5 mm
+    o_mm = _resample(gaussian_filter1d(outline, 1.0, axis=0, mode="wrap") * pm, step)
+    # roughness: distance to the outline smoothed along its arc (2 mm Gaussian: shapes with radii
+    # of curvature of centimetres barely shrink, jags below a few mm are what remains)
+    sm = gaussian_filter1d(o_mm, 2.0 / step, axis=0, mode="wrap")
     rough = float(np.sqrt(np.mean(np.sum((o_mm - sm) ** 2, axis=1))))
     # edge band 0.5-3 mm inside; each band pixel belongs to its nearest outline sample
     dist = cv2.distanceTransform(np.pad(mask.astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1] * pm
@@ -384,3 +392,62 @@ def collection_statistics(pieces: list[Piece], dpi: float, *, near_mm: float = 4
     ok = np.isfinite(pe)
     out["plain_edge_all"] = float(np.average(pe[ok], weights=w[ok])) if ok.any() else float("nan")
     return out
+
+
+_ROWS = [
+    ("neighbour pairs (48 px / 100 px rule)", "n_pairs", None),
+    ("smallest gap per pair, mm: median [IQR]", "min_gap_mm", "q"),
+    ("smallest gap per pair, px at 187 dpi: median [IQR]", "min_gap_mm", "px"),
+    ("pairs whose smallest gap is <= 3 px (0.41 mm)", "min_gap_within3px", "share"),
+    ("median gap along the crack, mm: median [IQR]", "median_gap_mm", "q"),
+    ("close crack length within 3 px", "run_within3px", "share"),
+    ("fragment size sqrt(area), mm", "size_mm", "q"),
+    ("largest diameter, mm", "diameter_mm", "q"),
+    ("outline turning angle at 1 mm, deg", "turn1_deg", "q"),
+    ("outline turning angle at 3 mm, deg", "turn3_deg", "q"),
+    ("outline turning angle at 10 mm, deg", "turn10_deg", "q"),
+    ("outline roughness (rms to 2 mm-smoothed), mm", "rough_mm", "q"),
+    ("plain edge share per fragment (C* < 8, L* > 45, 0.5-3 mm inside)", "plain_edge", "q"),
+    ("plain edge share, all outline", "plain_edge_all", "share"),
+    ("face lightness L*, per-fragment median", "L_median", "q"),
+    ("face chroma C*, per-fragment median", "C_median", "q"),
+    ("face chroma C*, per-fragment 90th percentile", "C_p90", "q"),
+    ("painted share of the face (C* >= 15)", "painted", "q"),
+    ("soft alpha edge, partial px per px of outline", "alpha_edge_px", "q"),
+]
+
+
+def comparison_table(columns: dict) -> str:
+    """A markdown table of :func:`collection_statistics` results side by side.
+
+    Parameters
+    ----------
+    columns : dict
+        Column title -> statistics dict.
+
+    Returns
+    -------
+    str
+    """
+    names = list(columns)
+    lines = ["| statistic | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+
+    def cell(st, key, kind):
+        v = st.get(key)
+        if v is None:
+            return ""
+        if kind is None:
+            return f"{v}"
+        if kind == "share":
+            return f"{v:.2f}"
+        q = np.asarray(v, float)
+        if kind == "px":
+            q = q * 7.369
+        fmt = "{:.2f}" if np.nanmax(np.abs(q)) < 10 else "{:.1f}"
+        return f"{fmt.format(q[1])} [{fmt.format(q[0])}-{fmt.format(q[2])}]"
+
+    for title, key, kind in _ROWS:
+        lines.append(f"| {title} | " + " | ".join(cell(columns[n], key, kind) for n in names) + " |")
+    lines.append("| fragments measured (crumbs < 1 cm left out) | " + " | ".join(
+        f"{columns[n]['n_pieces'] - columns[n]['n_crumbs']} ({columns[n]['n_crumbs']})" for n in names) + " |")
+    return "\n".join(lines)

@@ -31,8 +31,10 @@ from common.rgbn.image import RGBNImage
 from common.store import content_key
 from common.synth import deterioration as det
 from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
+from common.synth.noise import FractalField
 from common.synth.painting import Painting, paint_wall, painting_from_image
-from common.synth.realistic import PRESETS, MaterialLoss, lose_material, paint_plaster, plaster_palette, round_outline
+from common.synth.realistic import (PRESETS, REGION_FRACTION, MaterialLoss, lose_material, paint_plaster,
+                                   plaster_palette, recover_region, round_outline)
 from common.synth.relief import WallRelief, normals_from_height
 
 log = logging.getLogger(__name__)
@@ -170,11 +172,13 @@ class _Look:
     fade_fraction: float = 0.15
     discolour_fraction: float = 0.15
     realistic: bool = False
+    edge_noise_mm: float = 0.0
+    surface_wear: bool = True
 
 
 def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image, median_size_mm, sigma,
           jag_mm, aspect=1.5, image_width_mm=None, palette=None, fracture_kw=None, relief_res_mm=0.25,
-          relief=True, loss=None) -> _Plan:
+          relief=True, loss=None, region_rng=None) -> _Plan:
     if image is not None:
         aspect = image.shape[1] / image.shape[0]
         width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * aspect)
@@ -191,6 +195,8 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
     wall_relief = WallRelief(painting, rng_relief, res_mm=relief_res_mm) if relief else None
     kw = dict(median_size_mm=median_size_mm, sigma=sigma, n_pieces=n_pieces, jag_mm=jag_mm, **(fracture_kw or {}))
     fracture = (fracture_recursive if mode == "recursive" else fracture_voronoi)(W, H, rng_break, **kw)
+    if region_rng is not None:
+        recover_region(fracture, region_rng)
     return _Plan(painting, wall_relief, fracture, loss)
 
 
@@ -261,15 +267,20 @@ def _render_piece(plan: _Plan, label: int, bbox, dpi: float, rng: np.random.Gene
         # plaster lost along each crack (both sides, unevenly), chipped, then worn round
         mask = lose_material(mask0, labels, label, G, plan.loss) if plan.loss is not None else mask0
         mask = det.erode_edges(mask, pm, rng, depth_mm=erosion_mm, chips=look.chips_per_cm)
-        mask = det.largest_component(round_outline(mask, look.round_mm / pm))
+        noise = None
+        if look.edge_noise_mm > 0:
+            noise = FractalField(rng, 0.6, octaves=2, persistence=0.7, amplitude=look.edge_noise_mm / pm).grid(
+                np.array([[pm, 0.0, 0.0], [0.0, pm, 0.0]]), shape)
+        mask = det.largest_component(round_outline(mask, look.round_mm / pm, noise_px=noise))
     else:
         mask = det.erode_edges(mask0, pm, rng, depth_mm=erosion_mm) if erosion_mm > 0 else mask0
     if not mask.any():
         mask = mask0
     if not look.colour_only:
         height = det.wear_edges(height, mask, pm, radius_mm=max(0.3, erosion_mm, look.round_mm))
-    det.pit_surface(height, albedo, mask, pm, rng)
-    det.crack_surface(height, albedo, mask, pm, rng)
+    if look.surface_wear:
+        det.pit_surface(height, albedo, mask, pm, rng)
+        det.crack_surface(height, albedo, mask, pm, rng)
     u = rng.random()
     notes = {}
     if u < look.fade_fraction:
@@ -386,9 +397,12 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Median gap scale of the material loss (preset 'pompeii': 3.0 mm).
     **preset_overrides
         Further preset values: ``min_size_mm``, ``max_size_mm``, ``jag_scale_mm``,
-        ``chips_per_cm``, ``round_mm``, ``fade_fraction``, ``discolour_fraction``,
-        ``relief_res_mm``, ``loss`` (None, 'pompeii' or a dict of
-        :class:`~common.synth.realistic.MaterialLoss` arguments).
+        ``chips_per_cm``, ``round_mm``, ``edge_noise_mm`` (fine outline roughness),
+        ``border_weight`` (how likely a piece on the wall's outer edge is delivered, relative to
+        an inner one), ``irregular_area`` (keep an irregular patch of a larger broken wall,
+        :func:`~common.synth.realistic.recover_region`), ``surface_wear`` (pits and hairline
+        cracks; off in the preset), ``fade_fraction``, ``discolour_fraction``, ``relief_res_mm``, ``loss``
+        (None, 'pompeii' or a dict of :class:`~common.synth.realistic.MaterialLoss` arguments).
 
     Returns
     -------
@@ -408,7 +422,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     if preset is not None and preset not in PRESETS:
         raise ValueError(f"preset must be None or one of {sorted(PRESETS)}, got {preset!r}")
     known = {"min_size_mm", "max_size_mm", "jag_scale_mm", "chips_per_cm", "round_mm", "fade_fraction",
-             "discolour_fraction", "relief_res_mm", "loss"}
+             "discolour_fraction", "relief_res_mm", "loss", "edge_noise_mm", "border_weight", "irregular_area",
+             "surface_wear"}
     if set(preset_overrides) - known:
         raise ValueError(f"unknown argument(s) {sorted(set(preset_overrides) - known)}; known: {sorted(known)}")
     base = dict(_LEGACY, **(PRESETS[preset] if preset else {}))
@@ -467,6 +482,10 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         fkw = {k: base[k] for k in ("min_size_mm", "max_size_mm", "jag_scale_mm") if base.get(k) is not None}
         extra = dict(palette=palette, fracture_kw=fkw, relief_res_mm=base.get("relief_res_mm") or 0.25,
                      relief=not colour_only)
+        if base.get("irregular_area") and image is None:
+            # break a larger wall and keep an irregular patch of it (no straight outer edges)
+            extra["region_rng"] = np.random.default_rng([int(seed), 4241])
+            n_pieces = int(np.ceil(n_pieces / REGION_FRACTION))
     plan = _plan(max(n_pieces, 1), np.random.default_rng(s_paint), np.random.default_rng(s_relief),
                  np.random.default_rng(s_break), mode=mode, style=style,
                  image=None if image is None else np.asarray(image), median_size_mm=median_size_mm, sigma=sigma,
@@ -478,14 +497,24 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     if len(usable) < n_present:
         raise ValueError(f"the wall broke into only {len(usable)} usable pieces, fewer than the {n_present} "
                          f"requested; lower median_size_mm or supply a larger image_width_mm")
-    present = np.sort(rng_choice.choice(usable, n_present, replace=False))
+    if realistic and base.get("border_weight", 1.0) != 1.0:
+        # pieces on the wall's outer edge (long straight edges) go missing first
+        lab_p = np.pad(coarse, 1, constant_values=-1)
+        ring = np.zeros(coarse.shape, bool)
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            ring |= lab_p[1 + dr:1 + dr + coarse.shape[0], 1 + dc:1 + dc + coarse.shape[1]] == -1
+        border = np.bincount(coarse[ring & (coarse >= 0)], minlength=plan.fracture.n_pieces) > 0
+        w = np.where(border[usable], float(base["border_weight"]), 1.0)
+        present = np.sort(rng_choice.choice(usable, n_present, replace=False, p=w / w.sum()))
+    else:
+        present = np.sort(rng_choice.choice(usable, n_present, replace=False))
     jobs = [(plan, int(lab), False) for lab in present]
     if n_spur:
         sr = np.random.default_rng(s_spur)
         # another wall: the other style, or for 'pompeii' another wall of the same palette
         other = "pompeii" if style == "pompeii" else ("roman" if style == "aegean" else "aegean")
-        splan = _plan(n_spur + 4, sr, sr, sr, mode=mode, style=other, image=None, median_size_mm=median_size_mm,
-                      sigma=sigma, jag_mm=jag_mm,
+        splan = _plan(int(np.ceil((n_spur + 4) / (REGION_FRACTION if "region_rng" in extra else 1.0))), sr, sr, sr,
+                      mode=mode, style=other, image=None, median_size_mm=median_size_mm, sigma=sigma, jag_mm=jag_mm,
                       loss=MaterialLoss(int(seed) + 7919, **loss_kw) if loss_kw is not None else None, **extra)
         sc = splan.fracture.coarse_labels
         sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)
@@ -509,7 +538,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         look = _Look(erosion_mm=erosion_mm, surfaces=surfaces and not colour_only,
                      chips_per_cm=base.get("chips_per_cm", 0.2), round_mm=base.get("round_mm") or 0.0,
                      colour_only=colour_only, fade_fraction=base.get("fade_fraction", 0.15),
-                     discolour_fraction=base.get("discolour_fraction", 0.15), realistic=True)
+                     discolour_fraction=base.get("discolour_fraction", 0.15), realistic=True,
+                     edge_noise_mm=base.get("edge_noise_mm") or 0.0, surface_wear=base.get("surface_wear", True))
     _POOL_STATE = (jobs, frag_seeds, float(dpi), look)
     pool = None
     try:
@@ -549,7 +579,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     preview = dict(albedo=plan.painting.albedo[::step, ::step].copy(), labels=coarse.copy(), grid_mm=g,
                    label_ids=[id_of_label.get(i, "") for i in range(plan.fracture.n_pieces)])
     W, H = plan.painting.size_mm
-    return Wall(wall_id, frags, adjacency, corr, W, H, float(dpi), n_missing=plan.fracture.n_pieces - n_present,
+    n_missing = (len(usable) if realistic else plan.fracture.n_pieces) - n_present
+    return Wall(wall_id, frags, adjacency, corr, W, H, float(dpi), n_missing=n_missing,
                 params=params, preview=preview)
 
 

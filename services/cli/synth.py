@@ -12,6 +12,14 @@ Then ``tessera reconcile`` queues the fragments for the station's stages.
     tessera synth --dafne DIR --store DIR [--dafne-dpi 50]
 
 imports a DAFNE fragment set (colour only) into the same form: RGBN artifacts and ground truth.
+
+    tessera synth --preset pompeii --fragments 60 --seed 1 --dpi 150 --colour-only [--palette-seed P]
+                  [--store DIR] [--collection DIR] [--compare ../shared/data/repair-dev]
+
+a wall that looks like RePAIR's broken Pompeii frescoes (big pieces, plaster lost along the
+cracks, plain plaster with sparse faded painting); ``--collection DIR`` also writes it in the
+RePAIR layout (RGBA PNGs + truth.csv), ``--compare DIR`` measures it and a real collection with the
+same code and prints the statistics side by side (without ``--store`` nothing else is written).
 """
 
 from __future__ import annotations
@@ -35,14 +43,24 @@ def add_parser(subparsers) -> None:
     p.add_argument("--as", dest="output", choices=("rgbn", "scans"), default="rgbn",
                    help="write RGBN images (fast) or simulated flatbed scans (whole station)")
     p.add_argument("--mode", choices=("recursive", "voronoi"), default="recursive", help="breakage model")
-    p.add_argument("--style", choices=("aegean", "roman"), default="aegean", help="painting style")
+    p.add_argument("--style", choices=("aegean", "roman", "pompeii"),
+                   help="painting style (default aegean; pompeii with --preset pompeii)")
     p.add_argument("--image", help="use this picture as the painting instead")
     p.add_argument("--image-width-mm", type=float, help="physical width of --image on the wall")
-    p.add_argument("--median-size-mm", type=float, default=30.0, help="median fragment size (sqrt of area)")
-    p.add_argument("--missing", type=float, default=0.2, help="fraction of pieces lost (default 0.2)")
-    p.add_argument("--spurious", type=float, default=0.05, help="fraction of fragments from another wall")
+    p.add_argument("--median-size-mm", type=float, help="median fragment size, sqrt of area (default 30; pompeii 80)")
+    p.add_argument("--missing", type=float, help="fraction of pieces lost (default 0.2; pompeii 0.25)")
+    p.add_argument("--spurious", type=float, help="fraction of fragments from another wall (default 0.05)")
     p.add_argument("--scan-dpi", type=float, help="scan resolution with --as scans (default: --dpi)")
-    p.add_argument("--colour-only", action="store_true", help="with --as scans: one scan per face")
+    p.add_argument("--colour-only", action="store_true",
+                   help="with --as rgbn: fragments without normals (colour and mask, like RePAIR); "
+                        "with --as scans: one scan per face")
+    p.add_argument("--preset", choices=("pompeii",), help="realistic preset (see docs/synth.md)")
+    p.add_argument("--palette-seed", type=int, help="walls with one palette seed share their colours (pompeii)")
+    p.add_argument("--collection", metavar="DIR", help="also write the fragments as a RePAIR-layout collection here")
+    p.add_argument("--compare", metavar="DIR",
+                   help="measure a real collection (e.g. ../shared/data/repair-dev) and this wall, print both")
+    p.add_argument("--compare-dpi", type=float, default=7.369 * 25.4,
+                   help="sampling of the --compare images (default 187.2: RePAIR's 7.369 px/mm)")
     p.add_argument("--workers", type=int, default=1, help="render fragments in this many processes (same data)")
     p.add_argument("--pictures", metavar="DIR",
                    help="also write wall.png, cracks.png, fragments.png, reassembly.png here")
@@ -81,7 +99,18 @@ def run(args) -> int:
             print(f"tessera synth: cannot read picture {args.image}", file=sys.stderr)
             return 2
         image = bgr[..., ::-1]
-    store = Store(_store_root(args))
+    real = None
+    if args.compare:
+        from common.synth.stats import read_collection
+        try:
+            real = read_collection(args.compare)
+        except ValueError as exc:
+            print(f"tessera synth: --compare: {exc}", file=sys.stderr)
+            return 2
+    # with --compare / --collection the store is written only when --store is given
+    store = Store(_store_root(args)) if args.store or not (args.compare or args.collection) else None
+    pieces = []  # the wall as a collection, for --compare
+    rows = []  # truth.csv rows for --collection
     written = []
     keep = []  # fragments kept for the pictures
     failed = []  # fragments the simulated bench could not capture
@@ -94,7 +123,16 @@ def run(args) -> int:
 
     def on_fragment(frag):
         prov = {"generator": "tessera synth", "seed": args.seed, "spurious": frag.spurious}
-        if args.output == "rgbn":
+        wall_id = frag.id.rsplit("-", 1)[0]
+        if args.collection:
+            from common.synth.realistic import write_fragment_png
+            rows.append(write_fragment_png(frag, args.collection, wall_id))
+        if real is not None:
+            from common.synth.stats import fragment_piece
+            pieces.append(fragment_piece(frag, wall_id))
+        if store is None:
+            pass
+        elif args.output == "rgbn":
             digest = content_key(_digest(frag.rgbn), "synth")
             ref = save_rgbn(store, f"fragments/{frag.id}/rgbn/front-{digest}.h5", frag.rgbn, provenance=prov)
         else:
@@ -112,7 +150,8 @@ def run(args) -> int:
                       file=sys.stderr)
                 return
             ref = write_scans(store, frag.id, result)
-        written.append(ref)
+        if store is not None:
+            written.append(ref)
         if args.pictures:
             from dataclasses import replace
 
@@ -122,12 +161,29 @@ def run(args) -> int:
     def progress(fraction, text):
         print(f"[{fraction * 100:5.1f}%] {text} {time.monotonic() - t0:6.1f}s", file=sys.stderr, flush=True)
 
-    wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, style=args.style, image=image,
-                         image_width_mm=args.image_width_mm, median_size_mm=args.median_size_mm,
-                         missing_fraction=args.missing, spurious_fraction=args.spurious, keep_images=False,
-                         workers=max(1, args.workers), surfaces=args.output == "scans",
-                         on_fragment=on_fragment, progress=progress)
-    gt = save_groundtruth(store, wall)
+    try:
+        wall = generate_wall(args.fragments, args.seed, args.dpi, mode=args.mode, style=args.style, image=image,
+                             image_width_mm=args.image_width_mm, median_size_mm=args.median_size_mm,
+                             missing_fraction=args.missing, spurious_fraction=args.spurious, keep_images=False,
+                             workers=max(1, args.workers), surfaces=args.output == "scans",
+                             on_fragment=on_fragment, progress=progress, preset=args.preset,
+                             palette_seed=args.palette_seed,
+                             colour_only=bool(args.colour_only and args.output == "rgbn"))
+    except ValueError as exc:
+        print(f"tessera synth: {exc}", file=sys.stderr)
+        return 2
+    gt = save_groundtruth(store, wall) if store is not None else None
+    if args.collection:
+        from common.synth.realistic import write_truth_csv
+        folder = write_truth_csv(args.collection, wall.id, [r for r in rows if r is not None])
+        print(f"collection written to {folder} (RGBA PNGs and truth.csv; spurious fragments in {folder}-spurious)")
+    if real is not None:
+        from common.synth.stats import collection_statistics, comparison_table
+        print(f"measuring {args.compare} and the synthetic wall ...", file=sys.stderr, flush=True)
+        table = comparison_table({f"{args.compare} ({args.compare_dpi:.0f} dpi)":
+                                  collection_statistics(real, args.compare_dpi),
+                                  f"{wall.id} ({args.dpi:g} dpi)": collection_statistics(pieces, args.dpi)})
+        print(table)
     if args.pictures:
         from pathlib import Path
 
@@ -145,8 +201,9 @@ def run(args) -> int:
           f"({sum(f.spurious for f in wall.fragments)} spurious, {wall.n_missing} pieces missing), "
           f"{len(wall.adjacency)} neighbour pairs; size sqrt(area) median {np.median(sizes):.1f} cm "
           f"[{sizes.min():.1f}-{sizes.max():.1f}]")
-    print(f"wrote {len(written)} {args.output} artifacts under {store.root}/fragments and {gt.path} "
-          f"in {time.monotonic() - t0:.1f} s")
+    if store is not None:
+        print(f"wrote {len(written)} {args.output} artifacts under {store.root}/fragments and {gt.path} "
+              f"in {time.monotonic() - t0:.1f} s")
     if failed:
         print(f"{len(failed)} fragment(s) could not be captured (in the ground truth, not in the store): "
               f"{', '.join(failed)}", file=sys.stderr)

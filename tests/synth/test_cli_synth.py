@@ -69,3 +69,25 @@ def test_synth_paints_a_user_picture(tmp_path):
 def test_synth_refuses_a_missing_picture(tmp_path, capsys):
     assert main(["synth", "--fragments", "2", "--store", str(tmp_path), "--image", str(tmp_path / "none.png")]) == 2
     assert "cannot read picture" in capsys.readouterr().err
+
+
+def test_synth_pompeii_writes_a_collection_and_compares_it(tmp_path, capsys):
+    coll = tmp_path / "coll"
+    args = ["synth", "--preset", "pompeii", "--fragments", "5", "--seed", "4", "--dpi", "30", "--colour-only",
+            "--collection", str(coll)]
+    assert main(args) == 0
+    walls = [p for p in coll.iterdir() if p.is_dir() and (p / "truth.csv").is_file()]
+    assert len(walls) == 1 and len(list(walls[0].glob("*.png"))) >= 4
+    assert not list(tmp_path.rglob("*.h5"))  # no --store: nothing but the collection
+    capsys.readouterr()
+    # compare a second wall with the first one's collection, measured by the same code
+    assert main(["synth", "--preset", "pompeii", "--fragments", "5", "--seed", "5", "--dpi", "30", "--colour-only",
+                 "--compare", str(coll), "--compare-dpi", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "smallest gap per pair" in out and "plain edge share" in out
+
+
+def test_synth_compare_with_a_missing_collection_fails_before_generating(tmp_path, capsys):
+    assert main(["synth", "--preset", "pompeii", "--fragments", "5", "--compare", str(tmp_path / "nope"),
+                 "--store", str(tmp_path / "s")]) == 2
+    assert "nope" in capsys.readouterr().err and not (tmp_path / "s").exists()
