@@ -1,0 +1,111 @@
+"""``tessera import rti``: capture folders -> RGBN faces through the same path as ``tessera ps``."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from common.acquisition.handheld import simulate_flash_capture, surface_normals
+from common.acquisition.lightfile import write_lp
+from common.acquisition.surface import FragmentSurface
+from common.rgbn.image import load_rgbn
+from common.store import Store
+from services.cli import main as tessera
+
+
+def _lights(n, seed=3):
+    rng = np.random.default_rng(seed)
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(30, 80, n))
+    return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def _surface(size=48, tilt=0.3):
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    mask = (np.abs(cols - size / 2) < size * 0.35) & (np.abs(rows - size / 2) < size * 0.3)
+    height = (tilt * cols + 0.1 * np.sin(rows / 4)) * 0.1 + 1.0
+    albedo = np.dstack([np.full((size, size), v) for v in (0.8, 0.6, 0.4)]).astype(np.float32)
+    return FragmentSurface(albedo, np.where(mask, height, 0.0), mask, 254.0)
+
+
+def _capture(folder, n=12, lp=True, tilt=0.3):
+    folder.mkdir(parents=True)
+    surf = _surface(tilt=tilt)
+    lights = _lights(n)
+    names = [f"img{i}.png" for i in range(n)]
+    for name, img in zip(names, simulate_flash_capture(surf, lights)):
+        cv2.imwrite(str(folder / name), np.round(img * 65535).astype(np.uint16)[..., ::-1])
+    if lp:
+        write_lp(folder / "capture.lp", names, lights)
+    return surf
+
+
+def _artifacts(root):
+    return sorted(p.relative_to(root).as_posix() for p in (root / "fragments").rglob("*.h5")) \
+        if (root / "fragments").exists() else []
+
+
+def test_a_collection_of_captures_becomes_one_fragment_each(tmp_path, capsys):
+    a = _capture(tmp_path / "coll" / "F-A", tilt=0.3)
+    b = _capture(tmp_path / "coll" / "F-B", tilt=-0.2)
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(tmp_path / "coll"), "--store", str(store), "--no-discontinuities"]) == 0
+    assert "imported 2" in capsys.readouterr().out
+    found = _artifacts(store)
+    assert [p.split("/")[1] for p in found] == ["F-A", "F-B"]
+    for rel, surf in zip(found, (a, b)):
+        rgbn = load_rgbn(Store(store), rel)
+        inner = cv2.erode(surf.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        err = np.degrees(np.arccos(np.clip((rgbn.normals * surface_normals(surf)).sum(-1), -1, 1)))
+        assert err[inner].mean() < 1.0
+        assert rgbn.mask[inner].all()  # the automatic mask found the piece
+    # resumable: a second run imports nothing again
+    assert tessera(["import", "rti", str(tmp_path / "coll"), "--store", str(store), "--no-discontinuities"]) == 0
+    assert "imported 0, already imported 2" in capsys.readouterr().out
+
+
+def test_bad_captures_are_refused_by_name_and_the_good_one_imported(tmp_path, capsys):
+    _capture(tmp_path / "coll" / "good")
+    _capture(tmp_path / "coll" / "cut")
+    shot = tmp_path / "coll" / "cut" / "img4.png"
+    shot.write_bytes(shot.read_bytes()[:600])
+    _capture(tmp_path / "coll" / "nolights", lp=False)
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(tmp_path / "coll"), "--store", str(store), "--no-discontinuities"]) == 1
+    captured = capsys.readouterr()
+    assert "imported 1" in captured.out and "refused 2" in captured.out
+    assert "img4.png" in captured.err and "truncated" in captured.err
+    assert "nolights" in captured.err and "no light file" in captured.err
+    assert [p.split("/")[1] for p in _artifacts(store)] == ["good"]
+
+
+def test_a_plain_direction_file_pairs_images_in_natural_order(tmp_path, capsys):
+    surf = _capture(tmp_path / "cap", lp=False)
+    np.savetxt(tmp_path / "cap" / "dirs.txt", _lights(12))  # img0, img1, ..., img11 in that order
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(tmp_path / "cap"), "--store", str(store), "--no-discontinuities"]) == 0
+    rgbn = load_rgbn(Store(store), _artifacts(store)[0])
+    inner = cv2.erode(surf.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    err = np.degrees(np.arccos(np.clip((rgbn.normals * surface_normals(surf)).sum(-1), -1, 1)))
+    assert err[inner].mean() < 1.0
+
+
+def test_a_file_instead_of_a_folder_is_refused(tmp_path, capsys):
+    (tmp_path / "x.jpg").write_bytes(b"")
+    assert tessera(["import", "rti", str(tmp_path / "x.jpg"), "--store", str(tmp_path / "s")]) == 2
+    assert "x.jpg: not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_real_rti_captures_import_without_a_mask(shared_data, tmp_path, capsys):
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(shared_data / "realrti-dev"), "--store", str(store),
+                    "--no-discontinuities", "--method", "least_squares"]) == 0
+    found = _artifacts(store)
+    assert [p.split("/")[1] for p in found] == ["item1", "item5", "item8"]
+    for rel in found:
+        rgbn = load_rgbn(Store(store), rel)
+        assert rgbn.mask.mean() > 0.99  # frame-filling: the whole frame is the object
