@@ -126,3 +126,25 @@ def test_export_refuses_unknown_fragment_and_existing_folder(tmp_path, capsys):
     assert "not exported A:" in err and "exists" in err
     assert "not exported NOPE: fragment NOPE has no RGBN face" in err
     assert not [p for p in (tmp_path / "out").iterdir() if p.name.startswith(".")]   # no temporary left
+
+
+def test_renders_on_storage_are_exported_as_pngs(tmp_path):
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    save_rgbn(store, "fragments/R1/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0, normals=n))
+    drawn = (np.random.default_rng(0).random(mask.shape + (3,)) * 65535).astype(np.uint16)
+
+    def fill(f):   # what common.render.artifact.save_rendering writes
+        f.create_dataset("image", data=drawn)
+        f.create_dataset("alpha", data=(mask * 65535).astype(np.uint16))
+        f.attrs["recipe"] = "relief"
+        f.attrs["bits"] = 16
+    store.write("fragments/R1/renders/front-0123456789abcdef.h5", "tessera.render", 1, fill)
+    assert main(["export", "R1", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    png = tmp_path / "out" / "R1" / "front-render-relief-01234567.png"
+    raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    np.testing.assert_array_equal(raw[..., [2, 1, 0]], drawn)
+    np.testing.assert_array_equal(raw[..., 3] > 0, mask)
+    meta = json.loads((tmp_path / "out" / "R1" / "metadata.json").read_text())
+    assert png.name in meta["faces"]["front"]["files"]
