@@ -79,7 +79,7 @@ if [ "$(id -u)" != 0 ]; then
     {
       echo "[install] needs root (it is running as $(id -un)): nothing was changed. It has to:"
       for n in "${needs[@]}"; do echo "  - $n"; done
-      echo "Run it as root: sudo bash $here/deploy/install.sh $*"
+      echo "Run it as root: sudo bash $here/deploy/install.sh${*:+ $*}"
     } >&2
     exit 1
   fi
@@ -106,6 +106,8 @@ hash -r
 python="$(command -v python3)" || die "python3 is still not on PATH after installing Debian's python3"
 pyver="$(version_of "$python")" || die "$python does not run"
 new_enough "$pyver" || die "$python is Python $pyver; Tessera needs $min_python or newer"
+# the interpreter itself, not a launcher (a pyenv shim picks its Python from the current directory)
+python="$("$python" -c 'import sys; print(sys.executable)')"
 
 if [ "$recreate" = 1 ] && [ -e "$venv" ]; then
   say "removing $venv (--recreate)"
