@@ -129,7 +129,7 @@ def test_import_killed_half_way_resumes_and_imports_nothing_twice(tmp_path):
     src.mkdir()
     n = 8
     for i in range(n):
-        _picture(src / f"F{i:02d}.png", i, h=1200, w=1600)
+        _picture(src / f"F{i:02d}.png", i, h=900, w=1200)
     store = tmp_path / "st"
     ledger = store / "imports" / "ledger.jsonl"
     cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
