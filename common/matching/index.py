@@ -45,6 +45,8 @@ from scipy.spatial import cKDTree
 
 from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
+from common.matching.docking import (DOCK_HUB_TOP, Docking, dock_outlines, docking_contact_mm, hub_corrected,
+                                     invert_docking)
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
 from common.matching.ribbon import (RIBBON_WINDOW_MM, prepare_ribbon, ribbon_population, ribbon_probability,
@@ -56,6 +58,8 @@ from common.threads import one_blas_thread
 HUBNESS_MIN_OTHERS = 20
 #: stage 2 passes this many candidates per fragment to the ribbon (stage 2½)
 RIBBON_CANDIDATES = 50
+#: stage 2½ passes this many candidates per fragment to the gap-tolerant docking (stage 3)
+DOCK_CANDIDATES = 12
 
 
 @dataclass
@@ -73,6 +77,8 @@ class Candidate:
     patch_probability: float = float("nan")  # mean of the top_m patch-pair probabilities (before hubness)
     ribbon_score: float = float("nan")       # colour-ribbon score (stage 2½), NaN when not computed
     ribbon_arc_mm: tuple | None = None       # (arc on the query, arc on the other) of the ribbon's best run
+    docking: Docking | None = None           # stage 3: the other fragment docked against the query
+    docking_contact_mm: float = float("nan")  # its shared-crack length less the two hubnesses (mm)
 
 
 class MatchIndex:
@@ -98,6 +104,10 @@ class MatchIndex:
         self._population_n = 0
         #: fragment → (model version, hubness μ: mean logit against its candidates)
         self.hubness: dict[str, tuple[str, float]] = {}
+        #: docking results by unordered pair (model-independent, so kept across model updates)
+        self._dockings: dict[tuple[str, str], Docking] = {}
+        #: fragment → docking hubness (mean contact of its best dockings, mm)
+        self.dock_hubness: dict[str, float] = {}
 
     def __len__(self) -> int:
         return len(self._order)
@@ -123,6 +133,7 @@ class MatchIndex:
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
+            self._forget_dockings(cues.fragment)
             self._dirty = True
             return
         self._order.append(cues.fragment)
@@ -141,6 +152,7 @@ class MatchIndex:
         self.contours.pop(fragment, None)
         self.profiles.pop(fragment, None)
         self.hubness.pop(fragment, None)
+        self._forget_dockings(fragment)
         if not in_tail:
             self._tree = None
         if last and not self._dirty:  # undo the last append without a rebuild
@@ -359,24 +371,76 @@ class MatchIndex:
                 c.ribbon_arc_mm = (float(i + half), float(j - half))
         return sorted(candidates, key=lambda c: -c.probability)
 
+    def _forget_dockings(self, fragment: str) -> None:
+        self.dock_hubness.pop(fragment, None)
+        for key in [k for k in self._dockings if fragment in k]:
+            del self._dockings[key]
+
+    def docking(self, fragment: str, other: str) -> Docking:
+        """``other`` docked against ``fragment`` (pose of ``other`` in ``fragment``'s frame), cached."""
+        key = (fragment, other) if fragment < other else (other, fragment)
+        d = self._dockings.get(key)
+        if d is None:
+            d = dock_outlines(self.contours[key[0]], self.contours[key[1]], n_poses=1)[0]
+            self._dockings[key] = d
+        return d if key[0] == fragment else invert_docking(d)
+
+    def uses_docking(self, fragment: str, model: MatchModel) -> bool:
+        """Whether stage 3 docks this fragment's candidates (an outline and a calibrated model)."""
+        return model.docking is not None and fragment in self.contours
+
+    def _rank_by_docking(self, fragment: str, ranked: list[Candidate], model: MatchModel,
+                         dock_candidates: int) -> list[Candidate]:
+        """Stage 3 for one query fragment: its best ``dock_candidates`` are docked
+        (:func:`~common.matching.docking.dock_outlines`, gap-tolerant), their contact corrected for
+        both fragments' docking hubness and calibrated into the join probability; they come first,
+        best first, each with the docked pose as its alignment. The rest follow, never above them."""
+        head = [c for c in ranked[:dock_candidates] if c.other in self.contours]
+        if not head:
+            return ranked
+        docked = {id(c) for c in head}
+        tail = [c for c in ranked if id(c) not in docked]
+        contact = np.array([docking_contact_mm(self.docking(fragment, c.other)) for c in head])
+        if len(head) >= DOCK_HUB_TOP:
+            self.dock_hubness[fragment] = float(np.sort(contact)[-DOCK_HUB_TOP:].mean())
+        centre = float(np.median(list(self.dock_hubness.values()))) if self.dock_hubness else 0.0
+        corrected = hub_corrected(contact, self.dock_hubness.get(fragment, centre),
+                                  [self.dock_hubness.get(c.other, centre) for c in head], centre)
+        prob = ribbon_probability(corrected, model.docking)
+        for c, k, p in zip(head, corrected, prob):
+            d = self.docking(fragment, c.other)
+            c.docking, c.docking_contact_mm, c.probability = d, float(k), float(p)
+            c.alignment = Alignment(d.angle_deg, d.tx_mm, d.ty_mm, float("nan"), d.contact_mm, d.overlap_mm2,
+                                    float(k))
+        head.sort(key=lambda c: -c.probability)
+        floor = head[-1].probability
+        for c in tail:
+            c.probability = min(c.probability, floor) if np.isfinite(c.probability) else c.probability
+        return head + tail
+
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
-             ribbon_candidates: int = RIBBON_CANDIDATES, evidence_for: int | None = None) -> list[Candidate]:
-        """Stages 2 and 2½ for one fragment against ``others``, best first.
+             ribbon_candidates: int = RIBBON_CANDIDATES, dock_candidates: int = DOCK_CANDIDATES,
+             evidence_for: int | None = None) -> list[Candidate]:
+        """Stages 2, 2½ and 3 for one fragment against ``others``, best first.
 
         Stage 2 orders ``others`` by the patch classifier; where the ribbon applies, its best
         ``ribbon_candidates`` — plus the others stage 2 cannot score because one of the two has no
         valid patch (a small fragment still has a boundary) — are re-ranked by the ribbon and the
-        rest dropped. ``evidence_for``: attach evidence rows to the best this many of stage 2 (None: all).
+        rest dropped. Where the model has a docking calibration, the best ``dock_candidates`` are
+        then docked and re-ranked (:meth:`_rank_by_docking`). ``evidence_for``: attach evidence rows
+        to the best this many of stage 2 (None: all).
         """
         found = self.score(cues, others, model, evidence_for=evidence_for)
-        if not self.uses_ribbon(cues.fragment, model):
-            return found
-        head = found[:ribbon_candidates]
-        scored = {c.other for c in found}
-        n_cols = len(model.columns)
-        head += [Candidate(cues.fragment, o, float("nan"), -1, -1, np.zeros((0, 2), int), np.zeros((0, n_cols)))
-                 for o in others if o != cues.fragment and o not in scored and o in self.profiles]
-        return self._rank_by_ribbon(cues.fragment, head, model)
+        if self.uses_ribbon(cues.fragment, model):
+            head = found[:ribbon_candidates]
+            scored = {c.other for c in found}
+            n_cols = len(model.columns)
+            head += [Candidate(cues.fragment, o, float("nan"), -1, -1, np.zeros((0, 2), int), np.zeros((0, n_cols)))
+                     for o in others if o != cues.fragment and o not in scored and o in self.profiles]
+            found = self._rank_by_ribbon(cues.fragment, head, model)
+        if self.uses_docking(cues.fragment, model) and dock_candidates > 0:
+            found = self._rank_by_docking(cues.fragment, found, model, dock_candidates)
+        return found
 
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
                 check: int = 3, contour_mm: np.ndarray | None = None,
@@ -400,7 +464,7 @@ class MatchIndex:
         if contour_a is not None:
             for c in ranked[:check]:
                 contour_b = self.contours.get(c.other)
-                if contour_b is None:
+                if contour_b is None or c.alignment is not None:   # docked in stage 3 already
                     continue
                 other = self.cues[c.other]
                 arcs_a, arcs_b = cues.arc_mm[c.top_pairs[:, 0]], other.arc_mm[c.top_pairs[:, 1]]  # may be empty

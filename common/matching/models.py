@@ -4,7 +4,8 @@ A model file is a ``tessera.matchmodel`` HDF5 artifact under ``models/matcher/<v
 holding only arrays and strings: the correspondence column names, the imputation values for
 missing features, the standardisation (mean, scale), the logistic-regression coefficients and
 intercept, the pair-aggregation rule and the per-fragment pruning weights, and (attributes
-``ribbon_slope``, ``ribbon_intercept``, optional) the calibration of the colour-ribbon score. Loading reads those
+``ribbon_slope``, ``ribbon_intercept``, optional) the calibration of the colour-ribbon score, and
+(``docking_slope``, ``docking_intercept``, optional) that of the docking contact. Loading reads those
 numbers back; nothing is executed, so a model file from another lab is safe to open (unlike a
 pickled scikit-learn estimator, which can run arbitrary code when loaded).
 """
@@ -52,6 +53,10 @@ class MatchModel:
         Calibration of the colour-ribbon score into a join probability
         (:func:`common.matching.ribbon.fit_ribbon_calibration`); None: rank by the patch
         probability alone (a model trained without boundary profiles).
+    docking : (slope, intercept) or None
+        Calibration of the hubness-corrected docking contact (mm, :mod:`common.matching.docking`)
+        into a join probability (stage 3, :meth:`common.matching.index.MatchIndex.rank`); None:
+        no docking (models made before it).
     """
 
     columns: list[str]
@@ -65,6 +70,7 @@ class MatchModel:
     info: dict = field(default_factory=dict)
     training: tuple | None = field(default=None, repr=False)
     ribbon: tuple | None = None
+    docking: tuple | None = None
 
     def __post_init__(self):
         self.columns = [str(c) for c in self.columns]
@@ -84,6 +90,11 @@ class MatchModel:
             if len(r) != 2 or not all(np.isfinite(r)):
                 raise ValueError(f"model ribbon calibration must be two finite numbers, got {self.ribbon}")
             self.ribbon = r
+        if self.docking is not None:
+            r = tuple(float(v) for v in self.docking)
+            if len(r) != 2 or not all(np.isfinite(r)):
+                raise ValueError(f"model docking calibration must be two finite numbers, got {self.docking}")
+            self.docking = r
 
     @property
     def sequence(self) -> int:
@@ -112,11 +123,12 @@ class MatchModel:
         from common.store import content_key
         return content_key(json.dumps(self.columns), self.impute.tobytes().hex(), self.mean.tobytes().hex(),
                            self.scale.tobytes().hex(), self.coef.tobytes().hex(), repr(self.intercept),
-                           str(self.top_m), *([repr(self.ribbon)] if self.ribbon is not None else []), length=8)
+                           str(self.top_m), *([repr(self.ribbon)] if self.ribbon is not None else []),
+                           *([f"docking {self.docking!r}"] if self.docking is not None else []), length=8)
 
 
 def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: int = 3, info: dict | None = None,
-                        ribbon: tuple | None = None) -> MatchModel:
+                        ribbon: tuple | None = None, docking: tuple | None = None) -> MatchModel:
     """Extract the numbers of a fitted logistic pipeline (from :func:`make_classifier`) into a model."""
     imp = pipeline.named_steps["impute"]
     sc = pipeline.named_steps["scale"]
@@ -125,7 +137,7 @@ def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: i
         raise ValueError("only a linear (logistic) classifier can be stored as a MatchModel")
     m = MatchModel(columns=list(columns), impute=imp.statistics_, mean=sc.mean_, scale=sc.scale_,
                    coef=clf.coef_.ravel(), intercept=float(clf.intercept_[0]), top_m=top_m, info=dict(info or {}),
-                   ribbon=ribbon)
+                   ribbon=ribbon, docking=docking)
     m.version = f"{int(sequence):04d}-{m.digest()}"
     return m
 
@@ -141,6 +153,8 @@ def save_model(store: Store, model: MatchModel, *, provenance: dict | None = Non
         f.attrs["saved"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
         if model.ribbon is not None:
             f.attrs["ribbon_slope"], f.attrs["ribbon_intercept"] = model.ribbon
+        if model.docking is not None:
+            f.attrs["docking_slope"], f.attrs["docking_intercept"] = model.docking
         f.create_dataset("columns", data=np.array(model.columns, dtype=object), dtype=_str_dtype())
         for name in ("impute", "mean", "scale", "coef"):
             f.create_dataset(name, data=getattr(model, name).astype(np.float64))
@@ -169,7 +183,9 @@ def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
                               version=str(f.attrs["version"]), top_m=int(f.attrs["top_m"]),
                               info=json.loads(f.attrs.get("info", "{}")), training=training,
                               ribbon=((float(f.attrs["ribbon_slope"]), float(f.attrs["ribbon_intercept"]))
-                                      if "ribbon_slope" in f.attrs else None))
+                                      if "ribbon_slope" in f.attrs else None),
+                              docking=((float(f.attrs["docking_slope"]), float(f.attrs["docking_intercept"]))
+                                       if "docking_slope" in f.attrs else None))
         except (KeyError, ValueError) as exc:
             raise ArtifactError(f"model {getattr(ref, 'path', ref)} is malformed: {exc}") from exc
 

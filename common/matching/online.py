@@ -53,7 +53,8 @@ def wall_cues(wall, *, progress=None, work_pixel_mm: float = 0.1):
 
 
 def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_weight=None, top_m: int = 3,
-                info: dict | None = None, ribbon: tuple | None = None) -> tuple[MatchModel, object]:
+                info: dict | None = None, ribbon: tuple | None = None,
+                docking: tuple | None = None) -> tuple[MatchModel, object]:
     """Fit the logistic regression (balanced class weights) and return (model, fitted pipeline);
     ``ribbon`` is the ribbon calibration stored with it (:func:`ribbon_calibration`)."""
     if len(np.unique(ts.y)) < 2:
@@ -64,7 +65,8 @@ def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_we
     meta = {"n_train": int(len(ts)), "n_match": int(ts.y.sum()), "class_weight": "balanced",
             "negatives_per_positive": float(ts.negatives_per_positive), "C": C}
     meta.update(info or {})
-    model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta, ribbon=ribbon)
+    model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta, ribbon=ribbon,
+                                docking=docking)
     model.training = (ts.x, ts.y, np.ones(len(ts.y)) if sample_weight is None else np.asarray(sample_weight, float))
     return model, pipe
 
@@ -87,6 +89,52 @@ def ribbon_calibration(tables: dict, adjacency) -> tuple[float, float] | None:
     return fit_ribbon_calibration([scores[k] for k in keys], y)
 
 
+def docking_calibration(wall, *, contours: dict | None = None, negatives_per_positive: float = 3.0, seed: int = 0,
+                        progress=None) -> tuple[float, float] | None:
+    """Calibration of the docking contact (stage 3) from a wall with ground truth.
+
+    Every true neighbour pair and ``negatives_per_positive`` random other pairs per fragment pair
+    are docked (:func:`common.matching.docking.dock_outlines`); each fragment's docking hubness is
+    the mean contact of its best dockings among those, and the hub-corrected contact of every pair
+    is fitted against joined/separate (:func:`common.matching.ribbon.fit_ribbon_calibration`, the
+    same 1-D logistic calibration as the ribbon's). ``contours``: id → outline in mm (default: the
+    wall's fragments' ``contour_mm``). None when the wall has too few pairs of either kind.
+    """
+    from common.matching.docking import DOCK_HUB_TOP, dock_outlines, docking_contact_mm, hub_corrected
+
+    outlines = contours or {f.id: f.contour_mm for f in wall.fragments if f.contour_mm is not None}
+    ids = sorted(outlines)
+    joined = {frozenset(p[:2]) for p in wall.adjacency if p[0] in outlines and p[1] in outlines}
+    rng = np.random.default_rng(seed)
+    pairs = [tuple(sorted(p)) for p in joined]
+    n_neg = int(round(negatives_per_positive * len(pairs)))
+    tries = 0
+    negatives = set()
+    while len(negatives) < n_neg and tries < 50 * max(n_neg, 1) and len(ids) > 2:
+        a, b = rng.choice(len(ids), 2, replace=False)
+        key = tuple(sorted((ids[a], ids[b])))
+        if frozenset(key) not in joined:
+            negatives.add(key)
+        tries += 1
+    pairs += sorted(negatives)
+    if len(joined) < 3 or len(negatives) < 3:
+        return None
+    contact = {}
+    for i, (a, b) in enumerate(pairs):
+        contact[(a, b)] = docking_contact_mm(dock_outlines(outlines[a], outlines[b], n_poses=1)[0])
+        if progress and (i % 20 == 0 or i == len(pairs) - 1):
+            progress((i + 1) / len(pairs), f"docked {i + 1}/{len(pairs)} pairs")
+    per: dict = {}
+    for (a, b), c in contact.items():
+        per.setdefault(a, []).append(c)
+        per.setdefault(b, []).append(c)
+    hub = {f: float(np.mean(sorted(v)[-DOCK_HUB_TOP:])) for f, v in per.items()}
+    centre = float(np.median(list(hub.values())))
+    scores = [float(hub_corrected(c, hub[a], hub[b], centre)) for (a, b), c in contact.items()]
+    y = [frozenset(k) in joined for k in contact]
+    return fit_ribbon_calibration(scores, y)
+
+
 def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None) -> MatchModel:
     """A first model trained on a synthetic wall, for a station that has no verdicts yet."""
     from common.synth.wall import generate_wall
@@ -94,8 +142,14 @@ def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0,
     wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
     tables, cues, poses = wall_cues(wall, progress=progress)
     ts = training_set(cues, poses, wall.adjacency, seed=seed)
-    model, _ = train_model(ts, sequence=1, ribbon=ribbon_calibration(tables, wall.adjacency), info={"trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, "
-                                                               f"seed {seed}, {dpi:g} dpi)"})
+    # the docking is calibrated on a realistic wall (plaster lost along the cracks, 2-20 cm pieces),
+    # the kind of collection it has to work on; colour-only, since only the outlines are used
+    real = generate_wall(max(12, n_fragments // 4), seed=seed + 1, dpi=min(dpi, 40.0), preset="pompeii",
+                         colour_only=True)
+    docking = docking_calibration(real, seed=seed, negatives_per_positive=2.0)
+    model, _ = train_model(ts, sequence=1, ribbon=ribbon_calibration(tables, wall.adjacency), docking=docking,
+                           info={"docking_trained_on": f"synthetic wall {real.id} (preset pompeii, seed {seed + 1})",
+                                 "trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, seed {seed}, {dpi:g} dpi)"})
     return model
 
 
@@ -138,7 +192,8 @@ def refit_with_verdicts(base_x: np.ndarray, base_y: np.ndarray, verdicts: list[t
     info = dict(previous.info)
     info.update({"verdict_rows": n_v, "verdict_weight": float(verdict_weight), "previous": previous.version})
     model, _ = train_model(ts, sequence=previous.sequence + 1, C=float(C if C is not None else previous.info.get("C", 1.0)),
-                           sample_weight=w, top_m=previous.top_m, info=info, ribbon=previous.ribbon)
+                           sample_weight=w, top_m=previous.top_m, info=info, ribbon=previous.ribbon,
+                           docking=previous.docking)
     model.training = (np.asarray(base_x, float), np.asarray(base_y, int), np.ones(len(base_y)))
     return model
 

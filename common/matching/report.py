@@ -275,3 +275,132 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     ppr = pair_precision_recall(all_scores, adj_te)
     pair_curves["DAFNE halves"] = (ppr["precision"], ppr["recall"], ppr["ap"])
     return {"table": rows, "topk": rec, "pair_ap": ppr["ap"]}
+
+
+def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, progress=None) -> dict:
+    """Evaluate the matcher on a real, placed collection (``repair-dev`` layout) with a given model.
+
+    Nothing is fitted on the collection: the fragments are imported as colour-only fragments
+    (:func:`common.matching.collection.collection_wall`), their features extracted as the station
+    does, and every fragment ranked by the station's staged matcher
+    (:meth:`~common.matching.index.MatchIndex.rank`, stages 2, 2½ and 3) — once against every other
+    fragment of the collection (pooled) and once against the other fragments of its own object.
+
+    Returns
+    -------
+    dict
+        ``pooled_topk`` {1, 5, 10} (share of true neighbour links among a fragment's top k, pooled),
+        ``within_object_recall`` {1, 3} (hit rate, ../shared/data/README.md) with
+        ``within_object_random`` and ``within_object_incidence`` beside it, ``pair_ap`` (pooled
+        pairs ranked by probability), ``pose_accuracy`` (share of all true neighbour pairs whose
+        proposed relative pose is within 5° and 5 mm), ``pose_errors``, ``n_fragments``,
+        ``n_true_pairs``, ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
+    """
+    from common.matching.collection import collection_wall, relative_pose_error, within_object_recall
+    from common.matching.online import bootstrap_model
+
+    say = progress or (lambda f, t: None)
+    t0, c0 = time.time(), time.process_time()
+    say(0.0, f"importing {path}")
+    wall = collection_wall(path, dpi=dpi)
+    if model is None:
+        say(0.05, "training the default bootstrap model (synthetic walls only)")
+        model = bootstrap_model()
+    tables, cues, poses = wall_cues(wall, progress=lambda f, t: say(0.1 + 0.3 * f, t))
+    index = _index_of(tables, cues)
+    obj = {f.id: f.notes.get("object") for f in wall.fragments}
+    ids = list(index._order)
+    index.refresh_hubness(ids, model, n_candidates=100)
+    pooled, within, proposed = {}, {}, {}
+    for i, f in enumerate(ids):
+        ranked = index.rank(index.cues[f], [o for o in ids if o != f], model)
+        for c in ranked:
+            key = tuple(sorted((f, c.other)))
+            pooled[key] = max(pooled.get(key, 0.0), c.probability)
+        mates = [o for o in ids if o != f and obj[o] == obj[f]]
+        if mates:
+            ranked_w = index.rank(index.cues[f], mates, model, dock_candidates=len(mates))
+            within[f] = [c.other for c in ranked_w]
+            for c in ranked_w:
+                if c.alignment is not None:
+                    proposed[(f, c.other)] = c.alignment
+        say(0.4 + 0.55 * (i + 1) / len(ids), f"ranked {i + 1}/{len(ids)} fragments")
+    truth: dict = {}
+    for a, b, *_ in wall.adjacency:
+        truth.setdefault(a, set()).add(b)
+        truth.setdefault(b, set()).add(a)
+    wo = within_object_recall(within, truth, ks=(1, 3))
+    errors = []
+    for a, b, *_ in wall.adjacency:
+        al = proposed.get((a, b))
+        if al is None:
+            errors.append({"a": a, "b": b, "angle_deg": None, "shift_mm": None})
+            continue
+        centre = tables[b].contour_mm.mean(axis=0)
+        e = relative_pose_error(poses[a], poses[b], (al.angle_deg, al.tx_mm, al.ty_mm), centre)
+        errors.append({"a": a, "b": b, "angle_deg": e[0], "shift_mm": e[1]})
+    ok = sum(1 for e in errors if e["angle_deg"] is not None and e["angle_deg"] <= 5 and e["shift_mm"] <= 5)
+    ppr = pair_precision_recall(pooled, wall.adjacency)
+    result = {
+        "collection": str(path), "dpi": float(dpi), "model": model.version,
+        "pooled_topk": top_k_recall(pooled, wall.adjacency, (1, 5, 10)),
+        "within_object_recall": wo["recall"], "within_object_random": wo["random"],
+        "within_object_incidence": wo["incidence"], "within_object_fragments": wo["n"],
+        "pair_ap": float(ppr["ap"]), "pose_accuracy": ok / len(errors) if errors else float("nan"),
+        "pose_errors": errors, "n_fragments": len(wall.fragments), "n_true_pairs": len(wall.adjacency),
+        "seconds": time.time() - t0, "cpu_seconds": time.process_time() - c0,
+    }
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        _plot_collection_examples(wall, tables, within, truth, proposed, out / "collection_examples.png")
+    say(1.0, "done")
+    return result
+
+
+def _plot_collection_examples(wall, tables, within, truth, proposed, path: Path, n: int = 6) -> None:
+    """Each fragment's first proposal within its object drawn docked at the proposed pose: hits
+    (a true neighbour) in green, misses in red, the true neighbour's outline at its true pose dashed."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    poses = {f.id: f.pose for f in wall.fragments}
+    items = [(f, r[0]) for f, r in sorted(within.items()) if r and truth.get(f)]
+    hits = [x for x in items if x[1] in truth[x[0]]][: n // 2]
+    misses = [x for x in items if x[1] not in truth[x[0]]][: n - len(hits)]
+    chosen = hits + misses
+    if not chosen:
+        return
+    cols = 3
+    rows = int(np.ceil(len(chosen) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols, 3.3 * rows), dpi=80, squeeze=False)
+
+    def mat(p):
+        a = np.radians(p[0])
+        return np.array([[np.cos(a), -np.sin(a), p[1]], [np.sin(a), np.cos(a), p[2]], [0, 0, 1.0]])
+
+    for ax, (f, o) in zip(axes.ravel(), chosen):
+        ca = tables[f].contour_mm
+        ax.fill(ca[:, 0], ca[:, 1], color="#bbbbbb")
+        al = proposed.get((f, o))
+        hit = o in truth[f]
+        if al is not None:
+            cb = tables[o].contour_mm @ al.matrix[:2, :2].T + al.matrix[:2, 2]
+            ax.fill(cb[:, 0], cb[:, 1], color="#2ca02c" if hit else "#d62728", alpha=0.6)
+        for nb in sorted(truth[f])[:2]:
+            rel = np.linalg.inv(mat(poses[f])) @ mat(poses[nb])
+            ct = tables[nb].contour_mm @ rel[:2, :2].T + rel[:2, 2]
+            ax.plot(np.r_[ct[:, 0], ct[:1, 0]], np.r_[ct[:, 1], ct[:1, 1]], "k--", lw=0.8)
+        ax.set_title(f"{f[:9]}: 1st = {o[:9]}\n{'true neighbour' if hit else 'miss'}", fontsize=7)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in axes.ravel()[len(chosen):]:
+        ax.axis("off")
+    fig.suptitle("Within-object first proposals, docked (filled) vs a true neighbour at its true pose (dashed)",
+                 fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

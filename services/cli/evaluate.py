@@ -5,6 +5,7 @@
                      [--subsets colour,curvature,normal,erosion,thickness,per-match,all]
                      [--dafne ../shared/data/dafne-adam]
     tessera evaluate --train-model ROOT [--db PATH] [--fragments 60] [--seed 0]
+    tessera evaluate --collection DIR [--dpi 150] [--json FILE] [--model ROOT] [--out DIR]
 
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
 feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
@@ -12,7 +13,12 @@ feature subset, 10-fold cross-validation grouped by fragment pair), precision–
 (share of each fragment's true neighbours among its k best proposals, for the matcher's
 hubness-corrected ranking and, for comparison, the uncorrected one) and, with ``--dafne``, the
 same for the colour-only DAFNE set. The second trains a model on a synthetic wall and installs it
-as the current model of a station's matcher (storage root ``ROOT``).
+as the current model of a station's matcher (storage root ``ROOT``). The third ranks a real, placed
+collection (``../shared/data/repair-dev`` layout: one folder per object with RGBA fragment images and
+``truth.csv``; folders without one are distractors) with the station's default model — the
+bootstrap model, or the current model of the station at ``--model ROOT`` — fitting nothing on it,
+and prints and writes pooled top-k, within-object recall with its random baseline, pair AP and
+pose accuracy (docs/matching.md).
 """
 
 from __future__ import annotations
@@ -31,7 +37,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--fragments", type=int, default=150, help="fragments per synthetic wall (default 150)")
     p.add_argument("--seed", type=int, default=11, help="seed of the training wall (default 11)")
     p.add_argument("--test-seed", type=int, default=12, help="seed of the test wall (default 12)")
-    p.add_argument("--dpi", type=float, default=100.0, help="sampling of the synthetic fragments (default 100)")
+    p.add_argument("--dpi", type=float, default=None,
+                   help="sampling of the synthetic fragments (default 100), or the nominal dpi of a --collection's "
+                        "images (default 150)")
     p.add_argument("--folds", type=int, default=10, help="cross-validation folds (default 10)")
     p.add_argument("--classifiers", default="logistic,tree,forest,svm", help="classifiers compared on all features")
     p.add_argument("--subsets", default="colour,curvature,normal,erosion,thickness,per-match,all",
@@ -41,6 +49,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--train-model", metavar="ROOT", help="train a model on a synthetic wall and install it in the "
                                                          "matcher's proposal store under storage root ROOT")
     p.add_argument("--db", help="proposal database (default ROOT/matches/proposals.sqlite)")
+    p.add_argument("--collection", metavar="DIR", help="evaluate on a real placed collection (repair-dev layout)")
+    p.add_argument("--json", metavar="FILE", help="with --collection: write the figures as JSON")
+    p.add_argument("--model", metavar="ROOT", help="with --collection: use the current model of the station "
+                                                   "at storage root ROOT (default: the bootstrap model)")
     p.set_defaults(func=run)
 
 
@@ -50,6 +62,9 @@ def run(args) -> int:
     def progress(fraction, text):
         log.info("%3.0f%% %s", 100 * fraction, text)
 
+    if args.collection:
+        return _collection(args, progress)
+    args.dpi = 100.0 if args.dpi is None else args.dpi
     if args.folds < 2:
         raise SystemExit("--folds must be at least 2")
     if args.fragments < 10:
@@ -76,6 +91,43 @@ def run(args) -> int:
         print(f"top-k recall, {name}: " + ", ".join(f"k={k}: {v:.3f}" for k, v in rec.items()))
     print("fragment-pair AP: " + json.dumps({k: round(v, 4) for k, v in res["pair_ap"].items()}))
     print(f"results in {args.out}")
+    return 0
+
+
+def _collection(args, progress) -> int:
+    from common.matching.report import evaluate_collection
+
+    if not Path(args.collection).is_dir():
+        raise SystemExit(f"--collection {args.collection}: no such directory")
+    dpi = 150.0 if args.dpi is None else args.dpi
+    if not dpi > 0:
+        raise SystemExit(f"--dpi must be positive, got {dpi}")
+    model = None
+    if args.model:
+        from common.matching.models import load_model
+        from common.matching.proposals import ProposalStore
+        from common.store import Store
+        db = ProposalStore(args.db or Path(args.model) / "matches" / "proposals.sqlite")
+        current = db.current_model()
+        if current is None:
+            raise SystemExit(f"--model {args.model}: the station has no match model yet")
+        model = load_model(Store(args.model), current["artifact"])
+    try:
+        res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=args.out, progress=progress)
+    except ValueError as exc:
+        raise SystemExit(f"--collection {args.collection}: {exc}")
+    print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
+          f"pairs, {res['dpi']:g} dpi, model {res['model']}")
+    print("pooled top-k (links): " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items()))
+    print("within-object recall: " + ", ".join(f"@{k}: {v:.3f} (random {res['within_object_random'][k]:.3f}, "
+                                                f"incidence {res['within_object_incidence'][k]:.3f})"
+                                                for k, v in res["within_object_recall"].items()))
+    print(f"pair AP {res['pair_ap']:.3f}; pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f}; "
+          f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(res, indent=1, default=float))
+        print(f"figures in {args.json}")
     return 0
 
 

@@ -1,0 +1,143 @@
+"""Real fragment collections with known placement, read as ground truth for the matcher's evaluation.
+
+A *collection* is laid out as ``../shared/data/repair-dev`` (RePAIR, Pompeii frescoes): one folder
+per object with its RGBA fragment images and, where the placement is known, ``truth.csv``
+(``rpf,x,y,rot``); folders without one hold distractors. :func:`collection_wall` imports every image
+as a colour-only fragment (:func:`common.imports.fragments.fragment_from_image`) and turns the
+placements into the :class:`~common.synth.wall.Wall` ground-truth form the evaluation uses.
+
+Neighbours follow ../shared/data/README.md: two pieces of one object whose placed outlines come
+within ``near_px`` (48) canvas pixels of each other along at least ``min_run_px`` (100) pixels
+(:func:`common.synth.stats.neighbour_gaps`). True neighbours need not touch: real cracks lose
+material, and the placed outlines of RePAIR's neighbours run 1–8 mm apart.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from common.synth.wall import Fragment, Wall
+
+
+def piece_pose(matrix: np.ndarray, pixel_mm: float) -> tuple[float, float, float]:
+    """Pose ``(angle_deg, tx_mm, ty_mm)`` of a placed piece from its crop-pixel → canvas-pixel matrix.
+
+    The fragment frame is crop pixel × ``pixel_mm`` (x right, y down) and the wall frame canvas
+    pixel × ``pixel_mm``, so ``wall = R(angle) p + t`` with ``R = [[cos, −sin], [sin, cos]]``.
+    OpenCV's ``getRotationMatrix2D(centre, rot, 1)`` (counter-clockwise on screen) has linear part
+    ``R(−rot)`` in this frame.
+    """
+    m = np.asarray(matrix, float)
+    if m.shape != (2, 3):
+        raise ValueError(f"matrix must be (2, 3), got {m.shape}")
+    angle = float(np.degrees(np.arctan2(m[1, 0], m[0, 0])))
+    return angle, float(m[0, 2] * pixel_mm), float(m[1, 2] * pixel_mm)
+
+
+def collection_wall(path: str | os.PathLike, *, dpi: float = 150.0, near_px: float = 48.0,
+                    min_run_px: float = 100.0, progress=None) -> Wall:
+    """Read a placed collection of fragment images into the :class:`Wall` ground-truth form.
+
+    Parameters
+    ----------
+    path : path
+        Collection directory (one folder per object, RGBA PNGs, ``truth.csv`` where placed).
+    dpi : float
+        Nominal sampling of the images (RePAIR's files carry none; 150 dpi = 0.169 mm per pixel,
+        RePAIR's own evaluation uses 187 dpi). Every mm figure follows from it.
+    near_px, min_run_px : float
+        Neighbour definition in canvas pixels (see the module docstring).
+    progress : callable(fraction, text), optional
+
+    Returns
+    -------
+    Wall
+        One fragment per image (id = file stem; ``notes['object']`` its folder), placed fragments
+        with their pose in their object's frame (objects are separate frames: only pairs within
+        one object are ever neighbours), distractors with ``pose=None`` and ``spurious=True``;
+        ``adjacency`` = ``(a, b, shared crack mm)``.
+    """
+    from common.imports.fragments import fragment_from_image
+    from common.synth.stats import neighbour_gaps, read_collection
+
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    pieces = read_collection(path)
+    pm = 25.4 / dpi
+    ids = [p.id for p in pieces]
+    if len(set(ids)) != len(ids):  # the same file name in two objects: qualify by object
+        ids = [f"{p.object}-{p.id}" for p in pieces]
+    frags = []
+    for i, (fid, p) in enumerate(zip(ids, pieces)):
+        rgbn = fragment_from_image(p.rgba, dpi=dpi, background="alpha")
+        rgbn.attrs.update({"source": "collection", "object": p.object, "face": "front"})
+        pose = piece_pose(p.matrix, pm) if p.matrix is not None else None
+        frags.append(Fragment(fid, rgbn=rgbn, pose=pose, spurious=pose is None,
+                              area_mm2=float(rgbn.mask.sum() * pm * pm), notes={"object": p.object}))
+        if progress:
+            progress((i + 1) / len(pieces), f"imported {fid}")
+    by_key = {(p.object, p.id): fid for fid, p in zip(ids, pieces)}
+    adjacency = [(by_key[(g["object"], g["a"])], by_key[(g["object"], g["b"])], g["run_px"] * pm)
+                 for g in neighbour_gaps(pieces, near_px=near_px, min_run_px=min_run_px)]
+    return Wall(f"collection-{os.path.basename(os.path.normpath(str(path)))}", frags, adjacency, {}, 0.0, 0.0,
+                float(dpi), params={"source": "collection", "path": str(path), "dpi": dpi, "near_px": near_px,
+                                    "min_run_px": min_run_px})
+
+
+def relative_pose_error(pose_a, pose_b, proposed, centre_b_mm) -> tuple[float, float]:
+    """Angle (degrees) and displacement (mm, at ``centre_b_mm``) between a proposed relative pose of
+    B in A's frame and the one the two fragments' ground-truth poses give.
+
+    ``pose_a``, ``pose_b`` map each fragment's frame into the wall's; ``proposed`` is
+    ``(angle_deg, tx_mm, ty_mm)`` mapping B's frame into A's (:class:`~common.matching.alignment.Alignment`).
+    """
+    def mat(p):
+        a = np.radians(p[0])
+        return np.array([[np.cos(a), -np.sin(a), p[1]], [np.sin(a), np.cos(a), p[2]], [0, 0, 1.0]])
+
+    truth = np.linalg.inv(mat(pose_a)) @ mat(pose_b)
+    prop = mat(proposed)
+    d_angle = np.degrees(np.arctan2(prop[1, 0], prop[0, 0]) - np.arctan2(truth[1, 0], truth[0, 0]))
+    c = np.array([centre_b_mm[0], centre_b_mm[1], 1.0])
+    return float(abs((d_angle + 180) % 360 - 180)), float(np.hypot(*((prop - truth) @ c)[:2]))
+
+
+def within_object_recall(rankings: dict, neighbours: dict, ks=(1, 3)) -> dict:
+    """Hit rate of a fragment's true neighbours among its top-k, ranked within its own object.
+
+    Parameters
+    ----------
+    rankings : dict fragment → list of the other fragments of its object, best first
+    neighbours : dict fragment → set of its true neighbours
+    ks : k values
+
+    Returns
+    -------
+    dict with ``recall`` {k: share of fragments (with ≥ 1 neighbour) that have a true neighbour in
+    their top k}, ``random`` {k: the same expected for a random order}, ``incidence`` {k: share of
+    (fragment, neighbour) links found in the top k} and ``n`` (fragments counted); definitions as
+    in ../shared/data/README.md.
+    """
+    from math import comb
+
+    frags = [f for f in rankings if neighbours.get(f)]
+    out = {"recall": {}, "random": {}, "incidence": {}, "n": len(frags)}
+    for k in ks:
+        hit = inc = links = 0
+        rnd = 0.0
+        for f in frags:
+            top = set(rankings[f][:k])
+            nb = neighbours[f]
+            hit += bool(top & nb)
+            inc += len(top & nb)
+            links += len(nb)
+            n, m = len(rankings[f]), len(nb)
+            kk = min(k, n)
+            # P(at least one neighbour among k drawn of n without replacement)
+            rnd += 1.0 - (comb(n - m, kk) / comb(n, kk) if n - m >= kk else 0.0)
+        out["recall"][int(k)] = hit / len(frags) if frags else float("nan")
+        out["random"][int(k)] = rnd / len(frags) if frags else float("nan")
+        out["incidence"][int(k)] = inc / links if links else float("nan")
+    return out

@@ -1,0 +1,226 @@
+"""Gap-tolerant shape docking of two fragment outlines by FFT correlation (stage 3 of the matcher).
+
+Real broken frescoes lose material along their cracks: on RePAIR's Pompeii frescoes the outlines of
+true neighbours, placed where the archaeologists put them, run 1–8 mm apart (median ≈ 4.5 mm at a
+nominal 150 dpi; ../shared/data/README.md), so a contact test at 1.5 mm (:mod:`alignment`) finds no
+contact at the true pose. Here the two outlines are compared the way protein docking compares two
+molecules (Katchalski-Katzir et al. 1992): fragment A is fixed; for every rotation of fragment B,
+one FFT correlation scores *every* translation at once by
+
+    score(t) = Σ band_A · edge_B(· − t) + Σ edge_A · band_B(· − t) − λ Σ inner_A · mask_B(· − t)
+
+where ``edge`` is an outline one cell wide, ``band`` the ring of width ``gap_mm`` outside a
+fragment (weight 1, tapering to 0 over ``taper_mm``: the material the crack may have lost) and
+``inner`` the fragment eroded by one cell (real neighbours never cover the same ground, λ
+``overlap_weight``). The score is symmetric in A and B and counts, in cells, how much of each
+outline runs within the lost-material band of the other; ``contact_mm`` is half of it times the
+cell size, i.e. the length of shared crack. Pose search is exhaustive (every ``step_deg`` and every
+cell), so it needs no anchor from the colour cues and cannot be trapped by a local optimum; the
+best angle is refined once at a third of the step.
+
+The pose convention is the one of :class:`common.matching.alignment.Alignment`: fragment-frame
+millimetres (x right, y down) and ``p_a = R(angle_deg) @ p_b + t``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: defaults, measured on real fresco cracks (see module docstring and docs/matching.md)
+DOCK_CELL_MM = 1.5
+DOCK_GAP_MM = 8.0
+DOCK_TAPER_MM = 2.0
+DOCK_STEP_DEG = 4.0
+DOCK_OVERLAP_WEIGHT = 3.0
+
+
+@dataclass(frozen=True)
+class Docking:
+    """One docked pose of fragment B against fragment A.
+
+    Attributes
+    ----------
+    angle_deg, tx_mm, ty_mm : float
+        Pose mapping B's frame into A's: ``p_a = R(angle_deg) @ p_b + (tx_mm, ty_mm)``.
+    score : float
+        Correlation score in cells (band contact of both outlines minus weighted overlap).
+    contact_mm : float
+        Length of outline within the other fragment's lost-material band (mean of the two sides).
+    overlap_mm2 : float
+        Area where B covers A's interior (eroded by one cell).
+    """
+
+    angle_deg: float
+    tx_mm: float
+    ty_mm: float
+    score: float
+    contact_mm: float
+    overlap_mm2: float
+
+
+def _raster(points_mm: np.ndarray, cell_mm: float, margin: int) -> tuple[np.ndarray, np.ndarray]:
+    """Filled polygon on a grid of ``cell_mm`` cells; returns (mask uint8, origin in mm of cell (0,0))."""
+    lo = points_mm.min(axis=0) - margin * cell_mm
+    hi = points_mm.max(axis=0) + margin * cell_mm
+    shape = (int(np.ceil((hi[1] - lo[1]) / cell_mm)) + 1, int(np.ceil((hi[0] - lo[0]) / cell_mm)) + 1)
+    mask = np.zeros(shape, np.uint8)
+    shift = 4
+    pts = np.round((points_mm - lo) / cell_mm * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=shift)
+    return mask, lo
+
+
+def _maps(mask: np.ndarray, gap_cells: float, taper_cells: float, near_weight: float = 1.0):
+    """Outline (1 cell), interior eroded by one cell, and the lost-material band outside."""
+    k = np.ones((3, 3), np.uint8)
+    inner = cv2.erode(mask, k)
+    edge = (mask - inner).astype(np.float32)
+    dist = cv2.distanceTransform((1 - mask).astype(np.uint8), cv2.DIST_L2, 3)
+    band = np.clip((gap_cells + taper_cells - dist) / max(taper_cells, 1e-6), 0.0, 1.0)
+    if near_weight != 1.0:  # closer fits count more: weight near_weight at contact, 1 at the band's edge
+        band *= near_weight + (1.0 - near_weight) * np.clip(dist / max(gap_cells, 1e-6), 0.0, 1.0)
+    band[mask > 0] = 0.0
+    return edge, inner.astype(np.float32), band.astype(np.float32), mask.astype(np.float32)
+
+
+def _rotation(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+
+def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm: float = DOCK_CELL_MM,
+                  gap_mm: float = DOCK_GAP_MM, taper_mm: float = DOCK_TAPER_MM, step_deg: float = DOCK_STEP_DEG,
+                  overlap_weight: float = DOCK_OVERLAP_WEIGHT, near_weight: float = 1.0,
+                  n_poses: int = 3) -> list[Docking]:
+    """Dock fragment B against fragment A over every rotation and translation, tolerating lost material.
+
+    Parameters
+    ----------
+    contour_a_mm, contour_b_mm : (M, 2), (N, 2) arrays
+        Closed outlines in each fragment's own frame, mm (x right, y down).
+    cell_mm : float
+        Grid cell of the correlation (1.5 mm: outlines' fine jaggedness is lost along real cracks anyway).
+    gap_mm : float
+        Width of the band outside each outline in which the other's outline counts as facing it: the
+        widest crack (lost material) expected between true neighbours.
+    taper_mm : float
+        The band's weight falls linearly from 1 at ``gap_mm`` to 0 at ``gap_mm + taper_mm``.
+    step_deg : float
+        Rotation step of the exhaustive search (the best angle is refined at ``step_deg / 3``).
+    overlap_weight : float
+        λ: cells of overlap cost this many cells of contact.
+    n_poses : int
+        Distinct poses returned, best first (one per rotation, at least ``2 * step_deg`` apart).
+
+    Returns
+    -------
+    list of Docking, best first.
+
+    References
+    ----------
+    E. Katchalski-Katzir et al., "Molecular surface recognition: determination of geometric fit
+    between proteins and their ligands by correlation techniques", PNAS 89, 1992 (FFT docking);
+    Toler-Franklin, thesis §5.3 (gap and volume-intersection scores of the ribbon matcher).
+
+    Examples
+    --------
+    >>> sq = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float)
+    >>> best = dock_outlines(sq, sq)[0]     # two squares dock side by side
+    >>> bool(best.contact_mm > 30)
+    True
+    """
+    a = np.asarray(contour_a_mm, float)
+    b = np.asarray(contour_b_mm, float)
+    for name, c in (("contour_a_mm", a), ("contour_b_mm", b)):
+        if c.ndim != 2 or c.shape[1] != 2 or len(c) < 3 or not np.all(np.isfinite(c)):
+            raise ValueError(f"{name} must be a finite (M >= 3, 2) array, got shape {c.shape}")
+    if not cell_mm > 0:
+        raise ValueError(f"cell_mm must be positive, got {cell_mm}")
+    if not gap_mm >= 0 or not taper_mm >= 0:
+        raise ValueError(f"gap_mm and taper_mm must be >= 0, got {gap_mm}, {taper_mm}")
+    if not 0 < step_deg <= 90:
+        raise ValueError(f"step_deg must be in (0, 90], got {step_deg}")
+    if n_poses < 1:
+        raise ValueError(f"n_poses must be >= 1, got {n_poses}")
+    gap_c, taper_c = gap_mm / cell_mm, taper_mm / cell_mm
+    margin = int(np.ceil(gap_c + taper_c)) + 2
+    mask_a, origin_a = _raster(a, cell_mm, margin)
+    edge_a, inner_a, band_a, _ = _maps(mask_a, gap_c, taper_c, near_weight)
+    centre_b = b.mean(axis=0)
+    radius_b = float(np.max(np.hypot(*(b - centre_b).T)))
+    side_b = int(np.ceil(2 * radius_b / cell_mm)) + 2 * margin + 3
+    shape = (cv2.getOptimalDFTSize(mask_a.shape[0] + side_b), cv2.getOptimalDFTSize(mask_a.shape[1] + side_b))
+    fa_band, fa_edge, fa_inner = (np.fft.rfft2(m, shape) for m in (band_a, edge_a, inner_a))
+
+    def at(angle):
+        q = (b - centre_b) @ _rotation(angle).T
+        mask_b, origin_b = _raster(q, cell_mm, margin)
+        edge_b, _, band_b, full_b = _maps(mask_b, gap_c, taper_c, near_weight)
+        spec = (fa_band * np.conj(np.fft.rfft2(edge_b, shape)) + fa_edge * np.conj(np.fft.rfft2(band_b, shape))
+                - overlap_weight * fa_inner * np.conj(np.fft.rfft2(full_b, shape)))
+        corr = np.fft.irfft2(spec, shape)
+        i = int(np.argmax(corr))
+        sy, sx = np.unravel_index(i, shape)
+        sy = sy - shape[0] if sy > shape[0] // 2 else sy
+        sx = sx - shape[1] if sx > shape[1] // 2 else sx
+        # A cell = B cell + shift  =>  p_a = R (p_b − c_b) + origin_a − origin_b + cell · shift
+        t = origin_a - origin_b + cell_mm * np.array([sx, sy], float) - _rotation(angle) @ centre_b
+        # overlap and contact at that shift, for reporting
+        shifted = np.zeros_like(mask_a, np.float32)
+        y0, x0 = sy, sx
+        h, w = full_b.shape
+        ys, xs = slice(max(y0, 0), min(y0 + h, shifted.shape[0])), slice(max(x0, 0), min(x0 + w, shifted.shape[1]))
+        if ys.start < ys.stop and xs.start < xs.stop:
+            shifted[ys, xs] = full_b[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0]
+        overlap = float((inner_a * shifted).sum()) * cell_mm ** 2
+        score = float(corr.flat[i])
+        contact = (score + overlap_weight * overlap / cell_mm ** 2) * cell_mm / 2
+        return Docking(float(angle), float(t[0]), float(t[1]), score, float(contact), overlap)
+
+    found = [at(angle) for angle in np.arange(0.0, 360.0, step_deg)]
+    found.sort(key=lambda d: -d.score)
+    best = found[0]
+    for angle in (best.angle_deg - step_deg / 3, best.angle_deg + step_deg / 3):
+        d = at(angle % 360.0)
+        if d.score > found[0].score:
+            found[0] = d
+    distinct: list[Docking] = []
+    for d in found:
+        if all(abs((d.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 for e in distinct):
+            distinct.append(d)
+        if len(distinct) >= n_poses:
+            break
+    return distinct
+
+
+def docking_contact_mm(docking: Docking, cell_mm: float = DOCK_CELL_MM) -> float:
+    """The docking's score as millimetres of shared crack (contact less the overlap's cost)."""
+    return float(docking.score) * cell_mm / 2.0
+
+
+def invert_docking(docking: Docking) -> Docking:
+    """The same docking seen from B: pose of A in B's frame (``p_b = Rᵀ (p_a − t)``)."""
+    r = _rotation(docking.angle_deg)
+    t = -r.T @ np.array([docking.tx_mm, docking.ty_mm])
+    return Docking(-docking.angle_deg, float(t[0]), float(t[1]), docking.score, docking.contact_mm,
+                   docking.overlap_mm2)
+
+
+def hub_corrected(contact_mm, hub_query: float, hub_others, centre: float) -> np.ndarray:
+    """Docking contact less the two fragments' *hubness* (mean contact of their best dockings).
+
+    Large fragments with long straight or convex sides dock along something with almost any other
+    fragment, so their raw contact is high against everything. As for the patch classifier
+    (:mod:`common.matching.index`, CSLS: Conneau et al., ICLR 2018), each pair's contact becomes
+    ``c − ½(μ_a − μ̄) − ½(μ_b − μ̄)``, ``μ`` the mean contact of a fragment's best
+    :data:`DOCK_HUB_TOP` dockings and ``μ̄`` the median over the collection.
+    """
+    c = np.asarray(contact_mm, float)
+    return c - 0.5 * (float(hub_query) - centre) - 0.5 * (np.asarray(hub_others, float) - centre)
+
+
+#: a fragment's docking hubness is the mean contact of its best this many dockings
+DOCK_HUB_TOP = 3
