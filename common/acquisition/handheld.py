@@ -66,9 +66,12 @@ def _convert(raw, path, first, out, sat_out, scale, srgb, saturation):
         raw = raw[..., 0]  # grey (+ alpha)
     if raw.ndim == 2:
         out[...] = (raw / np.float32(scale))[..., None]
+        peak = raw
     else:
         np.multiply(raw[..., :3], np.float32(1.0 / scale), out=out, casting="unsafe")
-    np.greater_equal(out.max(axis=2), saturation, out=sat_out)
+        peak = np.maximum(np.maximum(raw[..., 0], raw[..., 1]), raw[..., 2])  # on the samples: cheaper than floats
+    np.greater_equal(peak, saturation * scale if raw.dtype.kind == "f" else np.ceil(saturation * scale - 1e-9),
+                     out=sat_out)
     if srgb:
         out[...] = srgb_to_linear(out)
     share = float(sat_out.mean())
