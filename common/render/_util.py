@@ -47,7 +47,12 @@ def light_vector(azimuth_deg: float = 135.0, elevation_deg: float = 45.0) -> np.
 
 
 def as_light(light) -> np.ndarray:
-    """A light given as a 3-vector or as ``(azimuth_deg, elevation_deg)``, as a unit 3-vector."""
+    """A light given as a 3-vector or as ``(azimuth_deg, elevation_deg)``, as a unit 3-vector.
+
+    An (H, W, 3) array is a per-pixel light field of unit vectors (a light levelled to a
+    surface's own plane, :func:`common.render.enhance.level_light`), returned as float32."""
+    if isinstance(light, np.ndarray) and light.ndim == 3 and light.shape[2] == 3:
+        return light.astype(np.float32, copy=False)
     arr = np.asarray(light, dtype=np.float64).ravel()
     if arr.size == 2:
         return light_vector(float(arr[0]), float(arr[1]))
@@ -57,7 +62,9 @@ def as_light(light) -> np.ndarray:
 
 
 def dot_light(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """n . l per pixel (float32)."""
+    """n . l per pixel (float32); ``light`` a 3-vector or an (H, W, 3) light field."""
+    if light.ndim == 3:
+        return np.einsum("...i,...i->...", normals, light).astype(np.float32, copy=False)
     return (normals[..., 0] * light[0] + normals[..., 1] * light[1] + normals[..., 2] * light[2]).astype(np.float32)
 
 

@@ -143,15 +143,31 @@ def normal_noise(normals: np.ndarray, mask: np.ndarray | None = None) -> float:
     normals = check_normals(normals)
     mask = check_mask(mask, normals.shape[:2])
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+    res = [[], []]
+    for win in _windows(normals.shape[:2]):
+        m = cv2.erode(mask[win].astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                       borderValue=0) > 0
-    if not inner.any():
+        for c in range(2):  # nx, ny carry the relief; nz is second order for near-flat surfaces
+            r = cv2.filter2D(np.ascontiguousarray(normals[win][..., c]), cv2.CV_32F, kernel,
+                             borderType=cv2.BORDER_REFLECT)
+            res[c].append(np.abs(r[m]))
+    if not sum(a.size for a in res[0]):
         return 0.0
-    sig = []
-    for c in range(2):  # nx, ny carry the relief; nz is second order for near-flat surfaces
-        r = cv2.filter2D(np.ascontiguousarray(normals[..., c]), cv2.CV_32F, kernel, borderType=cv2.BORDER_REFLECT)
-        sig.append(1.4826 * float(np.median(np.abs(_sample(r, inner)))) / 6.0)
-    return float(max(sig))
+    return float(max(1.4826 * float(np.median(np.concatenate(a))) / 6.0 for a in res))
+
+
+def _windows(shape, side: int = 1024, count: int = 5) -> list:
+    """Up to ``count`` windows of ``side`` pixels spread over an image (centre and four quarters;
+    the whole image when it is small): where the noise of a large image is measured."""
+    h, w = shape
+    if h * w <= count * side * side:
+        return [(slice(0, h), slice(0, w))]
+    out = []
+    for fy, fx in ((0.5, 0.5), (0.25, 0.25), (0.25, 0.75), (0.75, 0.25), (0.75, 0.75))[:count]:
+        r0 = int(np.clip(fy * h - side / 2, 0, max(h - side, 0)))
+        c0 = int(np.clip(fx * w - side / 2, 0, max(w - side, 0)))
+        out.append((slice(r0, r0 + side), slice(c0, c0 + side)))
+    return out
 
 
 def block_artefacts(normals: np.ndarray, mask: np.ndarray | None = None, *, block: int = 8) -> float:
@@ -162,9 +178,14 @@ def block_artefacts(normals: np.ndarray, mask: np.ndarray | None = None, *, bloc
     normals = check_normals(normals)
     mask = check_mask(mask, normals.shape[:2])
     ratios = []
+    h, w = normals.shape[:2]
     for axis in (0, 1):
-        d = np.abs(np.diff(normals[..., :2], axis=axis)).sum(axis=2)
-        m = mask[1:] & mask[:-1] if axis == 0 else mask[:, 1:] & mask[:, :-1]
+        # the profile across the blocks needs only a sample of the lines along them (<= 512)
+        step = max(1, (w if axis == 0 else h) // 512)
+        sub = normals[:, ::step, :2] if axis == 0 else normals[::step, :, :2]
+        msub = mask[:, ::step] if axis == 0 else mask[::step]
+        d = np.abs(np.diff(sub, axis=axis)).sum(axis=2)
+        m = msub[1:] & msub[:-1] if axis == 0 else msub[:, 1:] & msub[:, :-1]
         d = np.where(m, d, np.nan)
         valid = m.any(axis=1 - axis)
         prof = np.full(d.shape[axis], np.nan)
@@ -212,6 +233,32 @@ def relief_scale_px(normals: np.ndarray, dpi: float, mask: np.ndarray | None = N
                    "sigma_dpi_px": round(s_dpi, 3)}
 
 
+def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,
+                   full_size: bool = True) -> np.ndarray:
+    """The normal field smoothed at a large ``sigma_px`` (masked, 1/nz-weighted as
+    :func:`common.rgbn.smoothing.smooth_normals`), computed on a grid downsampled by
+    ``max(1, sigma_px // 4)`` and, with ``full_size``, interpolated back: a field that smooth costs
+    almost nothing at a quarter of its sigma per sample."""
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
+    h, w = normals.shape[:2]
+    f = int(max(1, min(sigma_px // 4, min(h, w) // 8)))
+    if f == 1:
+        return smooth_normals(normals, sigma_px, mask=mask)
+    size = (max(1, w // f), max(1, h // f))
+    wgt = np.where(mask, 1.0 / np.maximum(normals[..., 2], 0.05), 0.0).astype(np.float32)
+    small_w = cv2.resize(wgt, size, interpolation=cv2.INTER_AREA)
+    small_n = cv2.resize(normals * wgt[..., None], size, interpolation=cv2.INTER_AREA)
+    small_n /= np.maximum(small_w, 1e-12)[..., None]
+    small_n /= np.maximum(np.linalg.norm(small_n, axis=2, keepdims=True), 1e-12)
+    coarse = smooth_normals(small_n, sigma_px / f, mask=small_w > 0)
+    if not full_size:
+        return coarse
+    out = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    out /= np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
+    return out
+
+
 def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None) -> np.ndarray:
     """Normals relative to the surface's own slow undulation: every normal is rotated by the
     rotation that takes the normal field smoothed at ``sigma_px`` to the view axis (0, 0, 1).
@@ -227,7 +274,7 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     [0.0, 0.0, 1.0]
     """
     normals = check_normals(normals)
-    c = smooth_normals(normals, sigma_px, mask=mask)
+    c = coarse_normals(normals, sigma_px, mask=mask)
     cz = np.maximum(c[..., 2], 1e-3)
     # Rodrigues for the rotation taking c to z: axis v = c x z = (cy, -cx, 0), cos = cz
     vx, vy = c[..., 1], -c[..., 0]
@@ -241,6 +288,34 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     out[..., 2] = nz * cz + (vx * ny - vy * nx)
     out /= np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
     return out
+
+
+def level_light(light, coarse: np.ndarray, shape) -> np.ndarray:
+    """The per-pixel light that lights the normals as :func:`level_normals` would: instead of
+    rotating every normal n by R (which takes the coarse normal c to the view axis), the light is
+    rotated back, ``n . (R^T l) = (R n) . l``. R^T l varies as slowly as c, so it is computed on
+    ``coarse`` (the coarse field, possibly on a downsampled grid, :func:`coarse_normals`) and
+    interpolated to ``shape`` — much cheaper than rotating every normal.
+
+    Returns
+    -------
+    (H, W, 3) float32 unit light directions.
+    """
+    l = as_light(light).astype(np.float32)
+    c = np.asarray(coarse, np.float32)
+    cz = np.maximum(c[..., 2], 1e-3)
+    # R^T rotates z to c: axis u = z x c = (-cy, cx, 0), cos = cz (Rodrigues)
+    ux, uy = -c[..., 1], c[..., 0]
+    k = (ux * l[0] + uy * l[1]) / (1.0 + cz)
+    out = np.empty(c.shape, np.float32)
+    # u x l = (uy lz, -ux lz, ux ly - uy lx)
+    out[..., 0] = l[0] * cz + uy * l[2] + ux * k
+    out[..., 1] = l[1] * cz - ux * l[2] + uy * k
+    out[..., 2] = l[2] * cz + (ux * l[1] - uy * l[0])
+    h, w = shape
+    if out.shape[:2] != (h, w):
+        out = cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
+    return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
 
 
 # ---- colour plus relief -------------------------------------------------------------------------
@@ -286,8 +361,9 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     relief = np.asarray(relief, np.float32)
     if relief.shape != albedo.shape[:2]:
         raise ValueError(f"relief must be {albedo.shape[:2]}, got {relief.shape}")
-    # OpenCV's float RGB2Lab takes sRGB-encoded values in [0, 1] and gives L* in [0, 100]
-    lab = cv2.cvtColor(np.ascontiguousarray(linear_to_srgb(albedo)), cv2.COLOR_RGB2Lab)
+    # OpenCV's float LRGB2Lab takes linear RGB in [0, 1] and gives L* in [0, 100]; Lab2RGB gives
+    # sRGB-encoded values back (its own gamma tables: no per-pixel power here)
+    lab = cv2.cvtColor(np.ascontiguousarray(np.clip(albedo, 0.0, 1.0)), cv2.COLOR_LRGB2Lab)
     L = lab[..., 0]
     if exposure is not None:
         lo, hi = float(exposure[0]), float(exposure[1])
@@ -313,7 +389,7 @@ def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple
         flat = flat[:: int(np.ceil(flat.shape[0] / _SAMPLE))]
     if flat.shape[0] == 0:
         return 5.0, 95.0
-    L = cv2.cvtColor(np.ascontiguousarray(linear_to_srgb(flat)[None]), cv2.COLOR_RGB2Lab)[0, :, 0]
+    L = cv2.cvtColor(np.ascontiguousarray(np.clip(flat, 0.0, 1.0)[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]
     lo, hi = robust_range(L, clip_percent=5.0)
     if lo <= 20.0 and hi >= 80.0:
         return 20.0, 80.0
@@ -427,7 +503,7 @@ def specular_enhancement(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np
         raise ValueError(f"exponent must be > 0, got {exponent}")
     l = as_light(light)
     h = l + np.array([0.0, 0.0, 1.0], np.float32)
-    h /= np.linalg.norm(h)
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
     diffuse = np.maximum(dot_light(normals, l), 0.0) * np.float32(kd)
     spec = np.float32(ks) * np.maximum(dot_light(normals, h), 0.0) ** np.float32(exponent)
     base = np.full(normals.shape, 0.75, np.float32) if albedo is None else np.asarray(albedo, np.float32)

@@ -150,31 +150,48 @@ def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exp
     return rng
 
 
-def _smoothed(image: RGBNImage, sigma_px: float, level=None, resolved: dict | None = None) -> np.ndarray:
-    """Normals smoothed at ``sigma_px``; with ``level`` ("auto", true/false or a sigma in px)
-    also levelled (:func:`common.render.enhance.level_normals`): "auto" levels a near-flat
-    surface — the coarse normals all point nearly one way (length of their mean > 0.95: a
-    painting, a relief, even when near lights tilted the whole solve) — and leaves a curved
-    object (a ball: about 0.7) alone."""
+def _smoothed(image: RGBNImage, sigma_px: float) -> np.ndarray:
     from common.rgbn.smoothing import smooth_normals
 
-    n = smooth_normals(image.normals, sigma_px, mask=image.mask) if sigma_px > 0 else image.normals
-    if level is None:
-        return n
+    return smooth_normals(image.normals, sigma_px, mask=image.mask) if sigma_px > 0 else image.normals
+
+
+def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
+    """Scale (px) of the undulation that levelling removes, 0 for none: ``level`` is "auto",
+    true/false or a number. "auto" levels a near-flat surface — its coarse normals all point
+    nearly one way (length of their mean > 0.95: a painting, a relief, even when near lights
+    tilted the whole solve) — and leaves a curved object (a ball: about 0.7) alone."""
+    sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
     if _is_auto(level):
-        sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
-        coarse = smooth_normals(image.normals, sigma, mask=image.mask)
-        mean = [float(np.mean(_enhance._sample(coarse[..., i], image.mask))) for i in range(3)] \
-            if image.mask.any() else [0.0, 0.0, 0.0]
-        flat = float(np.linalg.norm(mean)) > 0.95
-        level = sigma if flat else 0.0
-    elif level is True:
-        level = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
-    elif level is False:
-        level = 0.0
-    if resolved is not None:
-        resolved["level"] = float(level)
-    return _enhance.level_normals(n, float(level), mask=image.mask) if level > 0 else n
+        coarse = _coarse(image, sigma)
+        mean = coarse.reshape(-1, 3).mean(axis=0) if image.mask.any() else np.zeros(3)
+        level = sigma if float(np.linalg.norm(mean)) > 0.95 else 0.0
+    elif isinstance(level, bool):
+        level = sigma if level else 0.0
+    resolved["level"] = float(level)
+    return float(level)
+
+
+def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
+    k = ("coarse", id(image.normals), image.shape, sigma)
+    if k not in _cache:
+        _cache[k] = _enhance.coarse_normals(image.normals, sigma, mask=image.mask, full_size=False)
+    return _cache[k]
+
+
+def _light(image: RGBNImage, light, level, resolved: dict):
+    """The light, or for a levelled surface the per-pixel light that rakes it relative to its own
+    slow undulation (:func:`common.render.enhance.level_light`)."""
+    sigma = _level_sigma(image, level, resolved)
+    if sigma <= 0:
+        return light
+    return _enhance.level_light(light, _coarse(image, sigma), image.shape)
+
+
+def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:
+    """The normals levelled (:func:`common.render.enhance.level_normals`) when ``level`` says so."""
+    sigma = _level_sigma(image, level, resolved)
+    return _enhance.level_normals(image.normals, sigma, mask=image.mask) if sigma > 0 else image.normals
 
 
 def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
@@ -185,8 +202,8 @@ def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
 
 def _lit(image, light, ambient, colour, exposure, sigma_px, level, colour_exposure) -> Layer:
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"), level, r)
-    shade = _shading.lambertian(n, light, ambient=ambient)
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
+    shade = _shading.lambertian(n, _light(image, light, level, r), ambient=ambient)
     if colour:
         # the exposed colour, lit: relief on the lightness, the shade's median = the colour as is
         lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
@@ -222,7 +239,8 @@ def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: 
 
     The normals are smoothed at 3x the noise scale first, so bands follow the shape, not noise."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=3.0), level, r)
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=3.0))
+    light = _light(image, light, level, r)
     colours = None
     if n_colours > 0:
         shown = _exposed_colour(image, colour_exposure, r, "colour_exposure")
@@ -240,7 +258,8 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
                colour_exposure="auto", exposure="auto") -> Layer:
     """Gooch warm/cool shading (technical illustration of shape: its hues are not the object's)."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=2.0), level, r)
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=2.0))
+    light = _light(image, light, level, r)
     kd = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
     out = _shading.gooch(n, light, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
     # Gooch compresses lightness into its warm-cool ramp: expose the result's lightness (hues kept)
@@ -319,7 +338,8 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
                   colour_exposure="auto") -> Layer:
     """Specular enhancement (Malzbender et al. 2001): the surface drawn as glossy, highlights show slope."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"), level, r)
+    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
+    light = _light(image, light, level, r)
     base = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
     out = _enhance.specular_enhancement(n, light, albedo=base, kd=kd, ks=ks, exponent=exponent,
                                         clip=False)
@@ -391,7 +411,7 @@ def draw_suggestive_contours(image: RGBNImage, radius_px: float = 4.0, fraction:
     """Image-space suggestive contours (DeCarlo et al. 2003), faded where the surface faces the viewer (§7.3.4)."""
     r = {}
     s = _noise_px(image, sigma_px, r, "sigma_px", factor=2.0)
-    n = _smoothed(image, 0.0, level, r)  # "facing the viewer" relative to a near-flat surface's plane
+    n = _levelled(image, level, r)  # "facing the viewer" relative to a near-flat surface's plane
     return _ink(_lines.suggestive_contours(n, mask=image.mask, radius_px=radius_px, fraction=fraction,
                                            depth=depth, min_length_px=min_length_px, sigma_px=s,
                                            width_px=width_px, fade_deg=fade_deg), line_colour, r)
@@ -403,7 +423,7 @@ def draw_suggestive_contours_object(image: RGBNImage, sigma_px="auto", threshold
     """Object-space suggestive contours from curvature derivatives, faded where facing the viewer (§7.3.4)."""
     r = {}
     s = _noise_px(image, sigma_px, r, "sigma_px", factor=2.0, floor=2.0)
-    n = _smoothed(image, 0.0, level, r)
+    n = _levelled(image, level, r)
     return _ink(_lines.suggestive_contours_object(n, image.dpi, mask=image.mask, sigma_px=s,
                                                   threshold=threshold, min_length_px=min_length_px,
                                                   width_px=width_px, fade_deg=fade_deg), line_colour, r)
@@ -789,6 +809,12 @@ def _preprocess(image: RGBNImage, pre: dict) -> RGBNImage:
 
 
 def _blend(base: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, mode: str) -> np.ndarray:
+    if mode == "normal":
+        on = alpha >= 1.0
+        if np.count_nonzero(on) + np.count_nonzero(alpha <= 0.0) == alpha.size:
+            # coverage is all or nothing (a shading style on its mask): a copy, not a mix
+            np.copyto(base, rgb, where=on[..., None])
+            return base
     a = alpha[..., None]
     if mode == "normal":
         top = rgb

@@ -94,7 +94,8 @@ def per_megapixel(size: int = 1024) -> dict:
 
 
 def child(style: str, size: int) -> None:
-    """Render one style at size x size and print seconds and peak RSS (run in a fresh process)."""
+    """Render one style at size x size and print wall and CPU seconds, peak RSS and the tone range
+    used (run in a fresh process)."""
     from common.render.recipes import load_recipe, render, style_recipe
 
     import gc
@@ -103,12 +104,27 @@ def child(style: str, size: int) -> None:
     gc.collect()
     input_mb = _status_mb("VmRSS")
     reset = _reset_peak()  # so the peak is the rendering's, not the test image generator's
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     recipe = load_recipe(style[len("recipe-"):]) if style.startswith("recipe-") else style_recipe(style)
-    render(img, recipe)
-    seconds = time.perf_counter() - t
+    drawn = render(img, recipe)
+    seconds, cpu = time.perf_counter() - t, time.process_time() - c
     peak_mb = _status_mb("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"style": style, "seconds": seconds, "peak_rss_mb": peak_mb, "rss_before_mb": input_mb}))
+    span, clipped = tone_range(drawn.rgb, img.mask)
+    print(json.dumps({"style": style, "seconds": seconds, "cpu_seconds": cpu, "peak_rss_mb": peak_mb,
+                      "rss_before_mb": input_mb, "tone_span": span, "clipped": clipped}))
+
+
+def tone_range(rgb: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(5th-95th percentile span of the luminance on the fragment as a share of the range, share of
+    fragment pixels with a channel at 0 or full scale) of a drawn image (float or 8/16-bit)."""
+    full = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(rgb.dtype, 1.0)
+    step = max(1, int(np.sqrt(mask.size / 4e6)))  # a regular subsample of <= ~4 Mpx
+    sub, m = rgb[::step, ::step].astype(np.float32) / np.float32(full), mask[::step, ::step]
+    lum = (sub @ np.array([0.2126, 0.7152, 0.0722], np.float32))[m]
+    p5, p95 = np.percentile(lum, [5, 95]) if lum.size else (0.0, 0.0)
+    q = np.round(sub[m] * 255)
+    clipped = float(np.mean((q.max(axis=1) >= 255) | (q.min(axis=1) <= 0))) if lum.size else 0.0
+    return float(p95 - p5), clipped
 
 
 def _status_mb(key: str) -> float:
