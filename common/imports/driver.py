@@ -49,8 +49,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Protocol, Sequence
 
-from common.messages import new_message
-from common.store import ArtifactRef, Store, content_key, file_sha256
+from common.messages import MessageError, new_message
+from common.store import ArtifactError, ArtifactRef, Store, content_key, file_sha256
 
 log = logging.getLogger("tessera.imports")
 
@@ -268,25 +268,26 @@ def _one(item, convert, sink, kind, version, ledger, summary) -> None:
         try:
             outputs, used = convert(item, store), store
             break
-        except ValueError as exc:  # ImportRefused and the library's ValueErrors: bad input
-            summary.refused.append((item.name, str(exc)))
-            return
-        except OSError as exc:
+        except OSError as exc:  # first: storage errors (unreachable, full, read-only) are OSErrors
             if k + 1 < len(stores) and not isinstance(exc, FileNotFoundError):
                 log.warning("writing %s to %s failed (%s); using %s", item.name, store.root, exc, stores[k + 1].root)
                 continue
             summary.refused.append((item.name, f"{type(exc).__name__}: {exc}"))
             return
+        except (ValueError, ArtifactError) as exc:  # ImportRefused, the library's ValueErrors, a bad path
+            summary.refused.append((item.name, str(exc)))
+            return
         except Exception as exc:  # a bug must not stop a folder of hundreds; it is reported
             log.exception("import of %s failed", item.name)
             summary.refused.append((item.name, f"internal error {type(exc).__name__}: {exc}"))
             return
-    events = []
-    for out in outputs or []:
-        fields = {"fragment": item.fragment, **out.fields}
-        event = new_message(out.type, artifact=out.ref, **fields)
-        if sink.emit(event, out.ref, used):
-            events.append(event["uid"])
+    try:
+        announced = [new_message(out.type, artifact=out.ref, **{"fragment": item.fragment, **out.fields})
+                     for out in outputs or []]
+    except MessageError as exc:  # e.g. an id the message schema refuses: nothing announced, nothing recorded
+        summary.refused.append((item.name, f"cannot announce it: {exc}"))
+        return
+    events = [event["uid"] for event, out in zip(announced, outputs or []) if sink.emit(event, out.ref, used)]
     summary.events += len(events)
     ledger.add({"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
                 "face": item.face, "sources": [os.fspath(p) for p in item.sources],

@@ -100,3 +100,41 @@ def test_progress_bar_reports_every_item():
     assert "1/2 a.png" in text and "100.0%" in text
     with pytest.raises(ValueError, match="total"):
         ProgressBar(-1)
+
+
+def test_an_event_the_schema_refuses_is_a_refusal_not_a_crash(tmp_path):
+    item = _items(tmp_path, 1)[0]
+    item.fragment = "bad id"           # a valid directory name, not a valid fragment id in a message
+    s = run_import([item], _convert([]), StoreSink(Store(tmp_path / "store")), kind="t", version="1")
+    assert s.refused and "cannot announce it" in s.refused[0][1]
+    assert not (tmp_path / "store" / "imports" / "ledger.jsonl").exists()
+
+
+def test_a_storage_error_falls_back_to_the_next_store(tmp_path):
+    """Shared storage full or read-only mid-import: the item goes to the spool (the sink's next store)."""
+    from common.store import StorageFull
+
+    shared, spool = Store(tmp_path / "shared"), Store(tmp_path / "spool")
+    emitted = []
+
+    class TwoStores:
+        ledger_dir = tmp_path / "ledger"
+
+        def stores(self):
+            return [shared, spool]
+
+        def emit(self, event, ref, store):
+            emitted.append((event["type"], ref.path, store is spool))
+            return True
+
+    inner = _convert([])
+
+    def convert(item, store):
+        if store is shared:
+            raise StorageFull(f"no space left on {store.root}")
+        return inner(item, store)
+
+    s = run_import(_items(tmp_path, 2), convert, TwoStores(), kind="t", version="1")
+    assert s.imported == ["f0.bin", "f1.bin"] and s.events == 2
+    assert [e[2] for e in emitted] == [True, True]
+    assert all(spool.exists(e[1]) and not shared.exists(e[1]) for e in emitted)
