@@ -21,6 +21,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from common.acquisition.errors import CalibrationError
@@ -178,13 +179,20 @@ class TargetReading:
         return self.clipped / max(self.pixels, 1)
 
 
-def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98) -> TargetReading:
-    """Median reading of the calibration target over its central part, with its clipped pixels counted.
+def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_deg: float = 0.0,
+                direction_deg: float = 0.0, at_glass: bool = True) -> TargetReading:
+    """Reading of the calibration target where it lies on the glass, with its clipped pixels counted.
 
     The target is found by :func:`~common.acquisition.locate.fragment_mask` (the scan's outer ring
     is the bed); a scan cropped to the target itself (no ring of bed) has no such mask and is
-    measured whole. The central half of the target (between the 25th and 75th percentiles of its
-    rows and columns) is used: away from its edges and their shadows.
+    measured whole. Its inner part (the target shrunk by a quarter of its size on every side, away
+    from its edges and their shadows) is used. An untilted target's reading is the median there.
+    A tilted target lies on the glass along its edge opposite ``direction_deg`` and rises from it,
+    and a scanner's light changes with the distance from the glass (about 1 % per mm), while a
+    fragment's face lies on the glass: the reading is therefore fitted along the tilt direction,
+    ``I(s) = c0 + c1 s`` with ``s`` the distance from that edge, and ``c0`` (the reading at the
+    glass) returned. With ``at_glass=False`` the median of the inner part is returned whatever the
+    tilt (the reading at the target's mean height above the glass).
 
     Parameters
     ----------
@@ -194,6 +202,10 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98) -> Ta
         Scan resolution.
     saturation : float
         A pixel with any channel at or above this fraction of full scale counts as clipped.
+    tilt_deg, direction_deg : float
+        The target's pose (:func:`target_normal`); direction on the image counter-clockwise from +x.
+    at_glass : bool
+        Extrapolate a tilted target's reading to the edge lying on the glass.
     """
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi}")
@@ -207,14 +219,27 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98) -> Ta
         whole = True
         mask = np.ones(img.shape[:2], bool)
     rows, cols = np.nonzero(mask)
-    r0, r1 = (int(v) for v in np.percentile(rows, [25, 75]))
-    c0, c1 = (int(v) for v in np.percentile(cols, [25, 75]))
-    sel = mask[r0:r1 + 1, c0:c1 + 1]
-    px = img[r0:r1 + 1, c0:c1 + 1][sel]
-    if len(px) < 16:
+    size = min(np.ptp(rows), np.ptp(cols)) + 1
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(1, int(size // 4))) > 0
+    if inner.sum() < 16:
         raise CalibrationError("calibration target not visible in its scan")
+    ri, ci = np.nonzero(inner)
+    px = img[ri, ci]
     clipped = int(((px >= saturation) | (px <= 0)).any(axis=1).sum())
-    return TargetReading(float(np.median(px.mean(axis=1))), int(len(px)), clipped, whole)
+    lum = px.mean(axis=1)
+    value = float(np.median(lum))
+    if at_glass and tilt_deg > 0.5:
+        # distance from the edge lying on the glass, along the tilt direction (image: col right, row down)
+        u = np.array([np.cos(np.deg2rad(direction_deg)), -np.sin(np.deg2rad(direction_deg))])
+        s_all = cols * u[0] + rows * u[1]
+        s = (ci * u[0] + ri * u[1] - s_all.min()) * 25.4 / dpi
+        X = np.stack([np.ones_like(s), s], axis=1)
+        coef, *_ = np.linalg.lstsq(X, lum, rcond=None)
+        resid = lum - X @ coef
+        keep = np.abs(resid) < 4 * 1.4826 * np.median(np.abs(resid)) + 1e-9     # dust, specks
+        coef, *_ = np.linalg.lstsq(X[keep], lum[keep], rcond=None)
+        value = float(coef[0])
+    return TargetReading(value, int(len(px)), clipped, whole)
 
 
 def measure_target(scan: np.ndarray, dpi: float) -> float:
@@ -257,7 +282,9 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
             pre = scanner.scan(None, prescan_dpi, depth)
             area = locate_fragment(pre, prescan_dpi, margin_mm=3.0, bed_mm=scanner.bed_mm)
         img = scanner.scan(area, dpi, depth)
-        readings.append(read_target(img, dpi, saturation=saturation))
+        # the station's own path keeps the inner median (its figures were measured so); --from-files
+        # reads at the glass (issue 16: a held-out scanner's lamp whose light changes with height)
+        readings.append(read_target(img, dpi, saturation=saturation, tilt_deg=t, direction_deg=a, at_glass=False))
     return fit_target_readings(getattr(scanner, "name", "scanner"), readings, [p[0] for p in poses],
                                [p[1] for p in poses], names=[f"tilt {t:g}° rotation {a:g}°" for t, a in poses],
                                dpi=dpi, depth=depth, target_albedo=target_albedo, max_clipped=max_clipped)
@@ -339,6 +366,10 @@ def fit_calibration(scanner: str, normals: np.ndarray, intensities: np.ndarray, 
     order = 2 if np.isfinite(cv["second"]) and cv["second"] < 0.75 * cv["first"] else 1
     if a[2] + a[3] <= 0 or not np.all(np.isfinite(a)):
         raise CalibrationError(f"calibration fit is not physical (a = {a}); check the target scans")
+    if a[2] <= 0:      # eq. 3.7 divides by a_z: the normal solve needs the reading to grow with n_z
+        raise CalibrationError(f"calibration fit is not usable: a_z = {a[2]:.4f} <= 0 (the readings do not fall as "
+                               "the target tilts away from the sensor); check the tilt columns, the target's "
+                               "flatness and that the exposure did not change between scans")
     return Calibration(scanner=scanner, a=a, second_order=q, cv_rmse=cv, order=order, normals=normals,
                        intensities=intensities, **kw)
 

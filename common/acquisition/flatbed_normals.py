@@ -229,6 +229,8 @@ def _solve_samples(pix: np.ndarray, valid: np.ndarray | None, shape, idx, angles
     """The solve on gathered samples: ``pix`` (K, N, 3) float32 at the flat pixel indices ``idx``."""
     K, N = pix.shape[:2]
     H, W = shape
+    if not (np.asarray(a).shape == (4,) and a[2] > 0):
+        raise CalibrationError(f"lamp coefficients a must be 4 numbers with a_z > 0, got {a}")
     A = light_rows(a, angles_deg).astype(np.float32)
     c = np.float32(a[3] / a[2])
     # the noise level for shadow rejection, from a subsample of pixels with every sample usable

@@ -22,7 +22,9 @@ TIFF, 8/16-bit, grey or RGB). The manifest is a CSV file with a header and the c
 normal and the glass's normal; ``tilt_direction_deg`` is the direction, on the scan image as it
 is displayed, towards which the normal leans: 0 = towards the image's right edge (increasing
 column), 90 = towards its top edge (decreasing row), counter-clockwise on screen — the target's
-edge on that side is the one lifted off the glass. Each scan shows the target with a ring of bed
+edge on that side is the one lifted off the glass, the opposite edge lies on it (the reading is
+taken there, by a linear fit along the tilt direction: the light changes with the distance from
+the glass, and fragments lie on it). Each scan shows the target with a ring of bed
 around it, or is a crop of the target alone. Scans with more than ``--max-clipped`` of the target's
 pixels clipped (saturated, or at 0) are dropped and listed; the report gives each file's reading,
 clipped pixels and fit residual. Every file is checked at the door (decodes fully, not blank);
@@ -198,7 +200,7 @@ def _from_files(args, store) -> int:
             if float(px.max()) < BLACK_FRACTION * img.full_scale:
                 raise ImportRefused(f"{path}: is all black: lamp off or lid open?")
             try:
-                readings.append(read_target(px, args.dpi))
+                readings.append(read_target(px, args.dpi, tilt_deg=tilt, direction_deg=direction))
             except CalibrationError as exc:
                 raise ImportRefused(f"{path}: {exc}") from exc
             bar.update(i + 1)

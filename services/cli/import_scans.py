@@ -13,11 +13,12 @@ The scans of a face are given in the order they were taken, the fragment turned 
 between them; ``--turn`` says which way, clockwise or counter-clockwise as seen on the scan
 image, or ``auto`` (default): both are tried in registration and the one that registers is kept
 (and recorded). A given direction the scans contradict is refused with the direction to give.
+``--crop`` is for whole-bed scans: the fragment's region is where the scans of a face differ
+(the fragment turns, the bed, a frame or jig and rulers do not), cut with a margin from each.
 Files: PNG or TIFF, 8 or 16-bit (float TIFF: linear, full scale 1), RGB, RGBA (alpha dropped)
 or grey (three equal channels: grey albedo). Values are taken as linear (what a scanner gives
-with its gamma set to 1.0); ``--srgb`` decodes sRGB-encoded files first. ``--crop`` finds the
-fragment in whole-bed scans and keeps its region plus a margin (scans must otherwise show the
-fragment with a ring of bed around it). Normals need at least 3 scans per face; one scan per
+with its gamma set to 1.0); ``--srgb`` decodes sRGB-encoded files first. Without ``--crop`` the
+scans must show the fragment with a ring of bed around it. Normals need at least 3 scans per face; one scan per
 face is imported colour-only with ``--colour-only``.
 
 The manifest is a CSV file with the columns ``file`` and ``fragment`` (or ``inventory``), and
@@ -125,12 +126,25 @@ def _read_scan(path: Path, opts: dict) -> tuple[np.ndarray, tuple]:
         px = np.rint(srgb_to_linear(px.astype(np.float32) / img.full_scale) * 65535).astype(np.uint16)
     dpi = opts["dpi"]
     area = (0.0, 0.0, px.shape[1] * 25.4 / dpi, px.shape[0] * 25.4 / dpi)
-    if opts["crop"]:
+    if opts["crop"] and opts.get("single", False):
         try:
             px, area = crop_to_fragment(px, dpi)
         except CaptureError as exc:
             raise ImportRefused(f"{path}: {exc}") from None
     return np.ascontiguousarray(px), area
+
+
+def _crop_face(scans: list, paths: list, dpi: float) -> list:
+    """Whole-bed scans of one face -> the region where they differ (the turned fragment), cut from each."""
+    from common.acquisition.errors import CaptureError
+    from common.acquisition.locate import locate_changing
+    try:
+        x0, y0, x1, y1 = locate_changing([s[0] for s in scans], dpi)
+    except (CaptureError, ValueError) as exc:
+        raise ImportRefused(f"{paths[0]} ... {Path(paths[-1]).name}: {exc}") from None
+    p = 25.4 / dpi
+    c0, r0, c1, r1 = int(np.floor(x0 / p)), int(np.floor(y0 / p)), int(np.ceil(x1 / p)), int(np.ceil(y1 / p))
+    return [(np.ascontiguousarray(px[r0:r1, c0:c1]), (c0 * p, r0 * p, c1 * p, r1 * p)) for px, _ in scans]
 
 
 def convert(item: ImportItem, store) -> list[Output]:
@@ -145,9 +159,13 @@ def convert(item: ImportItem, store) -> list[Output]:
     result = CaptureResult(item.fragment, opts["device"], {}, colour_only=opts["colour_only"])
     turns = {}
     for face, paths in files.items():
-        scans = [_read_scan(Path(p), opts) for p in paths]
+        scans = [_read_scan(Path(p), {**opts, "single": len(paths) < 2}) for p in paths]
         if scans and len({s[0].dtype for s in scans}) > 1:
             raise ImportRefused(f"{paths[0]}: the {face} scans mix 8-bit and 16-bit files; export them alike")
+        if opts["crop"] and len(scans) >= 2:
+            if len({s[0].shape[:2] for s in scans}) > 1:
+                raise ImportRefused(f"{paths[0]}: --crop needs the {face} scans to be whole-bed scans of one size")
+            scans = _crop_face(scans, paths, opts["dpi"])
         if opts["colour_only"]:
             if len(scans) > 1:
                 raise ImportRefused(f"{paths[1]}: --colour-only takes one scan per face, {len(scans)} given for "

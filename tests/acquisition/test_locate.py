@@ -175,3 +175,39 @@ def test_lid_texture_reaching_the_region_edge_is_not_fragment():
     m = fragment_mask(_as_scan(img, rng), 100)
     assert not m[:18].any()
     assert m[27:53, 17:43].all()
+
+
+def _ribbed_bar(length_mm, width_mm, dpi=25):
+    """A dark ribbed bar of a frame or jig (like the bars around the real coin scans)."""
+    h, w = int(width_mm / 25.4 * dpi), int(length_mm / 25.4 * dpi)
+    rows = np.arange(h)[:, None] * np.ones((1, w))
+    height = (0.6 * np.sin(2 * np.pi * rows * 25.4 / dpi / 3.0)).astype(np.float32)
+    albedo = np.full((h, w, 3), 0.04, np.float32) * (1 + 0.3 * np.sin(rows * 1.3))[..., None].astype(np.float32)
+    return FragmentSurface(albedo=albedo, height_mm=height, mask=np.ones((h, w), bool), dpi=dpi, thickness_mm=6.0)
+
+
+def test_a_fragment_turned_inside_a_frame_of_bars_is_found_by_what_changes_between_scans():
+    from common.acquisition.locate import locate_changing
+    sim = SimulatedFlatbed(bed_mm=(160, 200), seed=3, dust=0)
+    sim.place(demo_surface(25, 50, seed=5), angle_deg=10, centre_mm=(80, 100))
+    for centre, angle, size in [((80, 25), 0, (140, 25)), ((80, 175), 0, (140, 25)),
+                                ((15, 100), 90, (190, 18)), ((145, 100), 90, (190, 18))]:
+        sim.add(_ribbed_bar(*size), angle_deg=angle, centre_mm=centre)
+    scans = []
+    for k in range(4):
+        if k:
+            sim._items[0].angle_deg += 90 + 5 * k          # the operator turns the fragment, not the frame
+        scans.append(sim.scan(None, 50))
+    # what changes between the scans is the fragment, wherever the frame is
+    x0, y0, x1, y1 = locate_changing(scans, 50)
+    assert x0 < 80 - 12 and x1 > 80 + 12 and y0 < 100 - 12 and y1 > 100 + 12       # the whole fragment ...
+    assert x1 - x0 < 60 and y1 - y0 < 60                                          # ... and not the frame
+
+
+def test_nothing_changing_between_scans_is_said():
+    from common.acquisition.locate import locate_changing
+    sim = SimulatedFlatbed(bed_mm=(100, 100), seed=3, dust=0)
+    sim.place(demo_surface(25, 50, seed=5), centre_mm=(50, 50))
+    scans = [sim.scan(None, 50) for _ in range(2)]
+    with pytest.raises(NoFragmentError, match="turned"):
+        locate_changing(scans, 50)
