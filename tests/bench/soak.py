@@ -11,7 +11,16 @@ loopback. Fragments are submitted in bench-like batches while a chaos thread
 * kills the broker once (SIGKILL, at 40 % of the submissions) and restarts it on the same journal,
 * cuts one "worker host" off for ``--cut-s`` seconds (both workers of one set are frozen with
   SIGSTOP, so the broker sees them go silent as across a broken link, then SIGCONT: they come back
-  with results for jobs the broker has meanwhile given to others).
+  with results for jobs the broker has meanwhile given to others),
+
+and, unless ``--no-attacks`` (issue 19; the storage faults need root: the storage root is then a
+tmpfs mount of its own),
+
+* fills the storage for ``--full-s`` seconds (a ballast file takes every free byte, at 20 %),
+* remounts the storage read-only for ``--ro-s`` seconds (at 30 %),
+* sends a forged ``RESULT`` for a queued solver job from a peer that never registered (at 50 %),
+* floods the broker with ``--garbage`` malformed frames from four sockets (at 70 %),
+* probes STATUS every 0.5 s throughout and times each answer.
 
 At the end (jobs parked after repeated kills are re-run once, as an operator would; after the
 workers stop, the temporary-file sweep of ``tessera reconcile`` runs and its removals are printed)
@@ -21,7 +30,9 @@ front face; a job still parked is re-run once in-process without faults (a fragm
 stage refuses again the same way, e.g. scans that cannot be registered, is listed as refused:
 its error event is the right outcome and its missing outputs are not losses; any other parked job
 or missing output fails the soak); the resident memory of the long-running processes did not keep growing
-(median of the last quarter of samples vs the first quarter). Exit status 0 if all hold.
+(median of the last quarter of samples vs the first quarter); with the attacks: no forged event
+was published, the catch-up history starts at 1 and has no gap, and every STATUS probe outside the
+broker's restart was answered within 100 ms. Exit status 0 if all hold.
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ import random
 import shutil
 import signal
 import statistics
+import subprocess
 import sys
 import threading
 import time
@@ -64,6 +76,110 @@ def _captured(source: Path, root: Path, n: int) -> list[dict]:
             for p in scans]
 
 
+def _storage_on_tmpfs(storage: Path, headroom_mb: int) -> bool:
+    """Move ``storage`` onto a tmpfs mount of its own (its size + headroom); False if not possible."""
+    if os.geteuid() != 0:
+        return False
+    staged = storage.with_name(storage.name + ".staged")
+    storage.rename(staged)
+    storage.mkdir()
+    used_mb = sum(f.stat().st_size for f in staged.rglob("*") if f.is_file()) // 2**20
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={used_mb + headroom_mb}m", "tmpfs", str(storage)],
+                       capture_output=True, text=True)
+    if r.returncode:
+        storage.rmdir()
+        staged.rename(storage)
+        print(f"  (no tmpfs for the storage: {r.stderr.strip()}; disk-full and read-only faults skipped)", flush=True)
+        return False
+    shutil.copytree(staged, storage, dirs_exist_ok=True)
+    shutil.rmtree(staged)
+    return True
+
+
+def _fill_disk(path: Path) -> int:
+    """Write zeros into ``path`` until the file system is full; returns the bytes written."""
+    n = 0
+    with open(path, "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * (1 << 20))
+                fh.flush()
+                n += 1 << 20
+        except OSError:
+            pass
+    return n
+
+
+def _garbage_frames(rng: random.Random):
+    from common.bus import protocol as P
+    kinds = [
+        lambda: [b"garbage"],
+        lambda: [b"", b"XX9", b"HELLO"],
+        lambda: [b"", P.CLIENT, P.SUBMIT, b"t", b"\xc1" + os.urandom(rng.randint(0, 40))],
+        lambda: [b"", P.CLIENT, P.SUBMIT, b"t", P.dumps({"v": 1, "type": "noop.job", "uid": 2 ** 64 - 1, "time": 1.0})],
+        lambda: [b"", P.WORKER, P.RESULT, b"0123456789ab-solver", P.dumps([])],
+        lambda: [os.urandom(rng.randint(0, 30)) for _ in range(rng.randint(1, 5))],
+    ]
+    while True:
+        yield rng.choice(kinds)()
+
+
+def _flood(endpoint: str, n: int, seconds: float, seed: int) -> float:
+    """Send ``n`` malformed frames to the broker over ``seconds``; returns the seconds it took."""
+    import zmq
+    ctx = zmq.Context()
+    socks = []
+    for _ in range(4):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 0)
+        sock.connect(endpoint)
+        socks.append(sock)
+    rng = random.Random(seed)
+    frames = _garbage_frames(rng)
+    t0 = time.monotonic()
+    try:
+        for i in range(n):
+            socks[i % 4].send_multipart(next(frames))
+            if i % 1000 == 999:
+                for sock in socks:  # drop the ERR replies
+                    while sock.poll(0):
+                        sock.recv_multipart()
+                behind = t0 + seconds * (i + 1) / n - time.monotonic()
+                if behind > 0:
+                    time.sleep(behind)
+    finally:
+        ctx.destroy(linger=0)
+    return time.monotonic() - t0
+
+
+def _forge_result(endpoint: str, client) -> str | None:
+    """Send RESULT for the newest solver job from a peer that never said READY; returns the job id."""
+    import zmq
+
+    from common.bus import protocol as P
+    from common.messages import new_message
+    last = client.status()["last_seq"]
+    r = client.since(max(0, last - 500), 1000, types=["fragment.ready"])
+    if not r["events"]:
+        return None
+    ev = unpack(r["events"][-1][1])
+    jid = f"{ev['uid'][:12]}-solver"
+    forged = new_message("rgbn.ready", fragment=ev["fragment"], face="front", forged=True,
+                         artifact={"path": f"fragments/{ev['fragment']}/rgbn/front-forged.h5", "sha256": "0" * 64,
+                                   "bytes": 1})
+    ctx = zmq.Context()
+    try:
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 500)
+        sock.connect(endpoint)
+        sock.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), P.dumps([forged])])
+        sock.poll(2000)
+    finally:
+        ctx.destroy(linger=500)
+    return jid
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--fragments", type=int, default=300)
@@ -75,6 +191,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--dir", default=None, help="work directory (default: a new one under /tmp)")
     ap.add_argument("--captured", default=None, help="reuse the scans captured by an earlier soak (its <dir>/source)")
+    ap.add_argument("--no-attacks", action="store_true", help="only the process faults (no disk, forged or garbage faults)")
+    ap.add_argument("--full-s", type=float, default=30.0, help="seconds the storage stays full")
+    ap.add_argument("--ro-s", type=float, default=20.0, help="seconds the storage stays read-only")
+    ap.add_argument("--garbage", type=int, default=100000, help="malformed frames in the flood")
     args = ap.parse_args(argv)
     rng = random.Random(args.seed)
     base = Path(args.dir or f"/tmp/tessera-soak-{os.getpid()}")
@@ -88,6 +208,12 @@ def main(argv=None) -> int:
         events, cap = _capture(config, base / "source", args.fragments)
         print(f"  {cap:.2f} s per fragment", flush=True)
     st = _Station(base, base / "source", "station")
+    storage = Path(st.config["storage"]["root"])
+    mounted = not args.no_attacks and _storage_on_tmpfs(storage, headroom_mb=2048)
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    attacks = {"forged": None, "flood_s": None}
+    probes: list[tuple[float, float | None, bool]] = []   # (time, STATUS answer ms or None, broker restarting)
+    restarting = threading.Event()
     t0 = time.time()  # the station's clock: capture (serial, simulated) is not station time
     broker = st.spawn("broker")
     workers: dict[tuple[int, str], object] = {}
@@ -99,11 +225,59 @@ def main(argv=None) -> int:
     stop = threading.Event()
     lock = threading.Lock()
 
+    def probe():
+        while not stop.wait(0.5):
+            t = time.monotonic()
+            try:
+                with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1) as pc:
+                    pc.status()
+                probes.append((time.time() - t0, (time.monotonic() - t) * 1000, restarting.is_set()))
+            except Exception:  # noqa: BLE001 - no answer within 2 s
+                probes.append((time.time() - t0, None, restarting.is_set()))
+
+    def attack(progress: float, done: set) -> None:
+        """The issue-19 faults, each once, in the chaos thread."""
+        def note(text):
+            print(f"  [{time.time() - t0:6.0f} s] {text}", flush=True)
+        if mounted and "full" not in done and progress >= 0.2:
+            done.add("full")
+            ballast = storage / ".soak-ballast"
+            n = _fill_disk(ballast)
+            note(f"storage full ({n / 2**20:.0f} MB of ballast) for {args.full_s:g} s")
+            time.sleep(args.full_s)
+            ballast.unlink()
+            faults["disk full"] += 1
+        elif mounted and "ro" not in done and progress >= 0.3:
+            done.add("ro")
+            subprocess.run(["mount", "-o", "remount,ro", str(storage)], check=True)
+            note(f"storage read-only for {args.ro_s:g} s")
+            time.sleep(args.ro_s)
+            subprocess.run(["mount", "-o", "remount,rw", str(storage)], check=True)
+            faults["read-only remount"] += 1
+        elif "forged" not in done and progress >= 0.5:
+            done.add("forged")
+            try:
+                with BrokerClient.from_config(st.config, timeout_s=2.0, retries=3) as fc:
+                    attacks["forged"] = _forge_result(endpoint, fc)
+                note(f"forged RESULT sent for job {attacks['forged']}")
+                faults["forged results"] += 1
+            except Exception as exc:  # noqa: BLE001
+                note(f"forged RESULT not sent: {exc}")
+        elif "flood" not in done and progress >= 0.7 and args.garbage:
+            done.add("flood")
+            note(f"flooding the broker with {args.garbage} malformed frames")
+            attacks["flood_s"] = _flood(endpoint, args.garbage, max(10.0, args.garbage / 5000), args.seed)
+            note(f"flood done in {attacks['flood_s']:.0f} s")
+            faults["garbage frames"] += args.garbage
+
     def chaos():
         nonlocal broker
         next_kill = time.monotonic() + args.kill_every
         broker_done = cut_done = False
+        attacked: set = set()
         while not stop.wait(1.0):
+            if not args.no_attacks:
+                attack(sent[0] / len(events), attacked)
             with lock:
                 # sample memory of the long-running processes (the broker and the current workers)
                 rss["broker"].append(_rss_mb(broker.pid))
@@ -111,11 +285,13 @@ def main(argv=None) -> int:
                     rss[f"{stage}"].append(_rss_mb(p.pid))
                 progress = sent[0] / len(events)
                 if not broker_done and progress >= 0.4:
+                    restarting.set()
                     broker.send_signal(signal.SIGKILL)
                     broker.wait()
                     time.sleep(1.0)
                     broker = st.spawn("broker")
                     broker_done = True
+                    threading.Timer(10.0, restarting.clear).start()  # start-up (journal replay) is not "serving"
                     faults["broker restarts"] += 1
                     print(f"  [{time.time() - t0:6.0f} s] broker killed and restarted", flush=True)
                 elif not cut_done and progress >= 0.6:
@@ -139,6 +315,8 @@ def main(argv=None) -> int:
     sent = [0]
     chaos_thread = threading.Thread(target=chaos, daemon=True)
     chaos_thread.start()
+    probe_thread = threading.Thread(target=probe, daemon=True)
+    probe_thread.start()
     ok = True
     try:
         with BrokerClient.from_config(st.config, timeout_s=5.0, retries=20) as c:
@@ -175,14 +353,18 @@ def main(argv=None) -> int:
                     if not s2["in_flight"] and not any(s2["queues"].values()):
                         break
                 time.sleep(2.0)
-            evs, after = [], 0
+            evs, after, seqs = [], 0, []
+            first_seq = c.since(0, 1)["first_seq"]
             while (r := c.since(after, 5000))["events"]:
                 evs += [unpack(b) for _, b in r["events"]]
+                seqs += [q for q, _ in r["events"]]
                 after = r["events"][-1][0]
-            parked_end = c.status()["parked"]
+            end_status = c.status()
+            parked_end = end_status["parked"]
     finally:
         stop.set()
-        chaos_thread.join(60)
+        chaos_thread.join(120)
+        probe_thread.join(10)
         for p in workers.values():
             try:
                 p.send_signal(signal.SIGCONT)
@@ -196,7 +378,32 @@ def main(argv=None) -> int:
     print(f"\nsweep after the workers stopped (as tessera reconcile does): {len(swept)} temporary file(s) "
           f"of writers killed mid-write removed{': ' + ', '.join(swept[:5]) if swept else ''}", flush=True)
     ok &= _check(st, events, evs, parked_end, rss, faults, wall_s)
+    if not args.no_attacks:
+        ok &= _check_attacks(evs, seqs, first_seq, end_status, probes, attacks)
+    if mounted:
+        subprocess.run(["umount", "-l", str(storage)], check=False)
+    print("soak (with the attacks): PASS" if ok else "soak (with the attacks): FAIL")
     return 0 if ok else 1
+
+
+def _check_attacks(evs, seqs, first_seq, status, probes, attacks) -> bool:
+    """The issue-19 end checks: nothing forged got in, history intact, STATUS answered in time."""
+    forged = [e for e in evs if e.get("forged")]
+    gaps = [b for a, b in zip(seqs, seqs[1:]) if b != a + 1]
+    serving = [ms for _, ms, restarting in probes if not restarting]
+    answered = sorted(ms for ms in serving if ms is not None)
+    silent = sum(ms is None for ms in serving)
+    slow = [ms for ms in answered if ms > 100.0]
+    q = (lambda f: answered[min(len(answered) - 1, int(f * len(answered)))]) if answered else (lambda f: float("nan"))
+    summaries = [e for e in evs if e["type"] == "input.rejected" and e.get("refused")]
+    print(f"  attacks: forged RESULT for {attacks['forged']}: {len(forged)} forged event(s) published; refused frames "
+          f"{status.get('refused')}; {len(summaries)} refusal summary event(s); duplicates dropped "
+          f"{status.get('duplicates_dropped')}")
+    print(f"  catch-up history: first_seq {first_seq}, {len(seqs)} events, {len(gaps)} gap(s)")
+    print(f"  STATUS probes (every 0.5 s, outside the broker restart): {len(serving)}; median {q(0.5):.1f} ms, "
+          f"p99 {q(0.99):.1f} ms, max {answered[-1] if answered else float('nan'):.1f} ms; over 100 ms: {len(slow)}; "
+          f"unanswered within 2 s: {silent}")
+    return not forged and first_seq == 1 and not gaps and not slow and not silent
 
 
 def control_rerun(root: Path, scratch: Path, config, parked: list[dict], inputs: list[dict]) -> dict[str, str]:
