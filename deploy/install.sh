@@ -144,4 +144,6 @@ if command -v runuser >/dev/null && id nobody >/dev/null 2>&1 && [ "$(id -u)" = 
   say "note: other users cannot read $here; the systemd units (User=tessera) need to: put the checkout" \
       "where they can (e.g. /opt/tessera/src) and run this installer from there"
 fi
-say "done: 'tessera' runs $venv (Python $(version_of "$venv/bin/python")); tests: $venv/bin/python -m pytest"
+tests=""
+[ "$runtime" = 1 ] || tests="; tests: $venv/bin/python -m pytest"
+say "done: 'tessera' runs $venv (Python $(version_of "$venv/bin/python"))$tests"

@@ -136,6 +136,24 @@ def test_python_older_than_3_11_first_on_path_is_refused_before_anything(tmp_pat
 
 
 @debian
+def test_failed_first_install_leaves_no_environment_and_no_link(tmp_path):
+    if os.geteuid() != 0:
+        pytest.skip("the installer needs root (it would stop before making the environment)")
+    checkout = _fake_checkout(tmp_path)
+    (checkout / "pyproject.toml").write_text("[project\nname = \n")  # pip cannot read it: the install fails
+    venv = tmp_path / "target" / "venv"
+    before = _lstat(LINK)
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME")}
+    r = subprocess.run(["bash", str(checkout / "deploy" / "install.sh")], capture_output=True, text=True,
+                       stdin=subprocess.DEVNULL, timeout=600, env=env | {"PATH": SYSTEM_PATH, "TESSERA_VENV": str(venv)})
+    assert r.returncode != 0, r.stdout + r.stderr
+    assert f"[install] creating {venv}" in r.stdout, r.stdout  # it got as far as making the environment
+    assert f"removed the unfinished {venv}" in r.stderr, r.stderr
+    assert not venv.exists()
+    assert _lstat(LINK) == before
+
+
+@debian
 @pytest.mark.slow
 @pytest.mark.timeout(1500)
 def test_installer_on_the_system_path_then_station_demo(tmp_path):
