@@ -240,7 +240,8 @@ def read_image_checked(path: str | os.PathLike, *, bits: int | None = None,
         arr = arr[..., 0]
     n_ch = 1 if arr.ndim == 2 else (arr.shape[2] if arr.ndim == 3 else -1)
     if arr.ndim not in (2, 3) or n_ch not in tuple(channels):
-        raise _refuse(path, f"has shape {arr.shape} ({n_ch} channels); expected {', '.join(map(str, channels))} channels")
+        want = ", ".join(map(str, channels))
+        raise _refuse(path, f"has shape {arr.shape} ({n_ch} channels); expected {want} channels")
     if min(arr.shape[:2]) < 1:
         raise _refuse(path, f"has no pixels (shape {arr.shape})")
     if nbits == 32 and not np.isfinite(arr).all():

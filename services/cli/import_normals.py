@@ -166,8 +166,9 @@ def convert(item: ImportItem, store) -> list[Output]:
         albedo_img = read_image_checked(apath)
         if albedo_img.pixels.shape[:2] != raw.pixels.shape[:2]:
             h, w = raw.pixels.shape[:2]
-            raise ImportRefused(f"{apath}: is {albedo_img.pixels.shape[1]}x{albedo_img.pixels.shape[0]} px but the normal "
-                                f"map {nmap.name} is {w}x{h}: they must share a pixel grid")
+            ah, aw = albedo_img.pixels.shape[:2]
+            raise ImportRefused(f"{apath}: is {aw}x{ah} px but the normal map {nmap.name} is {w}x{h}: "
+                                "they must share a pixel grid")
         a = albedo_img.as_float()
         if a.ndim == 2:
             a = a[..., None]

@@ -53,7 +53,8 @@ KINDS = ["import_scans", "import_rti", "import_images", "import_normals"]
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("import", help="bring files a lab already has into the station (checked at the door)",
-                              description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=__doc__.split("\n\n")[0],
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
     kinds = p.add_subparsers(dest="kind", metavar="KIND")
     for name in KINDS:
         try:
@@ -70,9 +71,11 @@ def add_sink_arguments(p: argparse.ArgumentParser) -> None:
     """``--store DIR``, ``--wait S``, ``--config``/``--set``: the options every kind shares."""
     g = p.add_argument_group("destination")
     g.add_argument("--store", metavar="DIR",
-                   help="write into this storage root, no events (default: the station's storage, events via the outbox)")
+                   help="write into this storage root, no events "
+                        "(default: the station's storage, events via the outbox)")
     g.add_argument("--wait", type=float, default=30.0, metavar="S",
-                   help="seconds to wait for the outbox to drain at the end (default 30; the rest waits for the next run)")
+                   help="seconds to wait for the outbox to drain at the end "
+                        "(default 30; the rest waits for the next run)")
     from common.config import add_config_arguments
     add_config_arguments(p)
 

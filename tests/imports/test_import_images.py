@@ -7,12 +7,10 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from common.bus.outbox import Outbox
 from common.rgbn.image import load_rgbn
@@ -101,7 +99,8 @@ def test_bad_pictures_are_refused_by_name_and_nothing_is_written_for_them(tmp_pa
     _picture(src / "cut.png", 7)
     data = (src / "cut.png").read_bytes()
     (src / "cut.png").write_bytes(data[: len(data) // 2])
-    plain = np.full((200, 300, 3), 230, np.uint8) + np.random.default_rng(0).integers(0, 4, (200, 300, 3)).astype(np.uint8)
+    noise = np.random.default_rng(0).integers(0, 4, (200, 300, 3)).astype(np.uint8)
+    plain = np.full((200, 300, 3), 230, np.uint8) + noise
     cv2.imwrite(str(src / "nothing.png"), plain)
     assert main(["import", "images", str(src), "--dpi", "300", "--store", str(tmp_path / "st")]) == 1
     err = capsys.readouterr().err
