@@ -146,9 +146,9 @@ def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Stor
         return 2
     try:
         sink = open_sink(args)
-    except OSError as exc:
-        print(f"tessera import {kind}: cannot use the destination {getattr(args, 'store', None) or ''}: {exc}",
-              file=sys.stderr)
+    except (OSError, ValueError) as exc:  # an unusable --store, a bad --config (ConfigError)
+        where = f"--store {args.store}" if getattr(args, "store", None) else "the station's storage and outbox"
+        print(f"tessera import {kind}: cannot use {where}: {exc}", file=sys.stderr)
         return 2
     bar = ProgressBar(len(items), f"import {kind}")
     try:
