@@ -106,8 +106,11 @@ hash -r
 python="$(command -v python3)" || die "python3 is still not on PATH after installing Debian's python3"
 pyver="$(version_of "$python")" || die "$python does not run"
 new_enough "$pyver" || die "$python is Python $pyver; Tessera needs $min_python or newer"
-# the interpreter itself, not a launcher (a pyenv shim picks its Python from the current directory)
-python="$("$python" -c 'import sys; print(sys.executable)')"
+# the interpreter itself, not a launcher (a pyenv shim picks its Python from the current directory),
+# and the base one if it belongs to a virtual environment (e.g. this one, activated, with --recreate)
+python="$("$python" -c 'import os, sys; print(sys.executable if sys.prefix == sys.base_prefix else
+  os.path.join(sys.base_prefix, "bin", "python%d.%d" % sys.version_info[:2]))')"
+[ -x "$python" ] || die "cannot find the interpreter behind the first python3 on PATH (tried $python)"
 
 if [ "$recreate" = 1 ] && [ -e "$venv" ]; then
   say "removing $venv (--recreate)"
