@@ -141,3 +141,20 @@ def test_bad_scans_are_refused_naming_the_file_and_nothing_is_written(tmp_path, 
     out = capsys.readouterr()
     assert expected in out.out + out.err
     assert not _scans_files(tmp_path / "store")
+
+
+def test_a_manifest_imports_each_fragment_and_refuses_only_the_bad_one(tmp_path, turned_scans, capsys):
+    _, scans = turned_scans
+    good = _write(tmp_path, scans)
+    (tmp_path / "bad").mkdir()
+    bad = _write(tmp_path / "bad", [scans[0], scans[1]])
+    manifest = tmp_path / "scans.csv"
+    lines = ["file,fragment,face,dpi,turn"] + [f"{p},Inv 7/1,front,{DPI},ccw" for p in good] + \
+            [f"{p},Inv 7/2,front,{DPI},auto" for p in bad]
+    manifest.write_text("\n".join(lines) + "\n")
+    assert main(["import", "scans", "--manifest", str(manifest), "--device", "files",
+                 "--store", str(tmp_path / "store")]) == 1
+    out = capsys.readouterr()
+    assert "imported 1" in out.out and "refused 1" in out.out and "Inv-7-2" in out.out + out.err
+    [art] = _scans_files(tmp_path / "store")
+    assert "Inv-7-1" in str(art)
