@@ -434,3 +434,44 @@ def test_object_mask_on_real_captures(shared_data):
     truth = read_mask(root / "mask.png")
     found = object_mask(images)
     assert (found & truth).sum() / (found | truth).sum() > 0.98
+
+
+# --- near lights of a dome capture (issue 16) --------------------------------------------------
+
+def _dome_plane(h=60, w=80, radius=240.0, n=30):
+    from common.acquisition.photometric import point_light_field
+
+    rng = np.random.default_rng(7)
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(25, 80, n))
+    dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    d, f = point_light_field(radius * dirs, (h, w))
+    grey = (0.5 * np.clip(d[..., 2], 0, None) * f).T.reshape(n, h, w)
+    return dirs, (grey[..., None] * np.array([1.0, 0.9, 0.8])).astype(np.float32)
+
+
+def test_dome_radius_is_found_and_the_plane_comes_out_flat():
+    from common.acquisition.handheld import estimate_dome_radius, normal_tilt_gradient, rerender_residual
+
+    dirs, images = _dome_plane(radius=240.0)  # 3 frame widths
+    radius, table = estimate_dome_radius(images, dirs)
+    assert radius == pytest.approx(240.0)
+    assert table[0][0] is None and table[0][1] > 0.01  # distant lights cannot explain the images
+    far = handheld_rgbn(images, dirs, mask=np.ones(images.shape[1:3], bool), discontinuities=False)
+    near = handheld_rgbn(images, dirs, mask=np.ones(images.shape[1:3], bool), discontinuities=False,
+                         dome_radius=radius)
+    gx_far, gy_far = normal_tilt_gradient(far)
+    gx, gy = normal_tilt_gradient(near)
+    assert gx_far > 10 and gy_far > 10  # the plane seems to bulge: normals swing outwards across the frame
+    assert abs(gx) < 0.05 and abs(gy) < 0.05
+    assert rerender_residual(images, dirs, near, dome_radius=radius).max() < 1e-3
+    assert rerender_residual(images, dirs, far).mean() > 0.01
+
+
+def test_distant_lights_are_kept_when_no_dome_fits_better():
+    from common.acquisition.handheld import estimate_dome_radius
+
+    surf = _fragment()
+    images = simulate_flash_capture(surf, _lights(12), shadows=False)
+    radius, _ = estimate_dome_radius(images, _lights(12), mask=surf.mask)
+    assert radius is None

@@ -9,13 +9,22 @@ Run ``python tests/bench/bench_photometric.py [--docs]``. Prints:
   baseline normals;
 * psm-seitz: light directions from the chrome sphere vs the source's ``lights.txt``, and vs an
   independent estimate from the diffuse (grey) sphere;
-* with ``--docs``: writes the cat/owl normal and albedo pictures to ``docs/handheld/``.
+* reading: the 96 16-bit DiLiGenT ball PNGs decoded in parallel threads (target ≤ 1.5 s wall on
+  2 cores, peak memory ≤ 2× the decoded stack), measured in a fresh process;
+* masks: the automatic mask (light modulation) on the frame-filling RealRTI captures (share of
+  the frame), on psm-seitz cat/owl and the DiLiGenT ball (IoU with the given masks), with the
+  per-image re-render residuals of the robust solve;
+* near lights: RealRTI item1/item8 (domes) solved with distant lights and with the dome radius
+  found by ``estimate_dome_radius``: re-render residual and the tilt of the normals across the frame;
+* with ``--docs``: writes the cat/owl normal and albedo pictures, the mask and near-light
+  pictures to ``docs/handheld/``.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -66,6 +75,184 @@ def bench_speed():
             print(f"  {solver.__name__:22s} {name:4s} {dt:6.2f} s wall, {dc:6.2f} s CPU  (target <= {target:.0f} s)  "
                   f"mean error {err:.3f} deg")
         del images
+
+
+_DECODE_CHILD = """
+import os, resource, sys, time
+sys.path.insert(0, {root!r})
+import numpy as np
+from common.acquisition.handheld import read_images
+paths = {paths!r}
+import psutil
+read_images(paths[:2], threads=1)  # warm the decoders up
+base = psutil.Process().memory_info().rss / 1024  # now, in KiB like ru_maxrss
+t, c = time.perf_counter(), time.process_time()
+images, saturated = read_images(paths, threads={threads})
+dt, dc = time.perf_counter() - t, time.process_time() - c
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(dt, dc, (peak - base) * 1024, images.nbytes + saturated.nbytes, images.shape)
+"""
+
+
+def bench_decode():
+    """Decode the 96 16-bit DiLiGenT PNGs in a fresh process: wall, CPU, peak memory vs the stack."""
+    root = DATA / "diligent-ball"
+    if not root.is_dir():
+        print(f"decode: data not present at {root}, skipped")
+        return
+    import tempfile
+
+    ball = [str(root / n) for n in (root / "filenames.txt").read_text().split()]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"decode: load average {load:.1f} on {os.cpu_count()} CPUs")
+    with tempfile.TemporaryDirectory() as tmp:
+        # full DiLiGenT frames are 612x512: 96 16-bit RGB PNGs of a smooth shaded scene, as the camera gives
+        rng = np.random.default_rng(0)
+        base = cv2.GaussianBlur(rng.uniform(0.2, 0.8, (512, 612, 3)).astype(np.float32), (0, 0), 4)
+        full = []
+        for i, l in enumerate(_lights(96)):
+            img = base * (0.3 + 0.7 * l[2]) + rng.normal(0, 0.004, base.shape).astype(np.float32)
+            full.append(str(Path(tmp) / f"{i:03d}.png"))
+            cv2.imwrite(full[-1], np.clip(img * 65535, 0, 65535).astype(np.uint16))
+        for label, paths in (("DiLiGenT ball (cropped)", ball), ("96 x 612x512 16-bit RGB", full)):
+            _decode_runs(label, paths)
+
+
+def _decode_runs(label, paths):
+    for threads in (1, os.cpu_count() or 1):
+        code = _DECODE_CHILD.format(root=str(ROOT), paths=paths, threads=threads)
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+        dt, dc, grown, stack = float(out[0]), float(out[1]), float(out[2]), float(out[3])
+        shape = " ".join(out[4:])
+        print(f"  {label}, read_images threads={threads}: {dt:.2f} s wall, {dc:.2f} s CPU (target <= 1.5 s wall); "
+              f"stack {shape} = {stack / 2**20:.0f} MiB, peak memory grew {grown / 2**20:.0f} MiB = "
+              f"{grown / stack:.2f}x the stack (target <= 2)")
+
+
+def _iou(a, b):
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def _residual_text(res):
+    return f"re-render residual per image median {np.median(res):.3f}, p90 {np.percentile(res, 90):.3f}, max {res.max():.3f}"
+
+
+def bench_masks(docs: bool = False):
+    """The automatic mask on real captures, and the per-image re-render residuals of the robust solve."""
+    from common.acquisition.handheld import object_mask, rerender_residual
+    from common.acquisition.lightfile import LightSet
+
+    rti = DATA / "realrti-dev"
+    if not rti.is_dir():
+        print(f"masks: data not present at {DATA}, skipped")
+        return
+    print("automatic mask (light modulation), no --mask:")
+    pics = []
+    for item in ("item1", "item5", "item8"):
+        paths = sorted((rti / item).glob("*.jpg"))
+        images, sat = read_images(paths, srgb=True)
+        lights = read_lights(rti / item / "dirs.lp")
+        lights = lights.subset(lights.order_for(paths))
+        info = {}
+        mask = object_mask(images, info=info)
+        rgbn = handheld_rgbn(images, lights, mask=mask, saturated=sat, discontinuities=False)
+        res = rerender_residual(images, lights, rgbn)
+        print(f"  RealRTI {item}: mask covers {100 * mask.mean():.1f}% of the frame (frame-filling; background found: "
+              f"{info['background']}); {_residual_text(res)}")
+    for obj in ("cat", "owl"):
+        root = DATA / "psm-seitz" / obj
+        images, sat = read_images(sorted(root.glob(f"{obj}.[0-9]*.png")))
+        truth = read_mask(root / f"{obj}.mask.png")
+        mask = object_mask(images)
+        old = _otsu_max_mask(images)
+        lights = read_lights(DATA / "psm-seitz" / "lights.txt")
+        rgbn = handheld_rgbn(images, lights, mask=mask, saturated=sat, discontinuities=False)
+        res = rerender_residual(images, lights, rgbn)
+        print(f"  psm-seitz {obj}: IoU with {obj}.mask.png {_iou(mask, truth):.3f} (Otsu on the max image: "
+              f"{_iou(old, truth):.3f}); {_residual_text(res)}")
+        pics.append((obj, images, mask, truth))
+    root = DATA / "diligent-ball"
+    names = (root / "filenames.txt").read_text().split()
+    images, sat = read_images([root / n for n in names])
+    lights = read_lights(root / "light_directions.txt", root / "light_intensities.txt")
+    truth = read_mask(root / "mask.png")
+    mask = object_mask(images)
+    rgbn = handheld_rgbn(images, lights, mask=mask, saturated=sat, discontinuities=False)
+    res = rerender_residual(images, lights, rgbn)
+    print(f"  DiLiGenT ball: IoU with mask.png {_iou(mask, truth):.3f} (Otsu on the max image: "
+          f"{_iou(_otsu_max_mask(images), truth):.3f}); {_residual_text(res)}")
+    if docs:
+        tiles = []
+        for obj, images, mask, truth in pics:
+            grey = np.sqrt(images.max(axis=0).mean(-1))
+            grey = grey / max(grey.max(), 1e-6)
+            tile = np.dstack([grey] * 3)
+            edge = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+            edge_t = cv2.morphologyEx(truth.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+            tile[edge_t] = (0.0, 0.4, 1.0)
+            tile[edge] = (1.0, 0.3, 0.0)
+            tiles.append(tile)
+        path = ROOT / "docs" / "handheld" / "auto_mask.png"
+        cv2.imwrite(str(path), (np.clip(np.hstack(tiles), 0, 1) * 255).astype(np.uint8)[..., ::-1])
+        print(f"  wrote {path.relative_to(ROOT)} (orange: automatic mask outline, blue: the given mask)")
+
+
+def _otsu_max_mask(images):
+    """The former automatic mask (Otsu on the max image), for comparison."""
+    grey = np.sqrt(np.clip(images.max(axis=0).max(axis=-1), 0, None))
+    u8 = np.clip(grey / max(float(grey.max()), 1e-12) * 255, 0, 255).astype(np.uint8)
+    _, fg = cv2.threshold(u8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    obj = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
+    flood = np.pad(1 - obj, 1, constant_values=1)
+    cv2.floodFill(flood, None, (0, 0), 2)
+    return flood[1:-1, 1:-1] != 2
+
+
+def bench_near_light(docs: bool = False):
+    """Dome captures: distant vs near lights (radius from estimate_dome_radius)."""
+    from common.acquisition.handheld import estimate_dome_radius, normal_tilt_gradient, rerender_residual
+    from common.rgbn.io import encode_normal_map
+
+    rti = DATA / "realrti-dev"
+    if not rti.is_dir():
+        print(f"near lights: data not present at {rti}, skipped")
+        return
+    print("near lights (dome captures, whole frame, least squares):")
+    for item in ("item1", "item8"):
+        paths = sorted((rti / item).glob("*.jpg"))
+        images, sat = read_images(paths, srgb=True)
+        lights = read_lights(rti / item / "dirs.lp")
+        lights = lights.subset(lights.order_for(paths))
+        h, w = images.shape[1:3]
+        mask = np.ones((h, w), bool)
+        t, c = time.perf_counter(), time.process_time()
+        radius, table = estimate_dome_radius(images, lights, mask=mask, saturated=sat)
+        dt, dc = time.perf_counter() - t, time.process_time() - c
+        print(f"  {item}: estimate_dome_radius {dt:.1f} s wall, {dc:.1f} s CPU: "
+              + ", ".join(f"{'distant' if r is None else f'{r / max(h, w):.1f}w'} {v:.4f}" for r, v in table))
+        rows = []
+        runs = [("distant lights", None)]
+        if radius is None:
+            print("    near lights: no radius re-renders better than distant lights (auto keeps distant)")
+        else:
+            runs.append((f"auto: dome radius {radius / max(h, w):.1f}w", radius))
+        runs.append(("dome radius 5.0w", 5.0 * max(h, w)))
+        for label, r in runs:
+            rgbn = handheld_rgbn(images, lights, mask=mask, saturated=sat, method="least_squares",
+                                 discontinuities=False, dome_radius=r)
+            res = rerender_residual(images, lights, rgbn, dome_radius=r)
+            gx, gy = normal_tilt_gradient(rgbn)
+            print(f"    {label:26s}: residual mean {res.mean():.4f}, median {np.median(res):.4f}; "
+                  f"tilt across the frame {gx:+.1f} deg/width (x), {gy:+.1f} deg/height (y)")
+            rows.append(encode_normal_map(rgbn.normals, rgbn.mask))
+        if docs:
+            # exaggerate the slow tilt: normals' x, y ×4 around mid-grey
+            gap = np.ones((h, 6, 3))
+            pic = np.hstack([x for r in rows for x in (np.clip(0.5 + 4 * (r - 0.5), 0, 1), gap)][:-1])
+            path = ROOT / "docs" / "handheld" / f"near_light_{item}.png"
+            cv2.imwrite(str(path), (pic * 255).astype(np.uint8)[..., ::-1])
+            print(f"    wrote {path.relative_to(ROOT)} (normals ×4 in x/y: " + " | ".join(lb for lb, _ in runs) + ")")
 
 
 def bench_diligent(docs: bool = False):
@@ -215,11 +402,19 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--docs", action="store_true", help="write the docs/handheld pictures")
     parser.add_argument("--skip-speed", action="store_true")
+    parser.add_argument("--only", choices=("decode", "masks", "near"), help="run just one of the issue-16 parts")
     args = parser.parse_args(argv)
+    if args.only:
+        {"decode": bench_decode, "masks": lambda: bench_masks(args.docs),
+         "near": lambda: bench_near_light(args.docs)}[args.only]()
+        return
     if not args.skip_speed:
         bench_speed()
+    bench_decode()
     bench_diligent(args.docs)
     bench_seitz(args.docs)
+    bench_masks(args.docs)
+    bench_near_light(args.docs)
     if args.docs:
         docs_discontinuity()
 
