@@ -8,6 +8,8 @@ Display values are in [0, 1]; normals are x right, y up, z towards the viewer.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
@@ -233,33 +235,64 @@ def relief_scale_px(normals: np.ndarray, dpi: float, mask: np.ndarray | None = N
                    "sigma_dpi_px": round(s_dpi, 3)}
 
 
+class Coarse(NamedTuple):
+    """A smooth field on a grid downsampled by ``factor``: sample (i, j) covers the pixels
+    ``offset + factor * (i, j) ... + factor - 1`` of the full grid."""
+
+    values: np.ndarray
+    factor: int
+    offset: tuple
+
+    def full(self, shape) -> np.ndarray:
+        """Bilinear interpolation to the full grid ``shape`` (edges replicated)."""
+        h, w = shape
+        if self.factor == 1 and self.values.shape[:2] == (h, w):
+            return self.values
+        f = float(self.factor)
+        m = np.array([[1 / f, 0.0, (0.5 - self.offset[1]) / f - 0.5],
+                      [0.0, 1 / f, (0.5 - self.offset[0]) / f - 0.5]], np.float64)
+        return cv2.warpAffine(self.values, m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REPLICATE)
+
+
 def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,
-                   full_size: bool = True) -> np.ndarray:
+                   full_size: bool = True, origin=(0, 0)):
     """The normal field smoothed at a large ``sigma_px`` (masked, 1/nz-weighted as
     :func:`common.rgbn.smoothing.smooth_normals`), computed on a grid downsampled by
-    ``max(1, sigma_px // 4)`` and, with ``full_size``, interpolated back: a field that smooth costs
-    almost nothing at a quarter of its sigma per sample."""
+    ``max(1, sigma_px // 4)`` — a field that smooth costs almost nothing at a quarter of its
+    sigma per sample — and, with ``full_size``, interpolated back (else a :class:`Coarse`).
+
+    ``origin`` (row, column) is the position of this window in a larger image: the coarse grid
+    is aligned to the whole image's, so overlapping tiles compute the same field.
+    """
     normals = check_normals(normals)
     mask = check_mask(mask, normals.shape[:2])
     h, w = normals.shape[:2]
     f = int(max(1, min(sigma_px // 4, min(h, w) // 8)))
     if f == 1:
-        return smooth_normals(normals, sigma_px, mask=mask)
-    size = (max(1, w // f), max(1, h // f))
-    wgt = np.where(mask, 1.0 / np.maximum(normals[..., 2], 0.05), 0.0).astype(np.float32)
-    small_w = cv2.resize(wgt, size, interpolation=cv2.INTER_AREA)
-    small_n = cv2.resize(normals * wgt[..., None], size, interpolation=cv2.INTER_AREA)
+        c = smooth_normals(normals, sigma_px, mask=mask)
+        return c if full_size else Coarse(c, 1, (0, 0))
+    o = (int(-origin[0]) % f, int(-origin[1]) % f)  # first full cell of the global grid
+    hh, ww = (h - o[0]) // f, (w - o[1]) // f
+    if hh < 2 or ww < 2:
+        c = smooth_normals(normals, sigma_px, mask=mask)
+        return c if full_size else Coarse(c, 1, (0, 0))
+    win = (slice(o[0], o[0] + hh * f), slice(o[1], o[1] + ww * f))
+    n, m = normals[win], mask[win]
+    wgt = np.where(m, 1.0 / np.maximum(n[..., 2], 0.05), 0.0).astype(np.float32)
+    small_w = cv2.resize(wgt, (ww, hh), interpolation=cv2.INTER_AREA)
+    small_n = cv2.resize(np.ascontiguousarray(n * wgt[..., None]), (ww, hh), interpolation=cv2.INTER_AREA)
     small_n /= np.maximum(small_w, 1e-12)[..., None]
     small_n /= np.maximum(np.linalg.norm(small_n, axis=2, keepdims=True), 1e-12)
-    coarse = smooth_normals(small_n, sigma_px / f, mask=small_w > 0)
+    coarse = Coarse(smooth_normals(small_n, sigma_px / f, mask=small_w > 0), f, o)
     if not full_size:
         return coarse
-    out = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    out /= np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
-    return out
+    out = coarse.full((h, w))
+    return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
 
 
-def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None) -> np.ndarray:
+def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,
+                  origin=(0, 0)) -> np.ndarray:
     """Normals relative to the surface's own slow undulation: every normal is rotated by the
     rotation that takes the normal field smoothed at ``sigma_px`` to the view axis (0, 0, 1).
 
@@ -274,7 +307,7 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     [0.0, 0.0, 1.0]
     """
     normals = check_normals(normals)
-    c = coarse_normals(normals, sigma_px, mask=mask)
+    c = coarse_normals(normals, sigma_px, mask=mask, origin=origin)
     cz = np.maximum(c[..., 2], 1e-3)
     # Rodrigues for the rotation taking c to z: axis v = c x z = (cy, -cx, 0), cos = cz
     vx, vy = c[..., 1], -c[..., 0]
@@ -290,19 +323,20 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     return out
 
 
-def level_light(light, coarse: np.ndarray, shape) -> np.ndarray:
+def level_light(light, coarse, shape) -> np.ndarray:
     """The per-pixel light that lights the normals as :func:`level_normals` would: instead of
     rotating every normal n by R (which takes the coarse normal c to the view axis), the light is
     rotated back, ``n . (R^T l) = (R n) . l``. R^T l varies as slowly as c, so it is computed on
-    ``coarse`` (the coarse field, possibly on a downsampled grid, :func:`coarse_normals`) and
-    interpolated to ``shape`` — much cheaper than rotating every normal.
+    ``coarse`` (the coarse field: full size, or a :class:`Coarse` from :func:`coarse_normals`)
+    and interpolated to ``shape`` — much cheaper than rotating every normal.
 
     Returns
     -------
     (H, W, 3) float32 unit light directions.
     """
     l = as_light(light).astype(np.float32)
-    c = np.asarray(coarse, np.float32)
+    grid = coarse if isinstance(coarse, Coarse) else Coarse(np.asarray(coarse, np.float32), 1, (0, 0))
+    c = grid.values
     cz = np.maximum(c[..., 2], 1e-3)
     # R^T rotates z to c: axis u = z x c = (-cy, cx, 0), cos = cz (Rodrigues)
     ux, uy = -c[..., 1], c[..., 0]
@@ -312,9 +346,7 @@ def level_light(light, coarse: np.ndarray, shape) -> np.ndarray:
     out[..., 0] = l[0] * cz + uy * l[2] + ux * k
     out[..., 1] = l[1] * cz - ux * l[2] + uy * k
     out[..., 2] = l[2] * cz + (ux * l[1] - uy * l[0])
-    h, w = shape
-    if out.shape[:2] != (h, w):
-        out = cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
+    out = Coarse(out, grid.factor, grid.offset).full(shape)
     return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
 
 

@@ -163,7 +163,7 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
     tilted the whole solve) — and leaves a curved object (a ball: about 0.7) alone."""
     sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
     if _is_auto(level):
-        coarse = _coarse(image, sigma)
+        coarse = _coarse(image, sigma).values
         mean = coarse.reshape(-1, 3).mean(axis=0) if image.mask.any() else np.zeros(3)
         level = sigma if float(np.linalg.norm(mean)) > 0.95 else 0.0
     elif isinstance(level, bool):
@@ -175,7 +175,8 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
 def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
     k = ("coarse", id(image.normals), image.shape, sigma)
     if k not in _cache:
-        _cache[k] = _enhance.coarse_normals(image.normals, sigma, mask=image.mask, full_size=False)
+        _cache[k] = _enhance.coarse_normals(image.normals, sigma, mask=image.mask, full_size=False,
+                                            origin=image.attrs.get("tile_origin", (0, 0)))
     return _cache[k]
 
 
@@ -191,7 +192,8 @@ def _light(image: RGBNImage, light, level, resolved: dict):
 def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:
     """The normals levelled (:func:`common.render.enhance.level_normals`) when ``level`` says so."""
     sigma = _level_sigma(image, level, resolved)
-    return _enhance.level_normals(image.normals, sigma, mask=image.mask) if sigma > 0 else image.normals
+    return (_enhance.level_normals(image.normals, sigma, mask=image.mask,
+                                   origin=image.attrs.get("tile_origin", (0, 0))) if sigma > 0 else image.normals)
 
 
 def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
@@ -744,14 +746,19 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
 
         if needs_tiles(image, recipe, tile):
             return render_tiled(image, recipe, tile=tile, progress=progress)
+    return _render_whole(image, recipe, progress, resolved)
+
+
+def _render_whole(image, recipe, progress, resolved) -> Rendering:
+    """Draw one image (or one tile) in memory; the per-image cache lives for this call only."""
     _cache.clear()
     try:
-        return _render_whole(image, recipe, progress, resolved)
+        return _render_image(image, recipe, progress, resolved)
     finally:
         _cache.clear()
 
 
-def _render_whole(image, recipe, progress, resolved) -> Rendering:
+def _render_image(image, recipe, progress, resolved) -> Rendering:
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]

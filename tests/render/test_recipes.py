@@ -120,3 +120,77 @@ def test_unknown_recipe_name_lists_the_shipped_ones():
         load_recipe("no-such-recipe")
     with pytest.raises(ValueError, match="unknown style"):
         style_recipe("no-such-style")
+
+
+@pytest.mark.parametrize("layer, message", [
+    ("style='raking'\nelevation_deg='low'", r"'elevation_deg' must be a number"),
+    ("style='lambertian'\ncolour=1", r"'colour' must be true or false"),
+    ("style='ridges_valleys'\nridge_colour=[1, 0]", r"'ridge_colour' must be an RGB colour"),
+    ("style='ridges_valleys'\nvalley_colour=[0, 0, 2]", r"'valley_colour' must be an RGB colour"),
+    ("style='toon'\nlevels=2.5", r"'levels' must be a whole number"),
+    ("style='exaggerated'\nsigma0_px='fine'", r"'sigma0_px' must be \"auto\" or a number"),
+])
+def test_a_parameter_of_the_wrong_type_is_refused_by_name(layer, message):
+    with pytest.raises(ValueError, match=message):
+        parse_recipe(f"name='x'\n[[layer]]\n{layer}")
+
+
+@pytest.fixture(scope="module")
+def painting():
+    """A dark, low-contrast 'painting': two dull pigments, fine brush-stroke relief, 8-bit-like noise."""
+    rng = np.random.default_rng(5)
+    import cv2
+
+    size = 160
+    strokes = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(np.float32), (0, 0), sigmaX=6, sigmaY=1.2) * 6
+    gy, gx = np.gradient(strokes)
+    n = np.stack([-gx, gy, np.ones_like(gx)], axis=-1)
+    n[..., :2] += rng.normal(0, 0.008, (size, size, 2))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    # dark umber shading into a dull ochre, and a red passage: a picture whose median is dark
+    t = np.linspace(0, 1, size, dtype=np.float32)[None, :, None]
+    albedo = (0.02 + 0.12 * t) * np.array([1.0, 0.8, 0.5], np.float32) + np.zeros((size, 1, 1), np.float32)
+    albedo[size // 3:size // 2, :] = (0.09, 0.03, 0.02)
+    return RGBNImage(albedo=albedo, mask=np.ones((size, size), bool), dpi=300.0, normals=n.astype(np.float32))
+
+
+def _tone_span(rgb):
+    lum = rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    p5, p95 = np.percentile(lum, [5, 95])
+    return p95 - p5, float(np.mean((np.round(rgb * 255).max(axis=2) >= 255) | (np.round(rgb * 255).min(axis=2) <= 0)))
+
+
+SHADING = ["albedo", "colour_relief", "normal_unsharp", "specular", "lambertian", "raking", "toon", "gooch",
+           "exaggerated", "mean_curvature", "multiscale_mean_curvature", "watercolour"]
+
+
+@pytest.mark.parametrize("style", SHADING)
+def test_every_default_uses_half_the_tone_range_and_saturates_little_on_a_dark_painting(painting, style):
+    span, clipped = _tone_span(render(painting, style).rgb)
+    assert span >= 0.5, f"{style}: 5-95 % span {span:.2f}"
+    assert clipped <= 0.02, f"{style}: {100 * clipped:.1f} % saturated"
+
+
+def test_colour_relief_keeps_the_paint_colour_and_shows_the_strokes(painting):
+    import cv2
+
+    out = render(painting, "colour_relief").rgb
+    flat = render(painting, "albedo").rgb
+    lab_out = cv2.cvtColor(out, cv2.COLOR_RGB2Lab)
+    lab_flat = cv2.cvtColor(flat, cv2.COLOR_RGB2Lab)
+    # hue of each half kept (median over the half), lightness varies with the strokes
+    for half in (np.s_[:50, :], np.s_[55:78, :]):
+        h_out = np.degrees(np.arctan2(np.median(lab_out[half][..., 2]), np.median(lab_out[half][..., 1])))
+        h_flat = np.degrees(np.arctan2(np.median(lab_flat[half][..., 2]), np.median(lab_flat[half][..., 1])))
+        assert abs(h_out - h_flat) < 5.0
+    assert (lab_out[..., 0] - lab_flat[..., 0]).std() > 2.0  # strokes change the lightness
+    # the default recipe is colour plus relief: the same colours, not halved by a multiply
+    default = render(painting, "default").rgb
+    assert np.median(default) == pytest.approx(np.median(flat), abs=0.05)
+
+
+def test_resolved_values_redraw_the_same_picture(painting):
+    first = render(painting, "raking")
+    again = render(painting, "raking", resolved=first.resolved)
+    assert np.array_equal(first.rgb, again.rgb)
+    assert set(first.resolved[0]) >= {"sigma_px", "level", "exposure"}

@@ -74,3 +74,48 @@ def test_bad_convention_and_format_are_refused(tmp_path):
         read_normal_map(tmp_path / "x.png", "vulkan")
     with pytest.raises(ValueError, match=r"\.png"):
         write_image(tmp_path / "x.bmp", np.zeros((2, 2)))
+
+
+def _relief_normals(size=128, seed=0):
+    """Normals of a random smooth height field (a surface with relief in every direction)."""
+    rng = np.random.default_rng(seed)
+    h = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(np.float32), (0, 0), 4) * 30
+    gy, gx = np.gradient(h)
+    # rows go down, y up: dz/dy = -dz/drow
+    n = np.stack([-gx, gy, np.ones_like(gx)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def test_the_y_convention_is_detected_from_the_curl_of_the_normal_field(tmp_path):
+    from common.rgbn.io import detect_convention, encode_normal_map, read_normal_map, write_image
+
+    n = _relief_normals()
+    conv, evidence = detect_convention(n)
+    assert conv == "opengl" and evidence["ratio"] > 2
+    flipped = n.copy()
+    flipped[..., 1] *= -1
+    assert detect_convention(flipped)[0] == "directx"
+    # through a file: a DirectX map read with "auto" gives Tessera's (OpenGL) normals back
+    write_image(tmp_path / "dx.png", encode_normal_map(n, convention="directx"), bits=16)
+    back, mask = read_normal_map(tmp_path / "dx.png", "auto")
+    assert mask.all() and np.abs(back - n).max() < 1e-3
+
+
+def test_a_surface_without_relief_leaves_the_convention_undecided():
+    from common.rgbn.io import detect_convention
+
+    n = np.zeros((64, 64, 3), np.float32)
+    n[..., 2] = 1
+    conv, evidence = detect_convention(n)
+    assert conv == "opengl" and "undecided" in evidence.get("note", "")
+
+
+def test_a_photograph_is_refused_as_a_normal_map_with_the_reason(tmp_path):
+    from common.rgbn.io import read_normal_map
+
+    rng = np.random.default_rng(1)
+    photo = cv2.GaussianBlur(rng.uniform(0, 255, (64, 64, 3)).astype(np.float32), (0, 0), 3)
+    photo = np.clip((photo - photo.mean()) * 4 + 110, 0, 255).astype(np.uint8)  # a brownish picture
+    cv2.imwrite(str(tmp_path / "photo.png"), photo)
+    with pytest.raises(ValueError, match=r"photo\.png does not look like a normal map"):
+        read_normal_map(tmp_path / "photo.png")

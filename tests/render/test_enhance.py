@@ -1,0 +1,152 @@
+import cv2
+import numpy as np
+import pytest
+
+from common.render._util import as_light, dot_light
+from common.render.enhance import (block_artefacts, coarse_normals, detail_shading, level_light, level_normals,
+                                   lightness_relief, normal_noise, normal_unsharp_masking, relief_scale_px,
+                                   robust_range, shoulder, specular_enhancement, tone_curve)
+from common.rgbn.io import linear_to_srgb
+from tests.rgbn.analytic import gaussian_bump, normals_from_height, tilted_plane
+
+
+def _flat(size=256):
+    n = np.zeros((size, size, 3), np.float32)
+    n[..., 2] = 1
+    return n
+
+
+def test_robust_range_clips_at_most_the_stated_share():
+    v = np.random.default_rng(0).standard_normal(100_000).astype(np.float32)
+    lo, hi = robust_range(v, clip_percent=0.5)
+    assert np.mean(v < lo) <= 0.0051 and np.mean(v > hi) <= 0.0051
+    assert lo == pytest.approx(-2.576, abs=0.05) and hi == pytest.approx(2.576, abs=0.05)
+
+
+def test_tone_curve_puts_the_percentiles_at_a_fifth_and_four_fifths_and_rolls_off_the_tails():
+    v = np.random.default_rng(1).standard_normal(200_000).astype(np.float32)
+    lo, hi = robust_range(v, clip_percent=5.0)
+    t = tone_curve(v, lo, hi)
+    p5, p95 = np.percentile(t, [5, 95])
+    assert p5 == pytest.approx(0.2, abs=0.01) and p95 == pytest.approx(0.8, abs=0.01)
+    # a Gaussian has nothing beyond ~4.5 half-ranges: nothing saturates in 8 bits
+    assert np.mean(np.round(t * 255) >= 255) + np.mean(np.round(t * 255) <= 0) < 1e-3
+
+
+def test_shoulder_is_the_identity_below_the_knee_and_never_reaches_white():
+    v = np.array([0.0, 0.5, 0.8, 1.0, 3.0], np.float32)
+    out = shoulder(v)
+    assert np.allclose(out[:3], v[:3]) and out[3] < 1.0 and out[4] <= 1.0 and out[3] > 0.9
+
+
+def test_noise_of_a_normal_map_is_measured_in_normal_units():
+    rng = np.random.default_rng(2)
+    n = normals_from_height(*np.gradient(gaussian_bump_height(256)))
+    noisy = n.copy()
+    noisy[..., :2] += rng.normal(0, 0.02, n[..., :2].shape).astype(np.float32)
+    assert normal_noise(n) < 0.003  # a smooth surface has (almost) no pixel noise
+    assert normal_noise(noisy) == pytest.approx(0.02, rel=0.15)
+
+
+def gaussian_bump_height(size):
+    y, x = np.mgrid[0:size, 0:size] - size / 2
+    return (8.0 * np.exp(-(x * x + y * y) / (2 * (size / 6) ** 2))).astype(np.float32)
+
+
+def test_jpeg_blocks_are_detected_and_raise_the_smoothing_scale():
+    rng = np.random.default_rng(3)
+    n = _flat(256)
+    n[..., 0] = rng.normal(0, 0.005, (256, 256))
+    clean = block_artefacts(n)
+    blocky = n.copy()
+    steps = rng.normal(0, 0.03, (32, 32)).astype(np.float32)
+    blocky[..., 0] += np.kron(steps, np.ones((8, 8), np.float32))  # constant 8x8 offsets: JPEG-like
+    assert clean < 1.2 and block_artefacts(blocky) > 1.5
+    sigma, evidence = relief_scale_px(blocky, 300.0)
+    assert sigma >= 2.0 and evidence["blocks"] > 1.3
+
+
+def test_smoothing_scale_has_a_physical_floor_from_the_dpi():
+    sigma, evidence = relief_scale_px(_flat(64), 600.0, min_mm=0.2)
+    assert sigma == pytest.approx(0.2 * 600 / 25.4, rel=1e-6)
+
+
+def test_levelling_takes_a_tilted_plane_to_the_view_axis_and_keeps_detail():
+    plane = tilted_plane(64, 30.0, 0.0)
+    assert np.allclose(level_normals(plane, 8.0), (0, 0, 1), atol=1e-5)
+    # a bump on a tilted panel: levelled, it looks like the bump on a level panel
+    height = gaussian_bump_height(128) * 0.2
+    gy, gx = np.gradient(height)
+    tilted = normals_from_height(gx + 0.4, -gy)  # the panel rises 0.4 per pixel to the right
+    level = normals_from_height(gx, -gy)
+    out = level_normals(tilted, 40.0)
+    centre = (slice(40, 88), slice(40, 88))
+    assert np.abs(out[centre] - level[centre]).max() < 0.05
+    # the levelled light is the same lighting as the levelled normals
+    a = dot_light(out, as_light((135.0, 12.0)))
+    b = dot_light(tilted, level_light((135.0, 12.0), coarse_normals(tilted, 40.0, full_size=False), (128, 128)))
+    assert np.abs(a - b)[centre].max() < 1e-3
+
+
+def test_lightness_relief_keeps_hue_and_chroma_and_never_saturates():
+    albedo = np.zeros((32, 32, 3), np.float32)
+    albedo[:] = (0.4, 0.1, 0.05)  # a red ochre
+    relief = np.linspace(-1, 1, 32 * 32, dtype=np.float32).reshape(32, 32)
+    out = lightness_relief(albedo, relief, strength=0.6)
+    lab_in = cv2.cvtColor(linear_to_srgb(albedo), cv2.COLOR_RGB2Lab)
+    lab_out = cv2.cvtColor(out, cv2.COLOR_RGB2Lab)
+    hue_in = np.arctan2(lab_in[..., 2], lab_in[..., 1])
+    hue_out = np.arctan2(lab_out[..., 2], lab_out[..., 1])
+    inside = (out.max(axis=2) < 0.999) & (out.min(axis=2) > 0.001)  # sRGB gamut clipping aside
+    assert np.degrees(np.abs(hue_out - hue_in))[inside].max() < 3.0
+    # lightness moves with the relief, monotonically
+    L = lab_out[..., 0].ravel()
+    assert L[0] < lab_in[0, 0, 0] < L[-1] and np.all(np.diff(L) >= -0.5)
+    assert L.min() > 0 and L.max() < 100
+    # zero relief = the colour itself
+    same = lightness_relief(albedo, np.zeros((32, 32), np.float32))
+    assert np.allclose(same, linear_to_srgb(albedo), atol=2e-3)
+
+
+def test_detail_shading_is_zero_on_smooth_shape_and_signed_on_a_bump():
+    plane = tilted_plane(64, 20.0, 10.0)
+    assert np.abs(detail_shading(plane, sigma_px=4.0, fine_px=1.0)).max() < 1e-4
+    bump = gaussian_bump(96, 0.1, 0.05, 0.2)  # 0.2 mm wide: detail at a 1 mm unsharp scale
+    d = detail_shading(bump, (180.0, 30.0), sigma_px=10.0, fine_px=0.0)
+    # light from the left: the bump's left flank (facing it) lights up, the right one darkens
+    assert d[48, 44] > 0.01 and d[48, 52] < -0.01
+
+
+def test_normal_unsharp_masking_of_a_plane_is_plain_lambert_and_amplifies_a_bump():
+    plane = tilted_plane(32, 20.0, 0.0)
+    l = as_light((0.0, 45.0))
+    assert np.allclose(normal_unsharp_masking(plane, l, sigma_px=3.0, gain=4.0), np.maximum(dot_light(plane, l), 0),
+                       atol=1e-5)
+    bump = gaussian_bump(96, 0.1, 0.05, 0.3)
+    plain = np.maximum(dot_light(bump, as_light((180.0, 30.0))), 0)
+    sharp = normal_unsharp_masking(bump, (180.0, 30.0), sigma_px=12.0, gain=3.0)
+    assert sharp.std() > 2 * plain.std()
+
+
+def test_specular_enhancement_peaks_where_the_normal_is_the_half_vector():
+    l = as_light((0.0, 60.0))
+    h = (l + np.array([0, 0, 1], np.float32)) / np.linalg.norm(l + np.array([0, 0, 1], np.float32))
+    n = np.zeros((3, 1, 3), np.float32)
+    n[0, 0] = h
+    n[1, 0] = (0, 0, 1)
+    n[2, 0] = (0, 1, 0)
+    out = specular_enhancement(n, l, albedo=np.zeros_like(n), kd=0.0, ks=0.7, exponent=40.0)
+    assert out[0, 0, 0] == pytest.approx(0.7, abs=1e-4)
+    assert out[1, 0, 0] == pytest.approx(0.7 * float(h[2]) ** 40, abs=1e-4)
+    assert out[2, 0, 0] < 1e-6
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="clip_percent"):
+        robust_range(np.zeros(4), clip_percent=30)
+    with pytest.raises(ValueError, match="strength"):
+        lightness_relief(np.zeros((2, 2, 3)), np.zeros((2, 2)), strength=2)
+    with pytest.raises(ValueError, match="exponent"):
+        specular_enhancement(_flat(4), exponent=0)
+    with pytest.raises(ValueError, match="dpi"):
+        relief_scale_px(_flat(4), 0)

@@ -1,0 +1,74 @@
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from common.render.recipes import STYLES, load_recipe, render, style_recipe
+from common.render.tiles import H5Source, MemorySource, halo_px, render_tiled
+from common.rgbn.image import RGBNImage, write_rgbn
+from tests.rgbn.analytic import normals_from_height
+
+SIZE, TILE = 256, 64
+
+
+@pytest.fixture(scope="module")
+def relief():
+    """A noisy multi-scale relief with two colours and a round outline."""
+    rng = np.random.default_rng(0)
+    blur = lambda a, s: cv2.GaussianBlur(a.astype(np.float32), (0, 0), s)  # noqa: E731
+    h = blur(rng.standard_normal((SIZE, SIZE)), 6) * 40 + blur(rng.standard_normal((SIZE, SIZE)), 1.5) * 2
+    gy, gx = np.gradient(h)
+    n = normals_from_height(gx * 0.5, -gy * 0.5)
+    n[..., :2] += rng.normal(0, 0.01, (SIZE, SIZE, 2))
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE]
+    mask = (xx - SIZE / 2) ** 2 + (yy - SIZE / 2) ** 2 < (0.47 * SIZE) ** 2
+    albedo = np.zeros((SIZE, SIZE, 3), np.float32)
+    albedo[:] = (0.5, 0.3, 0.2)
+    albedo[:, SIZE // 2:] = (0.2, 0.3, 0.5)
+    return RGBNImage(albedo=albedo, mask=mask, dpi=300.0, normals=n.astype(np.float32))
+
+
+CASES = [s for s in STYLES if s not in ("segment_boundaries", "exaggerated")] + ["exaggerated", "default", "toon"]
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_tiles_with_overlap_draw_the_same_picture_as_the_whole_image(relief, name):
+    if name in ("default", "toon"):
+        recipe = load_recipe(name)
+    else:
+        recipe = style_recipe(name, **({"scales": 3} if name == "exaggerated" else {}))
+    whole = render(relief, recipe)
+    tiled = render_tiled(relief, recipe, tile=TILE)
+    # the tiles really are tiles: a core plus its halo is smaller than the image
+    assert TILE + halo_px(recipe, relief.dpi, whole.resolved) < SIZE
+    assert tiled.rgb.dtype == np.uint8 and tiled.rgb.shape == (SIZE, SIZE, 3)
+    diff = np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64))
+    # no seams: equal up to the 8-bit rounding of the drawing
+    assert diff.max() <= 1.0
+    assert whole.resolved == tiled.resolved  # one exposure for all tiles: the whole image's
+
+
+def test_an_image_read_window_by_window_from_hdf5_draws_the_same(relief, tmp_path):
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        write_rgbn(f, relief)
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        source = H5Source(f)
+        assert source.shape == relief.shape
+        a = render_tiled(source, "raking", tile=TILE)
+    b = render_tiled(MemorySource(relief), "raking", tile=TILE)
+    assert np.array_equal(a.rgb, b.rgb)
+
+
+def test_render_goes_to_tiles_for_a_large_image_and_returns_8_bit(relief):
+    out = render(relief, "colour_relief", tile=TILE)
+    assert out.rgb.dtype == np.uint8
+    whole = render(relief, "colour_relief")
+    assert np.abs(np.round(whole.rgb * 255) - out.rgb).max() <= 1
+
+
+def test_a_recipe_with_segments_is_not_cut_into_tiles(relief):
+    recipe = load_recipe("segments")
+    with pytest.raises(ValueError, match="segmentation"):
+        render_tiled(relief, recipe, tile=TILE)
+    assert render(relief, recipe, tile=TILE).rgb.dtype == np.float32  # drawn whole
