@@ -349,7 +349,7 @@ def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated
         Near lights: the lights sit on a dome of this radius (pixels) centred on the image
         centre, at ``dome_radius × direction``; each pixel gets its own light directions and
         1/r² fall-off (:func:`~common.acquisition.photometric.point_light_field`). Default:
-        distant lights.
+        distant lights, unless ``lights.positions`` gives the lights' positions (near lights).
     progress : callable(fraction, text), optional
     **solver_options
         Passed to :func:`~common.acquisition.photometric.robust_normals`.
@@ -379,10 +379,8 @@ def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated
     report = progress or (lambda f, t: None)
     solve_share = 0.85 if discontinuities else 1.0
     sub = lambda f, t: report(solve_share * f, t)  # noqa: E731
-    if dome_radius is not None and not (np.isfinite(dome_radius) and dome_radius > 0):
-        raise ValueError(f"dome_radius must be a positive number of pixels, got {dome_radius!r}")
-    where = ({"directions": lights.directions} if dome_radius is None
-             else {"positions": float(dome_radius) * lights.directions})
+    positions = _near_positions(lights, dome_radius)
+    where = {"directions": lights.directions} if positions is None else {"positions": positions}
     if method == "robust":
         out = robust_normals(imgs, **where, mask=mask, valid=valid, dpi=dpi, progress=sub, **solver_options)
     else:
@@ -395,8 +393,18 @@ def handheld_rgbn(images, lights: LightSet | np.ndarray, *, mask=None, saturated
     out.attrs.update({"capture": "handheld-flash", "lights_calibrated": lights.intensities is not None})
     if dome_radius is not None:
         out.attrs["dome_radius_px"] = float(dome_radius)
+    out.attrs["near_lights"] = positions is not None
     report(1.0, "done")
     return out
+
+
+def _near_positions(lights: LightSet, dome_radius):
+    """Light positions in pixels for a near-light solve, or None (distant lights)."""
+    if dome_radius is not None:
+        if not (np.isfinite(dome_radius) and dome_radius > 0):
+            raise ValueError(f"dome_radius must be a positive number of pixels, got {dome_radius!r}")
+        return float(dome_radius) * lights.directions
+    return lights.positions
 
 
 def rerender_residual(images, lights: LightSet | np.ndarray, image: RGBNImage, *,
@@ -412,7 +420,8 @@ def rerender_residual(images, lights: LightSet | np.ndarray, image: RGBNImage, *
     image : RGBNImage
         The solved normals, RGB albedo and mask.
     dome_radius : float, optional
-        Near lights on a dome of this radius in pixels (as given to :func:`handheld_rgbn`).
+        Near lights on a dome of this radius in pixels (as given to :func:`handheld_rgbn`);
+        ``lights.positions`` (near lights) are used otherwise, if given.
 
     Returns
     -------
@@ -432,13 +441,14 @@ def rerender_residual(images, lights: LightSet | np.ndarray, image: RGBNImage, *
     albedo = image.albedo.reshape(-1, 3)[idx]
     flat = imgs.reshape(n, -1, 3)
     out = np.zeros(n)
+    positions = _near_positions(lights, dome_radius)
     for start in range(0, idx.size, 1 << 15):
         sl = slice(start, start + (1 << 15))
-        if dome_radius is None:
+        if positions is None:
             shade = np.clip(normals[sl] @ lights.directions.T.astype(np.float32), 0, None).T  # (N, P)
         else:
             from common.acquisition.photometric import point_light_field
-            d, f = point_light_field(float(dome_radius) * lights.directions, image.mask.shape, idx[sl])
+            d, f = point_light_field(positions, image.mask.shape, idx[sl])
             shade = (np.clip(np.einsum("pk,pnk->pn", normals[sl], d), 0, None) * f).T
         pred = shade[..., None] * albedo[sl][None] * e[:, None, :].astype(np.float32)
         measured = flat[:, idx[sl]]

@@ -36,11 +36,16 @@ class LightSet:
         Image file name of each light (from an ``.lp`` file), or None for a plain list.
     intensities : (N, 3) float64 or None
         Relative RGB intensity of each light (divide image *i* by row *i*), or None = all equal.
+    positions : (N, 3) float64 or None
+        Near lights: each light's position in pixels from the image centre (x right, y up, z
+        towards the camera; z > 0), when the light file gives positions rather than directions.
+        ``directions`` are then the directions seen from the image centre.
     """
 
     directions: np.ndarray
     filenames: list[str] | None = None
     intensities: np.ndarray | None = None
+    positions: np.ndarray | None = None
 
     def __post_init__(self):
         self.directions = _unit_directions(self.directions, "directions")
@@ -49,6 +54,14 @@ class LightSet:
             raise ValueError(f"filenames has {len(self.filenames)} entries for {n} light directions")
         if self.intensities is not None:
             self.intensities = _intensities(self.intensities, n)
+        if self.positions is not None:
+            pos = np.asarray(self.positions, dtype=np.float64)
+            if pos.shape != (n, 3) or not np.all(np.isfinite(pos)):
+                raise ValueError(f"positions must be ({n}, 3) and finite, got {pos.shape}")
+            if np.any(pos[:, 2] <= 0):
+                bad = int(np.argmin(pos[:, 2]))
+                raise ValueError(f"light position {bad} = {pos[bad]} is not in front of the object (z must be > 0)")
+            self.positions = pos
 
     def __len__(self) -> int:
         return len(self.directions)
@@ -80,7 +93,8 @@ class LightSet:
         order = np.asarray(order, dtype=int)
         return LightSet(self.directions[order],
                         None if self.filenames is None else [self.filenames[i] for i in order],
-                        None if self.intensities is None else self.intensities[order])
+                        None if self.intensities is None else self.intensities[order],
+                        None if self.positions is None else self.positions[order])
 
 
 def natural_key(name: str) -> list:
@@ -145,7 +159,7 @@ def _numeric_rows(path: Path) -> list[list[str]]:
     return rows
 
 
-def read_lp(path: str | os.PathLike) -> LightSet:
+def read_lp(path: str | os.PathLike, *, positions: float | None = None) -> LightSet:
     """Read an RTI ``.lp`` light file.
 
     Parameters
@@ -153,6 +167,9 @@ def read_lp(path: str | os.PathLike) -> LightSet:
     path : path
         File whose first line is the image count and each further line ``filename x y z``
         (file names may contain spaces: the last three fields are the direction).
+    positions : float, optional
+        The vectors are light positions: kept, times this many pixels per unit, in
+        ``LightSet.positions`` (see :func:`read_lights`).
 
     Returns
     -------
@@ -191,16 +208,19 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         except ValueError:
             raise ValueError(f"light file {path} line {k}: direction is not three numbers: {line!r}") from None
         names.append(" ".join(tokens[:-3]))
-    return LightSet(np.asarray(dirs), names)
+    d = np.asarray(dirs, dtype=np.float64)
+    return LightSet(d, names, positions=None if positions is None else d * float(positions))
 
 
-def read_directions(path: str | os.PathLike) -> LightSet:
+def read_directions(path: str | os.PathLike, *, positions: float | None = None) -> LightSet:
     """Read a plain light-direction file: ``x y z`` per line, optionally the count first.
 
     Parameters
     ----------
     path : path
         Text file of directions (x right, y up, z towards the camera); ``#`` starts a comment.
+    positions : float, optional
+        The vectors are light positions (see :func:`read_lights`).
 
     Returns
     -------
@@ -223,7 +243,7 @@ def read_directions(path: str | os.PathLike) -> LightSet:
         raise ValueError(f"direction file {path}: non-numeric entry ({exc})") from None
     if d.ndim != 2 or d.shape[1] != 3:
         raise ValueError(f"direction file {path}: every line must hold three numbers x y z")
-    return LightSet(d)
+    return LightSet(d, positions=None if positions is None else d.astype(np.float64) * float(positions))
 
 
 def read_intensities(path: str | os.PathLike) -> np.ndarray:
@@ -239,17 +259,33 @@ def read_intensities(path: str | os.PathLike) -> np.ndarray:
     return _intensities(e if e.shape[1] == 3 else e[:, 0], len(e))
 
 
-def read_lights(path: str | os.PathLike, intensities: str | os.PathLike | None = None) -> LightSet:
+def read_lights(path: str | os.PathLike, intensities: str | os.PathLike | None = None, *,
+                positions: float | None = None) -> LightSet:
     """Read a light file of either kind (``.lp`` or plain directions), plus optional intensities.
 
     The kind is told from the content: an ``.lp`` line has a file name before the numbers.
+
+    Parameters
+    ----------
+    path : path
+        The light file.
+    intensities : path, optional
+        Per-image intensities (:func:`read_intensities`).
+    positions : float, optional
+        The file's vectors are light *positions* (near lights), not directions, measured from the
+        image centre (x right, y up, z towards the camera) in units of which ``positions``
+        pixels make one (e.g. ``dpi / 25.4`` for millimetres, 1 for pixels). They are kept in
+        ``LightSet.positions`` (pixels); ``directions`` are their unit vectors.
     """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"light file {path} does not exist")
+    if positions is not None and not (np.isfinite(positions) and positions > 0):
+        raise ValueError(f"positions must be a positive number of pixels per unit, got {positions!r}")
     rows = _numeric_rows(path)
     is_lp = len(rows) > 1 and len(rows[0]) == 1 and len(rows[1]) >= 4
-    lights = read_lp(path) if is_lp or path.suffix.lower() == ".lp" else read_directions(path)
+    reader = read_lp if is_lp or path.suffix.lower() == ".lp" else read_directions
+    lights = reader(path, positions=positions)
     if intensities is not None:
         lights.intensities = _intensities(read_intensities(intensities), len(lights))
     return lights

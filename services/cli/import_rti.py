@@ -49,6 +49,8 @@ def add_parser(subparsers) -> None:
                    help="without a light file: MIRROR [DIFFUSE] spheres in the frame (cx,cy,r in pixels, or auto)")
     p.add_argument("--dome-radius", metavar="PX|auto",
                    help="near lights on a dome of this radius in pixels, or 'auto' (default: distant lights)")
+    p.add_argument("--light-positions", type=float, metavar="PX_PER_UNIT",
+                   help="the light files give positions (near lights) from the image centre; pixels per unit")
     p.add_argument("--method", choices=("robust", "least_squares"), default="robust")
     p.add_argument("--srgb", choices=("auto", "yes", "no"), default="auto",
                    help="images are sRGB-encoded: auto = JPEGs yes, PNG/TIFF no (default)")
@@ -139,7 +141,8 @@ def _items(args) -> list[ImportItem]:
             "n_images": len(files["images"]), "lights": files["lights"].name if files["lights"] else None,
             "intensities": files["intensities"].name if files["intensities"] else None,
             "mask": files["mask"].name if files["mask"] else None, "spheres": args.spheres,
-            "dome_radius": args.dome_radius, "method": args.method, "srgb": srgb, "dpi": args.dpi,
+            "dome_radius": args.dome_radius, "light_positions": args.light_positions, "method": args.method,
+            "srgb": srgb, "dpi": args.dpi,
             "min_mask_share": args.min_mask_share, "discontinuities": not args.no_discontinuities}))
     return items
 
@@ -163,7 +166,8 @@ def convert(item: ImportItem, store) -> list[Output]:
                              diffuse=spheres[1] if not o["lights"] and len(spheres) > 1 else None,
                              mask=str(folder / o["mask"]) if o["mask"] else None, method=o["method"],
                              srgb=o["srgb"], dpi=o["dpi"], min_mask_share=o["min_mask_share"],
-                             dome_radius=o["dome_radius"], discontinuities=o["discontinuities"])
+                             dome_radius=o["dome_radius"], light_positions=o.get("light_positions"),
+                             discontinuities=o["discontinuities"])
     except ImportRefused:
         raise
     except ValueError as exc:

@@ -61,6 +61,9 @@ def add_parser(subparsers) -> None:
     solve.add_argument("--dome-radius", metavar="PX|auto",
                        help="near lights on a dome of this radius in pixels (dome RTI captures), or 'auto': "
                             "the radius that re-renders the images best (default: distant lights)")
+    solve.add_argument("--light-positions", type=float, metavar="PX_PER_UNIT",
+                       help="the --lights file gives light positions (near lights) from the image centre, not "
+                            "directions; PX_PER_UNIT pixels per unit of the file (1: pixels; dpi/25.4: mm)")
     solve.add_argument("--bit-depth", type=int, choices=(8, 16), help="declared bit depth: other files are refused")
     solve.add_argument("--method", choices=("robust", "least_squares"), default="robust")
     solve.add_argument("--srgb", action="store_true", help="images are sRGB-encoded (camera JPEGs): linearise")
@@ -163,7 +166,7 @@ def _position_order(paths: list[Path], what: str, warnings: list) -> list[Path]:
 def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_images=None, diffuse=None,
                   diffuse_images=None, mask=None, method: str = "robust", srgb: bool = False, dpi: float = 96.0,
                   bit_depth: int | None = None, min_mask_share: float | None = None, dome_radius=None,
-                  discontinuities: bool = True, write_lp=None, progress=None) -> Solved:
+                  light_positions: float | None = None, discontinuities: bool = True, write_lp=None, progress=None) -> Solved:
     """Read, check and solve one flash/RTI capture: the one code path of ``tessera ps`` and ``tessera import rti``.
 
     Raises ValueError naming the file and the reason for anything refused (see docs/handheld.md,
@@ -179,7 +182,9 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     paths = [Path(p) for p in images]
     if len(paths) < 3:
         raise ValueError(f"{len(paths)} image(s) given: photometric stereo needs at least 3 (30-100 for a robust solve)")
-    light_set = read_lights(lights) if lights else None
+    if light_positions is not None and (not lights or dome_radius not in (None, "")):
+        raise ValueError("--light-positions needs --lights FILE and replaces --dome-radius")
+    light_set = read_lights(lights, positions=light_positions) if lights else None
     if light_set is None or light_set.filenames is None:  # matched by position
         paths = _position_order(paths, "images", warnings)
     chrome_paths = [Path(p) for p in chrome_images or []]
@@ -220,7 +225,8 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     if len(light_set) != len(imgs):
         raise ValueError(f"{len(imgs)} images but {len(light_set)} lights")
     if intensities:
-        light_set = LightSet(light_set.directions, light_set.filenames, read_intensities(intensities))
+        light_set = LightSet(light_set.directions, light_set.filenames, read_intensities(intensities),
+                             light_set.positions)
         inputs.append(Path(intensities))
     if write_lp:
         save_lp(write_lp, [p.name for p in paths], light_set.directions)
@@ -262,18 +268,21 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
                   "rerender_residual": residual.round(5).tolist()}
     if radius is not None:
         provenance["dome_radius_px"] = radius
+    if light_set.positions is not None:
+        provenance["light_positions_px"] = light_set.positions.round(3).tolist()
     log.info("solved %d pixels, mean confidence %.2f, re-render residual median %.3f (max %.3f)",
              int(solved.sum()), float(rgbn.confidence[rgbn.mask].mean()), float(np.median(residual)),
              float(residual.max()))
     return Solved(rgbn, provenance, digest, method, residual, warnings)
 
 
-def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=None) -> str:
+def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=None, light_positions=None) -> str:
     """Content-keyed path of a hand-held capture's RGBN artifact."""
     from common.acquisition.handheld import VERSION
     from common.store import content_key
 
     parts = (digest, method, "handheld", VERSION) + ((f"dome={dome_radius}",) if dome_radius not in (None, "") else ())
+    parts += (f"positions={light_positions}",) if light_positions is not None else ()
     return f"fragments/{fragment}/rgbn/{face}-{content_key(*parts)}.h5"
 
 
@@ -309,7 +318,8 @@ def _run(args) -> int:
                          chrome_images=args.chrome_images, diffuse=args.diffuse, diffuse_images=args.diffuse_images,
                          mask=args.mask, method=args.method, srgb=args.srgb, dpi=args.dpi, bit_depth=args.bit_depth,
                          min_mask_share=args.min_mask_share, dome_radius=args.dome_radius,
-                         discontinuities=not args.no_discontinuities, write_lp=args.write_lp, progress=progress)
+                         light_positions=args.light_positions, discontinuities=not args.no_discontinuities,
+                         write_lp=args.write_lp, progress=progress)
     for w in done.warnings:
         print(f"tessera ps: warning: {w}", file=sys.stderr)
     rgbn, provenance = done.rgbn, done.provenance
@@ -324,7 +334,7 @@ def _run(args) -> int:
             print(f"wrote {p}")
     if args.store:
         store = Store(args.store)
-        relpath = rgbn_path(args.fragment, args.face, done.digest, args.method, args.dome_radius)
+        relpath = rgbn_path(args.fragment, args.face, done.digest, args.method, args.dome_radius, args.light_positions)
         ref = save_rgbn(store, relpath, rgbn, provenance=provenance)
         event = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=ref,
                             source="handheld", method=args.method)

@@ -132,3 +132,49 @@ def test_shell_order_does_not_matter_when_the_light_file_names_the_images(tmp_pa
     assert tessera(["ps", *sorted(shots), "--lights", str(tmp_path / "capture.lp"), "--mask",
                     str(tmp_path / "mask.png"), "-o", str(tmp_path / "out.h5"), "--no-discontinuities"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_refused_capture_is_not_submitted(tmp_path, capsys):
+    from tests.conftest import free_port
+
+    _, shots = _capture(tmp_path)
+    for s in shots:
+        cv2.imwrite(s, np.zeros((48, 48, 3), np.uint16))
+    cfg = tmp_path / "station.toml"
+    cfg.write_text(f'[storage]\nroot = "{tmp_path / "storage"}"\n[broker]\nhost = "127.0.0.1"\nbind = "127.0.0.1"\n'
+                   f'port = {free_port()}\nfeed_port = {free_port()}\njournal_dir = "{tmp_path / "journal"}"\n'
+                   '[client]\ntimeout_s = 0.5\nretries = 1\n')
+    code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+                    "--fragment", "F1", "--submit", "--config", str(cfg)])
+    captured = capsys.readouterr()
+    assert code == 2 and "black" in captured.err  # refused at the door, not "stored but not submitted" (1)
+    assert "rgbn.ready" not in captured.out and "not submitted" not in captured.err
+    assert not (tmp_path / "storage").exists() or not any(p.is_file() for p in (tmp_path / "storage").rglob("*"))
+
+
+def test_light_positions_in_millimetres_solve_a_near_lit_plane_flat(tmp_path, capsys):
+    from common.acquisition.photometric import point_light_field
+
+    h, w, dpi = 60, 80, 254.0  # 10 px per mm
+    rng = np.random.default_rng(2)
+    n = 20
+    # lamps at scattered heights and distances (no dome), 5-12 mm from the centre of a 6x8 mm plane
+    az = rng.uniform(0, 2 * np.pi, n)
+    el = np.radians(rng.uniform(30, 80, n))
+    dist = rng.uniform(5, 12, n)
+    pos_mm = dist[:, None] * np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    d, f = point_light_field(pos_mm * dpi / 25.4, (h, w))
+    grey = (0.6 * np.clip(d[..., 2], 0, None) * f).T.reshape(n, h, w)
+    shots = []
+    for i, g in enumerate(grey):
+        shots.append(str(tmp_path / f"p{i:02d}.png"))
+        cv2.imwrite(shots[-1], np.round(np.clip(np.dstack([g] * 3), 0, 1) * 65535).astype(np.uint16))
+    np.savetxt(tmp_path / "positions.txt", pos_mm)
+    assert tessera(["ps", *shots, "--lights", str(tmp_path / "positions.txt"), "--light-positions",
+                    str(dpi / 25.4), "--min-mask-share", "0", "-o", str(tmp_path / "out.h5"),
+                    "--no-discontinuities", "--method", "least_squares"]) == 0
+    import h5py
+    with h5py.File(tmp_path / "out.h5", "r") as fh:
+        rgbn = read_rgbn(fh)
+    tilt = np.degrees(np.arccos(np.clip(rgbn.normals[..., 2], -1, 1)))[rgbn.mask]
+    assert rgbn.mask.mean() > 0.99 and tilt.max() < 0.1
