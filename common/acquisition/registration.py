@@ -380,6 +380,9 @@ _TURN_WORDS = {"cw": "clockwise", "ccw": "counter-clockwise"}
 def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation, failures):
     """Why a sequence with nominal rotations failed: turned the other way, or out of order? (None = neither.)
 
+    Returns the registrations themselves when the scans register searched all round in the
+    nominal order and direction, each turn within 60° of its nominal step (a rough operator).
+
     The failures of the other attempts are appended to ``failures``.
     """
     given = _turn_name(nominal_deg)
@@ -399,6 +402,15 @@ def _diagnose(target, prepared, dpi, nominal_deg, search_deg, min_correlation, f
         failures.append(exc)
         return None
     measured = [float(r.angle_deg % 360) for r in regs]
+    steps = [((b - a + 180) % 360) - 180 for a, b in zip(measured[:-1], measured[1:])]
+    nominal_steps = np.diff(np.asarray(nominal_deg, float))
+    if all(abs(st - ns) <= 60 for st, ns in zip(steps, nominal_steps)):
+        return regs          # the right order and direction, only turned roughly (e.g. 130° for 90°)
+    if all(abs(st + ns) <= 60 for st, ns in zip(steps, nominal_steps)):
+        return TurnDirectionError(
+            f"the scans look turned {_TURN_WORDS[other]}, not {_TURN_WORDS[given]} as their nominal rotations "
+            f"{[float(v) for v in nominal_deg]} say (measured {[round(v) for v in measured]}° clockwise); give the "
+            f"turn direction as {other} (tessera import scans --turn {other}) — rescanning is not needed", other, regs)
     return ScanOrderError(
         f"the scans register, but their rotations relative to the first are {[round(v) for v in measured]}° "
         f"(clockwise), not the nominal {[float(v) for v in nominal_deg]}: they are out of turning order; give the "
@@ -417,7 +429,9 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
     When the scans do not register with the nominal rotations and ``diagnose`` is true, the
     failure is explained if it can be: :class:`TurnDirectionError` when they register with the
     turns the other way round (its ``registrations`` are usable), :class:`ScanOrderError` when
-    they register searched all round but out of order. Otherwise the registration error stands
+    they register searched all round but out of order. Scans that register searched all round in
+    the nominal order and direction, each turn within 60° of the nominal step (turned 130° for
+    90°), are simply returned. Otherwise the registration error stands
     (different faces or objects, a moved or broken fragment: that needs a rescan). A fragment that
     looks alike turned by 180° can also register the wrong way round, with a lower correlation:
     when the worst correlation is below ``ambiguous_below`` the other turn direction is tried too,
@@ -442,6 +456,8 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
             raise
         failures = [exc]
         found = _diagnose(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation, failures)
+        if isinstance(found, list):       # registered searched all round, in order: roughly turned, fine
+            return found
         if isinstance(found, TurnDirectionError):
             raise TurnDirectionError(f"{found} (with the nominal turns: {exc})", found.turn,
                                      found.registrations) from exc

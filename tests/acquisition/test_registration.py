@@ -115,3 +115,17 @@ def test_a_scan_without_the_fragment_is_named_by_its_own_index():
         register_scans([empty, scans[1], scans[2]], DPI, nominal_deg=[0, 90, 180])
     with pytest.raises(RegistrationError, match=r"^scan 2: no fragment visible"):
         register_scans([scans[0], scans[1], empty], DPI, nominal_deg=[0, 90, 180])
+
+
+def test_rough_turns_far_from_90_degrees_still_register():
+    sim = SimulatedFlatbed(bed_mm=(100, 100), seed=10)
+    sim.place(demo_surface(25, DPI, seed=2), centre_mm=(50, 50))
+    scans = [sim.scan((28, 28, 72, 72), DPI)]
+    for turn in (90, 135, 60):               # outside the ±20° search around each nominal step
+        sim.rotate(turn, error_deg=0)
+        scans.append(sim.scan((28, 28, 72, 72), DPI))
+    regs = register_scans(scans, DPI, nominal_deg=[0, 90, 180, 270])
+    mask = fragment_mask(scans[0], DPI)
+    for i in range(1, 4):
+        err = _error_px(regs[i].affine, scan_to_scan_affine(sim.history[i], sim.history[0]), mask)
+        assert err.mean() < 0.3, (i, err.mean())
