@@ -16,6 +16,16 @@ Examples::
     tessera ps shots/*.tif --spheres 1710,220,95 1710,520,95 --pictures out/
     tessera ps shots/*.tif --spheres auto auto --pictures out/      # found automatically
 
+    # a dome capture: the lamps are near (radius in pixels, or the one that re-renders best)
+    tessera ps item1/*.jpg --lights item1/dirs.lp --srgb --dome-radius auto -o item1.h5
+
+Checked at the door (docs/handheld.md): every image decodes completely (truncated PNG/JPEG
+refused), one bit depth, channel layout and size, no black, blank or overexposed image; images
+matched to lights by position in shell order (1, 10, 11, 2, ...) are put in natural order with
+a warning; an automatic mask keeping less than ``--min-mask-share`` asks for ``--mask``;
+``--pictures`` / ``-o`` are checked before any work; a result with no solved pixel is never
+written or announced. :func:`solve_capture` is also the code path of ``tessera import rti``.
+
 ``--spheres MIRROR [DIFFUSE]`` is short for ``--chrome MIRROR --diffuse DIFFUSE`` (put the
 images first). A sphere is given as ``cx,cy,r`` (pixels: column, row, radius), as a mask
 image, or as ``auto``: circles of the median image, told apart by their response to the moving

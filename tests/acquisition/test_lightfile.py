@@ -93,3 +93,26 @@ def test_benchmark_light_files_read(shared_data):
                        shared_data / "diligent-ball" / "light_intensities.txt")
     assert ball.directions.shape == (96, 3) and ball.intensities.shape == (96, 3)
     np.testing.assert_allclose(np.linalg.norm(ball.directions, axis=1), 1.0)
+
+
+def test_shell_sorted_lists_are_told_from_natural_ones():
+    from common.acquisition.lightfile import natural_order, shell_sorted
+
+    glob = ["d/img1.jpg", "d/img10.jpg", "d/img11.jpg", "d/img2.jpg", "d/img3.jpg"]
+    assert shell_sorted(glob)
+    assert [glob[i] for i in natural_order(glob)] == ["d/img1.jpg", "d/img2.jpg", "d/img3.jpg", "d/img10.jpg",
+                                                      "d/img11.jpg"]
+    assert not shell_sorted(["img01.jpg", "img02.jpg", "img10.jpg"])  # zero-padded: both orders agree
+    assert not shell_sorted(["img1.jpg", "img2.jpg", "img10.jpg"])    # already natural
+    assert not shell_sorted(["img3.jpg", "img1.jpg", "img2.jpg"])     # some other order, chosen on purpose
+
+
+def test_light_positions_are_kept_in_pixels(tmp_path):
+    p = tmp_path / "pos.txt"
+    p.write_text("0 0 100\n30 0 40\n0 -60 80\n")
+    lights = read_lights(p, positions=2.0)  # 2 px per unit
+    np.testing.assert_allclose(lights.positions, [[0, 0, 200], [60, 0, 80], [0, -120, 160]])
+    np.testing.assert_allclose(lights.directions[1], [0.6, 0, 0.8])
+    assert read_lights(p).positions is None
+    with pytest.raises(ValueError, match="not in front"):
+        LightSet(np.eye(3), positions=[[0, 0, 1], [0, 0, -1], [1, 0, 1]])

@@ -3,7 +3,6 @@ reason, and leaves nothing written; position-matched lists in shell order are pu
 
 import cv2
 import numpy as np
-import pytest
 
 from common.acquisition.handheld import simulate_flash_capture, surface_normals
 from common.acquisition.lightfile import write_lp

@@ -109,3 +109,34 @@ def test_real_rti_captures_import_without_a_mask(shared_data, tmp_path, capsys):
     for rel in found:
         rgbn = load_rgbn(Store(store), rel)
         assert rgbn.mask.mean() > 0.99  # frame-filling: the whole frame is the object
+
+
+def test_a_capture_without_a_light_file_is_calibrated_from_its_spheres(tmp_path, capsys):
+    from common.acquisition.spheres import sphere_normals
+
+    surf = _surface(64)
+    pad = ((0, 36), (0, 136))
+    wide = FragmentSurface(np.pad(surf.albedo, pad + ((0, 0),)), np.pad(surf.height_mm, pad),
+                           np.pad(surf.mask, pad), 254.0)
+    lights = _lights(12, seed=7)
+    images = simulate_flash_capture(wide, lights)
+    mirror, diffuse = (100.0, 50.0, 26.0), (165.0, 48.0, 27.0)
+    nm, im = sphere_normals(images.shape[1:3], mirror)
+    nd, idf = sphere_normals(images.shape[1:3], diffuse)
+    refl = 2 * nm[..., 2:3] * nm - [0, 0, 1]
+    cap = tmp_path / "sherd-12"
+    cap.mkdir()
+    for i, (img, l) in enumerate(zip(images, lights)):
+        img[im] = (np.exp(-(np.degrees(np.arccos(np.clip(refl @ l, -1, 1))) / 6) ** 2) + 0.02)[im, None]
+        img[idf] = (0.6 * np.clip(nd @ l, 0, None))[idf, None]
+        cv2.imwrite(str(cap / f"f{i}.png"), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)[..., ::-1])
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(cap), "--spheres", "auto", "auto", "--store", str(store),
+                    "--no-discontinuities"]) == 0
+    found = _artifacts(store)
+    assert [p.split("/")[1] for p in found] == ["sherd-12"]
+    rgbn = load_rgbn(Store(store), found[0])
+    assert not (rgbn.mask & (im | idf)).any()  # the spheres are not part of the fragment
+    inner = cv2.erode(wide.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    err = np.degrees(np.arccos(np.clip((rgbn.normals * surface_normals(wide)).sum(-1), -1, 1)))
+    assert err[inner].mean() < 1.5
