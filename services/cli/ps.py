@@ -143,8 +143,10 @@ class Solved:
     warnings: list = field(default_factory=list)
 
 
-def _check_outputs(output=None, pictures=None) -> None:
+def _check_outputs(output=None, pictures=None, write_lp=None) -> None:
     """Refuse unusable output paths before any work, so nothing is half-written."""
+    if write_lp is not None and (Path(write_lp).is_dir() or not Path(write_lp).parent.is_dir()):
+        raise ValueError(f"--write-lp {write_lp}: give a file name in an existing directory")
     if pictures is not None:
         pic = Path(pictures)
         if pic.exists() and not pic.is_dir():
@@ -238,8 +240,6 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
         light_set = LightSet(light_set.directions, light_set.filenames, read_intensities(intensities),
                              light_set.positions)
         inputs.append(Path(intensities))
-    if write_lp:
-        save_lp(write_lp, [p.name for p in paths], light_set.directions)
 
     if mask:
         obj = hh.read_mask(mask, imgs.shape[1:3])
@@ -271,6 +271,8 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
                          f"({int(rgbn.mask.sum())} pixels, every one dark or unusable under all {len(imgs)} lights): "
                          "nothing written")
     residual = hh.rerender_residual(imgs, light_set, rgbn, dome_radius=radius)
+    if write_lp:  # only once the capture has been accepted: a refused run leaves nothing behind
+        save_lp(write_lp, [p.name for p in paths], light_set.directions)
     digest = _digest(inputs)
     provenance = {"device": "hand-held flash camera", "stage": "handheld", "version": hh.VERSION,
                   "method": method, "inputs_sha256": digest, "images": [p.name for p in paths],
@@ -319,7 +321,7 @@ def _run(args) -> int:
         raise ValueError("--store and --submit need --fragment ID")
     if not (args.store or args.output or args.pictures):
         raise ValueError("nothing to write: give --store, -o OUT.h5 or --pictures DIR")
-    _check_outputs(args.output, args.pictures)
+    _check_outputs(args.output, args.pictures, args.write_lp)
 
     def progress(fraction, text):
         log.debug("%3.0f%% %s", 100 * fraction, text)
