@@ -13,12 +13,14 @@ import hashlib
 
 from common.messages import MessageError, new_message
 from common.render.artifact import SCHEMA_VERSION, save_rendering
-from common.render.recipes import load_recipe, render
-from common.rgbn.image import load_rgbn
+from common.limits import check_rgbn_file
+from common.render.recipes import load_recipe
+from common.render.tiles import render_h5
+from common.rgbn.image import SCHEMA as RGBN_SCHEMA
 from common.store import ArtifactRef, content_key
 
 SERVICE = "renderer"
-VERSION = f"render-1.0/schema-{SCHEMA_VERSION}"
+VERSION = f"render-2.0/schema-{SCHEMA_VERSION}"  # 2.0: readable defaults, colour relief, tiles
 
 
 def output_path(fragment: str, face: str, rgbn_sha256: str, recipe_text: str) -> str:
@@ -36,11 +38,13 @@ def handle(job: dict, ctx) -> list[dict]:
     recipe = load_recipe((ctx.config or {}).get("recipe", "default"))
     relpath = output_path(fragment, face, ref.sha256, recipe.source)
     if not ctx.store.exists(relpath):
-        image = load_rgbn(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
-        drawn = render(image, recipe, progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
+        with ctx.store.open(ref, schema=RGBN_SCHEMA) as f:
+            check_rgbn_file(f)  # absurd dpi or sizes: rejected before a pixel is read
+            # a large face is read and drawn tile by tile (bounded memory)
+            drawn, dpi = render_h5(f, recipe, progress=lambda p, t: ctx.progress(0.05 + 0.9 * p, t))
         if drawn.skipped:
             ctx.log.warning("fragment %s %s has no normals: skipped %s", fragment, face, ", ".join(drawn.skipped))
-        out = save_rendering(ctx.store, relpath, drawn, dpi=image.dpi, provenance={
+        out = save_rendering(ctx.store, relpath, drawn, dpi=dpi, provenance={
             "stage": SERVICE, "stage_version": VERSION, "fragment": fragment, "face": face,
             "recipe": recipe.name, "inputs": [ref.to_dict()]})
     else:

@@ -19,7 +19,7 @@ from common.rgbn.smoothing import smooth_normals
 def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray | None = None,
                         discontinuity: np.ndarray | None = None, threshold_deg: float = 20.0,
                         softness_deg: float = 10.0, outline: bool = True, width_px: float = 1.0,
-                        flash_gain: float = 2.5) -> np.ndarray:
+                        flash_gain: float = 2.5, min_length_px: int = 0) -> np.ndarray:
     """Lines along depth and orientation discontinuities (§7.3.3).
 
     Sources, combined by maximum:
@@ -46,6 +46,9 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
         Line width in pixels (lines are thickened by a grey dilation and softened).
     flash_gain : float
         Scale of the flash discontinuity strength before clipping (its values rarely reach 1).
+    min_length_px : int
+        Line pieces (normal and flash lines at more than half strength, 8-connected) shorter
+        than this are dropped: noise in measured normals and flash maps makes many short ones.
 
     Returns
     -------
@@ -80,6 +83,10 @@ def discontinuity_lines(normals: np.ndarray | None = None, *, mask: np.ndarray |
         if d.shape != tuple(shape) + (2,):
             raise ValueError(f"discontinuity must be {tuple(shape) + (2,)}, got {d.shape}")
         lines = np.maximum(lines, np.clip(np.float32(flash_gain) * np.hypot(d[..., 0], d[..., 1]), 0.0, 1.0))
+    if min_length_px > 1 and lines.any():
+        keep = prune_short_lines(lines > 0.5, min_length_px)
+        keep = cv2.dilate(keep.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        lines = np.where(keep, lines, 0.0).astype(np.float32)
     if outline and not mask.all():
         m = mask.astype(np.uint8)
         edge = (m - cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)) > 0

@@ -104,6 +104,8 @@ def _colour(image: RGBNImage, use_albedo: bool):
 def _noise_px(image: RGBNImage, value, resolved: dict, key: str, *, factor: float = 1.0, floor: float = 0.0) -> float:
     """A smoothing scale in pixels: ``value``, or for "auto" ``factor`` x the scale that brings the
     normal map's noise down (:func:`common.render.enhance.relief_scale_px`), at least ``floor``."""
+    if _is_auto(value) and image.normals is None:
+        value = 0.0
     if _is_auto(value):
         k = (id(image.normals), image.shape)
         if k not in _cache:
@@ -302,14 +304,17 @@ def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 6, sig
 
 
 def draw_colour_relief(image: RGBNImage, light=(135.0, 35.0), sigma_mm: float = 1.0, fine_px="auto",
-                       strength: float = 0.6, gain="auto", exposure="auto") -> Layer:
-    """Colour plus relief: normal unsharp masking drawn on the lightness of the colour only (CIELAB
-    L*), so the paint keeps its hue; the default illustration of a painted surface."""
+                       strength: float = 0.6, detail_scale="auto", exposure="auto") -> Layer:
+    """Colour plus relief: normal unsharp masking on the colour's lightness only (hue kept).
+
+    The detail shading (:func:`common.render.enhance.detail_shading`) is drawn on CIELAB L* of the
+    exposed colour, so the paint keeps its hue and chroma; the default illustration of a painted
+    surface."""
     r = {}
     fine = _noise_px(image, fine_px, r, "fine_px")
     sigma = max(float(sigma_mm) * image.dpi / 25.4, 2.0 * fine + 1.0)
     d = _enhance.detail_shading(image.normals, light, mask=image.mask, sigma_px=sigma, fine_px=fine)
-    s = _zero_scale(d, image.mask, gain, r, "gain")
+    s = _zero_scale(d, image.mask, detail_scale, r, "detail_scale")
     rng = _lightness_exposure(image, exposure, r)
     relief = 2.0 * _enhance.tone_curve(d, -s, s) - 1.0
     return _cover(image, _enhance.lightness_relief(image.albedo, relief, strength=strength, exposure=rng), r)
@@ -400,11 +405,20 @@ def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm=
 
 def draw_discontinuity_lines(image: RGBNImage, threshold_deg: float = 20.0, softness_deg: float = 10.0,
                              outline: bool = True, width_px: float = 1.5, flash_gain: float = 2.5,
-                             line_colour=(0.0, 0.0, 0.0)) -> Layer:
-    """Lines along normal and depth discontinuities (flash map if any) and the outline (§7.3.3)."""
-    return _ink(_lines.discontinuity_lines(image.normals, mask=image.mask, discontinuity=image.discontinuity,
+                             line_colour=(0.0, 0.0, 0.0), sigma_px="auto", min_length_px="auto") -> Layer:
+    """Lines along normal and depth discontinuities (flash map if any) and the outline (§7.3.3);
+    the normals are smoothed at the noise scale first, so noise does not draw lines."""
+    r = {}
+    n = None
+    s = _noise_px(image, sigma_px, r, "sigma_px")
+    if image.normals is not None:
+        n = _smoothed(image, s)
+    length = int(round(max(10.0, 10 * s))) if _is_auto(min_length_px) else int(min_length_px)
+    r["min_length_px"] = length
+    return _ink(_lines.discontinuity_lines(n, mask=image.mask, discontinuity=image.discontinuity,
                                            threshold_deg=threshold_deg, softness_deg=softness_deg,
-                                           outline=outline, width_px=width_px, flash_gain=flash_gain), line_colour)
+                                           outline=outline, width_px=width_px, flash_gain=flash_gain,
+                                           min_length_px=length), line_colour, r)
 
 
 def draw_suggestive_contours(image: RGBNImage, radius_px: float = 4.0, fraction: float = 0.2, depth: float = 0.02,
@@ -523,6 +537,84 @@ STYLES: dict[str, Style] = {s.name: s for s in (
     Style("segment_boundaries", draw_segment_boundaries, frozenset({"segments"}), draw_segment_boundaries.__doc__),
     Style("normals", draw_normals, _N, draw_normals.__doc__),
 )}
+
+#: Meaning and unit of every style parameter (``tessera render --list-styles`` and docs/gallery.md
+#: print them). "auto" values are chosen from the data and reported in ``Rendering.resolved``.
+PARAM_DOCS = {
+    "light": "light direction: [azimuth_deg, elevation_deg] (azimuth counter-clockwise from the image's right, "
+             "elevation above the image plane) or a 3-vector (x right, y up, z to the viewer)",
+    "azimuth_deg": "raking light azimuth, degrees counter-clockwise from the image's right (135 = upper left)",
+    "elevation_deg": "raking light elevation above the surface, degrees (5-20 rakes)",
+    "ambient": "share of the light reaching every pixel, 0-1",
+    "colour": "true: draw on the fragment's colour; false: grey",
+    "exposure": '"auto" (from robust percentiles of the drawing: lightness 5th/95th -> L* 20/80, or shading '
+                '5th/95th -> 0.2/0.8), "none" (as computed), or [low, high] in the style\'s own units',
+    "colour_exposure": '"auto": the colour\'s CIELAB lightness, 5th/95th percentiles drawn at L* 20/80 (hue and '
+                       'chroma kept); "none": the colour as captured; or [low, high] in L* (0-100)',
+    "sigma_px": 'smoothing of the normals (Gaussian sigma, pixels); "auto" = the scale that brings the map\'s '
+                'noise to 0.004 (>= 2 px with JPEG blocks; x2 for curvature and lines, x3 for toon)',
+    "sigma_mm": "scale of the relief drawn, mm: detail finer than this is enhanced (unsharp masking), or the "
+                'curvature scale; "auto" = from the noise',
+    "sigma0_px": 'finest scale of exaggerated shading, pixels; "auto" = from the noise',
+    "sigma0_mm": 'finest curvature scale, mm; "auto" = from the noise (>= 0.1 mm)',
+    "sigma_ratio": "factor between consecutive scales (> 1)",
+    "scales": "number of scales",
+    "level": '"auto" / true / false / sigma in pixels: light a near-flat surface relative to its own slow '
+             'undulation (a painting tilted by near lights); "auto" does it when the coarse normals all point '
+             'nearly one way',
+    "fine_px": 'noise smoothing before the detail is taken, pixels; "auto" = from the noise',
+    "strength": "share of the room to black/white the strongest relief uses (colour_relief, exaggerated with "
+                "colour), or the shadow's darkness (discontinuity_shadows), 0-1",
+    "detail_scale": 'detail shading drawn at 0.8 of the strength (its 95th percentile when "auto")',
+    "tones": 'exaggerated shading values drawn at 0.2 / 0.8: [low, high], "auto" = 5th / 95th percentiles',
+    "gain": "normal_unsharp: RTIViewer's enhancement gain (>= 0); multiscale_mean_curvature: 1 / the curvature "
+            'sum drawn at 0.8, or "auto" (5th/95th percentiles drawn at 0.2/0.8)',
+    "radius_mm": 'radius of curvature drawn at 0.8 (convex) / 0.2 (concave), mm; "auto" = 90th percentile of |H|',
+    "kd": "diffuse weight of specular enhancement (RTIViewer kd), >= 0",
+    "ks": "specular weight (RTIViewer ks), >= 0",
+    "exponent": "specular exponent (RTIViewer n), > 0: larger = tighter highlights",
+    "levels": "number of toon bands (>= 2)",
+    "softness": "half-width of a toon band edge, in units of n.l",
+    "dark": "brightness of the darkest toon band, 0-1",
+    "n_colours": "k-means colours of toon shading (0 = grey)",
+    "seed": "random seed (k-means, paper texture): the picture is deterministic",
+    "palette": 'toon colours: "auto" (k-means) or a list of RGB colours',
+    "blue": "Gooch cool colour's blue, 0-1",
+    "yellow": "Gooch warm colour's yellow, 0-1",
+    "alpha": "Gooch: share of the object's colour in the cool tone, 0-1",
+    "beta": "Gooch: share of the object's colour in the warm tone, 0-1",
+    "contrast": "exaggerated shading's a: larger = more toon-like (> 0)",
+    "detail": "exponent of the per-scale weights sigma^-detail (0 = all scales equal)",
+    "base_weight": "weight of the coarsest lighting in exaggerated shading",
+    "threshold": "ridges_valleys: minimum |principal curvature|, 1/mm (\"auto\" = the percentile); "
+                 "suggestive_contours_object: minimum cosine between w and grad kr, 0-1",
+    "percentile": "percentile of |curvature| used as the automatic threshold, 0-100",
+    "min_length_px": 'shortest line piece kept, pixels ("auto" = 10 x sigma_px)',
+    "width_px": "drawn line width, pixels (anti-aliased)",
+    "ridges": "draw ridge lines (convex crests)",
+    "valleys": "draw valley lines (troughs, incisions)",
+    "ridge_colour": "RGB of ridge lines, 0-1 each",
+    "valley_colour": "RGB of valley lines, 0-1 each",
+    "line_colour": "RGB of the lines, 0-1 each",
+    "fade_deg": "lines fade where the surface faces the viewer: full strength from this many degrees of turn, "
+                "none facing it (0 = no fading)",
+    "radius_px": "radius of the image-space valley test, pixels",
+    "fraction": "maximum share of darker neighbours of a suggestive-contour pixel, 0-1",
+    "depth": "minimum depth of the valley in nz units",
+    "threshold_deg": "normal change per pixel at which a discontinuity line is half strength, degrees",
+    "softness_deg": "half-width of that ramp, degrees",
+    "outline": "draw the fragment's outline",
+    "flash_gain": "scale of the flash discontinuity map's strength",
+    "length_px": "length of a discontinuity shadow, pixels",
+    "softness_px": "blur of the shadow, pixels",
+    "steep_nz": "normals with nz below this cast shadows (steep walls)",
+    "sigma_x": "spatial sigma of the watercolour's bilateral washes, pixels",
+    "sigma_c": "colour sigma of the washes (linear RGB units)",
+    "sigma_n": "normal sigma of the washes",
+    "relief": "strength of the relief in the watercolour's pigment density",
+    "paper": "strength of the paper texture (periodic every 1024 px)",
+    "edge_darkening": "strength of pigment gathering at the edges of washes",
+}
 
 #: Line and shadow styles: ink over whatever lies below (``--style`` draws them on the colour).
 INK_STYLES = ("discontinuity_lines", "suggestive_contours", "suggestive_contours_object", "ridges_valleys",

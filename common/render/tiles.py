@@ -190,3 +190,20 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     if progress:
         progress(1.0, "done")
     return Rendering(rgb, alpha, recipe, skipped, resolved)
+
+
+def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = None):
+    """Draw an RGBN image stored in an open HDF5 group (an artifact): read whole when it is small
+    or its recipe segments, else window by window (:class:`H5Source`), so a face larger than
+    memory draws within the tile budget. Returns ``(Rendering, dpi)``."""
+    from common.render.recipes import STYLES, load_recipe, render, style_recipe
+    from common.rgbn.image import read_rgbn
+
+    if isinstance(recipe, str):
+        recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
+    h, w = group["mask"].shape
+    if recipe.segmentation is None and h * w > TILE_MPX * 1e6:
+        source = H5Source(group)
+        return render_tiled(source, recipe, progress=progress), source.dpi
+    image = read_rgbn(group)
+    return render(image, recipe, progress=progress), image.dpi

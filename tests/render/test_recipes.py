@@ -194,3 +194,10 @@ def test_resolved_values_redraw_the_same_picture(painting):
     again = render(painting, "raking", resolved=first.resolved)
     assert np.array_equal(first.rgb, again.rgb)
     assert set(first.resolved[0]) >= {"sigma_px", "level", "exposure"}
+
+
+def test_every_style_parameter_is_documented_with_its_meaning():
+    from common.render.recipes import PARAM_DOCS
+
+    missing = {(s.name, k) for s in STYLES.values() for k in s.parameters() if not PARAM_DOCS.get(k)}
+    assert not missing
