@@ -116,6 +116,8 @@ class Verdict:
     proposal_id: int | None = None
     model_version: str | None = None
     id: int | None = None
+    #: the proposal's pose when the verdict was given (B in A's frame: angle_deg, tx_mm, ty_mm), or None
+    pose: dict | None = None
 
 
 def ordered_pair(a: str, b: str) -> tuple[str, str]:
@@ -147,6 +149,9 @@ class ProposalStore:
         self._db.execute(f"PRAGMA journal_mode={journal_mode.upper()}")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)  # idempotent; executescript manages its own transaction
+        # databases made before verdicts kept the pose: add the column (NULL for old verdicts)
+        if "pose" not in {r["name"] for r in self._db.execute("PRAGMA table_info(verdicts)")}:
+            self._db.execute("ALTER TABLE verdicts ADD COLUMN pose TEXT")
 
     def close(self) -> None:
         self._db.close()
@@ -275,25 +280,29 @@ class ProposalStore:
             if message_uid is not None and self._db.execute(
                     "SELECT 1 FROM verdicts WHERE message_uid=?", (message_uid,)).fetchone():
                 return None
-            prop = self._db.execute("SELECT id, model_version FROM proposals WHERE fragment_a=? AND fragment_b=?",
-                                    (a, b)).fetchone()
+            prop = self._db.execute("SELECT id, model_version, angle_deg, tx_mm, ty_mm FROM proposals "
+                                    "WHERE fragment_a=? AND fragment_b=?", (a, b)).fetchone()
+            # the pose the person saw is kept with the verdict: a later re-rank may move the proposal's
+            pose = ({"angle_deg": prop["angle_deg"], "tx_mm": prop["tx_mm"], "ty_mm": prop["ty_mm"]}
+                    if prop and prop["angle_deg"] is not None else None)
             cur = self._db.execute(
-                "INSERT INTO verdicts (fragment_a, fragment_b, verdict, by, note, proposal_id, model_version, message_uid, time)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO verdicts (fragment_a, fragment_b, verdict, by, note, proposal_id, model_version, message_uid,"
+                " time, pose) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (a, b, verdict, by, note, prop["id"] if prop else None, prop["model_version"] if prop else None,
-                 message_uid, when))
+                 message_uid, when, json.dumps(pose) if pose else None))
             if prop:
                 self._db.execute("UPDATE proposals SET status=?, updated=? WHERE id=?", (verdict, when, prop["id"]))
             vid = cur.lastrowid
         return Verdict(a, b, verdict, when, by, note, prop["id"] if prop else None,
-                       prop["model_version"] if prop else None, vid)
+                       prop["model_version"] if prop else None, vid, pose)
 
     def verdicts(self, fragment: str | None = None) -> list[Verdict]:
         """Verdict history in time order (optionally only those involving ``fragment``)."""
         q = "SELECT * FROM verdicts" + (" WHERE fragment_a=? OR fragment_b=?" if fragment else "") + " ORDER BY time, id"
         rows = self._db.execute(q, (fragment, fragment) if fragment else ()).fetchall()
         return [Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"],
-                        r["proposal_id"], r["model_version"], r["id"]) for r in rows]
+                        r["proposal_id"], r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
+                for r in rows]
 
     def latest_verdicts(self) -> dict[tuple[str, str], str]:
         """The latest verdict per pair (a person may change their mind)."""

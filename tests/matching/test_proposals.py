@@ -72,3 +72,32 @@ def test_bad_verdict_and_self_pair_are_refused(tmp_path):
             s.record_verdict("A", "B", "maybe")
         with pytest.raises(ValueError, match="itself"):
             ordered_pair("A", "A")
+
+
+def test_confirmed_pair_keeps_the_pose_the_person_saw(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("A", "B", 0.8)])
+        v = s.record_verdict("A", "B", "confirmed", by="conservator", message_uid="u1")
+        assert v.pose == {"angle_deg": 10.0, "tx_mm": 1.0, "ty_mm": -2.0}
+        # a later re-proposal moves the proposal's pose, not the verdict's
+        moved = make("A", "B", 0.9, "0002-y")
+        moved.angle_deg = 45.0
+        s.upsert([moved])
+        assert s.get("A", "B").angle_deg == 45.0
+        assert s.verdicts("A")[0].pose["angle_deg"] == 10.0
+        # a verdict on a pair never proposed has no pose
+        assert s.record_verdict("A", "Z", "rejected", message_uid="u2").pose is None
+
+
+def test_database_from_before_verdict_poses_opens_and_gains_the_column(tmp_path):
+    db = tmp_path / "old.sqlite"
+    with ProposalStore(db) as s:
+        s.upsert([make("A", "B", 0.8)])
+        s.record_verdict("A", "B", "confirmed", message_uid="u1")
+    con = sqlite3.connect(db)   # make it look like an old database: no pose column
+    con.execute("ALTER TABLE verdicts DROP COLUMN pose")
+    con.commit()
+    con.close()
+    with ProposalStore(db) as s:
+        assert s.verdicts()[0].pose is None
+        assert s.record_verdict("A", "B", "rejected", message_uid="u2").pose["tx_mm"] == 1.0
