@@ -169,7 +169,7 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
                        median_size_mm: float = 35.0, sigma: float = 0.5, min_size_mm: float = 10.0,
                        max_size_mm: float = 200.0, n_pieces: int | None = None, angle_jitter_deg: float = 12.0,
                        jag_mm: float = 1.5, jag_scale_mm: float = 20.0, inset_mm: float = 4.0,
-                       grid_mm: float = 1.0) -> Fracture:
+                       grid_mm: float = 1.0, keep=None) -> Fracture:
     """Break a wall by recursive splitting along roughly perpendicular cracks.
 
     Each piece larger than its own target size splits along a line perpendicular to its
@@ -198,6 +198,9 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
         Margin of lost plaster around the wall's edge (the outer edge is jagged too).
     grid_mm : float
         Spacing of the coarse grid on which splits are decided.
+    keep : callable(x_mm, y_mm) -> bool, optional
+        The recovered area (e.g. :func:`~common.synth.realistic.recovered_region`), evaluated
+        at warped coordinates; only it is broken into ``n_pieces``, the rest is lost plaster.
 
     Returns
     -------
@@ -218,10 +221,13 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
     _check(width_mm, height_mm, median_size_mm, sigma, min_size_mm, max_size_mm)
     wx, wy = _jagged_warp(rng, jag_mm, jag_scale_mm)
     frac = Fracture(float(width_mm), float(height_mm), "recursive", wx, wy, float(inset_mm), float(grid_mm))
+    frac.keep = keep
     gx, gy = _coarse_grid(width_mm, height_mm, grid_mm)
     xw, yw = frac.warped(gx, gy)
     m = inset_mm
     inside = ((xw > m) & (xw < width_mm - m) & (yw > m) & (yw < height_mm - m)).ravel()
+    if keep is not None:
+        inside &= np.asarray(keep(xw, yw), bool).ravel()
     px, py = xw.ravel().astype(np.float64), yw.ravel().astype(np.float64)
     cell = grid_mm ** 2
     nodes_n, nodes_c, left, right = [], [], [], []  # per node; leaves have left = -1
@@ -294,7 +300,8 @@ def fracture_recursive(width_mm: float, height_mm: float, rng: np.random.Generat
 def fracture_voronoi(width_mm: float, height_mm: float, rng: np.random.Generator, *,
                      median_size_mm: float = 35.0, sigma: float = 0.5, min_size_mm: float = 10.0,
                      max_size_mm: float = 200.0, n_pieces: int | None = None, jag_mm: float = 1.5,
-                     jag_scale_mm: float = 20.0, inset_mm: float = 4.0, grid_mm: float = 1.0) -> Fracture:
+                     jag_scale_mm: float = 20.0, inset_mm: float = 4.0, grid_mm: float = 1.0,
+                     keep=None) -> Fracture:
     """Break a wall into the cells of a power (weighted Voronoi) diagram.
 
     Seeds are thrown as non-overlapping discs whose diameters are log-normal (median
@@ -315,6 +322,7 @@ def fracture_voronoi(width_mm: float, height_mm: float, rng: np.random.Generator
     _check(width_mm, height_mm, median_size_mm, sigma, min_size_mm, max_size_mm)
     wx, wy = _jagged_warp(rng, jag_mm, jag_scale_mm)
     frac = Fracture(float(width_mm), float(height_mm), "voronoi", wx, wy, float(inset_mm), float(grid_mm))
+    frac.keep = keep  # (pieces are thrown over the whole rectangle; those outside the area vanish)
     seeds: list[tuple[float, float, float]] = []
 
     def diameter():

@@ -35,10 +35,10 @@ from common.synth.painting import Painting
 
 # generate_wall keyword arguments of the presets (explicit arguments override them)
 PRESETS = {
-    "pompeii": dict(style="pompeii", median_size_mm=80.0, sigma=0.4, min_size_mm=20.0, max_size_mm=200.0,
+    "pompeii": dict(style="pompeii", median_size_mm=90.0, sigma=0.4, min_size_mm=20.0, max_size_mm=200.0,
                     erosion_mm=0.0, chips_per_cm=0.12, jag_mm=3.0, jag_scale_mm=40.0, round_mm=0.3,
-                    edge_noise_mm=0.45, border_weight=0.25, irregular_area=True, surface_wear=False,
-                    loss=dict(median_mm=4.2, sigma=0.45, touch_fraction=0.3), min_shared_mm=10.0,
+                    edge_noise_mm=0.3, border_weight=0.25, irregular_area=True, surface_wear=False,
+                    loss=dict(median_mm=4.2, sigma=0.45, spread=0.6, touch_fraction=0.35), min_shared_mm=10.0,
                     missing_fraction=0.25, spurious_fraction=0.05,
                     fade_fraction=0.1, discolour_fraction=0.1, relief_res_mm=0.5),
 }
@@ -86,7 +86,7 @@ def plaster_palette(palette_seed: int) -> dict:
 
 # ----------------------------------------------------------------------------------- painting
 def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *, palette: dict | None = None,
-                  res_mm: float = 0.25) -> Painting:
+                  res_mm: float = 0.4) -> Painting:
     """A mostly plain plaster wall with sparse, faded painted elements.
 
     Plain lime-white or grey plaster (mottled at centimetre scale, speckled by the aggregate)
@@ -102,7 +102,8 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     palette : dict, optional
         From :func:`plaster_palette` (default: palette seed 0).
     res_mm : float
-        Raster pixel size.
+        Raster pixel size (0.4 mm: the painted elements are broad and faded; sampling a
+        fragment interpolates it bilinearly).
 
     Returns
     -------
@@ -129,7 +130,7 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     # centimetre-scale mottling (lime wash, dirt) and a second, greyer blotching
     lum = FractalField(rng, 30.0, octaves=4, persistence=0.6, amplitude=0.05).grid(G, (H, W))
     img *= (1.0 + lum)[..., None]
-    warm = FractalField(rng, 25.0, octaves=4, persistence=0.7, amplitude=0.02).grid(G, (H, W))
+    warm = FractalField(rng, 25.0, octaves=4, persistence=0.7, amplitude=0.012).grid(G, (H, W))
     img[..., 0] *= 1.0 + warm
     img[..., 2] *= 1.0 - warm
     paints = palette["paints"]
@@ -223,14 +224,16 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
             line(name, (1 - t) ** 2 * p0 + 2 * t * (1 - t) * p1 + t ** 2 * p2, rng.uniform(0.8, 2.5))
     # faint washes and stains: large soft patches of a pigment at low opacity
     wash = {}
-    for _ in range(int(rng.poisson(area / 60_000.0))):
+    for _ in range(int(rng.poisson(area / 100_000.0))):
         name = pick()
         layer = wash.setdefault(name, np.zeros((H, W), np.float32))
         r = rng.uniform(15, 80)
         cv2.circle(layer, (int(rng.uniform(0, width_mm) * k), int(rng.uniform(0, height_mm) * k)), int(r * k),
-                   float(rng.uniform(0.08, 0.25)), -1, cv2.LINE_AA)
+                   float(rng.uniform(0.05, 0.15)), -1, cv2.LINE_AA)
     for n, a in wash.items():
-        a = cv2.GaussianBlur(a, (0, 0), 8.0 * k)
+        # soft edges: blurred on a 4x coarser raster, then interpolated back
+        small = cv2.resize(a, (max(1, W // 4), max(1, H // 4)), interpolation=cv2.INTER_AREA)
+        a = cv2.resize(cv2.GaussianBlur(small, (0, 0), 2.0 * k), (W, H), interpolation=cv2.INTER_LINEAR)
         img += a[..., None] * (np.asarray(paints[n], np.float32) - img)
     # composite with patchy opacity (faded, worn paint)
     patch = FractalField(rng, 6.0, octaves=3, persistence=0.6, amplitude=0.25).grid(G, (H, W))
@@ -253,31 +256,35 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
 
 
 # ------------------------------------------------------------------------- recovered area
-REGION_FRACTION = 0.55  # about the share of the wall rectangle that recover_region keeps
+REGION_FRACTION = 0.64  # about the share of the wall rectangle that recover_region keeps
 
 
-def recover_region(fracture, rng: np.random.Generator, *, roughness: float = 0.5) -> None:
-    """Make the recovered part of a broken wall an irregular patch instead of a rectangle.
+def recovered_region(width_mm: float, height_mm: float, rng: np.random.Generator, *, roughness: float = 0.5):
+    """An irregular recovered patch of a wall, instead of the whole rectangle.
 
     Real collapsed frescoes are recovered as irregular groups of pieces; a piece on the
     rectangle's edge would show a long straight side no real fragment has. The wall is kept where
     ``1 - r^2 + F > 0.3`` (``r`` the elliptical radius from the centre, ``F`` a fractal field of
-    std ``roughness`` at a third of the wall's size), evaluated at the fracture's warped
-    coordinates so that the new outer edge is as jagged as the cracks. Changes ``fracture`` in
-    place (its ``keep`` and coarse labels); about :data:`REGION_FRACTION` of the rectangle remains.
+    std ``roughness`` at a third of the wall's size); about :data:`REGION_FRACTION` of the
+    rectangle. The fracture evaluates it at its warped coordinates (``keep`` argument of
+    :func:`~common.synth.breakage.fracture_recursive`), so the patch's edge is as jagged as the
+    cracks and the pieces are counted inside it.
 
     Parameters
     ----------
-    fracture : Fracture
+    width_mm, height_mm : float
+        The wall rectangle.
     rng : numpy.random.Generator
     roughness : float
         Irregularity of the patch outline.
-    """
-    from common.synth.breakage import _coarse_grid
 
+    Returns
+    -------
+    callable(x_mm, y_mm) -> bool array
+    """
     if roughness < 0:
         raise ValueError(f"roughness must be >= 0, got {roughness}")
-    W, H = fracture.width_mm, fracture.height_mm
+    W, H = float(width_mm), float(height_mm)
     field = FractalField(rng, max(W, H) / 3.0, octaves=3, persistence=0.5, amplitude=roughness)
 
     def keep(x, y):
@@ -290,9 +297,7 @@ def recover_region(fracture, rng: np.random.Generator, *, roughness: float = 0.5
         r2 = ((x - W / 2) / (W / 2)) ** 2 + ((y - H / 2) / (H / 2)) ** 2
         return (1.0 - r2 + f > 0.3).reshape(shape)
 
-    fracture.keep = keep
-    gx, gy = _coarse_grid(W, H, fracture.grid_mm)
-    fracture.coarse_labels = fracture.labels(gx, gy)
+    return keep
 
 
 # ---------------------------------------------------------------------------- material loss
@@ -301,10 +306,10 @@ class MaterialLoss:
     """Plaster lost along the cracks: the gap it leaves between two pieces that once joined.
 
     At a wall point ``p`` on the crack between pieces ``a < b`` the gap is
-    ``g(p) = max(0, s_ab * exp(spread * F(p)) - d_ab)``: ``s_ab`` a log-normal scale per crack
+    ``g(p) = max(0, s_ab * exp(k_ab * F(p)) - d_ab)``: ``s_ab`` a log-normal scale per crack
     (median ``median_mm``, log-sd ``sigma``), ``F`` a unit fractal field along the wall (so the
-    gap varies along the crack), ``d_ab`` an offset that lets a share ``touch_fraction`` of cracks
-    close up somewhere. Piece ``a`` loses ``w(p) g(p)`` and ``b`` loses ``(1 - w(p)) g(p)``, with
+    gap varies along the crack) with a per-crack spread ``k_ab`` (``spread`` x 0.5-1.5),
+    ``d_ab`` an offset that lets a share ``touch_fraction`` of cracks close up somewhere. Piece ``a`` loses ``w(p) g(p)`` and ``b`` loses ``(1 - w(p)) g(p)``, with
     ``w`` a smooth field in (0.1, 0.9): uneven, both sides.
 
     Parameters
@@ -337,24 +342,25 @@ class MaterialLoss:
         self._split = FractalField(rng, 2.0 * self.scale_mm, octaves=2, persistence=0.5, amplitude=1.0)
         self._norm = 1.0 / np.sqrt(1 + 0.25 + 0.0625)  # unit variance of the three octaves
 
-    def crack(self, a: int, b: int) -> tuple[float, float]:
-        """(scale s, offset d) of the crack between pieces ``a`` and ``b`` (-1 = outside)."""
+    def crack(self, a: int, b: int) -> tuple[float, float, float]:
+        """(scale s, offset d, spread) of the crack between pieces ``a`` and ``b`` (-1 = outside);
+        the spread along a crack is ``spread`` times a factor in [0.5, 1.5]."""
         lo, hi = sorted((int(a), int(b)))
         rng = np.random.default_rng([int(self.seed), lo + 2, hi + 2])
         s = self.median_mm * float(np.exp(self.sigma * rng.standard_normal()))
         d = s * float(rng.uniform(0.35, 0.9)) if rng.random() < self.touch_fraction else 0.0
-        return s, d
+        return s, d, self.spread * float(rng.uniform(0.5, 1.5))
 
     def depth_grid(self, G: np.ndarray, shape, label: int, other: np.ndarray) -> np.ndarray:
         """Depth (mm) piece ``label`` loses at each pixel of an affine grid, given the piece
         ``other`` (int array, -1 = outside the wall) across the nearest crack."""
-        vary = np.exp(self.spread * self._norm * self._vary.grid(G, shape))
+        vary = self._norm * self._vary.grid(G, shape)
         w = 0.1 + 0.8 / (1.0 + np.exp(-1.5 * self._split.grid(G, shape)))
         out = np.zeros(shape, np.float32)
         for m in np.unique(other):
             sel = other == m
-            s, d = self.crack(label, m)
-            g = np.maximum(0.0, s * vary[sel] - d)
+            s, d, spread = self.crack(label, m)
+            g = np.maximum(0.0, s * np.exp(spread * vary[sel]) - d)
             share = w[sel] if label < m else 1.0 - w[sel]
             out[sel] = g * share
         return out

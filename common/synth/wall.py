@@ -34,7 +34,7 @@ from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
 from common.synth.noise import FractalField
 from common.synth.painting import Painting, paint_wall, painting_from_image
 from common.synth.realistic import (PRESETS, REGION_FRACTION, MaterialLoss, lose_material, paint_plaster,
-                                   plaster_palette, recover_region, round_outline)
+                                   plaster_palette, recovered_region, round_outline)
 from common.synth.relief import WallRelief, normals_from_height
 
 log = logging.getLogger(__name__)
@@ -185,7 +185,7 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
         painting = painting_from_image(image, width)
         W, H = painting.size_mm
     else:
-        area = n_pieces * _AREA_FACTOR * median_size_mm ** 2
+        area = n_pieces * _AREA_FACTOR * median_size_mm ** 2 / (REGION_FRACTION if region_rng is not None else 1.0)
         H = float(np.sqrt(area / aspect)) + 8.0
         W = float(aspect * (H - 8.0)) + 8.0
         if style == "pompeii":
@@ -194,9 +194,9 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
             painting = paint_wall(W, H, rng_paint, style=style)
     wall_relief = WallRelief(painting, rng_relief, res_mm=relief_res_mm) if relief else None
     kw = dict(median_size_mm=median_size_mm, sigma=sigma, n_pieces=n_pieces, jag_mm=jag_mm, **(fracture_kw or {}))
+    if region_rng is not None and image is None:
+        kw["keep"] = recovered_region(W, H, region_rng)
     fracture = (fracture_recursive if mode == "recursive" else fracture_voronoi)(W, H, rng_break, **kw)
-    if region_rng is not None:
-        recover_region(fracture, region_rng)
     return _Plan(painting, wall_relief, fracture, loss)
 
 
@@ -399,8 +399,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Further preset values: ``min_size_mm``, ``max_size_mm``, ``jag_scale_mm``,
         ``chips_per_cm``, ``round_mm``, ``edge_noise_mm`` (fine outline roughness),
         ``border_weight`` (how likely a piece on the wall's outer edge is delivered, relative to
-        an inner one), ``irregular_area`` (keep an irregular patch of a larger broken wall,
-        :func:`~common.synth.realistic.recover_region`), ``surface_wear`` (pits and hairline
+        an inner one), ``irregular_area`` (break only an irregular patch of the wall,
+        :func:`~common.synth.realistic.recovered_region`), ``surface_wear`` (pits and hairline
         cracks; off in the preset), ``fade_fraction``, ``discolour_fraction``, ``relief_res_mm``, ``loss``
         (None, 'pompeii' or a dict of :class:`~common.synth.realistic.MaterialLoss` arguments).
 
@@ -485,7 +485,6 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         if base.get("irregular_area") and image is None:
             # break a larger wall and keep an irregular patch of it (no straight outer edges)
             extra["region_rng"] = np.random.default_rng([int(seed), 4241])
-            n_pieces = int(np.ceil(n_pieces / REGION_FRACTION))
     plan = _plan(max(n_pieces, 1), np.random.default_rng(s_paint), np.random.default_rng(s_relief),
                  np.random.default_rng(s_break), mode=mode, style=style,
                  image=None if image is None else np.asarray(image), median_size_mm=median_size_mm, sigma=sigma,
@@ -493,7 +492,9 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
                  loss=MaterialLoss(int(seed), **loss_kw) if loss_kw is not None else None, **extra)
     coarse = plan.fracture.coarse_labels
     areas = np.bincount(coarse[coarse >= 0].ravel(), minlength=plan.fracture.n_pieces)
-    usable = np.nonzero(areas * plan.fracture.grid_mm ** 2 >= 25.0)[0]  # at least ~5x5 mm
+    # at least ~5x5 mm (realistic presets: half their smallest size, no slivers of the outer edge)
+    min_area = max(25.0, (0.5 * base.get("min_size_mm", 0.0)) ** 2) if realistic else 25.0
+    usable = np.nonzero(areas * plan.fracture.grid_mm ** 2 >= min_area)[0]
     if len(usable) < n_present:
         raise ValueError(f"the wall broke into only {len(usable)} usable pieces, fewer than the {n_present} "
                          f"requested; lower median_size_mm or supply a larger image_width_mm")
@@ -513,8 +514,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         sr = np.random.default_rng(s_spur)
         # another wall: the other style, or for 'pompeii' another wall of the same palette
         other = "pompeii" if style == "pompeii" else ("roman" if style == "aegean" else "aegean")
-        splan = _plan(int(np.ceil((n_spur + 4) / (REGION_FRACTION if "region_rng" in extra else 1.0))), sr, sr, sr,
-                      mode=mode, style=other, image=None, median_size_mm=median_size_mm, sigma=sigma, jag_mm=jag_mm,
+        splan = _plan(n_spur + 4, sr, sr, sr, mode=mode, style=other, image=None, median_size_mm=median_size_mm, sigma=sigma, jag_mm=jag_mm,
                       loss=MaterialLoss(int(seed) + 7919, **loss_kw) if loss_kw is not None else None, **extra)
         sc = splan.fracture.coarse_labels
         sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)

@@ -21,7 +21,7 @@ def _halves(width=100, height=800):
 def test_constant_loss_opens_a_gap_of_its_scale_split_between_both_sides():
     labels, G = _halves()
     loss = MaterialLoss(seed=3, median_mm=2.0, sigma=0.0, spread=0.0, touch_fraction=0.0)
-    s, d = loss.crack(0, 1)
+    s, d, _ = loss.crack(0, 1)
     assert s == pytest.approx(2.0) and d == 0.0
     left = lose_material(labels == 0, labels, 0, G, loss)
     right = lose_material(labels == 1, labels, 1, G, loss)
