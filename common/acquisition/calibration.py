@@ -180,7 +180,7 @@ class TargetReading:
 
 
 def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_deg: float = 0.0,
-                direction_deg: float = 0.0, at_glass: bool = True) -> TargetReading:
+                direction_deg: float = 0.0, at_glass: bool = True, depth_mm: float = 0.0) -> TargetReading:
     """Reading of the calibration target where it lies on the glass, with its clipped pixels counted.
 
     The target is found by :func:`~common.acquisition.locate.fragment_mask` (the scan's outer ring
@@ -190,8 +190,9 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_
     A tilted target lies on the glass along its edge opposite ``direction_deg`` and rises from it,
     and a scanner's light changes with the distance from the glass (about 1 % per mm), while a
     fragment's face lies on the glass: the reading is therefore fitted along the tilt direction,
-    ``I(s) = c0 + c1 s`` with ``s`` the distance from that edge, and ``c0`` (the reading at the
-    glass) returned. With ``at_glass=False`` the median of the inner part is returned whatever the
+    ``I(s) = c0 + c1 s`` with ``s`` the distance from that edge, and the reading at the height
+    ``depth_mm`` above the glass returned, ``c0 + c1 depth_mm / tan(tilt)`` (a fragment rests on
+    its highest points: its face lies on average some tenths of a millimetre above the glass). With ``at_glass=False`` the median of the inner part is returned whatever the
     tilt (the reading at the target's mean height above the glass).
 
     Parameters
@@ -205,7 +206,9 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_
     tilt_deg, direction_deg : float
         The target's pose (:func:`target_normal`); direction on the image counter-clockwise from +x.
     at_glass : bool
-        Extrapolate a tilted target's reading to the edge lying on the glass.
+        Read a tilted target at ``depth_mm`` above the glass (fit along the tilt direction).
+    depth_mm : float
+        Height above the glass at which the reading is taken (0 = the edge on the glass).
     """
     if not dpi > 0:
         raise ValueError(f"dpi must be positive, got {dpi}")
@@ -238,7 +241,7 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_
         resid = lum - X @ coef
         keep = np.abs(resid) < 4 * 1.4826 * np.median(np.abs(resid)) + 1e-9     # dust, specks
         coef, *_ = np.linalg.lstsq(X[keep], lum[keep], rcond=None)
-        value = float(coef[0])
+        value = float(coef[0] + coef[1] * depth_mm / np.tan(np.deg2rad(tilt_deg)))
     return TargetReading(value, int(len(px)), clipped, whole)
 
 

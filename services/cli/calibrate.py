@@ -45,6 +45,9 @@ def add_parser(subparsers) -> None:
                                     "--from-files the device's name, under which the calibration is stored")
     p.add_argument("--from-files", metavar="MANIFEST",
                    help="fit from target scans on disk listed in a CSV manifest (file,tilt_deg,tilt_direction_deg)")
+    p.add_argument("--face-depth-mm", type=float, default=0.75,
+                   help="with --from-files: height above the glass at which tilted targets are read, where a "
+                        "fragment's face lies on average (default 0.75 mm)")
     p.add_argument("--max-clipped", type=float, default=0.01,
                    help="drop target scans with more than this fraction of clipped pixels (default 0.01)")
     p.add_argument("--sane-device", help="SANE device name (default: [scanner] sane_device)")
@@ -185,6 +188,9 @@ def _from_files(args, store) -> int:
     if not args.dpi > 0:
         print(f"--dpi must be positive, got {args.dpi}")
         return 2
+    if not 0 <= args.face_depth_mm <= 5:
+        print(f"--face-depth-mm must be in [0, 5], got {args.face_depth_mm}")
+        return 2
     try:
         rows = read_manifest(args.from_files)
     except ValueError as exc:
@@ -200,7 +206,8 @@ def _from_files(args, store) -> int:
             if float(px.max()) < BLACK_FRACTION * img.full_scale:
                 raise ImportRefused(f"{path}: is all black: lamp off or lid open?")
             try:
-                readings.append(read_target(px, args.dpi, tilt_deg=tilt, direction_deg=direction))
+                readings.append(read_target(px, args.dpi, tilt_deg=tilt, direction_deg=direction,
+                                            depth_mm=args.face_depth_mm))
             except CalibrationError as exc:
                 raise ImportRefused(f"{path}: {exc}") from exc
             bar.update(i + 1)

@@ -56,15 +56,16 @@ def test_tilt_direction_convention_matches_the_simulator():
     assert v[0.0] == pytest.approx(v[180.0], rel=0.02)
 
 
-def test_from_files_recovers_the_simulated_lamp_at_the_glass(tmp_path):
-    # independent expectation: the simulator's own irradiance for these normals on the glass (depth 0)
+@pytest.mark.parametrize("depth_mm", [0.0, 0.75])
+def test_from_files_recovers_the_simulated_lamp_at_the_face_depth(tmp_path, depth_mm):
+    # independent expectation: the simulator's own irradiance for these normals at that height above the glass
     sim = SimulatedFlatbed("sim-files", bed_mm=(120, 120), seed=2, dust=0)
     normals = np.array([target_normal(t, a) for t, a in POSES])
-    truth = fit_lamp_model(normals, sim.exposure * lamp_irradiance(normals, 0.0, sim.lamp))
+    truth = fit_lamp_model(normals, sim.exposure * lamp_irradiance(normals, depth_mm, sim.lamp))
     manifest = _write_targets(tmp_path, sim)
     store = tmp_path / "store"
     assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
-                 "--device", "bench-a", "--dpi", str(DPI)]) == 0
+                 "--device", "bench-a", "--dpi", str(DPI), "--face-depth-mm", str(depth_mm)]) == 0
     cal, _ = newest_calibration(Store(store), "bench-a")
     assert np.allclose(cal.a, truth, atol=0.015), (cal.a, truth)
     assert cal.a[1] > 0.1          # light from the image's top = +y of the normal frame
