@@ -54,6 +54,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--method", choices=("robust", "least_squares"), default="robust")
     p.add_argument("--srgb", choices=("auto", "yes", "no"), default="auto",
                    help="images are sRGB-encoded: auto = JPEGs yes, PNG/TIFF no (default)")
+    p.add_argument("--bit-depth", type=int, choices=(8, 16), help="declared bit depth: other files are refused")
     p.add_argument("--dpi", type=float, default=96.0, help="sampling density (nominal if unknown; default 96)")
     p.add_argument("--face", choices=("front", "back"), default="front")
     p.add_argument("--min-mask-share", type=float, default=None, metavar="F",
@@ -142,7 +143,7 @@ def _items(args) -> list[ImportItem]:
             "intensities": files["intensities"].name if files["intensities"] else None,
             "mask": files["mask"].name if files["mask"] else None, "spheres": args.spheres,
             "dome_radius": args.dome_radius, "light_positions": args.light_positions, "method": args.method,
-            "srgb": srgb, "dpi": args.dpi,
+            "srgb": srgb, "dpi": args.dpi, "bit_depth": args.bit_depth,
             "min_mask_share": args.min_mask_share, "discontinuities": not args.no_discontinuities}))
     return items
 
@@ -165,7 +166,8 @@ def convert(item: ImportItem, store) -> list[Output]:
                              chrome=spheres[0] if not o["lights"] and spheres else None,
                              diffuse=spheres[1] if not o["lights"] and len(spheres) > 1 else None,
                              mask=str(folder / o["mask"]) if o["mask"] else None, method=o["method"],
-                             srgb=o["srgb"], dpi=o["dpi"], min_mask_share=o["min_mask_share"],
+                             srgb=o["srgb"], dpi=o["dpi"], bit_depth=o.get("bit_depth"),
+                             min_mask_share=o["min_mask_share"],
                              dome_radius=o["dome_radius"], light_positions=o.get("light_positions"),
                              discontinuities=o["discontinuities"])
     except ImportRefused:

@@ -140,3 +140,12 @@ def test_a_capture_without_a_light_file_is_calibrated_from_its_spheres(tmp_path,
     inner = cv2.erode(wide.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     err = np.degrees(np.arccos(np.clip((rgbn.normals * surface_normals(wide)).sum(-1), -1, 1)))
     assert err[inner].mean() < 1.5
+
+
+def test_a_capture_of_another_bit_depth_than_declared_is_refused(tmp_path, capsys):
+    _capture(tmp_path / "cap16")  # 16-bit PNGs
+    store = tmp_path / "store"
+    assert tessera(["import", "rti", str(tmp_path / "cap16"), "--bit-depth", "8", "--store", str(store)]) == 1
+    err = capsys.readouterr().err
+    assert "img0.png" in err and "8-bit was declared" in err
+    assert _artifacts(store) == []
