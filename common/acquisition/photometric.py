@@ -171,6 +171,12 @@ def point_light_field(positions, shape, idx=None):
         Unit vectors from each pixel to each light.
     falloff : (P, N) float32
         ``(|p_i| / |p_i − x|)²``: the irradiance relative to the image centre's.
+
+    Examples
+    --------
+    >>> d, f = point_light_field([[0.0, 0.0, 10.0]], (3, 3))   # a lamp 10 px above the centre
+    >>> [round(float(v), 3) for v in d[0, 0]], round(float(f[0, 0]), 3)   # seen from the top-left pixel
+    ([0.099, -0.099, 0.99], 0.98)
     """
     pos = np.asarray(positions, np.float64)
     if pos.ndim != 2 or pos.shape[1] != 3 or not np.all(np.isfinite(pos)) or np.any(pos[:, 2] <= 0):
