@@ -1,6 +1,7 @@
 """Scale benchmark of the staged matcher (thesis §5.2.1).
 
     python tests/bench/bench_matching.py [--sizes 250,500,1000,2000] [--repeats 20]
+    python tests/bench/bench_matching.py --pool ../shared/data/repair-dev --sizes 2000 --repeats 5
 
 A model is trained on a small synthetic wall (60 fragments); the index is then filled with n
 synthetic feature tables (allowed for the scale test): each is a real fragment's cues from a pool
@@ -15,6 +16,11 @@ realistic. For each n it prints
 * peak resident memory of the process;
 
 targets: ≤ 100 ms per new fragment, ≤ 10 min full re-rank, ≤ 4 GB at n = 2000.
+
+``--pool DIR`` fills the index from a real placed collection instead (RePAIR's fragments: 75–115
+patches each, outlines 10–20 cm) and gives the model the docking calibration of the bootstrap
+model, so the proposal time includes stage 3 (docking the best
+:data:`~common.matching.index.DOCK_CANDIDATES`) at real sizes; it prints the docking cost per pair too.
 """
 
 from __future__ import annotations
@@ -53,6 +59,9 @@ def main() -> int:
     ap.add_argument("--sizes", default="250,500,1000,2000")
     ap.add_argument("--repeats", type=int, default=20, help="new fragments timed per size")
     ap.add_argument("--full-rerank-max", type=int, default=2000, help="largest n where the full re-rank is run")
+    ap.add_argument("--pool", help="a placed collection (repair-dev layout) whose real fragments fill the index; "
+                                   "proposals then include the docking (stage 3)")
+    ap.add_argument("--dpi", type=float, default=150.0, help="nominal dpi of --pool's images (default 150)")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     rng = np.random.default_rng(0)
@@ -65,6 +74,21 @@ def main() -> int:
     model2.coef = model.coef * (1 + 0.05 * rng.standard_normal(model.coef.shape))
     model2.version = "0002-bench"
     pool = [(cues[f], tables[f].contour_mm, tables[f].boundary_profile) for f in cues if len(cues[f]) >= 3]
+    if args.pool:
+        from common.matching.collection import collection_wall
+        from common.matching.docking import dock_outlines
+        from common.matching.online import docking_calibration
+
+        real = generate_wall(16, seed=1, dpi=40.0, preset="pompeii", colour_only=True)
+        model.docking = model2.docking = docking_calibration(real, negatives_per_positive=2.0)
+        rw = collection_wall(args.pool, dpi=args.dpi)
+        rtables, rcues, _ = wall_cues(rw)
+        pool = [(rcues[f], rtables[f].contour_mm, rtables[f].boundary_profile) for f in rcues if len(rcues[f]) >= 3]
+        pairs = [(pool[i][1], pool[j][1]) for i, j in rng.integers(len(pool), size=(10, 2))]
+        tc = time.process_time()
+        for a, b in pairs:
+            dock_outlines(a, b, n_poses=1)
+        print(f"docking one pair of real fragments: {1e3 * (time.process_time() - tc) / len(pairs):.0f} ms CPU")
     print(f"model trained on {wall.id} in {time.perf_counter() - t:.1f} s; pool of {len(pool)} fragments; "
           f"median {int(np.median([len(p[0]) for p in pool]))} patches, "
           f"{int(np.median([len(p[2]) for p in pool]))} boundary samples per fragment")
@@ -118,6 +142,7 @@ def main() -> int:
               f"{rescore:10.1f} {peak_rss_mb():12.0f}")
         sys.stdout.flush()
         assert found and np.isfinite(found[0].ribbon_score)  # the last query got ribbon-ranked proposals
+        assert not args.pool or found[0].docking is not None   # ... and docked ones with --pool
     return 0
 
 

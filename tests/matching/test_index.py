@@ -187,3 +187,56 @@ def test_propose_with_the_ribbon_gives_calibrated_probabilities_even_without_pat
     found = index.propose(small, model, top=5, check=1)
     assert len(found) == 5 and all(c.patch_a == -1 and np.isfinite(c.ribbon_score) for c in found)
     assert found[0].alignment is not None
+
+
+def test_docking_stage_reorders_the_best_candidates_by_hub_corrected_contact(small_wall):
+    """Stage 3: with a docking calibration, the best DOCK_CANDIDATES are re-ranked by their docking
+    contact less both hubnesses (computed independently here), carry the docked pose, and nothing
+    after them is more probable; without one, the ranking is stage 2½'s unchanged."""
+    from dataclasses import replace
+
+    from common.matching.docking import dock_outlines, docking_contact_mm
+
+    wall, tables, cues, poses = small_wall
+    base = _model(small_wall)
+    ids = [f for f in cues if len(cues[f]) >= 3][:10]
+    index = MatchIndex()
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm)
+    q, others = ids[0], ids[1:]
+    plain = [c.other for c in index.rank(cues[q], others, base)]
+    model = replace(base, docking=(0.05, -2.0))
+    ranked = index.rank(cues[q], others, model, dock_candidates=4)
+    head, tail = ranked[:4], ranked[4:]
+    assert {c.other for c in head} == set(plain[:4])          # the same four, re-ordered
+    assert [c.other for c in tail] == plain[4:]
+    contact = {o: docking_contact_mm(dock_outlines(tables[q].contour_mm, tables[o].contour_mm, n_poses=1)[0])
+               for o in plain[:4]}
+    mu_q = np.sort(list(contact.values()))[-3:].mean()
+    assert index.dock_hubness[q] == __import__("pytest").approx(mu_q)
+    # the others have no hubness yet: they take the median (the query's own) and only contact orders them
+    assert [c.other for c in head] == sorted(contact, key=lambda o: -contact[o])
+    for c in head:
+        assert c.alignment is not None and c.docking is not None
+        p = 1 / (1 + np.exp(-(0.05 * c.docking_contact_mm - 2.0)))
+        assert c.probability == __import__("pytest").approx(p)
+    assert max(c.probability for c in tail) <= min(c.probability for c in head)
+    # the pair is docked once: asking from the other side reuses (inverts) the cached docking
+    d_qo, d_oq = index.docking(q, head[0].other), index.docking(head[0].other, q)
+    assert d_oq.angle_deg == __import__("pytest").approx(-d_qo.angle_deg)
+    assert len(index._dockings) == 4
+    # a model without docking ranks as before
+    assert [c.other for c in index.rank(cues[q], others, base)] == plain
+
+
+def test_model_keeps_its_docking_calibration_through_storage(tmp_path, small_wall):
+    from dataclasses import replace
+
+    from common.matching.models import load_model, save_model
+    from common.store import Store
+
+    model = replace(_model(small_wall), docking=(0.02, -3.0))
+    store = Store(tmp_path)
+    back = load_model(store, save_model(store, model))
+    assert back.docking == (0.02, -3.0)
+    assert replace(model, docking=(0.03, -3.0)).digest() != model.digest()
