@@ -10,7 +10,6 @@ bumps ``v``. ``docs/messages.md`` documents each type with an example and is che
 
 from __future__ import annotations
 
-import math
 import re
 import time as _time
 import uuid
@@ -95,8 +94,7 @@ def _check_shape(msg: Mapping) -> None:
             if not INT_RANGE[0] <= obj <= INT_RANGE[1]:
                 raise MessageError("message holds an integer outside the signed 64-bit range")
         elif isinstance(obj, float):
-            if not math.isfinite(obj):
-                raise MessageError("message holds a number that is not finite (nan or inf)")
+            continue  # nan is a legitimate "not measured" (e.g. an alignment residual)
         elif isinstance(obj, (str, bytes)):
             if len(obj) > MAX_STRING_CHARS:
                 raise MessageError(f"message holds a string of {len(obj)} characters (at most {MAX_STRING_CHARS})")
@@ -154,7 +152,7 @@ def validate(msg: Any) -> dict:
             raise MessageError(f"{kind} message: artifact bytes {str(size)[:40]!r} is not a size")
     if "probability" in msg:
         p = msg["probability"]
-        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan
             raise MessageError(f"{kind} message: probability {str(p)[:40]!r} is not in [0, 1]")
     if not (isinstance(msg["uid"], str) and UID_PATTERN.match(msg["uid"])):
         raise MessageError(f"{kind} message: uid {str(msg['uid'])[:80]!r} is not 32 lower-case hex digits")

@@ -72,7 +72,8 @@ def _doc(**over):
     ({"uid": "x" * 32}, "32 lower-case hex"),
     ({"uid": "ABCDEF0123456789" * 2}, "32 lower-case hex"),
     ({"time": "yesterday"}, "UNIX seconds"),
-    ({"time": float("nan")}, "not finite"),
+    ({"time": float("nan")}, "UNIX seconds"),
+    ({"probability": float("nan")}, r"\[0, 1\]"),
     ({"time": True}, "UNIX seconds"),
     ({"fragment": "a/b/c"}, "fragment id"),
     ({"fragment": "<script>"}, "fragment id"),
@@ -116,3 +117,10 @@ def test_oversized_message_is_refused_before_decoding():
 def test_fragment_ids_the_station_makes_are_valid():
     for fid in ("F0001", "wall-3-0042", "DAFNE_adam-12", "a.b_c-d"):
         assert validate(_doc(fragment=fid, face="front"))["fragment"] == fid
+
+
+def test_nan_in_other_fields_is_allowed():
+    """A stage may report a quantity it could not measure as nan (the matcher's alignment does)."""
+    m = new_message("match.proposed", fragment="A", other="B", probability=0.5,
+                    alignment={"residual_mm": float("nan")})
+    assert unpack(pack(m))["alignment"]["residual_mm"] != unpack(pack(m))["alignment"]["residual_mm"]
