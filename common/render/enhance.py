@@ -231,8 +231,8 @@ def relief_scale_px(normals: np.ndarray, dpi: float, mask: np.ndarray | None = N
     s_dpi = min_mm * dpi / 25.4
     sigma = max(s_noise, s_dpi, 2.0 if blocks > 1.3 else 0.0)
     sigma = float(np.clip(sigma, 0.7, 16.0))
-    return sigma, {"noise": round(noise, 5), "blocks": round(blocks, 3), "sigma_noise_px": round(s_noise, 3),
-                   "sigma_dpi_px": round(s_dpi, 3)}
+    return sigma, {"noise": round(float(noise), 5), "blocks": round(float(blocks), 3),
+                   "sigma_noise_px": round(float(s_noise), 3), "sigma_dpi_px": round(float(s_dpi), 3)}
 
 
 class Coarse(NamedTuple):
@@ -361,7 +361,9 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     ``r > 0`` and ``L' = L + strength * r * L`` where ``r < 0``: a soft-light on L* that can
     never push a pixel out of [0, 100] (no relief pixel saturates). ``exposure = (lo, hi)``
     first maps L* through :func:`tone_curve` so that ``lo -> 20`` and ``hi -> 80`` (give the 5th
-    and 95th percentiles, :func:`lightness_range`); a* and b* are kept.
+    and 95th percentiles, :func:`lightness_range`), scaling a* and b* with L* (the hue is kept).
+    A colour that sRGB cannot show after all is pulled towards the grey of its lightness
+    (chroma reduced, hue and lightness kept) instead of having a channel clipped.
 
     Parameters
     ----------
@@ -399,12 +401,39 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     L = lab[..., 0]
     if exposure is not None:
         lo, hi = float(exposure[0]), float(exposure[1])
-        L = 100.0 * tone_curve(L, lo, hi) if hi > lo else L
+        if hi > lo:
+            L2 = 100.0 * tone_curve(L, lo, hi)
+            # an exposure change scales chroma with lightness (a darker print of the same paint),
+            # so a saturated colour made darker stays a colour sRGB can show
+            k = np.clip(L2 / np.maximum(L, 1.0), 0.0, 2.0)
+            lab[..., 1] *= k
+            lab[..., 2] *= k
+            L = L2
     r = np.clip(relief, -1.0, 1.0) * np.float32(strength)
     L = L + r * np.where(r > 0, 100.0 - L, L)
     lab[..., 0] = L
     rgb = cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)
-    return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+    return _into_gamut(rgb, L)
+
+
+def _into_gamut(rgb: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """Colours outside [0, 1] (a saturated paint lightened past what sRGB can show) pulled towards
+    the grey of the same lightness until they fit: hue and lightness kept, chroma reduced —
+    instead of clipping a channel, which would shift the hue and flatten the relief."""
+    bad = (rgb.max(axis=2) > 1.0) | (rgb.min(axis=2) < 0.0)
+    if not bad.any():
+        return rgb.astype(np.float32)
+    c = rgb[bad]
+    g = np.clip(cv2.cvtColor(np.stack([L[bad], np.zeros_like(L[bad]), np.zeros_like(L[bad])], axis=1)[None]
+                             .astype(np.float32), cv2.COLOR_Lab2RGB)[0, :, :1], 0.0, 1.0)
+    d = c - g
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_hi = np.where(d > 1e-7, (1.0 - g) / d, np.inf)
+        t_lo = np.where(d < -1e-7, (0.0 - g) / d, np.inf)
+    t = np.clip(np.minimum(t_hi, t_lo).min(axis=1, keepdims=True), 0.0, 1.0)
+    out = rgb.copy()
+    out[bad] = g + t * d
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:

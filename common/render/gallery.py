@@ -340,7 +340,7 @@ def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures
         lines.append(f"* **{name}** — not drawn: {why}")
     lines += ["", "## Tone range used (defaults)", "",
               "Share of the tone range between the 5th and 95th percentiles of the luminance on the subject, and "
-              "(in brackets) the share of pixels with a channel at 0 or 255. Target: >= 50 % for every default "
+              "(in brackets) the share of pixels with a channel at 0 or 255 (black ink lines count). Target: >= 50 % for every default "
               "(`python -m common.render.gallery` measures it while drawing this page).", "",
               "| style / recipe | " + " | ".join(rows) + " |", "|---" * (len(rows) + 1) + "|"]
     for key in recipes:

@@ -39,7 +39,8 @@ def add_parser(subparsers) -> None:
     src.add_argument("--linear-albedo", action="store_true", help="the albedo file is linear, not sRGB")
     how = p.add_argument_group("what to draw")
     how.add_argument("--style", help="one style (see --list-styles)")
-    how.add_argument("--recipe", metavar="FILE|NAME", help="a recipe TOML file or a shipped recipe name")
+    how.add_argument("--recipe", metavar="FILE|NAME",
+                     help="a recipe TOML file or a shipped recipe name (default: default, colour plus relief)")
     how.add_argument("-p", "--param", action="append", default=[], metavar="NAME=VALUE",
                      help="style parameter for --style (repeatable), e.g. -p scales=6 -p light=[90,20]")
     how.add_argument("--list-styles", action="store_true", help="list the styles and their parameters, then exit")
@@ -105,13 +106,14 @@ def run(args) -> int:
     if args.list_styles:
         return _list_styles()
     try:
-        if bool(args.style) == bool(args.recipe):
-            raise ValueError("give exactly one of --style or --recipe")
+        if args.style and args.recipe:
+            raise ValueError("give at most one of --style or --recipe (neither: the default recipe)")
         if not args.output:
             raise ValueError("give the output image with -o OUT.png|OUT.tif")
         if args.param and not args.style:
             raise ValueError("--param goes with --style (a recipe carries its own parameters)")
-        recipe = style_recipe(args.style, **_parse_params(args.param)) if args.style else load_recipe(args.recipe)
+        recipe = (style_recipe(args.style, **_parse_params(args.param)) if args.style
+                  else load_recipe(args.recipe or "default"))
         image = _load_input(args)
         log.info("drawing %dx%d px (%.0f dpi) with %s", image.shape[1], image.shape[0], image.dpi, recipe.name)
         drawn = render(image, recipe, progress=lambda f, t: log.info("%3.0f%% %s", 100 * f, t))

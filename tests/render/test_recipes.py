@@ -157,7 +157,8 @@ def painting():
 def _tone_span(rgb):
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     p5, p95 = np.percentile(lum, [5, 95])
-    return p95 - p5, float(np.mean((np.round(rgb * 255).max(axis=2) >= 255) | (np.round(rgb * 255).min(axis=2) <= 0)))
+    q = np.round(rgb * 255)
+    return p95 - p5, float(np.mean((q.max(axis=2) >= 255) | (q.min(axis=2) <= 0)))  # a channel at 0 or 255
 
 
 SHADING = ["albedo", "colour_relief", "normal_unsharp", "specular", "lambertian", "raking", "toon", "gooch",
@@ -201,3 +202,10 @@ def test_every_style_parameter_is_documented_with_its_meaning():
 
     missing = {(s.name, k) for s in STYLES.values() for k in s.parameters() if not PARAM_DOCS.get(k)}
     assert not missing
+
+
+def test_segment_boundaries_as_a_style_brings_its_own_segmentation(fragment):
+    recipe = style_recipe("segment_boundaries")
+    assert recipe.segmentation is not None
+    out = render(fragment, recipe)
+    assert out.rgb.shape == (72, 72, 3) and np.isfinite(out.rgb).all()
