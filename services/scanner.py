@@ -17,7 +17,7 @@ from typing import Callable, Iterator, Mapping
 
 from common.bus.client import BrokerClient
 from common.bus.outbox import Outbox
-from common.messages import new_message
+from common.messages import FRAGMENT_PATTERN, new_message
 from common.store import Store
 
 SERVICE = "scanner"
@@ -120,6 +120,11 @@ def main(config: Mapping, *, count: int | None = None, wait_drained: bool = True
     status = 0
     try:
         for i, (fid, surface) in enumerate(source):
+            if not FRAGMENT_PATTERN.match(fid):  # the bus refuses other ids (docs/messages.md): ask before scanning
+                print(f"  ! fragment id {fid!r} is not valid: use 1-64 letters, digits, '.', '_' or '-'; skipped",
+                      file=out, flush=True)
+                status = 1
+                continue
             print(f"fragment {fid} ({i + 1} of {count})", file=out, flush=True)
             result = None
             for attempt in range(3):  # the operator fixes what the capture complained about, then retries
