@@ -459,6 +459,21 @@ def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple
     return float(mid - half), float(mid + half)
 
 
+def lightness_spread(albedo: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The 5th-95th percentile span of CIELAB L* (0-100) of a linear albedo: how much the colour
+    itself varies (a painting 40-70, one metal or one plaster 5-15)."""
+    albedo = np.asarray(albedo, np.float32)
+    m = check_mask(mask, albedo.shape[:2])
+    flat = albedo.reshape(-1, 3)[m.ravel()]
+    if flat.shape[0] > _SAMPLE:
+        flat = flat[:: int(np.ceil(flat.shape[0] / _SAMPLE))]
+    if flat.shape[0] == 0:
+        return 0.0
+    L = cv2.cvtColor(np.ascontiguousarray(np.clip(flat, 0.0, 1.0)[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]
+    lo, hi = robust_range(L, clip_percent=5.0)
+    return float(hi - lo)
+
+
 def detail_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray | None = None,
                    sigma_px: float = 4.0, fine_px: float = 1.0) -> np.ndarray:
     """The shading of the relief finer than ``sigma_px``: ``(n_f - n_s) . l`` with ``n_f`` and
