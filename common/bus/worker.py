@@ -18,12 +18,14 @@ A stage module ``services/<name>.py`` exposes ``SERVICE``, ``VERSION`` and
 from __future__ import annotations
 
 import contextlib
+import errno
 import importlib
 import logging
 import os
 import queue
 import signal
 import socket as _socket
+import sqlite3
 import threading
 import time
 import traceback
@@ -46,6 +48,22 @@ REJECTED_ERRORS: tuple[type[BaseException], ...] = (messages.MessageError, Artif
 # errors that mean "the storage refuses writes right now" (full, read-only, unmounted): the job is
 # retried in this worker with back-off (heartbeats go on) instead of burning the broker's attempts
 STORAGE_ERRORS: tuple[type[BaseException], ...] = (StorageError, StorageUnavailable)
+_STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS}
+# SQLite's words for the same (a stage's database on the storage, e.g. the matcher's proposal store)
+_SQLITE_STORAGE = ("disk is full", "readonly database", "read-only", "disk i/o error", "database is locked")
+
+
+def storage_refused(exc: BaseException) -> bool:
+    """True if ``exc`` means the storage refuses writes right now (full, read-only, unmounted, busy),
+    whichever layer raised it: the store, the OS, or SQLite."""
+    if isinstance(exc, STORAGE_ERRORS):
+        return True
+    if isinstance(exc, OSError) and exc.errno in _STORAGE_ERRNOS:
+        return True
+    if isinstance(exc, sqlite3.OperationalError):
+        text = str(exc).lower()
+        return any(w in text for w in _SQLITE_STORAGE)
+    return False
 
 
 @dataclass
@@ -150,7 +168,9 @@ class _JobRunner(threading.Thread):
         while True:
             try:
                 return self.handle(event, stage_ctx) or []
-            except STORAGE_ERRORS as exc:
+            except Exception as exc:
+                if not storage_refused(exc):
+                    raise
                 spent = time.monotonic() - started
                 if spent + wait > self.retry_budget or self.stop.is_set():
                     raise

@@ -196,3 +196,29 @@ def _submits(c, event) -> bool:
         return True
     except BrokerRefused:
         return False
+
+
+def test_sqlite_and_os_words_for_a_refusing_disk_are_storage_errors_too():
+    """The matcher's proposal store is SQLite on the storage: "database or disk is full" burned its
+    attempts in the soak. It is retried with back-off like StorageFull."""
+    import sqlite3
+
+    from common.bus.worker import storage_refused
+    assert storage_refused(sqlite3.OperationalError("database or disk is full"))
+    assert storage_refused(sqlite3.OperationalError("attempt to write a readonly database"))
+    assert storage_refused(sqlite3.OperationalError("database is locked"))
+    assert storage_refused(OSError(errno.EROFS, "Read-only file system"))
+    assert storage_refused(StorageFull(errno.ENOSPC, "x"))
+    assert not storage_refused(sqlite3.OperationalError("no such table: fragments"))
+    assert not storage_refused(OSError(errno.ENOENT, "missing"))
+    assert not storage_refused(RuntimeError("database or disk is full"))
+    calls = []
+
+    def handle(job, ctx):
+        calls.append(1)
+        if len(calls) < 3:
+            raise sqlite3.OperationalError("database or disk is full")
+        return []
+
+    outcomes = _run(handle, retry=(0.05, 0.1, 5.0))
+    assert outcomes[-1][0] == "result" and len(calls) == 3
