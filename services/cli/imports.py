@@ -110,7 +110,7 @@ class BusSink:
         self.drainer.wake.set()
         return True
 
-    def close(self, wait_s: float, out=sys.stderr) -> int:
+    def close(self, wait_s: float, out=None) -> int:
         """Wait up to ``wait_s`` for the outbox to drain; return how many events stay in it."""
         deadline = time.monotonic() + max(0.0, wait_s)
         while len(self.outbox) and time.monotonic() < deadline:
@@ -123,7 +123,7 @@ class BusSink:
         self.outbox.close()
         if left:
             print(f"{left} event(s) wait in the outbox {self.outbox.dir} (lab unreachable); they go out with the "
-                  f"next `tessera import` or `tessera scanner` on this machine", file=out)
+                  f"next `tessera import` or `tessera scanner` on this machine", file=out or sys.stderr)
         return left
 
 
@@ -136,7 +136,7 @@ def open_sink(args):
 
 
 def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], *,
-              kind: str, version: str, out=sys.stdout) -> int:
+              kind: str, version: str, out=None) -> int:
     """Run the shared driver over ``items`` into the sink of ``args``; print the summary; exit status.
 
     0 = everything imported (or already), 1 = something refused, 130 = interrupted.
@@ -156,6 +156,7 @@ def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Stor
     finally:
         if isinstance(sink, BusSink):
             sink.close(args.wait)
+    out = out if out is not None else sys.stdout   # looked up now: the caller may have redirected it
     lines = summary.lines()
     print(f"tessera import {kind} into {args.store or 'the station'}: {lines[0]}", file=out)
     for line in lines[1:]:

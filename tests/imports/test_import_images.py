@@ -103,7 +103,9 @@ def test_bad_pictures_are_refused_by_name_and_nothing_is_written_for_them(tmp_pa
     plain = np.full((200, 300, 3), 230, np.uint8) + noise
     cv2.imwrite(str(src / "nothing.png"), plain)
     assert main(["import", "images", str(src), "--dpi", "300", "--store", str(tmp_path / "st")]) == 1
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "imported 1, already imported 0, refused 3" in captured.out   # the summary, on (today's) stdout
+    err = captured.err
     assert "refused blank.png:" in err and "is blank" in err
     assert "refused cut.png:" in err and "truncated" in err
     assert "refused nothing.png:" in err and "no fragment found" in err
