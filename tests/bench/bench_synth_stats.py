@@ -37,6 +37,20 @@ def _timed(fn, *a, **kw):
     return out, time.perf_counter() - t0, time.process_time() - c0
 
 
+def picture(real, out: Path, dpi: float, palette_seed: int, mm_per_px: float = 0.8) -> Path:
+    """RePAIR's g12 and g13 assembled at their true places beside a 12-fragment pompeii wall."""
+    pics = [collection_picture([p for p in real if p.object == o], REPAIR_DPI, mm_per_px=mm_per_px,
+                               title=f"RePAIR {o.split('_')[1]} (real)")
+            for o in ("RPobj_g12_o0012", "RPobj_g13_o0013")]
+    small = generate_wall(12, 3, dpi, preset="pompeii", colour_only=True, palette_seed=palette_seed)
+    pics.append(collection_picture([p for p in wall_collection(small) if p.matrix is not None], dpi,
+                                   mm_per_px=mm_per_px, title="synthetic, pompeii (12 fragments)"))
+    h = max(p.shape[0] for p in pics)
+    row = np.hstack([np.pad(p, ((0, h - p.shape[0]), (0, 8), (0, 0)), constant_values=255) for p in pics])
+    save_png(out / "repair_vs_synthetic.png", row)
+    return out / "repair_vs_synthetic.png"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--collection", default=str(ROOT / ".." / "shared" / "data" / "repair-dev"))
@@ -75,20 +89,7 @@ def main() -> int:
                             f"pompeii preset ({args.walls} walls x {args.fragments})": st_syn,
                             "original generator (1 wall)": st_old}))
     if args.pictures:
-        out = Path(args.pictures)
-        mm_px = 0.6
-        real_pics = [collection_picture([p for p in real if p.object == o], REPAIR_DPI, mm_per_px=mm_px,
-                                        title=f"RePAIR {o.split('_')[1]} (real)")
-                     for o in ("RPobj_g12_o0012", "RPobj_g13_o0013")]
-        small, _, _ = _timed(generate_wall, 12, 3, args.dpi, preset="pompeii", colour_only=True,
-                             palette_seed=args.palette_seed)
-        syn_pic = collection_picture([p for p in wall_collection(small) if p.matrix is not None], args.dpi,
-                                     mm_per_px=mm_px, title="synthetic, preset pompeii (12 fragments)")
-        pics = real_pics + [syn_pic]
-        h = max(p.shape[0] for p in pics)
-        row = np.hstack([np.pad(p, ((0, h - p.shape[0]), (0, 8), (0, 0)), constant_values=255) for p in pics])
-        save_png(out / "repair_vs_synthetic.png", row)
-        print(f"wrote {out / 'repair_vs_synthetic.png'}")
+        print(f"wrote {picture(real, Path(args.pictures), args.dpi, args.palette_seed)}")
     return 0
 
 
