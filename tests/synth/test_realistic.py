@@ -5,7 +5,7 @@ from common.synth import generate_wall
 from common.synth.realistic import (MaterialLoss, fragment_rgba, lose_material, paint_plaster, plaster_palette,
                                     round_outline, write_collection)
 from common.synth.figures import to_srgb8
-from common.synth.stats import _lab, neighbour_gaps, piece_statistics, read_collection, wall_collection
+from common.synth.stats import _lab, neighbour_gaps, read_collection, wall_collection
 
 PM = 0.25  # mm per pixel of the analytic grids
 
@@ -92,64 +92,6 @@ def test_unknown_preset_or_argument_is_refused():
         generate_wall(4, seed=1, preset="pompeii", round_m=1.0)
 
 
-# ------------------------------------------------------------------------------------ statistics
-def _rect_piece(name, obj, h, w, x, y):
-    from common.synth.stats import Piece
-    rgba = np.zeros((h, w, 4), np.uint8)
-    rgba[...] = (170, 166, 160, 255)
-    return Piece(name, obj, rgba, np.array([[1.0, 0, x], [0, 1.0, y]]))
-
-
-@pytest.mark.parametrize("gap", [0, 3, 12, 30])
-def test_neighbour_gaps_measure_the_gap_between_placed_pieces(gap):
-    a = _rect_piece("a", "o", 300, 100, 0, 0)
-    b = _rect_piece("b", "o", 300, 100, 100 + gap, 0)
-    far = _rect_piece("c", "o", 300, 100, 400, 0)
-    corner = _rect_piece("d", "o", 100, 100, 100 + gap, 300 + gap)  # meets a at a corner only
-    other = _rect_piece("e", "p", 300, 100, 100 + gap, 0)  # another object at b's place
-    pairs = neighbour_gaps([a, b, far, corner, other], near_px=48, min_run_px=100)
-    found = {(p["a"], p["b"]): p for p in pairs}
-    assert ("a", "b") in found and ("a", "c") not in found and ("a", "e") not in found
-    assert ("a", "d") not in found  # a corner contact is shorter than 100 px
-    assert found[("a", "b")]["min_gap_px"] == pytest.approx(gap, abs=0.6)
-    assert found[("a", "b")]["run_px"] >= 300
-
-
-def _disc_rgba(r_px, size, colour=(170, 166, 160)):
-    yy, xx = np.mgrid[0:size, 0:size]
-    m = (yy - size / 2) ** 2 + (xx - size / 2) ** 2 < r_px ** 2
-    rgba = np.zeros((size, size, 4), np.uint8)
-    rgba[m] = colour + (255,)
-    return rgba, m
-
-
-def test_piece_statistics_of_a_disc_match_geometry():
-    rgba, _ = _disc_rgba(200, 440)  # 20 mm radius at 254 dpi (0.1 mm/px)
-    s = piece_statistics(rgba, 254.0)
-    assert s["size_mm"] == pytest.approx(np.sqrt(np.pi) * 20, rel=0.01)
-    assert s["diameter_mm"] == pytest.approx(40, rel=0.01)
-    # a circle turns by arc / radius over every chord: 10 mm -> 0.5 rad
-    assert s["turn10_deg"] == pytest.approx(np.degrees(0.5), rel=0.05)
-    assert s["rough_mm"] < 0.12 and s["plain_edge"] == 1.0 and s["painted"] == 0.0
-
-
-def test_piece_statistics_see_roughness_and_paint_at_the_edge():
-    size, R = 440, 200
-    yy, xx = np.mgrid[0:size, 0:size]
-    th = np.arctan2(yy - size / 2, xx - size / 2)
-    # a 0.4 mm (4 px) sinusoidal jag of 2 mm wavelength along the rim (63 periods)
-    m = np.hypot(yy - size / 2, xx - size / 2) < R + 4 * np.sin(63 * th)
-    rgba = np.zeros((size, size, 4), np.uint8)
-    rgba[m] = (170, 166, 160, 255)
-    # red paint along the right half of the edge band
-    ring = m & (np.hypot(yy - size / 2, xx - size / 2) > R - 40) & (xx > size / 2)
-    rgba[ring, :3] = (190, 90, 80)
-    s = piece_statistics(rgba, 254.0)
-    assert 0.2 < s["rough_mm"] < 0.4  # rms of a 0.4 mm sinusoid is 0.28 mm
-    assert s["plain_edge"] == pytest.approx(0.5, abs=0.06)
-    assert s["C_p90"] > 15
-
-
 def test_fragment_rgba_has_a_soft_edge_of_the_asked_width():
     from common.rgbn.image import RGBNImage
     _, m = _disc_rgba(150, 400)
@@ -189,16 +131,9 @@ def test_written_collection_reads_back_at_the_true_places(tmp_path):
             assert np.allclose(a, b, atol=1.0)
 
 
-def test_real_collection_statistics_when_the_repair_set_is_present():
-    from pathlib import Path
-
-    from common.synth.stats import REPAIR_DPI, collection_statistics
-    root = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "repair-dev"
-    if not root.is_dir():
-        pytest.skip(f"RePAIR development set not found at {root}")
-    pieces = [p for p in read_collection(root) if p.object in ("RPobj_g13_o0013", "RPobj_g14_o0014")]
-    s = collection_statistics(pieces, REPAIR_DPI)
-    # what the data set's README states: true neighbours rarely touch, mostly plain plaster
-    assert s["n_pairs"] >= 5
-    assert s["min_gap_mm"][1] > 0.2 and s["median_gap_mm"][1] > 1.0
-    assert s["plain_edge_all"] > 0.7
+def _disc_rgba(r_px, size, colour=(170, 166, 160)):
+    yy, xx = np.mgrid[0:size, 0:size]
+    m = (yy - size / 2) ** 2 + (xx - size / 2) ** 2 < r_px ** 2
+    rgba = np.zeros((size, size, 4), np.uint8)
+    rgba[m] = colour + (255,)
+    return rgba, m
