@@ -8,6 +8,10 @@ completed / time from the first submission to the last completion. Dispatch late
 worker received the job − time the event was created just before submission (so it includes
 the journal's fsync before the job may be dispatched, and the network hops).
 Targets (issue 2): >= 2,000 jobs/s on a 2-core machine; p99 dispatch latency < 10 ms at 100 jobs/s.
+Garbage flood (issue 19, ``--flood N``): N malformed frames from four sockets as fast as they go
+while STATUS is asked every 0.1 s and good jobs flow: refusals/s, STATUS answer times (target:
+every one within 100 ms), the journal's event count before and after (refusals are summarised,
+not journaled), and the good jobs done.
 """
 
 from __future__ import annotations
@@ -107,11 +111,62 @@ def latency(rate: float, seconds: float) -> np.ndarray:
     return np.array([got[u] - sent[u] for u in got if u in sent]) * 1e3
 
 
+def flood(n: int) -> dict:
+    """Malformed frames at full speed against a broker serving a worker; STATUS timed meanwhile."""
+    import threading
+
+    from tests.bench.soak import _flood
+    with tempfile.TemporaryDirectory() as d:
+        st = Station(Path(d), services={"noop": {}})
+        try:
+            st.broker()
+            st.worker()
+            st.workers_ready(1)
+            endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+            times, done = [], threading.Event()
+
+            def probe():
+                with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1) as c:
+                    while not done.wait(0.1):
+                        t = time.perf_counter()
+                        try:
+                            c.status()
+                            times.append((time.perf_counter() - t) * 1e3)
+                        except Exception:  # noqa: BLE001
+                            times.append(float("inf"))
+            with BrokerClient.from_config(st.config, timeout_s=10.0) as c:
+                before = c.status()["last_seq"]
+                good = [new_message("noop.job", n=i) for i in range(200)]
+                th = threading.Thread(target=probe, daemon=True)
+                th.start()
+                cpu0 = time.process_time()
+                t0 = time.perf_counter()
+                sender = threading.Thread(target=_flood, args=(endpoint, n, 0.0, 1))
+                sender.start()
+                for i in range(0, len(good), 20):   # good work keeps flowing during the flood
+                    c.submit_many(good[i:i + 20])
+                    time.sleep(0.05)
+                sender.join()
+                wait_for(lambda: sum(c.status()["refused"].values()) >= n * 0.95, 120, "the flood to be refused",
+                         interval=0.2)
+                wall = time.perf_counter() - t0
+                wait_for(lambda: c.status()["completed"] >= len(good), 60, "the good jobs", interval=0.2)
+                done.set()
+                th.join(5)
+                s = c.status()
+        finally:
+            st.stop()
+    t = np.array(times)
+    return {"refused": sum(s["refused"].values()), "wall_s": wall, "cpu_s_client": time.process_time() - cpu0,
+            "status_ms": t, "journaled": s["last_seq"] - before, "good_done": s["completed"]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=20000)
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4], help="worker counts for the throughput runs")
+    ap.add_argument("--flood", type=int, default=100000, help="malformed frames in the flood run (0: skip)")
     args = ap.parse_args()
     print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch); "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
@@ -122,6 +177,14 @@ def main() -> None:
     lat = latency(100.0, args.seconds)
     print(f"dispatch latency at 100 jobs/s, 1 worker, {len(lat)} jobs: "
           f"p50 {np.percentile(lat, 50):.2f} ms  p99 {np.percentile(lat, 99):.2f} ms  max {lat.max():.2f} ms")
+    if args.flood:
+        f = flood(args.flood)
+        ms = f["status_ms"]
+        print(f"garbage flood: {f['refused']} frames refused in {f['wall_s']:.1f} s ({f['refused'] / f['wall_s']:.0f}/s); "
+              f"events journaled meanwhile {f['journaled']} (200 good jobs and their results, plus refusal summaries); "
+              f"good jobs done {f['good_done']}/200")
+        print(f"  STATUS during the flood ({len(ms)} asks, every 0.1 s): p50 {np.percentile(ms, 50):.1f} ms  "
+              f"p99 {np.percentile(ms, 99):.1f} ms  max {ms.max():.1f} ms; over 100 ms: {int((ms > 100).sum())}")
 
 
 if __name__ == "__main__":

@@ -249,10 +249,15 @@ def main(argv=None) -> int:
             faults["disk full"] += 1
         elif mounted and "ro" not in done and progress >= 0.3:
             done.add("ro")
-            subprocess.run(["mount", "-o", "remount,ro", str(storage)], check=True)
-            note(f"storage read-only for {args.ro_s:g} s")
-            time.sleep(args.ro_s)
-            subprocess.run(["mount", "-o", "remount,rw", str(storage)], check=True)
+            # a read-only bind mount over the storage (a plain remount is refused while the matcher
+            # holds its SQLite file open): every new open or create sees EROFS, as on a share gone ro
+            subprocess.run(["mount", "--bind", str(storage), str(storage)], check=True)
+            try:
+                subprocess.run(["mount", "-o", "remount,bind,ro", str(storage)], check=True)
+                note(f"storage read-only for {args.ro_s:g} s")
+                time.sleep(args.ro_s)
+            finally:
+                subprocess.run(["umount", str(storage)], check=True)  # the read-only bind goes, rw again
             faults["read-only remount"] += 1
         elif "forged" not in done and progress >= 0.5:
             done.add("forged")
@@ -277,7 +282,11 @@ def main(argv=None) -> int:
         attacked: set = set()
         while not stop.wait(1.0):
             if not args.no_attacks:
-                attack(sent[0] / len(events), attacked)
+                try:
+                    attack(sent[0] / len(events), attacked)
+                except Exception as exc:  # noqa: BLE001 - a fault that cannot be staged must not stop the others
+                    print(f"  attack failed to run: {type(exc).__name__}: {exc}", flush=True)
+                    faults["attacks that could not run"] += 1
             with lock:
                 # sample memory of the long-running processes (the broker and the current workers)
                 rss["broker"].append(_rss_mb(broker.pid))
