@@ -412,6 +412,10 @@ def _check_attacks(evs, seqs, first_seq, status, probes, attacks) -> bool:
     print(f"  STATUS probes (every 0.5 s, outside the broker restart): {len(serving)}; median {q(0.5):.1f} ms, "
           f"p99 {q(0.99):.1f} ms, max {answered[-1] if answered else float('nan'):.1f} ms; over 100 ms: {len(slow)}; "
           f"unanswered within 2 s: {silent}")
+    late = [(round(t), None if ms is None else round(ms)) for t, ms, r in probes if not r and (ms is None or ms > 100)]
+    if late:
+        print(f"  late STATUS answers (station time s, ms; None = none within 2 s): {late[:40]}"
+              f"{' ...' if len(late) > 40 else ''}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     return not forged and first_seq == 1 and not gaps and not slow and not silent
 
 
