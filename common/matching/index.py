@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
 from common.matching.docking import (DOCK_HUB_TOP, Docking, dock_outlines, docking_contact_mm, hub_corrected,
-                                     invert_docking)
+                                     invert_docking, paint_from_profile)
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
 from common.matching.ribbon import (RIBBON_WINDOW_MM, prepare_ribbon, ribbon_population, ribbon_probability,
@@ -108,6 +108,8 @@ class MatchIndex:
         self._dockings: dict[tuple[str, str], Docking] = {}
         #: fragment → docking hubness (mean contact of its best dockings, mm)
         self.dock_hubness: dict[str, float] = {}
+        #: fragment → paint along its outline as deviations from its plaster (for the docking)
+        self.paint: dict[str, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self._order)
@@ -126,10 +128,14 @@ class MatchIndex:
         if contour_mm is not None:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
         self.profiles.pop(cues.fragment, None)
+        self.paint.pop(cues.fragment, None)
         if boundary_profile is not None:
             p = np.asarray(boundary_profile, np.float32)
-            if p.ndim == 2 and len(p) >= 3 and p.shape[1] == len(boundary_channel_names()):
-                self.profiles[cues.fragment] = prepare_ribbon(p, boundary_channel_names())
+            names = boundary_channel_names()
+            if p.ndim == 2 and len(p) >= 3 and p.shape[1] == len(names):
+                self.profiles[cues.fragment] = prepare_ribbon(p, names)
+                # the profile runs from the contour's first point in its order, as contour_mm does
+                self.paint[cues.fragment] = paint_from_profile(p)
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
@@ -151,6 +157,7 @@ class MatchIndex:
         del self.cues[fragment]
         self.contours.pop(fragment, None)
         self.profiles.pop(fragment, None)
+        self.paint.pop(fragment, None)
         self.hubness.pop(fragment, None)
         self._forget_dockings(fragment)
         if not in_tail:
@@ -381,7 +388,9 @@ class MatchIndex:
         key = (fragment, other) if fragment < other else (other, fragment)
         d = self._dockings.get(key)
         if d is None:
-            d = dock_outlines(self.contours[key[0]], self.contours[key[1]], n_poses=1)[0]
+            # paint carried across the gap where both fragments have a boundary profile
+            d = dock_outlines(self.contours[key[0]], self.contours[key[1]], paint_a=self.paint.get(key[0]),
+                              paint_b=self.paint.get(key[1]), n_poses=1)[0]
             self._dockings[key] = d
         return d if key[0] == fragment else invert_docking(d)
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.matching.classifiers import make_classifier
+from common.matching.docking import paint_from_profile
 from common.matching.models import MatchModel, model_from_pipeline
 from common.matching.pairs import FragmentCues, TrainingSet, correspondence_columns, fragment_cues, training_set
 from common.matching.ribbon import fit_ribbon_calibration, pair_ribbon_scores
@@ -89,8 +90,8 @@ def ribbon_calibration(tables: dict, adjacency) -> tuple[float, float] | None:
     return fit_ribbon_calibration([scores[k] for k in keys], y)
 
 
-def docking_calibration(wall, *, contours: dict | None = None, negatives_per_positive: float = 3.0, seed: int = 0,
-                        progress=None) -> tuple[float, float] | None:
+def docking_calibration(wall, *, contours: dict | None = None, paint: dict | None = None,
+                        negatives_per_positive: float = 3.0, seed: int = 0, progress=None) -> tuple[float, float] | None:
     """Calibration of the docking contact (stage 3) from a wall with ground truth.
 
     Every true neighbour pair and ``negatives_per_positive`` random other pairs per fragment pair
@@ -98,7 +99,9 @@ def docking_calibration(wall, *, contours: dict | None = None, negatives_per_pos
     the mean contact of its best dockings among those, and the hub-corrected contact of every pair
     is fitted against joined/separate (:func:`common.matching.ribbon.fit_ribbon_calibration`, the
     same 1-D logistic calibration as the ribbon's). ``contours``: id → outline in mm (default: the
-    wall's fragments' ``contour_mm``). None when the wall has too few pairs of either kind.
+    wall's fragments' ``contour_mm``); ``paint``: id → paint along it
+    (:func:`common.matching.docking.paint_deviation`), as the index docks them. None when the wall
+    has too few pairs of either kind.
     """
     from common.matching.docking import DOCK_HUB_TOP, dock_outlines, docking_contact_mm, hub_corrected
 
@@ -121,7 +124,9 @@ def docking_calibration(wall, *, contours: dict | None = None, negatives_per_pos
         return None
     contact = {}
     for i, (a, b) in enumerate(pairs):
-        contact[(a, b)] = docking_contact_mm(dock_outlines(outlines[a], outlines[b], n_poses=1)[0])
+        paint = paint or {}
+        contact[(a, b)] = docking_contact_mm(dock_outlines(outlines[a], outlines[b], paint_a=paint.get(a),
+                                                           paint_b=paint.get(b), n_poses=1)[0])
         if progress and (i % 20 == 0 or i == len(pairs) - 1):
             progress((i + 1) / len(pairs), f"docked {i + 1}/{len(pairs)} pairs")
     per: dict = {}
@@ -146,7 +151,10 @@ def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0,
     # the kind of collection it has to work on; colour-only, since only the outlines are used
     real = generate_wall(max(12, n_fragments // 4), seed=seed + 1, dpi=min(dpi, 40.0), preset="pompeii",
                          colour_only=True)
-    docking = docking_calibration(real, seed=seed, negatives_per_positive=2.0)
+    real_tables, _, _ = wall_cues(real)
+    docking = docking_calibration(real, contours={f: t.contour_mm for f, t in real_tables.items()},
+                                  paint={f: paint_from_profile(t.boundary_profile) for f, t in real_tables.items()},
+                                  seed=seed, negatives_per_positive=2.0)
     model, _ = train_model(ts, sequence=1, ribbon=ribbon_calibration(tables, wall.adjacency), docking=docking,
                            info={"docking_trained_on": f"synthetic wall {real.id} (preset pompeii, seed {seed + 1})",
                                  "trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, seed {seed}, {dpi:g} dpi)"})
