@@ -257,7 +257,8 @@ def main(argv=None) -> int:
                 note(f"storage read-only for {args.ro_s:g} s")
                 time.sleep(args.ro_s)
             finally:
-                subprocess.run(["umount", str(storage)], check=True)  # the read-only bind goes, rw again
+                # the read-only bind goes, rw again (lazily: a file opened during the window keeps it busy)
+                subprocess.run(["umount", "-l", str(storage)], check=True)
             faults["read-only remount"] += 1
         elif "forged" not in done and progress >= 0.5:
             done.add("forged")
