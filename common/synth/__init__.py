@@ -1,5 +1,9 @@
 """Synthetic fresco with ground truth (issue 5): paint, relieve, break, deteriorate, cut out.
 
+``generate_wall(..., preset="pompeii")`` makes walls that look like real broken Pompeii frescoes
+(:mod:`common.synth.realistic`, issue 15); :mod:`common.synth.stats` measures real and synthetic
+collections with the same code.
+
 Public API: :func:`generate_wall` -> :class:`Wall` (fragments with RGBN images, surfaces and
 poses; adjacency with shared crack length; contour correspondences), :func:`save_groundtruth` /
 :func:`load_groundtruth` (schema ``tessera.groundtruth``) and :func:`import_dafne`.

@@ -1,20 +1,22 @@
-"""What makes real broken frescoes hard, for the synthetic wall: the ``pompeii`` preset.
+"""What makes real broken frescoes hard, for the synthetic wall: the ``pompeii`` preset (issue 15).
 
 Measured on the RePAIR fragments from Pompeii (``../shared/data/repair-dev``, see
 :mod:`common.synth.stats` and ``docs/synth.md``): pieces of 5-20 cm; material lost along the
 cracks, so true neighbours rarely touch (the smallest gap a median of ~1.3 mm, the median gap
-along the crack ~3.6 mm); rounded, chipped outlines with a soft alpha edge of ~4 px; faces that
+along the crack ~3.6 mm); rough, chipped outlines with a soft alpha edge of ~3.4 px; faces that
 are mostly plain lime-white or grey plaster (CIELAB chroma ~3) with sparse, faded painted
 elements -- bands, lines, borders, small motifs, spotted fields -- that cross the cracks; and
 several frescoes painted with one palette.
 
+- :data:`PRESETS` -- the ``generate_wall`` arguments of the ``pompeii`` preset;
 - :func:`plaster_palette` -- the colours several walls share (one ``palette_seed``);
 - :func:`paint_plaster` -- a plain plaster wall with sparse painted elements (a
   :class:`~common.synth.painting.Painting`);
 - :class:`MaterialLoss` -- how much plaster each crack lost, a function of the crack (the pair
   of pieces) and of the wall position, split unevenly between its two sides;
 - :func:`lose_material` -- applies it to one fragment's mask;
-- :func:`round_outline` -- rounds a mask's outline (worn edges);
+- :func:`recovered_region` -- the irregular patch of the wall that is broken and recovered;
+- :func:`round_outline` -- roughens and rounds a mask's outline (crumbled, worn edges);
 - :func:`fragment_rgba` -- a fragment as an 8-bit RGBA image with a soft alpha edge (RePAIR-like);
 - :func:`write_collection` -- a wall written as a RePAIR-layout collection (PNG + ``truth.csv``;
   :func:`write_fragment_png` and :func:`write_truth_csv` to stream it fragment by fragment).
@@ -256,7 +258,7 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
 
 
 # ------------------------------------------------------------------------- recovered area
-REGION_FRACTION = 0.64  # about the share of the wall rectangle that recover_region keeps
+REGION_FRACTION = 0.64  # about the share of the wall rectangle that recovered_region keeps (measured)
 
 
 def recovered_region(width_mm: float, height_mm: float, rng: np.random.Generator, *, roughness: float = 0.5):
