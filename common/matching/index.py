@@ -60,6 +60,8 @@ HUBNESS_MIN_OTHERS = 20
 RIBBON_CANDIDATES = 50
 #: stage 2½ passes this many candidates per fragment to the gap-tolerant docking (stage 3)
 DOCK_CANDIDATES = 12
+#: stage 3 adds the earlier stages' relative evidence to the docking's (see _rank_by_docking)
+DOCK_KEEPS_EARLIER_EVIDENCE = True
 
 
 @dataclass
@@ -416,6 +418,17 @@ class MatchIndex:
         corrected = hub_corrected(contact, self.dock_hubness.get(fragment, centre),
                                   [self.dock_hubness.get(c.other, centre) for c in head], centre)
         prob = ribbon_probability(corrected, model.docking)
+        if DOCK_KEEPS_EARLIER_EVIDENCE:
+            # the earlier stages' evidence (paint, patches: which fresco a piece comes from) is kept
+            # as independent evidence: its logit relative to the docked candidates' mean is added
+            # (naive Bayes), so the docking's own calibration sets the level
+            before = np.array([c.probability for c in head], float)
+            ok = np.isfinite(before)
+            if ok.sum() >= 2:
+                lb = np.log(np.clip(before, 1e-6, 1 - 1e-6)) - np.log(np.clip(1 - before, 1e-6, 1 - 1e-6))
+                shift = np.where(ok, lb - lb[ok].mean(), 0.0)
+                lp = np.log(np.clip(prob, 1e-12, 1 - 1e-12)) - np.log(np.clip(1 - prob, 1e-12, 1 - 1e-12))
+                prob = 1.0 / (1.0 + np.exp(-(lp + shift)))
         for c, k, p in zip(head, corrected, prob):
             d = self.docking(fragment, c.other)
             c.docking, c.docking_contact_mm, c.probability = d, float(k), float(p)

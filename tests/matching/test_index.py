@@ -204,7 +204,9 @@ def test_docking_stage_reorders_the_best_candidates_by_hub_corrected_contact(sma
     for f in ids:
         index.add(cues[f], tables[f].contour_mm)
     q, others = ids[0], ids[1:]
-    plain = [c.other for c in index.rank(cues[q], others, base)]
+    before = index.rank(cues[q], others, base)
+    plain = [c.other for c in before]
+    p_before = {c.other: c.probability for c in before}
     model = replace(base, docking=(0.05, -2.0))
     ranked = index.rank(cues[q], others, model, dock_candidates=4)
     head, tail = ranked[:4], ranked[4:]
@@ -214,12 +216,16 @@ def test_docking_stage_reorders_the_best_candidates_by_hub_corrected_contact(sma
                for o in plain[:4]}
     mu_q = np.sort(list(contact.values()))[-3:].mean()
     assert index.dock_hubness[q] == __import__("pytest").approx(mu_q)
-    # the others have no hubness yet: they take the median (the query's own) and only contact orders them
-    assert [c.other for c in head] == sorted(contact, key=lambda o: -contact[o])
+    # the others have no hubness yet: they take the median (the query's own), so the contact is
+    # uncorrected; the earlier stages' logit, relative to the four's mean, is added (naive Bayes)
+    logit = {o: np.log(p_before[o] / (1 - p_before[o])) for o in contact}
+    mean_logit = np.mean(list(logit.values()))
+    expect = {o: 1 / (1 + np.exp(-(0.05 * contact[o] - 2.0 + logit[o] - mean_logit))) for o in contact}
+    assert [c.other for c in head] == sorted(expect, key=lambda o: -expect[o])
     for c in head:
         assert c.alignment is not None and c.docking is not None
-        p = 1 / (1 + np.exp(-(0.05 * c.docking_contact_mm - 2.0)))
-        assert c.probability == __import__("pytest").approx(p)
+        assert c.docking_contact_mm == __import__("pytest").approx(contact[c.other])
+        assert c.probability == __import__("pytest").approx(expect[c.other], rel=1e-6)
     assert max(c.probability for c in tail) <= min(c.probability for c in head)
     # the pair is docked once: asking from the other side reuses (inverts) the cached docking
     d_qo, d_oq = index.docking(q, head[0].other), index.docking(head[0].other, q)
