@@ -137,3 +137,12 @@ def _disc_rgba(r_px, size, colour=(170, 166, 160)):
     rgba = np.zeros((size, size, 4), np.uint8)
     rgba[m] = colour + (255,)
     return rgba, m
+
+
+def test_pompeii_wall_is_reproducible_and_can_keep_normals():
+    a = generate_wall(5, seed=4, dpi=20, preset="pompeii")
+    b = generate_wall(5, seed=4, dpi=20, preset="pompeii")
+    assert a.id == b.id and a.adjacency == b.adjacency
+    for fa, fb in zip(a.fragments, b.fragments):
+        np.testing.assert_array_equal(fa.rgbn.albedo, fb.rgbn.albedo)
+        assert fa.rgbn.normals is not None and fa.surface is not None  # not colour-only: relief as before
