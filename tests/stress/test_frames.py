@@ -148,7 +148,9 @@ def test_malformed_frames_of_every_kind_each_get_an_err_reply_and_are_counted(ma
                 sock.send_multipart(frames)
                 answers[name] = _err_reply(sock)
             c.submit(good[1])
-            wait_for(lambda: c.status()["completed"] >= 2, 20, "the good jobs to be done")
+            want = {g["uid"] for g in good}  # done, and their events journaled and on the feed
+            wait_for(lambda: {e["job"] for _, e in _events(st) if e["type"] == "noop.done"} >= want, 20,
+                     "the good jobs to be done")
             refused = c.status()["refused"]
             events = _events(st)
     finally:
@@ -197,6 +199,9 @@ def test_random_frames_on_the_router_crash_nothing_and_lose_nothing(make_station
                     break
             submitted = {g["uid"] for g in good[: good.index(g) + 1]}
             wait_for(lambda: c.status()["completed"] >= len(submitted), 30, "the good jobs")
+            # "completed" counts a result when it arrives; its event is published once journaled
+            wait_for(lambda: {e["job"] for _, e in _events(st) if e["type"] == "noop.done"} >= submitted, 10,
+                     "the good jobs' events on the feed")
             events = _events(st)
     finally:
         ctx.destroy(linger=0)
