@@ -277,7 +277,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     return {"table": rows, "topk": rec, "pair_ap": ppr["ap"]}
 
 
-def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, progress=None) -> dict:
+def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, near_px: float = 48.0,
+                        min_run_px: float = 100.0, progress=None) -> dict:
     """Evaluate the matcher on a real, placed collection (``repair-dev`` layout) with a given model.
 
     Nothing is fitted on the collection: the fragments are imported as colour-only fragments
@@ -285,6 +286,8 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, p
     does, and every fragment ranked by the station's staged matcher
     (:meth:`~common.matching.index.MatchIndex.rank`, stages 2, 2½ and 3) — once against every other
     fragment of the collection (pooled) and once against the other fragments of its own object.
+    Neighbours: placed outlines within ``near_px`` along ``min_run_px`` image pixels
+    (:func:`~common.matching.collection.collection_wall`; the defaults are RePAIR's).
 
     Returns
     -------
@@ -302,7 +305,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, p
     say = progress or (lambda f, t: None)
     t0, c0 = time.time(), time.process_time()
     say(0.0, f"importing {path}")
-    wall = collection_wall(path, dpi=dpi)
+    wall = collection_wall(path, dpi=dpi, near_px=near_px, min_run_px=min_run_px)
     if model is None:
         say(0.05, "training the default bootstrap model (synthetic walls only)")
         model = bootstrap_model()
