@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import fft as _fft
 
 #: defaults, measured on real fresco cracks (see module docstring and docs/matching.md)
 DOCK_CELL_MM = 1.5
@@ -153,6 +154,14 @@ def paint_from_profile(profile: np.ndarray) -> np.ndarray | None:
     return paint_deviation(p[:, [names.index(f"sqrt_{c}@0.8") for c in "rgb"]])
 
 
+def _spectra(maps, shape) -> np.ndarray:
+    """Real 2-D FFTs of same-sized float32 maps zero-padded to ``shape``, in one call."""
+    stack = np.zeros((len(maps), *maps[0].shape), np.float32)
+    for k, m in enumerate(maps):
+        stack[k] = m
+    return _fft.rfft2(stack, shape, axes=(-2, -1), workers=1)
+
+
 def _rotation(deg: float) -> np.ndarray:
     a = np.radians(deg)
     return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
@@ -245,27 +254,31 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     radius_b = float(np.max(np.hypot(*(b - centre_b).T)))
     side_b = int(np.ceil(2 * radius_b / cell_mm)) + 2 * margin + 3
     shape = (cv2.getOptimalDFTSize(mask_a.shape[0] + side_b), cv2.getOptimalDFTSize(mask_a.shape[1] + side_b))
-    fa_band, fa_edge, fa_inner = (np.fft.rfft2(m, shape) for m in (band_a, edge_a, inner_a))
+    # single precision and one transform call per stack of maps: the correlation sums are small
+    # integers-ish (cells), far inside float32's precision, and the transforms dominate the cost
+    maps_a = [band_a, edge_a, inner_a]
     if use_paint:
-        fa_paint = [np.fft.rfft2(ext_a[..., c], shape) for c in range(ext_a.shape[2])]
-        fa_paint_sq = np.fft.rfft2((ext_a ** 2).sum(axis=2), shape)
-        fa_field = np.fft.rfft2(field_a, shape)
+        maps_a += [ext_a[..., c] for c in range(ext_a.shape[2])] + [(ext_a ** 2).sum(axis=2), field_a]
+    fa = _spectra(maps_a, shape)
+    fa_band, fa_edge, fa_inner = fa[0], fa[1], fa[2]
 
     def at(angle):
         q = (b - centre_b) @ _rotation(angle).T
         mask_b, origin_b = _raster(q, cell_mm, margin)
         edge_b, _, band_b, full_b = _maps(mask_b, gap_c, taper_c, near_weight)
-        fb_band = np.fft.rfft2(band_b, shape)
-        spec = (fa_band * np.conj(np.fft.rfft2(edge_b, shape)) + fa_edge * np.conj(fb_band)
-                - overlap_weight * fa_inner * np.conj(np.fft.rfft2(full_b, shape)))
+        maps_b = [edge_b, band_b, full_b]
         if use_paint:
             ext_b, field_b = _paint_band(q, paint_b, origin_b, mask_b.shape, cell_mm, band_b, mask_b, gap_c)
-            cross = sum(fa_paint[c] * np.conj(np.fft.rfft2(ext_b[..., c], shape)) for c in range(ext_b.shape[2]))
+            n_c = ext_b.shape[2]
+            maps_b += [ext_b[..., c] for c in range(n_c)] + [field_b, (ext_b ** 2).sum(axis=2)]
+        fb = np.conj(_spectra(maps_b, shape))
+        spec = fa_band * fb[0] + fa_edge * fb[1] - overlap_weight * fa_inner * fb[2]
+        if use_paint:
+            cross = sum(fa[3 + c] * fb[3 + c] for c in range(n_c))
             # |p_A|² counts where B's paint field lies and |p_B|² where A's does
-            sq = (fa_paint_sq * np.conj(np.fft.rfft2(field_b, shape))
-                  + fa_field * np.conj(np.fft.rfft2((ext_b ** 2).sum(axis=2), shape)))
+            sq = fa[3 + n_c] * fb[3 + n_c] + fa[4 + n_c] * fb[4 + n_c]
             spec = spec + paint_weight * (cross - 0.25 * sq)
-        corr = np.fft.irfft2(spec, shape)
+        corr = _fft.irfft2(spec, shape, workers=1)
         i = int(np.argmax(corr))
         sy, sx = np.unravel_index(i, shape)
         sy = sy - shape[0] if sy > shape[0] // 2 else sy
