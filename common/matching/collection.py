@@ -93,12 +93,10 @@ def relative_pose_error(pose_a, pose_b, proposed, centre_b_mm) -> tuple[float, f
     ``pose_a``, ``pose_b`` map each fragment's frame into the wall's; ``proposed`` is
     ``(angle_deg, tx_mm, ty_mm)`` mapping B's frame into A's (:class:`~common.matching.alignment.Alignment`).
     """
-    def mat(p):
-        a = np.radians(p[0])
-        return np.array([[np.cos(a), -np.sin(a), p[1]], [np.sin(a), np.cos(a), p[2]], [0, 0, 1.0]])
+    from common.matching.alignment import pose_matrix
 
-    truth = np.linalg.inv(mat(pose_a)) @ mat(pose_b)
-    prop = mat(proposed)
+    truth = np.linalg.inv(pose_matrix(*pose_a)) @ pose_matrix(*pose_b)
+    prop = pose_matrix(*proposed)
     d_angle = np.degrees(np.arctan2(prop[1, 0], prop[0, 0]) - np.arctan2(truth[1, 0], truth[0, 0]))
     c = np.array([centre_b_mm[0], centre_b_mm[1], 1.0])
     return float(abs((d_angle + 180) % 360 - 180)), float(np.hypot(*((prop - truth) @ c)[:2]))

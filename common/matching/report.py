@@ -379,9 +379,7 @@ def _plot_collection_examples(wall, tables, within, truth, proposed, path: Path,
     rows = int(np.ceil(len(chosen) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols, 3.3 * rows), dpi=80, squeeze=False)
 
-    def mat(p):
-        a = np.radians(p[0])
-        return np.array([[np.cos(a), -np.sin(a), p[1]], [np.sin(a), np.cos(a), p[2]], [0, 0, 1.0]])
+    from common.matching.alignment import pose_matrix
 
     for ax, (f, o) in zip(axes.ravel(), chosen):
         ca = tables[f].contour_mm
@@ -392,7 +390,7 @@ def _plot_collection_examples(wall, tables, within, truth, proposed, path: Path,
             cb = tables[o].contour_mm @ al.matrix[:2, :2].T + al.matrix[:2, 2]
             ax.fill(cb[:, 0], cb[:, 1], color="#2ca02c" if hit else "#d62728", alpha=0.6)
         for nb in sorted(truth[f])[:2]:
-            rel = np.linalg.inv(mat(poses[f])) @ mat(poses[nb])
+            rel = np.linalg.inv(pose_matrix(*poses[f])) @ pose_matrix(*poses[nb])
             ct = tables[nb].contour_mm @ rel[:2, :2].T + rel[:2, 2]
             ax.plot(np.r_[ct[:, 0], ct[:1, 0]], np.r_[ct[:, 1], ct[:1, 1]], "k--", lw=0.8)
         ax.set_title(f"{f[:9]}: 1st = {o[:9]}\n{'true neighbour' if hit else 'miss'}", fontsize=7)
