@@ -313,6 +313,27 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     return distinct
 
 
+def docking_score_at(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, pose, *, cell_mm: float = DOCK_CELL_MM,
+                     gap_mm: float = DOCK_GAP_MM, taper_mm: float = DOCK_TAPER_MM,
+                     overlap_weight: float = DOCK_OVERLAP_WEIGHT, near_weight: float = DOCK_NEAR_WEIGHT) -> float:
+    """The geometric score :func:`dock_outlines` gives B at a given ``pose`` (``angle_deg, tx_mm,
+    ty_mm``, B into A's frame) — e.g. at the true pose, to see whether the search or the score is
+    what misses it. Both outlines are rasterised on one grid with the same maps."""
+    a = np.asarray(contour_a_mm, float)
+    r = _rotation(pose[0])
+    b = np.asarray(contour_b_mm, float) @ r.T + np.array(pose[1:3], float)
+    margin = int(np.ceil((gap_mm + taper_mm) / cell_mm)) + 2
+    both, origin = _raster(np.vstack([a, b]), cell_mm, margin)
+    masks = []
+    for pts in (a, b):
+        m = np.zeros_like(both)
+        cv2.fillPoly(m, [np.round((pts - origin) / cell_mm * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+        masks.append(m)
+    edge_a, inner_a, band_a, _ = _maps(masks[0], gap_mm / cell_mm, taper_mm / cell_mm, near_weight)
+    edge_b, _, band_b, full_b = _maps(masks[1], gap_mm / cell_mm, taper_mm / cell_mm, near_weight)
+    return float((band_a * edge_b).sum() + (edge_a * band_b).sum() - overlap_weight * (inner_a * full_b).sum())
+
+
 def docking_contact_mm(docking: Docking, cell_mm: float = DOCK_CELL_MM) -> float:
     """The docking's score as millimetres of shared crack (contact less the overlap's cost)."""
     return float(docking.score) * cell_mm / 2.0

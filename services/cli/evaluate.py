@@ -122,6 +122,8 @@ def _collection(args, progress) -> int:
     print("within-object recall: " + ", ".join(f"@{k}: {v:.3f} (random {res['within_object_random'][k]:.3f}, "
                                                 f"incidence {res['within_object_incidence'][k]:.3f})"
                                                 for k, v in res["within_object_recall"].items()))
+    print(f"true pose scored below the docking's best pose for {res['true_pose_scores_below_best']} of "
+          f"{res['n_true_pairs']} true pairs")
     print(f"pair AP {res['pair_ap']:.3f}; pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f}; "
           f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
     if args.json:

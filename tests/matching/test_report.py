@@ -60,6 +60,7 @@ def test_collection_evaluation_ranks_a_synthetic_collection_and_beats_chance(sma
     assert res["pooled_topk"][1] <= res["pooled_topk"][5] <= res["pooled_topk"][10]
     assert 0.0 <= res["pose_accuracy"] <= 1.0 and 0.0 <= res["pair_ap"] <= 1.0
     assert all(e["angle_deg"] is not None for e in res["pose_errors"])   # every true pair was docked
+    assert 0 <= res["true_pose_scores_below_best"] <= res["n_true_pairs"]
     assert res["within_object_recall"][3] >= res["within_object_recall"][1]
     assert res["within_object_random"][3] >= res["within_object_random"][1] > 0
     assert (tmp_path / "out" / "collection_examples.png").stat().st_size > 1000
