@@ -340,9 +340,9 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         al = proposed.get((a, b))
         # the docking's geometric score at the true pose: below the best pose's means the score, not
         # the search, misses the true pose
-        truth = np.linalg.inv(pose_matrix(*poses[a])) @ pose_matrix(*poses[b])
+        rel = np.linalg.inv(pose_matrix(*poses[a])) @ pose_matrix(*poses[b])
         at_truth = docking_score_at(tables[a].contour_mm, tables[b].contour_mm,
-                                    (float(np.degrees(np.arctan2(truth[1, 0], truth[0, 0]))), truth[0, 2], truth[1, 2]))
+                                    (float(np.degrees(np.arctan2(rel[1, 0], rel[0, 0]))), rel[0, 2], rel[1, 2]))
         if al is None:
             errors.append({"a": a, "b": b, "angle_deg": None, "shift_mm": None, "score_at_truth": at_truth})
             continue
