@@ -201,6 +201,10 @@ def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = 
 
     if isinstance(recipe, str):
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
+    for name in ("albedo", "mask"):   # the same refusal read_rgbn gives, before a shape is asked for
+        if name not in group:
+            from common.store import ArtifactError
+            raise ArtifactError(f"RGBN data in {group.file.filename} lacks '{name}'")
     h, w = group["mask"].shape
     if recipe.segmentation is None and h * w > TILE_MPX * 1e6:
         source = H5Source(group)
