@@ -38,6 +38,7 @@ gap/contact/overlap.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,7 +228,9 @@ class MatchIndex:
         w = np.array([max(0.0, -model.coef[model.columns.index(d.key)]) / model.scale[model.columns.index(d.key)]
                       if d.key in model.columns else 0.0 for d in fd])
         v = self._values
-        med = np.nanmedian(v, axis=0) if len(v) else np.zeros(v.shape[1])
+        with warnings.catch_warnings():   # a cue missing everywhere (colour-only collections) is expected
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(v, axis=0) if len(v) else np.zeros(v.shape[1])
         med = np.where(np.isfinite(med), med, 0.0)
         return w, med
 
