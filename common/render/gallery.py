@@ -266,8 +266,8 @@ draws (the 5th and 95th percentiles land at 0.2 and 0.8 of the tone range throug
 tails roll off, so a pixel saturates only ~4.5 half-ranges out; colour is exposed on its CIELAB
 lightness, hue and chroma kept), its smoothing from the noise of the normal map (Immerkær's estimator;
 8x8 JPEG blocks of the source images detected and smoothed over) and from the dpi, and lights a
-near-flat surface (a painting, a relief) relative to its own slow undulation. The values chosen are
-logged (`tessera render -v`) and can be written back into a recipe.
+near-flat surface (a painting, a relief) relative to its own slow undulation. `tessera render` logs
+the values it chose (and the noise evidence); written back into a recipe they fix the picture.
 
 Any size: an image above 16 Mpx is drawn in overlapping tiles (the halo covers 4 sigma of the
 widest filter, line lengths and shadows) that share the exposure chosen on a central calibration

@@ -217,6 +217,7 @@ def _run(style: str, size: int, huge: bool = False) -> dict | str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="only the per-megapixel part")
+    parser.add_argument("--no-micro", action="store_true", help="skip the per-megapixel part")
     parser.add_argument("--sizes", type=int, nargs="*", default=[3464, 7141],
                         help="sides of the per-style runs (default 12 and 51 Mpx)")
     parser.add_argument("--styles", nargs="*", help="styles for the per-style runs (default: all, and the default recipe)")
@@ -232,8 +233,9 @@ def main() -> int:
     if args.huge_child:
         huge_child(args.huge_child, args.size)
         return 0
-    timings = per_megapixel()
-    print(f"per megapixel (1024 x 1024 fragment-like relief, best of runs; load average {_load()}):")
+    timings = {} if args.no_micro else per_megapixel()
+    if timings:
+        print(f"per megapixel (1024 x 1024 fragment-like relief, best of runs; load average {_load()}):")
     for name, (wall, cpu) in timings.items():
         target = TARGETS_S_PER_MPX[name]
         print(f"  {name:24s} wall {wall:6.3f} s/Mpx   cpu {cpu:6.3f} s/Mpx   target <= {target:.1f}   "
