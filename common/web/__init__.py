@@ -1,4 +1,4 @@
-"""Helpers of the station's web pages (served by ``services/web.py``).
+"""Helpers of the station's web pages (served by the package ``services/web/``).
 
 * :mod:`common.web.auth`     — access token, constant-time checks, session/CSRF values
 * :mod:`common.web.bench`    — :class:`BenchSession`: the operator hand-shake around the capture

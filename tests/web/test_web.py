@@ -1,4 +1,4 @@
-"""Tests of services/web.py through Flask's test client: access control, bench, review, status."""
+"""Tests of services/web/ through Flask's test client: access control, bench, review, status."""
 
 from __future__ import annotations
 

@@ -1,0 +1,229 @@
+"""The station's web pages: operator bench, match review, station status, the archive.
+
+``tessera web`` serves the pages to the people at the station, from the station itself, with
+every asset local (no CDN: the lab has no internet). The app is Flask's large-application
+pattern: :func:`create_app` is the factory, each page or API area is a blueprint in its own
+module of this package, and :data:`BLUEPRINTS` registers them all:
+
+* :mod:`.auth`    — ``/login``, ``/logout`` and the access decorator :func:`.auth.writes`;
+* :mod:`.bench`   — ``/bench``: the operator's front end to the scanner (this process owns it);
+* :mod:`.review`  — ``/review``: ranked join proposals, verdicts as ``match.verified`` events;
+* :mod:`.status`  — ``/status``: the broker's services, workers, queues, parked failures;
+* :mod:`.fragment`, :mod:`.reconstruction` — the archive's fragment page and reconstruction.
+
+What a blueprint reads (store root, settings, bench, broker link, proposal store) is the app's
+:class:`.station.Station` (``station()`` inside a request); templates are in ``templates/``,
+scripts and styles in ``static/``.
+
+Access: it listens on 127.0.0.1 unless ``[services.web] host`` opens it to the lab network.
+Reading is open; everything that writes (scan, verdict, re-run) needs the station's access token
+(``[services.web] token``, or generated at first start into ``token_file``; see
+:mod:`common.web.auth`). Browsers log in once with the token and then carry a session cookie
+(HttpOnly, SameSite=Strict) plus a CSRF value in a header; scripts send ``Authorization: Bearer``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from flask import Flask, jsonify, redirect, request, session, url_for
+
+from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, session_secret
+
+from common.web.bench import BenchSession
+
+from . import auth as auth_pages
+from . import bench as bench_pages
+from . import fragment as fragment_page
+from . import reconstruction as reconstruction_page
+from . import review as review_pages
+from . import status as status_pages
+from .station import EXTENSION, Station, StationLink, build_bench
+
+__all__ = ["DEFAULTS", "BLUEPRINTS", "WebConfigError", "web_settings", "station_token", "create_app", "serve",
+           "StationLink", "build_bench", "ReviewViews"]
+
+SERVICE = "web"
+VERSION = "1"
+
+log = logging.getLogger("tessera.web")
+
+HERE = Path(__file__).resolve().parent
+
+#: settings of ``[services.web]`` and their defaults
+DEFAULTS: dict[str, Any] = {
+    "host": "127.0.0.1",        # "0.0.0.0" (or the lab interface's address) opens it to the lab network
+    "port": 8080,
+    "token": "",                # access token; empty: generated at first start into token_file
+    "token_file": "",           # default <storage root>/web/web_token  (keep it on local disk)
+    "operator": "",             # name recorded with verdicts when the browser sends none
+    "long_poll_s": 3.0,         # how long a page's live request waits for a change
+    "picture_px": 640,          # longest side of the review pictures
+}
+
+
+class WebConfigError(ValueError):
+    """A ``[services.web]`` setting is invalid; the message names it."""
+
+
+def web_settings(cfg: Mapping) -> dict:
+    """``[services.web]`` of the station config over :data:`DEFAULTS`, checked."""
+    given = dict(cfg.get("services", {}).get(SERVICE, {}))
+    out = dict(DEFAULTS)
+    for key, value in given.items():
+        if key not in DEFAULTS:
+            raise WebConfigError(f"services.web.{key}: unknown setting (known: {', '.join(sorted(DEFAULTS))})")
+        want = type(DEFAULTS[key])
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, want) or isinstance(value, bool) != (want is bool):
+            raise WebConfigError(f"services.web.{key}: expected {want.__name__}, got {value!r}")
+        out[key] = value
+    if not 1 <= out["port"] <= 65535:
+        raise WebConfigError(f"services.web.port: expected a TCP port 1-65535, got {out['port']}")
+    if out["token"] and len(out["token"]) < MIN_TOKEN_CHARS:
+        raise WebConfigError(f"services.web.token: must be at least {MIN_TOKEN_CHARS} characters")
+    if out["long_poll_s"] <= 0 or out["picture_px"] < 64:
+        raise WebConfigError("services.web.long_poll_s must be positive and services.web.picture_px >= 64")
+    return out
+
+
+def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
+    """The access token and the file it was read from / generated into (None if from config)."""
+    if settings["token"]:
+        return settings["token"], None
+    path = Path(settings["token_file"] or Path(cfg["storage"]["root"]) / "web" / "web_token")
+    return load_or_create_token(path), path
+
+
+
+# --------------------------------------------------------------------------------------------
+# the application
+# --------------------------------------------------------------------------------------------
+#: every page/API area of the app, registered in this order by :func:`create_app`
+BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, fragment_page.bp,
+              reconstruction_page.bp)
+
+#: picture views of a proposal offered by the review page
+ReviewViews = review_pages.VIEWS
+
+
+def create_app(*, token: str, settings: Mapping | None = None, store_root: str | os.PathLike,
+               bench: BenchSession | None = None, link: StationLink | None = None, review=None) -> Flask:
+    """The Flask application.
+
+    Parameters
+    ----------
+    token : str
+        Station access token (required for every write).
+    settings : mapping, optional
+        ``[services.web]`` settings (:func:`web_settings`).
+    store_root : path
+        Storage root (pipeline state is read from its tree).
+    bench : BenchSession, optional
+        The scanner's capture session; without it the bench page says there is no scanner here.
+    link : StationLink, optional
+        The broker (status, re-run, submitting verdicts) and the bench's outbox.
+    review : common.web.review.ReviewData, optional
+        Proposals, verdict history and pictures.
+    """
+    if not token or len(token) < MIN_TOKEN_CHARS:
+        raise ValueError(f"token must be at least {MIN_TOKEN_CHARS} characters")
+    settings = dict(DEFAULTS, **(settings or {}))
+    app = Flask("tessera.web", static_folder=str(HERE / "static"), template_folder=str(HERE / "templates"),
+                static_url_path="/static")
+    app.secret_key = session_secret(token)
+    app.config.update(SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
+                      SESSION_COOKIE_NAME="tessera_session", MAX_CONTENT_LENGTH=64 * 1024,
+                      PERMANENT_SESSION_LIFETIME=12 * 3600)
+    app.extensions[EXTENSION] = Station(token=token, settings=settings, store_root=Path(store_root), bench=bench,
+                                        link=link, review=review)
+    for bp in BLUEPRINTS:
+        app.register_blueprint(bp)
+
+    @app.get("/")
+    def index():
+        return redirect(url_for("bench.page") if bench is not None else url_for("review.page"))
+
+    @app.context_processor
+    def page_context():
+        logged_in = auth_pages.logged_in()
+        return {"logged_in": logged_in, "csrf": session.get("csrf", "") if logged_in else "",
+                "has_scanner": bench is not None, "station_host": request.host}
+
+    @app.after_request
+    def headers(resp):
+        # pages are local-only: no framing by other sites, no third-party anything
+        resp.headers.setdefault("X-Frame-Options", "DENY")
+        resp.headers.setdefault("X-Content-Type-Options", "nosniff")
+        resp.headers.setdefault("Referrer-Policy", "same-origin")  # no-referrer would make Origin "null"
+        resp.headers.setdefault("Content-Security-Policy",
+                                "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+                                "frame-ancestors 'none'; form-action 'self'")
+        if request.path.startswith("/api/"):
+            resp.headers.setdefault("Cache-Control", "no-store")
+        return resp
+
+    @app.errorhandler(400)
+    def bad_request(exc):
+        return jsonify(error=getattr(exc, "description", "bad request")), 400
+
+    return app
+
+# --------------------------------------------------------------------------------------------
+# running it
+# --------------------------------------------------------------------------------------------
+def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, with_scanner: bool = True,
+          ready: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> int:
+    """Run the web server until ``stop`` is set (or SIGINT/SIGTERM); returns an exit status."""
+    from werkzeug.serving import make_server
+
+    from common.web.review import ReviewData
+
+    settings = web_settings(cfg)
+    host = host or settings["host"]
+    port = int(port if port is not None else settings["port"])
+    token, token_path = station_token(cfg, settings)
+    link = StationLink(cfg)
+    review = ReviewData.from_config(cfg)
+    bench = None
+    if with_scanner:
+        try:
+            bench = build_bench(cfg, link=link)
+        except Exception as exc:  # the review and status pages are still worth serving
+            log.error("no scanner for the bench page (%s: %s); serving review and status only",
+                      type(exc).__name__, exc)
+    if bench is not None:
+        link.start_drain()
+    app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
+                     review=review)
+    if not log.isEnabledFor(logging.DEBUG):   # one line per poll of every open page is noise
+        logging.getLogger("werkzeug").setLevel(logging.WARNING)
+    server = make_server(host, port, app, threaded=True)
+    url = f"http://{host if host not in ('0.0.0.0', '::') else '127.0.0.1'}:{server.server_port}"
+    where = "this machine only" if host in ("127.0.0.1", "localhost", "::1") else "the lab network"
+    log.info("web pages at %s (listening on %s:%d, reachable from %s)", url, host, server.server_port, where)
+    if token_path is not None:
+        log.info("access token for scan/verdict/re-run is in %s", token_path)
+    if ready is not None:
+        ready(url)
+    stop = stop or threading.Event()
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.5}, daemon=True)
+    thread.start()
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.shutdown()
+        link.close()
+        if bench is not None:
+            bench.cancel()
+    return 0
+
+

@@ -1,0 +1,102 @@
+"""Log in / log out, and the access checks every write goes through (:func:`writes`).
+
+Reading is open to whoever can reach the port. A write needs the station's access token: a
+script sends ``Authorization: Bearer <token>``; a browser logs in once (``/login``, token + name),
+then carries a session cookie signed with a key derived from the token and echoes the session's
+CSRF value in the ``X-CSRF-Token`` header. Writes also refuse other origins and non-JSON bodies.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from typing import Callable
+
+from flask import Blueprint, abort, jsonify, redirect, render_template, request, session, url_for
+
+from common.web import auth
+
+from .station import station
+
+bp = Blueprint("auth", __name__)
+
+
+def logged_in() -> bool:
+    """A browser logged in (the cookie is signed with a key derived from the token)."""
+    return bool(session.get("auth"))
+
+
+def who() -> str:
+    """The name a write is recorded under: the login's, else ``[services.web] operator``, else ``web``."""
+    return (session.get("who") or station().settings["operator"] or "web")[:64]
+
+
+def authorised() -> bool:
+    """A write is allowed with the bearer token, or a logged-in session echoing its CSRF value."""
+    bearer = auth.bearer_token(request.headers.get("Authorization"))
+    if bearer is not None:
+        return auth.check_token_slowly(bearer, station().token)  # a wrong Bearer token is slowed like /login
+    if not logged_in():
+        return False
+    return auth.token_matches(request.headers.get("X-CSRF-Token"), session.get("csrf", ""))
+
+
+def same_origin() -> bool:
+    origin = request.headers.get("Origin")
+    return origin is None or origin == request.host_url.rstrip("/")
+
+
+def writes(view: Callable) -> Callable:
+    """Decorator of every write endpoint: same origin, the token (or session + CSRF), a JSON body."""
+    @functools.wraps(view)
+    def guarded(*args, **kwargs):
+        if not same_origin():
+            return jsonify(error="cross-site request refused"), 403
+        if not authorised():
+            return jsonify(error="log in with the station's access token to do this"), 401
+        if not request.is_json:
+            return jsonify(error="send the request body as application/json"), 415
+        return view(*args, **kwargs)
+    return guarded
+
+
+def body() -> dict:
+    """The request's JSON object (400 otherwise)."""
+    data = request.get_json(silent=True)
+    if not isinstance(data, dict):
+        abort(400, "request body must be a JSON object")
+    return data
+
+
+@bp.get("/login")
+def login_form():
+    return render_template("login.html", page="login", error="", next=_safe_next(request.args.get("next")))
+
+
+@bp.post("/login")
+def login():
+    nxt = _safe_next(request.form.get("next"))
+    if not same_origin():
+        abort(403)
+    if not auth.token_matches(request.form.get("token", "").strip(), station().token):
+        time.sleep(0.5)  # slows guessing; the token's 256 bits do the real work
+        return render_template("login.html", page="login", error="That is not this station's access token.",
+                               next=nxt), 401
+    session.clear()
+    session.permanent = True
+    session.update(auth=True, csrf=auth.new_csrf_value(), who=request.form.get("who", "").strip()[:64])
+    return redirect(nxt)
+
+
+@bp.post("/logout")
+def logout():
+    if same_origin():
+        session.clear()
+    return redirect(url_for("index"))
+
+
+def _safe_next(target: str | None) -> str:
+    """Only local paths are followed after login (no open redirect)."""
+    if target and target.startswith("/") and not target.startswith("//") and "\\" not in target:
+        return target
+    return "/"

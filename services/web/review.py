@@ -1,0 +1,103 @@
+"""The review page (``/review``): ranked join proposals and the conservator's verdicts.
+
+Proposals, verdict history and pictures come from the matcher's proposal store
+(:class:`common.web.review.ReviewData`); a verdict is submitted to the broker as a
+``match.verified`` event through the outbox (the matcher records it).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from flask import Blueprint, abort, jsonify, render_template, request
+
+from common.messages import new_message
+from common.web.bench import check_fragment_id
+
+from .auth import body, who, writes
+from .station import requires, station
+
+log = logging.getLogger("tessera.web")
+
+bp = Blueprint("review", __name__)
+
+#: picture views of a proposal offered by the review page
+VIEWS = ("pair-colour", "pair-relief", "joined-colour", "joined-relief")
+
+needs_proposals = requires("review", "the proposal store is not available on this station")
+
+
+@bp.get("/review")
+def page():
+    return render_template("review.html", page="review", fragment=request.args.get("fragment", ""))
+
+
+@bp.get("/api/review/queue")
+@needs_proposals
+def queue():
+    review = station().review
+    limit = min(max(request.args.get("limit", 50, type=int), 1), 500)
+    return jsonify(proposals=review.pending(limit), counts=review.counts())
+
+
+@bp.get("/api/review/fragment/<fid>")
+@needs_proposals
+def fragment(fid):
+    try:
+        fid = check_fragment_id(fid)
+    except ValueError as exc:
+        abort(400, str(exc))
+    return jsonify(fragment=fid, proposals=station().review.ranked(fid))
+
+
+@bp.get("/api/review/history")
+@needs_proposals
+def history():
+    st = station()
+    recorded = st.review.history(limit=100)
+    keys = {(v["fragment_a"], v["fragment_b"], v["verdict"]) for v in recorded}
+    waiting = [v for v in st.sent_verdicts if (v["fragment_a"], v["fragment_b"], v["verdict"]) not in keys
+               or v["time"] > max((r["time"] for r in recorded), default=0)]
+    return jsonify(history=recorded, sent=list(waiting))
+
+
+@bp.get("/api/review/picture/<int:pid>/<view>.png")
+@needs_proposals
+def picture(pid, view):
+    st = station()
+    if view not in VIEWS or not 0 <= pid < 2 ** 63:  # no proposal id beyond SQLite's integers
+        abort(404)
+    try:
+        png = st.review.picture(pid, view, max_side_px=int(st.settings["picture_px"]))
+    except LookupError as exc:
+        return jsonify(error=str(exc)), 404
+    return png, 200, {"Content-Type": "image/png", "Cache-Control": "private, max-age=60"}
+
+
+@bp.post("/api/review/verdict")
+@writes
+@needs_proposals
+def verdict():
+    st = station()
+    b = body()
+    verdict = b.get("verdict")
+    if verdict not in ("confirmed", "rejected"):
+        return jsonify(error="verdict must be 'confirmed' or 'rejected' (skip sends nothing)"), 400
+    prop = st.review.proposal(b.get("proposal"))
+    if prop is None:
+        return jsonify(error=f"no proposal {b.get('proposal')!r}"), 404
+    by = who()
+    msg = new_message("match.verified", fragment=prop["fragment_a"], other=prop["fragment_b"], verdict=verdict,
+                      proposal=prop["id"], probability=prop["probability"], by=by,
+                      model_version=prop.get("model_version"))
+    if st.link is None:
+        return jsonify(error="the broker is not configured on this station; the verdict was not sent"), 503
+    try:
+        delivered = st.link.submit(msg)
+    except Exception as exc:  # the page must say the verdict did not go through
+        log.warning("verdict %s not sent: %s", msg["uid"], exc)
+        return jsonify(error=f"the verdict could not be sent to the broker: {exc}"), 503
+    entry = {"fragment_a": prop["fragment_a"], "fragment_b": prop["fragment_b"], "verdict": verdict, "by": by,
+             "time": msg["time"], "uid": msg["uid"], "proposal": prop["id"], "delivered": delivered}
+    st.sent_verdicts.appendleft(entry)
+    return jsonify(sent=entry)
