@@ -11,7 +11,8 @@ therefore reads its images through :func:`read_image_checked`, which
   the file,
 * checks the declared size against :data:`common.limits.MAX_IMAGE_PIXELS` before decoding,
 * checks the sample type (8/16-bit integers or float), a declared bit depth (and 8-bit values
-  stored in a 16-bit file), the number of channels, and refuses all-black and blank (uniform) images.
+  stored in a 16-bit file), the number of channels, and refuses all-black images (hot pixels
+  aside: up to :data:`HOT_SAMPLES_FRACTION` of the samples may be bright) and blank (uniform) images.
 
 Each refusal is an :class:`~common.imports.driver.ImportRefused` whose message starts with the
 file's path.
@@ -36,8 +37,12 @@ from common.limits import MAX_IMAGE_PIXELS
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
 _TIFF_SIGS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 
-#: An image whose brightest sample is below this fraction of full scale is "all black".
+#: An image with no more than ``HOT_SAMPLES_FRACTION`` of its samples at or above this fraction
+#: of full scale is "all black".
 BLACK_FRACTION = 2.0 / 255.0
+#: Bright samples a black frame may hold (hot or stuck sensor pixels): a robust 99.9th percentile,
+#: so a handful of hot pixels does not make a frame taken with the lamp off look lit.
+HOT_SAMPLES_FRACTION = 0.001
 #: An image whose samples all lie within this fraction of full scale of each other is "blank".
 BLANK_FRACTION = 2.0 / 255.0
 
@@ -259,9 +264,11 @@ def read_image_checked(path: str | os.PathLike, *, bits: int | None = None,
         raise _refuse(path, f"is a 16-bit file holding 8-bit values (largest sample {hi:.0f} of 65535): "
                             "export it again at 16 bits, or as 8-bit")
     if not allow_blank:
-        if hi < BLACK_FRACTION * full:
-            raise _refuse(path, "is all black (no sample above "
-                                f"{BLACK_FRACTION * 100:.1f} % of full scale): lamp off or lid closed?")
+        lit = int(np.count_nonzero(colour >= BLACK_FRACTION * full)) if hi >= BLACK_FRACTION * full else 0
+        if lit <= HOT_SAMPLES_FRACTION * colour.size:
+            raise _refuse(path, f"is all black ({lit} of {colour.size} samples at or above "
+                                f"{BLACK_FRACTION * 100:.1f} % of full scale, no more than hot pixels would make): "
+                                "lamp off or lid closed?")
         if hi - lo < BLANK_FRACTION * full:
             raise _refuse(path, f"is blank (every sample within {BLANK_FRACTION * 100:.1f} % of {lo / full:.3f} "
                                 "of full scale)")

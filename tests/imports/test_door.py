@@ -65,6 +65,19 @@ def test_black_and_blank_images_are_refused(tmp_path):
     assert read_image_checked(black, allow_blank=True).pixels.max() == 0
 
 
+def test_black_frame_with_hot_pixels_is_still_refused(tmp_path):
+    # a frame taken with the lamp off: sensor noise near 0 and a few hot pixels at full scale
+    rng = np.random.default_rng(3)
+    frame = rng.integers(0, 2, (200, 300, 3)).astype(np.uint8)
+    frame[rng.integers(0, 200, 20), rng.integers(0, 300, 20)] = 255   # 20 hot pixels, 0.03 % of samples
+    with pytest.raises(ImportRefused, match="hot.png: is all black"):
+        read_image_checked(_write(tmp_path / "hot.png", frame))
+    # a dark picture with a small lit object (1 % of the pixels) is not black
+    dim = frame.copy()
+    dim[90:110, 140:170] = 90
+    assert read_image_checked(_write(tmp_path / "dim.png", dim)).pixels.shape == dim.shape
+
+
 def test_bit_depth_is_checked(tmp_path):
     rgb = _photo()
     p8 = _write(tmp_path / "a8.png", rgb)
