@@ -1,0 +1,164 @@
+"""Tests of common/web/tiles.py: the pyramid is an exact area average of the face, cut once."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.rgbn.io import linear_to_srgb
+from common.store import Store
+from common.web import tiles
+
+
+def _face(h=300, w=410, seed=3):
+    """A face with smooth random albedo, tilted normals and an irregular (elliptic) mask."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    albedo = np.clip(rng.random((h, w, 3), dtype=np.float32) * 0.6 + 0.2, 0, 1)
+    nx, ny = 0.4 * np.sin(xx / 17.0), 0.3 * np.cos(yy / 11.0)
+    normals = np.stack([nx, ny, np.ones_like(nx)], axis=2)
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    mask = ((yy - h / 2) / (0.45 * h)) ** 2 + ((xx - w / 2) / (0.47 * w)) ** 2 < 1
+    return RGBNImage(albedo, mask, 200.0, normals=normals.astype(np.float32))
+
+
+def _block_sum(a, f):
+    """Sum over f x f cells, zero-padding the edges: the independent expectation of a level."""
+    h, w = a.shape[:2]
+    a = np.pad(a.astype(np.float64), ((0, -h % f), (0, -w % f)) + ((0, 0),) * (a.ndim - 2))
+    return a.reshape(a.shape[0] // f, f, a.shape[1] // f, f, *a.shape[2:]).sum(axis=(1, 3))
+
+
+def _expected(img, level):
+    f = 2 ** level
+    m = img.mask.astype(np.float64)
+    msum, count = _block_sum(m, f), _block_sum(np.ones_like(m), f)
+    on = msum > 0
+    alb = _block_sum(img.albedo * m[..., None], f) / np.maximum(msum, 1e-12)[..., None]
+    n = _block_sum(img.normals * m[..., None], f)
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    srgb = np.where(on[..., None], np.round(linear_to_srgb(alb.astype(np.float32)) * 255), 0)
+    nrgb = np.where(on[..., None], np.round((n + 1) / 2 * 255), 0)
+    alpha = np.round(msum / count * 255)
+    return srgb, nrgb, alpha
+
+
+@pytest.fixture
+def cut(tmp_path):
+    store = Store(tmp_path)
+    img = _face()
+    rel = "fragments/F1/rgbn/front-0123456789abcdef.h5"
+    save_rgbn(store, rel, img)
+    info = tiles.cut_source(store, rel, tile_px=64)
+    return store, img, rel, info
+
+
+def test_pyramid_levels_halve_rounding_up_until_one_tile():
+    assert tiles.pyramid_levels(600, 1000) == [(600, 1000), (300, 500), (150, 250)]
+    assert tiles.pyramid_levels(256, 256) == [(256, 256)]
+    assert tiles.pyramid_levels(257, 3) == [(257, 3), (129, 2)]
+    with pytest.raises(ValueError, match="height and width"):
+        tiles.pyramid_levels(0, 10)
+
+
+def test_every_level_is_the_masked_area_average_of_the_face(cut):
+    store, img, rel, info = cut
+    cache = tiles.TileCache(store)
+    assert [(lv["height"], lv["width"]) for lv in info["levels"]] == tiles.pyramid_levels(300, 410, 64)
+    assert set(info["layers"]) == {"albedo", "normals"}
+    for lv in info["levels"]:
+        level, h, w = lv["level"], lv["height"], lv["width"]
+        srgb, nrgb, alpha = _expected(img, level)
+        got_a = cache.region(rel, "albedo", level, 0, h, 0, w)
+        got_n = cache.region(rel, "normals", level, 0, h, 0, w)
+        # float32 sums in another order than the float64 expectation: at most one step of 8 bits
+        assert np.abs(got_a[..., :3].astype(int) - srgb).max() <= 1, level
+        assert np.abs(got_n[..., :3].astype(int) - nrgb).max() <= 1, level
+        assert np.abs(got_a[..., 3].astype(int) - alpha).max() <= 1, level
+        assert np.array_equal(got_a[..., 3], got_n[..., 3])
+    # level 0 is the face itself: alpha is the mask, RGB the display sRGB of the albedo
+    lvl0 = cache.region(rel, "albedo", 0, 0, 300, 0, 410)
+    assert np.array_equal(lvl0[..., 3] == 255, img.mask) and set(np.unique(lvl0[..., 3])) == {0, 255}
+    # OpenGL convention: a normal leaning up (+y) has green above 128
+    up = cache.region(rel, "normals", 0, 150, 151, 205, 206)[0, 0]
+    assert (up[1] > 128) == (img.normals[150, 205, 1] > 0)
+
+
+def test_tiles_are_256_px_pngs_at_the_documented_path(tmp_path):
+    store = Store(tmp_path)
+    img = _face(300, 600)
+    rel = "fragments/F2/rgbn/back-00000000000000aa.h5"
+    save_rgbn(store, rel, img)
+    info = tiles.TileCache(store).pyramid(rel)
+    folder = store.path(tiles.pyramid_folder(rel))
+    assert folder.name == f"rgbn-back-00000000000000aa-t{tiles.TILES_VERSION}"
+    assert info["tile_px"] == 256 and info["levels"][0]["cols"] == 3 and info["levels"][0]["rows"] == 2
+    t = tiles.decode_png((folder / "albedo/0/2_1.png").read_bytes())
+    assert t.shape == (300 - 256, 600 - 512, 4)   # the last tile of a level is cut to the image
+    assert tiles.decode_png((folder / "albedo/0/0_0.png").read_bytes()).shape == (256, 256, 4)
+    assert info["source"]["sha256"] == store.ref(rel).sha256 and info["tiles"] == 2 * (6 + 2 + 1)
+    assert json.loads((folder / "pyramid.json").read_text()) == info
+
+
+def test_the_pyramid_is_cut_once_and_an_interrupted_cut_is_redone_identically(cut):
+    store, img, rel, info = cut
+    folder = store.path(tiles.pyramid_folder(rel))
+    tile = folder / "normals/1/2_1.png"
+    before, stamp = tile.read_bytes(), tile.stat().st_mtime_ns
+    assert tiles.TileCache(store).pyramid(rel) == info   # read, not cut again
+    assert tile.stat().st_mtime_ns == stamp
+    (folder / "pyramid.json").unlink()                  # a cut killed before its last file
+    tile.unlink()
+    again = tiles.TileCache(store, tile_px=64).pyramid(rel)
+    assert tile.read_bytes() == before and again["levels"] == info["levels"]
+    assert not list(folder.rglob("*.tmp"))
+
+
+def test_tile_lookups_outside_the_pyramid_say_what_is_wrong(cut):
+    store, img, rel, info = cut
+    cache = tiles.TileCache(store)
+    with pytest.raises(LookupError, match="no layer 'render'"):
+        cache.tile_path(rel, "render", 0, 0, 0)
+    with pytest.raises(LookupError, match="level must be"):
+        cache.tile_path(rel, "albedo", 99, 0, 0)
+    with pytest.raises(LookupError, match="outside level 0"):
+        cache.tile_path(rel, "albedo", 0, 7, 0)
+    with pytest.raises(ValueError, match="not an RGBN or render artifact"):
+        tiles.pyramid_folder("fragments/F1/features/front-1.h5")
+
+
+def test_a_colour_only_face_has_no_normals_layer_and_a_render_its_own_pyramid(tmp_path):
+    store = Store(tmp_path)
+    img = _face(100, 120)
+    save_rgbn(store, "fragments/F3/rgbn/front-1111111111111111.h5",
+              RGBNImage(img.albedo, img.mask, img.dpi))
+    info = tiles.cut_source(store, "fragments/F3/rgbn/front-1111111111111111.h5")
+    assert list(info["layers"]) == ["albedo"]
+
+    drawn = (np.arange(100 * 120 * 3).reshape(100, 120, 3) % 251).astype(np.uint8)
+    alpha = np.where(img.mask, 255, 0).astype(np.uint8)
+
+    def fill(f):
+        f.create_dataset("image", data=drawn)
+        f.create_dataset("alpha", data=alpha)
+        f.attrs.update(recipe="toon", bits=8, dpi=200.0)
+
+    rrel = "fragments/F3/renders/front-2222222222222222.h5"
+    store.write(rrel, "tessera.render", 1, fill,
+                provenance={"inputs": [{"path": "fragments/F3/rgbn/front-1111111111111111.h5"}]})
+    rinfo = tiles.cut_source(store, rrel)
+    assert list(rinfo["layers"]) == ["render"] and rinfo["kind"] == "render"
+    got = tiles.TileCache(store).region(rrel, "render", 0, 0, 100, 0, 120)
+    assert np.array_equal(got[..., :3][img.mask], drawn[img.mask]) and np.array_equal(got[..., 3], alpha)
+    assert tiles.face_sources(store, "F3") == {"front": {"rgbn": "fragments/F3/rgbn/front-1111111111111111.h5",
+                                                         "renders": {"toon": rrel}}}
+
+
+def test_cut_pyramid_checks_its_bands():
+    with pytest.raises(ValueError, match="held 10 rows, expected 20"):
+        tiles.cut_pyramid(iter([np.zeros((10, 5, 5), np.float32)]), 20, 5, {"albedo": 0}, lambda *a: None)
+    with pytest.raises(ValueError, match=r"bands must be \(rows, 5, C\)"):
+        tiles.cut_pyramid(iter([np.zeros((10, 4, 5), np.float32)]), 10, 5, {"albedo": 0}, lambda *a: None)
