@@ -1,10 +1,158 @@
-"""The fragment page (``/fragments/<id>``) — owned by the archive-viewer engineer (issue 17).
+"""The fragment page (``/fragments/<id>``): front and back relit live in WebGL, deep zoom, measuring.
 
-Registered by :func:`services.web.create_app`; it has no routes yet.
+The page (``templates/fragment.html``, ``static/fragment.js``) runs the relighting viewer
+(``static/viewer/``) on the tiles of :class:`common.web.relight.RelightCache`: fields computed once
+per face from its newest RGBN artifact and kept on storage. Its JSON says what the fragment has:
+faces (size, dpi), its proposals and confirmed joins from the proposal store, the downloads.
 """
 
 from __future__ import annotations
 
-from flask import Blueprint
+import logging
+
+from flask import Blueprint, abort, jsonify, render_template, request, send_file, url_for
+
+from common.store import ArtifactError, Store
+from common.web.bench import check_fragment_id
+
+from .station import station
+
+log = logging.getLogger("tessera.web")
 
 bp = Blueprint("fragment", __name__)
+
+
+def _fid(fid: str) -> str:
+    try:
+        return check_fragment_id(fid)
+    except ValueError as exc:
+        abort(400, str(exc))
+
+
+def _store() -> Store:
+    return Store(station().store_root, create=False)
+
+
+def _faces(fid: str) -> dict[str, str]:
+    from common.imports.export import latest_faces
+
+    return latest_faces(_store(), fid)
+
+
+def _cache(fid: str, stem: str):
+    """The relight cache of face artifact ``fragments/<fid>/rgbn/<stem>.h5`` (404 if not there)."""
+    from common.web.relight import RelightCache
+
+    if "/" in stem or stem.startswith(".") or "-" not in stem:
+        abort(404, f"no face {stem!r}")
+    rel = f"fragments/{fid}/rgbn/{stem}.h5"
+    store = _store()
+    if not store.exists(rel):
+        abort(404, f"fragment {fid} has no face artifact {stem}")
+    return RelightCache(store, rel)
+
+
+@bp.get("/fragments/<fid>")
+def page(fid):
+    fid = _fid(fid)
+    return render_template("fragment.html", page="fragment", fragment=fid)
+
+
+@bp.get("/api/fragments/<fid>")
+def fragment(fid):
+    """Faces (with their relight API), proposals, confirmed joins and downloads of one fragment."""
+    fid = _fid(fid)
+    faces = _faces(fid)
+    if not faces:
+        abort(404, f"fragment {fid} has no RGBN face on storage yet")
+    out_faces = []
+    for face, rel in faces.items():
+        stem = rel.rsplit("/", 1)[1][:-3]
+        out_faces.append({"face": face, "artifact": rel,
+                          "relight": url_for("fragment.params", fid=fid, stem=stem).rsplit("/", 1)[0]})
+    proposals = []
+    review = station().review
+    if review is not None:
+        proposals = review.ranked(fid, limit=50)
+    for p in proposals:
+        other = p["fragment_b"] if p["fragment_a"] == fid else p["fragment_a"]
+        p["other"] = other
+        p["other_url"] = url_for("fragment.page", fid=other)
+        p["review_url"] = url_for("review.page", fragment=fid)
+    return jsonify(fragment=fid, faces=out_faces,
+                   proposals=[p for p in proposals if p.get("status") != "confirmed"],
+                   joins=[p for p in proposals if p.get("status") == "confirmed"],
+                   proposals_available=review is not None,
+                   downloads=_downloads(fid))
+
+
+def _downloads(fid: str) -> list[dict]:
+    """Links to the fragment's files (``tessera export``'s), from the archive's download route
+    when the app has one."""
+    from flask import current_app
+
+    for endpoint in ("catalogue.download", "catalogue.export", "downloads.fragment"):
+        if endpoint in current_app.view_functions:
+            return [{"label": "All files (tessera export, zip)", "url": url_for(endpoint, fid=fid)}]
+    return []
+
+
+@bp.get("/api/fragments/<fid>/relight/<stem>/params.json")
+def params(fid, stem):
+    """The face's relighting parameters (:func:`common.web.relight.face_params`), computed once."""
+    fid = _fid(fid)
+    try:
+        return jsonify(_cache(fid, stem).params())
+    except ArtifactError as exc:
+        abort(404, str(exc))
+
+
+@bp.get("/api/fragments/<fid>/relight/<stem>/tiles/<int:level>/<tile>")
+def tile(fid, stem, level, tile):
+    """One tile of the face's relighting fields (gzip; the format of :mod:`common.web.relight`),
+    computed on first request and kept on storage; immutable (the URL names the artifact)."""
+    fid = _fid(fid)
+    try:
+        row, col = (int(x) for x in tile.split("_"))
+    except ValueError:
+        abort(404, f"no tile {tile!r} (expected <row>_<column>)")
+    cache = _cache(fid, stem)
+    try:
+        path = cache.tile_path(level, row, col)
+    except ValueError as exc:
+        abort(404, str(exc))
+    except ArtifactError as exc:
+        abort(404, str(exc))
+    resp = send_file(path, mimetype="application/octet-stream", conditional=False, etag=False)
+    resp.headers["Content-Encoding"] = "gzip"
+    resp.headers["Cache-Control"] = "public, max-age=31536000, immutable"
+    return resp
+
+
+@bp.get("/api/fragments/<fid>/relight/<stem>/auto")
+def auto(fid, stem):
+    """The contrast the offline style's "auto" picks for the viewer's parameters (``style`` and
+    ``values`` as JSON in the query), measured on the face's overview level."""
+    import json
+
+    import h5py  # noqa: F401  (the cache opens the artifact)
+
+    from common.web.relight import auto_contrast, level_image, overview_level
+
+    fid = _fid(fid)
+    style = request.args.get("style", "")
+    try:
+        values = json.loads(request.args.get("values", "{}"))
+    except ValueError:
+        abort(400, "values must be a JSON object of the style's parameters")
+    if not isinstance(values, dict):
+        abort(400, "values must be a JSON object of the style's parameters")
+    cache = _cache(fid, stem)
+    params = cache.params()
+    level = overview_level(params)
+    try:
+        with cache.open_artifact() as f:
+            image = level_image(f, params, level)
+        return jsonify(style=style, level=level, resolved=auto_contrast(image, style, values, params, level=level))
+    except (ValueError, TypeError) as exc:
+        abort(400, str(exc))

@@ -1,0 +1,407 @@
+"""The fields a browser needs to relight an RGBN face in WebGL, cut into a tile pyramid.
+
+A relighting shader can only do per-pixel work: everything that needs a neighbourhood (the
+Gaussian-smoothed normals of the noise scale, of normal unsharp masking and of every scale of
+exaggerated shading; the mean curvature) does not depend on the light, so it is computed here once,
+with the same functions as the offline renderer (:func:`common.rgbn.smoothing.smooth_normals`,
+:func:`common.rgbn.curvature.mean_curvature`), and the shader does the rest — exactly the
+light-dependent part of the offline style's formula (``services/web/static/viewer/*.frag``).
+
+A face is cut into a pyramid of :data:`TILE_PX`-pixel tiles: level 0 is the face at full
+resolution, level ``L`` the face area-averaged by ``2**L`` (masked; normals renormalised), down to a
+level that fits one tile. A tile's fields are computed on its window plus a halo of 4 sigma of the
+widest Gaussian, so neighbouring tiles agree where they meet and a level-0 tile holds exactly what a
+whole-image computation gives there. Sigmas are in level-0 pixels and divided by ``2**L`` on level
+``L`` (the dpi too), so a zoomed-out view shows the same shading at a coarser grain.
+
+Tile format (one file per tile, ``h x w`` pixels, little-endian, gzip-compressed), in this order:
+
+* ``float16 (3, h, w, 4)``: three RGBA textures of (x, y) pairs of unit normals (z = sqrt(1 - x² - y²),
+  x right, y up, z towards the viewer): ``n, n0 | n1, n2 | n3, nu`` — ``n`` the normals as solved,
+  ``n_i`` smoothed at ``sigma_px * 2**i`` (``n0`` is the noise scale the lit styles use, ``n0..n3``
+  the scales of exaggerated shading), ``nu`` smoothed at normal unsharp masking's ``sigma_mm``;
+* ``float16 (h, w)``: mean curvature ``H`` (1/mm, eq. 7.7) of the normals smoothed at
+  ``curvature_sigma_px``;
+* ``uint8 (h, w, 4)``: the albedo as display sRGB and the mask (255 on the fragment).
+
+The parameters (the noise scale from the face's normals, the sigmas, dpi, the pyramid's sizes)
+are chosen once per face on the centred calibration window, as the tiled offline renderer does
+(:mod:`common.render.tiles`), and kept in ``params.json`` beside the tiles.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.render.tiles import CALIBRATION_MPX
+from common.rgbn.curvature import mean_curvature
+from common.rgbn.io import linear_to_srgb
+from common.rgbn.smoothing import smooth_normals
+
+#: Side of a tile, pixels.
+TILE_PX = 256
+#: Scales of exaggerated shading the fields carry (``n0`` .. ``n3``: the viewer's ``scales = 3``).
+EXAGGERATED_SCALES = 3
+#: Version of the tile format and of the fields' formulas (part of the cache key).
+FIELDS_VERSION = 1
+#: Channels of the float16 part of a tile, in order.
+NORMAL_FIELDS = ("n", "n0", "n1", "n2", "n3", "nu")
+#: Level-0 rows read at a time when a coarse level is area-averaged from the face.
+_BAND_PX = 1024
+
+
+def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, shape: tuple[int, int], *,
+                   unsharp_sigma_mm: float = 1.0) -> dict:
+    """The light-independent scales of a face's relighting fields.
+
+    Parameters
+    ----------
+    normals : (h, w, 3) float or None
+        Unit normals of the calibration window (the centred crop of at most
+        :data:`common.render.tiles.CALIBRATION_MPX`); None for a colour-only face.
+    mask : (h, w) bool
+        Its mask.
+    dpi : float
+        Sampling density of the face.
+    shape : (H, W)
+        Size of the whole face (level 0), pixels.
+    unsharp_sigma_mm : float
+        Normal unsharp masking's ``sigma_mm`` (the offline style's default 1 mm).
+
+    Returns
+    -------
+    dict
+        ``sigma_px`` (the noise scale, :func:`common.render.enhance.relief_scale_px`: what the
+        offline styles' ``sigma_px = "auto"`` and ``sigma0_px = "auto"`` resolve to),
+        ``exaggerated_sigmas_px``, ``unsharp_sigma_mm``, ``unsharp_sigma_px``
+        (``max(sigma_mm * dpi / 25.4, 1)`` as :func:`common.render.recipes.draw_normal_unsharp`),
+        ``curvature_sigma_mm`` / ``curvature_sigma_px`` (twice the noise scale, as
+        :func:`common.render.recipes.draw_mean_curvature`'s "auto"), ``halo_px``, ``dpi``,
+        ``width``, ``height``, ``tile_px``, ``levels`` (sizes ``[w, h]`` per level),
+        ``has_normals``, ``version``.
+    """
+    from common.render.enhance import relief_scale_px
+
+    if not np.isfinite(dpi) or dpi <= 0:
+        raise ValueError(f"dpi must be a positive number, got {dpi}")
+    if not unsharp_sigma_mm > 0:
+        raise ValueError(f"unsharp_sigma_mm must be > 0, got {unsharp_sigma_mm}")
+    h, w = int(shape[0]), int(shape[1])
+    if h < 1 or w < 1:
+        raise ValueError(f"shape must be positive, got {shape}")
+    has_normals = normals is not None
+    sigma = relief_scale_px(normals, dpi, mask)[0] if has_normals else 1.0
+    ex = [sigma * 2.0 ** i for i in range(EXAGGERATED_SCALES + 1)]
+    unsharp = max(unsharp_sigma_mm * dpi / 25.4, 1.0)
+    curv = 2.0 * sigma
+    levels = [[w, h]]
+    while max(levels[-1]) > TILE_PX:
+        lw, lh = levels[-1]
+        levels.append([(lw + 1) // 2, (lh + 1) // 2])
+    return {"version": FIELDS_VERSION, "dpi": float(dpi), "width": w, "height": h, "tile_px": TILE_PX,
+            "levels": levels, "has_normals": has_normals,
+            "sigma_px": round(float(sigma), 4), "exaggerated_sigmas_px": [round(float(s), 4) for s in ex],
+            "unsharp_sigma_mm": float(unsharp_sigma_mm), "unsharp_sigma_px": round(float(unsharp), 4),
+            "curvature_sigma_px": round(float(curv), 4), "curvature_sigma_mm": round(float(curv) * 25.4 / dpi, 6),
+            "halo_px": int(math.ceil(4.0 * max(ex[-1], unsharp, curv))) + 2}
+
+
+def relight_fields(normals: np.ndarray | None, albedo: np.ndarray, mask: np.ndarray, params: dict, *,
+                   level: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The relighting fields of a window of level ``level`` (see the module docstring).
+
+    Parameters
+    ----------
+    normals : (h, w, 3) float or None
+        Unit normals of the window (None: colour-only, every normal (0, 0, 1)).
+    albedo : (h, w, 3) float
+        Linear albedo in [0, 1].
+    mask : (h, w) bool
+    params : dict
+        :func:`relight_params` of the face.
+    level : int
+        Pyramid level of the window: sigmas and dpi are divided by ``2**level``.
+
+    Returns
+    -------
+    normal_xy : (h, w, 12) float32
+        The (x, y) of ``n, n0, n1, n2, n3, nu``.
+    curvature : (h, w) float32
+        Mean curvature H, 1/mm.
+    colour : (h, w, 4) uint8
+        Display sRGB albedo and the mask (0 / 255).
+    """
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    if albedo.shape != (h, w, 3):
+        raise ValueError(f"albedo must be {(h, w, 3)}, got {albedo.shape}")
+    f = 2.0 ** int(level)
+    xy = np.zeros((h, w, 12), np.float32)
+    H = np.zeros((h, w), np.float32)
+    if normals is not None and params["has_normals"]:
+        if normals.shape != (h, w, 3):
+            raise ValueError(f"normals must be {(h, w, 3)}, got {normals.shape}")
+        normals = np.asarray(normals, np.float32)
+        sigmas = [0.0] + [s / f for s in params["exaggerated_sigmas_px"]] + [params["unsharp_sigma_px"] / f]
+        for k, s in enumerate(sigmas):
+            # below a tenth of a pixel a Gaussian is the identity (coarse levels of small sigmas)
+            n = smooth_normals(normals, s, mask=mask) if s >= 0.1 else normals
+            xy[..., 2 * k:2 * k + 2] = n[..., :2]
+        s = params["curvature_sigma_px"] / f
+        H = mean_curvature(normals, params["dpi"] / f, mask=mask, sigma_px=s if s >= 0.1 else 0.0)
+    else:
+        xy[:] = 0.0
+    colour = np.empty((h, w, 4), np.uint8)
+    colour[..., :3] = np.round(np.clip(linear_to_srgb(np.clip(albedo, 0.0, 1.0)), 0.0, 1.0) * 255.0)
+    colour[..., 3] = np.where(mask, 255, 0)
+    return xy, H.astype(np.float32), colour
+
+
+def pack_tile(normal_xy: np.ndarray, curvature: np.ndarray, colour: np.ndarray) -> bytes:
+    """The gzip-compressed bytes of one tile (the format of the module docstring)."""
+    h, w = curvature.shape
+    planes = np.asarray(normal_xy, np.float32).reshape(h, w, 3, 4).transpose(2, 0, 1, 3)
+    body = (np.ascontiguousarray(planes, dtype="<f2").tobytes()
+            + np.ascontiguousarray(curvature, dtype="<f2").tobytes()
+            + np.ascontiguousarray(colour, dtype=np.uint8).tobytes())
+    return gzip.compress(body, compresslevel=3, mtime=0)
+
+
+def unpack_tile(data: bytes, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`pack_tile` (the reader a test or another tool uses)."""
+    raw = gzip.decompress(data)
+    n1, n2 = h * w * 12 * 2, h * w * 2
+    if len(raw) != n1 + n2 + h * w * 4:
+        raise ValueError(f"a {w}x{h} tile has {n1 + n2 + h * w * 4} bytes, got {len(raw)}")
+    xy = np.frombuffer(raw[:n1], "<f2").reshape(3, h, w, 4).transpose(1, 2, 0, 3).reshape(h, w, 12).astype(np.float32)
+    H = np.frombuffer(raw[n1:n1 + n2], "<f2").reshape(h, w).astype(np.float32)
+    colour = np.frombuffer(raw[n1 + n2:], np.uint8).reshape(h, w, 4)
+    return xy, H, colour
+
+
+def read_level_window(group, level: int, r0: int, r1: int, c0: int, c1: int):
+    """Albedo, normals (or None) and mask of rows ``r0:r1``, columns ``c0:c1`` of pyramid level
+    ``level`` of an RGBN HDF5 group, area-averaged from level 0 band by band (bounded memory).
+
+    The average is masked (pixels off the fragment do not darken its border); normals are
+    renormalised; a level pixel is on the fragment when at least half of its area is.
+    """
+    f = 2 ** int(level)
+    H0, W0 = group["mask"].shape
+    has_n = "normals" in group
+    R0, R1, C0, C1 = r0 * f, min(r1 * f, H0), c0 * f, min(c1 * f, W0)
+    hh, ww = r1 - r0, c1 - c0
+    alb = np.zeros((hh, ww, 3), np.float32)
+    nrm = np.zeros((hh, ww, 3), np.float32) if has_n else None
+    cov = np.zeros((hh, ww), np.float32)
+    band = max(f, (_BAND_PX // f) * f)
+    for b0 in range(R0, R1, band):
+        b1 = min(b0 + band, R1)
+        m = group["mask"][b0:b1, C0:C1].astype(np.float32)
+        a = group["albedo"][b0:b1, C0:C1].astype(np.float32)
+        n = group["normals"][b0:b1, C0:C1].astype(np.float32) if has_n else None
+        if f == 1:
+            rows = slice(b0 - R0, b1 - R0)
+            alb[rows], cov[rows] = a, m
+            if has_n:
+                nrm[rows] = n
+            continue
+        # pad the band to whole cells (the image's last row/column of cells may be partial)
+        ph, pw = -(b1 - b0) % f, -(C1 - C0) % f
+        if ph or pw:
+            pad = ((0, ph), (0, pw))
+            m = np.pad(m, pad)
+            a = np.pad(a, pad + ((0, 0),))
+            n = np.pad(n, pad + ((0, 0),)) if has_n else None
+        rh, rw = m.shape[0] // f, m.shape[1] // f
+        cm = m.reshape(rh, f, rw, f).sum(axis=(1, 3))
+        out = slice((b0 - R0) // f, (b0 - R0) // f + rh)
+        cov[out, :rw] = cm / (f * f)
+        wsum = np.maximum(cm, 1e-12)[..., None]
+        alb[out, :rw] = (a * m[..., None]).reshape(rh, f, rw, f, 3).sum(axis=(1, 3)) / wsum
+        if has_n:
+            s = (n * m[..., None]).reshape(rh, f, rw, f, 3).sum(axis=(1, 3))
+            off = cm <= 0   # no fragment in the cell: plain average, so the field stays defined
+            if off.any():
+                s[off] = n.reshape(rh, f, rw, f, 3).sum(axis=(1, 3))[off]
+            s /= np.maximum(np.linalg.norm(s, axis=2, keepdims=True), 1e-12)
+            s[np.linalg.norm(s, axis=2) < 0.5] = (0.0, 0.0, 1.0)
+            nrm[out, :rw] = s
+    mask = cov >= 0.5 if f > 1 else cov > 0
+    return alb, nrm, mask
+
+
+def calibration_window(shape: tuple[int, int], mpx: float = CALIBRATION_MPX) -> tuple[int, int, int, int]:
+    """The centred crop ``(r0, r1, c0, c1)`` of at most ``mpx`` megapixels (the tiled renderer's)."""
+    h, w = shape
+    side_h = min(h, int(np.sqrt(mpx * 1e6 * h / w)))
+    side_w = min(w, int(mpx * 1e6 / max(side_h, 1)))
+    r0, c0 = (h - side_h) // 2, (w - side_w) // 2
+    return r0, r0 + side_h, c0, c0 + side_w
+
+
+def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
+    """:func:`relight_params` of an RGBN HDF5 group, measured on its calibration window."""
+    shape = tuple(group["mask"].shape)
+    r0, r1, c0, c1 = calibration_window(shape)
+    normals = group["normals"][r0:r1, c0:c1] if "normals" in group else None
+    return relight_params(normals, group["mask"][r0:r1, c0:c1], float(group.attrs["dpi"]), shape,
+                          unsharp_sigma_mm=unsharp_sigma_mm)
+
+
+def tile_from_group(group, params: dict, level: int, row: int, col: int) -> bytes:
+    """The packed tile (``level``, ``row``, ``col``) of an RGBN HDF5 group."""
+    levels = params["levels"]
+    if not 0 <= level < len(levels):
+        raise ValueError(f"level must be in [0, {len(levels) - 1}], got {level}")
+    lw, lh = levels[level]
+    t = params["tile_px"]
+    if not (0 <= row < -(-lh // t) and 0 <= col < -(-lw // t)):
+        raise ValueError(f"tile ({row}, {col}) is outside level {level} ({lw}x{lh} px)")
+    halo = int(math.ceil(params["halo_px"] / 2 ** level))
+    r0, r1 = row * t, min((row + 1) * t, lh)
+    c0, c1 = col * t, min((col + 1) * t, lw)
+    R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, lh), max(c0 - halo, 0), min(c1 + halo, lw)
+    alb, nrm, mask = read_level_window(group, level, R0, R1, C0, C1)
+    xy, H, colour = relight_fields(nrm, alb, mask, params, level=level)
+    core = (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0))
+    return pack_tile(xy[core], H[core], colour[core])
+
+
+class RelightCache:
+    """Tiles and parameters of one face, computed on first request and kept on storage.
+
+    Parameters
+    ----------
+    store : common.store.Store
+    rgbn_relpath : str
+        The face's ``tessera.rgbn`` artifact, ``fragments/<id>/rgbn/<face>-<key>.h5``.
+
+    The cache folder is ``fragments/<id>/viewer/<face>-<key>-v<FIELDS_VERSION>/``: keyed by the
+    artifact's own content key (artifacts are immutable), so a new solve gets new tiles and an
+    old folder is never wrong. Files are written atomically (temporary name, then rename).
+    """
+
+    def __init__(self, store, rgbn_relpath: str):
+        p = Path(rgbn_relpath)
+        if len(p.parts) != 4 or p.parts[0] != "fragments" or p.parts[2] != "rgbn" or p.suffix != ".h5":
+            raise ValueError(f"not an RGBN artifact path: {rgbn_relpath!r}")
+        self.store = store
+        self.rgbn_relpath = rgbn_relpath
+        self.folder = f"fragments/{p.parts[1]}/viewer/{p.stem}-v{FIELDS_VERSION}"
+
+    def open_artifact(self):
+        """The face's RGBN artifact, open for reading."""
+        from common.rgbn.image import SCHEMA
+
+        return self.store.open(self.rgbn_relpath, schema=SCHEMA)
+
+    def _put(self, relpath: str, data: bytes) -> None:
+        from common.store import _atomic_file, _write_bytes  # the project's one atomic write
+
+        with _atomic_file(self.store.path(relpath)) as tmp:
+            _write_bytes(tmp, data)
+
+    def params(self) -> dict:
+        """The face's :func:`face_params` (computed once, then read from ``params.json``)."""
+        rel = f"{self.folder}/params.json"
+        path = self.store.path(rel)
+        if path.is_file():
+            return json.loads(path.read_text())
+        with self.open_artifact() as f:
+            params = face_params(f)
+        params["rgbn"] = self.rgbn_relpath
+        self._put(rel, json.dumps(params, sort_keys=True).encode())
+        return params
+
+    def tile_path(self, level: int, row: int, col: int) -> Path:
+        """Path of the tile on storage, computing and writing it first if it is not there."""
+        rel = f"{self.folder}/{int(level)}/{int(row)}_{int(col)}.bin.gz"
+        path = self.store.path(rel)
+        if path.is_file():
+            return path
+        params = self.params()
+        with self.open_artifact() as f:
+            data = tile_from_group(f, params, int(level), int(row), int(col))
+        self._put(rel, data)
+        return path
+
+
+# ---- the viewer's styles as offline styles ------------------------------------------------------
+
+#: The styles the viewer's shaders draw (``services/web/static/viewer/<style>.frag``) and, per style,
+#: its contrast parameters (what "auto" contrast resolves).
+VIEWER_STYLES = {"albedo": ("exposure",), "lambertian": ("exposure",), "raking": ("exposure",),
+                 "specular": ("exposure",), "normal_unsharp": ("exposure",), "exaggerated": ("tones",),
+                 "mean_curvature": ("radius_mm",)}
+
+
+def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0) -> dict:
+    """The keyword arguments of :data:`common.render.recipes.STYLES` ``[style].draw`` that draw what
+    the viewer's shader draws with ``values`` (the style's parameters, same names) on a face with
+    fields ``params`` (:func:`relight_params`), on pyramid level ``level``.
+
+    The scales the fields were computed at are passed explicitly (``sigma_px`` / ``sigma0_px``
+    the noise scale, ``scales = 3``, normal unsharp masking's ``sigma_mm``, the curvature's
+    ``sigma_mm``), the surface is not levelled (``level = False``: the viewer lights the normals
+    as solved), and every parameter the viewer does not have keeps the offline default.
+    """
+    from common.render.recipes import STYLES
+
+    if style not in VIEWER_STYLES:
+        raise ValueError(f"style must be one of {sorted(VIEWER_STYLES)}, got {style!r}")
+    allowed = STYLES[style].parameters()
+    unknown = sorted(set(values) - set(allowed))
+    if unknown:
+        raise ValueError(f"{style} has no parameter {', '.join(unknown)} (it has {', '.join(sorted(allowed))})")
+    kw = dict(values)
+    f = 2.0 ** int(level)
+    if style in ("lambertian", "raking", "specular"):
+        kw.update(sigma_px=params["sigma_px"] / f, level=False)
+    elif style == "exaggerated":
+        kw.update(sigma0_px=params["sigma_px"] / f, scales=EXAGGERATED_SCALES)
+    elif style == "normal_unsharp":
+        kw.update(sigma_mm=params["unsharp_sigma_mm"])
+    elif style == "mean_curvature":
+        kw.update(sigma_mm=params["curvature_sigma_mm"])
+    for key in ("light", "exposure", "tones", "colour_exposure"):
+        if isinstance(kw.get(key), list):
+            kw[key] = tuple(kw[key])
+    return kw
+
+
+def auto_contrast(image, style: str, values: dict, params: dict, *, level: int = 0) -> dict:
+    """The values the offline style's "auto" contrast takes (robust percentiles of its signal,
+    :mod:`common.render.recipes`) for the viewer's ``values`` on ``image`` (level ``level`` of the
+    face): ``{"exposure": [lo, hi]}``, ``{"tones": [lo, hi]}`` or ``{"radius_mm": r}``."""
+    from common.render.recipes import STYLES
+
+    kw = offline_arguments(style, values, params, level=level)
+    for key in VIEWER_STYLES[style]:
+        kw[key] = "auto"
+    resolved = STYLES[style].draw(image, **kw).resolved
+    return {key: resolved[key] for key in VIEWER_STYLES[style]}
+
+
+def level_image(group, params: dict, level: int):
+    """The whole of pyramid level ``level`` of an RGBN HDF5 group as an :class:`RGBNImage`
+    (dpi divided by ``2**level``)."""
+    from common.rgbn.image import RGBNImage
+
+    lw, lh = params["levels"][level]
+    alb, nrm, mask = read_level_window(group, level, 0, lh, 0, lw)
+    return RGBNImage(albedo=alb, mask=mask, dpi=params["dpi"] / 2 ** level, normals=nrm)
+
+
+def overview_level(params: dict, max_mpx: float = 0.5) -> int:
+    """The finest pyramid level of at most ``max_mpx`` megapixels (where "auto" contrast is measured)."""
+    for level, (w, h) in enumerate(params["levels"]):
+        if w * h <= max_mpx * 1e6:
+            return level
+    return len(params["levels"]) - 1

@@ -1,0 +1,197 @@
+// The fragment page: faces, the relighting viewer's controls, measuring, joins and downloads.
+"use strict";
+(() => {
+  const root = document.getElementById("fragment-page");
+  const $ = (id) => document.getElementById(id);
+  const el = Tessera.el;
+  const STYLES = RelightViewer.STYLES;
+  let viewer = null, info = null, mode = "light";
+
+  function message(text) {
+    const m = $("viewer-message");
+    m.textContent = text || "";
+    m.hidden = !text;
+  }
+
+  // ---- the fragment: faces, joins, proposals, downloads ------------------------------------------
+  async function load() {
+    const r = await Tessera.api("GET", root.dataset.api);
+    if (!r.ok) { message(r.data.error || `The fragment could not be loaded (HTTP ${r.status}).`); return; }
+    info = r.data;
+    const faces = $("faces");
+    faces.replaceChildren();
+    for (const f of info.faces) {
+      const b = el("button", { type: "button", text: f.face[0].toUpperCase() + f.face.slice(1), "data-face": f.face });
+      b.addEventListener("click", () => openFace(f));
+      faces.append(b);
+    }
+    const link = (p) => el("li", {},
+      el("a", { href: p.other_url, text: p.other }), ` · ${(100 * p.probability).toFixed(0)} %`,
+      p.pose ? ` · ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "",
+      " · ", el("a", { href: p.review_url, text: p.status === "confirmed" ? "verdict" : "review" }));
+    $("joins").replaceChildren(...info.joins.map(link));
+    $("joins-empty").hidden = info.joins.length > 0;
+    $("proposals").replaceChildren(...info.proposals.map(link));
+    $("proposals-empty").hidden = info.proposals.length > 0;
+    if (!info.proposals_available) $("proposals-empty").textContent = "The proposal store is not available on this station.";
+    $("downloads").replaceChildren(...info.downloads.map((d) => el("li", {}, el("a", { href: d.url, text: d.label, download: "" }))));
+    $("downloads-empty").hidden = info.downloads.length > 0;
+    const want = new URLSearchParams(location.search).get("face");
+    openFace(info.faces.find((f) => f.face === want) || info.faces[0]);
+  }
+
+  async function openFace(face) {
+    for (const b of $("faces").children) b.classList.toggle("active", b.dataset.face === face.face);
+    const r = await Tessera.api("GET", face.relight + "/params.json");
+    if (!r.ok) { message(r.data.error || `This face cannot be shown (HTTP ${r.status}).`); return; }
+    const p = r.data;
+    $("face-info").textContent = `${(p.width / p.dpi * 25.4).toFixed(1)} × ${(p.height / p.dpi * 25.4).toFixed(1)} mm · ` +
+      `${p.width} × ${p.height} px · ${p.dpi} dpi${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
+    const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
+    const light = viewer ? viewer.light : null;
+    viewer = new RelightViewer.Viewer($("gl"), $("overlay"), face.relight, p);
+    window.tesseraViewer = viewer;     // for the browser tests and the curious
+    viewer.onerror = (e) => message(String(e.message || e));
+    viewer.onchange = syncControls;
+    try {
+      await viewer.init();
+    } catch (e) {
+      message(String(e.message || e));
+      return;
+    }
+    fillStyles(p.has_normals);
+    viewer.setStyle(style);
+    if (light) viewer.setLight(...light);
+    buildStyleControls();
+  }
+
+  // ---- controls ------------------------------------------------------------------------------
+  function fillStyles(hasNormals) {
+    const sel = $("style");
+    sel.replaceChildren(...Object.entries(STYLES).filter(([, s]) => hasNormals || !s.needsNormals)
+      .map(([k, s]) => el("option", { value: k, text: s.label })));
+  }
+
+  // one input per parameter of the current style (numbers, booleans, [low, high] ranges)
+  function buildStyleControls() {
+    const box = $("style-controls");
+    box.replaceChildren();
+    const values = viewer.values[viewer.style];
+    for (const [key, val] of Object.entries(values)) {
+      if (key === "light" || key === "azimuth_deg" || key === "elevation_deg") continue;
+      const name = key.replace(/_/g, " ");
+      if (typeof val === "boolean") {
+        const c = el("input", { type: "checkbox", checked: val, "data-param": key });
+        c.addEventListener("change", () => viewer.setValues({ [key]: c.checked }));
+        box.append(el("label", {}, c, ` ${name}`));
+      } else if (typeof val === "number") {
+        const c = el("input", { type: "number", value: val, step: "any", "data-param": key });
+        c.addEventListener("input", () => { if (c.value !== "" && isFinite(c.value)) viewer.setValues({ [key]: Number(c.value) }); });
+        box.append(el("label", { text: `${name} ` }, c));
+      } else if (Array.isArray(val) || val === "none") {
+        const isNone = val === "none";
+        const lo = el("input", { type: "number", value: isNone ? "" : val[0], step: "any", "data-param": key + ".0", placeholder: "low" });
+        const hi = el("input", { type: "number", value: isNone ? "" : val[1], step: "any", "data-param": key + ".1", placeholder: "high" });
+        const set = () => {
+          if (lo.value === "" && hi.value === "") viewer.setValues({ [key]: "none" });
+          else if (isFinite(lo.value) && isFinite(hi.value)) viewer.setValues({ [key]: [Number(lo.value), Number(hi.value)] });
+        };
+        lo.addEventListener("input", set); hi.addEventListener("input", set);
+        box.append(el("label", { text: `${name} ` }, lo, hi));
+      }
+    }
+    syncControls();
+  }
+
+  function syncControls() {
+    if (!viewer) return;
+    $("style").value = viewer.style;
+    const [az, el_] = viewer.style === "raking" ?
+      [viewer.values.raking.azimuth_deg, viewer.values.raking.elevation_deg] : viewer.light;
+    $("azimuth").value = az; $("azimuth-out").textContent = Math.round(az);
+    $("elevation").value = el_; $("elevation-out").textContent = Math.round(el_);
+    const d = viewer.measureMm();
+    $("measure-readout").textContent = d === null ? "" : `${d.toFixed(2)} mm`;
+  }
+
+  async function autoContrast() {
+    const s = viewer.style, values = viewer.values[s];
+    const url = `${viewer.base}/auto?style=${encodeURIComponent(s)}&values=${encodeURIComponent(JSON.stringify(values))}`;
+    $("auto-contrast").disabled = true;
+    const r = await Tessera.api("GET", url);
+    $("auto-contrast").disabled = false;
+    if (!r.ok) { message(r.data.error || `Auto contrast failed (HTTP ${r.status}).`); return; }
+    message("");
+    if (viewer.style === s) { viewer.setValues(r.data.resolved); buildStyleControls(); }
+  }
+
+  $("style").addEventListener("change", () => { viewer.setStyle($("style").value); buildStyleControls(); });
+  $("azimuth").addEventListener("input", () => viewer.setLight(Number($("azimuth").value), Number($("elevation").value)));
+  $("elevation").addEventListener("input", () => viewer.setLight(Number($("azimuth").value), Number($("elevation").value)));
+  $("auto-contrast").addEventListener("click", autoContrast);
+  $("fit").addEventListener("click", () => viewer.fit());
+  $("one-to-one").addEventListener("click", () => { viewer.view.zoom = 1; viewer.draw(); });
+
+  function setMode(m) {
+    mode = m;
+    $("viewer").dataset.mode = m;
+    for (const b of document.querySelectorAll(".tools button")) b.classList.toggle("active", b.dataset.mode === m);
+  }
+  for (const b of document.querySelectorAll(".tools button")) b.addEventListener("click", () => setMode(b.dataset.mode));
+  setMode("light");
+
+  // ---- pointer: light, pan, measure; wheel zooms; middle or right button always pans --------------
+  const area = $("viewer");
+  let drag = null;
+  const canvasXY = (e) => {
+    const r = $("gl").getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
+    return [(e.clientX - r.left) * dpr, (e.clientY - r.top) * dpr];
+  };
+  // RTIViewer's light sphere: the pointer's offset from the centre of the view is the light's
+  // projection on the image plane (the rim = grazing, the centre = from the viewer)
+  function lightFrom(e) {
+    const [x, y] = canvasXY(e), c = $("gl");
+    const dx = (x - c.width / 2) / (Math.min(c.width, c.height) / 2), dy = -(y - c.height / 2) / (Math.min(c.width, c.height) / 2);
+    const r = Math.min(1, Math.hypot(dx, dy));
+    viewer.setLight(Math.atan2(dy, dx) * 180 / Math.PI, Math.acos(r) * 180 / Math.PI);
+  }
+  area.addEventListener("contextmenu", (e) => e.preventDefault());
+  area.addEventListener("pointerdown", (e) => {
+    if (!viewer) return;
+    area.setPointerCapture(e.pointerId);
+    const m = e.button !== 0 || e.shiftKey ? "pan" : mode;
+    drag = { m, last: canvasXY(e) };
+    if (m === "light") lightFrom(e);
+    if (m === "measure") { viewer.measure = { a: viewer.toImage(...drag.last), b: null }; viewer.draw(); }
+  });
+  area.addEventListener("pointermove", (e) => {
+    if (!drag) return;
+    const p = canvasXY(e);
+    if (drag.m === "pan") { viewer.pan(p[0] - drag.last[0], p[1] - drag.last[1]); }
+    else if (drag.m === "light") lightFrom(e);
+    else if (drag.m === "measure") { viewer.measure.b = viewer.toImage(...p); viewer.draw(); syncControls(); }
+    drag.last = p;
+  });
+  const end = () => { drag = null; syncControls(); };
+  area.addEventListener("pointerup", end);
+  area.addEventListener("pointercancel", end);
+  area.addEventListener("wheel", (e) => {
+    if (!viewer) return;
+    e.preventDefault();
+    viewer.zoomAt(Math.exp(-e.deltaY * 0.0015), ...canvasXY(e));
+  }, { passive: false });
+  document.addEventListener("keydown", (e) => {
+    if (!viewer || e.target.closest("input, select, textarea")) return;
+    const k = e.key.toLowerCase(), step = 80;
+    if (k === "l") setMode("light"); else if (k === "p") setMode("pan"); else if (k === "m") setMode("measure");
+    else if (k === "f") viewer.fit(); else if (k === "1") { viewer.view.zoom = 1; viewer.draw(); }
+    else if (k === "+" || k === "=") viewer.zoomAt(1.25, $("gl").width / 2, $("gl").height / 2);
+    else if (k === "-") viewer.zoomAt(0.8, $("gl").width / 2, $("gl").height / 2);
+    else if (e.key === "ArrowLeft") viewer.pan(step, 0); else if (e.key === "ArrowRight") viewer.pan(-step, 0);
+    else if (e.key === "ArrowUp") viewer.pan(0, step); else if (e.key === "ArrowDown") viewer.pan(0, -step);
+    else return;
+    e.preventDefault();
+  });
+
+  load();
+})();
