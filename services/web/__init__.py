@@ -34,7 +34,9 @@ from flask import Flask, jsonify, redirect, request, session, url_for
 
 from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, session_secret
 
+from common.store import Store
 from common.web.bench import BenchSession
+from common.web.tiles import TileCache
 
 from . import auth as auth_pages
 from . import bench as bench_pages
@@ -42,6 +44,7 @@ from . import fragment as fragment_page
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
+from . import tiles as tiles_api
 from .station import EXTENSION, Station, StationLink, build_bench
 
 __all__ = ["DEFAULTS", "BLUEPRINTS", "WebConfigError", "web_settings", "station_token", "create_app", "serve",
@@ -105,7 +108,7 @@ def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
 # the application
 # --------------------------------------------------------------------------------------------
 #: every page/API area of the app, registered in this order by :func:`create_app`
-BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, fragment_page.bp,
+BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, tiles_api.bp, fragment_page.bp,
               reconstruction_page.bp)
 
 #: picture views of a proposal offered by the review page
@@ -141,7 +144,8 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
                       SESSION_COOKIE_NAME="tessera_session", MAX_CONTENT_LENGTH=64 * 1024,
                       PERMANENT_SESSION_LIFETIME=12 * 3600)
     app.extensions[EXTENSION] = Station(token=token, settings=settings, store_root=Path(store_root), bench=bench,
-                                        link=link, review=review)
+                                        link=link, review=review,
+                                        tiles=TileCache(Store(store_root, create=False)))
     for bp in BLUEPRINTS:
         app.register_blueprint(bp)
 

@@ -37,6 +37,8 @@ class Station:
     bench: BenchSession | None = None
     link: "StationLink | None" = None
     review: Any = None                      # common.web.review.ReviewData
+    #: tile pyramids of the faces (common.web.tiles.TileCache over the storage root)
+    tiles: Any = None
     #: verdicts sent from this app, shown until the matcher records them
     sent_verdicts: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))
 

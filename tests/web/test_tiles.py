@@ -162,3 +162,35 @@ def test_cut_pyramid_checks_its_bands():
         tiles.cut_pyramid(iter([np.zeros((10, 5, 5), np.float32)]), 20, 5, {"albedo": 0}, lambda *a: None)
     with pytest.raises(ValueError, match=r"bands must be \(rows, 5, C\)"):
         tiles.cut_pyramid(iter([np.zeros((10, 4, 5), np.float32)]), 10, 5, {"albedo": 0}, lambda *a: None)
+
+
+# -- the tile API of the web app (services/web/tiles.py) ---------------------------------------
+
+def test_the_tile_api_lists_faces_serves_pyramids_and_immutable_tiles(tmp_path):
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    img = _face(300, 600)
+    rel = "fragments/F4/rgbn/front-00000000000000bb.h5"
+    save_rgbn(store, rel, img)
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    listing = c.get("/api/tiles/F4").json
+    assert listing["faces"]["front"]["source"] == rel
+    assert listing["faces"]["front"]["layers"]["normals"] == "/api/tiles/F4/front/normals"
+    info = c.get("/api/tiles/F4/front/normals").json
+    assert info["tiles"] == "/api/tiles/F4/rgbn-front-00000000000000bb-t1/normals/{level}/{col}_{row}.png"
+    assert info["width"] == 600 and info["height"] == 300 and info["levels"][-1]["cols"] == 1
+    r = c.get(info["tiles"].format(level=0, col=1, row=0))
+    assert r.status_code == 200 and r.headers["Content-Type"] == "image/png"
+    assert "immutable" in r.headers["Cache-Control"]
+    got = tiles.decode_png(r.data)
+    want = tiles.TileCache(store).region(rel, "normals", 0, 0, 256, 256, 512)
+    assert got.shape == (256, 256, 4) and np.array_equal(got, want)
+    # what is not there is a 404 (JSON) naming it; a bad id a 400
+    assert "outside level 0" in c.get(info["tiles"].format(level=0, col=9, row=0)).json["error"]
+    assert "no face 'back'" in c.get("/api/tiles/F4/back/albedo").json["error"]
+    assert "no layer 'render-toon'" in c.get("/api/tiles/F4/front/render-toon").json["error"]
+    assert c.get("/api/tiles/F5").status_code == 404
+    assert c.get("/api/tiles/F4/rgbn-front-00000000000000cc-t1/albedo/0/0_0.png").status_code == 404
+    assert c.get("/api/tiles/..%2Fx").status_code in (400, 404)
