@@ -457,3 +457,116 @@ def newest_calibration(store: Store, scanner: str) -> tuple[Calibration, Artifac
             problems.append(f"{name}: {exc}")
     detail = f" (skipped: {'; '.join(problems)})" if problems else ""
     raise CalibrationError(f"no valid calibration for scanner {scanner!r} under {folder}{detail}; run `tessera calibrate`")
+
+
+#: First-order lamp model of the project's simulated flatbed (docs/flatbed.md, "Calibration"):
+#: a = (0.000, 0.349, 0.494, 0.255) measured by ``tessera calibrate`` on the simulator, its lamp
+#: towards the image's top. Its in-plane strength and the (a_z, a_w) pair are a flatbed lamp's
+#: nominal shape; :func:`nominal_calibration` turns it to another scanner's lamp side.
+NOMINAL_A = (0.000, 0.349, 0.494, 0.255)
+
+
+def nominal_calibration(scanner: str, lamp_direction_deg: float, *, dpi: float = 150.0) -> Calibration:
+    """A nominal lamp model for a scanner with no target scans: :data:`NOMINAL_A` turned to its lamp side.
+
+    Without scans of a tilted target (§3.3.5) nothing measures a scanner's lamp; what its scans do
+    show is the side the light comes from (the shadow beside a thick object falls on the lamp's far
+    side, :func:`lamp_direction_from_shadows`). The model keeps the simulator's strengths and
+    points its in-plane part there: a = (s cos φ, s sin φ, a_z, a_w) with s = |(a_x, a_y)|.
+    Normals solved with it have the right in-plane frame up to the error in φ, and a tilt scale
+    that is only nominal: use it for relief (illustrations), not for measured angles.
+
+    Parameters
+    ----------
+    scanner : str
+        Device name the calibration is stored under.
+    lamp_direction_deg : float
+        Direction towards the lamp on the scan image as displayed, degrees counter-clockwise from
+        the image's +x axis (0 = right, 90 = top), the convention of ``calibrate --from-files``.
+
+    Returns
+    -------
+    Calibration
+        With ``report`` saying it is nominal and ``fit_rms`` NaN (nothing was fitted).
+    """
+    if not np.isfinite(lamp_direction_deg):
+        raise ValueError(f"lamp_direction_deg must be a number, got {lamp_direction_deg}")
+    a0 = np.asarray(NOMINAL_A, float)
+    s = float(np.hypot(a0[0], a0[1]))
+    phi = np.radians(lamp_direction_deg)
+    a = np.array([s * np.cos(phi), s * np.sin(phi), a0[2], a0[3]])
+    a[np.abs(a) < 1e-12] = 0.0
+    return Calibration(scanner=scanner, a=a, second_order=np.r_[a, np.zeros(5)],
+                       cv_rmse={"first": float("nan"), "second": float("nan")}, order=1,
+                       normals=np.zeros((0, 3)), intensities=np.zeros(0), dpi=dpi,
+                       report=[{"nominal": True, "lamp_direction_deg": float(lamp_direction_deg),
+                                "model": f"NOMINAL_A {list(NOMINAL_A)} turned to {lamp_direction_deg:g} deg"}])
+
+
+def lamp_direction_from_shadows(scans: list, masks: list, dpi: float, *, ring_mm: tuple = (0.5, 10.0)) -> tuple[float, float]:
+    """Direction towards a flatbed's lamp from the shadows beside the fragment in its scans.
+
+    The lamp moves with the sensor, so in every scan it lights the object from the same side of
+    the image and its shadow falls on the far side, whichever way the object was turned. In a ring
+    ``ring_mm`` outside each mask, the darkening below the bed's level (the ring's 80th percentile
+    of luminance) is taken; the scans' darkening maps are added up aligned on the masks' centroids
+    **without turning them**, so the scanner's shadow adds up while what turns with the fragment
+    (shade under a lifted edge, its own dark rim) averages out. The lamp is opposite the weighted
+    mean offset of the summed darkening from the centre.
+
+    Parameters
+    ----------
+    scans : list of (H, W, 3) arrays
+        The turned scans of one face.
+    masks : list of (H, W) bool
+        The fragment in each (e.g. :func:`~common.acquisition.locate.face_masks`).
+    dpi : float
+    ring_mm : (inner, outer)
+        Distances from the mask between which shadow is looked for, mm.
+
+    Returns
+    -------
+    direction_deg : float
+        Towards the lamp, counter-clockwise from the image's +x axis (0 = right, 90 = top), in [0, 360).
+    agreement : float
+        Length of the mean of the scans' own unit vectors (1 = every scan alone points the same
+        way; low when shade that turns with the fragment dominates single scans).
+
+    Raises
+    ------
+    ValueError
+        No darkening beside the fragment in any scan.
+    """
+    if len(scans) != len(masks) or not scans:
+        raise ValueError("give one mask per scan, and at least one scan")
+    px = dpi / 25.4
+    r_in, r_out = (max(1, int(round(r * px))) for r in ring_mm)
+    maps, vs = [], []
+    for scan, m in zip(scans, masks):
+        m8 = np.asarray(m, np.uint8)
+        if not m8.any():
+            continue
+        lum = to_float(scan).mean(axis=2)
+        ring = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r_out + 1,) * 2)) > 0
+        ring &= ~(cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r_in + 1,) * 2)) > 0)
+        if not ring.any():
+            continue
+        bed = float(np.percentile(lum[ring], 80))
+        w = (np.clip(bed - lum, 0, None) * ring).astype(np.float32)
+        ys, xs = np.nonzero(m8)
+        cy, cx = ys.mean(), xs.mean()
+        maps.append((w, cx, cy))
+        yy, xx = np.mgrid[0:lum.shape[0], 0:lum.shape[1]]
+        v = np.array([(w * (xx - cx)).sum(), -(w * (yy - cy)).sum()])
+        if np.hypot(*v) > 0:
+            vs.append(v / np.hypot(*v))
+    if not vs:
+        raise ValueError("no shadow beside the fragment in any scan: the lamp side cannot be read from these scans")
+    R = max(max(w.shape) for w, _, _ in maps)
+    acc = np.zeros((2 * R + 1, 2 * R + 1), np.float32)
+    for w, cx, cy in maps:      # translate each map so that its centroid lands on the centre, no turning
+        M = np.float32([[1, 0, R - cx], [0, 1, R - cy]])
+        acc += cv2.warpAffine(w, M, acc.shape[::-1], flags=cv2.INTER_LINEAR, borderValue=0)
+    yy, xx = np.mgrid[0:acc.shape[0], 0:acc.shape[1]]
+    v = np.array([(acc * (xx - R)).sum(), -(acc * (yy - R)).sum()])
+    return float(np.degrees(np.arctan2(-v[1], -v[0])) % 360), float(np.hypot(*np.mean(vs, axis=0)))

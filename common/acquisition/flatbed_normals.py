@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from common.acquisition.errors import CalibrationError
-from common.acquisition.locate import fragment_mask, to_float
+from common.acquisition.locate import face_masks, fragment_mask, to_float
 from common.acquisition.registration import Registration, register_scans
 from common.rgbn.image import RGBNImage
 
@@ -286,6 +286,143 @@ def rerender_residual(image: RGBNImage, registered: np.ndarray, angles_deg, a, *
     return float(np.sqrt(np.mean(d ** 2)) / max(np.mean(registered[m]), 1e-9))
 
 
+def rerender_residuals_at(image: RGBNImage, pix: np.ndarray, valid: np.ndarray, idx: np.ndarray, angles_deg,
+                          a: np.ndarray, *, saturation: float = 0.98) -> list[float]:
+    """Re-rendering residual of each scan, from the scans' samples at the solved pixels.
+
+    As :func:`rerender_residual` (RMS of scan − prediction over the mean scan value, saturated and
+    unregistered samples left out) but per scan and without whole-frame arrays.
+
+    Parameters
+    ----------
+    image : RGBNImage
+        The solved face.
+    pix : (K, N, 3) float
+        Each scan's RGB at the pixels ``idx`` (flat indices into the face), full scale 1.
+    valid : (K, N) bool
+        Samples inside the registered scan.
+    idx : (N,) int
+    angles_deg, a
+        As :func:`rerender`.
+
+    Returns
+    -------
+    list of K floats (NaN for a scan with no solved sample).
+    """
+    A = light_rows(a, angles_deg)
+    c = float(a[3] / a[2])
+    n = image.normals.reshape(-1, 3)[idx].astype(np.float32)
+    alb = image.albedo.reshape(-1, 3)[idx].astype(np.float32)
+    solved = image.mask.reshape(-1)[idx]
+    out = []
+    for k in range(len(A)):
+        shade = n[:, 0] * A[k, 0] + n[:, 1] * A[k, 1] + (n[:, 2] + c) * A[k, 2]
+        use = solved & valid[k] & (pix[k].max(axis=1) < saturation)
+        if not use.any():
+            out.append(float("nan"))
+            continue
+        obs = pix[k][use]
+        d = obs - shade[use, None] * alb[use]
+        out.append(float(np.sqrt(np.mean(d ** 2)) / max(float(obs.mean()), 1e-9)))
+    return out
+
+
+def register_face(scans: Sequence[np.ndarray], dpi: float, *, turn: str | None = None,
+                  nominal_deg: Sequence[float] | None = None, progress=None, min_consistency: float = 0.9):
+    """Masks, registration and the fragment's consistent mask for the turned scans of one face.
+
+    Masks by colour, or by focus where the colour masks disagree in area
+    (:func:`~common.acquisition.locate.face_masks`); registration with the given turn direction
+    (:func:`~common.acquisition.registration.register_turned`) or nominal rotations
+    (:func:`~common.acquisition.registration.register_scans`); then :func:`consistent_mask`. When
+    the colour masks register but less than ``min_consistency`` of the target's mask is seen by
+    every scan — they hold something that does not turn with the fragment, a shadow as grey as the
+    bed beside a fragment of the bed's grey — the focus masks are tried and kept if more of them
+    is consistent; when the colour masks do not register at all, the focus masks are tried before
+    the registration error is raised.
+
+    Returns
+    -------
+    turn : str or None
+        The direction used (with ``turn``), else None.
+    regs : list of Registration
+    mask : (H, W) bool
+        The consistent mask in the target scan's frame.
+    method : {"colour", "focus"}
+    """
+    from common.acquisition.errors import RegistrationError
+    from common.acquisition.locate import focus_mask
+    from common.acquisition.registration import register_turned
+
+    shape = np.asarray(scans[0]).shape[:2]
+
+    def reg(masks):
+        if turn is not None:
+            return register_turned(list(scans), dpi, turn, masks=masks, progress=progress)
+        return None, register_scans(list(scans), dpi, nominal_deg=nominal_deg, masks=masks, progress=progress)
+
+    masks, method = face_masks(list(scans), dpi)
+    try:
+        used, regs = reg(masks)
+    except RegistrationError as exc:
+        if method != "colour":
+            raise
+        focus = [focus_mask(s, dpi) for s in scans]
+        try:                    # the colour masks may hold what does not turn (a shadow): try focus
+            used, regs = reg(focus)
+        except RegistrationError:
+            raise exc from None
+        return used, regs, consistent_mask(focus, regs, shape), "focus"
+    mask = consistent_mask(masks, regs, shape)
+    share = mask.sum() / max(1, np.count_nonzero(masks[0]))
+    if method == "colour" and share < min_consistency:
+        focus = [focus_mask(s, dpi) for s in scans]
+        try:
+            used2, regs2 = reg(focus)
+        except RegistrationError:
+            return used, regs, mask, method
+        mask2 = consistent_mask(focus, regs2, shape)
+        if mask2.sum() / max(1, np.count_nonzero(focus[0])) > share:
+            return used2, regs2, mask2, "focus"
+    return used, regs, mask, method
+
+
+def consistent_mask(masks: Sequence[np.ndarray], regs: Sequence[Registration], shape: tuple[int, int]) -> np.ndarray:
+    """The fragment where every registered scan sees it: the target's mask ∩ the others' warped back.
+
+    What turns with the fragment lands on the same pixels once the scans are registered; what
+    stays with the scanner — the lamp's shadow beside the fragment, always on the lamp's far side,
+    or a patch of the bed the mask took — lands elsewhere in each and drops out. Pixels a scan does
+    not cover (outside its frame) are not constrained by it. The largest region is kept, holes
+    filled.
+
+    Parameters
+    ----------
+    masks : sequence of (H_i, W_i) bool
+        Each scan's fragment mask, in its own frame.
+    regs : sequence of Registration
+        Target-to-scan maps (``regs[0]`` the identity).
+    shape : (H, W)
+        The target scan's size.
+
+    Returns
+    -------
+    (H, W) bool
+    """
+    from common.acquisition.locate import _fill_holes
+
+    H, W = shape
+    out = np.asarray(masks[0], bool).copy()
+    for m, r in zip(masks[1:], regs[1:]):
+        w = cv2.warpAffine(np.asarray(m, np.uint8), r.affine, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=1)
+        out &= w > 0
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
+    if n < 2:
+        return out
+    return _fill_holes(lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])))
+
+
 def _sample_rgb(image: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, 3) of an (H, W, 3) image at points q = (x, y) (2, N)."""
     n = q.shape[1]
@@ -306,11 +443,10 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
     """
     if len(scans) < 3:
         raise ValueError(f"need at least 3 scans of a face for normals, got {len(scans)}")
-    masks = [fragment_mask(s, dpi) for s in scans]
-    regs = register_scans(list(scans), dpi, nominal_deg=nominal_deg, masks=masks,
-                          progress=(lambda f, t: progress(0.6 * f, t)) if progress else None)
     H, W = scans[0].shape[:2]
-    idx = np.flatnonzero(masks[0].ravel())
+    _, regs, mask, method = register_face(list(scans), dpi, nominal_deg=nominal_deg,
+                                          progress=(lambda f, t: progress(0.6 * f, t)) if progress else None)
+    idx = np.flatnonzero(mask.ravel())
     ys, xs = np.divmod(idx, W)
     xs, ys = xs.astype(np.float32), ys.astype(np.float32)
     K = len(scans)
@@ -331,6 +467,10 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
         progress(0.7, "solving normals")
     out = _solve_samples(pix, valid, (H, W), idx, [r.angle_deg for r in regs], np.asarray(a, float),
                          saturation=kw.get("saturation", 0.98), k_sigma=kw.get("k_sigma", 4.0), dpi=dpi)
+    per_scan = rerender_residuals_at(out, pix, valid, idx, [r.angle_deg for r in regs], np.asarray(a, float),
+                                     saturation=kw.get("saturation", 0.98))
+    out.attrs["mask_method"] = method
+    out.attrs["rerender_residual_per_scan"] = [round(float(v), 5) for v in per_scan]
     out.attrs["registration_residual"] = float(max(r.residual for r in regs))
     out.attrs["registration_correlation_min"] = float(min(r.correlation for r in regs))
     if progress:

@@ -406,3 +406,101 @@ def locate_changing(scans: list, dpi: float, *, margin_mm: float = 5.0, prescan_
     x0, y0 = xs.min() * pixel_mm - margin_mm, ys.min() * pixel_mm - margin_mm
     x1, y1 = (xs.max() + 1) * pixel_mm + margin_mm, (ys.max() + 1) * pixel_mm + margin_mm
     return (max(0.0, x0), max(0.0, y0), min(W * 25.4 / dpi, x1), min(H * 25.4 / dpi, y1))
+
+
+def focus_mask(scan: np.ndarray, dpi: float, *, work_mm: float = 0.25, open_mm: float = 1.0) -> np.ndarray:
+    """Mask of what lies sharp on the glass in a scan of a fragment's region: its face, not its shadow.
+
+    A flatbed's depth of field is a few tenths of a millimetre (§3.3.1): the fragment's face, which
+    rests on the glass, is in focus; the lamp's shadow on the lid, the shade beside a thick piece and
+    anything lifted off the glass (the rim of a tilted coin) are blurred. Where the fragment is the
+    bed's own grey — a coin on a grey lid — colour cannot separate it from its shadow, but focus can.
+    The measure is the share of fine detail in the local contrast, a ratio of band-pass energies
+    (a focus measure in the sense of Nayar & Nakagawa 1994): with L the luminance on a copy reduced
+    to about ``work_mm`` per pixel and G_s a Gaussian of s mm,
+
+        f = G_0.4 ∗ |L − G_0.5 ∗ L|,  c = G_0.4 ∗ |G_0.5 ∗ L − G_1 ∗ L|,  r = f / (c + median f).
+
+    A blurred edge has c ≫ f, engraving, paint texture and the fragment's own crisp outline have
+    f ≳ c. Pixels with r above Otsu's threshold of log r and f above the bed's noise (6 robust
+    standard deviations over the median) are in focus; gaps up to ``open_mm`` are closed, holes
+    filled, parts thinner than ``open_mm`` opened away and the largest region kept.
+
+    Parameters
+    ----------
+    scan : (H, W, 3) array
+        Region scan (uint8, uint16 or float in [0, 1]), the fragment with a ring of bed around it.
+    dpi : float
+    work_mm : float
+        Working resolution, mm per pixel.
+    open_mm : float
+        Closing and opening radius, mm.
+
+    Returns
+    -------
+    (H, W) bool
+    """
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    scan = np.asarray(scan)
+    H0, W0 = scan.shape[:2]
+    f = max(1, int(work_mm / (25.4 / dpi)))
+    img = scan if scan.ndim == 2 else scan[..., :3]
+    if f > 1:
+        img = cv2.resize(np.ascontiguousarray(img), (max(8, W0 // f), max(8, H0 // f)), interpolation=cv2.INTER_AREA)
+    lum = to_float(img).mean(axis=2)
+    pixel_mm = 25.4 / dpi * W0 / lum.shape[1]
+    g1 = cv2.GaussianBlur(lum, (0, 0), 0.5 / pixel_mm)
+    g2 = cv2.GaussianBlur(lum, (0, 0), 1.0 / pixel_mm)
+    s = 0.4 / pixel_mm
+    fine = cv2.GaussianBlur(np.abs(lum - g1), (0, 0), s)
+    coarse = cv2.GaussianBlur(np.abs(g1 - g2), (0, 0), s)
+    med = float(np.median(fine))
+    mad = float(np.median(np.abs(fine - med))) + 1e-7
+    lr = np.log(fine / (coarse + med + 1e-7) + 1e-7)
+    lo, hi = float(lr.min()), float(lr.max())
+    t, _ = cv2.threshold(np.uint8(np.clip((lr - lo) / max(hi - lo, 1e-7) * 255, 0, 255)), 0, 255,
+                         cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    fg = ((lr > lo + t / 255 * (hi - lo)) & (fine > med + 6 * 1.4826 * mad)).astype(np.uint8)
+    r = max(1, int(round(open_mm / pixel_mm)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, disc)
+    fg = _fill_holes(fg).astype(np.uint8)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, disc)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    if n < 2:
+        return np.zeros((H0, W0), bool)
+    mask = (lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.float32)
+    if f == 1 and mask.shape == (H0, W0):
+        return mask > 0.5
+    return cv2.resize(mask, (W0, H0), interpolation=cv2.INTER_LINEAR) > 0.5
+
+
+def area_spread(masks: list) -> float:
+    """Largest over smallest area of a list of masks (1 = all alike; inf when one is empty)."""
+    areas = [int(np.count_nonzero(m)) for m in masks]
+    return float("inf") if min(areas, default=0) == 0 else max(areas) / min(areas)
+
+
+def face_masks(scans: list, dpi: float, *, max_spread: float = 1.15) -> tuple[list, str]:
+    """Fragment masks of the turned scans of one face, by colour or, where colour fails, by focus.
+
+    A fragment turned on the glass keeps its area, so its masks in the scans of a face must have
+    about the same area. The colour mask (:func:`fragment_mask`) is used when they do (largest
+    over smallest area at most ``max_spread``); when they do not — an object of the bed's own
+    grey, whose colour mask takes its outline plus the lamp's shadow — the focus mask
+    (:func:`focus_mask`) is used if its areas agree better.
+
+    Returns
+    -------
+    masks : list of (H, W) bool
+    method : {"colour", "focus"}
+    """
+    colour = [fragment_mask(s, dpi) for s in scans]
+    spread = area_spread(colour)
+    if len(scans) < 2 or spread <= max_spread:
+        return colour, "colour"
+    focus = [focus_mask(s, dpi) for s in scans]
+    if area_spread(focus) < spread:
+        return focus, "focus"
+    return colour, "colour"

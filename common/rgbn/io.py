@@ -41,31 +41,20 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
 
 
 def _read_raw(path: Path) -> tuple[np.ndarray, float]:
-    """Image as (H, W[, C]) in file channel order RGB(A), plus its integer full scale (1.0 for floats)."""
+    """Image as (H, W[, C]) in file channel order RGB(A), plus its integer full scale (1.0 for floats).
+
+    Read through the door checks every image path in Tessera uses
+    (:func:`common.imports.door.read_image_checked`): a missing, truncated or corrupt file, an
+    unsupported sample type or 8-bit values in a 16-bit file are refused (``ImportRefused``, a
+    ``ValueError``) naming the file. Uniform images are accepted: a flat normal map or a plain
+    albedo is a valid input here.
+    """
+    from common.imports.door import read_image_checked
+
     if not path.is_file():
         raise FileNotFoundError(f"image {path} does not exist")
-    if path.suffix.lower() == ".npy":
-        arr = np.load(path)
-        return arr, 1.0
-    if path.suffix.lower() in _TIFF:
-        import tifffile
-
-        arr = tifffile.imread(path)
-        if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[2] not in (3, 4):
-            arr = np.moveaxis(arr, 0, 2)  # planar TIFF
-    else:
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if arr is None:
-            raise ValueError(f"image {path} could not be decoded (PNG, TIFF, JPEG or .npy expected)")
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2RGBA if arr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
-    if arr.dtype == np.uint8:
-        return arr, 255.0
-    if arr.dtype == np.uint16:
-        return arr, 65535.0
-    if np.issubdtype(arr.dtype, np.floating):
-        return arr, 1.0
-    raise ValueError(f"image {path} has unsupported sample type {arr.dtype} (8/16-bit or float expected)")
+    img = read_image_checked(path, allow_blank=True)
+    return img.pixels, float(img.full_scale)
 
 
 def read_normal_map(path, convention: str = "auto") -> tuple[np.ndarray, np.ndarray]:

@@ -45,6 +45,12 @@ def add_parser(subparsers) -> None:
                                     "--from-files the device's name, under which the calibration is stored")
     p.add_argument("--from-files", metavar="MANIFEST",
                    help="fit from target scans on disk listed in a CSV manifest (file,tilt_deg,tilt_direction_deg)")
+    p.add_argument("--nominal", action="store_true",
+                   help="no target scans: store the nominal lamp model (the simulator's) turned to "
+                        "--lamp-direction-deg, under --device NAME; relief only, angles are not measured")
+    p.add_argument("--lamp-direction-deg", type=float,
+                   help="with --nominal: direction towards the lamp on the scan image, counter-clockwise from its "
+                        "+x axis (0 right, 90 top); `tessera import scans` logs it from the shadows")
     p.add_argument("--face-depth-mm", type=float, default=0.75,
                    help="with --from-files: height above the glass at which tilted targets are read, where a "
                         "fragment's face lies on average (default 0.75 mm)")
@@ -78,6 +84,8 @@ def run(args) -> int:
     store = Store(cfg["storage"]["root"])
     if args.from_files:
         return _from_files(args, store)
+    if args.nominal:
+        return _nominal(args, store)
     device = args.device or cfg["scanner"]["device"]
     if device not in ("simulated", "sane"):
         print(f"--device must be simulated or sane (or a device name with --from-files), got {device!r}")
@@ -130,6 +138,27 @@ def run(args) -> int:
     print(f"leave-one-out RMS error: first order {cal.cv_rmse['first']:.4f}, second order {cal.cv_rmse['second']:.4f} "
           f"(full scale 1) -> {'first' if cal.order == 1 else 'second'}-order model recommended"
           + ("" if cal.order == 1 else "; the solver still uses the first-order model of eq. 3.4"))
+    print(f"stored {ref.path}")
+    return 0
+
+
+def _nominal(args, store) -> int:
+    """``--nominal``: a scanner with no target scans gets the nominal lamp model turned to its lamp side."""
+    import math
+    from common.acquisition.calibration import nominal_calibration, save_calibration
+
+    if not args.device or args.device in ("simulated", "sane"):
+        print("--nominal needs --device NAME: the name of the scanner that made the scans")
+        return 2
+    if args.lamp_direction_deg is None or not math.isfinite(args.lamp_direction_deg):
+        print("--nominal needs --lamp-direction-deg D: where the scanner's light comes from on its images, "
+              "counter-clockwise from the +x axis (0 right, 90 top); `tessera import scans` logs it from the shadows")
+        return 2
+    cal = nominal_calibration(args.device, args.lamp_direction_deg, dpi=args.dpi)
+    ref = save_calibration(store, cal)
+    a = ", ".join(f"{v:+.4f}" for v in cal.a)
+    print(f"scanner {cal.scanner}: NOMINAL model a = ({a}) (the simulator's lamp turned to "
+          f"{args.lamp_direction_deg:g} deg; no target was measured: the relief is right, angles are nominal)")
     print(f"stored {ref.path}")
     return 0
 

@@ -53,7 +53,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--manifest", metavar="CSV", help="file, fragment[, face, dpi, turn] columns, one row per scan")
     p.add_argument("--device", required=True,
                    help="name of the scanner that made the scans: its calibration is used (tessera calibrate)")
-    p.add_argument("--dpi", type=float, help="resolution of the scans (unless the manifest has a dpi column)")
+    p.add_argument("--dpi", type=float, help="resolution of the scans (default: the manifest's dpi column, else "
+                                             "what the files declare: PNG pHYs, TIFF XResolution, JPEG density)")
     p.add_argument("--turn", choices=("cw", "ccw", "auto"), default="auto",
                    help="way the fragment was turned between scans, as seen on the image (default auto: detected)")
     p.add_argument("--crop", action="store_true", help="whole-bed scans: find the fragment and keep its region")
@@ -93,8 +94,7 @@ def _items(args) -> list[ImportItem]:
                                               "turn": args.turn, "where": "arguments"}
     items = []
     for fid, g in groups.items():
-        if g["dpi"] is None:
-            raise ValueError(f"{fid} ({g['where']}): no dpi: give --dpi or a dpi column in the manifest")
+        g["dpi"] = _dpi_of(fid, g)
         try:
             dpi = check_dpi(g["dpi"], f"{fid} dpi")
         except ArtifactError as exc:
@@ -107,6 +107,44 @@ def _items(args) -> list[ImportItem]:
                                          "crop": bool(args.crop), "srgb": bool(args.srgb),
                                          "colour_only": bool(args.colour_only)}))
     return items
+
+
+def _dpi_of(fid: str, g: dict) -> float:
+    """The scans' dpi: given (``--dpi`` or the manifest), else declared by the files (PNG pHYs, TIFF, JFIF).
+
+    A given dpi the files contradict (by more than 1 %) is used, with a warning naming the file;
+    files of one fragment declaring different resolutions, or no dpi given or declared, are refused.
+    """
+    from common.imports.resolution import file_dpi
+
+    declared = {}
+    for p in g["front"] + g["back"]:
+        try:
+            d = file_dpi(p) if Path(p).is_file() else None
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{fid} ({g['where']}): {exc}") from None
+        if d is not None:
+            declared[str(p)] = d
+    if g["dpi"] is not None:
+        for p, d in declared.items():
+            if abs(d - float(g["dpi"])) > 0.01 * float(g["dpi"]):
+                print(f"warning: {p} declares {d:.4g} dpi but {float(g['dpi']):g} dpi was given; using "
+                      f"{float(g['dpi']):g}", file=sys.stderr)
+        return g["dpi"]
+    if not declared:
+        raise ValueError(f"{fid} ({g['where']}): no dpi: the files declare none (no PNG pHYs, TIFF resolution or "
+                         "JPEG density); give --dpi or a dpi column in the manifest")
+    values = sorted(declared.values())
+    if values[-1] - values[0] > 0.01 * values[-1]:
+        raise ValueError(f"{fid} ({g['where']}): the files declare different resolutions ({values[0]:.4g} to "
+                         f"{values[-1]:.4g} dpi); give --dpi")
+    if len(declared) < len(g["front"]) + len(g["back"]):
+        missing = [str(p) for p in g["front"] + g["back"] if str(p) not in declared]
+        print(f"warning: {missing[0]} declares no dpi; using {values[0]:.4g} dpi declared by the others",
+              file=sys.stderr)
+    dpi = float(np.median(values))
+    log.info("%s: %.4g dpi, read from the files' metadata", fid, dpi)
+    return dpi
 
 
 def _read_scan(path: Path, opts: dict) -> tuple[np.ndarray, tuple]:
@@ -150,8 +188,11 @@ def _crop_face(scans: list, paths: list, dpi: float) -> list:
 def convert(item: ImportItem, store) -> list[Output]:
     """The scans of one fragment -> checked, turn direction found, one ``tessera.scans`` artifact."""
     from common.acquisition.capture import CaptureResult, Scan, check_capture, write_scans
+    from common.acquisition.calibration import lamp_direction_from_shadows
     from common.acquisition.errors import RegistrationError
-    from common.acquisition.registration import TurnDirectionError, register_turned, turn_rotations
+    from common.acquisition.flatbed_normals import register_face
+    from common.acquisition.locate import focus_mask, fragment_mask
+    from common.acquisition.registration import TurnDirectionError, turn_rotations
 
     opts = item.options
     n_front, n_back = opts["faces"]["front"], opts["faces"]["back"]
@@ -172,15 +213,23 @@ def convert(item: ImportItem, store) -> list[Output]:
                                     f"the {face}")
             rotations = [0.0] * len(scans)
         elif len(scans) >= 3:
+            # colour masks, or focus masks where colour takes the shadow too (an object of the bed's grey)
             try:
-                turn, regs = register_turned([s[0] for s in scans], opts["dpi"], opts["turn"])
+                turn, regs, _, method = register_face([s[0] for s in scans], opts["dpi"], turn=opts["turn"])
             except TurnDirectionError as exc:
                 raise ImportRefused(f"{paths[0]} ... {Path(paths[-1]).name} ({face}): {exc}; pass --turn {exc.turn}"
                                     ) from None
             except RegistrationError as exc:
                 raise ImportRefused(f"{paths[0]} ... {Path(paths[-1]).name} ({face}): {exc}") from None
             turns[face] = {"turn": turn, "angles_deg": [round(r.angle_deg, 2) for r in regs],
-                           "correlation_min": round(min(r.correlation for r in regs), 4)}
+                           "correlation_min": round(min(r.correlation for r in regs), 4), "mask": method}
+            try:    # where the scanner's light comes from, for a nominal calibration (tessera calibrate --nominal)
+                masks = [(focus_mask if method == "focus" else fragment_mask)(s[0], opts["dpi"]) for s in scans]
+                lamp, agree = lamp_direction_from_shadows([s[0] for s in scans], masks, opts["dpi"])
+                turns[face]["lamp_direction_deg"] = round(lamp, 1)
+                turns[face]["lamp_direction_agreement"] = round(agree, 2)
+            except ValueError:
+                pass
             rotations = turn_rotations(len(scans), turn)
         else:
             rotations = [0.0] * len(scans)      # too few: check_capture says so below
@@ -191,8 +240,9 @@ def convert(item: ImportItem, store) -> list[Output]:
     except ValueError as exc:
         raise ImportRefused(f"{item.sources[0]}: {exc}") from None
     for face, t in turns.items():
-        log.info("%s %s: turned %s, measured rotations %s, correlation >= %.2f", item.fragment, face, t["turn"],
-                 t["angles_deg"], t["correlation_min"])
+        log.info("%s %s: turned %s, measured rotations %s, correlation >= %.2f, %s mask, shadows put the lamp at "
+                 "%s deg (counter-clockwise from the image's +x)", item.fragment, face, t["turn"], t["angles_deg"],
+                 t["correlation_min"], t["mask"], t.get("lamp_direction_deg", "?"))
     prov = {"importer": "tessera import scans", "version": VERSION,
             "source_files": [str(p) for p in item.sources], "source_sha256": list(item.digests),
             "turn": {f: t["turn"] for f, t in turns.items()}, "registration_check": turns}
@@ -214,7 +264,9 @@ def _warn_if_uncalibrated(args) -> None:
         newest_calibration(Store(root), args.device)
     except CalibrationError:
         print(f"warning: no calibration of device {args.device!r} in {root}: the solver will refuse these scans "
-              f"until you run `tessera calibrate --from-files MANIFEST --device {args.device}`", file=sys.stderr)
+              f"until you run `tessera calibrate --from-files MANIFEST --device {args.device}` (scans of a tilted "
+              f"target), or, with no target scans, `tessera calibrate --nominal --lamp-direction-deg D --device "
+              f"{args.device}` (D: the lamp side this import logs from the shadows)", file=sys.stderr)
     except Exception:  # storage unreachable: the bench spools; the solver checks later
         pass
 

@@ -57,3 +57,20 @@ def test_cli_errors_are_plain_messages_with_status_2(files, capsys):
     assert "-o" in capsys.readouterr().err
     assert main(["render", "--list-styles"]) == 0
     assert "exaggerated" in capsys.readouterr().out
+
+
+def test_render_normals_reads_through_the_door_checks(files, capsys):
+    """A truncated normal map, or 8-bit values in a 16-bit file, is refused naming the file; nothing written."""
+    tmp, n, mask = files
+    data = (tmp / "n.png").read_bytes()
+    (tmp / "cut.png").write_bytes(data[: len(data) // 2])
+    out = tmp / "cut-out.png"
+    assert main(["render", "--normals", str(tmp / "cut.png"), "--style", "lambertian", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "cut.png" in err and "truncated" in err
+    assert not out.exists()
+    eight = np.round(encode_normal_map(n, mask, "opengl") * 255).astype(np.uint16)     # 8-bit values, 16-bit file
+    cv2.imwrite(str(tmp / "n8in16.png"), eight[..., 2::-1] if eight.shape[2] == 3 else eight[..., [2, 1, 0, 3]])
+    assert main(["render", "--normals", str(tmp / "n8in16.png"), "--style", "lambertian", "-o", str(out)]) == 2
+    assert "8-bit values" in capsys.readouterr().err
+    assert not out.exists()
