@@ -54,6 +54,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "compact_interval_s": 60.0,      # journal compaction period
         "batch_max": 2000,               # messages handled per poll-loop batch (one fsync)
         "refusal_event_interval_s": 60.0,  # refused frames: at most one input.rejected summary per this
+        "nice": -10,                     # broker's CPU priority (latency first; below 0 needs root or LimitNICE)
     },
     "worker": {
         "reconnect_min_s": 0.25,
@@ -160,6 +161,8 @@ def validate_config(cfg: dict) -> dict:
     for key in ("heartbeat_liveness", "max_attempts", "feed_history", "batch_max"):
         if b[key] < 1:
             raise ConfigError(f"broker.{key}: must be at least 1, got {b[key]}")
+    if not -20 <= b["nice"] <= 19:
+        raise ConfigError(f"broker.nice: expected a nice value -20..19, got {b['nice']}")
     w = cfg["worker"]
     if not 0 < w["reconnect_min_s"] <= w["reconnect_max_s"]:
         raise ConfigError("worker.reconnect_min_s: must be positive and not above worker.reconnect_max_s")

@@ -111,11 +111,26 @@ def latency(rate: float, seconds: float) -> np.ndarray:
     return np.array([got[u] - sent[u] for u in got if u in sent]) * 1e3
 
 
-def flood(n: int) -> dict:
-    """Malformed frames at full speed against a broker serving a worker; STATUS timed meanwhile."""
-    import threading
+def _schedstat_ms() -> tuple[float, float]:
+    """This thread's CPU and run-queue wait so far (ms), from /proc (zeros elsewhere)."""
+    try:
+        with open("/proc/thread-self/schedstat") as fh:
+            run, wait = fh.read().split()[:2]
+        return int(run) / 1e6, int(wait) / 1e6
+    except (OSError, ValueError):
+        return 0.0, 0.0
 
-    from tests.bench.soak import _flood
+
+def flood(n: int, seconds: float = 0.0) -> dict:
+    """Malformed frames from another process against a broker serving a worker; STATUS timed meanwhile.
+
+    The flood runs in its own process (in a thread here it would hold this process's GIL and slow
+    the STATUS probe, not the broker). Each probe keeps the broker's own account of its poll loop
+    (STATUS ``loop``) and this thread's run-queue wait during the probe, so a late answer can be
+    put down to the broker (CPU inside its loop) or to the machine (waiting for a CPU).
+    """
+    import subprocess
+    import threading
     with tempfile.TemporaryDirectory() as d:
         st = Station(Path(d), services={"noop": {}})
         try:
@@ -123,17 +138,22 @@ def flood(n: int) -> dict:
             st.worker()
             st.workers_ready(1)
             endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
-            times, done = [], threading.Event()
+            probes, done = [], threading.Event()
 
             def probe():
                 with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1) as c:
+                    prev = None
                     while not done.wait(0.1):
                         t = time.perf_counter()
+                        _, q0 = _schedstat_ms()
                         try:
-                            c.status()
-                            times.append((time.perf_counter() - t) * 1e3)
+                            loop = c.status()["loop"]
+                            ms = (time.perf_counter() - t) * 1e3
                         except Exception:  # noqa: BLE001
-                            times.append(float("inf"))
+                            loop, ms = None, float("inf")
+                        _, q1 = _schedstat_ms()
+                        probes.append({"ms": ms, "probe_rq_ms": q1 - q0, "loop": loop, "prev": prev})
+                        prev = loop or prev
             with BrokerClient.from_config(st.config, timeout_s=10.0) as c:
                 before = c.status()["last_seq"]
                 good = [new_message("noop.job", n=i) for i in range(200)]
@@ -141,12 +161,13 @@ def flood(n: int) -> dict:
                 th.start()
                 cpu0 = time.process_time()
                 t0 = time.perf_counter()
-                sender = threading.Thread(target=_flood, args=(endpoint, n, 0.0, 1))
-                sender.start()
+                sender = subprocess.Popen([sys.executable, "-c", "import sys; from tests.bench.soak import _flood; "
+                                           f"_flood({endpoint!r}, {n}, {seconds}, 1)"],
+                                          cwd=str(Path(__file__).resolve().parents[2]))
                 for i in range(0, len(good), 20):   # good work keeps flowing during the flood
                     c.submit_many(good[i:i + 20])
                     time.sleep(0.05)
-                sender.join()
+                sender.wait()
                 wait_for(lambda: sum(c.status()["refused"].values()) >= n * 0.95, 120, "the flood to be refused",
                          interval=0.2)
                 wall = time.perf_counter() - t0
@@ -156,9 +177,30 @@ def flood(n: int) -> dict:
                 s = c.status()
         finally:
             st.stop()
-    t = np.array(times)
     return {"refused": sum(s["refused"].values()), "wall_s": wall, "cpu_s_client": time.process_time() - cpu0,
-            "status_ms": t, "journaled": s["last_seq"] - before, "good_done": s["completed"]}
+            "status_ms": np.array([p["ms"] for p in probes]), "probes": probes, "loop": s["loop"],
+            "journaled": s["last_seq"] - before, "good_done": s["completed"]}
+
+
+def explain_late(probes: list[dict], limit_ms: float = 100.0) -> list[str]:
+    """One line per late STATUS answer: the broker's worst loop iteration of the last seconds
+    (its CPU, run-queue wait, GC, other) and the broker's and the prober's run-queue waits meanwhile."""
+    lines = []
+    for p in probes:
+        if p["ms"] <= limit_ms:
+            continue
+        loop, prev = p["loop"], p["prev"]
+        if loop is None:
+            lines.append(f"    {p['ms']:.0f} ms: no answer")
+            continue
+        w = loop["worst_ms"] or {}
+        rq = (loop["runqueue_s"] - prev["runqueue_s"]) * 1e3 if prev else float("nan")
+        cpu = (loop["cpu_s"] - prev["cpu_s"]) * 1e3 if prev else float("nan")
+        lines.append(f"    {p['ms']:.0f} ms: broker loop since the previous probe: CPU {cpu:.0f} ms, waiting for a CPU "
+                     f"{rq:.0f} ms; worst iteration {w.get('stall', 0):.0f} ms (CPU {w.get('cpu', 0):.0f}, run queue "
+                     f"{w.get('runqueue', 0):.0f}, GC {w.get('gc', 0):.0f}, other {w.get('other', 0):.0f}); "
+                     f"the prober waited {p['probe_rq_ms']:.0f} ms for a CPU")
+    return lines
 
 
 def main() -> None:
@@ -167,24 +209,36 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4], help="worker counts for the throughput runs")
     ap.add_argument("--flood", type=int, default=100000, help="malformed frames in the flood run (0: skip)")
+    ap.add_argument("--flood-seconds", type=float, default=0.0,
+                    help="spread the flood over this many seconds (0: as fast as it goes)")
+    ap.add_argument("--flood-only", action="store_true", help="only the flood run")
     args = ap.parse_args()
+    cpu0, wall0 = time.process_time(), time.perf_counter()
     print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch); "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"  reference: bare pyzmq round trips between two processes: {pingpong():.0f}/s")
-    for k in args.workers:
-        rate, accept = throughput(k, args.jobs)
-        print(f"  {k} worker(s): {rate:8.0f} jobs/s completed   (submissions acknowledged at {accept:.0f}/s)")
-    lat = latency(100.0, args.seconds)
-    print(f"dispatch latency at 100 jobs/s, 1 worker, {len(lat)} jobs: "
-          f"p50 {np.percentile(lat, 50):.2f} ms  p99 {np.percentile(lat, 99):.2f} ms  max {lat.max():.2f} ms")
+    if not args.flood_only:
+        print(f"  reference: bare pyzmq round trips between two processes: {pingpong():.0f}/s")
+        for k in args.workers:
+            rate, accept = throughput(k, args.jobs)
+            print(f"  {k} worker(s): {rate:8.0f} jobs/s completed   (submissions acknowledged at {accept:.0f}/s)")
+        lat = latency(100.0, args.seconds)
+        print(f"dispatch latency at 100 jobs/s, 1 worker, {len(lat)} jobs: "
+              f"p50 {np.percentile(lat, 50):.2f} ms  p99 {np.percentile(lat, 99):.2f} ms  max {lat.max():.2f} ms")
     if args.flood:
-        f = flood(args.flood)
+        f = flood(args.flood, args.flood_seconds)
         ms = f["status_ms"]
+        loop = f["loop"]
         print(f"garbage flood: {f['refused']} frames refused in {f['wall_s']:.1f} s ({f['refused'] / f['wall_s']:.0f}/s); "
               f"events journaled meanwhile {f['journaled']} (200 good jobs and their results, plus refusal summaries); "
               f"good jobs done {f['good_done']}/200")
         print(f"  STATUS during the flood ({len(ms)} asks, every 0.1 s): p50 {np.percentile(ms, 50):.1f} ms  "
               f"p99 {np.percentile(ms, 99):.1f} ms  max {ms.max():.1f} ms; over 100 ms: {int((ms > 100).sum())}")
+        print(f"  broker poll loop over the whole run: {loop['iterations']} iterations, CPU {loop['cpu_s']:.1f} s, "
+              f"waiting for a CPU {loop['runqueue_s']:.1f} s, GC {loop['gc_s']:.2f} s")
+        for line in explain_late(f["probes"]):
+            print(line)
+    print(f"bench: CPU {time.process_time() - cpu0:.1f} s (this process), wall {time.perf_counter() - wall0:.1f} s; "
+          f"load average at the end {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

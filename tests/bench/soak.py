@@ -76,6 +76,16 @@ def _captured(source: Path, root: Path, n: int) -> list[dict]:
             for p in scans]
 
 
+def _schedstat_ms() -> tuple[float, float]:
+    """The calling thread's CPU time and run-queue wait so far (ms), from /proc (zeros elsewhere)."""
+    try:
+        with open("/proc/thread-self/schedstat") as fh:
+            run, wait = fh.read().split()[:2]
+        return int(run) / 1e6, int(wait) / 1e6
+    except (OSError, ValueError):
+        return 0.0, 0.0
+
+
 def _storage_on_tmpfs(storage: Path, headroom_mb: int) -> bool:
     """Move ``storage`` onto a tmpfs mount of its own (its size + headroom); False if not possible."""
     if os.geteuid() != 0:
@@ -212,7 +222,7 @@ def main(argv=None) -> int:
     mounted = not args.no_attacks and _storage_on_tmpfs(storage, headroom_mb=2048)
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
     attacks = {"forged": None, "flood_s": None}
-    probes: list[tuple[float, float | None, bool]] = []   # (time, STATUS answer ms or None, broker restarting)
+    probes: list[tuple] = []   # (time, STATUS answer ms or None, broker restarting, STATUS loop, prober run-queue ms)
     restarting = threading.Event()
     t0 = time.time()  # the station's clock: capture (serial, simulated) is not station time
     broker = st.spawn("broker")
@@ -226,14 +236,19 @@ def main(argv=None) -> int:
     lock = threading.Lock()
 
     def probe():
+        # as `tessera status` does: a new connection per ask; with the broker's own account of its
+        # poll loop (STATUS "loop") and this thread's wait for a CPU, so a late answer can be put
+        # down to the broker or to the machine
         while not stop.wait(0.5):
             t = time.monotonic()
+            q0 = _schedstat_ms()[1]
             try:
                 with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1) as pc:
-                    pc.status()
-                probes.append((time.time() - t0, (time.monotonic() - t) * 1000, restarting.is_set()))
+                    loop = pc.status().get("loop")
+                probes.append((time.time() - t0, (time.monotonic() - t) * 1000, restarting.is_set(), loop,
+                               _schedstat_ms()[1] - q0))
             except Exception:  # noqa: BLE001 - no answer within 2 s
-                probes.append((time.time() - t0, None, restarting.is_set()))
+                probes.append((time.time() - t0, None, restarting.is_set(), None, _schedstat_ms()[1] - q0))
 
     def attack(progress: float, done: set) -> None:
         """The issue-19 faults, each once, in the chaos thread."""
@@ -272,7 +287,13 @@ def main(argv=None) -> int:
         elif "flood" not in done and progress >= 0.7 and args.garbage:
             done.add("flood")
             note(f"flooding the broker with {args.garbage} malformed frames")
-            attacks["flood_s"] = _flood(endpoint, args.garbage, max(10.0, args.garbage / 5000), args.seed)
+            # from a process of its own, as an attacker would (in a thread here it would hold this
+            # process's GIL and slow the STATUS prober, not the broker)
+            t = time.monotonic()
+            subprocess.run([sys.executable, "-c", "import sys; from tests.bench.soak import _flood; "
+                            f"_flood({endpoint!r}, {args.garbage}, {max(10.0, args.garbage / 5000)}, {args.seed})"],
+                           cwd=str(Path(__file__).resolve().parents[2]), check=True)
+            attacks["flood_s"] = time.monotonic() - t
             note(f"flood done in {attacks['flood_s']:.0f} s")
             faults["garbage frames"] += args.garbage
 
@@ -400,7 +421,7 @@ def _check_attacks(evs, seqs, first_seq, status, probes, attacks) -> bool:
     """The issue-19 end checks: nothing forged got in, history intact, STATUS answered in time."""
     forged = [e for e in evs if e.get("forged")]
     gaps = [b for a, b in zip(seqs, seqs[1:]) if b != a + 1]
-    serving = [ms for _, ms, restarting in probes if not restarting]
+    serving = [p[1] for p in probes if not p[2]]
     answered = sorted(ms for ms in serving if ms is not None)
     silent = sum(ms is None for ms in serving)
     slow = [ms for ms in answered if ms > 100.0]
@@ -413,11 +434,40 @@ def _check_attacks(evs, seqs, first_seq, status, probes, attacks) -> bool:
     print(f"  STATUS probes (every 0.5 s, outside the broker restart): {len(serving)}; median {q(0.5):.1f} ms, "
           f"p99 {q(0.99):.1f} ms, max {answered[-1] if answered else float('nan'):.1f} ms; over 100 ms: {len(slow)}; "
           f"unanswered within 2 s: {silent}")
-    late = [(round(t), None if ms is None else round(ms)) for t, ms, r in probes if not r and (ms is None or ms > 100)]
+    late = [(round(p[0]), None if p[1] is None else round(p[1])) for p in probes if not p[2] and (p[1] is None or p[1] > 100)]
     if late:
         print(f"  late STATUS answers (station time s, ms; None = none within 2 s): {late[:40]}"
               f"{' ...' if len(late) > 40 else ''}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    for line in _explain_late(probes)[:40]:
+        print(line)
+    loop = status.get("loop") or {}
+    if loop:
+        print(f"  broker poll loop since its restart (nice {status.get('nice')}): {loop['iterations']} iterations, "
+              f"CPU {loop['cpu_s']:.1f} s, waiting for a CPU {loop['runqueue_s']:.1f} s, GC {loop['gc_s']:.2f} s")
     return not forged and first_seq == 1 and not gaps and not slow and not silent
+
+
+def _explain_late(probes, limit_ms: float = 100.0) -> list[str]:
+    """Why each late STATUS answer was late, from the broker's own account (STATUS ``loop``): its
+    poll loop's CPU and run-queue wait since the previous probe, its worst iteration of the last
+    seconds (CPU, waiting for a CPU, GC, other), and the prober's own wait for a CPU."""
+    lines, prev = [], None
+    for t, ms, restarting, loop, probe_rq in probes:
+        if loop is not None and prev is not None and loop["iterations"] < prev["iterations"]:
+            prev = None  # the broker restarted: its counters start again
+        if not restarting and (ms is None or ms > limit_ms):
+            if loop is None:
+                lines.append(f"    [{t:5.0f} s] no answer within 2 s; the prober waited {probe_rq:.0f} ms for a CPU")
+            else:
+                w = loop.get("worst_ms") or {}
+                d = (lambda k: (loop[k] - prev[k]) * 1e3) if prev else (lambda k: float("nan"))
+                lines.append(f"    [{t:5.0f} s] {ms:.0f} ms: broker loop since the previous probe: CPU {d('cpu_s'):.0f} ms, "
+                             f"waiting for a CPU {d('runqueue_s'):.0f} ms; worst iteration {w.get('stall', 0):.0f} ms "
+                             f"(CPU {w.get('cpu', 0):.0f}, waiting for a CPU {w.get('runqueue', 0):.0f}, GC "
+                             f"{w.get('gc', 0):.0f}, other {w.get('other', 0):.0f}); the prober waited {probe_rq:.0f} ms "
+                             f"for a CPU")
+        prev = loop or prev
+    return lines
 
 
 def control_rerun(root: Path, scratch: Path, config, parked: list[dict], inputs: list[dict]) -> dict[str, str]:

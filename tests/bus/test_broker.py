@@ -437,3 +437,39 @@ def test_the_same_output_is_announced_once_even_for_a_resubmitted_input(make_sta
         types = [P.loads(b)["type"] for _, b in c.since(0, 100)["events"]]
     assert types.count("noop.job") == 3 and types.count("noop.done") == 1, types
     assert s["duplicates_dropped"] == 1, "the third one, after the restart, was recognised from the journal"
+
+
+def test_broker_and_all_its_threads_run_at_the_configured_priority(make_station):
+    # the broker is the latency-critical process: its poll loop, journal writer and ZeroMQ I/O
+    # thread all take [broker] nice (a positive value needs no privilege, so this runs anywhere)
+    st = make_station()
+    p = st.spawn("broker", "--set", "broker.nice=7")
+    with st.client() as c:
+        wait_for(lambda: _status_or_none(c) is not None, 20, "the broker to answer")
+        s = c.status()
+    assert s["nice"] == 7
+    tids = [int(t) for t in os.listdir(f"/proc/{p.pid}/task")]
+    assert len(tids) >= 3  # poll loop, journal writer, ZeroMQ I/O thread
+    assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {7}
+
+
+def test_status_accounts_the_poll_loop_time(make_station):
+    st = make_station()
+    st.broker()
+    with st.client() as c:
+        first = c.status()["loop"]
+        time.sleep(0.6)  # a few idle poll timeouts
+        second = c.status()["loop"]
+    assert second["iterations"] > first["iterations"] >= 1
+    assert second["cpu_s"] >= first["cpu_s"] > 0
+    assert second["runqueue_s"] >= first["runqueue_s"] >= 0
+    worst = second["worst_ms"]
+    assert set(worst) == {"stall", "cpu", "runqueue", "gc", "other"}
+    assert worst["stall"] >= worst["cpu"] >= 0
+
+
+def _status_or_none(c):
+    try:
+        return c.status()
+    except Exception:  # noqa: BLE001
+        return None
