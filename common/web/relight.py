@@ -7,9 +7,13 @@ with the same functions as the offline renderer (:func:`common.rgbn.smoothing.sm
 :func:`common.rgbn.curvature.mean_curvature`), and the shader does the rest — exactly the
 light-dependent part of the offline style's formula (``services/web/static/viewer/*.frag``).
 
-A face is cut into a pyramid of :data:`TILE_PX`-pixel tiles: level 0 is the face at full
-resolution, level ``L`` the face area-averaged by ``2**L`` (masked; normals renormalised), down to a
-level that fits one tile. A tile's fields are computed on its window plus a halo of 4 sigma of the
+A face is cut into a pyramid of :data:`common.web.tiles.TILE_PX`-pixel tiles with the levels of
+the archive's pyramid (:func:`common.web.tiles.pyramid_levels`): level 0 is the face at full
+resolution, level ``L`` the face area-averaged over ``2**L`` cells (masked; normals renormalised),
+down to a level that fits one tile. Unlike the archive's 8-bit albedo / normal-map tiles (cut in
+one pass for IIIF and deep zoom), these carry float16 fields, and each tile is computed on its first
+request from a level-0 window with its halo (so the first picture of a face does not wait for
+all of level 0). A tile's fields are computed on its window plus a halo of 4 sigma of the
 widest Gaussian, so neighbouring tiles agree where they meet and a level-0 tile holds exactly what a
 whole-image computation gives there. Sigmas are in level-0 pixels and divided by ``2**L`` on level
 ``L`` (the dpi too), so a zoomed-out view shows the same shading at a coarser grain.
@@ -43,9 +47,8 @@ from common.render.tiles import CALIBRATION_MPX
 from common.rgbn.curvature import mean_curvature
 from common.rgbn.io import linear_to_srgb
 from common.rgbn.smoothing import smooth_normals
+from common.web.tiles import TILE_PX, pyramid_levels
 
-#: Side of a tile, pixels.
-TILE_PX = 256
 #: Scales of exaggerated shading the fields carry (``n0`` .. ``n3``: the viewer's ``scales = 3``).
 EXAGGERATED_SCALES = 3
 #: Version of the tile format and of the fields' formulas (part of the cache key).
@@ -100,10 +103,8 @@ def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, sha
     ex = [sigma * 2.0 ** i for i in range(EXAGGERATED_SCALES + 1)]
     unsharp = max(unsharp_sigma_mm * dpi / 25.4, 1.0)
     curv = 2.0 * sigma
-    levels = [[w, h]]
-    while max(levels[-1]) > TILE_PX:
-        lw, lh = levels[-1]
-        levels.append([(lw + 1) // 2, (lh + 1) // 2])
+    # the archive's pyramid (common.web.tiles): the same levels as the IIIF / deep-zoom tiles
+    levels = [[lw, lh] for lh, lw in pyramid_levels(h, w, TILE_PX)]
     return {"version": FIELDS_VERSION, "dpi": float(dpi), "width": w, "height": h, "tile_px": TILE_PX,
             "levels": levels, "has_normals": has_normals,
             "sigma_px": round(float(sigma), 4), "exaggerated_sigmas_px": [round(float(s), 4) for s in ex],

@@ -59,8 +59,9 @@ vec3 linear_to_lab(vec3 c) {
   return vec3(L, 500.0 * (lab_f(X) - fy), 200.0 * (fy - lab_f(Z)));
 }
 float lab_finv(float f) { return f > 0.206893 ? f * f * f : (f - 16.0 / 116.0) / 7.787; }
-// sRGB-encoded, NOT clipped (out-of-gamut colours are handled by into_gamut)
-vec3 lab_to_srgb_unclipped(vec3 lab) {
+// sRGB-encoded and clipped to [0, 1] per channel, as OpenCV's float Lab2RGB does (so the offline
+// enhance._into_gamut finds no colour outside [0, 1] after it: a channel is clipped, as here)
+vec3 lab_to_srgb(vec3 lab) {
   float fy, Y;
   if (lab.x <= 7.9996) { Y = lab.x / 903.3; fy = 7.787 * Y + 16.0 / 116.0; }
   else { fy = (lab.x + 16.0) / 116.0; Y = fy * fy * fy; }
@@ -69,23 +70,7 @@ vec3 lab_to_srgb_unclipped(vec3 lab) {
   vec3 rgb = vec3( 3.240479 * X - 1.537150 * Y - 0.498535 * Z,
                   -0.969256 * X + 1.875991 * Y + 0.041556 * Z,
                    0.055648 * X - 0.204043 * Y + 1.057311 * Z);
-  // sRGB encoding of each channel, linear part below 0.0031308 (also for negative values)
-  vec3 a = abs(rgb);
-  vec3 enc = mix(1.055 * pow(a, vec3(1.0 / 2.4)) - 0.055, a * 12.92, vec3(lessThanEqual(a, vec3(0.0031308))));
-  return sign(rgb) * enc;
-}
-// enhance._into_gamut: a colour outside [0, 1] pulled towards the grey of its lightness
-vec3 into_gamut(vec3 rgb, float L) {
-  if (max(max(rgb.r, rgb.g), rgb.b) <= 1.0 && min(min(rgb.r, rgb.g), rgb.b) >= 0.0) return rgb;
-  float g = clamp(lab_to_srgb_unclipped(vec3(L, 0.0, 0.0)).r, 0.0, 1.0);
-  vec3 d = rgb - g;
-  float t = 1e30;
-  for (int i = 0; i < 3; i++) {
-    if (d[i] > 1e-7) t = min(t, (1.0 - g) / d[i]);
-    else if (d[i] < -1e-7) t = min(t, (0.0 - g) / d[i]);
-  }
-  t = clamp(t, 0.0, 1.0);
-  return clamp(g + t * d, 0.0, 1.0);
+  return linear_to_srgb(rgb);
 }
 // enhance.lightness_relief: relief in [-1, 1] as a soft-light on L* only; exposure.x < 0 = none
 vec3 lightness_relief(vec3 lin, float relief, float strength, vec2 exposure) {
@@ -100,7 +85,7 @@ vec3 lightness_relief(vec3 lin, float relief, float strength, vec2 exposure) {
   float r = clamp(relief, -1.0, 1.0) * strength;
   L = L + r * (r > 0.0 ? 100.0 - L : L);
   lab.x = L;
-  return into_gamut(lab_to_srgb_unclipped(lab), L);
+  return lab_to_srgb(lab);
 }
 // recipes._exposed_colour: the display colour with its lightness exposed (exposure.x < 0: as captured)
 vec3 exposed_colour(vec2 exposure) {

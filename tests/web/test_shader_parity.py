@@ -1,0 +1,131 @@
+"""The viewer's shaders draw what the offline renderer draws.
+
+Every style the fragment page's WebGL viewer shades (``services/web/static/viewer/<style>.frag``)
+is drawn twice on the same analytic RGBN face with the same parameters: offline in Python
+(:data:`common.render.recipes.STYLES`, with :func:`common.web.relight.offline_arguments`), and in
+headless Chromium (software GL) from the tiles ``tessera web`` serves, at one image pixel per
+canvas pixel, read back from the canvas. The contrast of each is the offline style's own "auto"
+choice on that face. The mean absolute difference on the fragment must be <= 2/255 (issue 17).
+The face is two tiles wide, so the seam between tiles is inside the comparison.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from .viewer_support import CHROMIUM, CHROMIUM_ARGS, WebProcess, open_viewer, relief_face, require_browser, \
+    show_one_to_one
+
+pytestmark = pytest.mark.slow
+
+#: (style, values that differ from the viewer's defaults): every shading the viewer offers, in
+#: grey and in colour where the offline style has both
+CASES = [
+    ("albedo", {"exposure": "none"}), ("albedo", {}),
+    ("lambertian", {}), ("lambertian", {"colour": False}),
+    ("raking", {}), ("raking", {"colour": True, "azimuth_deg": 200.0, "elevation_deg": 20.0}),
+    ("specular", {}), ("specular", {"colour": False, "exponent": 60.0}),
+    ("normal_unsharp", {}), ("normal_unsharp", {"colour": True}),
+    ("exaggerated", {}), ("exaggerated", {"colour": True, "exposure": "auto"}),
+    ("mean_curvature", {}),
+]
+#: where image pixel (0, 0) is drawn on the canvas
+X0, Y0 = 7, 5
+LIMIT = 2.0   # mean absolute difference, in 1/255
+
+
+@pytest.fixture(scope="module")
+def parity_page(tmp_path_factory):
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+
+    root = tmp_path_factory.mktemp("parity")
+    image = relief_face(180, 300)
+    save_rgbn(Store(root / "storage"), "fragments/P-1/rgbn/front-analytic.h5", image)
+    web = WebProcess(root).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            # bypass_csp: the test's own page.evaluate calls are eval to the page's CSP
+            page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            open_viewer(page, f"{web.url}/fragments/P-1")
+            show_one_to_one(page, X0, Y0)
+            yield page, image, errors
+            browser.close()
+    finally:
+        web.stop()
+
+
+def _shader(page, style: str, values: dict, h: int, w: int) -> np.ndarray:
+    px = page.evaluate(f"""() => {{ const v = tesseraViewer; v.setStyle({json.dumps(style)}, {json.dumps(values)});
+        v.render(); return Array.from(v.pixels({X0}, {Y0}, {w}, {h})); }}""")
+    return np.asarray(px, np.float64).reshape(h, w, 4)[..., :3]
+
+
+def _offline(image, style: str, values: dict, params: dict) -> np.ndarray:
+    from common.render.recipes import STYLES
+    from common.web.relight import offline_arguments
+
+    layer = STYLES[style].draw(image, **offline_arguments(style, values, params))
+    return np.round(np.clip(layer.rgb, 0.0, 1.0) * 255.0)
+
+
+def _values(page, image, style: str, extra: dict, params: dict) -> dict:
+    """The viewer's defaults for ``style`` with ``extra``, its contrast chosen by the offline "auto"."""
+    from common.web.relight import auto_contrast
+
+    values = json.loads(page.evaluate(f"() => JSON.stringify(RelightViewer.STYLES[{json.dumps(style)}].defaults)"))
+    values.update({k: v for k, v in extra.items() if v != "auto"})
+    auto = {k: "auto" for k, v in extra.items() if v == "auto"}
+    resolved = {k: v for k, v in auto_contrast(image, style, values, params).items() if k not in extra}
+    if auto:   # a second contrast parameter (the colour's exposure of a colour variant)
+        from common.render.recipes import STYLES
+        from common.web.relight import offline_arguments
+
+        kw = offline_arguments(style, {**values, **resolved}, params)
+        kw.update(auto)
+        layer = STYLES[style].draw(image, **kw)
+        resolved.update({k: layer.resolved[k] for k in auto})
+    values.update(resolved)
+    return values
+
+
+@pytest.mark.parametrize("style,extra", CASES, ids=[f"{s}-{i}" for i, (s, _) in enumerate(CASES)])
+def test_shader_matches_offline_style(parity_page, style, extra):
+    page, image, errors = parity_page
+    params = page.evaluate("() => tesseraViewer.info")
+    h, w = image.mask.shape
+    values = _values(page, image, style, extra, params)
+    offline = _offline(image, style, values, params)
+    shader = _shader(page, style, values, h, w)
+    assert not errors, errors
+    on = image.mask
+    assert offline[on].std() > 8.0, f"{style}: the offline picture is nearly flat; the comparison would prove nothing"
+    diff = np.abs(shader - offline)[on]
+    mad = float(diff.mean())
+    print(f"\n{style} {extra}: mean |shader - offline| = {mad:.3f}/255, 99th percentile "
+          f"{np.percentile(diff, 99):.1f}, max {diff.max():.0f}; values {values}")
+    assert mad <= LIMIT, f"{style} {extra}: mean absolute difference {mad:.2f}/255 > {LIMIT}/255"
+    # outside the fragment both draw the background (white)
+    assert np.abs(shader[~on] - 255.0).max() <= 1.0
+
+
+def test_the_comparison_sees_a_wrong_light(parity_page):
+    """The same comparison with the shader's light turned by 90 degrees fails by far: the test can fail."""
+    page, image, _ = parity_page
+    params = page.evaluate("() => tesseraViewer.info")
+    h, w = image.mask.shape
+    values = _values(page, image, "lambertian", {"colour": False}, params)
+    offline = _offline(image, "lambertian", values, params)
+    turned = dict(values, light=[values["light"][0] + 90.0, values["light"][1]])
+    shader = _shader(page, "lambertian", turned, h, w)
+    mad = float(np.abs(shader - offline)[image.mask].mean())
+    assert mad > 5 * LIMIT, f"a light turned by 90 degrees differs by only {mad:.2f}/255"
