@@ -48,6 +48,8 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "match.proposed": ("A ranked join proposal between two fragments, with probability and pose.",
                        ("fragment", "other", "probability")),
     "match.verified": ("A person confirmed or rejected a proposal.", ("fragment", "other", "verdict")),
+    "fragment.annotated": ("A person edited a fragment's catalogue metadata (find-spot, context, date, notes, "
+                           "inventory); carries the changed fields and who.", ("fragment", "changes", "by")),
     "stage.failed": ("A job failed its last attempt and is parked; carries the error.", ("service", "error")),
     "input.rejected": ("A message, frame or artifact was refused as malformed; carries the reason.", ("error",)),
     "noop.job": ("A job for the no-op stage: plumbing tests and the broker benchmark.", ()),
@@ -150,6 +152,12 @@ def validate(msg: Any) -> dict:
             raise MessageError(f"{kind} message: artifact sha256 {str(sha)[:80]!r} is not 64 hex digits")
         if isinstance(size, bool) or not isinstance(size, int) or size < 0:
             raise MessageError(f"{kind} message: artifact bytes {str(size)[:40]!r} is not a size")
+    if kind == "fragment.annotated":
+        ch, by = msg["changes"], msg["by"]
+        if not (isinstance(ch, Mapping) and ch and all(isinstance(k, str) and isinstance(v, str) for k, v in ch.items())):
+            raise MessageError(f"{kind} message: changes {str(ch)[:80]!r} is not a non-empty map of field to text")
+        if not isinstance(by, str) or len(by) > 64:
+            raise MessageError(f"{kind} message: by {str(by)[:80]!r} is not a name of at most 64 characters")
     if "probability" in msg:
         p = msg["probability"]
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan

@@ -67,7 +67,7 @@ SERVICE_NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 # (reconcile, imports, re-runs); any role may ask STATUS, SINCE and PENDING
 ROLE_SUBMITS: dict[str, frozenset] = {
     "scanner": frozenset({"fragment.ready", "rgbn.ready"}),
-    "web": frozenset({"match.verified"}),
+    "web": frozenset({"match.verified", "fragment.annotated"}),
     "admin": frozenset(messages.EVENT_TYPES),
 }
 ROLE_SERVES: dict[str, frozenset] = {r: frozenset({r}) for r in ("solver", "features", "matcher", "renderer")}
