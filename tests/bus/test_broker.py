@@ -473,3 +473,15 @@ def _status_or_none(c):
         return c.status()
     except Exception:  # noqa: BLE001
         return None
+
+
+def test_status_reply_has_exactly_the_fields_docs_messages_lists(make_station):
+    import re
+    from pathlib import Path
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "messages.md").read_text()
+    row = re.search(r"^\| `STATUS` \| empty \| `\{([^}]*)\}`", doc, re.M)
+    assert row, "docs/messages.md has no STATUS row"
+    documented = {k.strip() for k in row.group(1).split(",")}
+    st = make_station()
+    st.broker()
+    assert set(st.status()) == documented
