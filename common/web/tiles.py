@@ -424,3 +424,30 @@ def face_sources(store: Store, fragment: str) -> dict[str, dict]:
             entry["renders"][recipe] = rp.relative_to(store.root).as_posix()
         out[face] = entry
     return out
+
+
+def face_thumbnail(store: Store, rgbn_relpath: str, max_px: int = 128) -> np.ndarray:
+    """The albedo of an RGBN face area-averaged to at most ``max_px`` on its longest side.
+
+    The top level of a pyramid with ``max_px`` tiles, computed the same way (band by band, bounded
+    memory) without writing any tile. Returns ``(h, w, 4)`` uint8 RGBA (display sRGB, alpha = coverage).
+    """
+    from common.rgbn.image import SCHEMA as RGBN
+
+    if int(max_px) < 1:
+        raise ValueError(f"max_px must be >= 1, got {max_px}")
+    top: dict[str, np.ndarray] = {}
+    with store.open(rgbn_relpath, schema=RGBN) as f:
+        try:
+            height, width = f["mask"].shape
+            levels = pyramid_levels(height, width, max_px)
+
+            def put(layer, level, col, row, rgba):
+                if level == len(levels) - 1:
+                    top["rgba"] = rgba
+
+            cut_pyramid(_bands(f, ["albedo"], "mask", 1.0, False, max_px), height, width, {"albedo": 0}, put,
+                        tile_px=max_px)
+        except KeyError as exc:
+            raise ArtifactError(f"artifact {rgbn_relpath} lacks {exc}") from exc
+    return top["rgba"]

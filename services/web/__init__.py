@@ -40,12 +40,13 @@ from common.web.tiles import TileCache
 
 from . import auth as auth_pages
 from . import bench as bench_pages
+from . import catalogue as catalogue_pages
 from . import fragment as fragment_page
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
 from . import tiles as tiles_api
-from .station import EXTENSION, Station, StationLink, build_bench
+from .station import EXTENSION, FeedFollower, Station, StationLink, build_bench
 
 __all__ = ["DEFAULTS", "BLUEPRINTS", "WebConfigError", "web_settings", "station_token", "create_app", "serve",
            "StationLink", "build_bench", "ReviewViews"]
@@ -66,6 +67,8 @@ DEFAULTS: dict[str, Any] = {
     "operator": "",             # name recorded with verdicts when the browser sends none
     "long_poll_s": 3.0,         # how long a page's live request waits for a change
     "picture_px": 640,          # longest side of the review pictures
+    "catalogue_db": "",         # the catalogue's index; default <storage root>/web/catalogue.sqlite (rebuildable)
+    "feed_interval_s": 1.0,     # how often the catalogue asks the broker for new events
 }
 
 
@@ -92,6 +95,8 @@ def web_settings(cfg: Mapping) -> dict:
         raise WebConfigError(f"services.web.token: must be at least {MIN_TOKEN_CHARS} characters")
     if out["long_poll_s"] <= 0 or out["picture_px"] < 64:
         raise WebConfigError("services.web.long_poll_s must be positive and services.web.picture_px >= 64")
+    if out["feed_interval_s"] <= 0:
+        raise WebConfigError("services.web.feed_interval_s must be positive")
     return out
 
 
@@ -108,15 +113,16 @@ def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
 # the application
 # --------------------------------------------------------------------------------------------
 #: every page/API area of the app, registered in this order by :func:`create_app`
-BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, tiles_api.bp, fragment_page.bp,
-              reconstruction_page.bp)
+BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, catalogue_pages.bp, tiles_api.bp,
+              fragment_page.bp, reconstruction_page.bp)
 
 #: picture views of a proposal offered by the review page
 ReviewViews = review_pages.VIEWS
 
 
 def create_app(*, token: str, settings: Mapping | None = None, store_root: str | os.PathLike,
-               bench: BenchSession | None = None, link: StationLink | None = None, review=None) -> Flask:
+               bench: BenchSession | None = None, link: StationLink | None = None, review=None, catalogue=None,
+               feed: FeedFollower | None = None) -> Flask:
     """The Flask application.
 
     Parameters
@@ -133,6 +139,10 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
         The broker (status, re-run, submitting verdicts) and the bench's outbox.
     review : common.web.review.ReviewData, optional
         Proposals, verdict history and pictures.
+    catalogue : common.web.catalogue.Catalogue, optional
+        The archive's index (``/fragments``); without it the catalogue answers 503.
+    feed : FeedFollower, optional
+        The event feed the catalogue follows (polled at once after an edit).
     """
     if not token or len(token) < MIN_TOKEN_CHARS:
         raise ValueError(f"token must be at least {MIN_TOKEN_CHARS} characters")
@@ -144,7 +154,7 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
                       SESSION_COOKIE_NAME="tessera_session", MAX_CONTENT_LENGTH=64 * 1024,
                       PERMANENT_SESSION_LIFETIME=12 * 3600)
     app.extensions[EXTENSION] = Station(token=token, settings=settings, store_root=Path(store_root), bench=bench,
-                                        link=link, review=review,
+                                        link=link, review=review, catalogue=catalogue, feed=feed,
                                         tiles=TileCache(Store(store_root, create=False)))
     for bp in BLUEPRINTS:
         app.register_blueprint(bp)
@@ -181,6 +191,49 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
 # --------------------------------------------------------------------------------------------
 # running it
 # --------------------------------------------------------------------------------------------
+def catalogue_path(cfg: Mapping, settings: Mapping) -> Path:
+    """Where the catalogue's index is kept (``[services.web] catalogue_db``)."""
+    return Path(settings["catalogue_db"] or Path(cfg["storage"]["root"]) / "web" / "catalogue.sqlite")
+
+
+def open_catalogue(cfg: Mapping, settings: Mapping, link: StationLink, review=None):
+    """The catalogue and the feed follower that keeps it current (started in the background).
+
+    On the first round, and whenever the feed cannot be followed without a hole, the catalogue
+    is rebuilt from storage; if the broker cannot be reached at start and the index is empty, it
+    is built from storage at once so the page is not empty meanwhile.
+    """
+    from common.web.catalogue import FRAGMENT_EVENTS, JOIN_EVENTS, Catalogue
+
+    from .bench import failures_by_fragment
+
+    catalogue = Catalogue(catalogue_path(cfg, settings), link.storage,
+                          proposals=getattr(review, "db_path", None))
+
+    def rebuild(stream: str, last: int) -> int:
+        n = catalogue.rebuild(failed=failures_by_fragment(link))
+        log.info("catalogue: %d fragments indexed from storage (feed %s:%d)", n, stream, last)
+        return last
+
+    feed = FeedFollower(link, start=catalogue.position(), interval_s=float(settings["feed_interval_s"]),
+                        on_gap=rebuild)
+    feed.subscribe(FRAGMENT_EVENTS + JOIN_EVENTS,
+                   lambda event, seq: catalogue.apply(event, seq, failed=failures_by_fragment(link)),
+                   position=catalogue.set_position)
+
+    def first_round():
+        try:
+            feed.poll()
+        except Exception as exc:
+            log.warning("catalogue: the broker cannot be reached (%s); indexing storage meanwhile", exc)
+            if catalogue.counts()["total"] == 0:
+                rebuild("", 0)
+        feed.start()
+
+    threading.Thread(target=first_round, name="catalogue-start", daemon=True).start()
+    return catalogue, feed
+
+
 def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, with_scanner: bool = True,
           ready: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> int:
     """Run the web server until ``stop`` is set (or SIGINT/SIGTERM); returns an exit status."""
@@ -203,8 +256,9 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
                       type(exc).__name__, exc)
     if bench is not None:
         link.start_drain()
+    catalogue, feed = open_catalogue(cfg, settings, link, review)
     app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
-                     review=review)
+                     review=review, catalogue=catalogue, feed=feed)
     if not log.isEnabledFor(logging.DEBUG):   # one line per poll of every open page is noise
         logging.getLogger("werkzeug").setLevel(logging.WARNING)
     server = make_server(host, port, app, threaded=True)
@@ -225,6 +279,7 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
         pass
     finally:
         server.shutdown()
+        feed.close()
         link.close()
         if bench is not None:
             bench.cancel()

@@ -39,6 +39,12 @@ class Station:
     review: Any = None                      # common.web.review.ReviewData
     #: tile pyramids of the faces (common.web.tiles.TileCache over the storage root)
     tiles: Any = None
+    #: the archive's catalogue index (common.web.catalogue.Catalogue) or None
+    catalogue: Any = None
+    #: the broker's event feed, followed in the background (:class:`FeedFollower`) or None
+    feed: "FeedFollower | None" = None
+    #: metadata edits sent from this app, shown until the feed brings them back
+    sent_edits: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))
     #: verdicts sent from this app, shown until the matcher records them
     sent_verdicts: collections.deque = dataclasses.field(default_factory=lambda: collections.deque(maxlen=200))
 
@@ -61,8 +67,105 @@ def requires(part: str, message: str) -> Callable:
 
 
 # --------------------------------------------------------------------------------------------
-# the station behind the pages: broker, outbox, scanner
+# the station behind the pages: broker, outbox, event feed, scanner
 # --------------------------------------------------------------------------------------------
+class FeedFollower:
+    """Follows the broker's event feed (``SINCE`` requests) and hands every event to subscribers.
+
+    One per app. :meth:`poll` asks for the events after the last one seen (at most ``batch``),
+    decodes them and calls each subscriber whose types match with ``(event, seq)``, in feed order.
+    A subscriber must be idempotent: after a restart the feed is replayed from ``start``.
+    ``on_gap(stream, last_seq)`` is called when the feed cannot be followed without a hole — the
+    broker's journal is new (another stream id) or no longer holds the events after the position —
+    and returns the sequence number to continue after (the catalogue rebuilds from storage there).
+    :meth:`start` runs :meth:`poll` every ``interval_s`` in a daemon thread; the broker being away
+    only delays it.
+    """
+
+    def __init__(self, link: "StationLink", *, start: tuple[str, int] = ("", 0), interval_s: float = 1.0,
+                 batch: int = 1000, on_gap: Callable[[str, int], int] | None = None):
+        self.link = link
+        self.stream, self.seq = start
+        self.interval_s = float(interval_s)
+        self.batch = int(batch)
+        self.on_gap = on_gap
+        self._subs: list[tuple[frozenset[str] | None, Callable[[dict, int], None], Callable | None]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.error = ""
+
+    def subscribe(self, types, callback: Callable[[dict, int], None], *,
+                  position: Callable[[str, int], None] | None = None) -> None:
+        """Call ``callback(event, seq)`` for events of ``types`` (None: every event); ``position(stream,
+        seq)`` after each batch (to persist where the subscriber got to)."""
+        self._subs.append((frozenset(types) if types is not None else None, callback, position))
+
+    def poll(self) -> int:
+        """One round: fetch and dispatch the next events; return how many were dispatched."""
+        from common.messages import MessageError, unpack
+
+        with self._lock:
+            kinds = [t for t, _, _ in self._subs]
+            types = None if not kinds or None in kinds else sorted(frozenset().union(*kinds))
+            with self.link.client() as c:
+                answer = c.since(self.seq, limit=self.batch, types=types)
+            stream, first = str(answer.get("stream", "")), int(answer.get("first_seq") or 0)
+            last = int(answer.get("last_seq") or 0)
+            if stream != self.stream or (self.seq and first > self.seq + 1):
+                if self.stream or self.on_gap is not None:
+                    log.info("event feed: starting after %s:%d, broker stream %s holds %d..%d; catching up from "
+                             "storage", self.stream or "-", self.seq, stream, first, last)
+                self.seq = self.on_gap(stream, last) if self.on_gap is not None else last
+                self.stream = stream
+                self._positions()
+                return 0
+            n = 0
+            for seq, data in answer.get("events", []):
+                try:
+                    event = unpack(bytes(data))
+                except MessageError as exc:   # the broker validated it; a newer schema, perhaps
+                    log.warning("event feed: event %d not understood: %s", seq, exc)
+                    event = None
+                if event is not None:
+                    for kinds_, callback, _ in self._subs:
+                        if kinds_ is None or event["type"] in kinds_:
+                            try:
+                                callback(event, int(seq))
+                            except Exception:   # one bad event must not stop the feed
+                                log.exception("event feed: %s %s (seq %d) failed", event["type"], event["uid"], seq)
+                n += 1
+                self.seq = int(seq)
+            self.seq = max(self.seq, int(answer.get("scanned_to") or 0))
+            self._positions()
+            return n
+
+    def _positions(self) -> None:
+        for _, _, position in self._subs:
+            if position is not None:
+                position(self.stream, self.seq)
+
+    def start(self) -> None:
+        def loop():
+            while not self._stop.is_set():
+                try:
+                    more = self.poll() >= self.batch
+                    self.error = ""
+                except Exception as exc:   # the broker is away: try again later
+                    self.error = str(exc)
+                    more = False
+                if not more:
+                    self._stop.wait(self.interval_s)
+
+        self._thread = threading.Thread(target=loop, name="event-feed", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(10)
+
+
 class StationLink:
     """The broker as the pages need it, plus the bench's durable outbox.
 

@@ -56,7 +56,7 @@ def test_every_write_endpoint_refuses_requests_without_the_token(counting_app):
     rules = _write_rules(app)
     # the pages write through exactly these endpoints; a new one must be added here consciously
     assert rules == ["/api/bench/cancel", "/api/bench/empty-glass", "/api/bench/prescan", "/api/bench/proceed", "/api/bench/scan",
-                     "/api/review/verdict", "/api/status/rerun"]
+                     "/api/catalogue/<fid>/metadata", "/api/review/verdict", "/api/status/rerun"]
     c = app.test_client()
     body = {"fragment": "F1", "step": 1, "proposal": 1, "verdict": "confirmed", "job": "all"}
     for rule in rules:

@@ -1,0 +1,201 @@
+"""Tests of the catalogue: common/web/catalogue.py and the /fragments API (services/web/catalogue.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from common.matching.proposals import Proposal, ProposalStore
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.rgbn.io import srgb_to_linear
+from common.store import Store
+from common.web import catalogue as cat
+from common.web.catalogue import Catalogue
+
+from .conftest import TOKEN
+
+BEARER = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _rgba(rgb, n=4):
+    px = np.zeros((n, n, 4), np.uint8)
+    px[..., :3] = rgb
+    px[..., 3] = 255
+    return px
+
+
+@pytest.mark.parametrize("rgb, family", [
+    ((250, 250, 245), "white"), ((128, 128, 130), "grey"), ((20, 15, 10), "black"), ((200, 30, 30), "red"),
+    ((190, 110, 40), "orange"), ((220, 200, 40), "yellow"), ((40, 160, 60), "green"), ((40, 70, 200), "blue"),
+    ((140, 50, 170), "purple")])
+def test_colour_family_of_plain_colours(rgb, family):
+    assert cat.colour_family(_rgba(rgb)) == family
+
+
+def test_colour_family_is_the_most_frequent_and_ignores_pixels_off_the_fragment():
+    px = _rgba((40, 70, 200), 10)
+    px[:4, :, :3] = (200, 30, 30)          # 40 red, 60 blue
+    px[5:, :, 3] = 0                        # ... but the lower half is off the fragment: 40 red, 10 blue
+    assert cat.colour_family(px) == "red"
+    px[..., 3] = 0
+    assert cat.colour_family(px) == ""
+    with pytest.raises(ValueError, match="rgba must be"):
+        cat.colour_family(np.zeros((4, 4, 3), np.uint8))
+
+
+def test_pipeline_state_is_the_last_stage_reached_without_a_gap():
+    assert cat.pipeline_state({"scanned": "done", "normals": "done", "features": "waiting"}) == "normals"
+    assert cat.pipeline_state({"scanned": "waiting", "normals": "done", "features": "done"}) == "features"  # imported
+    assert cat.pipeline_state({"scanned": "done", "normals": "failed"}) == "failed"
+    assert cat.pipeline_state({"scanned": "waiting"}) == "waiting"
+
+
+def test_changes_are_checked():
+    assert cat.check_changes({"notes": "  x "}) == {"notes": "x"}
+    for bad, phrase in (({}, "non-empty"), ({"colour": "red"}, "unknown field 'colour'"),
+                        ({"notes": 3}, "must be text"), ({"notes": "x" * 2001}, "at most 2000")):
+        with pytest.raises(ValueError, match=phrase):
+            cat.check_changes(bad)
+
+
+def _fragment(store, fid, rgb, metadata=None, size=(40, 50), face="front"):
+    lin = srgb_to_linear(np.array(rgb, np.float32) / 255.0)
+    albedo = np.broadcast_to(lin, size + (3,)).copy()
+    attrs = {"metadata": json.dumps(metadata)} if metadata else {}
+    rel = f"fragments/{fid}/rgbn/{face}-{abs(hash((fid, face))) % 10 ** 16:016d}.h5"
+    save_rgbn(store, rel, RGBNImage(albedo, np.ones(size, bool), 100.0, normals=None, attrs=attrs))
+    return rel
+
+
+@pytest.fixture
+def collection(tmp_path):
+    store = Store(tmp_path / "storage")
+    _fragment(store, "F001", (200, 30, 30), {"inventory": "INV-1", "find_spot": "Room 3", "context": "US 12",
+                                             "date": "1st c. AD", "notes": "red band", "source_file": "a.png"})
+    _fragment(store, "F002", (40, 70, 200), {"inventory": "INV-2", "find_spot": "Room 4"})
+    _fragment(store, "F003", (40, 70, 200))
+    (store.root / "fragments/F004/scans").mkdir(parents=True)   # scanned, not solved yet
+    (store.root / "fragments/F004/scans/scans-1.h5").write_bytes(b"x")
+    db = tmp_path / "proposals.sqlite"
+    with ProposalStore(db) as ps:
+        ps.upsert([Proposal("F001", "F002", 0.9, "m"), Proposal("F002", "F003", 0.4, "m")])
+        ps.record_verdict("F001", "F002", "confirmed", by="test")
+    c = Catalogue(tmp_path / "catalogue.sqlite", store, proposals=db)
+    assert c.rebuild() == 4
+    return store, c, db
+
+
+def test_the_catalogue_is_built_from_storage_and_the_proposal_store(collection):
+    store, c, db = collection
+    rows = {r["id"]: r for r in c.query()["fragments"]}
+    assert list(rows) == ["F001", "F002", "F003", "F004"]
+    assert rows["F001"]["inventory"] == "INV-1" and rows["F001"]["date"] == "1st c. AD"
+    assert rows["F001"]["extra"] == {"source_file": "a.png"}
+    assert rows["F001"]["colour"] == "red" and rows["F002"]["colour"] == "blue"
+    assert rows["F001"]["state"] == "normals" and rows["F004"]["state"] == "scanned"
+    assert rows["F004"]["faces"] == {} and not rows["F004"]["has_thumb"]
+    assert (rows["F001"]["confirmed"], rows["F001"]["pending"]) == (1, 0)
+    assert (rows["F002"]["confirmed"], rows["F002"]["pending"]) == (1, 1) and rows["F003"]["pending"] == 1
+    assert rows["F001"]["faces"]["front"]["width"] == 50
+    thumb = c.thumbnail("F001")
+    assert thumb.startswith(b"\x89PNG")
+
+
+def test_search_filters_and_paging(collection):
+    store, c, db = collection
+    ids = lambda **kw: [r["id"] for r in c.query(**kw)["fragments"]]  # noqa: E731
+    assert ids(text="room") == ["F001", "F002"] and ids(text="US 12") == ["F001"]
+    assert ids(text="f00") == ["F001", "F002", "F003", "F004"] and ids(text="100%") == []
+    assert ids(colour="blue") == ["F002", "F003"]
+    assert ids(state="scanned") == ["F004"]
+    assert ids(joins="none") == ["F004"] and ids(joins="pending", colour="blue") == ["F002", "F003"]
+    assert ids(joins="confirmed") == ["F001", "F002"]
+    page = c.query(page=2, per_page=3)
+    assert page["total"] == 4 and [r["id"] for r in page["fragments"]] == ["F004"]
+    for kw, phrase in (({"state": "done"}, "state must be"), ({"colour": "teal"}, "colour must be"),
+                       ({"joins": "some"}, "joins must be"), ({"per_page": 0}, "per_page")):
+        with pytest.raises(ValueError, match=phrase):
+            c.query(**kw)
+
+
+def test_annotations_apply_in_order_are_kept_on_storage_and_survive_a_rebuild(collection, tmp_path):
+    from common.messages import new_message
+
+    store, c, db = collection
+    first = new_message("fragment.annotated", fragment="F002", changes={"find_spot": "Room 5", "notes": "n1"},
+                        by="ann", previous={"find_spot": "Room 4"})
+    second = new_message("fragment.annotated", fragment="F002", changes={"notes": "n2"}, by="bob")
+    assert c.apply(first, 7) == "annotated" and c.apply(second, 8) == "annotated"
+    assert c.apply(second, 8) == "annotated"                                  # replayed: no second entry
+    row = c.get("F002")
+    assert (row["find_spot"], row["notes"], row["inventory"]) == ("Room 5", "n2", "INV-2")
+    assert [h["by"] for h in row["history"]] == ["bob", "ann"]              # newest first
+    assert len(list((store.root / "fragments/F002/annotations").glob("*.json"))) == 2
+    assert c.apply(new_message("fragment.annotated", fragment="NOPE", changes={"notes": "x"}, by="a")) == "ignored"
+    # the index is a cache: a new one built from storage alone has the same values and history
+    fresh = Catalogue(tmp_path / "other.sqlite", store, proposals=db)
+    fresh.rebuild()
+    again = fresh.get("F002")
+    assert (again["find_spot"], again["notes"]) == ("Room 5", "n2")
+    assert [h["uid"] for h in again["history"]] == [h["uid"] for h in row["history"]]
+    assert c.query(text="room 5")["total"] == 1
+
+
+# -- the web API ---------------------------------------------------------------------------------
+
+def test_catalogue_api_lists_filters_and_serves_thumbnails(collection):
+    from services import web
+
+    store, c, db = collection
+    client = web.create_app(token=TOKEN, store_root=store.root, catalogue=c).test_client()
+    assert client.get("/fragments").status_code == 200
+    d = client.get("/api/catalogue?colour=blue&per_page=1").json
+    assert d["total"] == 2 and [f["id"] for f in d["fragments"]] == ["F002"] and d["counts"]["total"] == 4
+    assert client.get("/api/catalogue?state=nonsense").status_code == 400
+    assert client.get("/api/catalogue/F001").json["inventory"] == "INV-1"
+    assert client.get("/api/catalogue/F009").status_code == 404
+    r = client.get("/api/catalogue/F001/thumb.png")
+    assert r.status_code == 200 and r.headers["Content-Type"] == "image/png"
+    assert client.get("/api/catalogue/F004/thumb.png").status_code == 404
+    # writes need the token; without a broker the edit says it was not sent
+    assert client.post("/api/catalogue/F001/metadata", json={"changes": {"notes": "x"}}).status_code == 401
+    r = client.post("/api/catalogue/F001/metadata", json={"changes": {"notes": "x"}}, headers=BEARER)
+    assert r.status_code == 503 and "not sent" in r.json["error"]
+    r = client.post("/api/catalogue/F001/metadata", json={"changes": {"colour": "x"}}, headers=BEARER)
+    assert r.status_code == 400 and "unknown field" in r.json["error"]
+    assert web.create_app(token=TOKEN, store_root=store.root).test_client().get("/api/catalogue").status_code == 503
+
+
+def test_an_edit_goes_through_the_bus_and_comes_back_from_the_feed(station_config, broker, tmp_path):
+    from common.bus.client import BrokerClient
+    from common.messages import unpack
+    from services import web
+    from services.web.station import FeedFollower
+
+    store = Store(station_config["storage"]["root"])
+    _fragment(store, "F010", (220, 200, 40), {"inventory": "INV-10", "notes": "old"})
+    link = web.StationLink(station_config)
+    c = Catalogue(tmp_path / "cat.sqlite", store)
+    rebuilt = []
+    feed = FeedFollower(link, start=c.position(), on_gap=lambda s, last: rebuilt.append(c.rebuild()) or last)
+    feed.subscribe(cat.FRAGMENT_EVENTS + cat.JOIN_EVENTS, c.apply, position=c.set_position)
+    feed.poll()                                   # first round: no position yet, so built from storage
+    assert rebuilt == [1] and c.get("F010")["notes"] == "old"
+    app = web.create_app(token=TOKEN, store_root=store.root, link=link, catalogue=c, feed=feed)
+    client = app.test_client()
+    r = client.post("/api/catalogue/F010/metadata", json={"changes": {"notes": "new", "inventory": "INV-10"}},
+                    headers=BEARER)
+    assert r.status_code == 200 and r.json["sent"]["delivered"] is True
+    assert r.json["sent"]["changes"] == {"notes": "new"}          # unchanged fields are not sent
+    with BrokerClient.from_config(station_config) as bus:
+        events = [unpack(bytes(b)) for _, b in bus.since(0)["events"]]
+    ann = [e for e in events if e["type"] == "fragment.annotated"]
+    assert len(ann) == 1 and ann[0]["by"] == "web" and ann[0]["previous"] == {"notes": "old"}
+    row = client.get("/api/catalogue/F010").json                  # the edit polled the feed: applied
+    assert row["notes"] == "new" and row["history"][0]["uid"] == ann[0]["uid"] and row["sent"] == []
+    assert c.position()[1] >= 1
+    assert client.post("/api/catalogue/F010/metadata", json={"changes": {"notes": "new"}},
+                       headers=BEARER).json["error"] == "nothing changed"
+    link.close()
