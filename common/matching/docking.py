@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import fft as _fft
+from scipy.ndimage import maximum_filter
 
 #: defaults, measured on real fresco cracks (see module docstring and docs/matching.md)
 DOCK_CELL_MM = 1.5
@@ -171,7 +172,8 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
                   gap_mm: float = DOCK_GAP_MM, taper_mm: float = DOCK_TAPER_MM, step_deg: float = DOCK_STEP_DEG,
                   overlap_weight: float = DOCK_OVERLAP_WEIGHT, near_weight: float = DOCK_NEAR_WEIGHT,
                   paint_a: np.ndarray | None = None, paint_b: np.ndarray | None = None,
-                  paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3) -> list[Docking]:
+                  paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3, per_angle: int = 1,
+                  min_shift_mm: float = 6.0) -> list[Docking]:
     """Dock fragment B against fragment A over every rotation and translation, tolerating lost material.
 
     Parameters
@@ -204,7 +206,16 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         Weight of the paint term (per cell of overlapping band, deviations in units of
         :data:`PAINT_SCALE`).
     n_poses : int
-        Distinct poses returned, best first (one per rotation, at least ``2 * step_deg`` apart).
+        Distinct poses returned, best first: at least ``2 * step_deg`` apart in angle, or, with
+        ``per_angle`` > 1, at least ``min_shift_mm`` apart in translation (at B's centre).
+    per_angle : int
+        Local maxima of the correlation kept per rotation (1: its best translation only). More give
+        the candidate poses a finer score can re-rank (e.g. paint continuity across the gap, or
+        loops of poses that must agree): on RePAIR the true pose is the best pose of a true pair
+        for 3 of 21, among the best 100 candidates (10 per rotation) for 13 (docs/matching.md).
+    min_shift_mm : float
+        With ``per_angle`` > 1: two poses within ``2 * step_deg`` are distinct when B's centre
+        lies this far apart (local maxima closer than this within one rotation are merged).
 
     Returns
     -------
@@ -236,8 +247,10 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         raise ValueError(f"gap_mm and taper_mm must be >= 0, got {gap_mm}, {taper_mm}")
     if not 0 < step_deg <= 90:
         raise ValueError(f"step_deg must be in (0, 90], got {step_deg}")
-    if n_poses < 1:
-        raise ValueError(f"n_poses must be >= 1, got {n_poses}")
+    if n_poses < 1 or per_angle < 1:
+        raise ValueError(f"n_poses and per_angle must be >= 1, got {n_poses}, {per_angle}")
+    if not min_shift_mm >= 0:
+        raise ValueError(f"min_shift_mm must be >= 0, got {min_shift_mm}")
     gap_c, taper_c = gap_mm / cell_mm, taper_mm / cell_mm
     margin = int(np.ceil(gap_c + taper_c)) + 2
     mask_a, origin_a = _raster(a, cell_mm, margin)
@@ -279,7 +292,16 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
             sq = fa[3 + n_c] * fb[3 + n_c] + fa[4 + n_c] * fb[4 + n_c]
             spec = spec + paint_weight * (cross - 0.25 * sq)
         corr = _fft.irfft2(spec, shape, workers=1)
-        i = int(np.argmax(corr))
+        if per_angle == 1:
+            peaks = [int(np.argmax(corr))]
+        else:  # local maxima at least min_shift_mm apart, best first
+            radius = max(1, int(round(min_shift_mm / cell_mm)))
+            top = (corr == maximum_filter(corr, size=2 * radius + 1, mode="wrap")) & (corr > 0)
+            idx = np.flatnonzero(top)
+            peaks = [int(i) for i in idx[np.argsort(-corr.flat[idx])][:per_angle]] or [int(np.argmax(corr))]
+        return [pose_at(angle, corr, i, origin_b, full_b) for i in peaks]
+
+    def pose_at(angle, corr, i, origin_b, full_b):
         sy, sx = np.unravel_index(i, shape)
         sy = sy - shape[0] if sy > shape[0] // 2 else sy
         sx = sx - shape[1] if sx > shape[1] // 2 else sx
@@ -297,16 +319,21 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         contact = (score + overlap_weight * overlap / cell_mm ** 2) * cell_mm / 2
         return Docking(float(angle), float(t[0]), float(t[1]), score, float(contact), overlap)
 
-    found = [at(angle) for angle in np.arange(0.0, 360.0, step_deg)]
+    found = [d for angle in np.arange(0.0, 360.0, step_deg) for d in at(angle)]
     found.sort(key=lambda d: -d.score)
     best = found[0]
     for angle in (best.angle_deg - step_deg / 3, best.angle_deg + step_deg / 3):
-        d = at(angle % 360.0)
+        d = at(angle % 360.0)[0]
         if d.score > found[0].score:
             found[0] = d
+
+    def centre(d):
+        return _rotation(d.angle_deg) @ centre_b + (d.tx_mm, d.ty_mm)
+
     distinct: list[Docking] = []
     for d in found:
-        if all(abs((d.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 for e in distinct):
+        if all(abs((d.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 or
+               (per_angle > 1 and np.hypot(*(centre(d) - centre(e))) >= min_shift_mm) for e in distinct):
             distinct.append(d)
         if len(distinct) >= n_poses:
             break

@@ -106,3 +106,23 @@ def test_score_at_a_pose_matches_the_search_at_its_best_pose():
     # the pieces in place (identity pose) score near the best; far apart they score nothing
     assert docking_score_at(a, b, (0.0, 0.0, 0.0)) > 0.6 * best.score
     assert docking_score_at(a, b, (0.0, 500.0, 0.0)) == 0.0
+
+
+def test_candidate_poses_hold_the_best_pose_and_several_per_rotation():
+    a, b = _broken_slab(5, gap_mm=3.0)
+    moved = _move(b, 63.0, (80.0, 10.0))
+    one = dock_outlines(a, moved, n_poses=1)[0]
+    cands = dock_outlines(a, moved, n_poses=40, per_angle=5, min_shift_mm=6.0)
+    assert cands[0] == one                      # the best candidate is the single best pose
+    assert [d.score for d in cands] == sorted((d.score for d in cands), reverse=True)
+    angles = [round(d.angle_deg, 3) for d in cands]
+    assert len(cands) == 40 and len(set(angles)) < 40  # some rotations give more than one candidate
+    centre = moved.mean(axis=0)
+    for i, d in enumerate(cands):                # distinct: other angle, or B's centre >= 6 mm away
+        for e in cands[:i]:
+            da = abs((d.angle_deg - e.angle_deg + 180) % 360 - 180)
+            ca = _move(centre[None], d.angle_deg, (d.tx_mm, d.ty_mm))[0]
+            cb = _move(centre[None], e.angle_deg, (e.tx_mm, e.ty_mm))[0]
+            assert da >= 8.0 - 1e-6 or np.hypot(*(ca - cb)) >= 6.0 - 1e-6
+    with pytest.raises(ValueError, match="per_angle"):
+        dock_outlines(a, moved, per_angle=0)
