@@ -20,7 +20,10 @@ tmpfs mount of its own),
 * remounts the storage read-only for ``--ro-s`` seconds (at 30 %),
 * sends a forged ``RESULT`` for a queued solver job from a peer that never registered (at 50 %),
 * floods the broker with ``--garbage`` malformed frames from four sockets (at 70 %),
-* probes STATUS every 0.5 s throughout and times each answer.
+* probes STATUS every 0.5 s throughout from a process of its own (a new connection each time, as
+  ``tessera status``) and times each answer, keeping the broker's own account of its poll loop
+  (STATUS ``loop``: CPU, waiting for a CPU, GC) and the prober's wait for a CPU, so a late answer
+  is put down to the broker or to the machine.
 
 At the end (jobs parked after repeated kills are re-run once, as an operator would; after the
 workers stop, the temporary-file sweep of ``tessera reconcile`` runs and its removals are printed)
@@ -76,14 +79,53 @@ def _captured(source: Path, root: Path, n: int) -> list[dict]:
             for p in scans]
 
 
-def _schedstat_ms() -> tuple[float, float]:
-    """The calling thread's CPU time and run-queue wait so far (ms), from /proc (zeros elsewhere)."""
+_PROBER = r"""
+import json, os, sys, time
+from common.bus.client import BrokerClient
+from common.config import load_config
+
+def waited_ms():  # run-queue wait of every thread of this process so far (ZeroMQ's I/O thread too)
+    total = 0
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/schedstat") as fh:
+                total += int(fh.read().split()[1])
+        except (OSError, ValueError, IndexError):
+            pass
+    return total / 1e6
+
+config, out = load_config(sys.argv[1]), open(sys.argv[2], "a", buffering=1)
+while True:
+    time.sleep(0.5)
+    q0, t0, t = waited_ms(), time.time(), time.monotonic()
     try:
-        with open("/proc/thread-self/schedstat") as fh:
-            run, wait = fh.read().split()[:2]
-        return int(run) / 1e6, int(wait) / 1e6
-    except (OSError, ValueError):
-        return 0.0, 0.0
+        with BrokerClient.from_config(config, timeout_s=2.0, retries=1) as c:  # a new connection, as `tessera status`
+            loop = c.status().get("loop")
+        ms = (time.monotonic() - t) * 1000
+    except Exception:  # no answer within 2 s
+        loop, ms = None, None
+    out.write(json.dumps([t0, ms, loop, waited_ms() - q0]) + "\n")
+"""
+
+
+def _start_prober(config_path: Path, out: Path) -> subprocess.Popen:
+    """STATUS asked every 0.5 s from a process of its own (in a thread of the soak it would wait for
+    this process's GIL); each line: time, answer ms (None: none within 2 s), the broker's STATUS
+    ``loop`` account, and the prober's own wait for a CPU during the ask (ms)."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    return subprocess.Popen([sys.executable, "-c", _PROBER, str(config_path), str(out)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _read_probes(path: Path, t0: float, restarts: list[tuple[float, float]]) -> list[tuple]:
+    """(station time, ms, broker restarting, loop, prober run-queue ms) of every probe."""
+    import json
+    probes = []
+    for line in path.read_text().splitlines() if path.exists() else []:
+        t, ms, loop, waited = json.loads(line)
+        # a probe sent up to its 2-s timeout before the broker was killed cannot be answered either
+        probes.append((t - t0, ms, any(a - 2.5 <= t <= b for a, b in restarts), loop, waited))
+    return probes
 
 
 def _storage_on_tmpfs(storage: Path, headroom_mb: int) -> bool:
@@ -222,10 +264,15 @@ def main(argv=None) -> int:
     mounted = not args.no_attacks and _storage_on_tmpfs(storage, headroom_mb=2048)
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
     attacks = {"forged": None, "flood_s": None}
-    probes: list[tuple] = []   # (time, STATUS answer ms or None, broker restarting, STATUS loop, prober run-queue ms)
-    restarting = threading.Event()
+    # broker start and restart windows (wall clock): start-up (imports, journal replay) is not "serving"
+    restarts: list[list[float]] = []
     t0 = time.time()  # the station's clock: capture (serial, simulated) is not station time
+    restarts.append([t0, float("inf")])
     broker = st.spawn("broker")
+    with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1000) as c0:
+        c0.status()
+    restarts[-1][1] = time.time()
+    prober = _start_prober(st.config_path, base / "probes.jsonl")
     workers: dict[tuple[int, str], object] = {}
     for s in (0, 1):
         for stage in STAGES:
@@ -234,21 +281,6 @@ def main(argv=None) -> int:
     faults = collections.Counter()
     stop = threading.Event()
     lock = threading.Lock()
-
-    def probe():
-        # as `tessera status` does: a new connection per ask; with the broker's own account of its
-        # poll loop (STATUS "loop") and this thread's wait for a CPU, so a late answer can be put
-        # down to the broker or to the machine
-        while not stop.wait(0.5):
-            t = time.monotonic()
-            q0 = _schedstat_ms()[1]
-            try:
-                with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1) as pc:
-                    loop = pc.status().get("loop")
-                probes.append((time.time() - t0, (time.monotonic() - t) * 1000, restarting.is_set(), loop,
-                               _schedstat_ms()[1] - q0))
-            except Exception:  # noqa: BLE001 - no answer within 2 s
-                probes.append((time.time() - t0, None, restarting.is_set(), None, _schedstat_ms()[1] - q0))
 
     def attack(progress: float, done: set) -> None:
         """The issue-19 faults, each once, in the chaos thread."""
@@ -316,13 +348,13 @@ def main(argv=None) -> int:
                     rss[f"{stage}"].append(_rss_mb(p.pid))
                 progress = sent[0] / len(events)
                 if not broker_done and progress >= 0.4:
-                    restarting.set()
+                    restarts.append([time.time(), float("inf")])
                     broker.send_signal(signal.SIGKILL)
                     broker.wait()
                     time.sleep(1.0)
                     broker = st.spawn("broker")
                     broker_done = True
-                    threading.Timer(10.0, restarting.clear).start()  # start-up (journal replay) is not "serving"
+                    restarts[-1][1] = time.time() + 10.0  # start-up (journal replay) is not "serving"
                     faults["broker restarts"] += 1
                     print(f"  [{time.time() - t0:6.0f} s] broker killed and restarted", flush=True)
                 elif not cut_done and progress >= 0.6:
@@ -346,8 +378,6 @@ def main(argv=None) -> int:
     sent = [0]
     chaos_thread = threading.Thread(target=chaos, daemon=True)
     chaos_thread.start()
-    probe_thread = threading.Thread(target=probe, daemon=True)
-    probe_thread.start()
     ok = True
     try:
         with BrokerClient.from_config(st.config, timeout_s=5.0, retries=20) as c:
@@ -395,7 +425,8 @@ def main(argv=None) -> int:
     finally:
         stop.set()
         chaos_thread.join(120)
-        probe_thread.join(10)
+        prober.terminate()
+        prober.wait(10)
         for p in workers.values():
             try:
                 p.send_signal(signal.SIGCONT)
@@ -410,6 +441,7 @@ def main(argv=None) -> int:
           f"of writers killed mid-write removed{': ' + ', '.join(swept[:5]) if swept else ''}", flush=True)
     ok &= _check(st, events, evs, parked_end, rss, faults, wall_s)
     if not args.no_attacks:
+        probes = _read_probes(base / "probes.jsonl", t0, [(a, b) for a, b in restarts])
         ok &= _check_attacks(evs, seqs, first_seq, end_status, probes, attacks)
     if mounted:
         subprocess.run(["umount", "-l", str(storage)], check=False)
@@ -440,6 +472,14 @@ def _check_attacks(evs, seqs, first_seq, status, probes, attacks) -> bool:
               f"{' ...' if len(late) > 40 else ''}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for line in _explain_late(probes)[:40]:
         print(line)
+    late_p = [p for p in probes if not p[2] and p[1] is not None and p[1] > 100]
+    broker_slow = sum(1 for p in late_p if p[3] and (p[3].get("worst_ms") or {}).get("stall", 0) > 100)
+    broker_cpu = sum(1 for p in late_p if p[3] and (p[3].get("worst_ms") or {}).get("cpu", 0) > 50)
+    prober = sum(1 for p in late_p if p[1] - p[4] <= 100)
+    if late_p:
+        print(f"  of the {len(late_p)} late answers: the broker's worst poll-loop iteration of the last 10 s was over "
+              f"100 ms for {broker_slow} (over 50 ms of its own CPU: {broker_cpu}); the prober's own wait for a CPU "
+              f"covers the excess over 100 ms for {prober}")
     loop = status.get("loop") or {}
     if loop:
         print(f"  broker poll loop since its restart (nice {status.get('nice')}): {loop['iterations']} iterations, "
