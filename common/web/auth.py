@@ -52,8 +52,23 @@ def load_or_create_token(path: str | os.PathLike) -> str:
             raise ValueError(f"token file {path} holds a token shorter than {MIN_TOKEN_CHARS} characters; "
                              "delete it to generate a new one")
         return token
-    path.parent.mkdir(parents=True, exist_ok=True)
     token = generate_token()
+    if not save_token(path, token):  # another process created it first: keep theirs
+        return load_or_create_token(path)
+    return token
+
+
+def save_token(path: str | os.PathLike, token: str) -> bool:
+    """Write ``token`` to ``path`` (mode 0600, fsynced) unless the file exists; True if written.
+
+    Parameters
+    ----------
+    path : path
+        Token file; its directory is created (mode 0700) if missing.
+    token : str
+    """
+    path = Path(path)
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as fh:
@@ -61,12 +76,12 @@ def load_or_create_token(path: str | os.PathLike) -> str:
         fh.flush()
         os.fsync(fh.fileno())
     try:
-        os.link(tmp, path)  # fails if another process created it first: keep theirs
+        os.link(tmp, path)  # fails if another process created it first
     except FileExistsError:
+        return False
+    finally:
         os.unlink(tmp)
-        return load_or_create_token(path)
-    os.unlink(tmp)
-    return token
+    return True
 
 
 def token_matches(given: str | bytes | None, expected: str) -> bool:

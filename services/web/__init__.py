@@ -32,7 +32,7 @@ from typing import Any, Callable, Mapping
 
 from flask import Flask, jsonify, redirect, request, session, url_for
 
-from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, session_secret
+from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, save_token, session_secret
 
 from common.store import Store
 from common.web.bench import BenchSession
@@ -42,13 +42,14 @@ from . import auth as auth_pages
 from . import bench as bench_pages
 from . import catalogue as catalogue_pages
 from . import fragment as fragment_page
+from . import iiif as iiif_api
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
 from . import tiles as tiles_api
 from .station import EXTENSION, FeedFollower, Station, StationLink, build_bench
 
-__all__ = ["DEFAULTS", "BLUEPRINTS", "WebConfigError", "web_settings", "station_token", "create_app", "serve",
+__all__ = ["DEFAULTS", "BLUEPRINTS", "WebConfigError", "web_settings", "station_token", "local_state_dir", "create_app", "serve",
            "StationLink", "build_bench", "ReviewViews"]
 
 SERVICE = "web"
@@ -63,7 +64,7 @@ DEFAULTS: dict[str, Any] = {
     "host": "127.0.0.1",        # "0.0.0.0" (or the lab interface's address) opens it to the lab network
     "port": 8080,
     "token": "",                # access token; empty: generated at first start into token_file
-    "token_file": "",           # default <storage root>/web/web_token  (keep it on local disk)
+    "token_file": "",           # default <local state dir>/web_token (local_state_dir(); never the shared storage)
     "operator": "",             # name recorded with verdicts when the browser sends none
     "long_poll_s": 3.0,         # how long a page's live request waits for a change
     "picture_px": 640,          # longest side of the review pictures
@@ -100,11 +101,39 @@ def web_settings(cfg: Mapping) -> dict:
     return out
 
 
+def local_state_dir() -> Path:
+    """This host's directory for Tessera's local state (the web token), never the shared storage.
+
+    ``$STATE_DIRECTORY`` when systemd gives one (``StateDirectory=tessera``), else
+    ``/var/lib/tessera`` for root, else ``$XDG_STATE_HOME/tessera`` (default
+    ``~/.local/state/tessera``), per the XDG base-directory specification.
+    """
+    if os.environ.get("STATE_DIRECTORY"):
+        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+    if os.geteuid() == 0:
+        return Path("/var/lib/tessera")
+    return Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "tessera"
+
+
 def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
-    """The access token and the file it was read from / generated into (None if from config)."""
+    """The access token and the file it was read from / generated into (None if from config).
+
+    The default file is ``<local_state_dir()>/web_token`` (mode 0600). A token kept by an older
+    version at ``<storage root>/web/web_token`` (readable on the shared storage) is read once
+    when the local file is absent, written to the local file, and the log says so.
+    """
     if settings["token"]:
         return settings["token"], None
-    path = Path(settings["token_file"] or Path(cfg["storage"]["root"]) / "web" / "web_token")
+    if settings["token_file"]:
+        path = Path(settings["token_file"])
+        return load_or_create_token(path), path
+    path = local_state_dir() / "web_token"
+    old = Path(cfg["storage"]["root"]) / "web" / "web_token"
+    if not path.exists() and old.is_file():
+        token = load_or_create_token(old)  # refuses a truncated file, as for the new one
+        save_token(path, token)
+        log.warning("web token moved from the storage root (%s) to local disk (%s); delete the old copy: "
+                    "anyone who can read the storage can read it", old, path)
     return load_or_create_token(path), path
 
 
@@ -114,7 +143,7 @@ def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
 # --------------------------------------------------------------------------------------------
 #: every page/API area of the app, registered in this order by :func:`create_app`
 BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, catalogue_pages.bp, tiles_api.bp,
-              fragment_page.bp, reconstruction_page.bp)
+              iiif_api.bp, fragment_page.bp, reconstruction_page.bp)
 
 #: picture views of a proposal offered by the review page
 ReviewViews = review_pages.VIEWS

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import re
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -131,11 +133,47 @@ def test_listens_on_localhost_unless_config_opens_it():
         web.web_settings(load_config(None, {"services.web": {"token": "short"}}))
 
 
-def test_token_is_generated_at_first_start_and_kept(tmp_path):
+def test_token_is_generated_at_first_start_on_local_disk_and_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("STATE_DIRECTORY", str(tmp_path / "state"))   # as systemd's StateDirectory= sets it
     cfg = load_config(None, {"storage.root": str(tmp_path / "storage")})
     token, path = web.station_token(cfg, web.web_settings(cfg))
-    assert path == tmp_path / "storage" / "web" / "web_token" and len(token) >= 32
+    assert path == tmp_path / "state" / "web_token" and len(token) >= 32
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert not (tmp_path / "storage" / "web" / "web_token").exists()   # nothing on the shared storage
     assert web.station_token(cfg, web.web_settings(cfg))[0] == token
+
+
+def test_local_state_dir_follows_systemd_root_and_xdg(tmp_path, monkeypatch):
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    monkeypatch.setattr(os, "geteuid", lambda: 0)
+    assert web.local_state_dir() == Path("/var/lib/tessera")
+    monkeypatch.setattr(os, "geteuid", lambda: 1000)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    assert web.local_state_dir() == tmp_path / "xdg" / "tessera"
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert web.local_state_dir() == tmp_path / "home" / ".local" / "state" / "tessera"
+    monkeypatch.setenv("STATE_DIRECTORY", str(tmp_path / "unit"))
+    assert web.local_state_dir() == tmp_path / "unit"
+
+
+def test_a_token_on_the_storage_root_is_moved_to_local_disk_once(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv("STATE_DIRECTORY", str(tmp_path / "state"))
+    old = tmp_path / "storage" / "web" / "web_token"
+    old.parent.mkdir(parents=True)
+    old.write_text("an-old-station-token-of-enough-length\n")
+    cfg = load_config(None, {"storage.root": str(tmp_path / "storage")})
+    with caplog.at_level("WARNING", logger="tessera.web"):
+        token, path = web.station_token(cfg, web.web_settings(cfg))
+    assert token == "an-old-station-token-of-enough-length"       # the lab's scripts keep working
+    assert path == tmp_path / "state" / "web_token" and path.stat().st_mode & 0o777 == 0o600
+    assert "moved from the storage root" in caplog.text and str(old) in caplog.text
+    # read once: the local file is the token from now on, whatever happens to the old one
+    old.write_text("another-token-written-there-later\n")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="tessera.web"):
+        assert web.station_token(cfg, web.web_settings(cfg))[0] == token
+    assert "moved" not in caplog.text
 
 
 # -- bench on the simulated flatbed ---------------------------------------------------------------
