@@ -1,0 +1,162 @@
+"""Tests of IIIF: common/web/iiif.py (parsing, level choice) and the /iiif endpoints against the source pixels."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.rgbn.io import linear_to_srgb
+from common.store import Store
+from common.web import iiif
+
+from .conftest import TOKEN
+
+
+# -- parsing (IIIF Image API 3.0 §4) -------------------------------------------------------------
+
+@pytest.mark.parametrize("region, want", [
+    ("full", (0, 0, 400, 300)), ("square", (50, 0, 300, 300)), ("10,20,30,40", (10, 20, 30, 40)),
+    ("350,250,100,100", (350, 250, 50, 50)), ("pct:25,50,50,50", (100, 150, 200, 150))])
+def test_regions(region, want):
+    assert iiif.parse_region(region, 400, 300) == want
+
+
+@pytest.mark.parametrize("region", ["400,0,10,10", "0,0,0,10", "1.5,0,10,10", "left", "pct:1,2,3"])
+def test_bad_regions_are_400(region):
+    with pytest.raises(iiif.IIIFError) as e:
+        iiif.parse_region(region, 400, 300)
+    assert e.value.status == 400
+
+
+@pytest.mark.parametrize("size, want", [
+    ("max", (400, 300)), ("200,", (200, 150)), (",150", (200, 150)), ("200,100", (200, 100)),
+    ("!200,200", (200, 150)), ("pct:50", (200, 150)), ("^800,", (800, 600)), ("^max", (400, 300))])
+def test_sizes(size, want):
+    assert iiif.parse_size(size, 400, 300) == want
+
+
+def test_sizes_beyond_the_region_need_the_caret_and_max_is_limited_by_max_area():
+    with pytest.raises(iiif.IIIFError, match="upscale"):
+        iiif.parse_size("800,", 400, 300)
+    w, h = iiif.parse_size("max", 8000, 6000, max_area=1_000_000)
+    assert w * h <= 1_000_000 and abs(w / h - 8 / 6) < 0.01
+    with pytest.raises(iiif.IIIFError, match="more than"):
+        iiif.parse_size("^4000,", 400, 300, max_area=1_000_000)
+
+
+def test_requests_accept_rotation_0_default_or_color_and_jpg_or_png_only():
+    r = iiif.parse_request("full", "max", "0", "color.png", 40, 30)
+    assert (r.width, r.height, r.fmt) == (40, 30, "png")
+    for args, phrase in ((("90", "default.jpg"), "rotation"), (("0", "gray.jpg"), "quality"),
+                         (("0", "default.gif"), "format")):
+        with pytest.raises(iiif.IIIFError, match=phrase):
+            iiif.parse_request("full", "max", *args, 40, 30)
+
+
+def test_the_level_is_the_coarsest_with_enough_resolution():
+    req = lambda w, ow: iiif.ImageRequest(0, 0, w, w, ow, ow, "png")  # noqa: E731
+    assert iiif.pyramid_level_for(req(1024, 1024), 5) == 0
+    assert iiif.pyramid_level_for(req(1024, 512), 5) == 1
+    assert iiif.pyramid_level_for(req(1024, 300), 5) == 1     # 3.4x smaller: level 1 (2x), then resampled
+    assert iiif.pyramid_level_for(req(1024, 10), 5) == 4      # never past the top level
+    assert iiif.pyramid_level_for(req(100, 400), 5) == 0      # upscaling reads full resolution
+
+
+# -- the endpoints ---------------------------------------------------------------------------
+
+@pytest.fixture
+def station(tmp_path):
+    from services import web
+
+    store = Store(tmp_path)
+    h, w = 300, 520
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    albedo = np.stack([0.2 + 0.6 * xx / w, 0.2 + 0.6 * yy / h, 0.5 + 0.3 * np.sin(xx / 23.0)], axis=2)
+    normals = np.dstack([0.3 * np.sin(yy / 19.0), np.zeros_like(xx), np.ones_like(xx)])
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    meta = json.dumps({"inventory": "INV-77", "find_spot": "Room 2"})
+    save_rgbn(store, "fragments/F7/rgbn/front-00000000000000f7.h5",
+              RGBNImage(albedo, np.ones((h, w), bool), 254.0, normals=normals, attrs={"metadata": meta}))
+    save_rgbn(store, "fragments/F7/rgbn/back-00000000000000b7.h5", RGBNImage(albedo[:, ::-1], np.ones((h, w), bool), 254.0))
+    srgb = np.round(linear_to_srgb(albedo) * 255).astype(np.uint8)
+    return web.create_app(token=TOKEN, store_root=tmp_path).test_client(), srgb
+
+
+def _png(data):
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
+
+
+def test_info_json_describes_the_image_and_its_tiles(station):
+    c, srgb = station
+    r = c.get("/iiif/image/F7~front~albedo/info.json")
+    assert r.status_code == 200 and "application/ld+json" in r.headers["Content-Type"]
+    assert r.headers["Access-Control-Allow-Origin"] == "*"
+    info = json.loads(r.data)
+    assert info["@context"] == "http://iiif.io/api/image/3/context.json" and info["type"] == "ImageService3"
+    assert info["id"] == "http://localhost/iiif/image/F7~front~albedo" and info["profile"] == "level1"
+    assert (info["width"], info["height"]) == (520, 300)
+    assert info["tiles"] == [{"width": 256, "height": 256, "scaleFactors": [1, 2, 4]}]
+    assert info["sizes"][0] == {"width": 130, "height": 75} and info["sizes"][-1] == {"width": 520, "height": 300}
+    assert c.get("/iiif/image/F7~front~albedo").status_code == 303
+    assert c.get("/iiif/image/F7~side~albedo/info.json").status_code == 404
+    assert c.get("/iiif/image/F7~back~normals/info.json").status_code == 404   # colour-only face
+    assert c.get("/iiif/image/nonsense/info.json").status_code == 404
+
+
+def test_regions_at_full_size_are_the_source_pixels(station):
+    c, srgb = station
+    r = c.get("/iiif/image/F7~front~albedo/100,50,300,200/max/0/default.png")
+    assert r.status_code == 200 and r.headers["Content-Type"] == "image/png"
+    got = _png(r.data)
+    assert got.shape == (200, 300, 4)
+    assert np.abs(got[..., :3].astype(int) - srgb[50:250, 100:400]).max() <= 1 and (got[..., 3] == 255).all()
+    full = _png(c.get("/iiif/image/F7~front~albedo/full/max/0/color.png").data)
+    assert np.abs(full[..., :3].astype(int) - srgb).max() <= 1
+
+
+def test_sizes_are_area_averages_of_the_source(station):
+    c, srgb = station
+    # half size of an aligned region: the pyramid's level 1, an exact 2 x 2 average (in linear light)
+    got = _png(c.get("/iiif/image/F7~front~albedo/0,0,512,256/256,/0/default.png").data)
+    assert got.shape == (128, 256, 4)
+    want = cv2.resize(srgb[:256, :512], (256, 128), interpolation=cv2.INTER_AREA)
+    # averaging in linear light before the sRGB encoding differs from averaging sRGB codes by a little
+    assert np.abs(got[..., :3].astype(int) - want).mean() < 1.0 and np.abs(got[..., :3].astype(int) - want).max() <= 3
+    # any other size: resampled from the level above it
+    got = _png(c.get("/iiif/image/F7~front~albedo/full/!100,100/0/default.png").data)
+    assert got.shape == (58, 100, 4)
+    want = cv2.resize(srgb, (100, 58), interpolation=cv2.INTER_AREA)
+    assert np.abs(got[..., :3].astype(int) - want).mean() < 2.0
+    jpg = c.get("/iiif/image/F7~front~albedo/full/pct:25/0/default.jpg")
+    assert jpg.headers["Content-Type"] == "image/jpeg"
+    img = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg.data, np.uint8), 1), cv2.COLOR_BGR2RGB)
+    assert img.shape == (75, 130, 3)
+    assert np.abs(img.astype(int) - cv2.resize(srgb, (130, 75), interpolation=cv2.INTER_AREA)).mean() < 3.0
+    assert c.get("/iiif/image/F7~front~albedo/full/max/90/default.jpg").status_code == 400
+    assert c.get("/iiif/image/F7~front~albedo/full/1000,/0/default.jpg").status_code == 400
+
+
+def test_the_manifest_has_a_canvas_per_face_metadata_and_the_normal_map(station):
+    c, srgb = station
+    r = c.get("/iiif/presentation/F7/manifest")
+    assert r.status_code == 200 and r.headers["Access-Control-Allow-Origin"] == "*"
+    m = json.loads(r.data)
+    assert m["@context"] == "http://iiif.io/api/presentation/3/context.json" and m["type"] == "Manifest"
+    assert [cv["label"]["en"][0] for cv in m["items"]] == ["F7 back", "F7 front"]
+    front = m["items"][1]
+    assert (front["width"], front["height"]) == (520, 300)
+    body = front["items"][0]["items"][0]["body"]
+    assert body["service"][0]["id"] == "http://localhost/iiif/image/F7~front~albedo"
+    assert front["rendering"][0]["id"].endswith("F7~front~normals/full/max/0/default.png")
+    assert "rendering" not in m["items"][0]                      # the back face has no normals
+    assert front["service"][0]["physicalScale"] == pytest.approx(0.1)
+    labels = {e["label"]["en"][0]: e["value"]["none"][0] for e in m["metadata"]}
+    assert labels == {"Inventory": "INV-77", "Find-spot": "Room 2"}
+    # every image the manifest names can be fetched
+    for url in (body["id"], front["rendering"][0]["id"]):
+        assert c.get(url.replace("http://localhost", "")).status_code == 200
+    assert c.get("/iiif/presentation/F8/manifest").status_code == 404
