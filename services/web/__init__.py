@@ -42,7 +42,6 @@ from . import auth as auth_pages
 from . import bench as bench_pages
 from . import catalogue as catalogue_pages
 from . import fragment as fragment_page
-from . import iiif as iiif_api
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
@@ -143,7 +142,7 @@ def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
 # --------------------------------------------------------------------------------------------
 #: every page/API area of the app, registered in this order by :func:`create_app`
 BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, catalogue_pages.bp, tiles_api.bp,
-              iiif_api.bp, fragment_page.bp, reconstruction_page.bp)
+              fragment_page.bp, reconstruction_page.bp)
 
 #: picture views of a proposal offered by the review page
 ReviewViews = review_pages.VIEWS
