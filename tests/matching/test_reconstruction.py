@@ -1,0 +1,292 @@
+"""Pose graph of confirmed joins against a synthetic wall's ground truth (common/matching/reconstruction.py)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from common.matching.reconstruction import (Join, closure_loops, compose_cluster, confirmed_joins, find_clusters,
+                                            next_joins, reconstruct, reconstruction_document, relative_pose,
+                                            solve_pose_graph, write_composite)
+
+NOISE_MM, NOISE_DEG = 0.3, 0.3
+
+
+def _apply(pose, p):
+    a = math.radians(pose[0])
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return np.asarray(p, float) @ R.T + np.asarray(pose[1:], float)
+
+
+@pytest.fixture(scope="module")
+def wall150():
+    """150 delivered fragments (pose-only: no images), their centres and true joins with bounded noise."""
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(150, seed=3, dpi=20, keep_images=False, surfaces=False, colour_only=True)
+    byid = {f.id: f for f in wall.fragments}
+    centres = {f.id: tuple(f.contour_mm.mean(axis=0)) for f in wall.fragments}
+    return wall, byid, centres
+
+
+def _noisy_joins(wall, byid, centres, seed=0):
+    """True joins from the generator's poses; each turned by ≤ 0.3° about B's centre and shifted ≤ 0.3 mm per axis."""
+    rng = np.random.default_rng(seed)
+    joins = []
+    for a, b, _ in wall.adjacency:
+        z = relative_pose(byid[a].pose, byid[b].pose)
+        c = _apply(z, [centres[b]])[0]               # B's centre in A's frame
+        e = math.radians(rng.uniform(-NOISE_DEG, NOISE_DEG))
+        R = np.array([[math.cos(e), -math.sin(e)], [math.sin(e), math.cos(e)]])
+        t = R @ (np.array(z[1:]) - c) + c + rng.uniform(-NOISE_MM, NOISE_MM, 2)
+        joins.append(Join(a, b, z[0] + math.degrees(e), float(t[0]), float(t[1])))
+    return joins
+
+
+def _errors(cluster, byid, centres):
+    """Per piece: centre error (mm) and angle error (deg) after the best rigid fit of the cluster to the truth."""
+    root = byid[cluster.root]
+    truth = {f: relative_pose(root.pose, byid[f].pose) for f in cluster.fragments}
+    A = np.array([_apply(truth[f], [centres[f]])[0] for f in cluster.fragments])
+    B = np.array([_apply(cluster.poses[f], [centres[f]])[0] for f in cluster.fragments])
+    ma, mb = A.mean(axis=0), B.mean(axis=0)
+    U, _, Vt = np.linalg.svd((B - mb).T @ (A - ma))
+    R = (U @ Vt).T
+    if np.linalg.det(R) < 0:      # a reflection is no rigid motion of the wall
+        raise AssertionError("rigid fit found a reflection")
+    rot = math.degrees(math.atan2(R[1, 0], R[0, 0]))
+    mm = np.linalg.norm((B - mb) @ R.T + ma - A, axis=1)
+    deg = np.array([abs((cluster.poses[f][0] + rot - truth[f][0] + 180.0) % 360.0 - 180.0) for f in cluster.fragments])
+    return mm, deg
+
+
+def test_wall_of_150_true_joins_solves_every_piece_within_1mm_1deg(wall150):
+    wall, byid, centres = wall150
+    joins = _noisy_joins(wall, byid, centres)
+    clusters = solve_pose_graph(joins, centres_mm=centres)
+    placed = {f for c in clusters for f in c.fragments}
+    # every non-spurious fragment with a true neighbour is placed, in as many clusters as the truth has
+    assert placed == {f for a, b, _ in wall.adjacency for f in (a, b)}
+    assert [sorted(c.fragments) for c in clusters] == find_clusters(joins)
+    assert sum(len(c.fragments) for c in clusters) > 100
+    for c in clusters:
+        mm, deg = _errors(c, byid, centres)
+        assert mm.max() <= 1.0, (c.id, mm.max())
+        assert deg.max() <= 1.0, (c.id, deg.max())
+        # consistent joins: no loop is flagged, no join given up
+        assert c.loops and not c.conflicting_loops
+        assert not any(r["suspect"] for r in c.residuals.values())
+    # the solve improves on the spanning-tree initialisation it starts from
+    tree = solve_pose_graph(joins, centres_mm=centres, max_nfev=1)
+    assert _errors(tree[0], byid, centres)[0].max() > _errors(clusters[0], byid, centres)[0].max()
+
+
+def test_wrong_join_makes_a_conflicting_loop_and_is_given_up(wall150):
+    wall, byid, centres = wall150
+    joins = _noisy_joins(wall, byid, centres)
+    cluster = solve_pose_graph(joins, centres_mm=centres)[0]
+    members = cluster.fragments
+    # a wrong confirmed join: two pieces of the cluster that are not neighbours, at a plausible pose
+    # (a real neighbour's join pose reused)
+    a, b = next((x, y) for x in members for y in members if x < y and not wall.is_neighbour(x, y)
+                and not set(wall.neighbours(x)) & set(wall.neighbours(y)))
+    wrong = Join(a, b, joins[0].angle_deg, joins[0].tx_mm, joins[0].ty_mm)
+    loops = closure_loops(joins + [wrong], centres_mm=centres)
+    bad = [lp for lp in loops if lp.conflicting]
+    assert bad, "the wrong join closed no conflicting loop"
+    assert all((a, b) in lp.joins for lp in bad)           # every flagged loop runs through the wrong join
+    assert bad[0].residual_mm > 5 or bad[0].residual_deg > 5
+    solved = solve_pose_graph(joins + [wrong], centres_mm=centres)[0]
+    assert solved.residuals[(a, b)]["suspect"]
+    assert sum(r["suspect"] for r in solved.residuals.values()) <= 3
+    # the robust loss keeps the rest of the wall where it was
+    mm, deg = _errors(solved, byid, centres)
+    assert np.median(mm) < 0.5 and np.median(deg) < 0.5
+
+
+def test_true_join_with_wrong_angle_is_flagged(wall150):
+    wall, byid, centres = wall150
+    joins = _noisy_joins(wall, byid, centres)
+    loops = closure_loops(joins, centres_mm=centres)
+    in_loop = loops[0].joins[0]
+    k = next(i for i, j in enumerate(joins) if j.pair == in_loop)
+    j = joins[k]
+    joins[k] = Join(j.fragment_a, j.fragment_b, j.angle_deg + 8.0, j.tx_mm, j.ty_mm)
+    flagged = [lp for lp in closure_loops(joins, centres_mm=centres) if lp.conflicting]
+    assert flagged and all(in_loop in lp.joins for lp in flagged)
+
+
+def test_loop_residual_is_the_composed_error():
+    # a triangle whose third join is 2 mm off along x in a's frame, and a square that closes
+    tri = [Join("a", "b", 90, 10, 0), Join("b", "c", 45, 10, 0), Join("a", "c", 135, 12, 10)]
+    (lp,) = closure_loops(tri, sigma_mm=0.2, sigma_deg=0.1)
+    assert lp.residual_mm == pytest.approx(2.0, abs=1e-9)
+    assert lp.residual_deg == pytest.approx(0.0, abs=1e-9)
+    assert lp.conflicting and sorted(lp.fragments) == ["a", "b", "c"]
+    (lp,) = closure_loops(tri, sigma_mm=5.0, sigma_deg=5.0)
+    assert not lp.conflicting
+    sq = [Join("p", "q", 90, 10, 0), Join("q", "r", 90, 10, 0), Join("r", "s", 90, 10, 0), Join("p", "s", -90, 0, 10)]
+    (lp,) = closure_loops(sq)
+    assert lp.residual_mm < 1e-9 and lp.residual_deg < 1e-9 and len(lp.fragments) == 4
+
+
+def test_separate_clusters_have_their_own_frames():
+    joins = [Join("b", "c", 30, 5, 1), Join("x", "y", -60, 3, 4), Join("c", "d", 0, 7, 0)]
+    clusters = solve_pose_graph(joins)
+    assert [c.id for c in clusters] == ["C:b", "C:x"]
+    assert clusters[0].poses["b"] == (0.0, 0.0, 0.0)
+    assert clusters[0].poses["d"] == pytest.approx((30.0, 5 + 7 * math.cos(math.radians(30)),
+                                                    1 + 7 * math.sin(math.radians(30))))
+    assert clusters[1].poses["y"] == pytest.approx((-60.0, 3.0, 4.0))
+    assert clusters[1].loops == []
+
+
+@pytest.mark.parametrize("joins, match", [
+    ([Join("a", "a", 0, 0, 0)], "itself"),
+    ([Join("a", "b", 0, 0, 0), Join("b", "a", 0, 1, 0)], "two joins"),
+    ([Join("a", "b", 0, float("nan"), 0)], "non-finite"),
+])
+def test_bad_joins_are_refused(joins, match):
+    with pytest.raises(ValueError, match=match):
+        solve_pose_graph(joins)
+
+
+def test_bad_noise_model_is_refused():
+    with pytest.raises(ValueError, match="sigma_mm"):
+        solve_pose_graph([Join("a", "b", 0, 1, 0)], sigma_mm=0)
+    with pytest.raises(ValueError, match="loss"):
+        solve_pose_graph([Join("a", "b", 0, 1, 0)], loss="l7")
+    with pytest.raises(ValueError, match="centres_mm"):
+        solve_pose_graph([Join("a", "b", 0, 1, 0)], centres_mm={"b": (1.0,)})
+
+
+def _proposal_store(tmp_path, wall, byid):
+    from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+
+    db = ProposalStore(tmp_path / "proposals.sqlite")
+    props = []
+    for i, f in enumerate(wall.fragments):
+        for g in wall.fragments[i + 1:]:
+            a, b = ordered_pair(f.id, g.id)
+            if byid[a].pose is None or byid[b].pose is None:
+                continue
+            z = relative_pose(byid[a].pose, byid[b].pose)
+            props.append(Proposal(a, b, 0.9 if wall.is_neighbour(a, b) else 0.1, "m1",
+                                  angle_deg=z[0], tx_mm=z[1], ty_mm=z[2]))
+    db.upsert(props)
+    return db
+
+
+def test_confirmed_joins_keep_the_pose_the_person_saw(tmp_path):
+    from common.matching.proposals import Proposal
+
+    from common.matching.proposals import ProposalStore
+
+    db = ProposalStore(tmp_path / "p.sqlite")
+    db.upsert([Proposal("a", "b", 0.9, "m1", angle_deg=10, tx_mm=1, ty_mm=2),
+               Proposal("b", "c", 0.8, "m1", angle_deg=20, tx_mm=3, ty_mm=4),
+               Proposal("c", "d", 0.7, "m1")])
+    db.record_verdict("a", "b", "confirmed")
+    db.record_verdict("b", "c", "confirmed")
+    db.record_verdict("b", "c", "rejected")        # changed their mind
+    db.record_verdict("c", "d", "confirmed")       # no pose was ever proposed
+    # a later re-rank moves the proposal's pose: the join keeps what was confirmed
+    db.upsert([Proposal("a", "b", 0.95, "m2", angle_deg=99, tx_mm=9, ty_mm=9)])
+    joins, unposed = confirmed_joins(db)
+    assert [(j.pair, j.angle_deg, j.tx_mm, j.ty_mm) for j in joins] == [(("a", "b"), 10.0, 1.0, 2.0)]
+    assert unposed == [("c", "d")]
+
+
+def test_next_joins_place_the_newcomer_where_the_truth_has_it(tmp_path):
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(12, seed=4, dpi=20, keep_images=False, surfaces=False, colour_only=True,
+                         missing_fraction=0.0, spurious_fraction=0.0)
+    byid = {f.id: f for f in wall.fragments}
+    db = _proposal_store(tmp_path, wall, byid)
+    a, b, _ = wall.adjacency[0]
+    db.record_verdict(a, b, "confirmed")
+    cluster = solve_pose_graph(confirmed_joins(db)[0])[0]
+    nxt = next_joins(cluster, db.pending(1000), [cluster], limit=50)
+    members = {a, b}
+    outside = {x for p in db.pending(1000) for x in (p.fragment_a, p.fragment_b)
+               if (p.fragment_a in members) != (p.fragment_b in members)} - members
+    assert {d["newcomer"] for d in nxt} == outside
+    assert [d["probability"] for d in nxt] == sorted((d["probability"] for d in nxt), reverse=True)
+    assert all(d["member"] in members and d["newcomer_cluster"] is None for d in nxt)
+    top = nxt[0]
+    assert wall.is_neighbour(top["member"], top["newcomer"])
+    truth = relative_pose(byid[cluster.root].pose, byid[top["newcomer"]].pose)
+    assert top["pose"] == pytest.approx(truth, abs=1e-6)
+
+
+def test_composite_puts_each_fragments_albedo_at_its_pose_and_exports(tmp_path):
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(6, seed=2, dpi=40, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
+    byid = {f.id: f for f in wall.fragments}
+    store = Store(tmp_path / "store")
+    for f in wall.fragments:
+        save_rgbn(store, f"fragments/{f.id}/rgbn/front-{f.id[-3:]}.h5", f.rgbn)
+    db = _proposal_store(tmp_path, wall, byid)
+    for a, b, _ in wall.adjacency:
+        db.record_verdict(a, b, "confirmed")
+    rec = reconstruct(store, db)
+    assert not rec["missing"] and not rec["unposed"]
+    cluster = rec["clusters"][0]
+    comp = compose_cluster(cluster, rec["images"])
+    px = comp["pixel_mm"]
+    assert comp["dpi"] == pytest.approx(40.0)
+    # interior pixels of every fragment land where its solved pose puts them, with their own colour
+    rng = np.random.default_rng(0)
+    from scipy import ndimage
+    for f in cluster.fragments:
+        img = rec["images"][f]
+        inner = ndimage.binary_erosion(img.mask, iterations=2)
+        rr, cc = np.nonzero(inner)
+        pick = rng.choice(len(rr), size=min(40, len(rr)), replace=False)
+        pts = _apply(cluster.poses[f], np.column_stack([cc[pick], rr[pick]]) * img.pixel_mm)
+        uv = np.round((pts - comp["origin_mm"]) / px).astype(int)
+        got = comp["albedo"][uv[:, 1], uv[:, 0]]
+        want = img.albedo[rr[pick], cc[pick]]
+        assert np.median(np.abs(got - want)) < 0.03, f
+        assert (comp["alpha"][uv[:, 1], uv[:, 0]] > 0.99).all()
+    # true joins do not overlap; the covered area is the fragments' area
+    area = sum(rec["images"][f].mask.sum() * rec["images"][f].pixel_mm ** 2 for f in cluster.fragments)
+    assert comp["alpha"].sum() * px ** 2 == pytest.approx(area, rel=0.03)
+    assert comp["overlap"].mean() < 0.01
+    # the composite is the wall: the cluster frame is the root's, so the true wall position follows
+    png, tif = write_composite(comp, tmp_path / "c.png", tmp_path / "c.tif")
+    import cv2
+    import tifffile
+    p = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    t = tifffile.imread(tif)
+    assert p.dtype == np.uint8 and p.shape == comp["albedo"].shape[:2] + (4,)
+    assert t.dtype == np.uint16 and t.shape == p.shape
+    assert np.abs(t[..., 3].astype(float) / 65535 - comp["alpha"]).max() < 1e-4
+    doc = json.loads(json.dumps(rec["document"]))
+    assert doc["schema"] == "tessera.reconstruction" and doc["version"] == 1
+    poses = {d["fragment"]: (d["angle_deg"], d["tx_mm"], d["ty_mm"]) for d in doc["clusters"][0]["fragments"]}
+    root = byid[cluster.root]
+    for f, pose in poses.items():
+        assert pose == pytest.approx(relative_pose(root.pose, byid[f].pose), abs=1e-4)
+
+
+def test_composite_without_an_image_names_the_fragment():
+    cluster = solve_pose_graph([Join("a", "b", 0, 5, 0)])[0]
+    with pytest.raises(ValueError, match="b"):
+        compose_cluster(cluster, {"a": None})
+
+
+def test_document_lists_loops_and_flags(wall150):
+    wall, byid, centres = wall150
+    joins = _noisy_joins(wall, byid, centres)[:60]
+    clusters = solve_pose_graph(joins, centres_mm=centres)
+    doc = json.loads(json.dumps(reconstruction_document(clusters, unposed=[("x", "y")])))
+    assert doc["unposed_joins"] == [["x", "y"]]
+    assert sum(len(c["fragments"]) for c in doc["clusters"]) == len({f for j in joins for f in j.pair})
+    assert sum(len(c["loops"]) for c in doc["clusters"]) == sum(len(c.loops) for c in clusters)
+    assert doc["noise"]["chi2_bound"] == pytest.approx(21.108, abs=1e-3)
