@@ -53,6 +53,8 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from scipy.stats import chi2 as _chi2
 
+from common.web.compose import relative_pose  # noqa: F401  (B in A from both poses; used with this module)
+
 #: JSON schema name and version of :func:`reconstruction_document`
 SCHEMA = "tessera.reconstruction"
 SCHEMA_VERSION = 1
@@ -159,17 +161,6 @@ def _inverse(p):
 
 def _rad(join: Join):
     return (math.radians(join.angle_deg), float(join.tx_mm), float(join.ty_mm))
-
-
-def relative_pose(pose_a, pose_b) -> tuple[float, float, float]:
-    """B's frame in A's, ``(angle_deg, tx_mm, ty_mm)``, from both frames' poses in a common frame.
-
-    ``Z_ab = X_a⁻¹ X_b`` for poses ``(angle_deg, tx_mm, ty_mm)`` mapping each frame into the common one.
-    """
-    a = (math.radians(pose_a[0]), float(pose_a[1]), float(pose_a[2]))
-    b = (math.radians(pose_b[0]), float(pose_b[1]), float(pose_b[2]))
-    z = _compose(_inverse(a), b)
-    return (math.degrees(float(_wrap(z[0]))), z[1], z[2])
 
 
 # -- reading the verdicts ----------------------------------------------------------------------
