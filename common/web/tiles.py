@@ -6,7 +6,8 @@ normal maps) read. Each source artifact gets one pyramid:
 * a ``tessera.rgbn`` face gives the layers ``albedo`` (display sRGB, 8-bit RGBA, alpha = the
   fragment's coverage) and, when it has normals, ``normals`` (8-bit RGBA, ``R, G, B =
   round((n + 1) / 2 * 255)``, **OpenGL convention**: x right, y up — green grows towards the top
-  row —, z towards the viewer; alpha = coverage);
+  row —, z towards the viewer; RGB = 128 off the fragment, which decodes to the zero vector, "no
+  normal", as Relight/openlime read normal maps; alpha = coverage);
 * a ``tessera.render`` illustration gives the layer ``render`` (its display values, 8-bit RGBA,
   alpha = the render's alpha).
 
@@ -14,7 +15,7 @@ Level 0 is the image at full resolution; level ``L`` is it area-averaged over ``
 cells (partial cells at the right and bottom edges average the pixels they hold), down to the
 first level that fits one tile. The average is weighted by the mask (pixels off the fragment do
 not darken its border), colour is averaged in linear reflectance before the sRGB encoding, and
-normals are averaged then renormalised; RGB is 0 where the coverage is 0.
+normals are averaged then renormalised; where the coverage is 0, RGB is 0 (normals: 128).
 
 The face is read band by band (:data:`TILE_PX` rows of level 0 at a time) and every level is
 built from the one below as the bands stream through, so memory stays at about two bands of
@@ -54,7 +55,9 @@ LAYERS = ("albedo", "normals", "render")
 ENCODING = {
     "albedo": "8-bit RGBA PNG: display sRGB of the area-averaged linear reflectance; alpha = coverage of the fragment",
     "normals": "8-bit RGBA PNG, OpenGL convention: RGB = round((n + 1) / 2 * 255), x right, y up (green grows towards "
-               "the top row), z towards the viewer; area-averaged normals renormalised; alpha = coverage of the fragment",
+               "the top row), z towards the viewer; area-averaged normals renormalised; off the fragment RGB = 128 "
+               "(decodes to the zero vector: 'no normal', as openlime's BRDF shader reads it); alpha = coverage of the "
+               "fragment",
     "render": "8-bit RGBA PNG: the illustration's display values area-averaged over its alpha; alpha = the render's alpha",
 }
 
@@ -148,7 +151,8 @@ def encode_tile(sums: np.ndarray, layer: str, *, offset: int = 0) -> np.ndarray:
         rgb = vals / np.maximum(weight, 1e-12)[..., None]
         if layer == "albedo":
             rgb = linear_to_srgb(rgb)
-    out[..., :3] = np.where(on[..., None], np.round(np.clip(rgb, 0.0, 1.0) * 255.0), 0).astype(np.uint8)
+    off = 128 if layer == "normals" else 0   # a normal map's "no normal" is (0.5, 0.5, 0.5): 2c - 1 = 0
+    out[..., :3] = np.where(on[..., None], np.round(np.clip(rgb, 0.0, 1.0) * 255.0), off).astype(np.uint8)
     out[..., 3] = np.round(np.clip(weight / np.maximum(count, 1e-12), 0.0, 1.0) * 255.0).astype(np.uint8)
     return out
 
@@ -451,3 +455,40 @@ def face_thumbnail(store: Store, rgbn_relpath: str, max_px: int = 128) -> np.nda
         except KeyError as exc:
             raise ArtifactError(f"artifact {rgbn_relpath} lacks {exc}") from exc
     return top["rgba"]
+
+
+# --------------------------------------------------------------------------------------------
+# Deep Zoom (DZI): what OpenSeadragon and openlime's "deepzoom" layout read
+# --------------------------------------------------------------------------------------------
+def dzi_xml(info: dict, fmt: str = "png") -> str:
+    """The ``.dzi`` descriptor of a pyramid (Deep Zoom: tile size 256, overlap 0)."""
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            f'<Image xmlns="http://schemas.microsoft.com/deepzoom/2008" Format="{fmt}" Overlap="0" '
+            f'TileSize="{info["tile_px"]}"><Size Width="{info["width"]}" Height="{info["height"]}"/></Image>\n')
+
+
+def dzi_max_level(width: int, height: int) -> int:
+    """Deep Zoom's full-resolution level: ``ceil(log2(max(width, height)))`` (level 0 is 1 x 1)."""
+    return int(max(width, height) - 1).bit_length()
+
+
+def dzi_tile(cache: "TileCache", source_relpath: str, layer: str, dzi_level: int, col: int, row: int) -> np.ndarray:
+    """RGBA pixels of Deep Zoom tile ``dzi_level/col_row``: pyramid level ``max - dzi_level``, and
+    below the pyramid's top (levels smaller than one tile) the top level area-resampled.
+
+    Raises LookupError outside the image.
+    """
+    info = cache.pyramid(source_relpath)
+    top = dzi_max_level(info["width"], info["height"])
+    if not 0 <= dzi_level <= top:
+        raise LookupError(f"Deep Zoom level must be 0..{top}, got {dzi_level}")
+    level = top - dzi_level
+    last = len(info["levels"]) - 1
+    if level <= last:
+        return decode_png(cache.tile_path(source_relpath, layer, level, col, row).read_bytes())
+    if (col, row) != (0, 0):
+        raise LookupError(f"Deep Zoom level {dzi_level} has one tile")
+    t = decode_png(cache.tile_path(source_relpath, layer, last, 0, 0).read_bytes())
+    f = 2 ** (level - last)
+    h, w = -(-info["height"] // 2 ** level), -(-info["width"] // 2 ** level)
+    return cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) if (h, w) != t.shape[:2] and f > 1 else t

@@ -7,16 +7,19 @@ URLs (``common.web.tiles`` cuts and caches the pyramids; see ``docs/web.md``):
   the first request) plus ``tiles``, the URL template of its tiles; ``layer`` is ``albedo``,
   ``normals`` or ``render-<recipe>``;
 * ``GET /api/tiles/<fid>/<pyramid>/<layer>/<level>/<col>_<row>.png`` — one tile. ``<pyramid>`` names
-  the source artifact (``rgbn-front-<key>``), so a tile URL never changes content: cached for a year.
+  the source artifact (``rgbn-front-<key>``), so a tile URL never changes content: cached for a year;
+* ``GET /dzi/<fid>~<face>~<layer>.dzi`` and ``/dzi/<fid>~<face>~<layer>_files/<level>/<col>_<row>.png`` —
+  the same pyramid as Deep Zoom (level numbers counted from the 1 x 1 level), for OpenSeadragon
+  and openlime's ``deepzoom`` layout (a BRDF layer with ``kd`` = albedo, ``normals`` = normals).
 """
 
 from __future__ import annotations
 
-from flask import Blueprint, abort, jsonify, send_file, url_for
+from flask import Blueprint, Response, abort, jsonify, send_file, url_for
 
 from common.store import ArtifactMissing
 from common.web.bench import check_fragment_id
-from common.web.tiles import TILES_VERSION, face_sources, pyramid_folder
+from common.web.tiles import TILES_VERSION, dzi_tile, dzi_xml, encode_png, face_sources, pyramid_folder
 
 from .station import station
 
@@ -100,4 +103,37 @@ def tile(fid, pyramid, layer, level, col, row):
         abort(404, f"no artifact {source}")
     resp = send_file(path, mimetype="image/png", max_age=365 * 86400, conditional=True)
     resp.headers["Cache-Control"] = "public, max-age=31536000, immutable"
+    return resp
+
+
+# -- Deep Zoom (OpenSeadragon, openlime's "deepzoom" layout) -------------------------------------
+def _dzi_source(identifier: str) -> tuple[dict, str, str]:
+    from common.web.iiif import IIIFError, split_image_id
+
+    try:
+        fid, face, layer = split_image_id(identifier)
+    except IIIFError as exc:
+        abort(404, str(exc))
+    info = pyramid_info(fid, face, layer)
+    return info, info["source"]["path"], "render" if layer.startswith("render-") else layer
+
+
+@bp.get("/dzi/<identifier>.dzi")
+def dzi(identifier):
+    info, _, _ = _dzi_source(identifier)
+    resp = Response(dzi_xml(info), mimetype="application/xml")
+    resp.headers["Access-Control-Allow-Origin"] = "*"
+    return resp
+
+
+@bp.get("/dzi/<identifier>_files/<int:level>/<int:col>_<int:row>.png")
+def dzi_tile_png(identifier, level, col, row):
+    info, source, layer = _dzi_source(identifier)
+    try:
+        rgba = dzi_tile(station().tiles, source, layer, level, col, row)
+    except LookupError as exc:
+        abort(404, str(exc))
+    resp = Response(encode_png(rgba), mimetype="image/png")
+    resp.headers["Cache-Control"] = "public, max-age=600"
+    resp.headers["Access-Control-Allow-Origin"] = "*"
     return resp

@@ -41,7 +41,7 @@ def _expected(img, level):
     n = _block_sum(img.normals * m[..., None], f)
     n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
     srgb = np.where(on[..., None], np.round(linear_to_srgb(alb.astype(np.float32)) * 255), 0)
-    nrgb = np.where(on[..., None], np.round((n + 1) / 2 * 255), 0)
+    nrgb = np.where(on[..., None], np.round((n + 1) / 2 * 255), 128)   # 128: "no normal" off the fragment
     alpha = np.round(msum / count * 255)
     return srgb, nrgb, alpha
 
@@ -194,3 +194,26 @@ def test_the_tile_api_lists_faces_serves_pyramids_and_immutable_tiles(tmp_path):
     assert c.get("/api/tiles/F5").status_code == 404
     assert c.get("/api/tiles/F4/rgbn-front-00000000000000cc-t1/albedo/0/0_0.png").status_code == 404
     assert c.get("/api/tiles/..%2Fx").status_code in (400, 404)
+
+
+def test_deep_zoom_serves_the_same_pyramid_counted_from_the_1px_level(tmp_path):
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    img = _face(300, 600)
+    rel = "fragments/F6/rgbn/front-00000000000000dd.h5"
+    save_rgbn(store, rel, img)
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    r = c.get("/dzi/F6~front~normals.dzi")
+    assert r.status_code == 200 and 'TileSize="256"' in r.text and '<Size Width="600" Height="300"/>' in r.text
+    assert tiles.dzi_max_level(600, 300) == 10 and tiles.dzi_max_level(256, 1) == 8 and tiles.dzi_max_level(1, 1) == 0
+    cache = tiles.TileCache(store)
+    full = tiles.decode_png(c.get("/dzi/F6~front~normals_files/10/1_0.png").data)
+    assert np.array_equal(full, cache.region(rel, "normals", 0, 0, 256, 256, 512))
+    top = tiles.decode_png(c.get("/dzi/F6~front~albedo_files/8/0_0.png").data)      # pyramid level 2
+    assert np.array_equal(top, cache.region(rel, "albedo", 2, 0, 75, 0, 150))
+    tiny = tiles.decode_png(c.get("/dzi/F6~front~albedo_files/0/0_0.png").data)     # below the pyramid
+    assert tiny.shape == (1, 1, 4)
+    assert c.get("/dzi/F6~front~albedo_files/11/0_0.png").status_code == 404
+    assert c.get("/dzi/F6~front~albedo_files/3/1_0.png").status_code == 404
