@@ -45,7 +45,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping
+from typing import Callable, Iterable, Mapping
 
 import cv2
 import numpy as np
@@ -783,44 +783,41 @@ def front_images(store, fragments: Iterable[str]) -> tuple[dict, dict]:
     return images, missing
 
 
-def reconstruct(store, proposals, *, images: Mapping | None = None, sigma_mm: float = SIGMA_MM,
-                sigma_deg: float = SIGMA_DEG, p_value: float = P_VALUE, next_limit: int = 10) -> dict:
+def reconstruct(proposals, *, centres_mm: Mapping | Callable | None = None, dpi: Mapping | None = None,
+                sigma_mm: float = SIGMA_MM, sigma_deg: float = SIGMA_DEG, p_value: float = P_VALUE,
+                next_limit: int = 10) -> dict:
     """Solve a station's confirmed joins: clusters, loops, open edges, the JSON document.
 
     Parameters
     ----------
-    store : Store
-        Storage root with ``fragments/<id>/rgbn/front-*.h5`` (read for each fragment's centre).
     proposals : ProposalStore
         The matcher's database (verdicts with the pose seen; pending proposals for the open edges).
-    images : mapping fragment -> RGBNImage, optional
-        Front images already loaded (those missing are read from ``store``).
+    centres_mm : mapping fragment -> (x, y), or callable(list of fragment ids) -> such a mapping
+        Each fragment's centre in its frame (:func:`mask_centre_mm` of its front image); a callable
+        is asked only for the fragments that have confirmed joins. Fragments without one are
+        anchored at their frame origin.
+    dpi : mapping fragment -> dpi, optional
+        Written into the document.
 
     Returns
     -------
-    dict: ``clusters`` (list of Cluster), ``images`` (fragment -> RGBNImage), ``missing`` (fragment ->
-    why its image could not be read; the cluster is still solved, about frame origins),
-    ``unposed`` (confirmed pairs without a pose), ``next`` (cluster id -> :func:`next_joins`), and
-    ``document`` (:func:`reconstruction_document`, without composites).
+    dict: ``clusters`` (list of Cluster), ``unposed`` (confirmed pairs without a pose), ``next``
+    (cluster id -> :func:`next_joins`), ``document`` (:func:`reconstruction_document`, without
+    composites).
     """
     joins, unposed = confirmed_joins(proposals)
     fragments = sorted({f for j in joins for f in j.pair})
-    images = dict(images or {})
-    loaded, missing = front_images(store, [f for f in fragments if f not in images])
-    images.update(loaded)
-    centres = {f: mask_centre_mm(images[f]) for f in fragments if f in images and images[f].mask.any()}
-    clusters = solve_pose_graph(joins, sigma_mm=sigma_mm, sigma_deg=sigma_deg, p_value=p_value, centres_mm=centres)
-    members = {f for c in clusters for f in c.fragments}
+    centres = dict(centres_mm(fragments) if callable(centres_mm) else (centres_mm or {}))
+    clusters = solve_pose_graph(joins, sigma_mm=sigma_mm, sigma_deg=sigma_deg, p_value=p_value,
+                                centres_mm={f: centres[f] for f in fragments if f in centres})
     pending = []
-    for f in sorted(members):
+    for f in fragments:
         pending += proposals.ranked(f, limit=4 * next_limit, status="pending")
     unique = list({p.id: p for p in pending}.values())
     nxt = {c.id: next_joins(c, unique, clusters, limit=next_limit) for c in clusters}
-    doc = reconstruction_document(clusters, unposed=unposed, next_by_cluster=nxt,
-                                  dpi={f: images[f].dpi for f in fragments if f in images},
+    doc = reconstruction_document(clusters, unposed=unposed, next_by_cluster=nxt, dpi=dpi,
                                   sigma_mm=sigma_mm, sigma_deg=sigma_deg, p_value=p_value)
-    return {"clusters": clusters, "images": images, "missing": missing, "unposed": unposed, "next": nxt,
-            "document": doc}
+    return {"clusters": clusters, "unposed": unposed, "next": nxt, "document": doc}
 
 
 def write_composite(composite: dict, png_path, tiff_path=None) -> list:

@@ -16,6 +16,7 @@ import sys
 COMMANDS = [
     "station", "broker", "worker", "scanner", "events", "status", "reconcile",
     "calibrate", "ps", "imports", "export", "synth", "features", "evaluate", "render", "web", "keys", "perf",
+    "reconstruct",
 ]
 
 

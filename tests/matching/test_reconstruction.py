@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.matching.reconstruction import (Join, closure_loops, compose_cluster, confirmed_joins, find_clusters,
-                                            next_joins, reconstruct, reconstruction_document, relative_pose,
+                                            front_images, mask_centre_mm, next_joins, reconstruct, reconstruction_document, relative_pose,
                                             solve_pose_graph, write_composite)
 
 NOISE_MM, NOISE_DEG = 0.3, 0.3
@@ -235,8 +235,13 @@ def test_composite_puts_each_fragments_albedo_at_its_pose_and_exports(tmp_path):
     db = _proposal_store(tmp_path, wall, byid)
     for a, b, _ in wall.adjacency:
         db.record_verdict(a, b, "confirmed")
-    rec = reconstruct(store, db)
-    assert not rec["missing"] and not rec["unposed"]
+    images, missing = front_images(store, [f.id for f in wall.fragments])
+    assert not missing
+    asked = []
+    rec = reconstruct(db, centres_mm=lambda ids: asked.extend(ids) or {f: mask_centre_mm(images[f]) for f in ids},
+                      dpi={f: images[f].dpi for f in images})
+    assert sorted(asked) == sorted({f for a, b, _ in wall.adjacency for f in (a, b)}) and not rec["unposed"]
+    rec["images"] = images
     cluster = rec["clusters"][0]
     comp = compose_cluster(cluster, rec["images"])
     px = comp["pixel_mm"]
@@ -293,3 +298,47 @@ def test_document_lists_loops_and_flags(wall150):
     assert sum(len(c["fragments"]) for c in doc["clusters"]) == len({f for j in joins for f in j.pair})
     assert sum(len(c["loops"]) for c in doc["clusters"]) == sum(len(c.loops) for c in clusters)
     assert doc["noise"]["chi2_bound"] == pytest.approx(21.108, abs=1e-3)
+
+
+def test_cli_writes_composites_and_poses_and_names_a_conflict(tmp_path, capsys):
+    import tifffile
+
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from common.synth.wall import generate_wall
+    from services.cli import main
+
+    wall = generate_wall(6, seed=2, dpi=30, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
+    byid = {f.id: f for f in wall.fragments}
+    store = Store(tmp_path / "store")
+    for f in wall.fragments:
+        save_rgbn(store, f"fragments/{f.id}/rgbn/front-{f.id[-3:]}.h5", f.rgbn)
+    db = _proposal_store(tmp_path / "store" / "matches", wall, byid)
+    for a, b, _ in wall.adjacency:
+        db.record_verdict(a, b, "confirmed")
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out)]) == 0
+    doc = json.loads((out / "reconstruction.json").read_text())
+    (c,) = doc["clusters"]
+    assert {d["fragment"] for d in c["fragments"]} == set(byid)
+    assert c["composite"]["dpi"] == pytest.approx(30.0)
+    assert tifffile.imread(out / c["composite"]["tiff"]).dtype == np.uint16
+    assert (out / c["composite"]["png"]).is_file() and c["n_conflicting_loops"] == 0
+    # a wrong confirmed join inside the cluster: a conflicting loop, exit 1, named on stderr
+    loops = closure_loops(confirmed_joins(db)[0])
+    assert loops, "the test wall needs a loop"
+    a, b = loops[0].joins[0]
+    db._db.execute("UPDATE proposals SET angle_deg = angle_deg + 30 WHERE fragment_a=? AND fragment_b=?", (a, b))
+    db.record_verdict(a, b, "confirmed")
+    capsys.readouterr()
+    assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out), "--json-only"]) == 1
+    assert "conflicting loop" in capsys.readouterr().err
+    assert json.loads((out / "reconstruction.json").read_text())["clusters"][0]["n_conflicting_loops"] >= 1
+
+
+def test_cli_without_a_database_says_so(tmp_path, capsys):
+    from services.cli import main
+
+    (tmp_path / "store").mkdir()
+    assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(tmp_path / "o")]) == 2
+    assert "no proposal database" in capsys.readouterr().err
