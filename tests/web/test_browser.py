@@ -346,3 +346,54 @@ def test_a_browser_without_the_token_cannot_change_anything(browser, live):
         assert codes == [401, 401, 401]
     finally:
         ctx.close()
+
+
+def test_archivist_finds_a_fragment_and_edits_its_metadata_through_the_bus(browser, live):
+    from common.bus.client import BrokerClient
+    from common.messages import unpack
+
+    target = sorted({a for pair in live.pairs for a in pair})[0]
+    ctx, page = _login(browser, live, who="R. Archivist")
+    try:
+        page.goto(f"{live.url}/fragments")
+        # the catalogue is built from storage in the background at start: wait for the seeded fresco
+        row = f'#fragments tr[data-fragment="{target}"]'
+        page.wait_for_selector(row, timeout=120_000)
+        page.wait_for_function(f"() => document.querySelector('{row} img.thumb') && "
+                               f"document.querySelector('{row} img.thumb').naturalWidth > 0", timeout=30_000)
+        assert page.inner_text(f"{row} td:nth-child(8)").endswith("pending")
+        page.click(row)
+        page.wait_for_selector(f"#detail-title:has-text('{target}')")
+        page.fill("#field-find_spot", "Room 7, east wall")
+        page.fill("#field-notes", "blue border, joins the cornice")
+        page.click("#save")
+        page.wait_for_selector("#history tr[data-state='recorded']:has-text('Room 7, east wall')", timeout=30_000)
+        assert "R. Archivist" in page.inner_text("#history")
+        with BrokerClient.from_config(live.config) as bus:
+            events = [unpack(bytes(b)) for _, b in bus.since(0, 10000)["events"]]
+        edits = [e for e in events if e["type"] == "fragment.annotated"]
+        assert [(e["fragment"], e["changes"], e["by"]) for e in edits] == [
+            (target, {"find_spot": "Room 7, east wall", "notes": "blue border, joins the cornice"}, "R. Archivist")]
+        # the search finds it by the new find-spot, and only it
+        page.fill("#q", "east wall")
+        page.click("#search button[type=submit]")
+        page.wait_for_function("() => document.querySelectorAll('#fragments tbody tr').length === 1", timeout=15_000)
+        assert page.get_attribute("#fragments tbody tr", "data-fragment") == target
+        page.fill("#q", "")
+        page.click("#search button[type=submit]")
+        page.wait_for_function("() => document.querySelectorAll('#fragments tbody tr').length > 1", timeout=15_000)
+        page.click(row)
+        page.wait_for_selector("#history tr[data-state='recorded']")
+        _shot(page, "catalogue")
+    finally:
+        ctx.close()
+    # without the token the edit is refused and nothing reaches the broker
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    try:
+        page.goto(f"{live.url}/fragments")
+        code = page.evaluate(f"""async () => (await fetch("/api/catalogue/{target}/metadata", {{method: "POST",
+            headers: {{"Content-Type": "application/json"}}, body: JSON.stringify({{changes: {{notes: "x"}}}})}})).status""")
+        assert code == 401
+    finally:
+        ctx.close()
