@@ -6,6 +6,7 @@
   const el = Tessera.el;
   const STYLES = RelightViewer.STYLES;
   let viewer = null, info = null, mode = "light";
+  const autoDone = new Set();   // styles whose contrast was picked once on this face
 
   function message(text) {
     const m = $("viewer-message");
@@ -60,9 +61,11 @@
       return;
     }
     fillStyles(p.has_normals);
+    autoDone.clear();
     viewer.setStyle(style);
     if (light) viewer.setLight(...light);
     buildStyleControls();
+    firstContrast();
   }
 
   // ---- controls ------------------------------------------------------------------------------
@@ -115,19 +118,36 @@
   }
 
   async function autoContrast() {
-    const s = viewer.style, values = viewer.values[s];
+    const s = viewer.style, values = JSON.parse(JSON.stringify(viewer.values[s]));
     const url = `${viewer.base}/auto?style=${encodeURIComponent(s)}&values=${encodeURIComponent(JSON.stringify(values))}`;
     $("auto-contrast").disabled = true;
     const r = await Tessera.api("GET", url);
     $("auto-contrast").disabled = false;
     if (!r.ok) { message(r.data.error || `Auto contrast failed (HTTP ${r.status}).`); return; }
     message("");
-    if (viewer.style === s) { viewer.setValues(r.data.resolved); buildStyleControls(); }
+    // only if nothing changed while the server measured (another style, another light)
+    if (viewer.style === s && JSON.stringify(viewer.values[s]) === JSON.stringify(values)) {
+      viewer.setValues(r.data.resolved);
+      buildStyleControls();
+    }
   }
 
-  $("style").addEventListener("change", () => { viewer.setStyle($("style").value); buildStyleControls(); });
-  $("azimuth").addEventListener("input", () => viewer.setLight(Number($("azimuth").value), Number($("elevation").value)));
-  $("elevation").addEventListener("input", () => viewer.setLight(Number($("azimuth").value), Number($("elevation").value)));
+  // the contrast the offline style picks, the first time a style is shown on this face
+  function firstContrast() {
+    if (!autoDone.has(viewer.style)) { autoDone.add(viewer.style); autoContrast(); }
+  }
+  // ... and again when the light has stopped moving, if the person wants it to follow
+  let followTimer = null;
+  function lightMoved() {
+    clearTimeout(followTimer);
+    if ($("auto-follow").checked) followTimer = setTimeout(autoContrast, 250);
+  }
+
+  $("style").addEventListener("change", () => { viewer.setStyle($("style").value); buildStyleControls(); firstContrast(); });
+  for (const id of ["azimuth", "elevation"]) {
+    $(id).addEventListener("input", () => viewer.setLight(Number($("azimuth").value), Number($("elevation").value)));
+    $(id).addEventListener("change", lightMoved);
+  }
   $("auto-contrast").addEventListener("click", autoContrast);
   $("fit").addEventListener("click", () => viewer.fit());
   $("one-to-one").addEventListener("click", () => { viewer.view.zoom = 1; viewer.draw(); });
@@ -172,7 +192,7 @@
     else if (drag.m === "measure") { viewer.measure.b = viewer.toImage(...p); viewer.draw(); syncControls(); }
     drag.last = p;
   });
-  const end = () => { drag = null; syncControls(); };
+  const end = () => { if (drag && drag.m === "light") lightMoved(); drag = null; syncControls(); };
   area.addEventListener("pointerup", end);
   area.addEventListener("pointercancel", end);
   area.addEventListener("wheel", (e) => {

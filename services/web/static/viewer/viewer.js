@@ -94,7 +94,7 @@ const RelightViewer = (() => {
       this.tiles = new Map();          // "L/r/c" -> {tex: [...], w, h} | "loading" | "failed"
       this.view = { cx: params.width / 2, cy: params.height / 2, zoom: 1 };
       this.measure = null;             // {a: [x, y], b: [x, y]} in level-0 pixels
-      this.stats = { firstTileMs: null, completeMs: null, frames: 0, tilesLoaded: 0, uploadsLastFrame: 0 };
+      this.stats = { firstPictureMs: null, firstTileMs: null, completeMs: null, frames: 0, tilesLoaded: 0, uploadsLastFrame: 0 };
       this.onchange = null;
       this._scheduled = false;
     }
@@ -111,8 +111,11 @@ const RelightViewer = (() => {
       const names = Object.keys(STYLES);
       const [vert, common, ...frags] = await Promise.all([text("tile.vert"), text("common.glsl"),
                                                           ...names.map((n) => text(n + ".frag"))]);
+      // sources now, programs when a style is first drawn (compiling all of them would delay the
+      // first picture); a style's compile error still shows at once: the page draws it first
+      this.sources = {};
+      names.forEach((n, i) => { this.sources[n] = [vert, "#version 300 es\n" + common + "\n" + frags[i]]; });
       this.programs = {};
-      names.forEach((n, i) => { this.programs[n] = this._program(vert, "#version 300 es\n" + common + "\n" + frags[i], n); });
       this.quad = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, this.quad);
       gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([0, 0, 1, 0, 0, 1, 1, 1]), gl.STATIC_DRAW);
@@ -308,6 +311,7 @@ const RelightViewer = (() => {
       gl.clear(gl.COLOR_BUFFER_BIT);
       const style = STYLES[this.info.has_normals || !STYLES[this.style].needsNormals ? this.style : "albedo"];
       const name = Object.keys(STYLES).find((k) => STYLES[k] === style);
+      if (!this.programs[name]) this.programs[name] = this._program(...this.sources[name], name);
       const prog = this.programs[name];
       gl.useProgram(prog.p);
       gl.bindVertexArray(this.vao);
@@ -322,31 +326,53 @@ const RelightViewer = (() => {
       set("u_background", "3f", bg);
       for (const [u, [kind, val]] of Object.entries(style.uniforms(this.values[name]))) set(u, kind, val);
       ["u_n01", "u_n23", "u_n3u", "u_curv", "u_colour"].forEach((u, i) => set(u, "1i", i));
-      const target = this.level();
-      let drawn = 0, missing = 0;
-      for (let L = this.levels.length - 1; L >= target; L--) {
-        const f = 2 ** L, t = this.tile;
-        for (const [r, c] of this.visibleTiles(L)) {
-          const tile = this.tiles.get(`${L}/${r}/${c}`);
-          if (L === target && tile === undefined) this._request(L, r, c);
-          if (L === this.levels.length - 1 && tile === undefined) this._request(L, r, c);
-          if (!tile || typeof tile === "string") { if (L === target) missing += 1; continue; }
-          // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
-          const mag = this.view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
-          tile.tex.forEach((x, i) => {
-            gl.activeTexture(gl.TEXTURE0 + i);
-            gl.bindTexture(gl.TEXTURE_2D, x);
-            if (tile.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
-          });
-          tile.mag = mag;
-          const [x0, y0] = this.toCanvas(c * t * f, r * t * f);
-          const [x1, y1] = this.toCanvas((c * t + tile.w) * f, (r * t + tile.h) * f);
-          gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
-          gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
-          if (L === target) drawn += 1;
+      const target = this.level(), top = this.levels.length - 1, t = this.tile;
+      const drawTile = (tile, L, r, c) => {
+        const f = 2 ** L;
+        // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
+        const mag = this.view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
+        tile.tex.forEach((x, i) => {
+          gl.activeTexture(gl.TEXTURE0 + i);
+          gl.bindTexture(gl.TEXTURE_2D, x);
+          if (tile.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
+        });
+        tile.mag = mag;
+        const [x0, y0] = this.toCanvas(c * t * f, r * t * f);
+        const [x1, y1] = this.toCanvas((c * t + tile.w) * f, (r * t + tile.h) * f);
+        gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
+        gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+      };
+      const loaded = (L, r, c) => {
+        const x = this.tiles.get(`${L}/${r}/${c}`);
+        return x && typeof x !== "string" ? x : null;
+      };
+      // the top level (one tile) is always wanted: it stands in for anything not there yet
+      if (!this.tiles.has(`${top}/0/0`)) this._request(top, 0, 0);
+      let drawn = 0, missing = 0, stand = 0;
+      // every canvas pixel is shaded once: a visible tile of the level the zoom needs, or where it
+      // has not arrived, its nearest loaded ancestor cut to the tile's rectangle (scissor)
+      for (const [r, c] of this.visibleTiles(target)) {
+        const tile = loaded(target, r, c);
+        if (tile) { drawTile(tile, target, r, c); drawn += 1; continue; }
+        missing += 1;
+        if (!this.tiles.has(`${target}/${r}/${c}`)) this._request(target, r, c);
+        for (let L = target + 1; L <= top; L++) {
+          const k = 2 ** (L - target), a = loaded(L, Math.floor(r / k), Math.floor(c / k));
+          if (!a) continue;
+          const f = 2 ** target;
+          const [x0, y0] = this.toCanvas(c * t * f, r * t * f), [x1, y1] = this.toCanvas((c + 1) * t * f, (r + 1) * t * f);
+          // the canvas pixels whose centres are in the tile (GL counts rows from the bottom)
+          const px0 = Math.round(x0), px1 = Math.round(x1), py0 = Math.round(y0), py1 = Math.round(y1);
+          gl.enable(gl.SCISSOR_TEST);
+          gl.scissor(px0, H - py1, Math.max(0, px1 - px0), Math.max(0, py1 - py0));
+          drawTile(a, L, Math.floor(r / k), Math.floor(c / k));
+          gl.disable(gl.SCISSOR_TEST);
+          stand += 1;
+          break;
         }
       }
       const now = performance.now();
+      if (drawn + stand > 0 && this.stats.firstPictureMs === null) this.stats.firstPictureMs = now;
       if (drawn > 0 && this.stats.firstTileMs === null) this.stats.firstTileMs = now;
       if (drawn > 0 && missing === 0 && this.stats.completeMs === null) this.stats.completeMs = now;
       this.stats.frames += 1;

@@ -1,0 +1,257 @@
+"""The fragment page (``/fragments/<id>``): its relighting fields and tiles, its JSON, and the page
+itself in Chromium (first picture, relighting, deep zoom, measuring in mm, joins).
+
+Screenshots go to a temporary folder, or to ``docs/web/`` with ``TESSERA_WEB_SCREENSHOTS=1``.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from .conftest import TOKEN
+from .viewer_support import CHROMIUM, CHROMIUM_ARGS, REPO, WebProcess, open_viewer, relief_face, require_browser, \
+    show_one_to_one
+
+
+def _store_with(tmp_path, image, fid="F-1", stem="front-k1"):
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+
+    store = Store(tmp_path / "storage")
+    save_rgbn(store, f"fragments/{fid}/rgbn/{stem}.h5", image)
+    return store
+
+
+# ---- the fields and tiles ------------------------------------------------------------------------
+
+def test_level0_tile_holds_the_whole_image_fields(tmp_path):
+    """A level-0 tile cut with its halo holds what smoothing / curvature of the whole face give there."""
+    from common.rgbn.curvature import mean_curvature
+    from common.rgbn.smoothing import smooth_normals
+    from common.web.relight import RelightCache, unpack_tile
+
+    image = relief_face(200, 300)
+    store = _store_with(tmp_path, image)
+    cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    p = cache.params()
+    assert p["levels"][0] == [300, 200] and p["levels"][-1][0] <= 256
+    data = cache.tile_path(0, 0, 1).read_bytes()
+    xy, H, colour = unpack_tile(data, 200, 300 - 256)
+    cols = slice(256, 300)
+    for k, sigma in enumerate([0.0] + p["exaggerated_sigmas_px"] + [p["unsharp_sigma_px"]]):
+        want = smooth_normals(image.normals, sigma, mask=image.mask)[:, cols, :2] if sigma else image.normals[:, cols, :2]
+        got = xy[..., 2 * k:2 * k + 2]
+        assert np.abs(got - want)[image.mask[:, cols]].max() < 2e-3, f"field {k} (sigma {sigma})"
+    want_H = mean_curvature(image.normals, image.dpi, mask=image.mask, sigma_px=p["curvature_sigma_px"])[:, cols]
+    assert np.abs(H - want_H).max() <= 2e-3 * max(1.0, np.abs(want_H).max())
+    assert (colour[..., 3] == np.where(image.mask[:, cols], 255, 0)).all()
+
+
+def test_coarse_level_is_the_masked_area_average(tmp_path):
+    from common.web.relight import read_level_window
+
+    image = relief_face(64, 96)
+    store = _store_with(tmp_path, image)
+    with store.open("fragments/F-1/rgbn/front-k1.h5") as f:
+        alb, nrm, mask = read_level_window(f, 2, 0, 16, 0, 24)
+    m = image.mask.reshape(16, 4, 24, 4).astype(np.float64)
+    cover = m.mean(axis=(1, 3))
+    assert (mask == (cover >= 0.5)).all()
+    a = (image.albedo.reshape(16, 4, 24, 4, 3) * m[..., None]).sum(axis=(1, 3)) / np.maximum(m.sum(axis=(1, 3)), 1e-12)[..., None]
+    n = (image.normals.reshape(16, 4, 24, 4, 3) * m[..., None]).sum(axis=(1, 3))
+    n /= np.linalg.norm(n, axis=2, keepdims=True).clip(1e-12)
+    assert np.abs(alb - a)[cover > 0].max() < 1e-5
+    assert np.abs(nrm - n)[cover > 0].max() < 1e-5
+
+
+def test_tiles_are_cut_once_and_kept(tmp_path):
+    from common.web.relight import RelightCache
+
+    store = _store_with(tmp_path, relief_face(100, 120))
+    cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    path = cache.tile_path(0, 0, 0)
+    stamp = path.stat().st_mtime_ns
+    assert cache.tile_path(0, 0, 0).stat().st_mtime_ns == stamp
+    assert path.is_relative_to(store.root / "fragments/F-1/viewer")
+    assert not list(path.parent.glob(".*.tmp"))
+    with pytest.raises(ValueError, match="outside level 0"):
+        cache.tile_path(0, 3, 0)
+
+
+def test_colour_only_face_has_flat_fields(tmp_path):
+    from common.rgbn.image import RGBNImage
+    from common.web.relight import RelightCache, unpack_tile
+
+    face = relief_face(40, 50)
+    store = _store_with(tmp_path, RGBNImage(albedo=face.albedo, mask=face.mask, dpi=300.0))
+    cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    assert cache.params()["has_normals"] is False
+    xy, H, colour = unpack_tile(cache.tile_path(0, 0, 0).read_bytes(), 40, 50)
+    assert not xy.any() and not H.any() and (colour[..., 3] > 0).sum() == face.mask.sum()
+
+
+def test_offline_arguments_refuse_unknown_parameters():
+    from common.web.relight import offline_arguments
+
+    params = {"sigma_px": 1.0, "unsharp_sigma_mm": 1.0, "curvature_sigma_mm": 0.2}
+    with pytest.raises(ValueError, match="raking has no parameter gain"):
+        offline_arguments("raking", {"gain": 2.0}, params)
+    with pytest.raises(ValueError, match="style must be one of"):
+        offline_arguments("toon", {}, params)
+    assert offline_arguments("raking", {}, params, level=1)["sigma_px"] == 0.5
+
+
+# ---- the JSON and the routes ---------------------------------------------------------------------
+
+@pytest.fixture
+def client(tmp_path):
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.web.review import ReviewData
+    from services import web
+
+    store = _store_with(tmp_path, relief_face(60, 80))
+    _store_with(tmp_path, relief_face(60, 80, seed=1), stem="back-k2")
+    db = tmp_path / "storage" / "matches" / "proposals.sqlite"
+    with ProposalStore(db) as s:
+        s.upsert([Proposal("F-1", "F-2", 0.9, "m1", angle_deg=10.0, tx_mm=5.0, ty_mm=-2.0),
+                  Proposal("F-1", "F-3", 0.4, "m1")])
+        s.record_verdict("F-1", "F-2", "confirmed", by="ana")
+    app = web.create_app(token=TOKEN, store_root=store.root, review=ReviewData(db, store))
+    return app.test_client()
+
+
+def test_fragment_json_lists_faces_joins_and_proposals(client):
+    r = client.get("/api/fragments/F-1")
+    assert r.status_code == 200
+    d = r.get_json()
+    assert [f["face"] for f in d["faces"]] == ["back", "front"]
+    assert d["faces"][1]["relight"] == "/api/fragments/F-1/relight/front-k1"
+    assert [(j["other"], j["status"]) for j in d["joins"]] == [("F-2", "confirmed")]
+    assert d["joins"][0]["other_url"] == "/fragments/F-2" and d["joins"][0]["pose"]["angle_deg"] == 10.0
+    assert [p["other"] for p in d["proposals"]] == ["F-3"]
+
+
+def test_page_and_tile_routes(client):
+    r = client.get("/fragments/F-1")
+    assert r.status_code == 200 and b"viewer/viewer.js" in r.data and b"F-1" in r.data
+    p = client.get("/api/fragments/F-1/relight/front-k1/params.json").get_json()
+    assert p["width"] == 80 and p["height"] == 60 and p["dpi"] == 300.0
+    t = client.get("/api/fragments/F-1/relight/front-k1/tiles/0/0_0")
+    assert t.status_code == 200 and t.headers["Content-Encoding"] == "gzip"
+    assert "immutable" in t.headers["Cache-Control"]
+    assert len(gzip.decompress(t.data)) == 60 * 80 * (12 * 2 + 2 + 4)
+    auto = client.get("/api/fragments/F-1/relight/front-k1/auto?style=raking&values=" + json.dumps({"colour": False}))
+    lo, hi = auto.get_json()["resolved"]["exposure"]
+    assert 0.0 <= lo < hi <= 1.0
+
+
+@pytest.mark.parametrize("url,code,words", [
+    ("/fragments/bad id!", 400, "fragment"),
+    ("/api/fragments/F-9", 404, "no RGBN face"),
+    ("/api/fragments/F-1/relight/front-nope/params.json", 404, "front-nope"),
+    ("/api/fragments/F-1/relight/front-k1/tiles/0/5_5", 404, "outside level 0"),
+    ("/api/fragments/F-1/relight/front-k1/tiles/9/0_0", 404, "level must be"),
+    ("/api/fragments/F-1/relight/front-k1/tiles/0/x", 404, "row"),
+    ("/api/fragments/F-1/relight/front-k1/auto?style=raking&values=%7B%22gain%22%3A1%7D", 400, "no parameter gain"),
+    ("/api/fragments/F-1/relight/front-k1/auto?style=raking&values=nope", 400, "JSON"),
+])
+def test_bad_requests_are_refused_with_a_reason(client, url, code, words):
+    r = client.get(url)
+    assert r.status_code == code
+    assert words in r.get_data(as_text=True)
+
+
+# ---- the page in Chromium ------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_fragment_page_in_chromium(tmp_path):
+    """First picture, relighting by dragging, zoom to the level-0 tiles, a measurement in mm that
+    matches the image's dpi, the scale bar, joins as links."""
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    from common.matching.proposals import Proposal, ProposalStore
+
+    shots = REPO / "docs" / "web" if os.environ.get("TESSERA_WEB_SCREENSHOTS") == "1" else tmp_path / "shots"
+    shots.mkdir(parents=True, exist_ok=True)
+    image = relief_face(1300, 2000, dpi=600.0)      # 85 x 55 mm at 600 dpi: four levels
+    _store_with(tmp_path, image, fid="F-1", stem="front-k1")
+    _store_with(tmp_path, relief_face(300, 400, dpi=600.0, seed=2), fid="F-2", stem="front-k2")
+    with ProposalStore(tmp_path / "storage" / "matches" / "proposals.sqlite") as s:
+        s.upsert([Proposal("F-1", "F-2", 0.87, "m1", angle_deg=12.0, tx_mm=30.0, ty_mm=-4.0),
+                  Proposal("F-1", "F-3", 0.35, "m1")])
+        s.record_verdict("F-1", "F-2", "confirmed", by="ana")
+    web = WebProcess(tmp_path).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            open_viewer(page, f"{web.url}/fragments/F-1")
+            first = page.evaluate("() => tesseraViewer.stats.firstTileMs")
+            assert first is not None and page.evaluate("() => tesseraViewer.level()") >= 1
+            page.screenshot(path=str(shots / "fragment.png"))
+
+            # joins and proposals are links to the other fragments' pages
+            assert page.locator("#joins a", has_text="F-2").get_attribute("href") == "/fragments/F-2"
+            assert page.locator("#proposals a", has_text="F-3").count() == 1
+
+            # drag in light mode: the light follows the pointer (RTIViewer's light sphere)
+            box = page.locator("#gl").bounding_box()
+            cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            r = min(box["width"], box["height"]) / 2
+            page.mouse.move(cx, cy)
+            page.mouse.down()
+            page.mouse.move(cx - 0.5 * r, cy - 0.5 * r, steps=4)  # up-left, half-way to the rim
+            page.mouse.up()
+            az, el = page.evaluate("() => tesseraViewer.light")
+            assert abs(az - 135.0) < 1.0 and abs(el - math.degrees(math.acos(math.sqrt(0.5)))) < 1.0
+            assert page.input_value("#azimuth") == "135"
+
+            # every style draws (the shaders compile and differ from each other)
+            means = {}
+            for style in ("albedo", "lambertian", "raking", "specular", "normal_unsharp", "exaggerated", "mean_curvature"):
+                page.select_option("#style", style)
+                means[style] = page.evaluate("""() => { tesseraViewer.render();
+                    const c = tesseraViewer.canvas, px = tesseraViewer.pixels(0, 0, c.width, c.height);
+                    let s = 0; for (let i = 0; i < px.length; i += 4) s += px[i] + px[i + 1] + px[i + 2];
+                    return s / (px.length / 4 * 3); }""")
+            assert len({round(m, 1) for m in means.values()}) == len(means), means
+            page.select_option("#style", "raking")
+            page.screenshot(path=str(shots / "fragment-raking.png"))
+
+            # deep zoom: 1:1 needs level 0, whose tiles arrive and are drawn
+            show_one_to_one(page, 0, 0)
+            assert page.evaluate("() => tesseraViewer.level()") == 0
+
+            # measuring: a drag of known canvas length reads length / zoom / dpi in mm
+            page.click("button[data-mode=measure]")
+            zoom = page.evaluate("() => tesseraViewer.view.zoom")
+            dpr = page.evaluate("() => window.devicePixelRatio")
+            page.mouse.move(cx - 200, cy)
+            page.mouse.down()
+            page.mouse.move(cx + 100, cy + 400, steps=5)
+            page.mouse.up()
+            want_mm = math.hypot(300, 400) * dpr / zoom * 25.4 / 600.0
+            got_mm = page.evaluate("() => tesseraViewer.measureMm()")
+            assert abs(got_mm - want_mm) < 0.01, (got_mm, want_mm)
+            assert page.text_content("#measure-readout") == f"{want_mm:.2f} mm"
+            bar = page.evaluate("() => tesseraViewer.scaleBar()")
+            assert abs(bar["px"] - bar["mm"] * 600.0 / 25.4 * zoom) < 1e-6 and 40 <= bar["px"] / dpr <= 130
+            page.screenshot(path=str(shots / "fragment-measure.png"))
+
+            # the back face of a one-face fragment is not offered; the other fragment opens
+            page.click("#joins a")
+            open_viewer(page, page.url)
+            assert page.locator("#faces button").count() == 1
+            assert not errors, errors
+            browser.close()
+    finally:
+        web.stop()
