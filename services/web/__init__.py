@@ -41,7 +41,9 @@ from common.web.tiles import TileCache
 from . import auth as auth_pages
 from . import bench as bench_pages
 from . import catalogue as catalogue_pages
+from . import downloads as downloads_api
 from . import fragment as fragment_page
+from . import iiif as iiif_api
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
@@ -142,7 +144,7 @@ def station_token(cfg: Mapping, settings: Mapping) -> tuple[str, Path | None]:
 # --------------------------------------------------------------------------------------------
 #: every page/API area of the app, registered in this order by :func:`create_app`
 BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, catalogue_pages.bp, tiles_api.bp,
-              fragment_page.bp, reconstruction_page.bp)
+              iiif_api.bp, downloads_api.bp, fragment_page.bp, reconstruction_page.bp)
 
 #: picture views of a proposal offered by the review page
 ReviewViews = review_pages.VIEWS

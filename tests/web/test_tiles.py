@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -217,3 +218,29 @@ def test_deep_zoom_serves_the_same_pyramid_counted_from_the_1px_level(tmp_path):
     assert tiny.shape == (1, 1, 4)
     assert c.get("/dzi/F6~front~albedo_files/11/0_0.png").status_code == 404
     assert c.get("/dzi/F6~front~albedo_files/3/1_0.png").status_code == 404
+
+
+def test_downloads_are_the_export_files_cut_once_and_zipped(tmp_path):
+    import io
+    import zipfile
+
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    img = _face(60, 80)
+    save_rgbn(store, "fragments/F9/rgbn/front-0000000000000099.h5", img)
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    d = c.get("/api/downloads/F9").json
+    names = [f["name"] for f in d["files"]]
+    assert names == ["front-albedo.png", "front-normals.png", "metadata.json"]
+    r = c.get(d["files"][1]["url"])
+    assert r.status_code == 200 and "attachment" in r.headers["Content-Disposition"]
+    normals = cv2.imdecode(np.frombuffer(r.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert normals.dtype == np.uint16 and normals.shape == (60, 80, 4)   # tessera export's 16-bit OpenGL map
+    z = zipfile.ZipFile(io.BytesIO(c.get(d["zip"]).data))
+    assert sorted(z.namelist()) == [f"F9/{n}" for n in names]
+    assert c.get("/api/downloads/F9").json["key"] == d["key"]          # exported once
+    assert c.get(f"/api/downloads/F9/{'0' * 16}/metadata.json").status_code == 404
+    assert c.get(f"/api/downloads/F9/{d['key']}/..%2Fx").status_code == 404
+    assert c.get("/api/downloads/F10").status_code == 404
