@@ -1,10 +1,253 @@
-"""The reconstruction page (``/reconstruction``) — owned by the archive-recon engineer (issue 17).
+"""The reconstruction page (``/reconstruction``): confirmed joins assembled into clusters, live.
 
-Registered by :func:`services.web.create_app`; it has no routes yet.
+The pose graph is :mod:`common.matching.reconstruction`; this blueprint feeds it the proposal store
+(read-only, through the review data) and each fragment's centre, and serves:
+
+* ``GET /reconstruction`` — the page: each cluster drawn at its solved poses (SVG over thumbnails),
+  conflicting loops and given-up joins in red, the next joins along its open edges as ghosts at the
+  pose they would take, export links;
+* ``GET /api/reconstruction`` — the reconstruction as JSON (the ``tessera.reconstruction`` document,
+  plus display data: thumbnails and sizes, verdicts seen on the event feed but not yet recorded);
+* ``GET /api/reconstruction/changes?after=SIG`` — long poll: answers when the verdicts or pending
+  proposals change (or a ``match.verified`` arrives on the feed), or after ``long_poll_s``;
+* ``GET /api/reconstruction/thumb/<fid>.png`` — a fragment's front albedo, small, alpha = mask;
+* ``GET /api/reconstruction/<root>/composite.png|.tif`` and ``/api/reconstruction/poses.json`` — the
+  exports (8-bit PNG, 16-bit TIFF, JSON). Everything here reads; nothing writes.
 """
 
 from __future__ import annotations
 
-from flask import Blueprint
+import collections
+import io
+import json
+import logging
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from flask import Blueprint, abort, current_app, jsonify, render_template, request, send_file, url_for
+
+from common.web.bench import check_fragment_id
+
+from .station import EXTENSION, requires, station
+
+log = logging.getLogger("tessera.web")
 
 bp = Blueprint("reconstruction", __name__)
+
+#: key of the page's live state in ``app.extensions``
+LIVE = "tessera.reconstruction"
+#: longest side of a fragment thumbnail (px) and of an exported composite (px, unless asked smaller)
+THUMB_PX = 320
+EXPORT_MAX_SIDE_PX = 8192
+EXPORT_DEFAULT_SIDE_PX = 4096
+
+needs_proposals = requires("review", "the proposal store is not available on this station")
+
+
+class _Live:
+    """Per app: fragment summaries by artifact, the last reconstruction, verdicts seen on the feed."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.compute_lock = threading.Lock()
+        self.summaries: dict[str, dict] = {}
+        self.result: tuple | None = None         # (signature, payload)
+        self.arriving: collections.deque = collections.deque(maxlen=200)
+        self.feed_seen = 0
+
+    def on_verdict(self, event: dict, seq: int) -> None:
+        """Feed subscriber: a ``match.verified`` (recorded by the matcher shortly after)."""
+        with self.lock:
+            self.arriving.append({"fragment_a": min(event["fragment"], event["other"]),
+                                  "fragment_b": max(event["fragment"], event["other"]),
+                                  "verdict": event.get("verdict"), "by": event.get("by"), "time": event.get("time"),
+                                  "seq": seq})
+            self.feed_seen += 1
+
+
+@bp.record_once
+def _follow_feed(state) -> None:
+    live = state.app.extensions.setdefault(LIVE, _Live())
+    st = state.app.extensions.get(EXTENSION)
+    if st is not None and st.feed is not None:
+        st.feed.subscribe(["match.verified"], live.on_verdict)
+
+
+def _live() -> _Live:
+    return current_app.extensions.setdefault(LIVE, _Live())
+
+
+def _signature() -> str:
+    """Changes whenever a verdict is recorded, a pending proposal changes, or the feed brings a verdict."""
+    def read(db):
+        v = db._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM verdicts").fetchone()
+        p = db._db.execute("SELECT COUNT(*), COALESCE(MAX(updated), 0) FROM proposals WHERE status='pending'").fetchone()
+        return f"{v[0]}.{v[1]}.{p[0]}.{p[1]:.3f}"
+    return f"{station().review._read(read, 'none')}.{_live().feed_seen}"
+
+
+def _summary(store, fid: str) -> dict | None:
+    """Centre, size and thumbnail of a fragment's newest front image, cached per artifact (None if absent)."""
+    from common.imports.export import latest_faces
+    from common.matching.reconstruction import mask_centre_mm
+    from common.rgbn.image import load_rgbn
+    from common.rgbn.io import linear_to_srgb
+    from common.store import ArtifactError
+
+    rel = latest_faces(store, fid).get("front")
+    if rel is None:
+        return None
+    live = _live()
+    with live.lock:
+        if rel in live.summaries:
+            return live.summaries[rel]
+    try:
+        img = load_rgbn(store, rel)
+        centre = mask_centre_mm(img)
+    except (ArtifactError, OSError, ValueError) as exc:
+        log.warning("reconstruction: %s unreadable: %s", rel, exc)
+        return None
+    h, w = img.mask.shape
+    s = min(1.0, THUMB_PX / max(h, w))
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    rgb = (linear_to_srgb(cv2.resize(img.albedo, size, interpolation=cv2.INTER_AREA)) * 255 + 0.5).astype(np.uint8)
+    alpha = cv2.resize(img.mask.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    rgba = np.dstack([rgb, (alpha * 255 + 0.5).astype(np.uint8)])
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    # the picture spans pixel edges: from -pixel/2 to (W - 1/2) pixels in the fragment frame (mm)
+    out = {"fragment": fid, "artifact": rel, "dpi": img.dpi, "pixel_mm": img.pixel_mm, "centre_mm": list(centre),
+           "x_mm": -0.5 * img.pixel_mm, "y_mm": -0.5 * img.pixel_mm, "width_mm": w * img.pixel_mm,
+           "height_mm": h * img.pixel_mm, "png": png.tobytes() if ok else b""}
+    with live.lock:
+        live.summaries[rel] = out
+    return out
+
+
+def _reconstruction() -> dict:
+    """The solved reconstruction and its display data, recomputed only when the signature changes."""
+    from common.matching.reconstruction import confirmed_joins, reconstruct
+    from common.store import Store
+
+    st, live = station(), _live()
+    sig = _signature()
+    with live.lock:
+        if live.result is not None and live.result[0] == sig:
+            return live.result[1]
+    with live.compute_lock:
+        with live.lock:
+            if live.result is not None and live.result[0] == sig:
+                return live.result[1]
+        store = Store(st.store_root, create=False)
+        joins = st.review._read(lambda db: confirmed_joins(db)[0], [])
+        summaries = {}
+        for f in sorted({f for j in joins for f in j.pair}):
+            summaries[f] = _summary(store, f)
+        rec = st.review._read(lambda db: reconstruct(
+            db, centres_mm={f: s["centre_mm"] for f, s in summaries.items() if s},
+            dpi={f: s["dpi"] for f, s in summaries.items() if s}), None)
+        if rec is None:
+            payload = {"signature": sig, "document": None, "fragments": {}, "arriving": [], "missing": []}
+        else:
+            for nxt in rec["next"].values():
+                for d in nxt:
+                    if d["newcomer"] not in summaries:
+                        summaries[d["newcomer"]] = _summary(store, d["newcomer"])
+            recorded = {(j.fragment_a, j.fragment_b) for c in rec["clusters"] for j in c.joins}
+            with live.lock:
+                arriving = [v for v in live.arriving if v["verdict"] == "confirmed"
+                            and (v["fragment_a"], v["fragment_b"]) not in recorded]
+            doc = rec["document"]
+            for c in doc["clusters"]:
+                root = c["root"]
+                c["exports"] = {"png": url_for("reconstruction.composite", root=root, ext="png"),
+                                "tiff": url_for("reconstruction.composite", root=root, ext="tif")}
+            payload = {"signature": sig, "document": doc, "arriving": arriving,
+                       "missing": sorted(f for f, s in summaries.items() if s is None),
+                       "fragments": {f: {k: v for k, v in s.items() if k not in ("png", "artifact")} |
+                                     {"thumb": url_for("reconstruction.thumb", fid=f)}
+                                     for f, s in summaries.items() if s}}
+        with live.lock:
+            live.result = (sig, payload)
+        return payload
+
+
+@bp.get("/reconstruction")
+def page():
+    return render_template("reconstruction.html", page="reconstruction")
+
+
+@bp.get("/api/reconstruction")
+@needs_proposals
+def reconstruction():
+    return jsonify(_reconstruction())
+
+
+@bp.get("/api/reconstruction/changes")
+@needs_proposals
+def changes():
+    after = request.args.get("after", "")
+    deadline = time.monotonic() + float(station().settings["long_poll_s"])
+    sig = _signature()
+    while sig == after and time.monotonic() < deadline:
+        time.sleep(0.25)
+        sig = _signature()
+    return jsonify(signature=sig, changed=sig != after)
+
+
+@bp.get("/api/reconstruction/thumb/<fid>.png")
+def thumb(fid):
+    from common.store import Store
+
+    try:
+        fid = check_fragment_id(fid)
+    except ValueError as exc:
+        abort(400, str(exc))
+    s = _summary(Store(station().store_root, create=False), fid)
+    if s is None or not s["png"]:
+        return jsonify(error=f"fragment {fid} has no readable front image"), 404
+    return s["png"], 200, {"Content-Type": "image/png", "Cache-Control": "private, max-age=300"}
+
+
+@bp.get("/api/reconstruction/poses.json")
+@needs_proposals
+def poses():
+    doc = _reconstruction()["document"]
+    if doc is None:
+        return jsonify(error="no proposal store yet: nothing is confirmed"), 404
+    body = json.dumps(doc, indent=2) + "\n"
+    return body, 200, {"Content-Type": "application/json",
+                       "Content-Disposition": 'attachment; filename="reconstruction.json"'}
+
+
+@bp.get("/api/reconstruction/<root>/composite.<ext>")
+@needs_proposals
+def composite(root, ext):
+    from common.matching.reconstruction import compose_cluster, front_images
+    from common.rgbn.io import linear_to_srgb, write_image
+    from common.store import Store
+
+    if ext not in ("png", "tif"):
+        abort(404)
+    data = _reconstruction()
+    cluster = next((c for c in (data["document"] or {}).get("clusters", []) if c["root"] == root), None)
+    if cluster is None:
+        return jsonify(error=f"no cluster with root fragment {root!r} (it may have merged: reload the page)"), 404
+    side = min(max(request.args.get("max_side", EXPORT_DEFAULT_SIDE_PX, type=int), 64), EXPORT_MAX_SIDE_PX)
+    ids = [f["fragment"] for f in cluster["fragments"]]
+    images, missing = front_images(Store(station().store_root, create=False), ids)
+    if missing:
+        return jsonify(error="; ".join(f"{f}: {why}" for f, why in missing.items())), 404
+    from common.matching.reconstruction import Cluster
+    solved = Cluster(id=cluster["id"], root=root, fragments=ids, joins=[],
+                     poses={f["fragment"]: (f["angle_deg"], f["tx_mm"], f["ty_mm"]) for f in cluster["fragments"]})
+    comp = compose_cluster(solved, images, max_side_px=side)
+    with tempfile.TemporaryDirectory(prefix="tessera-composite-") as tmp:
+        path = write_image(Path(tmp) / f"cluster-{root}.{ext}", linear_to_srgb(comp["albedo"]),
+                           bits=8 if ext == "png" else 16, alpha=comp["alpha"])
+        payload = io.BytesIO(path.read_bytes())
+    return send_file(payload, mimetype="image/png" if ext == "png" else "image/tiff", as_attachment=True,
+                     download_name=f"cluster-{root}.{ext}")

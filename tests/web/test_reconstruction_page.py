@@ -1,0 +1,209 @@
+"""The reconstruction page (services/web/reconstruction.py): JSON, live changes, exports; and in Chromium
+against a real station: joins confirmed through the review API make the cluster grow.
+
+The browser test needs Playwright and Debian's Chromium (skipped otherwise, as tests/web/test_browser.py);
+``TESSERA_WEB_SCREENSHOTS=1`` writes its screenshots into docs/web/.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from .conftest import TOKEN, wait_for
+
+
+def _seed(root, n=7, seed=2, dpi=40):
+    """A small synthetic wall on storage and proposals of every pair at the true relative pose
+    (true neighbours 0.9, others 0.1), as a matcher would leave them. Returns (wall, db path, true joins)."""
+    from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+    from common.matching.reconstruction import relative_pose
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(n, seed=seed, dpi=dpi, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
+    store = Store(root)
+    byid = {f.id: f for f in wall.fragments}
+    for f in wall.fragments:
+        save_rgbn(store, f"fragments/{f.id}/rgbn/front-groundtruth.h5", f.rgbn)
+    props = []
+    ids = sorted(byid)
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            a_, b_ = ordered_pair(a, b)
+            z = relative_pose(byid[a_].pose, byid[b_].pose)
+            props.append(Proposal(a_, b_, 0.9 if wall.is_neighbour(a_, b_) else 0.1, "groundtruth",
+                                  angle_deg=z[0], tx_mm=z[1], ty_mm=z[2]))
+    db_path = root / "matches" / "proposals.sqlite"
+    with ProposalStore(db_path) as db:
+        db.upsert(props)
+    true = sorted(ordered_pair(a, b) for a, b, _ in wall.adjacency)
+    return wall, db_path, true
+
+
+@pytest.fixture
+def app_and_db(tmp_path):
+    from common.store import Store
+    from common.web.review import ReviewData
+    from services import web
+
+    wall, db_path, true = _seed(tmp_path)
+    review = ReviewData(db_path, Store(tmp_path))
+    app = web.create_app(token=TOKEN, store_root=tmp_path, review=review,
+                         settings={"long_poll_s": 0.6})
+    return app, db_path, wall, true
+
+
+def test_clusters_follow_the_confirmed_joins(app_and_db):
+    from common.matching.proposals import ProposalStore
+
+    app, db_path, wall, true = app_and_db
+    c = app.test_client()
+    assert c.get("/reconstruction").status_code == 200
+    empty = c.get("/api/reconstruction").get_json()
+    assert empty["document"]["clusters"] == []
+    sig = empty["signature"]
+    # nothing changes: the long poll answers "unchanged" after long_poll_s
+    t0 = time.monotonic()
+    assert c.get(f"/api/reconstruction/changes?after={sig}").get_json()["changed"] is False
+    assert time.monotonic() - t0 >= 0.5
+    with ProposalStore(db_path) as db:
+        db.record_verdict(*true[0], "confirmed", by="A. Conservator")
+    assert c.get(f"/api/reconstruction/changes?after={sig}").get_json()["changed"] is True
+    data = c.get("/api/reconstruction").get_json()
+    (cluster,) = data["document"]["clusters"]
+    assert sorted(f["fragment"] for f in cluster["fragments"]) == sorted(true[0])
+    assert cluster["next_joins"] and all(n["member"] in true[0] for n in cluster["next_joins"])
+    assert cluster["next_joins"][0]["probability"] == pytest.approx(0.9)
+    # every fragment shown has a thumbnail at its size in mm
+    for fid, info in data["fragments"].items():
+        png = c.get(info["thumb"])
+        assert png.status_code == 200 and png.mimetype == "image/png"
+        img = cv2.imdecode(np.frombuffer(png.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert img.shape[2] == 4 and img[..., 3].max() == 255
+        f = wall.fragment(fid)
+        assert info["width_mm"] == pytest.approx(f.rgbn.shape[1] * f.rgbn.pixel_mm)
+    with ProposalStore(db_path) as db:
+        for pair in true[1:]:
+            db.record_verdict(*pair, "confirmed")
+    data = c.get("/api/reconstruction").get_json()
+    (cluster,) = data["document"]["clusters"]
+    assert len(cluster["fragments"]) == len(wall.fragments)
+    assert cluster["n_conflicting_loops"] == 0
+
+
+def test_a_wrong_confirmed_join_shows_as_a_conflicting_loop(app_and_db):
+    from common.matching.proposals import ProposalStore
+
+    app, db_path, wall, true = app_and_db
+    with ProposalStore(db_path) as db:
+        for pair in true:
+            db.record_verdict(*pair, "confirmed")
+        # a true pair whose proposal pose was off by 25 degrees when it was confirmed
+        a, b = true[0]
+        db._db.execute("UPDATE proposals SET angle_deg = angle_deg + 25 WHERE fragment_a=? AND fragment_b=?", (a, b))
+        db.record_verdict(a, b, "confirmed")
+    data = app.test_client().get("/api/reconstruction").get_json()
+    (cluster,) = data["document"]["clusters"]
+    if not any((a, b) == tuple(j) for lp in cluster["loops"] for j in lp["joins"]):
+        pytest.skip("this wall's join is a bridge: no loop can check it")
+    assert cluster["n_conflicting_loops"] >= 1
+    assert all([a, b] in lp["joins"] for lp in cluster["loops"] if lp["conflicting"])
+
+
+def test_exports_composite_png_tiff_and_json(app_and_db):
+    import tifffile
+
+    from common.matching.proposals import ProposalStore
+
+    app, db_path, wall, true = app_and_db
+    with ProposalStore(db_path) as db:
+        for pair in true:
+            db.record_verdict(*pair, "confirmed")
+    c = app.test_client()
+    (cluster,) = c.get("/api/reconstruction").get_json()["document"]["clusters"]
+    png = c.get(cluster["exports"]["png"])
+    assert png.status_code == 200 and png.mimetype == "image/png"
+    rgba = cv2.imdecode(np.frombuffer(png.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    tif = c.get(cluster["exports"]["tiff"])
+    assert tif.status_code == 200
+    t = tifffile.imread(io.BytesIO(tif.data))
+    assert t.dtype == np.uint16 and t.shape == rgba.shape
+    # coverage = the fragments' area (true joins do not overlap), at the fragments' 40 dpi
+    px = 25.4 / 40
+    area = sum(f.rgbn.mask.sum() for f in wall.fragments) * px ** 2
+    assert (t[..., 3] / 65535.0).sum() * px ** 2 == pytest.approx(area, rel=0.03)
+    doc = json.loads(c.get("/api/reconstruction/poses.json").data)
+    assert doc["schema"] == "tessera.reconstruction"
+    assert c.get("/api/reconstruction/NOPE/composite.png").status_code == 404
+    assert c.get("/api/reconstruction/thumb/..%2Fetc.png").status_code in (400, 404)
+
+
+def test_without_a_proposal_store_the_api_says_so(tmp_path):
+    from services import web
+
+    app = web.create_app(token=TOKEN, store_root=tmp_path)
+    r = app.test_client().get("/api/reconstruction")
+    assert r.status_code == 503
+
+
+# -- in Chromium, against a real station ------------------------------------------------------
+@pytest.mark.slow
+def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
+    from .test_browser import CHROMIUM, CHROMIUM_ARGS, DOCS, LiveStation, _require_browser
+
+    _require_browser()
+    from playwright.sync_api import sync_playwright
+
+    live = LiveStation(tmp_path)
+    wall, db_path, true = _seed(Path(live.config["storage"]["root"]), n=8, seed=5, dpi=50)
+    shots = DOCS if os.environ.get("TESSERA_WEB_SCREENSHOTS") == "1" else tmp_path / "screenshots"
+    shots.mkdir(parents=True, exist_ok=True)
+    live.start()
+    try:
+        def confirm(pair):
+            from common.matching.proposals import ProposalStore
+            with ProposalStore(db_path) as db:
+                pid = db.get(*pair).id
+            req = urllib.request.Request(f"{live.url}/api/review/verdict", method="POST",
+                                         data=json.dumps({"proposal": pid, "verdict": "confirmed"}).encode(),
+                                         headers={"Content-Type": "application/json",
+                                                  "Authorization": f"Bearer {TOKEN}"})
+            assert urllib.request.urlopen(req, timeout=10).status == 200
+
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+            page.goto(f"{live.url}/reconstruction")
+            page.wait_for_selector("#recon-empty:not([hidden])", timeout=30_000)
+            size = "() => { const c = document.querySelector('.cluster'); return c ? +c.dataset.size : 0; }"
+            confirm(true[0])
+            matcher = "matcher" in live.stages
+            if matcher:   # the matcher records the verdict; the page follows without a reload
+                page.wait_for_function(f"() => ({size})() === 2", timeout=120_000)
+                for pair in true[1:]:
+                    confirm(pair)
+                page.wait_for_function(f"() => ({size})() === {len(wall.fragments)}", timeout=180_000)
+                page.wait_for_selector(".cluster-svg .piece.placed image", timeout=10_000)
+                assert page.locator(".cluster-svg .piece.placed").count() == len(wall.fragments)
+                assert page.inner_text(".cluster .conflicts") == "loops consistent"
+                page.wait_for_timeout(500)
+                page.screenshot(path=str(shots / "reconstruction.png"), full_page=True)
+            else:
+                page.wait_for_selector("#arriving li", timeout=60_000)
+            browser.close()
+    except Exception:
+        print(live.logs())
+        raise
+    finally:
+        live.stop()
