@@ -121,20 +121,25 @@ def _schedstat_ms() -> tuple[float, float]:
         return 0.0, 0.0
 
 
-def flood(n: int, seconds: float = 0.0) -> dict:
+def flood(n: int, seconds: float = 0.0, nice: int | None = None) -> dict:
     """Malformed frames from another process against a broker serving a worker; STATUS timed meanwhile.
 
     The flood runs in its own process (in a thread here it would hold this process's GIL and slow
     the STATUS probe, not the broker). Each probe keeps the broker's own account of its poll loop
     (STATUS ``loop``) and this thread's run-queue wait during the probe, so a late answer can be
     put down to the broker (CPU inside its loop) or to the machine (waiting for a CPU).
+    ``nice``: the broker's ``[broker] nice`` (default: the config's).
     """
     import subprocess
     import threading
     with tempfile.TemporaryDirectory() as d:
         st = Station(Path(d), services={"noop": {}})
         try:
-            st.broker()
+            if nice is None:
+                st.broker()
+            else:
+                st.spawn("broker", "--set", f"broker.nice={nice}")
+                wait_for(lambda: _answers(st), 30, "the broker to answer")
             st.worker()
             st.workers_ready(1)
             endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
@@ -182,6 +187,14 @@ def flood(n: int, seconds: float = 0.0) -> dict:
             "journaled": s["last_seq"] - before, "good_done": s["completed"]}
 
 
+def _answers(st) -> bool:
+    try:
+        st.status()
+        return True
+    except Exception:  # noqa: BLE001
+        return False
+
+
 def explain_late(probes: list[dict], limit_ms: float = 100.0) -> list[str]:
     """One line per late STATUS answer: the broker's worst loop iteration of the last seconds
     (its CPU, run-queue wait, GC, other) and the broker's and the prober's run-queue waits meanwhile."""
@@ -212,6 +225,9 @@ def main() -> None:
     ap.add_argument("--flood-seconds", type=float, default=0.0,
                     help="spread the flood over this many seconds (0: as fast as it goes)")
     ap.add_argument("--flood-only", action="store_true", help="only the flood run")
+    ap.add_argument("--broker-nice", type=int, nargs="*", default=None,
+                    help="flood runs with the broker at these nice values, alternately (default: once, as configured)")
+    ap.add_argument("--repeat", type=int, default=1, help="rounds of the --broker-nice flood runs")
     args = ap.parse_args()
     cpu0, wall0 = time.process_time(), time.perf_counter()
     print(f"broker benchmark: {args.jobs} no-op jobs per run, journal on (fsync per batch); "
@@ -224,7 +240,19 @@ def main() -> None:
         lat = latency(100.0, args.seconds)
         print(f"dispatch latency at 100 jobs/s, 1 worker, {len(lat)} jobs: "
               f"p50 {np.percentile(lat, 50):.2f} ms  p99 {np.percentile(lat, 99):.2f} ms  max {lat.max():.2f} ms")
-    if args.flood:
+    if args.flood and args.broker_nice:
+        print("garbage flood, the broker at each nice value in turn (broker's own account of its poll loop):")
+        for r in range(args.repeat):
+            for nice in args.broker_nice:
+                f = flood(args.flood, args.flood_seconds, nice)
+                ms, loop = f["status_ms"], f["loop"]
+                w = loop["worst_ms"] or {}
+                print(f"  nice {nice:3d} (load {os.getloadavg()[0]:4.1f}): {f['refused']} refused in {f['wall_s']:.1f} s; "
+                      f"STATUS p50 {np.percentile(ms, 50):.1f} ms, p99 {np.percentile(ms, 99):.1f} ms, max {ms.max():.1f} ms, "
+                      f"{int((ms > 100).sum())}/{len(ms)} over 100 ms; loop CPU {loop['cpu_s']:.2f} s, waiting for a CPU "
+                      f"{loop['runqueue_s']:.2f} s; worst iteration of the last 10 s {w.get('stall', 0):.0f} ms "
+                      f"(CPU {w.get('cpu', 0):.0f}, waiting {w.get('runqueue', 0):.0f})")
+    elif args.flood:
         f = flood(args.flood, args.flood_seconds)
         ms = f["status_ms"]
         loop = f["loop"]
