@@ -244,3 +244,17 @@ def test_downloads_are_the_export_files_cut_once_and_zipped(tmp_path):
     assert c.get(f"/api/downloads/F9/{'0' * 16}/metadata.json").status_code == 404
     assert c.get(f"/api/downloads/F9/{d['key']}/..%2Fx").status_code == 404
     assert c.get("/api/downloads/F10").status_code == 404
+
+
+def test_tessera_web_cut_tiles_cuts_every_pyramid_and_names_a_missing_fragment(tmp_path, capsys):
+    from services.cli import main
+
+    store = Store(tmp_path)
+    save_rgbn(store, "fragments/C1/rgbn/front-00000000000000c1.h5", _face(40, 60))
+    save_rgbn(store, "fragments/C2/rgbn/back-00000000000000c2.h5", _face(50, 30))
+    assert main(["web", "--cut-tiles", "--set", f"storage.root={tmp_path}"]) == 0
+    for rel in ("fragments/C1/rgbn/front-00000000000000c1.h5", "fragments/C2/rgbn/back-00000000000000c2.h5"):
+        assert store.path(tiles.pyramid_folder(rel) + "/pyramid.json").is_file()
+    assert "2 pyramids ready" in capsys.readouterr().out
+    assert main(["web", "--cut-tiles", "C9", "--set", f"storage.root={tmp_path}"]) == 2
+    assert "no face on storage for C9" in capsys.readouterr().out
