@@ -9,9 +9,13 @@ module of this package, and :data:`BLUEPRINTS` registers them all:
 * :mod:`.bench`   — ``/bench``: the operator's front end to the scanner (this process owns it);
 * :mod:`.review`  — ``/review``: ranked join proposals, verdicts as ``match.verified`` events;
 * :mod:`.status`  — ``/status``: the broker's services, workers, queues, parked failures;
+* :mod:`.catalogue` — ``/fragments``: the archive's catalogue, metadata edits as ``fragment.annotated``;
+* :mod:`.tiles`, :mod:`.iiif`, :mod:`.downloads` — tile pyramids and Deep Zoom, IIIF Image and
+  Presentation, ``tessera export``'s files;
 * :mod:`.fragment`, :mod:`.reconstruction` — the archive's fragment page and reconstruction.
 
-What a blueprint reads (store root, settings, bench, broker link, proposal store) is the app's
+What a blueprint reads (store root, settings, bench, broker link, proposal store, tiles, catalogue,
+event feed) is the app's
 :class:`.station.Station` (``station()`` inside a request); templates are in ``templates/``,
 scripts and styles in ``static/``.
 

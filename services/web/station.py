@@ -75,9 +75,11 @@ class FeedFollower:
     One per app. :meth:`poll` asks for the events after the last one seen (at most ``batch``),
     decodes them and calls each subscriber whose types match with ``(event, seq)``, in feed order.
     A subscriber must be idempotent: after a restart the feed is replayed from ``start``.
-    ``on_gap(stream, last_seq)`` is called when the feed cannot be followed without a hole — the
-    broker's journal is new (another stream id) or no longer holds the events after the position —
-    and returns the sequence number to continue after (the catalogue rebuilds from storage there).
+    ``on_gap(stream, last_seq)`` is called when the feed cannot be followed without a hole — at the
+    first round without a position, when the broker's journal is new (another stream id) or no
+    longer holds the events after the position — and returns the sequence number to continue
+    after (the catalogue rebuilds from storage there); without ``on_gap`` the follower starts at
+    the broker's last event.
     :meth:`start` runs :meth:`poll` every ``interval_s`` in a daemon thread; the broker being away
     only delays it.
     """
