@@ -167,12 +167,18 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
 
     live = LiveStation(tmp_path)
     wall, db_path, true = _seed(Path(live.config["storage"]["root"]), n=8, seed=5, dpi=50)
+    # one wrong pair, confirmed last: two pieces that are not neighbours, proposed at a wrong pose
+    from common.matching.proposals import ProposalStore
+    ids = sorted(f.id for f in wall.fragments)
+    wrong = next((a, b) for a in ids for b in ids if a < b and not wall.is_neighbour(a, b))
+    with ProposalStore(db_path) as db:
+        db._db.execute("UPDATE proposals SET angle_deg = angle_deg + 30, tx_mm = tx_mm + 20 "
+                       "WHERE fragment_a=? AND fragment_b=?", wrong)
     shots = DOCS if os.environ.get("TESSERA_WEB_SCREENSHOTS") == "1" else tmp_path / "screenshots"
     shots.mkdir(parents=True, exist_ok=True)
     live.start()
     try:
         def confirm(pair):
-            from common.matching.proposals import ProposalStore
             with ProposalStore(db_path) as db:
                 pid = db.get(*pair).id
             req = urllib.request.Request(f"{live.url}/api/review/verdict", method="POST",
@@ -181,26 +187,48 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
                                                   "Authorization": f"Bearer {TOKEN}"})
             assert urllib.request.urlopen(req, timeout=10).status == 200
 
+        def cluster(attr):
+            return (f"() => {{ const c = document.querySelector('.cluster'); "
+                    f"return c ? +c.dataset.{attr} : 0; }}")
+
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
             page.goto(f"{live.url}/reconstruction")
             page.wait_for_selector("#recon-empty:not([hidden])", timeout=30_000)
-            size = "() => { const c = document.querySelector('.cluster'); return c ? +c.dataset.size : 0; }"
             confirm(true[0])
-            matcher = "matcher" in live.stages
-            if matcher:   # the matcher records the verdict; the page follows without a reload
-                page.wait_for_function(f"() => ({size})() === 2", timeout=120_000)
-                for pair in true[1:]:
-                    confirm(pair)
-                page.wait_for_function(f"() => ({size})() === {len(wall.fragments)}", timeout=180_000)
-                page.wait_for_selector(".cluster-svg .piece.placed image", timeout=10_000)
-                assert page.locator(".cluster-svg .piece.placed").count() == len(wall.fragments)
-                assert page.inner_text(".cluster .conflicts") == "loops consistent"
-                page.wait_for_timeout(500)
-                page.screenshot(path=str(shots / "reconstruction.png"), full_page=True)
-            else:
+            if "matcher" not in live.stages:   # nobody records verdicts: the page shows them arriving
                 page.wait_for_selector("#arriving li", timeout=60_000)
+                browser.close()
+                return
+            # the matcher records the verdict; the page follows without a reload
+            page.wait_for_function(f"() => ({cluster('size')})() === 2", timeout=120_000)
+            half = len(true) // 2
+            for pair in true[1:half]:
+                confirm(pair)
+            page.wait_for_function(f"() => ({cluster('joins')})() === {half}", timeout=120_000)
+            page.wait_for_selector(".cluster-svg .piece.ghost", timeout=10_000)   # next joins where they would go
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(shots / "reconstruction-growing.png"), full_page=True)
+            for pair in true[half:]:
+                confirm(pair)
+            page.wait_for_function(f"() => ({cluster('joins')})() === {len(true)}", timeout=180_000)
+            assert page.locator(".cluster-svg .piece.placed").count() == len(wall.fragments)
+            assert page.inner_text(".cluster .conflicts") == "loops consistent"
+            page.wait_for_selector("#arriving", state="hidden", timeout=30_000)
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(shots / "reconstruction.png"), full_page=True)
+            # the wrong join closes a loop that does not close: shown in red, not hidden
+            confirm(wrong)
+            page.wait_for_function(f"() => ({cluster('conflicts')})() >= 1", timeout=120_000)
+            assert page.locator(".cluster-svg .loop.conflicting").count() >= 1
+            assert "conflicting loop" in page.inner_text(".cluster .conflicts")
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(shots / "reconstruction-conflict.png"), full_page=True)
+            # the exports answer from the page's links
+            href = page.get_attribute(".cluster a.export-png", "href")
+            with urllib.request.urlopen(live.url + href, timeout=60) as r:
+                assert r.headers["Content-Type"] == "image/png" and len(r.read()) > 1000
             browser.close()
     except Exception:
         print(live.logs())

@@ -41,7 +41,8 @@
     const frags = data.fragments, poses = {};
     for (const f of c.fragments) poses[f.fragment] = f;
     const centre = (fid, pose) => apply(pose || poses[fid], (frags[fid] || { centre_mm: [0, 0] }).centre_mm);
-    const ghosts = c.next_joins.filter((n) => n.pose && frags[n.newcomer]).slice(0, 3);
+    const seen = new Set();   // the best proposal of each newcomer (the list is most probable first)
+    const ghosts = c.next_joins.filter((n) => n.pose && frags[n.newcomer] && !seen.has(n.newcomer) && seen.add(n.newcomer)).slice(0, 3);
     // view box: every piece's corners at its pose (ghosts included)
     let lo = [Infinity, Infinity], hi = [-Infinity, -Infinity];
     const grow = (fid, pose) => {
@@ -93,7 +94,7 @@
       Tessera.el("a", { href: `/review?fragment=${encodeURIComponent(n.newcomer)}`, text: `${n.member} ↔ ${n.newcomer}` }),
       Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}` }))));
     return Tessera.el("section", { class: "card cluster", "data-cluster": c.id, "data-size": c.fragments.length,
-                                   "data-conflicts": conflicting.length },
+                                   "data-joins": c.joins.length, "data-conflicts": conflicting.length },
       head, drawCluster(c, data), loops,
       Tessera.el("h3", { text: c.next_joins.length ? "Most probable next joins" : "No pending proposal along its edges" }), next);
   }
