@@ -420,9 +420,11 @@ def _into_gamut(rgb: np.ndarray, L: np.ndarray) -> np.ndarray:
     """Colours outside [0, 1] (a saturated paint lightened past what sRGB can show) pulled towards
     the grey of the same lightness until they fit: hue and lightness kept, chroma reduced —
     instead of clipping a channel, which would shift the hue and flatten the relief."""
-    bad = (rgb.max(axis=2) > 1.0) | (rgb.min(axis=2) < 0.0)
+    # one pass (cv2.inRange: every channel within [0, 1]) instead of two reductions over the
+    # 3-channel axis, which numpy runs slowly on large images
+    bad = cv2.inRange(np.asarray(rgb, np.float32), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)) == 0
     if not bad.any():
-        return rgb.astype(np.float32)
+        return rgb.astype(np.float32, copy=False)
     c = rgb[bad]
     g = np.clip(cv2.cvtColor(np.stack([L[bad], np.zeros_like(L[bad]), np.zeros_like(L[bad])], axis=1)[None]
                              .astype(np.float32), cv2.COLOR_Lab2RGB)[0, :, :1], 0.0, 1.0)

@@ -283,7 +283,8 @@ def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, 
     s0 = _noise_px(image, sigma0_px, r, "sigma0_px")
     return _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=s0,
                                         sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
-                                        base_weight=base_weight) - np.float32(0.5)
+                                        base_weight=base_weight,
+                                        origin=image.attrs.get("tile_origin", (0, 0))) - np.float32(0.5)
 
 
 def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 6, sigma0_px="auto",

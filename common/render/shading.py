@@ -204,7 +204,7 @@ def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None
 def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray | None = None,
                         scales: int = 8, sigma0_px: float = 1.0, sigma_ratio: float = 2.0,
                         contrast: float = 10.0, detail: float = 0.5, base_weight: float = 0.3,
-                        foreshortening: bool = True) -> np.ndarray:
+                        foreshortening: bool = True, origin=(0, 0), coarse: bool = True) -> np.ndarray:
     """Exaggerated shading (Rusinkiewicz, Burns & DeCarlo 2006) of a normal map (§7.3.5).
 
     With normals ``n_i`` smoothed at ``sigma_i = sigma0 * ratio^i`` (i = 0..scales, the last one
@@ -237,6 +237,13 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
         Weight ``k_b`` of the base (coarsest) lighting relative to the normalized detail weights.
     foreshortening : bool
         Use the 1/nz-corrected smoothing of §7.2.1.
+    origin : (int, int)
+        Row and column of this window in the whole image (tiles): the coarse grids are aligned to
+        the whole image's, so overlapping tiles draw the same values.
+    coarse : bool
+        Draw the pairs of levels whose finer sigma is >= 4 px on grids 2, 4, … times coarser
+        (default; within 1/255 of the full-resolution result at a half to a third of its cost).
+        False computes every level at full resolution (the reference).
 
     Returns
     -------
@@ -269,21 +276,104 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
     sigmas = [sigma0_px * sigma_ratio ** i for i in range(int(scales) + 1)]
     weights = np.array([s ** -detail for s in sigmas[:-1]], np.float64)
     weights /= weights.sum()
-    total = np.zeros(normals.shape[:2], np.float32)
     a = np.float32(contrast)
-    # walk from fine to coarse keeping only two smoothed levels alive (memory at 16 Mpx)
-    levels = iter_scale_space(normals, sigmas, mask=mask, foreshortening=foreshortening)
-    n_fine = next(levels)
-    for i, n_coarse in enumerate(levels):
-        # n_i . l_{i+1} with l_{i+1} = (l - (l.nc) nc) / |...| and |...|^2 = 1 - (l.nc)^2
-        lc = dot_light(n_coarse, l)
-        c = dot_light(n_fine, l) - lc * np.einsum("...i,...i->...", n_fine, n_coarse)
-        c /= np.sqrt(np.maximum(1.0 - lc * lc, 1e-8))
-        total += np.float32(weights[i]) * np.clip(a * c, -1.0, 1.0)
-        n_fine = n_coarse
-    if base_weight > 0:
-        total += np.float32(base_weight) * np.clip(a * dot_light(n_fine, l), -1.0, 1.0)
+    h, w = normals.shape[:2]
+    # a pair of levels whose finer sigma is >= 2 f px is drawn on a grid f times coarser (f a
+    # power of two, the grid aligned to the whole image's for tiles): a Gaussian of >= 2 grid
+    # steps leaves nothing above the grid's Nyquist rate (its response there is exp(-pi^2 s^2 / 2)
+    # < 3e-9), and the term, brought back by bilinear interpolation, stays within 1/255 of the
+    # full-resolution one (test)
+    grids = [_coarse_factor(s, h, w, coarse) for s in sigmas[:-1]] + [_coarse_factor(sigmas[-1], h, w, coarse)]
+    total = np.zeros((h, w), np.float32)
+    # full resolution: walk from fine to coarse keeping only two smoothed levels alive (16 Mpx)
+    n_full = len([f for f in grids[:-1] if f == 1])
+    if n_full:
+        levels = iter_scale_space(normals, sigmas[:n_full + 1], mask=mask, foreshortening=foreshortening)
+        n_fine = next(levels)
+        for i, n_coarse in enumerate(levels):
+            total += np.float32(weights[i]) * _exaggerated_term(n_fine, n_coarse, l, a)
+            n_fine = n_coarse
+        if n_full == len(sigmas) - 1 and base_weight > 0:
+            total += np.float32(base_weight) * np.clip(a * dot_light(n_fine, l), -1.0, 1.0)
+        del n_fine, levels
+    if n_full < len(sigmas) - 1 or grids[-1] > 1:
+        from common.render.enhance import Coarse
+        pyramid = _WeightedPyramid(normals, mask, foreshortening, origin)
+        acc: dict = {}
+        for i in range(n_full, len(sigmas) - 1):
+            f = grids[i]
+            n_i, n_j = (pyramid.level(sigmas[k], f) for k in (i, i + 1))
+            term = np.float32(weights[i]) * _exaggerated_term(n_i, n_j, l, a)
+            acc[f] = acc[f] + term if f in acc else term
+        if base_weight > 0 and (n_full < len(sigmas) - 1):
+            f = grids[-1]
+            term = np.float32(base_weight) * np.clip(a * dot_light(pyramid.level(sigmas[-1], f), l), -1.0, 1.0)
+            acc[f] = acc[f] + term if f in acc else term
+        for f, term in acc.items():
+            total += term if f == 1 else Coarse(term, f, pyramid.offset(f)).full((h, w))
     return (0.5 + 0.5 * total / np.float32(1.0 + base_weight)).astype(np.float32)
+
+
+def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a: np.float32) -> np.ndarray:
+    """clamp(a n_i . l_{i+1}, -1, 1) with l_{i+1} = (l - (l.nc) nc) / |...|, |...|^2 = 1 - (l.nc)^2."""
+    lc = dot_light(n_coarse, l)
+    c = dot_light(n_fine, l) - lc * np.einsum("...i,...i->...", n_fine, n_coarse)
+    c /= np.sqrt(np.maximum(1.0 - lc * lc, 1e-8))
+    return np.clip(a * c, -1.0, 1.0)
+
+
+def _coarse_factor(sigma_px: float, h: int, w: int, enabled: bool = True) -> int:
+    """Power-of-two grid step for a level of ``sigma_px``: at most sigma / 2, at least 8 cells a side."""
+    f = 1
+    while enabled and sigma_px / (2 * f) >= 2.0 and min(h, w) // (2 * f) >= 8:
+        f *= 2
+    return f
+
+
+class _WeightedPyramid:
+    """The 1/nz-weighted normal stack (w n, w) area-averaged onto grids 2, 4, 8 … times coarser,
+    each aligned to the whole image's grid (``origin``: this window's position in it), for
+    :func:`exaggerated_shading`'s coarse levels (§7.2.1 smoothing on a coarser grid)."""
+
+    def __init__(self, normals, mask, foreshortening, origin):
+        import cv2
+
+        from common.rgbn.smoothing import foreshortening_weights
+        wgt = foreshortening_weights(normals, mask) if foreshortening else mask.astype(np.float32)
+        stack = np.empty(normals.shape[:2] + (4,), np.float32)
+        np.multiply(normals, wgt[..., None], out=stack[..., :3])
+        stack[..., 3] = wgt
+        self._cv2 = cv2
+        self.origin = (int(origin[0]), int(origin[1]))
+        self.shape = normals.shape[:2]
+        self.stacks = {1: stack}
+
+    def offset(self, f: int) -> tuple[int, int]:
+        return (int(-self.origin[0]) % f, int(-self.origin[1]) % f)
+
+    def stack(self, f: int) -> np.ndarray:
+        if f not in self.stacks:
+            h, w = self.shape
+            o = self.offset(f)
+            hh, ww = (h - o[0]) // f, (w - o[1]) // f
+            full = self.stacks[1][o[0]:o[0] + hh * f, o[1]:o[1] + ww * f]
+            self.stacks[f] = self._cv2.resize(np.ascontiguousarray(full), (ww, hh), interpolation=self._cv2.INTER_AREA)
+        return self.stacks[f]
+
+    def level(self, sigma_px: float, f: int) -> np.ndarray:
+        """Unit normals smoothed at ``sigma_px`` (full-resolution pixels) on grid ``f``."""
+        from common.rgbn._filters import gaussian_blur
+        st = self.stack(f)
+        # the box average of the grid already holds (f^2 - 1) / 12 of the variance
+        s = np.sqrt(max(sigma_px ** 2 - (f * f - 1) / 12.0, 0.25 * f * f)) / f
+        b = gaussian_blur(st, float(s))
+        v = b[..., :3]
+        norm = np.sqrt(np.einsum("...i,...i->...", v, v))
+        out = v / np.maximum(norm, 1e-12)[..., None]
+        empty = b[..., 3] <= 1e-6 * max(float(st[..., 3].max(initial=0.0)), 1e-12)
+        if empty.any():
+            out[empty] = (0.0, 0.0, 1.0)
+        return out
 
 
 def mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,

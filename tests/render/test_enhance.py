@@ -150,3 +150,16 @@ def test_bad_arguments_are_named():
         specular_enhancement(_flat(4), exponent=0)
     with pytest.raises(ValueError, match="dpi"):
         relief_scale_px(_flat(4), 0)
+
+
+def test_lightness_relief_pulls_out_of_gamut_colours_to_their_grey_without_clipping():
+    """The one-pass gamut check (cv2.inRange) finds exactly the colours a per-channel test finds."""
+    from common.render.enhance import _into_gamut
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(-0.3, 1.3, (64, 64, 3)).astype(np.float32)
+    L = rng.uniform(5, 95, (64, 64)).astype(np.float32)
+    out = _into_gamut(rgb, L)
+    inside = (rgb.max(axis=2) <= 1) & (rgb.min(axis=2) >= 0)
+    assert np.array_equal(out[inside], rgb[inside])             # in-gamut colours untouched
+    assert out.min() >= 0 and out.max() <= 1
+    assert not np.array_equal(out[~inside], rgb[~inside])
