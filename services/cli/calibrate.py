@@ -4,6 +4,7 @@
     tessera calibrate --device sane --sane-device epson2:libusb:001:004
     tessera calibrate --show                  # print the newest valid calibration
     tessera calibrate --from-files targets.csv --device epson-v850 --dpi 300   # scans of a target made elsewhere
+    tessera calibrate --nominal --lamp-direction-deg 170 --device old-flatbed  # no target scans at all
 
 Scans the target at tilts 0–25° and eight rotations (a real scanner asks the operator to set up
 each pose), fits I(n) = a·(nx, ny, nz, 1), prints the leave-one-out error of the first- and
@@ -29,6 +30,11 @@ around it, or is a crop of the target alone. Scans with more than ``--max-clippe
 pixels clipped (saturated, or at 0) are dropped and listed; the report gives each file's reading,
 clipped pixels and fit residual. Every file is checked at the door (decodes fully, not blank);
 a refused file stops the calibration and nothing is stored.
+
+``--nominal --lamp-direction-deg D`` is for a scanner with no target scans: the simulator's
+first-order model turned so that its light comes from D (counter-clockwise from the image's +x
+axis, 0 = right, 90 = top; ``tessera import scans`` logs D from the shadows beside the fragment).
+The relief it gives is right; its tilt angles are nominal (docs/flatbed.md).
 """
 
 from __future__ import annotations
