@@ -52,24 +52,32 @@ def _cache(fid: str, stem: str):
     return RelightCache(store, rel)
 
 
+def _face_list(fid: str) -> list[dict]:
+    """``[{face, artifact, relight}]``: each face's newest RGBN artifact and its relight API."""
+    out = []
+    for face, rel in _faces(fid).items():
+        stem = rel.rsplit("/", 1)[1][:-3]
+        out.append({"face": face, "artifact": rel,
+                    "relight": url_for("fragment.params", fid=fid, stem=stem).rsplit("/", 1)[0]})
+    return out
+
+
 @bp.get("/fragments/<fid>")
 def page(fid):
+    """The page; its faces are in it (``data-faces``), so the viewer starts without asking."""
+    import json
+
     fid = _fid(fid)
-    return render_template("fragment.html", page="fragment", fragment=fid)
+    return render_template("fragment.html", page="fragment", fragment=fid, faces=json.dumps(_face_list(fid)))
 
 
 @bp.get("/api/fragments/<fid>")
 def fragment(fid):
     """Faces (with their relight API), proposals, confirmed joins and downloads of one fragment."""
     fid = _fid(fid)
-    faces = _faces(fid)
-    if not faces:
+    out_faces = _face_list(fid)
+    if not out_faces:
         abort(404, f"fragment {fid} has no RGBN face on storage yet")
-    out_faces = []
-    for face, rel in faces.items():
-        stem = rel.rsplit("/", 1)[1][:-3]
-        out_faces.append({"face": face, "artifact": rel,
-                          "relight": url_for("fragment.params", fid=fid, stem=stem).rsplit("/", 1)[0]})
     proposals = []
     review = station().review
     if review is not None:
@@ -82,19 +90,19 @@ def fragment(fid):
     return jsonify(fragment=fid, faces=out_faces,
                    proposals=[p for p in proposals if p.get("status") != "confirmed"],
                    joins=[p for p in proposals if p.get("status") == "confirmed"],
-                   proposals_available=review is not None,
-                   downloads=_downloads(fid))
+                   proposals_available=review is not None, **_related(fid))
 
 
-def _downloads(fid: str) -> list[dict]:
-    """Links to the fragment's files (``tessera export``'s), from the archive's download route
-    when the app has one."""
+def _related(fid: str) -> dict:
+    """URLs of the archive's other APIs about this fragment, when the app has them: its downloads
+    (``tessera export``'s files) and its catalogue row (metadata, edit history)."""
     from flask import current_app
 
-    for endpoint in ("catalogue.download", "catalogue.export", "downloads.fragment"):
+    out = {}
+    for key, endpoint in (("downloads", "downloads.listing"), ("catalogue", "catalogue.fragment")):
         if endpoint in current_app.view_functions:
-            return [{"label": "All files (tessera export, zip)", "url": url_for(endpoint, fid=fid)}]
-    return []
+            out[key] = url_for(endpoint, fid=fid)
+    return out
 
 
 @bp.get("/api/fragments/<fid>/relight/<stem>/params.json")

@@ -135,6 +135,7 @@ def test_fragment_json_lists_faces_joins_and_proposals(client):
     assert [(j["other"], j["status"]) for j in d["joins"]] == [("F-2", "confirmed")]
     assert d["joins"][0]["other_url"] == "/fragments/F-2" and d["joins"][0]["pose"]["angle_deg"] == 10.0
     assert [p["other"] for p in d["proposals"]] == ["F-3"]
+    assert d["downloads"] == "/api/downloads/F-1"   # the archive's route for tessera export's files
 
 
 def test_page_and_tile_routes(client):

@@ -16,16 +16,23 @@
 
   // ---- the fragment: faces, joins, proposals, downloads ------------------------------------------
   async function load() {
-    const r = await Tessera.api("GET", root.dataset.api);
-    if (!r.ok) { message(r.data.error || `The fragment could not be loaded (HTTP ${r.status}).`); return; }
-    info = r.data;
-    const faces = $("faces");
-    faces.replaceChildren();
-    for (const f of info.faces) {
-      const b = el("button", { type: "button", text: f.face[0].toUpperCase() + f.face.slice(1), "data-face": f.face });
-      b.addEventListener("click", () => openFace(f));
-      faces.append(b);
+    // the faces are in the page: the viewer starts at once; the rest of the fragment follows
+    const faces = JSON.parse(root.dataset.faces || "[]");
+    if (!faces.length) { message("This fragment has no RGBN face on storage yet."); }
+    else {
+      const bar = $("faces");
+      bar.replaceChildren();
+      for (const f of faces) {
+        const b = el("button", { type: "button", text: f.face[0].toUpperCase() + f.face.slice(1), "data-face": f.face });
+        b.addEventListener("click", () => openFace(f));
+        bar.append(b);
+      }
+      const want = new URLSearchParams(location.search).get("face");
+      openFace(faces.find((f) => f.face === want) || faces[0]);
     }
+    const r = await Tessera.api("GET", root.dataset.api);
+    if (!r.ok) { if (faces.length) message(r.data.error || `The fragment's joins could not be loaded (HTTP ${r.status}).`); return; }
+    info = r.data;
     const link = (p) => el("li", {},
       el("a", { href: p.other_url, text: p.other }), ` · ${(100 * p.probability).toFixed(0)} %`,
       p.pose ? ` · ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "",
@@ -35,10 +42,31 @@
     $("proposals").replaceChildren(...info.proposals.map(link));
     $("proposals-empty").hidden = info.proposals.length > 0;
     if (!info.proposals_available) $("proposals-empty").textContent = "The proposal store is not available on this station.";
-    $("downloads").replaceChildren(...info.downloads.map((d) => el("li", {}, el("a", { href: d.url, text: d.label, download: "" }))));
-    $("downloads-empty").hidden = info.downloads.length > 0;
-    const want = new URLSearchParams(location.search).get("face");
-    openFace(info.faces.find((f) => f.face === want) || info.faces[0]);
+    about(info.catalogue);
+    downloads(info.downloads);
+  }
+
+  // metadata from the catalogue (find-spot, context, date, notes), where the station has one
+  async function about(url) {
+    const dl = $("about");
+    if (!url) { dl.replaceChildren(el("dd", { class: "muted", text: "No catalogue on this station." })); return; }
+    const r = await Tessera.api("GET", url);
+    if (!r.ok) { dl.replaceChildren(el("dd", { class: "muted", text: r.data.error || "Not in the catalogue." })); return; }
+    const rows = [["Inventory", r.data.inventory], ["Find-spot", r.data.find_spot], ["Context", r.data.context],
+                  ["Date", r.data.date], ["Notes", r.data.notes], ["State", r.data.state]];
+    dl.replaceChildren(...rows.filter(([, v]) => v).flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: String(v) })]));
+    $("catalogue-link").href = `/fragments?q=${encodeURIComponent(root.dataset.fragment)}`;
+  }
+
+  // tessera export's files, from the archive's downloads (the first request exports them: seconds)
+  async function downloads(url) {
+    const ul = $("downloads");
+    if (!url) { ul.replaceChildren(); $("downloads-empty").hidden = false; return; }
+    const r = await Tessera.api("GET", url);
+    if (!r.ok) { ul.replaceChildren(el("li", { class: "muted", text: r.data.error || `Not available (HTTP ${r.status}).` })); return; }
+    const kb = (n) => n > 1e6 ? `${(n / 1e6).toFixed(1)} MB` : `${Math.max(1, Math.round(n / 1e3))} kB`;
+    ul.replaceChildren(el("li", {}, el("a", { href: r.data.zip, text: "All files (zip)", download: "" })),
+      ...r.data.files.map((f) => el("li", {}, el("a", { href: f.url, text: f.name, download: "" }), ` · ${kb(f.bytes)}`)));
   }
 
   async function openFace(face) {

@@ -21,6 +21,18 @@ const RelightViewer = (() => {
     return [Math.cos(e) * Math.cos(a), Math.cos(e) * Math.sin(a), Math.sin(e)];
   }
 
+  // the shader files, fetched once as soon as this script runs (in parallel with the page's
+  // other requests)
+  let sources = null;
+  function shaderSources() {
+    const text = (name) => fetch(HERE + name).then((r) => {
+      if (!r.ok) throw new Error(`shader ${name}: HTTP ${r.status}`);
+      return r.text();
+    });
+    if (!sources) sources = Promise.all(["tile.vert", "common.glsl", ...Object.keys(STYLES).map((n) => n + ".frag")].map(text));
+    return sources;
+  }
+
   // [lo, hi] or "none"/"auto"-less numbers as the shader's vec2 (x < 0 means "none")
   const range = (v) => Array.isArray(v) ? [Number(v[0]), Number(v[1])] : [-1, -1];
 
@@ -104,13 +116,8 @@ const RelightViewer = (() => {
                                                      premultipliedAlpha: false, alpha: false });
       if (!gl) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
       this.gl = gl;
-      const text = (name) => fetch(HERE + name).then((r) => {
-        if (!r.ok) throw new Error(`shader ${name}: HTTP ${r.status}`);
-        return r.text();
-      });
       const names = Object.keys(STYLES);
-      const [vert, common, ...frags] = await Promise.all([text("tile.vert"), text("common.glsl"),
-                                                          ...names.map((n) => text(n + ".frag"))]);
+      const [vert, common, ...frags] = await shaderSources();
       // sources now, programs when a style is first drawn (compiling all of them would delay the
       // first picture); a style's compile error still shows at once: the page draws it first
       this.sources = {};
@@ -468,5 +475,6 @@ const RelightViewer = (() => {
     }
   }
 
+  shaderSources();
   return { Viewer, STYLES, lightVector };
 })();
