@@ -333,6 +333,22 @@ class RelightCache:
         self._put(rel, data)
         return path
 
+    def cut(self, *, min_level: int = 1, progress=None) -> int:
+        """Cut every tile of the levels ``min_level`` and coarser now (what a first view would
+        otherwise wait for); tiles already there are kept. Returns the number of tiles.
+
+        ``progress(done, total)`` is called after each tile (a
+        :class:`common.imports.progress.ProgressBar` made with ``total`` can show it)."""
+        params = self.params()
+        t = params["tile_px"]
+        todo = [(level, r, c) for level, (lw, lh) in enumerate(params["levels"]) if level >= min_level
+                for r in range(-(-lh // t)) for c in range(-(-lw // t))]
+        for k, (level, r, c) in enumerate(todo[::-1]):     # coarsest first
+            self.tile_path(level, r, c)
+            if progress is not None:
+                progress(k + 1, len(todo))
+        return len(todo)
+
 
 # ---- the viewer's styles as offline styles ------------------------------------------------------
 
@@ -406,3 +422,4 @@ def overview_level(params: dict, max_mpx: float = 0.5) -> int:
         if w * h <= max_mpx * 1e6:
             return level
     return len(params["levels"]) - 1
+

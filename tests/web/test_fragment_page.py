@@ -82,6 +82,11 @@ def test_tiles_are_cut_once_and_kept(tmp_path):
     assert not list(path.parent.glob(".*.tmp"))
     with pytest.raises(ValueError, match="outside level 0"):
         cache.tile_path(0, 3, 0)
+    # cutting ahead of a view: every tile of every level once, the one already there kept
+    seen = []
+    assert cache.cut(min_level=0, progress=lambda done, total: seen.append((done, total))) == 1 + 1
+    assert seen == [(1, 2), (2, 2)] and path.stat().st_mtime_ns == stamp
+    assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 2
 
 
 def test_colour_only_face_has_flat_fields(tmp_path):
