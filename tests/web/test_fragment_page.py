@@ -73,7 +73,7 @@ def test_coarse_level_is_the_masked_area_average(tmp_path):
 def test_tiles_are_cut_once_and_kept(tmp_path):
     from common.web.relight import RelightCache
 
-    store = _store_with(tmp_path, relief_face(100, 120))
+    store = _store_with(tmp_path, relief_face(100, 300))      # level 0: 2 tiles, level 1: 1
     cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
     path = cache.tile_path(0, 0, 0)
     stamp = path.stat().st_mtime_ns
@@ -84,9 +84,9 @@ def test_tiles_are_cut_once_and_kept(tmp_path):
         cache.tile_path(0, 3, 0)
     # cutting ahead of a view: every tile of every level once, the one already there kept
     seen = []
-    assert cache.cut(min_level=0, progress=lambda done, total: seen.append((done, total))) == 1 + 1
-    assert seen == [(1, 2), (2, 2)] and path.stat().st_mtime_ns == stamp
-    assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 2
+    assert cache.cut(min_level=0, progress=lambda done, total: seen.append((done, total))) == 3
+    assert seen == [(1, 3), (2, 3), (3, 3)] and path.stat().st_mtime_ns == stamp
+    assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 3
 
 
 def test_colour_only_face_has_flat_fields(tmp_path):
