@@ -184,6 +184,7 @@ class Catalogue:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._local = threading.local()
         self._write = threading.Lock()
+        self._joins_stale = False
         with self._db() as db:
             db.executescript(_SCHEMA)
 
@@ -328,7 +329,7 @@ class Catalogue:
 
         ``fragment.annotated`` is written to storage (:meth:`record_annotation`) and its fragment
         re-indexed; an event announcing a fragment's artifact or failure re-indexes that fragment;
-        match events refresh the join counts.
+        match events mark the join counts for recounting at the next :meth:`flush`.
         """
         kind, fid = event.get("type"), event.get("fragment")
         if kind in FRAGMENT_EVENTS and fid:
@@ -339,9 +340,15 @@ class Catalogue:
             self.index_fragment(str(fid), failed=(failed or {}).get(str(fid)), matched=self._matched())
             return "annotated" if kind == "fragment.annotated" else "reindexed"
         if kind in JOIN_EVENTS:
-            self.refresh_joins()
+            self._joins_stale = True   # counted once per batch of events (:meth:`flush`): a re-rank sends thousands
             return "joins"
         return "ignored"
+
+    def flush(self) -> None:
+        """Recount the joins if a match event came since the last count (call after a batch of events)."""
+        if self._joins_stale:
+            self._joins_stale = False
+            self.refresh_joins()
 
     def record_annotation(self, event: Mapping, seq: int | None = None) -> str:
         """Write a ``fragment.annotated`` event to ``fragments/<id>/annotations/`` (once; atomic)."""

@@ -253,7 +253,7 @@ def open_catalogue(cfg: Mapping, settings: Mapping, link: StationLink, review=No
                         on_gap=rebuild)
     feed.subscribe(FRAGMENT_EVENTS + JOIN_EVENTS,
                    lambda event, seq: catalogue.apply(event, seq, failed=failures_by_fragment(link)),
-                   position=catalogue.set_position)
+                   position=lambda stream, seq: (catalogue.flush(), catalogue.set_position(stream, seq)))
 
     def first_round():
         try:

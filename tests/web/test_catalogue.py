@@ -143,6 +143,19 @@ def test_annotations_apply_in_order_are_kept_on_storage_and_survive_a_rebuild(co
     assert c.query(text="room 5")["total"] == 1
 
 
+
+def test_match_events_recount_the_joins_once_per_batch(collection):
+    from common.messages import new_message
+
+    store, c, db = collection
+    with ProposalStore(db) as ps:
+        ps.upsert([Proposal("F003", "F004", 0.7, "m")])
+    event = new_message("match.proposed", fragment="F003", other="F004", probability=0.7)
+    assert c.apply(event, 9) == "joins" and c.get("F004")["pending"] == 0   # not counted yet
+    c.flush()
+    assert c.get("F004")["pending"] == 1 and c.get("F003")["pending"] == 2
+
+
 # -- the web API ---------------------------------------------------------------------------------
 
 def test_catalogue_api_lists_filters_and_serves_thumbnails(collection):
@@ -180,7 +193,8 @@ def test_an_edit_goes_through_the_bus_and_comes_back_from_the_feed(station_confi
     c = Catalogue(tmp_path / "cat.sqlite", store)
     rebuilt = []
     feed = FeedFollower(link, start=c.position(), on_gap=lambda s, last: rebuilt.append(c.rebuild()) or last)
-    feed.subscribe(cat.FRAGMENT_EVENTS + cat.JOIN_EVENTS, c.apply, position=c.set_position)
+    feed.subscribe(cat.FRAGMENT_EVENTS + cat.JOIN_EVENTS, c.apply,
+                   position=lambda stream, seq: (c.flush(), c.set_position(stream, seq)))
     feed.poll()                                   # first round: no position yet, so built from storage
     assert rebuilt == [1] and c.get("F010")["notes"] == "old"
     app = web.create_app(token=TOKEN, store_root=store.root, link=link, catalogue=c, feed=feed)
