@@ -160,3 +160,24 @@ def test_the_manifest_has_a_canvas_per_face_metadata_and_the_normal_map(station)
     for url in (body["id"], front["rendering"][0]["id"]):
         assert c.get(url.replace("http://localhost", "")).status_code == 200
     assert c.get("/iiif/presentation/F8/manifest").status_code == 404
+
+
+
+def test_renders_are_offered_as_a_choice_on_the_canvas(station, tmp_path):
+    c, srgb = station
+    store = Store(tmp_path)
+    drawn = np.full((300, 520, 3), 200, np.uint8)
+
+    def fill(f):
+        f.create_dataset("image", data=drawn)
+        f.create_dataset("alpha", data=np.full((300, 520), 255, np.uint8))
+        f.attrs.update(recipe="toon", bits=8, dpi=254.0)
+
+    store.write("fragments/F7/renders/front-00000000000000e7.h5", "tessera.render", 1, fill,
+                provenance={"inputs": [{"path": "fragments/F7/rgbn/front-00000000000000f7.h5"}]})
+    m = json.loads(c.get("/iiif/presentation/F7/manifest").data)
+    body = m["items"][1]["items"][0]["items"][0]["body"]
+    assert body["type"] == "Choice"
+    assert [b["label"]["en"][0] for b in body["items"]] == ["albedo", "render-toon"]
+    got = cv2.imdecode(np.frombuffer(c.get(body["items"][1]["id"].replace("http://localhost", "")).data, np.uint8), 1)
+    assert got.shape == (300, 520, 3) and np.abs(got.astype(int) - 200).max() <= 2   # jpg of the drawn image
