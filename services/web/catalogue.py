@@ -112,7 +112,7 @@ def edit(fid):
     st.sent_edits.appendleft(entry)
     if st.feed is not None and delivered:
         try:
-            st.feed.poll()   # apply it now rather than at the next round (the page shows it at once)
+            st.feed.poll(blocking=False)   # apply it now rather than at the next round (unless one is running)
         except Exception as exc:
             log.info("event feed not polled after an edit: %s", exc)
     return jsonify(sent=entry)

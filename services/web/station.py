@@ -103,44 +103,54 @@ class FeedFollower:
         seq)`` after each batch (to persist where the subscriber got to)."""
         self._subs.append((frozenset(types) if types is not None else None, callback, position))
 
-    def poll(self) -> int:
-        """One round: fetch and dispatch the next events; return how many were dispatched."""
+    def poll(self, *, blocking: bool = True) -> int:
+        """One round: fetch and dispatch the next events; return how many were dispatched.
+
+        With ``blocking=False`` it returns -1 at once if another round is under way (a page must not
+        wait for a catch-up from storage)."""
+        if not self._lock.acquire(blocking=blocking):
+            return -1
+        try:
+            return self._poll()
+        finally:
+            self._lock.release()
+
+    def _poll(self) -> int:
         from common.messages import MessageError, unpack
 
-        with self._lock:
-            kinds = [t for t, _, _ in self._subs]
-            types = None if not kinds or None in kinds else sorted(frozenset().union(*kinds))
-            with self.link.client() as c:
-                answer = c.since(self.seq, limit=self.batch, types=types)
-            stream, first = str(answer.get("stream", "")), int(answer.get("first_seq") or 0)
-            last = int(answer.get("last_seq") or 0)
-            if stream != self.stream or (self.seq and first > self.seq + 1):
-                if self.stream or self.on_gap is not None:
-                    log.info("event feed: starting after %s:%d, broker stream %s holds %d..%d; catching up from "
-                             "storage", self.stream or "-", self.seq, stream, first, last)
-                self.seq = self.on_gap(stream, last) if self.on_gap is not None else last
-                self.stream = stream
-                self._positions()
-                return 0
-            n = 0
-            for seq, data in answer.get("events", []):
-                try:
-                    event = unpack(bytes(data))
-                except MessageError as exc:   # the broker validated it; a newer schema, perhaps
-                    log.warning("event feed: event %d not understood: %s", seq, exc)
-                    event = None
-                if event is not None:
-                    for kinds_, callback, _ in self._subs:
-                        if kinds_ is None or event["type"] in kinds_:
-                            try:
-                                callback(event, int(seq))
-                            except Exception:   # one bad event must not stop the feed
-                                log.exception("event feed: %s %s (seq %d) failed", event["type"], event["uid"], seq)
-                n += 1
-                self.seq = int(seq)
-            self.seq = max(self.seq, int(answer.get("scanned_to") or 0))
+        kinds = [t for t, _, _ in self._subs]
+        types = None if not kinds or None in kinds else sorted(frozenset().union(*kinds))
+        with self.link.client() as c:
+            answer = c.since(self.seq, limit=self.batch, types=types)
+        stream, first = str(answer.get("stream", "")), int(answer.get("first_seq") or 0)
+        last = int(answer.get("last_seq") or 0)
+        if stream != self.stream or (self.seq and first > self.seq + 1):
+            if self.stream or self.on_gap is not None:
+                log.info("event feed: starting after %s:%d, broker stream %s holds %d..%d; catching up from "
+                         "storage", self.stream or "-", self.seq, stream, first, last)
+            self.seq = self.on_gap(stream, last) if self.on_gap is not None else last
+            self.stream = stream
             self._positions()
-            return n
+            return 0
+        n = 0
+        for seq, data in answer.get("events", []):
+            try:
+                event = unpack(bytes(data))
+            except MessageError as exc:   # the broker validated it; a newer schema, perhaps
+                log.warning("event feed: event %d not understood: %s", seq, exc)
+                event = None
+            if event is not None:
+                for kinds_, callback, _ in self._subs:
+                    if kinds_ is None or event["type"] in kinds_:
+                        try:
+                            callback(event, int(seq))
+                        except Exception:   # one bad event must not stop the feed
+                            log.exception("event feed: %s %s (seq %d) failed", event["type"], event["uid"], seq)
+            n += 1
+            self.seq = int(seq)
+        self.seq = max(self.seq, int(answer.get("scanned_to") or 0))
+        self._positions()
+        return n
 
     def _positions(self) -> None:
         for _, _, position in self._subs:

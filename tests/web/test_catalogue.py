@@ -213,3 +213,51 @@ def test_an_edit_goes_through_the_bus_and_comes_back_from_the_feed(station_confi
     assert client.post("/api/catalogue/F010/metadata", json={"changes": {"notes": "new"}},
                        headers=BEARER).json["error"] == "nothing changed"
     link.close()
+
+
+class _FakeFeed:
+    """A broker's SINCE answers from a list of events (for the follower's bookkeeping)."""
+
+    def __init__(self, events, stream="s1", first=1):
+        self.events, self.stream, self.first = events, stream, first
+
+    def client(self):
+        feed = self
+
+        class C:
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *a):
+                return False
+
+            def since(self, after, limit=1000, types=None):
+                from common.messages import pack
+                ev = [(s, pack(e)) for s, e in feed.events if s > after and (types is None or e["type"] in types)]
+                last = feed.events[-1][0] if feed.events else 0
+                return {"stream": feed.stream, "first_seq": feed.first, "last_seq": last,
+                        "scanned_to": max(last, after), "events": ev[:limit]}
+        return C()
+
+
+def test_the_feed_follower_dispatches_in_order_and_catches_up_after_a_hole():
+    from common.messages import new_message
+    from services.web.station import FeedFollower
+
+    ev = [(i, new_message("match.verified", fragment="A", other="B", verdict="confirmed")) for i in (1, 2, 3)]
+    ev.append((4, new_message("noop.job")))
+    link = _FakeFeed(ev)
+    gaps, seen, positions = [], [], []
+    f = FeedFollower(link, start=("s1", 1), on_gap=lambda s, last: gaps.append((s, last)) or last)
+    f.subscribe(["match.verified"], lambda e, seq: seen.append(seq), position=lambda s, q: positions.append(q))
+    assert f.poll() == 2 and seen == [2, 3] and positions == [4] and gaps == []   # noop.job filtered out
+    link.stream = "s2"                                    # a new broker journal: caught up from storage
+    assert f.poll() == 0 and gaps == [("s2", 4)] and f.seq == 4
+    link.stream, link.first = "s2", 9                     # the broker forgot events 5..8: a hole
+    link.events.append((10, new_message("match.verified", fragment="A", other="C", verdict="rejected")))
+    assert f.poll() == 0 and gaps[-1] == ("s2", 10) and seen == [2, 3]
+    f._lock.acquire()
+    try:
+        assert f.poll(blocking=False) == -1               # a page never waits for a running round
+    finally:
+        f._lock.release()
