@@ -456,7 +456,7 @@ def _robust_weight(s2, loss, f):
 
 def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma_deg: float = SIGMA_DEG,
                      loss: str = "cauchy", f_scale: float = 3.0, p_value: float = P_VALUE,
-                     centres_mm: Mapping | None = None, max_nfev: int | None = None) -> list[Cluster]:
+                     centres_mm: Mapping | None = None, max_nfev: int = 50, refine: bool = True) -> list[Cluster]:
     """Solve every cluster of confirmed joins: one pose per fragment in its cluster's frame.
 
     Parameters
@@ -479,8 +479,10 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
         translation error is measured where B's centre lands rather than at B's frame origin (an
         image corner, up to a fragment's diagonal away), so a small turn of a large piece is not
         mistaken for a large shift. Default: the frame origins.
-    max_nfev : int, optional
-        Cap on function evaluations per cluster (default: scipy's).
+    max_nfev : int
+        Cap on function evaluations of each reweighting round.
+    refine : bool
+        False: return the spanning-tree initialisation unsolved (to see what the solve adds).
 
     Returns
     -------
@@ -543,7 +545,7 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
         fixed = np.zeros((1, 3))
         ident = np.arange(len(order))
         cost, nfev = 0.0, 0
-        if len(x0):
+        if len(x0) and refine:
             # Jacobian sparsity: rows of join k depend on the free variables of its two fragments
             rows, cols = [], []
             for k in range(len(mine)):
