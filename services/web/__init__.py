@@ -231,11 +231,10 @@ def catalogue_path(cfg: Mapping, settings: Mapping) -> Path:
 
 
 def open_catalogue(cfg: Mapping, settings: Mapping, link: StationLink, review=None):
-    """The catalogue and the feed follower that keeps it current (started in the background).
+    """The catalogue and the feed follower that keeps it current (:func:`start_following` starts it).
 
     On the first round, and whenever the feed cannot be followed without a hole, the catalogue
-    is rebuilt from storage; if the broker cannot be reached at start and the index is empty, it
-    is built from storage at once so the page is not empty meanwhile.
+    is rebuilt from storage.
     """
     from common.web.catalogue import FRAGMENT_EVENTS, JOIN_EVENTS, Catalogue
 
@@ -255,17 +254,23 @@ def open_catalogue(cfg: Mapping, settings: Mapping, link: StationLink, review=No
                    lambda event, seq: catalogue.apply(event, seq, failed=failures_by_fragment(link)),
                    position=lambda stream, seq: (catalogue.flush(), catalogue.set_position(stream, seq)))
 
+    return catalogue, feed
+
+
+def start_following(catalogue, feed: FeedFollower) -> None:
+    """Start the feed follower in the background (after the app is built, so every blueprint has
+    subscribed); if the broker cannot be reached and the index is empty, index storage meanwhile."""
     def first_round():
         try:
             feed.poll()
         except Exception as exc:
             log.warning("catalogue: the broker cannot be reached (%s); indexing storage meanwhile", exc)
             if catalogue.counts()["total"] == 0:
-                rebuild("", 0)
+                n = catalogue.rebuild()
+                log.info("catalogue: %d fragments indexed from storage", n)
         feed.start()
 
     threading.Thread(target=first_round, name="catalogue-start", daemon=True).start()
-    return catalogue, feed
 
 
 def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, with_scanner: bool = True,
@@ -293,6 +298,7 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
     catalogue, feed = open_catalogue(cfg, settings, link, review)
     app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
                      review=review, catalogue=catalogue, feed=feed)
+    start_following(catalogue, feed)
     if not log.isEnabledFor(logging.DEBUG):   # one line per poll of every open page is noise
         logging.getLogger("werkzeug").setLevel(logging.WARNING)
     server = make_server(host, port, app, threaded=True)
