@@ -1,4 +1,4 @@
-"""Confirmed joins assembled into a reconstruction: a pose graph over SE(2) (thesis §5.8, §6).
+"""Confirmed joins assembled into a reconstruction: a pose graph over SE(2) (after thesis §5.8's verdicts).
 
 Every join a conservator confirms keeps the relative pose they saw (:meth:`ProposalStore.record_verdict`):
 fragment B's frame in fragment A's, ``p_a = R(angle) @ p_b + t`` (mm, x right, y down; the convention of

@@ -1,6 +1,7 @@
 """Reconstruction of a synthetic wall from its true joins confirmed: errors after the pose-graph solve, and time.
 
     python tests/bench/bench_reconstruction.py [--fragments 150] [--walls 3,5,7] [--draws 10] [--noise 0.3]
+                                               [--composite-dpi 40]
 
 For each wall (``generate_wall(N, seed, dpi=20)``, pose only) and each noise draw, every true join is
 given the generator's relative pose with noise, solved by :func:`solve_pose_graph` with the fragments'
@@ -16,7 +17,10 @@ its centre's distance (mm) and its angle (degrees). Noise models (per join):
 Prints, per model: max and median over pieces (max over draws of the max; median of medians), the
 share of draws with every piece within 1 mm and 1°, the spanning-tree start's max error, and the
 solve's CPU time; then the same walls with one wrong join added (a non-neighbour pair at another
-join's pose): how often a conflicting loop through it is flagged, and the others' errors.
+join's pose): how often a conflicting loop through it is flagged, and the others' errors. With
+``--composite-dpi``, the first wall is also made with its images at that dpi, stored as a station's
+fragments with every true join confirmed (bounded noise) in a proposal store, and ``tessera reconstruct``
+is timed on it.
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--walls", default="3,5,7")
     ap.add_argument("--draws", type=int, default=10)
     ap.add_argument("--noise", type=float, default=0.3)
+    ap.add_argument("--composite-dpi", type=float, default=0.0, help="also time `tessera reconstruct` at this dpi")
     args = ap.parse_args(argv)
     print(f"load average at start: {os.getloadavg()}")
     walls = []
@@ -134,8 +139,46 @@ def main(argv=None) -> int:
     print(f"one wrong join: flagged in a conflicting loop {caught}/{total}; pieces after the robust solve: median "
           f"{np.median(rest_med):.2f} mm, max {np.median(rest_max):.2f} mm (median of draws), worst draw "
           f"{max(rest_max):.1f} mm; solve CPU {np.median(cpu) * 1000:.0f} ms median, {max(cpu) * 1000:.0f} ms max")
+    if args.composite_dpi:
+        composite(walls[0][0], args)
     print(f"load average at end: {os.getloadavg()}")
     return 0
+
+
+def composite(seed, args):
+    import json
+    import resource
+    import tempfile
+    from pathlib import Path
+
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from services.cli import main as cli
+
+    t0, c0 = time.monotonic(), time.process_time()
+    w = generate_wall(args.fragments, seed=seed, dpi=args.composite_dpi, surfaces=False)
+    print(f"wall seed {seed} with images at {args.composite_dpi:g} dpi: {time.monotonic() - t0:.1f} s wall, "
+          f"{time.process_time() - c0:.1f} s CPU")
+    byid = {f.id: f for f in w.fragments}
+    centres = {f.id: tuple(f.contour_mm.mean(axis=0)) for f in w.fragments}
+    with tempfile.TemporaryDirectory() as tmp:
+        store = Store(Path(tmp) / "store")
+        for f in w.fragments:
+            save_rgbn(store, f"fragments/{f.id}/rgbn/front-bench.h5", f.rgbn)
+        joins = noisy_joins(w, byid, centres, np.random.default_rng(seed), args.noise, "bounded")
+        with ProposalStore(Path(tmp) / "store" / "matches" / "proposals.sqlite") as db:
+            db.upsert([Proposal(j.fragment_a, j.fragment_b, 0.9, "bench", angle_deg=j.angle_deg, tx_mm=j.tx_mm,
+                                ty_mm=j.ty_mm) for j in joins])
+            for j in joins:
+                db.record_verdict(j.fragment_a, j.fragment_b, "confirmed")
+        t0, c0 = time.monotonic(), time.process_time()
+        status = cli(["reconstruct", "--store", str(Path(tmp) / "store"), "-o", str(Path(tmp) / "out")])
+        wall_s, cpu_s = time.monotonic() - t0, time.process_time() - c0
+        doc = json.loads((Path(tmp) / "out" / "reconstruction.json").read_text())
+        sizes = [c["composite"]["size_px"] for c in doc["clusters"] if c["composite"]]
+        print(f"tessera reconstruct ({len(doc['clusters'])} cluster(s), composites {sizes} px): exit {status}, "
+              f"{wall_s:.1f} s wall, {cpu_s:.1f} s CPU, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
 
 if __name__ == "__main__":
