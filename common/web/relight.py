@@ -38,6 +38,7 @@ from __future__ import annotations
 import gzip
 import json
 import math
+import threading
 from pathlib import Path
 
 import cv2
@@ -275,6 +276,17 @@ def tile_from_group(group, params: dict, level: int, row: int, col: int) -> byte
     return pack_tile(xy[core], H[core], colour[core])
 
 
+_locks: dict[str, threading.Lock] = {}
+_locks_guard = threading.Lock()
+
+
+def _lock(key: str) -> threading.Lock:
+    """One lock per cache file in this process: concurrent requests for the same tile or
+    parameters compute them once (the others wait and read the file)."""
+    with _locks_guard:
+        return _locks.setdefault(key, threading.Lock())
+
+
 class RelightCache:
     """Tiles and parameters of one face, computed on first request and kept on storage.
 
@@ -313,13 +325,14 @@ class RelightCache:
         """The face's :func:`face_params` (computed once, then read from ``params.json``)."""
         rel = f"{self.folder}/params.json"
         path = self.store.path(rel)
-        if path.is_file():
-            return json.loads(path.read_text())
-        with self.open_artifact() as f:
-            params = face_params(f)
-        params["rgbn"] = self.rgbn_relpath
-        self._put(rel, json.dumps(params, sort_keys=True).encode())
-        return params
+        with _lock(str(path)):
+            if path.is_file():
+                return json.loads(path.read_text())
+            with self.open_artifact() as f:
+                params = face_params(f)
+            params["rgbn"] = self.rgbn_relpath
+            self._put(rel, json.dumps(params, sort_keys=True).encode())
+            return params
 
     def tile_path(self, level: int, row: int, col: int) -> Path:
         """Path of the tile on storage, computing and writing it first if it is not there."""
@@ -328,9 +341,11 @@ class RelightCache:
         if path.is_file():
             return path
         params = self.params()
-        with self.open_artifact() as f:
-            data = tile_from_group(f, params, int(level), int(row), int(col))
-        self._put(rel, data)
+        with _lock(str(path)):
+            if not path.is_file():
+                with self.open_artifact() as f:
+                    data = tile_from_group(f, params, int(level), int(row), int(col))
+                self._put(rel, data)
         return path
 
     def cut(self, *, min_level: int = 1, progress=None) -> int:

@@ -16,7 +16,7 @@ import pytest
 
 from .conftest import TOKEN
 from .viewer_support import CHROMIUM, CHROMIUM_ARGS, REPO, WebProcess, open_viewer, relief_face, require_browser, \
-    show_one_to_one
+    screenshot, show_one_to_one
 
 
 def _store_with(tmp_path, image, fid="F-1", stem="front-k1"):
@@ -203,7 +203,11 @@ def test_fragment_page_in_chromium(tmp_path):
             open_viewer(page, f"{web.url}/fragments/F-1")
             first = page.evaluate("() => tesseraViewer.stats.firstTileMs")
             assert first is not None and page.evaluate("() => tesseraViewer.level()") >= 1
-            page.screenshot(path=str(shots / "fragment.png"))
+            # tessera export's files, from the archive's downloads (exported on this first request)
+            page.wait_for_selector("#downloads a[href$='.zip']", timeout=120_000)
+            names = page.locator("#downloads a").all_text_contents()
+            assert {"front-albedo.png", "front-normals.png", "metadata.json"} <= set(names), names
+            screenshot(page, shots / "fragment.png")
 
             # joins and proposals are links to the other fragments' pages
             assert page.locator("#joins a", has_text="F-2").get_attribute("href") == "/fragments/F-2"
@@ -231,7 +235,7 @@ def test_fragment_page_in_chromium(tmp_path):
                     return s / (px.length / 4 * 3); }""")
             assert len({round(m, 1) for m in means.values()}) == len(means), means
             page.select_option("#style", "raking")
-            page.screenshot(path=str(shots / "fragment-raking.png"))
+            screenshot(page, shots / "fragment-raking.png")
 
             # deep zoom: 1:1 needs level 0, whose tiles arrive and are drawn
             show_one_to_one(page, 0, 0)
@@ -251,7 +255,7 @@ def test_fragment_page_in_chromium(tmp_path):
             assert page.text_content("#measure-readout") == f"{want_mm:.2f} mm"
             bar = page.evaluate("() => tesseraViewer.scaleBar()")
             assert abs(bar["px"] - bar["mm"] * 600.0 / 25.4 * zoom) < 1e-6 and 40 <= bar["px"] / dpr <= 130
-            page.screenshot(path=str(shots / "fragment-measure.png"))
+            screenshot(page, shots / "fragment-measure.png")
 
             # the back face of a one-face fragment is not offered; the other fragment opens
             page.click("#joins a")

@@ -121,3 +121,16 @@ def show_one_to_one(page, x0: int, y0: int) -> None:
         v.view = {{cx: v.canvas.width / 2 - {x0}, cy: v.canvas.height / 2 - {y0}, zoom: 1}}; v.render(); }}""")
     page.wait_for_function("() => tesseraViewer.level() === 0 && (tesseraViewer.render(), tesseraViewer.stats.complete)",
                            timeout=60_000, polling=200)
+
+
+def screenshot(page, path: Path, max_bytes: int = 300_000) -> None:
+    """A screenshot of the page at ``path``, shrunk until it is under ``max_bytes`` (docs pictures)."""
+    import cv2
+
+    page.screenshot(path=str(path))
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    scale = 1.0
+    while path.stat().st_size > max_bytes and scale > 0.3:
+        scale *= 0.85
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(path), small, [cv2.IMWRITE_PNG_COMPRESSION, 9])

@@ -104,6 +104,8 @@
   }
 
   // one input per parameter of the current style (numbers, booleans, [low, high] ranges)
+  const shown = (v) => Number(Number(v).toPrecision(4));   // what an input shows (the value keeps its digits)
+
   function buildStyleControls() {
     const box = $("style-controls");
     box.replaceChildren();
@@ -116,13 +118,13 @@
         c.addEventListener("change", () => viewer.setValues({ [key]: c.checked }));
         box.append(el("label", {}, c, ` ${name}`));
       } else if (typeof val === "number") {
-        const c = el("input", { type: "number", value: val, step: "any", "data-param": key });
+        const c = el("input", { type: "number", value: shown(val), step: "any", "data-param": key });
         c.addEventListener("input", () => { if (c.value !== "" && isFinite(c.value)) viewer.setValues({ [key]: Number(c.value) }); });
         box.append(el("label", { text: `${name} ` }, c));
       } else if (Array.isArray(val) || val === "none") {
         const isNone = val === "none";
-        const lo = el("input", { type: "number", value: isNone ? "" : val[0], step: "any", "data-param": key + ".0", placeholder: "low" });
-        const hi = el("input", { type: "number", value: isNone ? "" : val[1], step: "any", "data-param": key + ".1", placeholder: "high" });
+        const lo = el("input", { type: "number", value: isNone ? "" : shown(val[0]), step: "any", "data-param": key + ".0", placeholder: "low" });
+        const hi = el("input", { type: "number", value: isNone ? "" : shown(val[1]), step: "any", "data-param": key + ".1", placeholder: "high" });
         const set = () => {
           if (lo.value === "" && hi.value === "") viewer.setValues({ [key]: "none" });
           else if (isFinite(lo.value) && isFinite(hi.value)) viewer.setValues({ [key]: [Number(lo.value), Number(hi.value)] });
