@@ -46,8 +46,9 @@
     row = r.data;
     $("detail-title").textContent = fid;
     const faces = Object.entries(row.faces).map(([face, f]) => `${face} ${f.width}×${f.height} px at ${Math.round(f.dpi)} dpi`);
-    $("detail-links").replaceChildren(Tessera.el("a", { href: `/fragments/${encodeURIComponent(fid)}`, text: "open the fragment" }),
-      ` · ${faces.join(" · ") || "no face yet"} · ${row.state}`);
+    const links = [Tessera.el("a", { href: `/fragments/${encodeURIComponent(fid)}`, text: "open the fragment" })];
+    if (faces.length) links.push(" · ", Tessera.el("a", { href: `/iiif/presentation/${encodeURIComponent(fid)}/manifest`, text: "IIIF manifest" }));
+    $("detail-links").replaceChildren(...links, ` · ${faces.join(" · ") || "no face yet"} · ${row.state}`);
     $("metadata").hidden = false;
     for (const input of $("metadata").querySelectorAll("[data-field]")) {
       input.value = row[input.dataset.field] || "";
