@@ -143,8 +143,6 @@ def auto(fid, stem):
     ``values`` as JSON in the query), measured on the face's overview level."""
     import json
 
-    import h5py  # noqa: F401  (the cache opens the artifact)
-
     from common.web.relight import auto_contrast, level_image, overview_level
 
     fid = _fid(fid)
