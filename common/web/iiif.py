@@ -1,5 +1,5 @@
-"""IIIF Image API 3.0 (level 1, plus pct: regions and sizes, png and the color quality) over the
-cached tile pyramids, and IIIF Presentation API 3.0 manifests of fragments.
+"""IIIF Image API 3.0 (compliance level 2, plus mirroring and the gray quality) over the cached
+tile pyramids, and IIIF Presentation API 3.0 manifests of fragments.
 
 Image requests are ``{region}/{size}/{rotation}/{quality}.{format}`` (IIIF Image API 3.0 §4):
 
@@ -8,8 +8,9 @@ Image requests are ``{region}/{size}/{rotation}/{quality}.{format}`` (IIIF Image
 * size: ``max``, ``w,``, ``,h``, ``w,h``, ``!w,h`` (fit inside), ``pct:n``; with a leading ``^``
   the result may be larger than the region (upscaling), without it that is an error; every size
   is limited by :data:`MAX_AREA` (``max`` is shrunk to fit);
-* rotation: ``0`` only (level 1); quality ``default`` or ``color``; format ``jpg`` or ``png``
-  (PNG keeps the alpha channel: the fragment's coverage).
+* rotation: ``0``, ``90``, ``180``, ``270`` (clockwise), with a leading ``!`` mirrored first
+  (left-right); quality ``default``, ``color`` or ``gray``; format ``jpg`` or ``png`` (PNG keeps
+  the alpha channel: the fragment's coverage).
 
 A request is served from the pyramid level whose resolution is the coarsest at or above the
 requested one (:func:`pyramid_level_for`), cut from its tiles and area-resampled to the size.
@@ -35,7 +36,8 @@ MAX_AREA = 16 * 1024 * 1024
 IMAGE_CONTEXT = "http://iiif.io/api/image/3/context.json"
 PRESENTATION_CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 FORMATS = {"jpg": "image/jpeg", "png": "image/png"}
-QUALITIES = ("default", "color")
+QUALITIES = ("default", "color", "gray")
+ROTATIONS = (0, 90, 180, 270)
 
 _NUM = r"\d+(?:\.\d+)?"
 
@@ -59,6 +61,9 @@ class ImageRequest:
     width: int
     height: int
     fmt: str
+    rotation: int = 0
+    mirror: bool = False
+    quality: str = "default"
 
 
 def parse_region(region: str, width: int, height: int) -> tuple[int, int, int, int]:
@@ -144,9 +149,13 @@ def parse_size(size: str, w: int, h: int, *, max_area: int = MAX_AREA) -> tuple[
 
 def parse_request(region: str, size: str, rotation: str, quality_format: str, width: int,
                   height: int) -> ImageRequest:
-    """Parse the four path parts of an image request (rotation 0 only; default/color; jpg/png)."""
-    if rotation not in ("0", "0.0"):
-        raise IIIFError(f"rotation {rotation!r} is not supported (level 1: 0 only)", 400)
+    """Parse the four path parts of an image request (rotation by 90s, optionally mirrored;
+    default/color/gray; jpg/png)."""
+    mirror = rotation.startswith("!")
+    m = re.fullmatch(rf"{_NUM}", rotation[1:] if mirror else rotation)
+    degrees = float(m.group(0)) if m else -1.0
+    if degrees not in ROTATIONS:
+        raise IIIFError(f"rotation {rotation!r} is not supported (0, 90, 180 or 270, optionally after !)", 400)
     quality, _, fmt = quality_format.rpartition(".")
     if quality not in QUALITIES:
         raise IIIFError(f"quality {quality!r} is not supported ({', '.join(QUALITIES)})")
@@ -154,7 +163,7 @@ def parse_request(region: str, size: str, rotation: str, quality_format: str, wi
         raise IIIFError(f"format {fmt!r} is not supported ({', '.join(FORMATS)})")
     x, y, w, h = parse_region(region, width, height)
     ow, oh = parse_size(size, w, h)
-    return ImageRequest(x, y, w, h, ow, oh, fmt)
+    return ImageRequest(x, y, w, h, ow, oh, fmt, int(degrees), mirror, quality)
 
 
 def pyramid_level_for(req: ImageRequest, levels: int) -> int:
@@ -188,6 +197,18 @@ def render_request(req: ImageRequest, levels: list[Mapping], read: Callable[[int
     return cv2.resize(px, (req.width, req.height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
+def finish(rgba: np.ndarray, req: ImageRequest) -> np.ndarray:
+    """The last steps of a request after the size (Image API 3.0 §4.4-4.5): mirror (left-right),
+    rotate clockwise by ``req.rotation`` degrees, then the gray quality (ITU-R BT.601 luma of the
+    display values, alpha kept)."""
+    out = rgba[:, ::-1] if req.mirror else rgba
+    out = np.rot90(out, k=-(req.rotation // 90)) if req.rotation else out
+    if req.quality == "gray":
+        luma = cv2.cvtColor(np.ascontiguousarray(out[..., :3]), cv2.COLOR_RGB2GRAY)
+        out = np.dstack([luma, luma, luma, out[..., 3]])
+    return np.ascontiguousarray(out)
+
+
 def encode(rgba: np.ndarray, fmt: str, *, jpeg_quality: int = 90) -> bytes:
     """The bytes of an RGBA image as ``jpg`` (no alpha: RGB as is) or ``png`` (RGBA)."""
     if fmt == "png":
@@ -207,14 +228,14 @@ def info_json(service_id: str, info: Mapping) -> dict:
     levels = info["levels"]
     return {
         "@context": IMAGE_CONTEXT, "id": service_id, "type": "ImageService3",
-        "protocol": "http://iiif.io/api/image", "profile": "level1",
+        "protocol": "http://iiif.io/api/image", "profile": "level2",
         "width": info["width"], "height": info["height"], "maxArea": MAX_AREA,
         "sizes": [{"width": lv["width"], "height": lv["height"]} for lv in reversed(levels)
                   if lv["width"] * lv["height"] <= MAX_AREA],
         "tiles": [{"width": info["tile_px"], "height": info["tile_px"],
                    "scaleFactors": [2 ** lv["level"] for lv in levels]}],
-        "extraFormats": ["png"], "extraQualities": ["color"],
-        "extraFeatures": ["regionByPct", "sizeByPct", "sizeUpscaling", "sizeByConfinedWh"],
+        "extraQualities": ["gray"],
+        "extraFeatures": ["mirroring", "sizeUpscaling"],
         "preferredFormats": ["png", "jpg"],
     }
 
@@ -247,7 +268,7 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
             sid = f"{base}/iiif/image/{image_id(fragment, face, layer)}"
             return {"id": f"{sid}/full/max/0/default.{fmt}", "type": "Image", "format": FORMATS[fmt],
                     "width": f["width"], "height": f["height"], "label": {"en": [layer]},
-                    "service": [{"id": sid, "type": "ImageService3", "profile": "level1"}]}
+                    "service": [{"id": sid, "type": "ImageService3", "profile": "level2"}]}
 
         paintable = [layer for layer in f["layers"] if layer != "normals"]
         body = image(paintable[0]) if len(paintable) == 1 else {"type": "Choice",

@@ -1,4 +1,4 @@
-"""IIIF endpoints: Image API 3.0 (level 1+) over the cached tiles, Presentation 3.0 manifests.
+"""IIIF endpoints: Image API 3.0 (level 2) over the cached tiles, Presentation 3.0 manifests.
 
 * ``GET /iiif/image/<fid>~<face>~<layer>/info.json`` and
   ``GET /iiif/image/<fid>~<face>~<layer>/<region>/<size>/<rotation>/<quality>.<format>`` —
@@ -72,7 +72,7 @@ def image(identifier, region, size, rotation, quality_format):
     cache = station().tiles
     px = iiif.render_request(req, info["levels"],
                              lambda level, y0, y1, x0, x1: cache.region(source, layer, level, y0, y1, x0, x1))
-    resp = Response(iiif.encode(px, req.fmt), mimetype=iiif.FORMATS[req.fmt])
+    resp = Response(iiif.encode(iiif.finish(px, req), req.fmt), mimetype=iiif.FORMATS[req.fmt])
     resp.headers["Cache-Control"] = "public, max-age=600"
     resp.headers["Link"] = f'<{iiif.IMAGE_CONTEXT}>;rel="profile"'
     return resp

@@ -48,11 +48,13 @@ def test_sizes_beyond_the_region_need_the_caret_and_max_is_limited_by_max_area()
         iiif.parse_size("^4000,", 400, 300, max_area=1_000_000)
 
 
-def test_requests_accept_rotation_0_default_or_color_and_jpg_or_png_only():
+def test_requests_accept_rotations_by_90s_the_three_qualities_and_jpg_or_png_only():
     r = iiif.parse_request("full", "max", "0", "color.png", 40, 30)
-    assert (r.width, r.height, r.fmt) == (40, 30, "png")
-    for args, phrase in ((("90", "default.jpg"), "rotation"), (("0", "gray.jpg"), "quality"),
-                         (("0", "default.gif"), "format")):
+    assert (r.width, r.height, r.fmt, r.rotation, r.mirror) == (40, 30, "png", 0, False)
+    r = iiif.parse_request("full", "max", "!270", "gray.jpg", 40, 30)
+    assert (r.rotation, r.mirror, r.quality) == (270, True, "gray")
+    for args, phrase in ((("45", "default.jpg"), "rotation"), (("-90", "default.jpg"), "rotation"),
+                         (("0", "bitonal.jpg"), "quality"), (("0", "default.gif"), "format")):
         with pytest.raises(iiif.IIIFError, match=phrase):
             iiif.parse_request("full", "max", *args, 40, 30)
 
@@ -97,7 +99,7 @@ def test_info_json_describes_the_image_and_its_tiles(station):
     assert r.headers["Access-Control-Allow-Origin"] == "*"
     info = json.loads(r.data)
     assert info["@context"] == "http://iiif.io/api/image/3/context.json" and info["type"] == "ImageService3"
-    assert info["id"] == "http://localhost/iiif/image/F7~front~albedo" and info["profile"] == "level1"
+    assert info["id"] == "http://localhost/iiif/image/F7~front~albedo" and info["profile"] == "level2"
     assert (info["width"], info["height"]) == (520, 300)
     assert info["tiles"] == [{"width": 256, "height": 256, "scaleFactors": [1, 2, 4]}]
     assert info["sizes"][0] == {"width": 130, "height": 75} and info["sizes"][-1] == {"width": 520, "height": 300}
@@ -118,6 +120,20 @@ def test_regions_at_full_size_are_the_source_pixels(station):
     assert np.abs(full[..., :3].astype(int) - srgb).max() <= 1
 
 
+def test_rotation_mirroring_and_gray_are_applied_after_the_size(station):
+    c, srgb = station
+    region = srgb[50:250, 100:400]
+    for rotation, want in (("90", np.rot90(region, -1)), ("180", np.rot90(region, 2)), ("270", np.rot90(region, 1)),
+                           ("!0", region[:, ::-1]), ("!90", np.rot90(region[:, ::-1], -1))):
+        got = _png(c.get(f"/iiif/image/F7~front~albedo/100,50,300,200/max/{rotation}/default.png").data)
+        assert got.shape[:2] == want.shape[:2], rotation
+        assert np.abs(got[..., :3].astype(int) - want).max() <= 1, rotation
+    gray = _png(c.get("/iiif/image/F7~front~albedo/100,50,300,200/max/0/gray.png").data)
+    luma = region.astype(float) @ [0.299, 0.587, 0.114]
+    assert np.abs(gray[..., 0].astype(float) - luma).max() <= 1.5
+    assert np.array_equal(gray[..., 0], gray[..., 1]) and (gray[..., 3] == 255).all()
+
+
 def test_sizes_are_area_averages_of_the_source(station):
     c, srgb = station
     # half size of an aligned region: the pyramid's level 1, an exact 2 x 2 average (in linear light)
@@ -136,7 +152,7 @@ def test_sizes_are_area_averages_of_the_source(station):
     img = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg.data, np.uint8), 1), cv2.COLOR_BGR2RGB)
     assert img.shape == (75, 130, 3)
     assert np.abs(img.astype(int) - cv2.resize(srgb, (130, 75), interpolation=cv2.INTER_AREA)).mean() < 3.0
-    assert c.get("/iiif/image/F7~front~albedo/full/max/90/default.jpg").status_code == 400
+    assert c.get("/iiif/image/F7~front~albedo/full/max/45/default.jpg").status_code == 400
     assert c.get("/iiif/image/F7~front~albedo/full/1000,/0/default.jpg").status_code == 400
 
 
