@@ -13,7 +13,9 @@ Grisetti et al. 2010 "A tutorial on graph-based SLAM"; Kümmerle et al. 2011, g2
 
 1. **Initialisation along a spanning tree**: breadth-first from the cluster's root (its smallest
    fragment id, which stays at the identity), composing the joins outward, ``X_b = X_a ∘ Z_ab``;
-   joins of conflicting loops are taken only where no other join connects.
+   the joins the conflicting loops blame (:func:`blame_joins`: fewest joins covering them, the
+   latest confirmed first on a tie) are taken only where no other join connects, and start the
+   solve with weight 0.
 2. **Nonlinear least squares over SE(2)** (``scipy.optimize.least_squares``, trust-region reflective,
    sparse Jacobian): for each join the error of Grisetti et al. 2010, eq. 30, in A's frame,
 
@@ -123,6 +125,8 @@ class Cluster:
     loops : list of Loop
     residuals : dict (a, b) -> {"mm", "deg", "whitened", "suspect"}
         Each join's error at the solved poses.
+    blamed : list of (a, b)
+        Joins the conflicting loops point at (:func:`blame_joins`).
     cost, iterations, solve_s : float, int, float
         Final robust cost ``½ Σ ρ(|e|²)``, function evaluations, CPU seconds of the solve.
     """
@@ -134,6 +138,7 @@ class Cluster:
     joins: list[Join]
     loops: list[Loop] = field(default_factory=list)
     residuals: dict = field(default_factory=dict)
+    blamed: list = field(default_factory=list)
     cost: float = 0.0
     iterations: int = 0
     solve_s: float = 0.0
@@ -436,6 +441,33 @@ def _residuals(x, fixed, index, ia, ib, z, w, q):
     return np.column_stack([et * w[0], ex * w[1], ey * w[1]]).ravel()
 
 
+def blame_joins(joins: Iterable[Join], loops: Iterable[Loop]) -> list[tuple[str, str]]:
+    """The fewest joins that explain every conflicting loop, picked greedily.
+
+    Repeatedly blames the join that lies on the most conflicting loops not yet explained; a tie goes
+    to the join confirmed last (``time``; then the later in ``joins``) — the loop closed before it
+    came. A join on a conflicting loop is not necessarily wrong: when two joins are equally
+    supported, poses alone cannot tell which one is, and this only says which one to set aside first.
+
+    Returns
+    -------
+    list of (a, b), in the order blamed.
+    """
+    joins = list(joins)
+    rank = {j.pair: (j.time if j.time is not None else -math.inf, k) for k, j in enumerate(joins)}
+    open_loops = [set(lp.joins) for lp in loops if lp.conflicting]
+    blamed = []
+    while open_loops:
+        count: dict = {}
+        for lp in open_loops:
+            for p in lp:
+                count[p] = count.get(p, 0) + 1
+        worst = max(count, key=lambda p: (count[p], rank.get(p, (-math.inf, -1))))
+        blamed.append(worst)
+        open_loops = [lp for lp in open_loops if worst not in lp]
+    return blamed
+
+
 def _rho(s2, loss, f):
     """Robust cost of squared whitened errors ``s2`` (Triggs et al. 2000; scipy's definitions)."""
     if loss == "huber":
@@ -523,7 +555,8 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
     q_all = _anchors(joins, centres_mm)
     row_of = {j.pair: k for k, j in enumerate(joins)}
     # the initialisation avoids joins of conflicting loops where the tree can go round them
-    avoid = {row_of[p] for lp in loops if lp.conflicting for p in lp.joins}
+    blamed = blame_joins(joins, loops)
+    avoid = {row_of[p] for p in blamed}
     bound = math.sqrt(float(_chi2.ppf(1.0 - p_value, 3)))
     w = (1.0 / math.radians(sigma_deg), 1.0 / sigma_mm)
     clusters = []
@@ -559,7 +592,8 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
                                         shape=(3 * len(mine), len(x0))).tocsr()
             pattern.data[:] = 1
             args = (fixed, ident, ia_i, ib_i, z, w, q)
-            weights, x = np.ones(len(mine)), x0
+            # blamed joins start switched off; the reweighting brings back any that fits
+            weights, x = np.array([1e-6 if j.pair in blamed else 1.0 for j in mine]), x0
             for _ in range(IRLS_ROUNDS if loss != "linear" else 1):
                 sw = np.repeat(np.sqrt(weights), 3)
                 sol = least_squares(lambda v: _residuals(v, *args) * sw, x, jac_sparsity=pattern, method="trf",
@@ -585,6 +619,7 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
                                  "whitened": white, "suspect": white > bound}
         clusters.append(Cluster(id=f"C:{root}", root=root, fragments=comp, poses=poses, joins=mine,
                                 loops=[lp for lp in loops if lp.fragments[0] in members], residuals=residuals,
+                                blamed=[p for p in blamed if p[0] in members],
                                 cost=cost, iterations=nfev, solve_s=time.process_time() - t0))
     return clusters
 
@@ -750,6 +785,7 @@ def reconstruction_document(clusters: list[Cluster], *, unposed: Iterable = (), 
                        "residual_deg": lp.residual_deg, "residual_mm": lp.residual_mm, "chi2": lp.chi2,
                        "conflicting": lp.conflicting} for lp in c.loops],
             "n_conflicting_loops": len(c.conflicting_loops),
+            "blamed": [list(p) for p in c.blamed],
             "solve": {"cost": c.cost, "evaluations": c.iterations, "cpu_s": c.solve_s},
             "next_joins": [{**d, "pose": (dict(zip(("angle_deg", "tx_mm", "ty_mm"), d["pose"])) if d["pose"] else None)}
                            for d in next_by_cluster.get(c.id, [])],

@@ -89,7 +89,9 @@
       Tessera.el("a", { class: "button export-png", href: c.exports.png, download: "", text: "PNG" }),
       Tessera.el("a", { class: "button export-tiff", href: c.exports.tiff, download: "", text: "TIFF 16-bit" }));
     const loops = Tessera.el("ul", { class: "loops" }, ...conflicting.map((lp) => Tessera.el("li", { class: "bad-text",
-      text: `${lp.fragments.join(" → ")} → ${lp.fragments[0]}: closes ${lp.residual_mm.toFixed(1)} mm / ${lp.residual_deg.toFixed(1)}° off (χ² ${lp.chi2.toFixed(0)})` })));
+      text: `${lp.fragments.join(" → ")} → ${lp.fragments[0]}: closes ${lp.residual_mm.toFixed(1)} mm / ${lp.residual_deg.toFixed(1)}° off (χ² ${lp.chi2.toFixed(0)})` })),
+      ...c.blamed.map(([a, b]) => Tessera.el("li", { class: "bad-text blamed",
+      text: `set aside: ${a} ↔ ${b} (on the most conflicting loops, or confirmed last) — check it on the review page` })));
     const next = Tessera.el("ol", { class: "next-joins" }, ...c.next_joins.map((n) => Tessera.el("li", { "data-newcomer": n.newcomer },
       Tessera.el("a", { href: `/review?fragment=${encodeURIComponent(n.newcomer)}`, text: `${n.member} ↔ ${n.newcomer}` }),
       Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}` }))));
