@@ -496,7 +496,8 @@ def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0
 
     r = {}
     washes, _ = joint_bilateral(image.albedo, image.normals, sigma_x=sigma_x, sigma_c=sigma_c,
-                                sigma_n=sigma_n if image.normals is not None else np.inf, mask=image.mask)
+                                sigma_n=sigma_n if image.normals is not None else np.inf, mask=image.mask,
+                                filter_normals=False)     # only the washes are drawn
     shown = _exposed_colour(replace(image, albedo=washes), colour_exposure, r, "colour_exposure")
     return _cover(image, _paint.watercolour(shown, image.normals, light, mask=image.mask,
                                             relief=relief, paper=paper, edge_darkening=edge_darkening, seed=seed,
