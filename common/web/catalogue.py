@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import sqlite3
 import threading
 from pathlib import Path
@@ -32,7 +33,9 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
-from common.store import Store
+from common.store import ArtifactError, Store
+
+log = logging.getLogger("tessera.web")
 
 #: metadata fields a person edits (``tessera import images --manifest`` columns)
 FIELDS = ("inventory", "find_spot", "context", "date", "notes")
@@ -247,8 +250,12 @@ class Catalogue:
         if old is not None and old["thumb_source"] == source:
             thumb, colour = old["thumb"], old["colour"]
         elif source:
-            rgba = face_thumbnail(self.store, source, THUMB_PX)
-            thumb, colour = encode_png(rgba), colour_family(rgba)
+            try:
+                rgba = face_thumbnail(self.store, source, THUMB_PX)
+                thumb, colour = encode_png(rgba), colour_family(rgba)
+            except (ArtifactError, OSError, ValueError) as exc:   # listed without a picture, never dropped
+                log.warning("catalogue: no thumbnail of %s: %s", source, exc)
+                thumb, colour = None, ""
         else:
             thumb, colour = None, ""
         row = {"id": fid, **values, "imported": json.dumps(imported, sort_keys=True, default=str),

@@ -261,3 +261,16 @@ def test_the_feed_follower_dispatches_in_order_and_catches_up_after_a_hole():
         assert f.poll(blocking=False) == -1               # a page never waits for a running round
     finally:
         f._lock.release()
+
+
+
+def test_a_damaged_face_is_listed_without_a_thumbnail_and_stops_nothing(tmp_path):
+    store = Store(tmp_path / "storage")
+    _fragment(store, "G1", (200, 30, 30))
+    bad = store.root / "fragments/G2/rgbn/front-0000000000000bad.h5"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not an HDF5 file")
+    c = Catalogue(tmp_path / "c.sqlite", store)
+    assert c.rebuild() == 2
+    rows = {r["id"]: r for r in c.query()["fragments"]}
+    assert rows["G1"]["has_thumb"] and not rows["G2"]["has_thumb"] and rows["G2"]["colour"] == ""
