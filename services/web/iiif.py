@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from flask import Blueprint, Response, jsonify, redirect, request, url_for
 
+from common.store import ArtifactError
 from common.web import iiif
 
 from .station import station
@@ -29,6 +30,12 @@ def iiif_error(exc: iiif.IIIFError):
 @bp.errorhandler(404)
 def not_found(exc):
     return jsonify(error=getattr(exc, "description", "not found")), 404
+
+
+@bp.errorhandler(ArtifactError)
+def unreadable(exc):
+    # a face on storage that cannot be read (truncated, replaced, not HDF5): say so, serve the rest
+    return jsonify(error=f"the face cannot be read: {exc}"), 500
 
 
 @bp.errorhandler(400)

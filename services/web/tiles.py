@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from flask import Blueprint, Response, abort, jsonify, send_file, url_for
 
-from common.store import ArtifactMissing
+from common.store import ArtifactError, ArtifactMissing
 from common.web.bench import check_fragment_id
 from common.web.tiles import TILES_VERSION, dzi_tile, dzi_xml, encode_png, face_sources, pyramid_folder
 
@@ -68,6 +68,12 @@ def pyramid_info(fid: str, face: str, layer: str) -> dict:
 @bp.errorhandler(404)
 def not_found(exc):
     return jsonify(error=getattr(exc, "description", "not found")), 404
+
+
+@bp.errorhandler(ArtifactError)
+def unreadable(exc):
+    # a face on storage that cannot be read (truncated, replaced, not HDF5): say so, serve the rest
+    return jsonify(error=f"the face cannot be read: {exc}"), 500
 
 
 @bp.get("/api/tiles/<fid>")

@@ -258,3 +258,16 @@ def test_tessera_web_cut_tiles_cuts_every_pyramid_and_names_a_missing_fragment(t
     assert "2 pyramids ready" in capsys.readouterr().out
     assert main(["web", "--cut-tiles", "C9", "--set", f"storage.root={tmp_path}"]) == 2
     assert "no face on storage for C9" in capsys.readouterr().out
+
+
+def test_a_face_that_cannot_be_read_is_a_clear_error(tmp_path):
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    bad = tmp_path / "fragments/B1/rgbn/front-0000000000000bad.h5"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not an HDF5 file")
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    for url in ("/api/tiles/B1/front/albedo", "/iiif/image/B1~front~albedo/info.json", "/dzi/B1~front~albedo.dzi"):
+        r = c.get(url)
+        assert r.status_code == 500 and "cannot be read" in r.json["error"], url
