@@ -48,7 +48,7 @@ from common.render.tiles import CALIBRATION_MPX
 from common.rgbn.curvature import mean_curvature
 from common.rgbn.io import linear_to_srgb
 from common.rgbn.smoothing import smooth_normals
-from common.web.tiles import TILE_PX, pyramid_levels
+from common.web.tiles import TILE_PX, halve_sums, pyramid_levels
 
 #: Scales of exaggerated shading the fields carry (``n0`` .. ``n3``: the viewer's ``scales = 3``).
 EXAGGERATED_SCALES = 3
@@ -194,49 +194,67 @@ def read_level_window(group, level: int, r0: int, r1: int, c0: int, c1: int):
     The average is masked (pixels off the fragment do not darken its border); normals are
     renormalised; a level pixel is on the fragment when at least half of its area is.
     """
+    if int(level) == 0:
+        H0, W0 = group["mask"].shape
+        r1, c1 = min(r1, H0), min(c1, W0)
+        albedo = group["albedo"][r0:r1, c0:c1].astype(np.float32)
+        normals = group["normals"][r0:r1, c0:c1].astype(np.float32) if "normals" in group else None
+        return albedo, normals, group["mask"][r0:r1, c0:c1].astype(bool)
+    return level_from_sums(level_sums(group, level, r0, r1, c0, c1), level, "normals" in group)
+
+
+#: Channels of the level sums: albedo x mask (3), normals x mask (3), normals (3), mask (1).
+_SUMS = 10
+
+
+def level_sums(group, level: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """``(h, w, 10)`` float32 sums over the ``2**level`` cells of rows ``r0:r1``, columns ``c0:c1`` of
+    level ``level`` (>= 1): albedo x mask, normals x mask, normals, mask — read band by band.
+
+    Sums, not means: summing 2 x 2 cells of level L gives level L + 1 exactly
+    (:func:`common.web.tiles.halve_sums`), so every level comes from one read of the face."""
     f = 2 ** int(level)
+    if f < 2:
+        raise ValueError(f"level must be >= 1 for sums, got {level}")
     H0, W0 = group["mask"].shape
     has_n = "normals" in group
     R0, R1, C0, C1 = r0 * f, min(r1 * f, H0), c0 * f, min(c1 * f, W0)
-    hh, ww = r1 - r0, c1 - c0
-    alb = np.zeros((hh, ww, 3), np.float32)
-    nrm = np.zeros((hh, ww, 3), np.float32) if has_n else None
-    cov = np.zeros((hh, ww), np.float32)
+    out = np.zeros((r1 - r0, c1 - c0, _SUMS), np.float32)
     band = max(f, (_BAND_PX // f) * f)
     for b0 in range(R0, R1, band):
         b1 = min(b0 + band, R1)
         m = group["mask"][b0:b1, C0:C1].astype(np.float32)
+        stack = np.zeros(m.shape + (_SUMS,), np.float32)
         a = group["albedo"][b0:b1, C0:C1].astype(np.float32)
-        n = group["normals"][b0:b1, C0:C1].astype(np.float32) if has_n else None
-        if f == 1:
-            rows = slice(b0 - R0, b1 - R0)
-            alb[rows], cov[rows] = a, m
-            if has_n:
-                nrm[rows] = n
-            continue
+        stack[..., 0:3] = a * m[..., None]
+        if has_n:
+            n = group["normals"][b0:b1, C0:C1].astype(np.float32)
+            stack[..., 3:6] = n * m[..., None]
+            stack[..., 6:9] = n
+        stack[..., 9] = m
         # pad the band to whole cells (the image's last row/column of cells may be partial)
         ph, pw = -(b1 - b0) % f, -(C1 - C0) % f
         if ph or pw:
-            pad = ((0, ph), (0, pw))
-            m = np.pad(m, pad)
-            a = np.pad(a, pad + ((0, 0),))
-            n = np.pad(n, pad + ((0, 0),)) if has_n else None
-        rh, rw = m.shape[0] // f, m.shape[1] // f
-        cm = m.reshape(rh, f, rw, f).sum(axis=(1, 3))
-        out = slice((b0 - R0) // f, (b0 - R0) // f + rh)
-        cov[out, :rw] = cm / (f * f)
-        wsum = np.maximum(cm, 1e-12)[..., None]
-        alb[out, :rw] = (a * m[..., None]).reshape(rh, f, rw, f, 3).sum(axis=(1, 3)) / wsum
-        if has_n:
-            s = (n * m[..., None]).reshape(rh, f, rw, f, 3).sum(axis=(1, 3))
-            off = cm <= 0   # no fragment in the cell: plain average, so the field stays defined
-            if off.any():
-                s[off] = n.reshape(rh, f, rw, f, 3).sum(axis=(1, 3))[off]
-            s /= np.maximum(np.linalg.norm(s, axis=2, keepdims=True), 1e-12)
-            s[np.linalg.norm(s, axis=2) < 0.5] = (0.0, 0.0, 1.0)
-            nrm[out, :rw] = s
-    mask = cov >= 0.5 if f > 1 else cov > 0
-    return alb, nrm, mask
+            stack = np.pad(stack, ((0, ph), (0, pw), (0, 0)))
+        rh, rw = stack.shape[0] // f, stack.shape[1] // f
+        i = (b0 - R0) // f
+        out[i:i + rh, :rw] = stack.reshape(rh, f, rw, f, _SUMS).sum(axis=(1, 3))
+    return out
+
+
+def level_from_sums(sums: np.ndarray, level: int, has_normals: bool = True):
+    """Albedo, normals (None without them) and mask of level ``level`` from its :func:`level_sums`."""
+    cm = sums[..., 9]
+    alb = sums[..., 0:3] / np.maximum(cm, 1e-12)[..., None]
+    nrm = None
+    if has_normals:
+        s = sums[..., 3:6].copy()
+        off = cm <= 0   # no fragment in the cell: plain average, so the field stays defined
+        s[off] = sums[..., 6:9][off]
+        s /= np.maximum(np.linalg.norm(s, axis=2, keepdims=True), 1e-12)
+        s[np.linalg.norm(s, axis=2) < 0.5] = (0.0, 0.0, 1.0)
+        nrm = s.astype(np.float32)
+    return alb.astype(np.float32), nrm, cm / float(4 ** int(level)) >= 0.5
 
 
 def calibration_window(shape: tuple[int, int], mpx: float = CALIBRATION_MPX) -> tuple[int, int, int, int]:
@@ -348,21 +366,54 @@ class RelightCache:
                 self._put(rel, data)
         return path
 
-    def cut(self, *, min_level: int = 1, progress=None) -> int:
+    def cut(self, *, min_level: int = 1, progress=None, whole_mpx: float = 4.0) -> int:
         """Cut every tile of the levels ``min_level`` and coarser now (what a first view would
         otherwise wait for); tiles already there are kept. Returns the number of tiles.
 
-        ``progress(done, total)`` is called after each tile (a
+        Levels of at most ``whole_mpx`` megapixels are computed whole, from one band-by-band read
+        of the face (:func:`level_sums`, each coarser level summed from the finer one); finer
+        levels tile by tile. ``progress(done, total)`` is called after each tile (a
         :class:`common.imports.progress.ProgressBar` made with ``total`` can show it)."""
         params = self.params()
-        t = params["tile_px"]
-        todo = [(level, r, c) for level, (lw, lh) in enumerate(params["levels"]) if level >= min_level
-                for r in range(-(-lh // t)) for c in range(-(-lw // t))]
-        for k, (level, r, c) in enumerate(todo[::-1]):     # coarsest first
-            self.tile_path(level, r, c)
+        t, levels = params["tile_px"], params["levels"]
+        grid = {L: [(r, c) for r in range(-(-lh // t)) for c in range(-(-lw // t))]
+                for L, (lw, lh) in enumerate(levels) if L >= min_level}
+        total, done = sum(len(v) for v in grid.values()), 0
+
+        def rel(L, r, c):
+            return f"{self.folder}/{L}/{r}_{c}.bin.gz"
+
+        def tick():
+            nonlocal done
+            done += 1
             if progress is not None:
-                progress(k + 1, len(todo))
-        return len(todo)
+                progress(done, total)
+
+        whole = [L for L in grid if L >= 1 and levels[L][0] * levels[L][1] <= whole_mpx * 1e6]
+        k0 = min(whole) if whole else None
+        if k0 is not None and any(not self.store.path(rel(L, r, c)).is_file() for L in whole for r, c in grid[L]):
+            lw, lh = levels[k0]
+            with self.open_artifact() as f:
+                sums = level_sums(f, k0, 0, lh, 0, lw)
+                has_n = "normals" in f
+            for L in range(k0, len(levels)):
+                alb, nrm, mask = level_from_sums(sums, L, has_n)
+                xy, H, colour = relight_fields(nrm, alb, mask, params, level=L)
+                for r, c in grid[L]:
+                    path = self.store.path(rel(L, r, c))
+                    with _lock(str(path)):
+                        if not path.is_file():
+                            core = (slice(r * t, (r + 1) * t), slice(c * t, (c + 1) * t))
+                            self._put(rel(L, r, c), pack_tile(xy[core], H[core], colour[core]))
+                    tick()
+                sums = halve_sums(sums)
+        for L in sorted(grid, reverse=True):
+            if k0 is not None and L >= k0:
+                continue
+            for r, c in grid[L]:
+                self.tile_path(L, r, c)
+                tick()
+        return total
 
 
 # ---- the viewer's styles as offline styles ------------------------------------------------------

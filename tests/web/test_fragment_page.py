@@ -89,6 +89,24 @@ def test_tiles_are_cut_once_and_kept(tmp_path):
     assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 3
 
 
+def test_cut_in_one_pass_gives_the_tiles_a_view_asks_for(tmp_path):
+    """Coarse levels cut whole from one read of the face hold what tile-by-tile cutting gives."""
+    from common.web.relight import RelightCache, unpack_tile
+
+    store = _store_with(tmp_path, relief_face(600, 700))       # levels 700x600, 350x300, 175x150
+    on_demand = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    ahead = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    ahead.folder += "-ahead"
+    assert ahead.cut(min_level=1) == 2 * 2 + 1
+    for level, (r, c), (h, w) in ((1, (1, 1), (300 - 256, 350 - 256)), (1, (0, 0), (256, 256)), (2, (0, 0), (150, 175))):
+        a = unpack_tile(on_demand.tile_path(level, r, c).read_bytes(), h, w)
+        b = unpack_tile(ahead.tile_path(level, r, c).read_bytes(), h, w)
+        assert (a[2] == b[2]).all()
+        on = a[2][..., 3] > 0       # off the fragment the smoothed fields are extrapolations, never drawn
+        assert np.abs(a[0] - b[0])[on].max() < 2e-3
+        assert np.abs(a[1] - b[1])[on].max() < 2e-3 * max(1.0, np.abs(a[1]).max())
+
+
 def test_colour_only_face_has_flat_fields(tmp_path):
     from common.rgbn.image import RGBNImage
     from common.web.relight import RelightCache, unpack_tile
@@ -188,6 +206,7 @@ def test_fragment_page_in_chromium(tmp_path):
     shots.mkdir(parents=True, exist_ok=True)
     image = relief_face(1300, 2000, dpi=600.0)      # 85 x 55 mm at 600 dpi: four levels
     _store_with(tmp_path, image, fid="F-1", stem="front-k1")
+    _store_with(tmp_path, relief_face(500, 700, dpi=600.0, seed=3), fid="F-1", stem="back-k3")
     _store_with(tmp_path, relief_face(300, 400, dpi=600.0, seed=2), fid="F-2", stem="front-k2")
     with ProposalStore(tmp_path / "storage" / "matches" / "proposals.sqlite") as s:
         s.upsert([Proposal("F-1", "F-2", 0.87, "m1", angle_deg=12.0, tx_mm=30.0, ty_mm=-4.0),
@@ -200,7 +219,7 @@ def test_fragment_page_in_chromium(tmp_path):
             page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
             errors = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            open_viewer(page, f"{web.url}/fragments/F-1")
+            open_viewer(page, f"{web.url}/fragments/F-1?face=front")
             first = page.evaluate("() => tesseraViewer.stats.firstTileMs")
             assert first is not None and page.evaluate("() => tesseraViewer.level()") >= 1
             # tessera export's files, from the archive's downloads (exported on this first request)
@@ -257,7 +276,15 @@ def test_fragment_page_in_chromium(tmp_path):
             assert abs(bar["px"] - bar["mm"] * 600.0 / 25.4 * zoom) < 1e-6 and 40 <= bar["px"] / dpr <= 130
             screenshot(page, shots / "fragment-measure.png")
 
-            # the back face of a one-face fragment is not offered; the other fragment opens
+            # the back: another face in the same canvas, the front's viewer let go
+            page.click("#faces button[data-face=back]")
+            page.wait_for_function("() => tesseraViewer.info.width === 700 && tesseraViewer.stats.complete")
+            assert page.text_content("#face-info").startswith("29.6 × 21.2 mm")
+            screenshot(page, shots / "fragment-back.png")
+            page.click("#faces button[data-face=front]")
+            page.wait_for_function("() => tesseraViewer.info.width === 2000 && tesseraViewer.stats.complete")
+
+            # a one-face fragment offers one face; the join link opens the other fragment
             page.click("#joins a")
             open_viewer(page, page.url)
             assert page.locator("#faces button").count() == 1

@@ -78,6 +78,7 @@
       `${p.width} × ${p.height} px · ${p.dpi} dpi${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
     const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
     const light = viewer ? viewer.light : null;
+    if (viewer) viewer.dispose();
     viewer = new RelightViewer.Viewer($("gl"), $("overlay"), face.relight, p);
     window.tesseraViewer = viewer;     // for the browser tests and the curious
     viewer.onerror = (e) => message(String(e.message || e));

@@ -132,7 +132,19 @@ const RelightViewer = (() => {
       gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
       this.resize();
       this.fit();
-      new ResizeObserver(() => { this.resize(); this.draw(); }).observe(this.canvas);
+      this._observer = new ResizeObserver(() => { this.resize(); this.draw(); });
+      this._observer.observe(this.canvas);
+    }
+
+    // let go of the GPU memory and the canvas (another face takes it)
+    dispose() {
+      this.disposed = true;
+      if (this._observer) this._observer.disconnect();
+      const gl = this.gl;
+      if (!gl) return;
+      for (const t of this.tiles.values()) if (t && t.tex) t.tex.forEach((x) => gl.deleteTexture(x));
+      this.tiles.clear();
+      for (const p of Object.values(this.programs || {})) gl.deleteProgram(p.p);
     }
 
     _program(vsrc, fsrc, name) {
@@ -266,6 +278,7 @@ const RelightViewer = (() => {
         if (!resp.ok) throw new Error(`tile ${key}: HTTP ${resp.status}`);
         return resp.arrayBuffer();
       }).then((buf) => {
+        if (this.disposed) return;
         this.tiles.set(key, this._upload(L, r, c, buf));
         this.stats.tilesLoaded += 1;
         this.draw();
@@ -302,7 +315,7 @@ const RelightViewer = (() => {
 
     // ---- drawing ------------------------------------------------------------------------------
     draw() {
-      if (this._scheduled || !this.gl) return;
+      if (this._scheduled || !this.gl || this.disposed) return;
       this._scheduled = true;
       requestAnimationFrame(() => { this._scheduled = false; this.render(); });
     }
@@ -310,6 +323,7 @@ const RelightViewer = (() => {
     // Draw now: the coarsest level first, then every finer loaded level up to the one the zoom
     // needs (missing tiles show the coarser picture until they arrive); request what is missing.
     render() {
+      if (this.disposed) return;
       const gl = this.gl, t0 = performance.now();
       const W = this.canvas.width, H = this.canvas.height;
       gl.viewport(0, 0, W, H);
