@@ -104,6 +104,8 @@ def run(store_dir: Path, figures: Path | None = None) -> dict:
         res["mask_area_ratio"] = np.count_nonzero(full) / np.count_nonzero(refm)
     res["dpi"] = dpi
     res["lamp_direction_deg"] = lamp
+    res["outline_distance_px"] = outline_agreement([s.image for s in cap.scans["front"]], dpi,
+                                                   [s.rotation for s in cap.scans["front"]])
     if figures is not None:
         figures.mkdir(parents=True, exist_ok=True)
         H, W = img.mask.shape
@@ -148,6 +150,34 @@ def run(store_dir: Path, figures: Path | None = None) -> dict:
                     cv2.resize(np.hstack(tiles), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
     res["load_after"] = os.getloadavg()
     return res
+
+
+def outline_agreement(scans, dpi, nominal_deg) -> list:
+    """Registration in pixels without ground truth: each scan's mask warped into scan 0's frame
+    with the solver's registration, against scan 0's mask — the mean distance between their
+    outlines (px), per scan. It bounds the registration error plus the masks' own outline noise."""
+    from common.acquisition.flatbed_normals import register_face
+
+    _, regs, _, method = register_face(scans, dpi, nominal_deg=nominal_deg)
+    from common.acquisition.locate import focus_mask, fragment_mask
+    masks = [(focus_mask if method == "focus" else fragment_mask)(s, dpi) for s in scans]
+    H, W = masks[0].shape
+
+    def outline(m):
+        m8 = m.astype(np.uint8)
+        return (m8 - cv2.erode(m8, np.ones((3, 3), np.uint8))) > 0
+
+    def dist_to(m):
+        return cv2.distanceTransform((~outline(m)).astype(np.uint8), cv2.DIST_L2, 5)
+
+    out = []
+    d0 = dist_to(masks[0])
+    for m, r in zip(masks[1:], regs[1:]):
+        w = cv2.warpAffine(m.astype(np.uint8), r.affine, (W, H), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0
+        a = d0[outline(w)].mean()
+        b = dist_to(w)[outline(masks[0])].mean()
+        out.append(round(float((a + b) / 2), 2))
+    return out
 
 
 def main(argv=None):
