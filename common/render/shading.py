@@ -278,39 +278,39 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
     weights /= weights.sum()
     a = np.float32(contrast)
     h, w = normals.shape[:2]
-    # a pair of levels whose finer sigma is >= 2 f px is drawn on a grid f times coarser (f a
-    # power of two, the grid aligned to the whole image's for tiles): a Gaussian of >= 2 grid
-    # steps leaves nothing above the grid's Nyquist rate (its response there is exp(-pi^2 s^2 / 2)
-    # < 3e-9), and the term, brought back by bilinear interpolation, stays within 1/255 of the
-    # full-resolution one (test)
-    grids = [_coarse_factor(s, h, w, coarse) for s in sigmas[:-1]] + [_coarse_factor(sigmas[-1], h, w, coarse)]
+    # a level of sigma >= 2 f px is smoothed on a grid f times coarser (f a power of two, the
+    # grid aligned to the whole image's for tiles): a Gaussian of >= 2 grid steps leaves nothing
+    # above the grid's Nyquist rate (its response there is exp(-pi^2 s^2 / 2) < 3e-9); a pair's
+    # term is drawn on its finer level's grid and brought back by bilinear interpolation, within
+    # 1/255 of the full-resolution result (test)
+    grids = [_coarse_factor(s, h, w, coarse) for s in sigmas]
     total = np.zeros((h, w), np.float32)
-    # full resolution: walk from fine to coarse keeping only two smoothed levels alive (16 Mpx)
-    n_full = len([f for f in grids[:-1] if f == 1])
-    if n_full:
-        levels = iter_scale_space(normals, sigmas[:n_full + 1], mask=mask, foreshortening=foreshortening)
-        n_fine = next(levels)
-        for i, n_coarse in enumerate(levels):
-            total += np.float32(weights[i]) * _exaggerated_term(n_fine, n_coarse, l, a)
-            n_fine = n_coarse
-        if n_full == len(sigmas) - 1 and base_weight > 0:
-            total += np.float32(base_weight) * np.clip(a * dot_light(n_fine, l), -1.0, 1.0)
-        del n_fine, levels
-    if n_full < len(sigmas) - 1 or grids[-1] > 1:
+    # each level is smoothed once, on its own grid (the finest ones at full resolution, walked
+    # from fine to coarse so that only two are alive at 16 Mpx); a pair's coarser level is
+    # brought to the finer one's grid by bilinear interpolation and renormalised
+    full = iter_scale_space(normals, [s for s, f in zip(sigmas, grids) if f == 1], mask=mask,
+                            foreshortening=foreshortening)
+    pyramid = _WeightedPyramid(normals, mask, foreshortening, origin) if grids[-1] > 1 else None
+    acc: dict = {}
+    prev = None
+    for k, (sigma, f) in enumerate(zip(sigmas, grids)):
+        n_k = next(full) if f == 1 else pyramid.level(sigma, f)
+        if prev is not None:
+            n_i, f_i = prev
+            n_c = n_k if f == f_i else pyramid.resample(n_k, f, f_i)
+            term = np.float32(weights[k - 1]) * _exaggerated_term(n_i, n_c, l, a)
+            acc[f_i] = acc[f_i] + term if f_i in acc else term
+            del n_c, term
+        prev = (n_k, f)
+    n_b, f_b = prev
+    if base_weight > 0:
+        term = np.float32(base_weight) * np.clip(a * dot_light(n_b, l), -1.0, 1.0)
+        acc[f_b] = acc[f_b] + term if f_b in acc else term
+    del prev, n_b
+    if acc:
         from common.render.enhance import Coarse
-        pyramid = _WeightedPyramid(normals, mask, foreshortening, origin)
-        acc: dict = {}
-        for i in range(n_full, len(sigmas) - 1):
-            f = grids[i]
-            n_i, n_j = (pyramid.level(sigmas[k], f) for k in (i, i + 1))
-            term = np.float32(weights[i]) * _exaggerated_term(n_i, n_j, l, a)
-            acc[f] = acc[f] + term if f in acc else term
-        if base_weight > 0 and (n_full < len(sigmas) - 1):
-            f = grids[-1]
-            term = np.float32(base_weight) * np.clip(a * dot_light(pyramid.level(sigmas[-1], f), l), -1.0, 1.0)
-            acc[f] = acc[f] + term if f in acc else term
-        for f, term in acc.items():
-            total += term if f == 1 else Coarse(term, f, pyramid.offset(f)).full((h, w))
+    for f, term in acc.items():
+        total += term if f == 1 else Coarse(term, f, pyramid.offset(f)).full((h, w))
     return (0.5 + 0.5 * total / np.float32(1.0 + base_weight)).astype(np.float32)
 
 
@@ -359,6 +359,19 @@ class _WeightedPyramid:
             full = self.stacks[1][o[0]:o[0] + hh * f, o[1]:o[1] + ww * f]
             self.stacks[f] = self._cv2.resize(np.ascontiguousarray(full), (ww, hh), interpolation=self._cv2.INTER_AREA)
         return self.stacks[f]
+
+    def grid_shape(self, f: int) -> tuple[int, int]:
+        h, w = self.shape
+        o = self.offset(f)
+        return ((h - o[0]) // f, (w - o[1]) // f) if f > 1 else (h, w)
+
+    def resample(self, values: np.ndarray, f_from: int, f_to: int) -> np.ndarray:
+        """Unit normals on grid ``f_from`` brought to the finer grid ``f_to`` (bilinear, renormalised)."""
+        from common.render.enhance import Coarse
+        o_a, o_b = self.offset(f_from), self.offset(f_to)
+        off = ((o_a[0] - o_b[0]) // f_to, (o_a[1] - o_b[1]) // f_to)
+        out = Coarse(values, f_from // f_to, off).full(self.grid_shape(f_to))
+        return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
 
     def level(self, sigma_px: float, f: int) -> np.ndarray:
         """Unit normals smoothed at ``sigma_px`` (full-resolution pixels) on grid ``f``."""
