@@ -89,8 +89,9 @@ class PaintField:
         The fragment's paint deviation at ``samples_mm``.
     plaster_lab : (3,) float
         The fragment's plaster colour (median CIELAB over the fragment).
-    depth_mm : float
-        Depth of the compared band (``samples`` × cell area / ``depth_mm`` = mm of outline).
+    sample_length_mm : float
+        Length of outline each sample stands for (cell area / band depth for :func:`paint_field`;
+        profile step / number of depths for :func:`paint_field_from_profile`): evidence × this = mm.
     """
 
     field: np.ndarray
@@ -100,7 +101,7 @@ class PaintField:
     samples_mm: np.ndarray
     samples: np.ndarray
     plaster_lab: np.ndarray
-    depth_mm: float
+    sample_length_mm: float
 
 
 def _lab(albedo_linear: np.ndarray) -> np.ndarray:
@@ -253,7 +254,105 @@ def paint_field(albedo: np.ndarray, mask: np.ndarray, pixel_mm: float, *, cell_m
     by, bx = np.nonzero(band)
     samples_mm = np.column_stack([bx * cell_xy[0], by * cell_xy[1]]) + origin
     return PaintField(ext, weight, origin.astype(float), cell_xy.astype(float), samples_mm,
-                      dev[by, bx].astype(np.float32), np.asarray(plaster, float), float(depth_mm))
+                      dev[by, bx].astype(np.float32), np.asarray(plaster, float),
+                      float(np.prod(cell_xy) / depth_mm))
+
+
+def paint_field_from_profile(contour_mm: np.ndarray, profile: np.ndarray, step_mm: float, *,
+                             names=None, cell_mm: float = PAINT_CELL_MM, rim_mm: float = PAINT_RIM_MM,
+                             reach_mm: float = PAINT_REACH_MM) -> PaintField:
+    """The paint field of a fragment from what the features stage stores: its outline and boundary profile.
+
+    The matcher's index keeps each fragment's ``contour_mm`` and ``boundary_profile`` (√albedo at 0.8
+    and 1.6 mm inside the outline, one sample every ``boundary_step_mm`` from the contour's first
+    point; :func:`common.features.boundary.boundary_profile`), not its image. This builds the same
+    :class:`PaintField` from them: the samples are the profile's, at their places inside the outline,
+    and every cell outside (up to ``reach_mm``) or over the rim takes the mean colour of the two depths
+    at the nearest arc position — the profile's paint carried straight out across the edge.
+
+    Parameters
+    ----------
+    contour_mm : (M, 2) array
+        Closed outline, fragment frame (mm, x right, y down), traversed as the features stage does
+        (clockwise on screen, fragment on the right).
+    profile : (K, C) array
+        Boundary profile; its ``sqrt_{r,g,b}@{depth}`` columns are used.
+    step_mm : float
+        Arc-length step of the profile (``FeatureTable.boundary_step_mm``).
+    names : list of str, optional
+        Column names of ``profile`` (default :func:`~common.features.boundary.boundary_channel_names`).
+    cell_mm, rim_mm, reach_mm : float
+        As :func:`paint_field`.
+
+    Returns
+    -------
+    PaintField
+
+    Notes
+    -----
+    A coarser field than :func:`paint_field`'s (one sample per mm of outline and depth instead of a
+    band of cells), and its depths (0.8, 1.6 mm) lie partly in the damaged rim; measured against it
+    in docs/matching.md ("Paint across the crack").
+    """
+    from common.features.boundary import boundary_channel_names
+
+    c = np.asarray(contour_mm, float)
+    if c.ndim != 2 or c.shape[1] != 2 or len(c) < 3 or not np.all(np.isfinite(c)):
+        raise ValueError(f"contour_mm must be a finite (M >= 3, 2) array, got shape {c.shape}")
+    prof = np.asarray(profile, np.float32)
+    names = list(boundary_channel_names() if names is None else names)
+    if prof.ndim != 2 or len(prof) < 3 or prof.shape[1] != len(names):
+        raise ValueError(f"profile must be a (K >= 3, {len(names)}) array matching names, got shape {prof.shape}")
+    if not (np.isfinite(step_mm) and step_mm > 0):
+        raise ValueError(f"step_mm must be a positive number, got {step_mm}")
+    depths = sorted({float(n.split("@")[1]) for n in names if n.startswith("sqrt_r@")})
+    if not depths:
+        raise ValueError("profile has no sqrt_r@<depth> column: no colour to carry")
+    # the profile's places: arc k·step from the contour's first point, d inside along the inward normal
+    closed = np.vstack([c, c[:1]])
+    seg = np.hypot(*np.diff(closed, axis=0).T)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    at = np.arange(len(prof)) * step_mm % arc[-1]
+    on = np.column_stack([np.interp(at, arc, closed[:, 0]), np.interp(at, arc, closed[:, 1])])
+    ahead = np.column_stack([np.interp((at + 0.5) % arc[-1], arc, closed[:, 0]),
+                             np.interp((at + 0.5) % arc[-1], arc, closed[:, 1])])
+    behind = np.column_stack([np.interp((at - 0.5) % arc[-1], arc, closed[:, 0]),
+                              np.interp((at - 0.5) % arc[-1], arc, closed[:, 1])])
+    tangent = ahead - behind
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+    inward = np.column_stack([-tangent[:, 1], tangent[:, 0]])   # clockwise on screen (y down): right of travel
+    lab_at = []
+    for d in depths:
+        rgb = prof[:, [names.index(f"sqrt_{ch}@{d:g}") for ch in "rgb"]]
+        rgb = np.nan_to_num(rgb, nan=0.0) ** 2
+        lab_at.append(_lab(rgb[None])[0] * np.array([PAINT_L_WEIGHT, 1.0, 1.0], np.float32))
+    mean_lab = np.mean(lab_at, axis=0)
+    # the grid: the outline rasterised with a margin for the reach
+    pad = reach_mm + 2 * cell_mm
+    lo = c.min(axis=0) - pad
+    shape = (int(np.ceil((c[:, 1].max() + pad - lo[1]) / cell_mm)) + 1,
+             int(np.ceil((c[:, 0].max() + pad - lo[0]) / cell_mm)) + 1)
+    inside = np.zeros(shape, np.uint8)
+    cv2.fillPoly(inside, [np.round((c - lo) / cell_mm * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+    inside = inside.astype(bool)
+    depth = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, 5) * cell_mm
+    outside = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, 5) * cell_mm
+    cells = np.clip(np.round((on - lo) / cell_mm).astype(int), 0, [shape[1] - 1, shape[0] - 1])
+    seeds = np.ones(shape, np.uint8)
+    seeds[cells[:, 1], cells[:, 0]] = 0
+    _, labels = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    order = np.full(shape, -1, np.int64)
+    order[cells[:, 1], cells[:, 0]] = np.arange(len(cells))
+    zy, zx = np.nonzero(seeds == 0)
+    lut = np.zeros(int(labels.max()) + 1, np.int64)
+    lut[labels[zy, zx]] = order[zy, zx]
+    weight = ((~inside & (outside <= reach_mm)) | (inside & (depth <= rim_mm))).astype(np.float32)
+    field = (mean_lab[lut[labels]] * weight[..., None]).astype(np.float32)
+    samples_mm = np.vstack([on + inward * d for d in depths])
+    samples = np.vstack(lab_at).astype(np.float32)
+    plaster = np.median(samples, axis=0) / np.array([PAINT_L_WEIGHT, 1.0, 1.0])
+    return PaintField(field, weight, lo.astype(float), np.array([cell_mm, cell_mm], float), samples_mm, samples,
+                      plaster.astype(float), float(step_mm / len(depths)))
 
 
 def _lookup(pf: PaintField, pts_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +402,8 @@ def paint_continuity(field_a: PaintField, field_b: PaintField, poses, *, tau_de:
     paint meeting its own continuation is strong evidence (the rarity is the denominator); paint
     meeting plaster — a line that ends at the crack, common on real frescoes — costs little. The
     score is the sum over both fragments' samples that the other's field reaches, in millimetres of
-    crack (a sample is a cell of the ``depth_mm`` band), so it adds to the docking's contact in mm.
+    crack (each sample stands for :attr:`PaintField.sample_length_mm` of outline), so it adds to the
+    docking's contact in mm.
 
     Parameters
     ----------
@@ -380,5 +480,5 @@ def paint_continuity(field_a: PaintField, field_b: PaintField, poses, *, tau_de:
         step = max(1, int(np.ceil(len(other.samples) / n_reference)))
         llr = _likelihood_ratio(own.samples.astype(np.float32), carried, weight, other.samples[::step],
                                 float(tau_de), float(floor), clip)
-        total += llr.sum(axis=1) * float(np.prod(own.cell_mm)) / own.depth_mm
+        total += llr.sum(axis=1) * own.sample_length_mm
     return total / 2.0

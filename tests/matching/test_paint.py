@@ -127,3 +127,24 @@ def test_bad_poses_are_refused_naming_the_problem():
         paint_continuity(fa, fb, [[0.0, np.nan, 0.0]])
     with pytest.raises(ValueError, match="field_b"):
         paint_continuity(fa, np.zeros(3), [[0.0, 0.0, 0.0]])
+
+
+def test_field_from_the_stored_boundary_profile_tells_the_true_pose_too():
+    from common.features.boundary import boundary_profile
+    from common.features.contour import fragment_contour
+    from common.matching.paint import paint_field_from_profile
+
+    alb_a, mask_a, alb_b, mask_b, pose = _pieces(_slab())
+    fields = []
+    for alb, mask in ((alb_a, mask_a), (alb_b, mask_b)):
+        contour = fragment_contour(mask, PX_MM)
+        profile, step = boundary_profile(contour, alb, PX_MM, weight=mask.astype(float))
+        f = paint_field_from_profile(contour.points_mm, profile, step)
+        rows, cols = np.round(f.samples_mm[:, ::-1] / PX_MM).astype(int).T
+        assert mask[rows, cols].mean() > 0.95       # the samples lie inside the fragment
+        fields.append(f)
+    scores = paint_continuity(*fields, np.vstack([pose, _wrong_poses(pose)]))
+    assert scores[0] > 3.0
+    assert np.all(scores[0] > scores[1:] + 1.0)
+    with pytest.raises(ValueError, match="profile"):
+        paint_field_from_profile(fragment_contour(mask_a, PX_MM).points_mm, np.zeros((5, 3)), 1.0)
