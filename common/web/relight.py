@@ -56,6 +56,9 @@ EXAGGERATED_SCALES = 3
 FIELDS_VERSION = 1
 #: Channels of the float16 part of a tile, in order.
 NORMAL_FIELDS = ("n", "n0", "n1", "n2", "n3", "nu")
+#: Levels of at most this many megapixels are cut whole by :meth:`RelightCache.cut` (about 0.5 GB
+#: of fields and sums at 4 Mpx).
+WHOLE_MPX = 4.0
 #: Level-0 rows read at a time when a coarse level is area-averaged from the face.
 _BAND_PX = 1024
 
@@ -366,7 +369,13 @@ class RelightCache:
                 self._put(rel, data)
         return path
 
-    def cut(self, *, min_level: int = 1, progress=None, whole_mpx: float = 4.0) -> int:
+    def whole_from(self, whole_mpx: float = WHOLE_MPX) -> int | None:
+        """The finest level >= 1 of at most ``whole_mpx`` megapixels: it and every coarser level are
+        cut whole by :meth:`cut` (None when the face has no level >= 1)."""
+        levels = self.params()["levels"]
+        return next((L for L in range(1, len(levels)) if levels[L][0] * levels[L][1] <= whole_mpx * 1e6), None)
+
+    def cut(self, *, min_level: int = 1, progress=None, whole_mpx: float = None) -> int:
         """Cut every tile of the levels ``min_level`` and coarser now (what a first view would
         otherwise wait for); tiles already there are kept. Returns the number of tiles.
 
@@ -389,6 +398,7 @@ class RelightCache:
             if progress is not None:
                 progress(done, total)
 
+        whole_mpx = WHOLE_MPX if whole_mpx is None else whole_mpx
         whole = [L for L in grid if L >= 1 and levels[L][0] * levels[L][1] <= whole_mpx * 1e6]
         k0 = min(whole) if whole else None
         if k0 is not None and any(not self.store.path(rel(L, r, c)).is_file() for L in whole for r, c in grid[L]):

@@ -9,6 +9,7 @@ faces (size, dpi), its proposals and confirmed joins from the proposal store, th
 from __future__ import annotations
 
 import logging
+import threading
 
 from flask import Blueprint, abort, jsonify, render_template, request, send_file, url_for
 
@@ -20,6 +21,30 @@ from .station import station
 log = logging.getLogger("tessera.web")
 
 bp = Blueprint("fragment", __name__)
+
+#: relight caches whose coarse levels are being cut in the background -> set when done
+_cutting: dict[str, threading.Event] = {}
+_cutting_lock = threading.Lock()
+
+
+def _cut_coarse_levels(cache) -> None:
+    """The first time a face is opened here, cut its coarse levels (:meth:`RelightCache.cut` from
+    :meth:`RelightCache.whole_from`) in one background pass: one read of the face instead of one per
+    tile; the tile requests of those levels wait for it."""
+    level = cache.whole_from()
+    with _cutting_lock:
+        if level is None or cache.folder in _cutting:
+            return
+        done = _cutting[cache.folder] = threading.Event()
+
+    def run():
+        try:
+            cache.cut(min_level=level)
+        except Exception:   # the tile requests cut what they need themselves
+            log.exception("cutting the relight tiles of %s", cache.rgbn_relpath)
+        finally:
+            done.set()
+    threading.Thread(target=run, name=f"relight-cut {cache.folder}", daemon=True).start()
 
 
 def _fid(fid: str) -> str:
@@ -109,10 +134,13 @@ def _related(fid: str) -> dict:
 def params(fid, stem):
     """The face's relighting parameters (:func:`common.web.relight.face_params`), computed once."""
     fid = _fid(fid)
+    cache = _cache(fid, stem)
     try:
-        return jsonify(_cache(fid, stem).params())
+        params = cache.params()
     except ArtifactError as exc:
         abort(404, str(exc))
+    _cut_coarse_levels(cache)
+    return jsonify(params)
 
 
 @bp.get("/api/fragments/<fid>/relight/<stem>/tiles/<int:level>/<tile>")
@@ -125,6 +153,9 @@ def tile(fid, stem, level, tile):
     except ValueError:
         abort(404, f"no tile {tile!r} (expected <row>_<column>)")
     cache = _cache(fid, stem)
+    cutting = _cutting.get(cache.folder)
+    if cutting is not None and not cutting.is_set() and level >= (cache.whole_from() or level + 1):
+        cutting.wait(600)
     try:
         path = cache.tile_path(level, row, col)
     except ValueError as exc:

@@ -175,6 +175,21 @@ def test_page_and_tile_routes(client):
     assert 0.0 <= lo < hi <= 1.0
 
 
+def test_opening_a_face_cuts_its_coarse_levels_in_one_background_pass(tmp_path):
+    from common.web.relight import RelightCache
+    from services import web
+    from services.web import fragment
+
+    store = _store_with(tmp_path, relief_face(100, 600), stem="front-k9")   # levels 600x100, 300x50, 150x25
+    app = web.create_app(token=TOKEN, store_root=store.root)
+    assert app.test_client().get("/api/fragments/F-1/relight/front-k9/params.json").status_code == 200
+    cache = RelightCache(store, "fragments/F-1/rgbn/front-k9.h5")
+    assert fragment._cutting[cache.folder].wait(60)
+    cut = sorted(p.relative_to(store.root / cache.folder).as_posix()
+                 for p in (store.root / cache.folder).rglob("*.bin.gz"))
+    assert cut == ["1/0_0.bin.gz", "1/0_1.bin.gz", "2/0_0.bin.gz"]
+
+
 @pytest.mark.parametrize("url,code,words", [
     ("/fragments/bad id!", 400, "fragment"),
     ("/api/fragments/F-9", 404, "no RGBN face"),
