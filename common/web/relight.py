@@ -355,9 +355,13 @@ class RelightCache:
             self._put(rel, json.dumps(params, sort_keys=True).encode())
             return params
 
+    def tile_relpath(self, level: int, row: int, col: int) -> str:
+        """Where tile (``level``, ``row``, ``col``) is kept, relative to the storage root."""
+        return f"{self.folder}/{int(level)}/{int(row)}_{int(col)}.bin.gz"
+
     def tile_path(self, level: int, row: int, col: int) -> Path:
         """Path of the tile on storage, computing and writing it first if it is not there."""
-        rel = f"{self.folder}/{int(level)}/{int(row)}_{int(col)}.bin.gz"
+        rel = self.tile_relpath(level, row, col)
         path = self.store.path(rel)
         if path.is_file():
             return path
@@ -389,9 +393,6 @@ class RelightCache:
                 for L, (lw, lh) in enumerate(levels) if L >= min_level}
         total, done = sum(len(v) for v in grid.values()), 0
 
-        def rel(L, r, c):
-            return f"{self.folder}/{L}/{r}_{c}.bin.gz"
-
         def tick():
             nonlocal done
             done += 1
@@ -401,22 +402,26 @@ class RelightCache:
         whole_mpx = WHOLE_MPX if whole_mpx is None else whole_mpx
         whole = [L for L in grid if L >= 1 and levels[L][0] * levels[L][1] <= whole_mpx * 1e6]
         k0 = min(whole) if whole else None
-        if k0 is not None and any(not self.store.path(rel(L, r, c)).is_file() for L in whole for r, c in grid[L]):
+        if k0 is not None and any(not self.store.path(self.tile_relpath(L, r, c)).is_file() for L in whole for r, c in grid[L]):
             lw, lh = levels[k0]
             with self.open_artifact() as f:
                 sums = level_sums(f, k0, 0, lh, 0, lw)
                 has_n = "normals" in f
-            for L in range(k0, len(levels)):
-                alb, nrm, mask = level_from_sums(sums, L, has_n)
+            # every coarser level summed from the finer, then drawn coarsest first: the one-tile
+            # top level (what a first view shows while the rest arrives) is written first
+            sums = {k0: sums}
+            for L in range(k0 + 1, len(levels)):
+                sums[L] = halve_sums(sums[L - 1])
+            for L in range(len(levels) - 1, k0 - 1, -1):
+                alb, nrm, mask = level_from_sums(sums.pop(L), L, has_n)
                 xy, H, colour = relight_fields(nrm, alb, mask, params, level=L)
                 for r, c in grid[L]:
-                    path = self.store.path(rel(L, r, c))
+                    path = self.store.path(self.tile_relpath(L, r, c))
                     with _lock(str(path)):
                         if not path.is_file():
                             core = (slice(r * t, (r + 1) * t), slice(c * t, (c + 1) * t))
-                            self._put(rel(L, r, c), pack_tile(xy[core], H[core], colour[core]))
+                            self._put(self.tile_relpath(L, r, c), pack_tile(xy[core], H[core], colour[core]))
                     tick()
-                sums = halve_sums(sums)
         for L in sorted(grid, reverse=True):
             if k0 is not None and L >= k0:
                 continue

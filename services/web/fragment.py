@@ -154,8 +154,11 @@ def tile(fid, stem, level, tile):
         abort(404, f"no tile {tile!r} (expected <row>_<column>)")
     cache = _cache(fid, stem)
     cutting = _cutting.get(cache.folder)
-    if cutting is not None and not cutting.is_set() and level >= (cache.whole_from() or level + 1):
-        cutting.wait(600)
+    if cutting is not None and level >= (cache.whole_from() or level + 1):
+        # the background pass writes this level's tiles (the coarsest first): wait for this one
+        target = cache.store.path(cache.tile_relpath(level, row, col))
+        while not cutting.is_set() and not target.is_file():
+            cutting.wait(0.05)
     try:
         path = cache.tile_path(level, row, col)
     except ValueError as exc:
