@@ -31,7 +31,7 @@ millimetres (x right, y down) and ``p_a = R(angle_deg) @ p_b + t``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -173,7 +173,7 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
                   overlap_weight: float = DOCK_OVERLAP_WEIGHT, near_weight: float = DOCK_NEAR_WEIGHT,
                   paint_a: np.ndarray | None = None, paint_b: np.ndarray | None = None,
                   paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3, per_angle: int = 1,
-                  min_shift_mm: float = 6.0) -> list[Docking]:
+                  min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0) -> list[Docking]:
     """Dock fragment B against fragment A over every rotation and translation, tolerating lost material.
 
     Parameters
@@ -216,6 +216,14 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     min_shift_mm : float
         With ``per_angle`` > 1: two poses within ``2 * step_deg`` are distinct when B's centre
         lies this far apart (local maxima closer than this within one rotation are merged).
+    rescore : callable, optional
+        ``rescore(poses)`` → (N,) extra evidence in mm of crack for (N, 3) candidate poses
+        ``(angle_deg, tx_mm, ty_mm)`` (e.g. :func:`common.matching.paint.paint_continuity` of the two
+        fragments' paint fields). The ``n_poses`` candidates are re-ranked by the geometric score plus
+        ``rescore_weight`` × that (converted to the score's cells), and the best is then refined at a
+        quarter of ``step_deg`` within ``min_shift_mm / 2`` of its translation, re-scored the same way.
+    rescore_weight : float
+        Weight of ``rescore``'s millimetres against the geometric contact's.
 
     Returns
     -------
@@ -275,7 +283,7 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     fa = _spectra(maps_a, shape)
     fa_band, fa_edge, fa_inner = fa[0], fa[1], fa[2]
 
-    def at(angle):
+    def correlate(angle):
         q = (b - centre_b) @ _rotation(angle).T
         mask_b, origin_b = _raster(q, cell_mm, margin)
         edge_b, _, band_b, full_b = _maps(mask_b, gap_c, taper_c, near_weight)
@@ -291,7 +299,10 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
             # |p_A|² counts where B's paint field lies and |p_B|² where A's does
             sq = fa[3 + n_c] * fb[3 + n_c] + fa[4 + n_c] * fb[4 + n_c]
             spec = spec + paint_weight * (cross - 0.25 * sq)
-        corr = _fft.irfft2(spec, shape, workers=1)
+        return _fft.irfft2(spec, shape, workers=1), origin_b, full_b
+
+    def at(angle):
+        corr, origin_b, full_b = correlate(angle)
         if per_angle == 1:
             peaks = [int(np.argmax(corr))]
         else:  # local maxima at least min_shift_mm apart, best first
@@ -300,6 +311,17 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
             idx = np.flatnonzero(top)
             peaks = [int(i) for i in idx[np.argsort(-corr.flat[idx])][:per_angle]] or [int(np.argmax(corr))]
         return [pose_at(angle, corr, i, origin_b, full_b) for i in peaks]
+
+    def near(angle, d, radius_mm):
+        """The best pose at ``angle`` whose B centre lies within ``radius_mm`` of docking ``d``'s."""
+        corr, origin_b, full_b = correlate(angle)
+        c = _rotation(d.angle_deg) @ centre_b + (d.tx_mm, d.ty_mm)
+        sx, sy = np.round((c - origin_a + origin_b) / cell_mm).astype(int)
+        r = max(1, int(np.ceil(radius_mm / cell_mm)))
+        ys, xs = np.arange(sy - r, sy + r + 1) % shape[0], np.arange(sx - r, sx + r + 1) % shape[1]
+        win = corr[np.ix_(ys, xs)]
+        iy, ix = np.unravel_index(int(np.argmax(win)), win.shape)
+        return pose_at(angle, corr, int(ys[iy] * shape[1] + xs[ix]), origin_b, full_b)
 
     def pose_at(angle, corr, i, origin_b, full_b):
         sy, sx = np.unravel_index(i, shape)
@@ -337,6 +359,23 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
             distinct.append(d)
         if len(distinct) >= n_poses:
             break
+    if rescore is None:
+        return distinct
+
+    def rescored(ds):
+        extra = np.asarray(rescore(np.array([[d.angle_deg, d.tx_mm, d.ty_mm] for d in ds], float)), float)
+        if extra.shape != (len(ds),) or not np.all(np.isfinite(extra)):
+            raise ValueError(f"rescore must return {len(ds)} finite scores, got shape {extra.shape}")
+        # mm of crack -> cells of outline (the score counts both outlines: 2 cells per cell_mm of crack)
+        return [replace(d, score=d.score + rescore_weight * x * 2.0 / cell_mm) for d, x in zip(ds, extra)]
+
+    distinct = sorted(rescored(distinct), key=lambda d: -d.score)
+    # the winner refined on a finer angle grid near its translation (the candidates are 4° and a cell apart)
+    local = [near((distinct[0].angle_deg + k * step_deg / 4) % 360.0, distinct[0], min_shift_mm / 2)
+             for k in (-2, -1, 1, 2)]
+    top = max(rescored(local), key=lambda d: d.score)
+    if top.score > distinct[0].score:
+        distinct[0] = top
     return distinct
 
 

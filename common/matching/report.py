@@ -20,7 +20,7 @@ from common.features.boundary import boundary_channel_names
 from common.matching.evaluation import (confusion_rates, grouped_cross_validation, pair_precision_recall,
                                         precision_recall, rank_all_pairs, top_k_recall)
 from common.matching.index import MatchIndex
-from common.matching.online import ribbon_calibration, train_model, wall_cues
+from common.matching.online import docking_calibration, ribbon_calibration, train_model, wall_cues
 from common.matching.pairs import training_set
 from common.matching.ribbon import pair_ribbon_scores
 
@@ -194,7 +194,10 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     wall2 = generate_wall(n_fragments, seed=test_seed, dpi=dpi)
     tables2, cues2, poses2 = wall_cues(wall2, progress=lambda f, t: say(0.6 + 0.1 * f, t))
     ts2 = training_set(cues2, poses2, wall2.adjacency, negatives_per_positive=negatives_per_positive, seed=test_seed)
-    model, pipe = train_model(ts, info={"trained_on": wall.id}, ribbon=ribbon_calibration(tables, wall.adjacency))
+    # the station's staged ranking, docking included: its calibration fitted on the training wall
+    say(0.66, "docking calibration on the training wall")
+    model, pipe = train_model(ts, info={"trained_on": wall.id}, ribbon=ribbon_calibration(tables, wall.adjacency),
+                              docking=_docking_of(wall, tables, seed))
     pred = pipe.predict(ts2.x)
     rates = confusion_rates(ts2.y, pred)
     ap2 = precision_recall(ts2.y, model.probability(ts2.x))["ap"]
@@ -208,8 +211,10 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     idx2 = _index_of(tables2, cues2)
     scores = rank_all_pairs(idx2, model, progress=lambda f, t: say(0.72 + 0.15 * f, t))
     topk = {"synthetic (train seed %d, test seed %d)" % (seed, test_seed): top_k_recall(scores, wall2.adjacency, KS)}
-    # for comparison: stage 2 alone (the ranking before the ribbon), and the ribbon alone on every pair
-    plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None))
+    # for comparison: without the docking (stages 2 + 2½), stage 2 alone, and the ribbon alone on every pair
+    undocked = rank_all_pairs(_index_of(tables2, cues2), replace(model, docking=None))
+    topk["synthetic, without docking (stages 2 + ribbon)"] = top_k_recall(undocked, wall2.adjacency, KS)
+    plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None, docking=None))
     topk["synthetic, stage 2 only (patch classifier)"] = top_k_recall(plain, wall2.adjacency, KS)
     alone = pair_ribbon_scores({f: t.boundary_profile for f, t in tables2.items()}, boundary_channel_names())
     topk["synthetic, colour ribbon alone (every pair)"] = top_k_recall(alone, wall2.adjacency, KS)
@@ -234,10 +239,20 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     return result
 
 
+def _docking_of(wall, tables, seed):
+    """The docking calibration (stage 3) of a model trained on ``wall``: fitted on its own true pairs
+    and random others (:func:`~common.matching.online.docking_calibration`, as the bootstrap model
+    fits it on a realistic wall), with the outlines the features give."""
+    return docking_calibration(wall, contours={f: t.contour_mm for f, t in tables.items()
+                                               if t.contour_mm is not None and len(t.contour_mm) >= 3},
+                               negatives_per_positive=2.0, seed=seed)
+
+
 def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pair_curves) -> dict:
     """DAFNE: grouped CV on colour+curvature cues; top-k by training on one half of the fresco and
     ranking the other half (the halves split by the fragments' x position), both ways."""
     from common.synth.dafne import import_dafne
+    from common.synth.wall import Wall
 
     wall = import_dafne(path)
     tables, cues, poses = wall_cues(wall)
@@ -254,22 +269,28 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     cut = float(np.median(list(xs.values())))
     halves = [{f for f in xs if xs[f] < cut}, {f for f in xs if xs[f] >= cut}]
     spurious = {f.id for f in wall.fragments if f.pose is None}
-    all_scores, plain_scores, alone_scores = {}, {}, {}
+    all_scores, undocked_scores, plain_scores, alone_scores = {}, {}, {}, {}
     for h in range(2):
         train_ids, test_ids = halves[h], halves[1 - h] | spurious
         adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
         ts_h = training_set({f: cues[f] for f in train_ids}, placed, adj_tr,
                             negatives_per_positive=negatives_per_positive, seed=h)
-        model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr))
+        half = Wall(f"{wall.id}-half{h}", [f for f in wall.fragments if f.id in train_ids], adj_tr, {}, 0.0, 0.0,
+                    wall.dpi)
+        model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr),
+                               docking=_docking_of(half, {f: tables[f] for f in train_ids}, h))
         idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
         all_scores.update(rank_all_pairs(idx, model))
+        undocked_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids},
+                                                        {f: cues[f] for f in test_ids}), replace(model, docking=None)))
         plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids}),
-                                           replace(model, ribbon=None)))
+                                           replace(model, ribbon=None, docking=None)))
         alone_scores.update(pair_ribbon_scores({f: tables[f].boundary_profile for f in test_ids},
                                                boundary_channel_names()))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
     rec = top_k_recall(all_scores, adj_te, KS)
     topk["DAFNE (train one half, rank the other)"] = rec
+    topk["DAFNE, without docking (stages 2 + ribbon)"] = top_k_recall(undocked_scores, adj_te, KS)
     topk["DAFNE, stage 2 only"] = top_k_recall(plain_scores, adj_te, KS)
     topk["DAFNE, colour ribbon alone"] = top_k_recall(alone_scores, adj_te, KS)
     ppr = pair_precision_recall(all_scores, adj_te)

@@ -126,3 +126,28 @@ def test_candidate_poses_hold_the_best_pose_and_several_per_rotation():
             assert da >= 8.0 - 1e-6 or np.hypot(*(ca - cb)) >= 6.0 - 1e-6
     with pytest.raises(ValueError, match="per_angle"):
         dock_outlines(a, moved, per_angle=0)
+
+
+def test_rescore_reranks_candidates_and_refines_the_winner():
+    """Extra evidence (e.g. paint) that marks one candidate pose makes it the docking's pose, refined
+    to a finer angle than the 4° grid; a rescore of the wrong length is refused."""
+    a, b = _broken_slab(7, gap_mm=3.0)
+    moved = _move(b, 41.0, (60.0, 30.0))
+    cands = dock_outlines(a, moved, n_poses=30, per_angle=5)
+    target = cands[7]                           # not the geometric best
+    centre = moved.mean(axis=0)
+
+    def bonus(poses):
+        c = _move(centre[None], 0.0, (0.0, 0.0))[0]
+        at = np.array([_move(c[None], p[0], p[1:])[0] for p in poses])
+        want = _move(c[None], target.angle_deg, (target.tx_mm, target.ty_mm))[0]
+        near = (np.hypot(*(at - want).T) < 3.0) & (np.abs((poses[:, 0] - target.angle_deg + 180) % 360 - 180) < 3.0)
+        return np.where(near, 1000.0, 0.0)
+
+    best = dock_outlines(a, moved, n_poses=30, per_angle=5, rescore=bonus)[0]
+    assert abs((best.angle_deg - target.angle_deg + 180) % 360 - 180) < 3.0
+    assert best.score > cands[0].score          # the bonus is in the score, in cells
+    plain = dock_outlines(a, moved, n_poses=30, per_angle=5, rescore=lambda p: np.zeros(len(p)))[0]
+    assert plain.score >= cands[0].score         # refinement never loses the best candidate
+    with pytest.raises(ValueError, match="rescore"):
+        dock_outlines(a, moved, n_poses=5, rescore=lambda p: np.zeros(2))
