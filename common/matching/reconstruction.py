@@ -488,7 +488,8 @@ def _robust_weight(s2, loss, f):
 
 def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma_deg: float = SIGMA_DEG,
                      loss: str = "cauchy", f_scale: float = 3.0, p_value: float = P_VALUE,
-                     centres_mm: Mapping | None = None, max_nfev: int = 50, refine: bool = True) -> list[Cluster]:
+                     centres_mm: Mapping | None = None, max_nfev: int = 50, refine: bool = True,
+                     alternatives: int = 40) -> list[Cluster]:
     """Solve every cluster of confirmed joins: one pose per fragment in its cluster's frame.
 
     Parameters
@@ -515,6 +516,14 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
         Cap on function evaluations of each reweighting round.
     refine : bool
         False: return the spanning-tree initialisation unsolved (to see what the solve adds).
+    alternatives : int
+        When a cluster has conflicting loops on at most this many joins, each of those joins is
+        tried as the one set aside first (with :func:`blame_joins` for the loops it does not
+        explain): the spanning-tree start of least robust cost is solved too, and preferred to the
+        greedy blame's solution only if it lowers the robust cost by more than ``f_scale² / 2`` (one
+        join at the loss's scale); its set-aside joins become the cluster's ``blamed``. Two joins
+        equally supported give costs equal up to noise: the greedy blame (on most loops, then
+        confirmed last) is kept.
 
     Returns
     -------
@@ -563,7 +572,6 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
     for comp in find_clusters(joins):
         t0 = time.process_time()
         root = comp[0]
-        init, _ = _spanning_tree(root, adj, joins, avoid)
         members = set(comp)
         mine = [j for j in joins if j.fragment_a in members]
         order = [root] + [f for f in comp if f != root]
@@ -574,26 +582,32 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
         ia_i, ib_i = lookup(ia), lookup(ib)
         z = np.array([_rad(j) for j in mine])
         q = q_all[[row_of[j.pair] for j in mine]]
-        x0 = np.array([init[f] for f in order[1:]], float).ravel()
         fixed = np.zeros((1, 3))
         ident = np.arange(len(order))
-        cost, nfev = 0.0, 0
-        if len(x0) and refine:
-            # Jacobian sparsity: rows of join k depend on the free variables of its two fragments
-            rows, cols = [], []
-            for k in range(len(mine)):
-                for f in (ia_i[k], ib_i[k]):
-                    if f == 0:
-                        continue
-                    for r in range(3):
-                        rows += [3 * k + r] * 3
-                        cols += [3 * (f - 1), 3 * (f - 1) + 1, 3 * (f - 1) + 2]
-            pattern = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)),
-                                        shape=(3 * len(mine), len(x0))).tocsr()
-            pattern.data[:] = 1
-            args = (fixed, ident, ia_i, ib_i, z, w, q)
-            # blamed joins start switched off; the reweighting brings back any that fits
-            weights, x = np.array([1e-6 if j.pair in blamed else 1.0 for j in mine]), x0
+        args = (fixed, ident, ia_i, ib_i, z, w, q)
+        # Jacobian sparsity: rows of join k depend on the free variables of its two fragments
+        rows, cols = [], []
+        for k in range(len(mine)):
+            for f in (ia_i[k], ib_i[k]):
+                if f == 0:
+                    continue
+                for r in range(3):
+                    rows += [3 * k + r] * 3
+                    cols += [3 * (f - 1), 3 * (f - 1) + 1, 3 * (f - 1) + 2]
+        pattern = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)),
+                                    shape=(3 * len(mine), 3 * (len(order) - 1))).tocsr()
+        pattern.data[:] = 1
+
+        def start(blame: list) -> np.ndarray:
+            init, _ = _spanning_tree(root, adj, joins, {row_of[p] for p in blame})
+            return np.array([init[f] for f in order[1:]], float).ravel()
+
+        def run(blame: list) -> tuple[np.ndarray, float, int]:
+            """Start along a tree avoiding the blamed joins, with them switched off; reweight to convergence."""
+            x = start(blame)
+            if not (len(x) and refine):
+                return x, 0.0, 0
+            weights, nfev = np.array([1e-6 if j.pair in blame else 1.0 for j in mine]), 0
             for _ in range(IRLS_ROUNDS if loss != "linear" else 1):
                 sw = np.repeat(np.sqrt(weights), 3)
                 sol = least_squares(lambda v: _residuals(v, *args) * sw, x, jac_sparsity=pattern, method="trf",
@@ -605,9 +619,30 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
                 weights = new
                 if done:
                     break
-            cost = 0.5 * float(np.sum(_rho(s2, loss, f_scale)))
-        else:
-            x = x0
+            return x, 0.5 * float(np.sum(_rho(s2, loss, f_scale))), nfev
+
+        mine_loops = [lp for lp in loops if lp.fragments[0] in members]
+        chosen = [p for p in blamed if p[0] in members]
+        x, cost, nfev = run(chosen)
+        conflicting = [lp for lp in mine_loops if lp.conflicting]
+        candidates = sorted({p for lp in conflicting for p in lp.joins})
+        if conflicting and refine and loss != "linear" and len(candidates) <= alternatives:
+            # each join of the conflicting loops set aside first in turn: the start of least robust
+            # cost is solved, and kept if it beats the greedy blame by more than one join's worth
+            best, best_cost = None, math.inf
+            for cand in candidates:
+                blame = [cand] + blame_joins(mine, [lp for lp in conflicting if cand not in lp.joins])
+                if blame == chosen:
+                    continue
+                s2 = np.sum(_residuals(start(blame), *args).reshape(-1, 3) ** 2, axis=1)
+                c0 = float(np.sum(_rho(s2, loss, f_scale)))
+                if c0 < best_cost:
+                    best, best_cost = blame, c0
+            if best is not None:
+                x2, cost2, nfev2 = run(best)
+                nfev += nfev2
+                if cost2 < cost - 0.5 * f_scale ** 2:
+                    x, cost, chosen = x2, cost2, best
         P = np.vstack([fixed, x.reshape(-1, 3)])
         poses = {f: (math.degrees(float(_wrap(P[i, 0]))), float(P[i, 1]), float(P[i, 2])) for f, i in index.items()}
         r = _residuals(x, fixed, ident, ia_i, ib_i, z, w, q).reshape(-1, 3)
@@ -618,8 +653,7 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
                                  "deg": float(abs(math.degrees(r[k, 0] / w[0]))),
                                  "whitened": white, "suspect": white > bound}
         clusters.append(Cluster(id=f"C:{root}", root=root, fragments=comp, poses=poses, joins=mine,
-                                loops=[lp for lp in loops if lp.fragments[0] in members], residuals=residuals,
-                                blamed=[p for p in blamed if p[0] in members],
+                                loops=mine_loops, residuals=residuals, blamed=chosen,
                                 cost=cost, iterations=nfev, solve_s=time.process_time() - t0))
     return clusters
 
