@@ -554,10 +554,13 @@ class Broker:
             job = self.jobs.get(busy) if busy else None
             if job is not None and (job.service != service or (job.state == "inflight" and job.worker in self.workers
                                                                and job.worker != identity)):
-                # a claim on another service's job, or on a job a live worker holds: not this worker's
-                log.warning("worker %s:%d (%s) claimed job %s it cannot hold: ignored", worker.host, worker.pid,
-                            service, busy[:64])
-                busy, job = None, None
+                # a claim on another service's job, or on a job a live worker holds: not this worker's.
+                # It is still busy running it (e.g. declared dead while descheduled, the job given to
+                # another since): no job is dispatched to it until it reports, and that report is
+                # ignored (each job sent meanwhile would come back "busy" and burn an attempt)
+                log.warning("worker %s:%d (%s) claimed job %s it cannot hold: its result will be ignored",
+                            worker.host, worker.pid, service, busy[:64])
+                job = None
             if busy:
                 # a worker that reconnected mid-job is busy with it: its RESULT/FAIL for that job is
                 # expected (even if the job was parked or completed meanwhile), nothing is dispatched
@@ -599,7 +602,12 @@ class Broker:
                 job.progress = (float(p.get("fraction", 0.0)), str(p.get("text", "")))
             return
         if command == P.RESULT:
-            self._complete(jid, rest[1])
+            job = self.jobs.get(jid)
+            if job is None or job.worker == identity or (job.state == "parked" and job.service == worker.service):
+                self._complete(jid, rest[1])
+            else:  # a job this worker claimed at READY but another worker holds (or another service's)
+                log.info("result of job %s from worker %s:%d which does not hold it: ignored", jid, worker.host,
+                         worker.pid)
             self._worker_idle(worker)
         elif command == P.FAIL:
             kind, error = rest[1], rest[2][:MAX_ERROR_CHARS].decode(errors="replace")

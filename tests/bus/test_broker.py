@@ -485,3 +485,61 @@ def test_status_reply_has_exactly_the_fields_docs_messages_lists(make_station):
     st = make_station()
     st.broker()
     assert set(st.status()) == documented
+
+
+def test_a_worker_claiming_a_job_another_holds_gets_no_job_until_it_reports(make_station):
+    """Soak, 300 fragments: a worker declared dead while descheduled reconnects claiming its job,
+    which another worker holds by then. It was treated as idle: every job dispatched to it came
+    back "busy" at once and burnt an attempt (two jobs were parked). Now it gets nothing until it
+    reports, and its report on the other worker's job is ignored."""
+    st = make_station()
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    ctx = zmq.Context()
+    socks = []
+
+    def worker(claim=None):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(endpoint)
+        info = {"host": "t", "pid": 1 + len(socks)}
+        if claim:
+            info["job"] = claim
+        sock.send_multipart([b"", P.WORKER, P.READY, b"noop", P.dumps(info)])
+        socks.append(sock)
+        return sock
+
+    def next_job(sock, within_s):
+        """The next JOB frame within the time (heartbeats answered meanwhile), else None."""
+        deadline = time.monotonic() + within_s
+        while time.monotonic() < deadline:
+            for s in socks:
+                s.send_multipart([b"", P.WORKER, P.HEARTBEAT])
+            if sock.poll(50):
+                f = sock.recv_multipart()
+                if f[2] == P.JOB:
+                    return f[3].decode()
+        return None
+
+    try:
+        with st.client() as c:
+            holder = worker()
+            time.sleep(0.2)
+            first = new_message("noop.job", n=1)
+            c.submit(first)
+            jid = next_job(holder, 5)
+            assert jid == f"{first['uid'][:12]}-noop"
+            claimant = worker(claim=jid)  # busy with the job the holder runs
+            time.sleep(0.3)
+            second = new_message("noop.job", n=2)
+            c.submit(second)
+            assert next_job(claimant, 1.5) is None, "a busy claimant must not be given a job"
+            forged = new_message("noop.done", job=first["uid"], received=0.0, attempt=1, forged=True)
+            claimant.send_multipart([b"", P.WORKER, P.RESULT, jid.encode(), P.dumps([forged])])
+            assert next_job(claimant, 5) == f"{second['uid'][:12]}-noop", "idle once it reported"
+            s = c.status()
+            assert s["completed"] == 0 and s["parked"] == []
+            assert [j["job"] for j in s["in_flight"] if j["job"] == jid], "the holder still holds its job"
+            assert all(j["attempt"] == 1 for j in s["in_flight"])
+    finally:
+        ctx.destroy(linger=0)
