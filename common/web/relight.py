@@ -373,6 +373,29 @@ class RelightCache:
                 self._put(rel, data)
         return path
 
+    def level_image(self, level: int):
+        """Level ``level`` as an :class:`RGBNImage` assembled from its tiles (cut if missing): the
+        normals as solved (float16, z from x and y), the albedo from its 8-bit sRGB, the mask — what
+        "auto" contrast measures, without reading the face again."""
+        from common.rgbn.image import RGBNImage
+        from common.rgbn.io import srgb_to_linear
+
+        params = self.params()
+        lw, lh = params["levels"][level]
+        t = params["tile_px"]
+        normals = np.zeros((lh, lw, 3), np.float32)
+        colour = np.zeros((lh, lw, 4), np.uint8)
+        for r in range(-(-lh // t)):
+            for c in range(-(-lw // t)):
+                h, w = min(t, lh - r * t), min(t, lw - c * t)
+                xy, _, col = unpack_tile(self.tile_path(level, r, c).read_bytes(), h, w)
+                core = (slice(r * t, r * t + h), slice(c * t, c * t + w))
+                normals[core + (slice(0, 2),)] = xy[..., :2]
+                colour[core] = col
+        normals[..., 2] = np.sqrt(np.maximum(1.0 - normals[..., 0] ** 2 - normals[..., 1] ** 2, 0.0))
+        return RGBNImage(albedo=srgb_to_linear(colour[..., :3] / np.float32(255.0)), mask=colour[..., 3] > 127,
+                         dpi=params["dpi"] / 2 ** level, normals=normals if params["has_normals"] else None)
+
     def whole_from(self, whole_mpx: float = WHOLE_MPX) -> int | None:
         """The finest level >= 1 of at most ``whole_mpx`` megapixels: it and every coarser level are
         cut whole by :meth:`cut` (None when the face has no level >= 1)."""
@@ -485,16 +508,6 @@ def auto_contrast(image, style: str, values: dict, params: dict, *, level: int =
         kw[key] = "auto"
     resolved = STYLES[style].draw(image, **kw).resolved
     return {key: resolved[key] for key in VIEWER_STYLES[style]}
-
-
-def level_image(group, params: dict, level: int):
-    """The whole of pyramid level ``level`` of an RGBN HDF5 group as an :class:`RGBNImage`
-    (dpi divided by ``2**level``)."""
-    from common.rgbn.image import RGBNImage
-
-    lw, lh = params["levels"][level]
-    alb, nrm, mask = read_level_window(group, level, 0, lh, 0, lw)
-    return RGBNImage(albedo=alb, mask=mask, dpi=params["dpi"] / 2 ** level, normals=nrm)
 
 
 def overview_level(params: dict, max_mpx: float = 0.5) -> int:

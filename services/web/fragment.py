@@ -177,7 +177,7 @@ def auto(fid, stem):
     ``values`` as JSON in the query), measured on the face's overview level."""
     import json
 
-    from common.web.relight import auto_contrast, level_image, overview_level
+    from common.web.relight import auto_contrast, overview_level
 
     fid = _fid(fid)
     style = request.args.get("style", "")
@@ -191,8 +191,7 @@ def auto(fid, stem):
     params = cache.params()
     level = overview_level(params)
     try:
-        with cache.open_artifact() as f:
-            image = level_image(f, params, level)
+        image = cache.level_image(level)
         return jsonify(style=style, level=level, resolved=auto_contrast(image, style, values, params, level=level))
     except (ValueError, TypeError) as exc:
         abort(400, str(exc))

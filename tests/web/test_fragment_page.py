@@ -107,6 +107,20 @@ def test_cut_in_one_pass_gives_the_tiles_a_view_asks_for(tmp_path):
         assert np.abs(a[1] - b[1])[on].max() < 2e-3 * max(1.0, np.abs(a[1]).max())
 
 
+def test_level_image_from_tiles_is_the_level(tmp_path):
+    """What "auto" contrast measures: a level assembled from its tiles equals the level read from the face."""
+    from common.web.relight import RelightCache, read_level_window
+
+    store = _store_with(tmp_path, relief_face(300, 560))
+    cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
+    image = cache.level_image(1)
+    with store.open("fragments/F-1/rgbn/front-k1.h5") as f:
+        alb, nrm, mask = read_level_window(f, 1, 0, 150, 0, 280)
+    assert image.dpi == 150.0 and image.mask.shape == (150, 280) and (image.mask == mask).all()
+    assert np.abs(image.normals - nrm)[mask].max() < 2e-3
+    assert np.abs(image.albedo - alb)[mask].max() < 0.01      # 8-bit sRGB
+
+
 def test_colour_only_face_has_flat_fields(tmp_path):
     from common.rgbn.image import RGBNImage
     from common.web.relight import RelightCache, unpack_tile
