@@ -94,6 +94,12 @@ def main() -> int:
                         browser.close()
                         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)  # no HTTP cache
                 print(f"canvas {page.evaluate('() => [tesseraViewer.canvas.width, tesseraViewer.canvas.height]')}")
+                for style in ("raking", "exaggerated"):
+                    cpu0 = cpu_of(web.proc.pid)
+                    ms = page.evaluate(f"""async () => {{ const v = tesseraViewer, t = performance.now();
+                        const r = await fetch(v.base + '/auto?style={style}&values=' + encodeURIComponent(JSON.stringify(v.values['{style}'])));
+                        await r.json(); return performance.now() - t; }}""")
+                    print(f"auto contrast, {style}: {ms:.0f} ms, server CPU {cpu_of(web.proc.pid) - cpu0:.2f} s")
                 for view in ("whole face", "1:1"):
                     if view == "1:1":
                         cpu0 = cpu_of(web.proc.pid)
