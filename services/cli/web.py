@@ -20,7 +20,8 @@ def add_parser(sub) -> None:
                    help="review and status only: this machine does not drive the scanner")
     p.add_argument("--print-token", action="store_true", help="print the access token and exit")
     p.add_argument("--cut-tiles", nargs="*", metavar="FRAGMENT",
-                   help="cut the tile pyramids (albedo, normals, renders) of these fragments, or of every fragment "
+                   help="cut the tile pyramids (albedo, normals, renders; the fragment page's relight tiles) of these "
+                        "fragments, or of every fragment "
                         "on storage when none is named, and exit (pages otherwise cut them on first view)")
     p.add_argument("--rebuild-catalogue", action="store_true",
                    help="rebuild the catalogue's index from storage and the proposal store, and exit")
@@ -63,6 +64,7 @@ def cut_tiles(cfg, fragments: list[str]) -> int:
     from common.imports.export import fragment_ids
     from common.imports.progress import ProgressBar
     from common.store import Store
+    from common.web.relight import RelightCache
     from common.web.tiles import TileCache, face_sources
 
     store = Store(cfg["storage"]["root"], create=False)
@@ -77,6 +79,8 @@ def cut_tiles(cfg, fragments: list[str]) -> int:
     for i, rel in enumerate(sources):
         try:
             info = cache.pyramid(rel)
+            if "/rgbn/" in rel:   # the fragment page's relight tiles too (every level but full resolution)
+                RelightCache(store, rel).cut(min_level=1)
             bar.update(i + 1, f"{rel} ({info['tiles']} tiles)")
         except Exception as exc:   # one bad artifact must not stop the others
             failed += 1
