@@ -290,10 +290,13 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
     # brought to the finer one's grid by bilinear interpolation and renormalised
     full = iter_scale_space(normals, [s for s, f in zip(sigmas, grids) if f == 1], mask=mask,
                             foreshortening=foreshortening)
-    pyramid = _WeightedPyramid(normals, mask, foreshortening, origin) if grids[-1] > 1 else None
+    pyramid = None
     acc: dict = {}
     prev = None
     for k, (sigma, f) in enumerate(zip(sigmas, grids)):
+        if f > 1 and pyramid is None:   # the full-resolution walk is over: release its stack first
+            full.close()
+            pyramid = _WeightedPyramid(normals, mask, foreshortening, origin)
         n_k = next(full) if f == 1 else pyramid.level(sigma, f)
         if prev is not None:
             n_i, f_i = prev
@@ -352,12 +355,20 @@ class _WeightedPyramid:
         return (int(-self.origin[0]) % f, int(-self.origin[1]) % f)
 
     def stack(self, f: int) -> np.ndarray:
-        if f not in self.stacks:
+        """The stack on grid ``f``, by halving the finest grid kept so far (2x2 means of the
+        aligned cells: the mean over the f x f block, as from full resolution); grids finer than
+        the one asked for are released (the levels are asked for from fine to coarse)."""
+        while f not in self.stacks:
+            g = max(self.stacks)
+            if g >= f:
+                raise ValueError(f"grid {f} asked for after the coarser grid {g}")
             h, w = self.shape
-            o = self.offset(f)
-            hh, ww = (h - o[0]) // f, (w - o[1]) // f
-            full = self.stacks[1][o[0]:o[0] + hh * f, o[1]:o[1] + ww * f]
-            self.stacks[f] = self._cv2.resize(np.ascontiguousarray(full), (ww, hh), interpolation=self._cv2.INTER_AREA)
+            o_g, o_2 = self.offset(g), self.offset(2 * g)
+            d = ((o_2[0] - o_g[0]) // g, (o_2[1] - o_g[1]) // g)
+            hh, ww = (h - o_2[0]) // (2 * g), (w - o_2[1]) // (2 * g)
+            cells = self.stacks.pop(g)[d[0]:d[0] + 2 * hh, d[1]:d[1] + 2 * ww]
+            self.stacks[2 * g] = self._cv2.resize(np.ascontiguousarray(cells), (ww, hh),
+                                                  interpolation=self._cv2.INTER_AREA)
         return self.stacks[f]
 
     def grid_shape(self, f: int) -> tuple[int, int]:
