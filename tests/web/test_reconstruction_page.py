@@ -223,6 +223,8 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
             page.wait_for_function(f"() => ({cluster('conflicts')})() >= 1", timeout=120_000)
             assert page.locator(".cluster-svg .loop.conflicting").count() >= 1
             assert "conflicting loop" in page.inner_text(".cluster .conflicts")
+            # the join confirmed last is the one set aside
+            page.wait_for_selector(f".cluster .loops li.blamed:has-text('{wrong[0]} ↔ {wrong[1]}')", timeout=10_000)
             page.wait_for_timeout(500)
             page.screenshot(path=str(shots / "reconstruction-conflict.png"), full_page=True)
             # the exports answer from the page's links
