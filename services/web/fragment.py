@@ -89,11 +89,26 @@ def _face_list(fid: str) -> list[dict]:
 
 @bp.get("/fragments/<fid>")
 def page(fid):
-    """The page; its faces are in it (``data-faces``), so the viewer starts without asking."""
+    """The page. Its faces are in it (``data-faces``), with the parameters of the face it opens
+    when they are computed already, and the browser is told to fetch that face's one-tile top
+    level at once (``<link rel="preload">``): the first picture needs no other round trip."""
     import json
 
+    from common.web.relight import RelightCache
+
     fid = _fid(fid)
-    return render_template("fragment.html", page="fragment", fragment=fid, faces=json.dumps(_face_list(fid)))
+    faces = _face_list(fid)
+    preload = []
+    first = next((f for f in faces if f["face"] == request.args.get("face")), faces[0] if faces else None)
+    if first is not None:
+        cache = RelightCache(_store(), first["artifact"])
+        stored = _store().path(f"{cache.folder}/params.json")
+        if stored.is_file():
+            first["params"] = json.loads(stored.read_text())
+            _cut_coarse_levels(cache)   # returns at once when they are cut (or being cut) already
+            preload.append(f"{first['relight']}/tiles/{len(first['params']['levels']) - 1}/0_0")
+    return render_template("fragment.html", page="fragment", fragment=fid, faces=json.dumps(faces),
+                           preload=preload)
 
 
 @bp.get("/api/fragments/<fid>")

@@ -71,9 +71,12 @@
 
   async function openFace(face) {
     for (const b of $("faces").children) b.classList.toggle("active", b.dataset.face === face.face);
-    const r = await Tessera.api("GET", face.relight + "/params.json");
-    if (!r.ok) { message(r.data.error || `This face cannot be shown (HTTP ${r.status}).`); return; }
-    const p = r.data;
+    let p = face.params;   // in the page when the server has them already
+    if (!p) {
+      const r = await Tessera.api("GET", face.relight + "/params.json");
+      if (!r.ok) { message(r.data.error || `This face cannot be shown (HTTP ${r.status}).`); return; }
+      p = face.params = r.data;
+    }
     $("face-info").textContent = `${(p.width / p.dpi * 25.4).toFixed(1)} × ${(p.height / p.dpi * 25.4).toFixed(1)} mm · ` +
       `${p.width} × ${p.height} px · ${p.dpi} dpi${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
     const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
