@@ -188,6 +188,22 @@ def composite(seed, args):
         sizes = [c["composite"]["size_px"] for c in doc["clusters"] if c["composite"]]
         print(f"tessera reconstruct ({len(doc['clusters'])} cluster(s), composites {sizes} px): exit {status}, "
               f"{wall_s:.1f} s wall, {cpu_s:.1f} s CPU, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+        # the page's JSON: first request (reads every face once), again (cached), after one more verdict
+        from common.web.review import ReviewData
+        from services import web
+        app = web.create_app(token="x" * 32, store_root=Path(tmp) / "store",
+                             review=ReviewData(Path(tmp) / "store" / "matches" / "proposals.sqlite", store))
+        client = app.test_client()
+        for what in ("first", "cached", "after a verdict"):
+            if what == "after a verdict":
+                with ProposalStore(Path(tmp) / "store" / "matches" / "proposals.sqlite") as db:
+                    j = joins[0]
+                    db.record_verdict(j.fragment_a, j.fragment_b, "confirmed")
+            t0, c0 = time.monotonic(), time.process_time()
+            r = client.get("/api/reconstruction")
+            assert r.status_code == 200
+            print(f"GET /api/reconstruction ({what}): {(time.monotonic() - t0) * 1000:.0f} ms wall, "
+                  f"{(time.process_time() - c0) * 1000:.0f} ms CPU, {len(r.data) / 1024:.0f} KB")
 
 
 if __name__ == "__main__":
