@@ -17,12 +17,14 @@ Grisetti et al. 2010 "A tutorial on graph-based SLAM"; Kümmerle et al. 2011, g2
    latest confirmed first on a tie) are taken only where no other join connects, and start the
    solve with weight 0.
 2. **Nonlinear least squares over SE(2)** (``scipy.optimize.least_squares``, trust-region reflective,
-   sparse Jacobian): for each join the error of Grisetti et al. 2010, eq. 30, in A's frame,
+   sparse Jacobian): for each join the error of the measured against the predicted relative pose
+   (Grisetti et al. 2010, §IV), taken where B's centre ``c`` lands in A's frame,
 
-       e_t = R(θ_a)ᵀ (t_b − t_a) − t_ab,    e_θ = wrap(θ_b − θ_a − θ_ab),
+       e_t = R(θ_a)ᵀ (R(θ_b) c + t_b − t_a) − (R(θ_ab) c + t_ab),    e_θ = wrap(θ_b − θ_a − θ_ab),
 
    whitened by the join's standard deviations ``sigma_mm`` and ``sigma_deg``, under a robust loss
-   (Cauchy by default, scale ``f_scale`` whitened units) so one wrong join cannot drag the rest.
+   (Cauchy by default, scale ``f_scale`` whitened units, on each join's error norm, by iteratively
+   reweighted least squares) so one wrong join cannot drag the rest.
 
 Loops are checked on the measurements themselves, before and independently of the solve: every join
 closes a loop with the shortest path of other joins between its two fragments. The
@@ -545,7 +547,8 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
     References
     ----------
     Lu & Milios 1997; Olson et al. 2006 (ICRA); Grisetti, Kümmerle, Stachniss & Burgard 2010,
-    "A tutorial on graph-based SLAM", IEEE ITS Magazine 2(4), eqs. 29-31; Kümmerle et al. 2011, g2o.
+    "A tutorial on graph-based SLAM", IEEE Intelligent Transportation Systems Magazine 2(4); Kümmerle
+    et al. 2011, "g2o: a general framework for graph optimization", ICRA.
 
     Examples
     --------

@@ -24,7 +24,8 @@ def add_parser(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--store", metavar="DIR", help="storage root (default: the station config's)")
-    p.add_argument("--db", metavar="PATH", help="proposal database (default: the config's, or STORE/matches/proposals.sqlite)")
+    p.add_argument("--db", metavar="PATH",
+                   help="proposal database (default: the config's, or STORE/matches/proposals.sqlite)")
     p.add_argument("--dpi", type=float, help="composite sampling (default: the lowest dpi among a cluster's fragments)")
     p.add_argument("--max-side", type=int, default=8192, metavar="PX", help="longest composite side (default 8192)")
     p.add_argument("--sigma-mm", type=float, default=1.0, help="a join's translation uncertainty, mm (default 1)")

@@ -226,7 +226,7 @@ def poses():
 @bp.get("/api/reconstruction/<root>/composite.<ext>")
 @needs_proposals
 def composite(root, ext):
-    from common.matching.reconstruction import compose_cluster, front_images
+    from common.matching.reconstruction import Cluster, compose_cluster, front_images
     from common.rgbn.io import linear_to_srgb, write_image
     from common.store import Store
 
@@ -241,7 +241,6 @@ def composite(root, ext):
     images, missing = front_images(Store(station().store_root, create=False), ids)
     if missing:
         return jsonify(error="; ".join(f"{f}: {why}" for f, why in missing.items())), 404
-    from common.matching.reconstruction import Cluster
     solved = Cluster(id=cluster["id"], root=root, fragments=ids, joins=[],
                      poses={f["fragment"]: (f["angle_deg"], f["tx_mm"], f["ty_mm"]) for f in cluster["fragments"]})
     comp = compose_cluster(solved, images, max_side_px=side)

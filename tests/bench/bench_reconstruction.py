@@ -187,7 +187,8 @@ def composite(seed, args):
         doc = json.loads((Path(tmp) / "out" / "reconstruction.json").read_text())
         sizes = [c["composite"]["size_px"] for c in doc["clusters"] if c["composite"]]
         print(f"tessera reconstruct ({len(doc['clusters'])} cluster(s), composites {sizes} px): exit {status}, "
-              f"{wall_s:.1f} s wall, {cpu_s:.1f} s CPU, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+              f"{wall_s:.1f} s wall, {cpu_s:.1f} s CPU, "
+              f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
         # the page's JSON: first request (reads every face once), again (cached), after one more verdict
         from common.web.review import ReviewData
         from services import web

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from common.matching.reconstruction import (Join, closure_loops, compose_cluster, confirmed_joins, find_clusters,
-                                            front_images, mask_centre_mm, next_joins, reconstruct, reconstruction_document, relative_pose,
-                                            solve_pose_graph, write_composite)
+                                            front_images, mask_centre_mm, next_joins, reconstruct,
+                                            reconstruction_document, relative_pose, solve_pose_graph, write_composite)
 
 NOISE_MM, NOISE_DEG = 0.3, 0.3
 

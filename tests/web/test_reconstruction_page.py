@@ -10,7 +10,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -19,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from .conftest import TOKEN, wait_for
+from .conftest import TOKEN
 
 
 def _seed(root, n=7, seed=2, dpi=40):
