@@ -47,6 +47,8 @@ DOCK_OVERLAP_WEIGHT = 3.0
 #: the band weighs this much more at an outline than at its outer edge: closer fits count more
 DOCK_NEAR_WEIGHT = 3.0
 DOCK_PAINT_WEIGHT = 0.0
+#: coarse to fine: rotations docked again on the fine grid after a pass on a grid of twice the cell
+DOCK_COARSE_ANGLES = 3
 #: a paint deviation of one unit: this much √albedo away from the fragment's plain plaster
 PAINT_SCALE = 0.04
 
@@ -173,7 +175,8 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
                   overlap_weight: float = DOCK_OVERLAP_WEIGHT, near_weight: float = DOCK_NEAR_WEIGHT,
                   paint_a: np.ndarray | None = None, paint_b: np.ndarray | None = None,
                   paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3, per_angle: int = 1,
-                  min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0) -> list[Docking]:
+                  min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0,
+                  coarse_angles: int = None) -> list[Docking]:
     """Dock fragment B against fragment A over every rotation and translation, tolerating lost material.
 
     Parameters
@@ -224,6 +227,13 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         quarter of ``step_deg`` within ``min_shift_mm / 2`` of its translation, re-scored the same way.
     rescore_weight : float
         Weight of ``rescore``'s millimetres against the geometric contact's.
+    coarse_angles : int
+        0: every rotation on the ``cell_mm`` grid. N > 0 (with ``per_angle`` 1 and no paint): coarse to
+        fine — every rotation is first docked on a grid of twice the cell (a quarter of the cells),
+        and only the best N distinct rotations, each with its two neighbours ``step_deg`` away, are
+        docked again on the ``cell_mm`` grid. Default :data:`DOCK_COARSE_ANGLES` (3): 1.5–1.9× less
+        CPU, the same best score for 74–84 % of pairs, the same within-object ranking and pose
+        accuracy on RePAIR and on three synthetic walls (docs/matching.md).
 
     Returns
     -------
@@ -255,6 +265,9 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         raise ValueError(f"gap_mm and taper_mm must be >= 0, got {gap_mm}, {taper_mm}")
     if not 0 < step_deg <= 90:
         raise ValueError(f"step_deg must be in (0, 90], got {step_deg}")
+    coarse_angles = DOCK_COARSE_ANGLES if coarse_angles is None else int(coarse_angles)
+    if coarse_angles < 0:
+        raise ValueError(f"coarse_angles must be >= 0, got {coarse_angles}")
     if n_poses < 1 or per_angle < 1:
         raise ValueError(f"n_poses and per_angle must be >= 1, got {n_poses}, {per_angle}")
     if not min_shift_mm >= 0:
@@ -341,7 +354,13 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         contact = (score + overlap_weight * overlap / cell_mm ** 2) * cell_mm / 2
         return Docking(float(angle), float(t[0]), float(t[1]), score, float(contact), overlap)
 
-    found = [d for angle in np.arange(0.0, 360.0, step_deg) for d in at(angle)]
+    angles = np.arange(0.0, 360.0, step_deg)
+    if coarse_angles > 0 and per_angle == 1 and not use_paint:
+        coarse = dock_outlines(a, b, cell_mm=2 * cell_mm, gap_mm=gap_mm, taper_mm=taper_mm, step_deg=step_deg,
+                               overlap_weight=overlap_weight, near_weight=near_weight, n_poses=coarse_angles,
+                               coarse_angles=0)
+        angles = sorted({round((c.angle_deg + k * step_deg) % 360.0, 9) for c in coarse for k in (-1, 0, 1)})
+    found = [d for angle in angles for d in at(angle)]
     found.sort(key=lambda d: -d.score)
     best = found[0]
     for angle in (best.angle_deg - step_deg / 3, best.angle_deg + step_deg / 3):

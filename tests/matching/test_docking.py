@@ -111,7 +111,7 @@ def test_score_at_a_pose_matches_the_search_at_its_best_pose():
 def test_candidate_poses_hold_the_best_pose_and_several_per_rotation():
     a, b = _broken_slab(5, gap_mm=3.0)
     moved = _move(b, 63.0, (80.0, 10.0))
-    one = dock_outlines(a, moved, n_poses=1)[0]
+    one = dock_outlines(a, moved, n_poses=1, coarse_angles=0)[0]
     cands = dock_outlines(a, moved, n_poses=40, per_angle=5, min_shift_mm=6.0)
     assert cands[0] == one                      # the best candidate is the single best pose
     assert [d.score for d in cands] == sorted((d.score for d in cands), reverse=True)
@@ -151,3 +151,20 @@ def test_rescore_reranks_candidates_and_refines_the_winner():
     assert plain.score >= cands[0].score         # refinement never loses the best candidate
     with pytest.raises(ValueError, match="rescore"):
         dock_outlines(a, moved, n_poses=5, rescore=lambda p: np.zeros(2))
+
+
+@pytest.mark.parametrize("seed,angle", [(1, 37.0), (3, -100.0)])
+def test_coarse_to_fine_finds_the_pose_the_full_search_finds(seed, angle):
+    a, b = _broken_slab(seed, gap_mm=3.0)
+    moved = _move(b, angle, (120.0, -40.0))
+    full = dock_outlines(a, moved, coarse_angles=0)[0]
+    quick = dock_outlines(a, moved, coarse_angles=3)[0]
+    # within one step of the angle grid and two cells at B's centre
+    assert abs((full.angle_deg - quick.angle_deg + 180) % 360 - 180) <= 4.0 + 1e-6
+    c = moved.mean(axis=0)
+    at_full = _move(c[None], full.angle_deg, (full.tx_mm, full.ty_mm))[0]
+    at_quick = _move(c[None], quick.angle_deg, (quick.tx_mm, quick.ty_mm))[0]
+    assert np.hypot(*(at_full - at_quick)) <= 3.0
+    assert quick.score >= 0.95 * full.score
+    with pytest.raises(ValueError, match="coarse_angles"):
+        dock_outlines(a, moved, coarse_angles=-1)
