@@ -65,7 +65,7 @@ class _Live:
             self.arriving.append({"fragment_a": min(event["fragment"], event["other"]),
                                   "fragment_b": max(event["fragment"], event["other"]),
                                   "verdict": event.get("verdict"), "by": event.get("by"), "time": event.get("time"),
-                                  "seq": seq})
+                                  "uid": event.get("uid"), "seq": seq})
             self.feed_seen += 1
 
 
@@ -156,10 +156,13 @@ def _reconstruction() -> dict:
                 for d in nxt:
                     if d["newcomer"] not in summaries:
                         summaries[d["newcomer"]] = _summary(store, d["newcomer"])
-            recorded = {(j.fragment_a, j.fragment_b) for c in rec["clusters"] for j in c.joins}
             with live.lock:
-                arriving = [v for v in live.arriving if v["verdict"] == "confirmed"
-                            and (v["fragment_a"], v["fragment_b"]) not in recorded]
+                seen = list(live.arriving)
+            # a verdict on the feed is arriving until the matcher has recorded that message
+            recorded = st.review._read(lambda db: {r[0] for r in db._db.execute(
+                "SELECT message_uid FROM verdicts WHERE message_uid IS NOT NULL AND time >= ?",
+                (min((v["time"] or 0 for v in seen), default=0) - 60,))}, set())
+            arriving = [v for v in seen if v["verdict"] == "confirmed" and v["uid"] not in recorded]
             doc = rec["document"]
             for c in doc["clusters"]:
                 root = c["root"]

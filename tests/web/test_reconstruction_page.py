@@ -121,6 +121,27 @@ def test_a_wrong_confirmed_join_shows_as_a_conflicting_loop(app_and_db):
     assert cluster["blamed"] == [[a, b]]
 
 
+def test_a_verdict_on_the_feed_shows_as_arriving_until_the_matcher_records_it(app_and_db):
+    from common.matching.proposals import ProposalStore
+    from common.messages import new_message
+    from services.web.reconstruction import LIVE
+
+    app, db_path, wall, true = app_and_db
+    c = app.test_client()
+    sig = c.get("/api/reconstruction").get_json()["signature"]
+    a, b = true[0]
+    event = new_message("match.verified", fragment=a, other=b, verdict="confirmed", by="A. Conservator")
+    app.extensions[LIVE].on_verdict(event, 7)      # what the feed follower calls
+    assert c.get(f"/api/reconstruction/changes?after={sig}").get_json()["changed"] is True
+    data = c.get("/api/reconstruction").get_json()
+    assert [(v["fragment_a"], v["fragment_b"], v["by"]) for v in data["arriving"]] == [(a, b, "A. Conservator")]
+    assert data["document"]["clusters"] == []
+    with ProposalStore(db_path) as db:             # the matcher records that message
+        db.record_verdict(a, b, "confirmed", by="A. Conservator", message_uid=event["uid"], when=event["time"])
+    data = c.get("/api/reconstruction").get_json()
+    assert data["arriving"] == [] and len(data["document"]["clusters"]) == 1
+
+
 def test_exports_composite_png_tiff_and_json(app_and_db):
     import tifffile
 
