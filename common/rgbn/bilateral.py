@@ -113,14 +113,15 @@ def joint_bilateral(albedo: np.ndarray | None, normals: np.ndarray | None, *, si
 
     guide = values[..., used] * scale[used]
     keep = values.shape[2] if filter_normals or albedo is None else 3   # channels filtered
-    filtered = values if keep == values.shape[2] else np.ascontiguousarray(values[..., :keep])
+    filtered = values if keep == values.shape[2] else values[..., :keep]
     if separable:
         out = _bilateral_pass(guide, filtered, weight, sigma_x, r, axis=1)
-        # the second pass takes the first pass's result as its range guide (Pham & van Vliet)
-        if keep == values.shape[2]:
-            guide = out[..., used] * scale[used]
-        else:       # the normals were not filtered: the guide keeps the input's
-            guide = np.concatenate([out, values[..., keep:]], axis=2)[..., used] * scale[used]
+        # the second pass takes the first pass's result as its range guide (Pham & van Vliet);
+        # channels not filtered (the normals, with filter_normals=False) keep the input's
+        del guide
+        guide = np.empty(out.shape[:2] + (int(used.sum()),), np.float32)
+        for j, c in enumerate(np.flatnonzero(used)):
+            np.multiply(out[..., c] if c < keep else values[..., c], scale[c], out=guide[..., j])
         out = _bilateral_pass(guide, out, weight, sigma_x, r, axis=0)
     else:
         out = _bilateral_pass(guide, filtered, weight, sigma_x, r, axis=None)
