@@ -9,7 +9,11 @@
 2. Real scans ``../shared/data/flatbed-coin``: locate the coin in the raw platen scans, register
    the four, solve, and report the re-rendering residual; also solve the already registered crops.
    There is no calibration of that scanner: the simulator's nominal lamp model is used, turned to
-   the lamp side seen in the raw scans (the shadow falls away from the lamp).
+   the lamp side seen in the raw scans (the shadow falls away from the lamp). This part uses
+   benchmark-only helpers (a Hough circle for the coin's outline, a lowered correlation
+   threshold) and is kept for comparison; the coin through the station's generic path (focus
+   and consistent masks, lamp side from the shadows, ``tessera calibrate --nominal``) is
+   ``tests/bench/bench_flatbed_coin.py``.
 Figures (albedo, normals, error map) go to ``--figures``.
 """
 
