@@ -167,8 +167,8 @@ def test_fragment_json_lists_faces_joins_and_proposals(client):
     r = client.get("/api/fragments/F-1")
     assert r.status_code == 200
     d = r.get_json()
-    assert [f["face"] for f in d["faces"]] == ["back", "front"]
-    assert d["faces"][1]["relight"] == "/api/fragments/F-1/relight/front-k1"
+    assert [f["face"] for f in d["faces"]] == ["front", "back"]
+    assert d["faces"][0]["relight"] == "/api/fragments/F-1/relight/front-k1"
     assert [(j["other"], j["status"]) for j in d["joins"]] == [("F-2", "confirmed")]
     assert d["joins"][0]["other_url"] == "/fragments/F-2" and d["joins"][0]["pose"]["angle_deg"] == 10.0
     assert [p["other"] for p in d["proposals"]] == ["F-3"]
