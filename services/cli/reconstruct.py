@@ -63,7 +63,14 @@ def run(args) -> int:
     store = Store(root, create=False)
     with ProposalStore(db_path) as db:
         fragments = sorted({f for j in rc.confirmed_joins(db)[0] for f in j.pair})
-        images, missing = rc.front_images(store, fragments)
+        images, missing = {}, {}
+        bar = ProgressBar(len(fragments), "read faces")
+        for i, f in enumerate(fragments):
+            got, why = rc.front_images(store, [f])
+            images.update(got)
+            missing.update(why)
+            bar.update(i + 1, f)
+        bar.close()
         try:
             rec = rc.reconstruct(db, centres_mm={f: rc.mask_centre_mm(im) for f, im in images.items() if im.mask.any()},
                                  dpi={f: im.dpi for f, im in images.items()}, sigma_mm=args.sigma_mm,
