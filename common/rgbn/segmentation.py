@@ -172,24 +172,26 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
             n_seg = max(1, int(m.size / superpixel_px))
             lab = slic(feats[win], n_segments=n_seg, compactness=0.05, sigma=0, channel_axis=-1, start_label=0,
                        max_num_iter=5, enforce_connectivity=True)
-            # a superpixel that straddles the mask border is cut by it
-            lab = np.where(m, lab.astype(np.int64) * 2, -1)
-            _, inv = np.unique(lab, return_inverse=True)
-            inv = inv.reshape(lab.shape).astype(np.int64)
-            inv -= 1 if (lab < 0).any() else 0
-            sp[win] = np.where(m, inv + nxt, -1)
-            nxt += int(inv.max()) + 1
+            # a superpixel that straddles the mask border is cut by it; the tile's labels that
+            # occur inside the mask are numbered densely after the previous tiles' (a bincount and
+            # a cumulative sum: linear, no sort)
+            lab = lab.astype(np.int64, copy=False)
+            present = np.bincount(lab[m] if not m.all() else lab.ravel(), minlength=int(lab.max()) + 1) > 0
+            dense = np.cumsum(present) - 1 + nxt
+            sp[win] = np.where(m, dense[lab], -1)
+            nxt += int(present.sum())
     k = nxt
     if k == 0:
         return np.full((h, w), -1, np.int32)
-    inside = sp >= 0
-    flat = sp[inside]
-    area = np.bincount(flat, minlength=k).astype(np.float64)
+    # per-superpixel sums over bin sp + 1 (bin 0: outside the mask, dropped): no boolean gathers
+    flat = (sp + 1).ravel()
+    area = np.bincount(flat, minlength=k + 1)[1:].astype(np.float64)
     sums, sq = [], []
     for c in range(feats.shape[2]):
-        v = feats[..., c][inside].astype(np.float64)
-        sums.append(np.bincount(flat, weights=v, minlength=k))
-        sq.append(np.bincount(flat, weights=v * v, minlength=k))
+        v = feats[..., c].ravel().astype(np.float64)
+        sums.append(np.bincount(flat, weights=v, minlength=k + 1)[1:])
+        v *= v
+        sq.append(np.bincount(flat, weights=v, minlength=k + 1)[1:])
     means = np.stack(sums, axis=1) / np.maximum(area, 1)[:, None]
     var = np.maximum(np.stack(sq, axis=1) / np.maximum(area, 1)[:, None] - means ** 2, 0.0)
     # a superpixel starts with the internal difference of its own pixels (their spread), as the
@@ -229,9 +231,9 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
             parent[rb] = ra
             size[ra] += size[rb]
     root = np.array([find(i) for i in range(k)], np.int64)
-    labels = np.full((h, w), -1, np.int64)
-    labels[inside] = root[flat]
-    return _relabel_by_area(labels, mask)
+    # number the segments by decreasing area on the superpixels, then one gather over the image
+    seg = _relabel_by_area(root, np.ones(k, bool), weights=area)
+    return np.where(sp >= 0, seg[np.maximum(sp, 0)], -1).astype(np.int32)
 
 
 def _segment_downsampled(albedo, normals, mask, shape, *, max_megapixels, **kw):
@@ -259,14 +261,17 @@ def _segment_downsampled(albedo, normals, mask, shape, *, max_megapixels, **kw):
     return up.astype(np.int32)
 
 
-def _relabel_by_area(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    lab = np.where(mask, labels, -1)
-    ids, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
-    keep = ids >= 0
-    order = np.argsort(-counts[keep], kind="stable")
-    new_ids = np.full(ids.shape, -1, np.int32)
-    new_ids[np.flatnonzero(keep)[order]] = np.arange(order.size, dtype=np.int32)
-    return new_ids[inverse.reshape(lab.shape)]
+def _relabel_by_area(labels: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Labels renumbered 0..K-1 by decreasing area (``weights``: the area of each element, default 1;
+    ties by increasing old label), -1 outside ``mask``; a bincount, linear in the pixels."""
+    lab = np.where(mask, labels, -1).astype(np.int64, copy=False)
+    counts = np.bincount(lab.ravel() + 1, weights=None if weights is None else np.where(mask, weights, 0).ravel())[1:]
+    present = np.bincount(lab.ravel() + 1, minlength=counts.size + 1)[1:] > 0
+    ids = np.flatnonzero(present)
+    order = ids[np.argsort(-counts[ids], kind="stable")]
+    new_ids = np.full(counts.size + 1, -1, np.int32)
+    new_ids[order + 1] = np.arange(order.size, dtype=np.int32)
+    return new_ids[lab + 1]
 
 
 def segment_means(values: np.ndarray, labels: np.ndarray) -> np.ndarray:
