@@ -482,3 +482,59 @@ def paint_continuity(field_a: PaintField, field_b: PaintField, poses, *, tau_de:
                                 float(tau_de), float(floor), clip)
         total += llr.sum(axis=1) * own.sample_length_mm
     return total / 2.0
+
+
+#: weight of a pair's paint evidence (mm of crack) against the docking's contact (mm) in the join's
+#: logit: chosen on the synthetic pompeii walls (within-wall @1/@3 of the station's ranking plus paint,
+#: docs/matching.md "Paint across the crack"), never on the real collections it is measured on
+PAINT_PAIR_WEIGHT = 8.0
+
+
+def paint_pair_mm(field_a: PaintField, field_b: PaintField, contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *,
+                  n_poses: int = 30, per_angle: int = 3) -> tuple[float, tuple]:
+    """A pair's paint evidence: the best :func:`paint_continuity` over the docking's candidate poses.
+
+    Whether two fragments are neighbours at all (not which pose): on real frescoes the paint tells
+    the true pose among the docking's candidates only weakly, but its best over them separates true
+    neighbours from look-alikes of the same fresco (docs/matching.md, "Paint across the crack").
+
+    Parameters
+    ----------
+    field_a, field_b : PaintField
+        The two fragments' paint fields (:func:`paint_field_from_profile` or :func:`paint_field`).
+    contour_a_mm, contour_b_mm : (M, 2) arrays
+        Their outlines in the same frames (``FeatureTable.contour_mm``).
+    n_poses, per_angle : int
+        Candidate poses of :func:`common.matching.docking.dock_outlines`.
+
+    Returns
+    -------
+    paint_mm : float
+        The best paint evidence, mm of crack.
+    pose : (angle_deg, tx_mm, ty_mm)
+        The candidate pose (B in A's frame) where it was found.
+    """
+    from common.matching.docking import dock_outlines
+
+    docks = dock_outlines(contour_a_mm, contour_b_mm, n_poses=n_poses, per_angle=per_angle)
+    poses = np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float)
+    scores = paint_continuity(field_a, field_b, poses)
+    i = int(np.argmax(scores))
+    return float(scores[i]), tuple(float(v) for v in poses[i])
+
+
+def with_paint(probability, paint_mm, docking_slope: float, weight: float = PAINT_PAIR_WEIGHT) -> np.ndarray:
+    """Join probabilities with a pair's paint evidence added to their logit (naive Bayes).
+
+    ``σ(logit(p) + weight · docking_slope · paint_mm)``: a millimetre of crack with continuing paint
+    counts ``weight`` millimetres of the docking's contact, whose calibration slope (per mm,
+    ``MatchModel.docking[0]``) turns it into logit units. No paint evidence (0) leaves ``p`` as it is.
+    """
+    p = np.clip(np.asarray(probability, float), 1e-12, 1 - 1e-12)
+    m = np.asarray(paint_mm, float)
+    if not np.all(np.isfinite(m)):
+        raise ValueError("paint_mm must be finite")
+    if not (np.isfinite(docking_slope) and np.isfinite(weight)):
+        raise ValueError(f"docking_slope and weight must be finite, got {docking_slope}, {weight}")
+    logit = np.log(p) - np.log1p(-p) + weight * docking_slope * m
+    return 1.0 / (1.0 + np.exp(-logit))

@@ -148,3 +148,30 @@ def test_field_from_the_stored_boundary_profile_tells_the_true_pose_too():
     assert np.all(scores[0] > scores[1:] + 1.0)
     with pytest.raises(ValueError, match="profile"):
         paint_field_from_profile(fragment_contour(mask_a, PX_MM).points_mm, np.zeros((5, 3)), 1.0)
+
+
+def test_pair_evidence_is_the_best_paint_over_the_docking_candidates():
+    from common.features.contour import fragment_contour
+    from common.matching.paint import paint_pair_mm
+
+    alb_a, mask_a, alb_b, mask_b, _ = _pieces(_slab())
+    fa, fb = _fields(alb_a, mask_a, alb_b, mask_b)
+    ca, cb = fragment_contour(mask_a, PX_MM).points_mm, fragment_contour(mask_b, PX_MM).points_mm
+    band_mm, found = paint_pair_mm(fa, fb, ca, cb)
+    # the slab is symmetric (the band runs through A's far side too), so only the evidence is checked
+    assert band_mm > 3.0
+    assert band_mm == pytest.approx(paint_continuity(fa, fb, found)[0])
+    plain_mm, _ = paint_pair_mm(*_fields(*_pieces(_slab(band=False))[:4]), ca, cb)
+    assert abs(plain_mm) < 1.0 < band_mm
+
+
+def test_paint_raises_a_join_probability_in_proportion_and_none_leaves_it():
+    from common.matching.paint import with_paint
+
+    p = np.array([0.1, 0.1, 0.1, 0.5])
+    out = with_paint(p, [0.0, 5.0, -5.0, 0.0], docking_slope=0.02, weight=8.0)
+    np.testing.assert_allclose(out[[0, 3]], p[[0, 3]])
+    logit = np.log(out / (1 - out)) - np.log(p / (1 - p))
+    np.testing.assert_allclose(logit[1:3], [0.8, -0.8], atol=1e-9)  # 8 × 0.02 × ±5 mm
+    with pytest.raises(ValueError, match="paint_mm"):
+        with_paint(p, [np.nan] * 4, docking_slope=0.02)
