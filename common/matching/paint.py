@@ -258,7 +258,7 @@ def paint_field(albedo: np.ndarray, mask: np.ndarray, pixel_mm: float, *, cell_m
                       float(np.prod(cell_xy) / depth_mm))
 
 
-def paint_field_from_profile(contour_mm: np.ndarray, profile: np.ndarray, step_mm: float, *,
+def paint_field_from_profile(contour_mm: np.ndarray, profile: np.ndarray, step_mm: float | None = None, *,
                              names=None, cell_mm: float = PAINT_CELL_MM, rim_mm: float = PAINT_RIM_MM,
                              reach_mm: float = PAINT_REACH_MM) -> PaintField:
     """The paint field of a fragment from what the features stage stores: its outline and boundary profile.
@@ -277,8 +277,9 @@ def paint_field_from_profile(contour_mm: np.ndarray, profile: np.ndarray, step_m
         (clockwise on screen, fragment on the right).
     profile : (K, C) array
         Boundary profile; its ``sqrt_{r,g,b}@{depth}`` columns are used.
-    step_mm : float
-        Arc-length step of the profile (``FeatureTable.boundary_step_mm``).
+    step_mm : float, optional
+        Arc-length step of the profile (``FeatureTable.boundary_step_mm``); default the outline's
+        perimeter over the number of samples, which is how the profile's step is made.
     names : list of str, optional
         Column names of ``profile`` (default :func:`~common.features.boundary.boundary_channel_names`).
     cell_mm, rim_mm, reach_mm : float
@@ -303,6 +304,8 @@ def paint_field_from_profile(contour_mm: np.ndarray, profile: np.ndarray, step_m
     names = list(boundary_channel_names() if names is None else names)
     if prof.ndim != 2 or len(prof) < 3 or prof.shape[1] != len(names):
         raise ValueError(f"profile must be a (K >= 3, {len(names)}) array matching names, got shape {prof.shape}")
+    if step_mm is None:
+        step_mm = float(np.hypot(*np.diff(np.vstack([c, c[:1]]), axis=0).T).sum()) / len(prof)
     if not (np.isfinite(step_mm) and step_mm > 0):
         raise ValueError(f"step_mm must be a positive number, got {step_mm}")
     depths = sorted({float(n.split("@")[1]) for n in names if n.startswith("sqrt_r@")})
