@@ -38,7 +38,25 @@ def set_priority(nice: int) -> int:
         except OSError as exc:
             log.warning("cannot run at nice %d (%s; needs root, CAP_SYS_NICE or Nice=/LimitNICE= in the unit): "
                         "running at %d, so STATUS may answer late on a loaded machine", nice, exc.strerror, current)
+    _group_priority(nice)
     return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def _group_priority(nice: int) -> None:
+    """With Linux autogroups (``kernel.sched_autogroup_enabled``) CPU time is shared between
+    sessions first, and a thread's nice value counts only inside its session's group.
+    ``tessera station`` starts the broker and every worker in a session of its own, so there the
+    broker's group is the broker alone: give the group ``nice`` too. In a shared session (a
+    terminal, a test) the group is left as it is."""
+    if os.getsid(0) != os.getpid():
+        return
+    try:
+        with open("/proc/self/autogroup", "w") as fh:
+            fh.write(str(nice))
+    except FileNotFoundError:  # no autogroups (or not Linux): nothing to do
+        pass
+    except OSError as exc:
+        log.warning("cannot give the broker's session group nice %d (%s)", nice, exc.strerror)
 
 
 def main(config: dict) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -477,7 +478,6 @@ def _status_or_none(c):
 
 def test_status_reply_has_exactly_the_fields_docs_messages_lists(make_station):
     import re
-    from pathlib import Path
     doc = (Path(__file__).resolve().parents[2] / "docs" / "messages.md").read_text()
     row = re.search(r"^\| `STATUS` \| empty \| `\{([^}]*)\}`", doc, re.M)
     assert row, "docs/messages.md has no STATUS row"
@@ -543,3 +543,24 @@ def test_a_worker_claiming_a_job_another_holds_gets_no_job_until_it_reports(make
             assert all(j["attempt"] == 1 for j in s["in_flight"])
     finally:
         ctx.destroy(linger=0)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="no Linux autogroups here")
+def test_a_broker_in_a_session_of_its_own_gives_its_session_group_the_priority(make_station, tmp_path):
+    # as `tessera station` starts it (start_new_session): with autogroups a thread's nice counts
+    # only inside its session's group, so the broker's group takes [broker] nice too
+    import subprocess
+    import sys
+    st = make_station()
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    p = subprocess.Popen([sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
+                          "broker", "--set", "broker.nice=6", "--config", str(st.config_path)],
+                         env=env, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL)
+    st.procs.append(p)
+    with st.client() as c:
+        wait_for(lambda: _status_or_none(c) is not None, 20, "the broker to answer")
+    with open(f"/proc/{p.pid}/autogroup") as fh:
+        assert fh.read().split()[-1] == "6"
+    with open("/proc/self/autogroup") as fh:   # this test's own session group is untouched
+        assert fh.read().split()[-1] == "0"
