@@ -22,6 +22,10 @@ log = logging.getLogger("tessera.web")
 
 bp = Blueprint("fragment", __name__)
 
+#: the viewer's shader files (``static/viewer/``), preloaded by the page
+SHADER_FILES = ("tile.vert", "common.glsl", "albedo.frag", "lambertian.frag", "raking.frag", "specular.frag",
+                "normal_unsharp.frag", "exaggerated.frag", "mean_curvature.frag")
+
 #: relight caches whose coarse levels are being cut in the background -> set when done
 _cutting: dict[str, threading.Event] = {}
 _cutting_lock = threading.Lock()
@@ -110,7 +114,7 @@ def page(fid):
             _cut_coarse_levels(cache)   # returns at once when they are cut (or being cut) already
             preload.append(f"{first['relight']}/tiles/{len(first['params']['levels']) - 1}/0_0")
     return render_template("fragment.html", page="fragment", fragment=fid, faces=json.dumps(faces),
-                           preload=preload)
+                           preload=preload, shaders=SHADER_FILES)
 
 
 @bp.get("/api/fragments/<fid>")

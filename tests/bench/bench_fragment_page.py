@@ -89,6 +89,11 @@ def main() -> int:
                           f"view needs {s['firstTileMs']:.0f} ms, all of them {s['completeMs']:.0f} ms "
                           f"after navigation start (level {lv[0]} of {lv[1]}, {s['tilesLoaded']} tiles); "
                           f"test wall {wall:.2f} s; server CPU {cpu_of(web.proc.pid) - cpu0:.2f} s")
+                    nav = page.evaluate("() => performance.getEntriesByType('navigation')[0].domContentLoadedEventEnd")
+                    top = page.evaluate("() => { const e = performance.getEntriesByType('resource').find("
+                                        "(e) => /tiles\\/\\d+\\/0_0$/.test(e.name)); return e ? e.responseEnd : null; }")
+                    print(f"     page parsed {nav:.0f} ms, viewer init {s['initMs']:.0f} ms, WebGL context {s['contextMs']:.0f} ms, "
+                          f"shader sources {s['sourcesMs']:.0f} ms, first tile response {top or 0:.0f} ms")
                     if label == "cold":
                         page.close()
                         browser.close()

@@ -176,8 +176,12 @@ def test_fragment_json_lists_faces_joins_and_proposals(client):
 
 
 def test_page_and_tile_routes(client):
+    from services import web
+
     r = client.get("/fragments/F-1")
     assert r.status_code == 200 and b"viewer/viewer.js" in r.data and b"F-1" in r.data
+    for name in web.fragment.SHADER_FILES:     # every preloaded shader file is there
+        assert client.get(f"/static/viewer/{name}").status_code == 200, name
     p = client.get("/api/fragments/F-1/relight/front-k1/params.json").get_json()
     assert p["width"] == 80 and p["height"] == 60 and p["dpi"] == 300.0
     t = client.get("/api/fragments/F-1/relight/front-k1/tiles/0/0_0")

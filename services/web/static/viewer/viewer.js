@@ -112,12 +112,15 @@ const RelightViewer = (() => {
     }
 
     async init() {
+      this.stats.initMs = performance.now();
       const gl = this.canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true,
                                                      premultipliedAlpha: false, alpha: false });
       if (!gl) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
       this.gl = gl;
+      this.stats.contextMs = performance.now();
       const names = Object.keys(STYLES);
       const [vert, common, ...frags] = await shaderSources();
+      this.stats.sourcesMs = performance.now();
       // sources now, programs when a style is first drawn (compiling all of them would delay the
       // first picture); a style's compile error still shows at once: the page draws it first
       this.sources = {};
