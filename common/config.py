@@ -103,7 +103,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 # sections whose keys are free-form (checked by shape, not by name)
-_FREE = {"routing", "services"}
+FREE_FORM_SECTIONS = {"routing", "services"}
 
 
 def _check_value(key: str, default: Any, value: Any) -> Any:
@@ -137,7 +137,7 @@ def _merge(base: dict, over: Mapping, where: str = "") -> None:
             raise ConfigError(f"{name}: unknown section (known: {', '.join(sorted(base))})")
         if not isinstance(values, Mapping):
             raise ConfigError(f"{name}: expected a table [{name}], got {values!r}")
-        if section in _FREE:
+        if section in FREE_FORM_SECTIONS:
             for k, v in values.items():
                 base[section][k] = copy.deepcopy(dict(v)) if isinstance(v, Mapping) else copy.deepcopy(v)
             continue
@@ -189,7 +189,7 @@ def validate_config(cfg: dict) -> dict:
 
 def _set_dotted(cfg: dict, key: str, value: Any) -> None:
     parts = key.split(".")
-    if parts[0] in _FREE:
+    if parts[0] in FREE_FORM_SECTIONS:
         node = cfg
         for p in parts[:-1]:
             node = node.setdefault(p, {})

@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import tomllib
+
 import pytest
 
-from common.config import DEFAULTS, ConfigError, default_config_path, load_config
+from common.config import DEFAULTS, FREE_FORM_SECTIONS, ConfigError, default_config_path, load_config
 
 
 def test_station_toml_states_exactly_the_embedded_defaults():
     assert load_config(default_config_path()) == load_config(None)
+
+
+def test_station_toml_writes_out_every_fixed_setting():
+    # the file is the reference a lab copies: a setting only in code is one nobody finds
+    stated = tomllib.loads(default_config_path().read_text())
+    missing = [f"{section}.{key}" for section, values in DEFAULTS.items() if section not in FREE_FORM_SECTIONS
+               for key in values if key not in stated.get(section, {})]
+    assert missing == []
 
 
 def test_lab_toml_loads_with_several_hosts_and_nfs_storage():
