@@ -178,8 +178,11 @@ def _writer_alive(pid: int, written_at: float) -> bool:
 
 
 @contextlib.contextmanager
-def _atomic_file(final: Path) -> Iterator[str]:
+def atomic_file(final: Path) -> Iterator[str]:
     """Yield a temporary path beside ``final``; rename it into place if the block succeeds.
+
+    The one way the project writes a file that others may read while it is written (artifacts,
+    tiles, annotations, exports). :func:`write_file` covers the common case of bytes in memory.
 
     The temporary name is ``.<final name>.<host>.<pid>.<random>.tmp`` (what
     :meth:`Store.sweep_temporary` looks for: host and pid tell whether its writer is alive); on
@@ -206,6 +209,9 @@ def _atomic_file(final: Path) -> Iterator[str]:
         raise
 
 
+_atomic_file = atomic_file  # old private name, still imported by code being changed this session
+
+
 def _write_bytes(path: str, data: bytes) -> None:
     """Write ``data`` to ``path`` with ordinary file I/O and fsync it (errors surface as OSError)."""
     with open(path, "wb") as fh:
@@ -215,6 +221,22 @@ def _write_bytes(path: str, data: bytes) -> None:
             view = view[n:]
         fh.flush()
         os.fsync(fh.fileno())
+
+
+def write_file(final: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``final`` atomically: free space checked, temporary name, fsync, rename.
+
+    Raises :class:`StorageFull` / :class:`StorageReadOnly` / :class:`StorageUnavailable` like
+    :meth:`Store.write`, never leaving a partial file behind.
+    """
+    final = Path(final)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _storage_error(exc, str(final)) from exc
+    _check_free_space(final.parent, len(data), str(final))
+    with atomic_file(final) as tmp:
+        _write_bytes(tmp, data)
 
 
 class Store:
@@ -311,13 +333,7 @@ class Store:
             f.attrs["provenance"] = json.dumps(dict(provenance or {}), default=str, sort_keys=True)
             fill(f)
         data = image.getbuffer()
-        try:
-            final.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise _storage_error(exc, relpath) from exc
-        _check_free_space(final.parent, len(data), relpath)
-        with _atomic_file(final) as tmp:
-            _write_bytes(tmp, data)
+        write_file(final, data)
         digest = hashlib.sha256(data).hexdigest()
         return ArtifactRef(relpath, digest, len(data))
 
@@ -337,7 +353,7 @@ class Store:
         except OSError as exc:
             raise _storage_error(exc, relpath) from exc
         _check_free_space(final.parent, size, relpath)
-        with _atomic_file(final) as tmp:
+        with atomic_file(final) as tmp:
             h = hashlib.sha256()
             with open(source, "rb") as src, open(tmp, "wb") as dst:
                 for block in iter(lambda: src.read(_CHUNK), b""):

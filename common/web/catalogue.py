@@ -360,7 +360,7 @@ class Catalogue:
     def record_annotation(self, event: Mapping, seq: int | None = None) -> str:
         """Write a ``fragment.annotated`` event to ``fragments/<id>/annotations/`` (once; atomic)."""
         from common.messages import FRAGMENT_PATTERN, UID_PATTERN
-        from common.store import _atomic_file, _write_bytes  # the project's one atomic write
+        from common.store import write_file
 
         fid, uid = str(event["fragment"]), str(event["uid"])
         if not FRAGMENT_PATTERN.match(fid) or not UID_PATTERN.match(uid):
@@ -370,8 +370,7 @@ class Catalogue:
         rel = f"fragments/{fid}/annotations/{record['time']:017.6f}-{uid}.json"
         path = self.store.path(rel)
         if not path.is_file():
-            with _atomic_file(path) as tmp:
-                _write_bytes(tmp, (json.dumps(record, sort_keys=True, ensure_ascii=False) + "\n").encode())
+            write_file(path, (json.dumps(record, sort_keys=True, ensure_ascii=False) + "\n").encode())
         return rel
 
     def _annotations_on_storage(self, fid: str) -> list[dict]:

@@ -47,12 +47,12 @@ def export_folder(store: Store, fragment: str) -> tuple[Path, str]:
 
 def export_zip(folder: Path, fragment: str) -> Path:
     """A zip (stored, not recompressed: PNGs are compressed already) of an export folder, beside it."""
-    from common.store import _atomic_file  # the project's one atomic write
+    from common.store import atomic_file  # the project's one atomic write
 
     path = folder.parent / f"{fragment}.zip"
     if path.is_file():
         return path
-    with _atomic_file(path) as tmp:
+    with atomic_file(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
             for p in sorted(folder.iterdir()):
                 if p.is_file() and not p.name.startswith("."):

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from common.rgbn.io import linear_to_srgb
-from common.store import ArtifactError, Store
+from common.store import ArtifactError, Store, write_file
 
 #: Side of a tile, pixels.
 TILE_PX = 256
@@ -269,10 +269,7 @@ def read_region(tile: Callable[[int, int], np.ndarray | None], level_size: tuple
 # the cache on storage
 # --------------------------------------------------------------------------------------------
 def _put_file(store: Store, relpath: str, data: bytes) -> None:
-    from common.store import _atomic_file, _write_bytes  # the project's one atomic write
-
-    with _atomic_file(store.path(relpath)) as tmp:
-        _write_bytes(tmp, data)
+    write_file(store.path(relpath), data)
 
 
 def pyramid_folder(source_relpath: str) -> str:
