@@ -89,7 +89,7 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         if colour_weight < 0:
             raise ValueError(f"colour_weight must be >= 0, got {colour_weight}")
         if colour_weight > 0:
-            parts.append(albedo * np.float32(colour_weight))
+            parts.append((albedo, np.float32(colour_weight)))
     if normals is not None:
         normals = check_normals(normals)
         if shape is not None and normals.shape[:2] != shape:
@@ -98,7 +98,7 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         if normal_weight < 0:
             raise ValueError(f"normal_weight must be >= 0, got {normal_weight}")
         if normal_weight > 0:
-            parts.append(normals * np.float32(normal_weight))
+            parts.append((normals, np.float32(normal_weight)))
     if not parts:
         raise ValueError("colour_weight and normal_weight are both 0: no dissimilarity to segment by")
     if not scale > 0:
@@ -129,11 +129,16 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
                                     mask=mask[box], scale=scale, sigma_px=sigma_px, min_size=min_size,
                                     colour_weight=colour_weight, normal_weight=normal_weight, max_megapixels=None)
             return out
-    feats = np.concatenate(parts, axis=2)
     if superpixel_px is not None:
-        if sigma_px > 0:
-            feats = gaussian_blur(feats, float(sigma_px))
+        # the Gaussian is linear: each 3-channel part is blurred as it is (one contiguous OpenCV
+        # call) and weighted into the feature stack, rather than weighting, stacking and blurring six
+        feats = np.empty(shape + (3 * len(parts),), np.float32)
+        for i, (values, weight) in enumerate(parts):
+            if sigma_px > 0:
+                values = gaussian_blur(values, float(sigma_px))
+            np.multiply(values, weight, out=feats[..., 3 * i:3 * i + 3])
         return _segment_superpixels(feats, mask, scale=scale, min_size=min_size, superpixel_px=float(superpixel_px))
+    feats = np.concatenate([values * weight for values, weight in parts], axis=2)
     if not mask.all():
         # background becomes one far-away constant so no segment straddles the mask border
         far = np.float32(10.0 * (abs(colour_weight) + abs(normal_weight)) + 10.0)
@@ -161,7 +166,7 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
     from skimage.segmentation import slic
 
     h, w = mask.shape
-    sp = np.full((h, w), -1, np.int64)
+    sp = np.full((h, w), -1, np.int32)
     nxt = 0
     for r0 in range(0, h, tile):
         for c0 in range(0, w, tile):
@@ -175,7 +180,6 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
             # a superpixel that straddles the mask border is cut by it; the tile's labels that
             # occur inside the mask are numbered densely after the previous tiles' (a bincount and
             # a cumulative sum: linear, no sort)
-            lab = lab.astype(np.int64, copy=False)
             present = np.bincount(lab[m] if not m.all() else lab.ravel(), minlength=int(lab.max()) + 1) > 0
             dense = np.cumsum(present) - 1 + nxt
             sp[win] = np.where(m, dense[lab], -1)
@@ -201,7 +205,8 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
     pairs = []
     for a, b in ((sp[:, :-1], sp[:, 1:]), (sp[:-1], sp[1:])):
         d = (a != b) & (a >= 0) & (b >= 0)
-        lo, hi = np.minimum(a[d], b[d]), np.maximum(a[d], b[d])
+        a, b = a[d].astype(np.int64), b[d].astype(np.int64)
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
         pairs.append(lo * k + hi)
     codes = np.unique(np.concatenate(pairs)) if pairs else np.zeros(0, np.int64)
     ea, eb = codes // k, codes % k
