@@ -337,10 +337,9 @@ class RelightCache:
         return self.store.open(self.rgbn_relpath, schema=SCHEMA)
 
     def _put(self, relpath: str, data: bytes) -> None:
-        from common.store import _atomic_file, _write_bytes  # the project's one atomic write
+        from common.store import write_file  # the project's one atomic write
 
-        with _atomic_file(self.store.path(relpath)) as tmp:
-            _write_bytes(tmp, data)
+        write_file(self.store.path(relpath), data)
 
     def params(self) -> dict:
         """The face's :func:`face_params` (computed once, then read from ``params.json``)."""
