@@ -467,9 +467,9 @@ def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0)
     the viewer's shader draws with ``values`` (the style's parameters, same names) on a face with
     fields ``params`` (:func:`relight_params`), on pyramid level ``level``.
 
-    The scales the fields were computed at are passed explicitly (``sigma_px`` / ``sigma0_px``
-    the noise scale, ``scales = 3``, normal unsharp masking's ``sigma_mm``, the curvature's
-    ``sigma_mm``), the surface is not levelled (``level = False``: the viewer lights the normals
+    The scales the fields were computed at are passed explicitly, whatever ``values`` says
+    (``sigma_px`` / ``sigma0_px`` the noise scale, ``scales = 3`` and ``sigma_ratio = 2``, normal
+    unsharp masking's ``sigma_mm``, the curvature's ``sigma_mm``), the surface is not levelled (``level = False``: the viewer lights the normals
     as solved), and every parameter the viewer does not have keeps the offline default.
     """
     from common.render.recipes import STYLES
@@ -485,7 +485,7 @@ def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0)
     if style in ("lambertian", "raking", "specular"):
         kw.update(sigma_px=params["sigma_px"] / f, level=False)
     elif style == "exaggerated":
-        kw.update(sigma0_px=params["sigma_px"] / f, scales=EXAGGERATED_SCALES)
+        kw.update(sigma0_px=params["sigma_px"] / f, scales=EXAGGERATED_SCALES, sigma_ratio=2.0)
     elif style == "normal_unsharp":
         kw.update(sigma_mm=params["unsharp_sigma_mm"])
     elif style == "mean_curvature":

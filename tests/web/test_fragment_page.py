@@ -142,6 +142,9 @@ def test_offline_arguments_refuse_unknown_parameters():
     with pytest.raises(ValueError, match="style must be one of"):
         offline_arguments("toon", {}, params)
     assert offline_arguments("raking", {}, params, level=1)["sigma_px"] == 0.5
+    # what the fields were computed at wins over what a request asks (no costly scales from a URL)
+    kw = offline_arguments("exaggerated", {"scales": 500, "sigma_ratio": 9.0}, params)
+    assert (kw["scales"], kw["sigma_ratio"], kw["sigma0_px"]) == (3, 2.0, 1.0)
 
 
 # ---- the JSON and the routes ---------------------------------------------------------------------
