@@ -210,6 +210,8 @@ def auto(fid, stem):
         abort(400, "values must be a JSON object of the style's parameters")
     cache = _cache(fid, stem)
     params = cache.params()
+    if not params["has_normals"] and style != "albedo":
+        abort(400, f"face {stem} has no normals (colour only): only the albedo style applies")
     level = overview_level(params)
     try:
         image = cache.level_image(level)

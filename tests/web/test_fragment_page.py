@@ -131,6 +131,13 @@ def test_colour_only_face_has_flat_fields(tmp_path):
     assert cache.params()["has_normals"] is False
     xy, H, colour = unpack_tile(cache.tile_path(0, 0, 0).read_bytes(), 40, 50)
     assert not xy.any() and not H.any() and (colour[..., 3] > 0).sum() == face.mask.sum()
+    from services import web
+
+    client = web.create_app(token=TOKEN, store_root=store.root).test_client()
+    r = client.get("/api/fragments/F-1/relight/front-k1/auto?style=raking&values={}")
+    assert r.status_code == 400 and "no normals" in r.get_json()["error"]
+    r = client.get("/api/fragments/F-1/relight/front-k1/auto?style=albedo&values={}")
+    assert r.status_code == 200 and len(r.get_json()["resolved"]["exposure"]) == 2
 
 
 def test_offline_arguments_refuse_unknown_parameters():
