@@ -299,6 +299,26 @@ def test_fragment_page_in_chromium(tmp_path):
             page.select_option("#style", "raking")
             screenshot(page, shots / "fragment-raking.png")
 
+            # pan by dragging in pan mode, zoom with the wheel about the pointer
+            page.click("button[data-mode=pan]")
+            v0 = page.evaluate("() => ({...tesseraViewer.view})")
+            dpr = page.evaluate("() => window.devicePixelRatio")
+            page.mouse.move(cx, cy)
+            page.mouse.down()
+            page.mouse.move(cx + 100, cy + 50, steps=5)
+            page.mouse.up()
+            v1 = page.evaluate("() => ({...tesseraViewer.view})")
+            assert abs((v0["cx"] - v1["cx"]) - 100 * dpr / v0["zoom"]) < 1e-6 * v0["cx"] + 1e-3
+            assert abs((v0["cy"] - v1["cy"]) - 50 * dpr / v0["zoom"]) < 1e-6 * v0["cy"] + 1e-3
+            under = page.evaluate(f"() => tesseraViewer.toImage({cx - box['x']} * {dpr}, {cy - box['y']} * {dpr})")
+            page.mouse.move(cx, cy)
+            page.mouse.wheel(0, -400)
+            page.wait_for_function(f"() => tesseraViewer.view.zoom > {v1['zoom']} * 1.5")
+            after = page.evaluate(f"() => tesseraViewer.toImage({cx - box['x']} * {dpr}, {cy - box['y']} * {dpr})")
+            # the point under the pointer stays (within the rounding of event coordinates to a CSS pixel)
+            tol = dpr / v1["zoom"]
+            assert abs(after[0] - under[0]) < tol and abs(after[1] - under[1]) < tol
+
             # deep zoom: 1:1 needs level 0, whose tiles arrive and are drawn
             show_one_to_one(page, 0, 0)
             assert page.evaluate("() => tesseraViewer.level()") == 0
