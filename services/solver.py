@@ -77,7 +77,8 @@ def handle(job: dict, ctx) -> list[dict]:
                 regs = []
             else:
                 image, regs = solve_face([s.image for s in scans], scans[0].dpi, cal.a,
-                                         nominal_deg=[s.rotation for s in scans], progress=report)
+                                         nominal_deg=[s.rotation for s in scans], progress=report,
+                                         a_per_mm=cal.a_per_mm, a_depth_mm=cal.a_depth_mm)
             if not image.mask.any():   # never write or announce a face with nothing in it
                 raise ArtifactError(f"scans {ref.path}: {face} face: no fragment pixel found or solved; nothing "
                                     "written")

@@ -57,6 +57,13 @@ class Calibration:
         residual (:func:`fit_target_readings`).
     fit_rms : float
         RMS residual of the first-order fit over the used target scans (full scale 1, albedo 1).
+    a_per_mm : (4,) float
+        Change of ``a`` per millimetre of distance between the surface and the glass, fitted to the
+        tilted targets' readings along their tilt (:func:`fit_target_readings`); zeros when not
+        measured (a calibration by the inner median, the simulator's or a SANE device's). The lamp
+        model at distance d is ``a + (d - a_depth_mm) a_per_mm`` (:func:`lamp_at_depth`).
+    a_depth_mm : float
+        Distance from the glass at which ``a`` was read (``--face-depth-mm``).
     date : str
         UTC ISO date-time of the calibration.
     """
@@ -75,6 +82,8 @@ class Calibration:
     id: str = ""
     report: list = field(default_factory=list)
     fit_rms: float = float("nan")
+    a_per_mm: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    a_depth_mm: float = 0.0
 
     def predict(self, normals: np.ndarray, order: int = 1) -> np.ndarray:
         """Predicted reading of an albedo-1 surface with these normals (..., 3)."""
@@ -167,12 +176,19 @@ class TargetReading:
         sensor's range clipped them: the median of such a scan is not the target's reading).
     whole_image : bool
         No background ring was found: the scan is a tight crop of the target, measured whole.
+    slope_per_mm : float
+        Change of the reading per millimetre of distance from the glass, from the fit along the
+        tilt (NaN for an untilted target or a reading by the inner median).
+    depth_mm : float
+        Distance from the glass at which ``value`` was taken.
     """
 
     value: float
     pixels: int
     clipped: int
     whole_image: bool = False
+    slope_per_mm: float = float("nan")
+    depth_mm: float = 0.0
 
     @property
     def clipped_fraction(self) -> float:
@@ -241,7 +257,9 @@ def read_target(scan: np.ndarray, dpi: float, *, saturation: float = 0.98, tilt_
         resid = lum - X @ coef
         keep = np.abs(resid) < 4 * 1.4826 * np.median(np.abs(resid)) + 1e-9     # dust, specks
         coef, *_ = np.linalg.lstsq(X[keep], lum[keep], rcond=None)
-        value = float(coef[0] + coef[1] * depth_mm / np.tan(np.deg2rad(tilt_deg)))
+        slope = float(coef[1] / np.tan(np.deg2rad(tilt_deg)))       # per mm of distance from the glass
+        value = float(coef[0] + slope * depth_mm)
+        return TargetReading(value, int(len(px)), clipped, whole, slope_per_mm=slope, depth_mm=float(depth_mm))
     return TargetReading(value, int(len(px)), clipped, whole)
 
 
@@ -320,7 +338,9 @@ def fit_target_readings(scanner: str, readings: list, tilts_deg, directions_deg,
     Calibration
         With ``report``: one dict per reading — ``name, tilt_deg, direction_deg, value, pixels,
         clipped, used, reason, residual`` (measured minus first-order prediction, albedo 1, full
-        scale 1) — and ``fit_rms`` (RMS residual over the used readings).
+        scale 1), ``slope_per_mm`` — and ``fit_rms`` (RMS residual over the used readings); with
+        ``a_per_mm`` fitted to the readings' slopes with the distance from the glass when at least
+        6 used readings have one (targets read along their tilt, :func:`read_target`), else zeros.
 
     Raises
     ------
@@ -352,12 +372,43 @@ def fit_target_readings(scanner: str, readings: list, tilts_deg, directions_deg,
                                + (f" (dropped: {dropped})" if dropped else "")
                                + "; lower the scanner's exposure or add target scans")
     cal = fit_calibration(scanner, normals[used], values[used], dpi=dpi, depth=depth, target_albedo=target_albedo)
+    # how the lamp changes with the distance from the glass: d I / d z = a_per_mm . (n, 1) at each
+    # tilted target (eq. 3.4 holds at every distance, so its derivative is linear in n too)
+    slopes = np.array([r.slope_per_mm for r in readings], float) / target_albedo
+    with_slope = used & np.isfinite(slopes)
+    if with_slope.sum() >= 6:
+        cal.a_per_mm = fit_lamp_model(normals[with_slope], slopes[with_slope], 1)
+        cal.a_depth_mm = float(np.median([r.depth_mm for r, u in zip(readings, with_slope) if u]))
     resid = values - cal.predict(normals)
-    for e, r in zip(report, resid):
+    for e, r, sl in zip(report, resid, slopes):
         e["residual"] = float(r)
+        e["slope_per_mm"] = None if not np.isfinite(sl) else float(sl)
     cal.report = report
     cal.fit_rms = float(np.sqrt(np.mean(resid[used] ** 2)))
     return cal
+
+
+def lamp_at_depth(cal: Calibration, depth_mm) -> np.ndarray:
+    """First-order lamp coefficients at a distance from the glass: ``a + (d - a_depth_mm) a_per_mm``.
+
+    A flatbed's light changes with the distance of the surface from the glass (the lamp is a few
+    millimetres below it and aimed at the sensor line; about 1–2 % per mm on the benchmark's
+    scanner), and a fragment resting on its highest points holds its face at 0–1.5 mm. Eq. 3.4 is
+    linear in n at every distance; the tilted targets measure its change per mm
+    (:func:`fit_target_readings`).
+
+    Parameters
+    ----------
+    cal : Calibration
+    depth_mm : float or (M,) array
+        Distance(s) of the surface from the glass, mm.
+
+    Returns
+    -------
+    (4,) or (M, 4) float
+    """
+    d = np.asarray(depth_mm, float)
+    return np.asarray(cal.a, float) + (d[..., None] - cal.a_depth_mm) * np.asarray(cal.a_per_mm, float)
 
 
 def fit_calibration(scanner: str, normals: np.ndarray, intensities: np.ndarray, **kw) -> Calibration:
@@ -407,6 +458,8 @@ def save_calibration(store: Store, cal: Calibration) -> ArtifactRef:
         f.attrs["model"] = "I(n) = a . (nx, ny, nz, 1), normals x right, y up, z to sensor, I full scale = 1"
         f.attrs["report"] = json.dumps(cal.report)
         f.attrs["fit_rms"] = float(cal.fit_rms)
+        f.attrs["a_depth_mm"] = float(cal.a_depth_mm)
+        f.create_dataset("a_per_mm", data=np.asarray(cal.a_per_mm, float))
         f.create_dataset("a", data=np.asarray(cal.a, float))
         f.create_dataset("second_order", data=np.asarray(cal.second_order, float))
         f.create_dataset("normals", data=cal.normals)
@@ -426,7 +479,9 @@ def load_calibration(store: Store, ref) -> Calibration:
                               depth=int(f.attrs["depth"]), date=str(f.attrs["date"]),
                               target_albedo=float(f.attrs["target_albedo"]),
                               report=json.loads(f.attrs.get("report", "[]")),
-                              fit_rms=float(f.attrs.get("fit_rms", float("nan"))))
+                              fit_rms=float(f.attrs.get("fit_rms", float("nan"))),
+                              a_per_mm=f["a_per_mm"][()] if "a_per_mm" in f else np.zeros(4),
+                              a_depth_mm=float(f.attrs.get("a_depth_mm", 0.0)))
         except KeyError as exc:
             raise ArtifactError(f"calibration {f.filename} lacks {exc}") from exc
     cal.id = ref.path if isinstance(ref, ArtifactRef) else str(ref)

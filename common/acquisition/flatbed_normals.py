@@ -224,18 +224,39 @@ def _solve_block(pix, valid, A, c, saturation, k_sigma, sigma):
     return albedo, n, conf, solved, nused
 
 
+def _lamp_groups(a, n: int):
+    """Distinct lamp models among the samples: a (4,) for all, or (N, 4) one per sample.
+
+    Returns a list of (a_k (4,), selection) with selection a slice or an index array."""
+    a = np.asarray(a, float)
+    if a.ndim == 1:
+        return [(a, slice(None))]
+    if a.shape != (n, 4):
+        raise ValueError(f"per-sample lamp coefficients must be ({n}, 4), got {a.shape}")
+    rows, inv = np.unique(a, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return [(rows[k], np.flatnonzero(inv == k)) for k in range(len(rows))]
+
+
 def _solve_samples(pix: np.ndarray, valid: np.ndarray | None, shape, idx, angles_deg, a, *, saturation: float,
                    k_sigma: float, dpi: float) -> RGBNImage:
-    """The solve on gathered samples: ``pix`` (K, N, 3) float32 at the flat pixel indices ``idx``."""
+    """The solve on gathered samples: ``pix`` (K, N, 3) float32 at the flat pixel indices ``idx``.
+
+    ``a`` is the lamp model (4,), or one per sample (N, 4) (a lamp that changes with the distance
+    from the glass, :func:`solve_face`); samples sharing a model are solved together."""
     K, N = pix.shape[:2]
     H, W = shape
-    if not (np.asarray(a).shape == (4,) and a[2] > 0):
-        raise CalibrationError(f"lamp coefficients a must be 4 numbers with a_z > 0, got {a}")
-    A = light_rows(a, angles_deg).astype(np.float32)
-    c = np.float32(a[3] / a[2])
+    groups = _lamp_groups(a, N)
+    for ak, _ in groups:
+        if not (ak.shape == (4,) and ak[2] > 0):
+            raise CalibrationError(f"lamp coefficients a must be 4 numbers with a_z > 0, got {ak}")
     # the noise level for shadow rejection, from a subsample of pixels with every sample usable
+    # (under the model most samples share)
+    sizes = [N if isinstance(g, slice) else len(g) for _, g in groups]
+    a_main = groups[int(np.argmax(sizes))][0]
     sigma = None
     if K > 3 and N:
+        A = light_rows(a_main, angles_deg).astype(np.float32)
         sub = slice(None, None, max(1, N // 200_000))
         Y, use, x, solved, resid = _first_pass(pix[:, sub], None if valid is None else valid[:, sub], A, saturation)
         full = use.all(axis=0) & solved
@@ -249,16 +270,22 @@ def _solve_samples(pix: np.ndarray, valid: np.ndarray | None, shape, idx, angles
     cmap = np.zeros(H * W, np.float32)
     out_mask = np.zeros(H * W, bool)
     used_total = 0
-    for s0 in range(0, N, _CHUNK):
-        blk = slice(s0, min(N, s0 + _CHUNK))
-        albedo, n, conf, solved, nused = _solve_block(pix[:, blk], None if valid is None else valid[:, blk], A, c,
-                                                      saturation, k_sigma, sigma)
-        ii = idx[blk]
-        normals[ii] = np.where(solved[:, None], n.T, np.float32([0, 0, 1]))
-        alb[ii] = albedo
-        cmap[ii] = conf
-        out_mask[ii] = solved
-        used_total += int(nused.sum())
+    for ak, gsel in groups:
+        A = light_rows(ak, angles_deg).astype(np.float32)
+        c = np.float32(ak[3] / ak[2])
+        gidx = np.arange(N)[gsel]
+        for s0 in range(0, len(gidx), _CHUNK):
+            blk = gidx[s0:s0 + _CHUNK]
+            if len(groups) == 1:
+                blk = slice(s0, min(N, s0 + _CHUNK))
+            albedo, n, conf, solved, nused = _solve_block(pix[:, blk], None if valid is None else valid[:, blk], A, c,
+                                                          saturation, k_sigma, sigma)
+            ii = idx[blk]
+            normals[ii] = np.where(solved[:, None], n.T, np.float32([0, 0, 1]))
+            alb[ii] = albedo
+            cmap[ii] = conf
+            out_mask[ii] = solved
+            used_total += int(nused.sum())
     return RGBNImage(albedo=alb.reshape(H, W, 3), mask=out_mask.reshape(H, W), dpi=dpi,
                      normals=normals.reshape(H, W, 3), confidence=cmap.reshape(H, W),
                      attrs={"samples_used_mean": used_total / N if N else 0.0,
@@ -302,21 +329,27 @@ def rerender_residuals_at(image: RGBNImage, pix: np.ndarray, valid: np.ndarray, 
     valid : (K, N) bool
         Samples inside the registered scan.
     idx : (N,) int
-    angles_deg, a
+    angles_deg
         As :func:`rerender`.
+    a : (4,) or (N, 4) float
+        The lamp model, or one per pixel (:func:`solve_face` with a depth-dependent lamp).
 
     Returns
     -------
     list of K floats (NaN for a scan with no solved sample).
     """
-    A = light_rows(a, angles_deg)
-    c = float(a[3] / a[2])
     n = image.normals.reshape(-1, 3)[idx].astype(np.float32)
     alb = image.albedo.reshape(-1, 3)[idx].astype(np.float32)
     solved = image.mask.reshape(-1)[idx]
+    K = pix.shape[0]
+    shading = np.zeros((K, len(idx)), np.float32)
+    for ak, g in _lamp_groups(a, len(idx)):
+        A = light_rows(ak, angles_deg)
+        c = float(ak[3] / ak[2])
+        shading[:, g] = (A[:, :1] * n[g, 0] + A[:, 1:2] * n[g, 1] + A[:, 2:3] * (n[g, 2] + c))
     out = []
-    for k in range(len(A)):
-        shade = n[:, 0] * A[k, 0] + n[:, 1] * A[k, 1] + (n[:, 2] + c) * A[k, 2]
+    for k in range(K):
+        shade = shading[k]
         use = solved & valid[k] & (pix[k].max(axis=1) < saturation)
         if not use.any():
             out.append(float("nan"))
@@ -423,6 +456,102 @@ def consistent_mask(masks: Sequence[np.ndarray], regs: Sequence[Registration], s
     return _fill_holes(lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])))
 
 
+def face_depth_map(normals: np.ndarray, mask: np.ndarray, pixel_mm: float, *, grid_mm: float = 0.25) -> np.ndarray:
+    """Distance of each fragment pixel from the glass (mm), from its solved normals.
+
+    The normals' slopes (h_x = −n_x/n_z, h_y = −n_y/n_z, y up) are averaged on a ``grid_mm`` grid
+    and integrated by least squares (the discrete Poisson problem of surface-from-gradient,
+    e.g. Agrawal, Raskar & Chellappa, ECCV 2006, §2), each connected region on its own; a fragment
+    rests on its highest points, so a region's distance from the glass is its highest height minus
+    the height. The result is interpolated back to the pixels.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals (x right, y up, z to the sensor).
+    mask : (H, W) bool
+        Solved fragment pixels.
+    pixel_mm : float
+        Pixel size, mm.
+    grid_mm : float
+        Integration grid (the lamp's change with distance is ~1–2 % per mm, so the relief finer
+        than this does not matter to it).
+
+    Returns
+    -------
+    (H, W) float32
+        Distance from the glass in mm on ``mask``, NaN elsewhere.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    H, W = mask.shape
+    out = np.full((H, W), np.nan, np.float32)
+    if not mask.any():
+        return out
+    k = max(1, int(round(grid_mm / pixel_mm)))
+    h2, w2 = -(-H // k), -(-W // k)
+    m = np.zeros((h2 * k, w2 * k), np.float32)
+    m[:H, :W] = mask
+    nz = np.clip(normals[..., 2].astype(np.float64), 0.2, None)
+    gx = np.zeros_like(m, np.float64)
+    gy = np.zeros_like(m, np.float64)
+    gx[:H, :W] = np.where(mask, -normals[..., 0] / nz, 0)        # dh/dx, x right
+    gy[:H, :W] = np.where(mask, normals[..., 1] / nz, 0)         # dh/drow, rows down (y up)
+
+    def pool(a):
+        return a.reshape(h2, k, w2, k).sum(axis=(1, 3))
+    cnt = pool(m)
+    mg = cnt > 0.5 * k * k
+    gx = pool(gx) / np.maximum(cnt, 1)
+    gy = pool(gy) / np.maximum(cnt, 1)
+    step = k * pixel_mm
+    ncomp, lab = cv2.connectedComponents(mg.astype(np.uint8), connectivity=4)
+    hgrid = np.full((h2, w2), np.nan)
+    ids = -np.ones((h2, w2), np.int64)
+    ids[mg] = np.arange(int(mg.sum()))
+    rows, cols, vals, rhs = [], [], [], []
+    ys, xs = np.nonzero(mg[:, :-1] & mg[:, 1:])
+    eq = np.arange(len(ys))
+    rows += [eq, eq]
+    cols += [ids[ys, xs], ids[ys, xs + 1]]
+    vals += [-np.ones(len(ys)), np.ones(len(ys))]
+    rhs.append((gx[ys, xs] + gx[ys, xs + 1]) / 2 * step)
+    base = len(ys)
+    ys, xs = np.nonzero(mg[:-1, :] & mg[1:, :])
+    eq = base + np.arange(len(ys))
+    rows += [eq, eq]
+    cols += [ids[ys, xs], ids[ys + 1, xs]]
+    vals += [-np.ones(len(ys)), np.ones(len(ys))]
+    rhs.append((gy[ys, xs] + gy[ys + 1, xs]) / 2 * step)
+    n_eq, n_un = base + len(ys), int(mg.sum())
+    # one anchor per region (its first cell at height 0) makes the system non-singular
+    first = np.array([ids[lab == c][0] for c in range(1, ncomp)], np.int64)
+    eq = n_eq + np.arange(len(first))
+    rows.append(eq)
+    cols.append(first)
+    vals.append(np.ones(len(first)))
+    rhs.append(np.zeros(len(first)))
+    A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(n_eq + len(first), n_un))
+    h = spl.spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
+    hgrid[mg] = h
+    dist = np.full((h2, w2), np.nan)
+    for c in range(1, ncomp):
+        r = lab == c
+        dist[r] = np.nanmax(hgrid[r]) - hgrid[r]
+    # back to the pixels: bilinear on the grid's cell centres, holes filled from the nearest cell
+    fill = np.where(mg, dist, 0.0).astype(np.float32)
+    wgt = mg.astype(np.float32)
+    up = cv2.resize(fill, (w2 * k, h2 * k), interpolation=cv2.INTER_LINEAR)[:H, :W]
+    uw = cv2.resize(wgt, (w2 * k, h2 * k), interpolation=cv2.INTER_LINEAR)[:H, :W]
+    near = cv2.resize(np.where(mg, dist, np.nanmedian(dist[mg])).astype(np.float32), (w2 * k, h2 * k),
+                      interpolation=cv2.INTER_NEAREST)[:H, :W]
+    d = np.where(uw > 0.25, up / np.maximum(uw, 1e-6), near)
+    out[mask] = d[mask]
+    return out
+
+
 def _sample_rgb(image: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, 3) of an (H, W, 3) image at points q = (x, y) (2, N)."""
     n = q.shape[1]
@@ -436,8 +565,19 @@ def _sample_rgb(image: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nominal_deg: Sequence[float] | None = None,
-               progress: Callable[[float, str], None] | None = None, **kw) -> tuple[RGBNImage, list[Registration]]:
+               progress: Callable[[float, str], None] | None = None, a_per_mm: np.ndarray | None = None,
+               a_depth_mm: float = 0.0, depth_step_mm: float = 0.05, max_depth_mm: float = 3.0,
+               **kw) -> tuple[RGBNImage, list[Registration]]:
     """Register the scans of one face to the first and solve its RGBN image (§3.3.6).
+
+    With ``a_per_mm`` (the calibration's change of the lamp model per mm of distance from the
+    glass, :func:`~common.acquisition.calibration.fit_target_readings`) the face is solved twice:
+    once with ``a`` (read at ``a_depth_mm``), then each pixel again with the model at its own
+    distance from the glass, ``a + (d − a_depth_mm) a_per_mm``, d from the first solve's normals
+    (:func:`face_depth_map`), rounded to ``depth_step_mm`` and clipped to [0, ``max_depth_mm``]
+    (beyond what targets a few millimetres high measured, the model is not extrapolated). A
+    fragment rests on its highest points, and the rest of its face lies up to a millimetre or more
+    behind them, where a flatbed lamp is 1–2 % dimmer than at the glass.
 
     Returns the RGBN image in the target scan's frame and the registrations (with residuals).
     """
@@ -465,10 +605,23 @@ def solve_face(scans: Sequence[np.ndarray], dpi: float, a: np.ndarray, *, nomina
         valid[i] = (q[0] >= 0) & (q[1] >= 0) & (q[0] <= s.shape[1] - 1) & (q[1] <= s.shape[0] - 1)
     if progress:
         progress(0.7, "solving normals")
-    out = _solve_samples(pix, valid, (H, W), idx, [r.angle_deg for r in regs], np.asarray(a, float),
+    angles = [r.angle_deg for r in regs]
+    a = np.asarray(a, float)
+    out = _solve_samples(pix, valid, (H, W), idx, angles, a,
                          saturation=kw.get("saturation", 0.98), k_sigma=kw.get("k_sigma", 4.0), dpi=dpi)
-    per_scan = rerender_residuals_at(out, pix, valid, idx, [r.angle_deg for r in regs], np.asarray(a, float),
-                                     saturation=kw.get("saturation", 0.98))
+    a_used = a
+    if a_per_mm is not None and np.any(np.asarray(a_per_mm, float) != 0) and out.mask.any():
+        if progress:
+            progress(0.85, "lamp at each pixel's distance from the glass")
+        depth = face_depth_map(out.normals, out.mask, 25.4 / dpi).reshape(-1)[idx]
+        depth = np.where(np.isfinite(depth), depth, a_depth_mm)
+        depth = np.clip(np.round(depth / depth_step_mm) * depth_step_mm, 0.0, max_depth_mm)
+        a_used = a[None, :] + (depth[:, None] - a_depth_mm) * np.asarray(a_per_mm, float)[None, :]
+        out = _solve_samples(pix, valid, (H, W), idx, angles, a_used,
+                             saturation=kw.get("saturation", 0.98), k_sigma=kw.get("k_sigma", 4.0), dpi=dpi)
+        out.attrs["face_depth_mm_median"] = float(np.median(depth))
+        out.attrs["face_depth_mm_p95"] = float(np.percentile(depth, 95))
+    per_scan = rerender_residuals_at(out, pix, valid, idx, angles, a_used, saturation=kw.get("saturation", 0.98))
     out.attrs["mask_method"] = method
     out.attrs["rerender_residual_per_scan"] = [round(float(v), 5) for v in per_scan]
     out.attrs["registration_residual"] = float(max(r.residual for r in regs))

@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from common.acquisition.calibration import fit_lamp_model, newest_calibration, read_target, target_normal
+from common.acquisition.calibration import (fit_lamp_model, lamp_at_depth, newest_calibration, read_target,
+                                            target_normal)
 from common.acquisition.flatbed_sim import SimulatedFlatbed, calibration_target, lamp_irradiance
 from common.store import Store
 from services.cli import main
@@ -71,6 +72,32 @@ def test_from_files_recovers_the_simulated_lamp_at_the_face_depth(tmp_path, dept
     assert cal.a[1] > 0.1          # light from the image's top = +y of the normal frame
     assert len(cal.report) == len(POSES) and all(e["used"] for e in cal.report)
     assert cal.fit_rms < 0.01
+
+
+def test_from_files_measures_how_the_lamp_changes_with_the_distance_from_the_glass(tmp_path):
+    # independent expectation: the simulator's own irradiance for these normals at 0 and 1.5 mm from the
+    # glass (its lamp dims with distance); the targets' readings along their tilt measure that change
+    sim = SimulatedFlatbed("sim-depth", bed_mm=(120, 120), seed=3, dust=0)
+    normals = np.array([target_normal(t, a) for t, a in POSES])
+    check = np.array([target_normal(t, a) for t in (0.0, 10.0, 20.0) for a in range(0, 360, 30)])   # calibrated range
+    truth = {d: sim.exposure * lamp_irradiance(check, d, sim.lamp) for d in (0.0, 1.5)}
+    assert np.abs(truth[1.5] - truth[0.0]).max() > 0.015          # the effect is there to be measured
+    manifest = _write_targets(tmp_path, sim)
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-d", "--dpi", str(DPI), "--face-depth-mm", "0.75"]) == 0
+    cal, _ = newest_calibration(Store(store), "bench-d")       # stored and read back
+    assert cal.a_depth_mm == pytest.approx(0.75)
+    X = np.c_[check, np.ones(len(check))]
+    for d in (0.0, 1.5):     # the readings the model predicts (a_z and a_w alone are ill-conditioned at small tilts)
+        err = np.abs(X @ lamp_at_depth(cal, d) - truth[d])
+        assert err.max() < 0.008, (d, err.max())   # the first-order model itself misfits this lamp by 0.005
+    # the change per mm of distance, reading by reading
+    slope_true = (truth[1.5] - truth[0.0]) / 1.5
+    slope = X @ cal.a_per_mm
+    assert np.abs(slope - slope_true).max() < 0.3 * np.abs(slope_true).max()
+    assert np.corrcoef(slope, slope_true)[0, 1] > 0.9
+    assert all(e["slope_per_mm"] is not None for e in cal.report if e["tilt_deg"] > 0)
 
 
 def test_clipped_target_scans_are_dropped_and_reported_per_file(tmp_path, capsys):

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from common.acquisition.calibration import calibrate_scanner, simulated_target_operator
-from common.acquisition.flatbed_normals import light_rows, rerender, rerender_residual, solve_face, solve_normals
+from common.acquisition.flatbed_normals import (_solve_samples, face_depth_map, light_rows, rerender,
+                                                rerender_residual, solve_face, solve_normals)
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 from common.rgbn.image import RGBNImage
 
@@ -142,3 +143,46 @@ def test_real_coin_scans_are_reproduced_by_the_solved_relief(shared_data):
     out = solve_normals(imgs, angles, A, mask=mask, valid=valid)
     assert rerender_residual(out, imgs, angles, A, valid=valid) < 0.08
     assert np.median(out.normals[out.mask][:, 2]) > 0.95          # a coin is mostly flat
+
+
+def test_face_depth_map_integrates_a_known_relief():
+    # analytic relief: a dome falling 0.9 mm at 15 mm from its top, with 0.1 mm waves; rests on its highest point
+    dpi, r_mm = 300, 15.0
+    p = 25.4 / dpi
+    n_px = int(2 * r_mm / p) + 8
+    y, x = (np.mgrid[0:n_px, 0:n_px] - n_px / 2) * p            # x right, y down (rows), mm
+    h = -0.004 * (x * x + y * y) + 0.1 * np.sin(2 * np.pi * x / 6.0)
+    hx = -0.008 * x + 0.1 * 2 * np.pi / 6.0 * np.cos(2 * np.pi * x / 6.0)
+    hy_down = -0.008 * y
+    n = np.dstack([-hx, hy_down, np.ones_like(h)])                # y up: dh/dy_up = -dh/drow
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    mask = x * x + y * y < r_mm ** 2
+    d = face_depth_map(n, mask, p)
+    truth = h[mask].max() - h
+    assert np.isnan(d[~mask]).all()
+    err = np.abs(d[mask] - truth[mask])
+    assert truth[mask].max() > 0.8
+    assert np.median(err) < 0.02 and err.max() < 0.08, (np.median(err), err.max())
+
+
+def test_a_lamp_model_per_pixel_is_solved_exactly():
+    # each pixel at its own distance from the glass, with its own model a(d); the independent forward model
+    n, rho = _field(30, 40, seed=4)
+    angles = [0, 90, 180, 270]
+    depth = np.linspace(0.0, 1.5, n.shape[0] * n.shape[1]).reshape(n.shape[:2])
+    slope = np.array([0.0, -0.02, 0.025, -0.03])
+    pix = np.zeros((4, depth.size, 3), np.float32)
+    for d in np.unique(np.round(depth, 6)):
+        sel = np.isclose(depth, d)
+        scans = _render(n, rho, angles, a=A + d * slope)
+        for k in range(4):
+            pix[k, sel.ravel()] = scans[k][sel]
+    idx = np.arange(depth.size)
+    a_px = A[None, :] + depth.reshape(-1, 1) * slope[None, :]
+    out = _solve_samples(pix, None, depth.shape, idx, angles, a_px, saturation=0.98, k_sigma=4.0, dpi=300)
+    err = _angle_err(out.normals, n)
+    assert out.mask.all() and err.max() < 0.01
+    # one model for all (the depth ignored) is visibly wrong: the test can fail
+    one = _solve_samples(pix, None, depth.shape, idx, angles, A, saturation=0.98, k_sigma=4.0, dpi=300)
+    err1 = _angle_err(one.normals, n)
+    assert np.median(err1) > 0.3
