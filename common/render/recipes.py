@@ -850,25 +850,26 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
     return _render_whole(image, recipe, progress, resolved)
 
 
-def _render_whole(image, recipe, progress, resolved) -> Rendering:
-    """Draw one image (or one tile) in memory; the per-image cache lives for this call only."""
+def _render_whole(image, recipe, progress, resolved, labels=None) -> Rendering:
+    """Draw one image (or one tile) in memory; the per-image cache lives for this call only.
+    ``labels``: the recipe's segments on this window (a tile gets its window of the whole
+    image's), None to segment the image here."""
     _cache.clear()
     try:
-        return _render_image(image, recipe, progress, resolved)
+        return _render_image(image, recipe, progress, resolved, labels)
     finally:
         _cache.clear()
 
 
-def _render_image(image, recipe, progress, resolved) -> Rendering:
+def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]
     if skipped:
         log.warning("image has no normals: skipping %s", ", ".join(skipped))
         layers = [layer for layer in layers if layer["style"] not in skipped] or [{"style": "albedo"}]
-    labels = None
-    if any("segments" in layer or "exclude_segments" in layer or "segments" in STYLES[layer["style"]].needs
-           for layer in layers):
+    if labels is None and any("segments" in layer or "exclude_segments" in layer
+                              or "segments" in STYLES[layer["style"]].needs for layer in layers):
         from common.rgbn.segmentation import segment_rgbn
 
         labels = segment_rgbn(image.albedo, image.normals, mask=image.mask, **(recipe.segmentation or {}))

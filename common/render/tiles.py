@@ -8,8 +8,11 @@ the tiles, the recipe is drawn once on a *calibration window* (the centred crop 
 parameters take there (exposure, noise scale, gains, thresholds, palette) are imposed on every
 tile: without that each tile would pick its own exposure and the seams would show. An image that
 fits the calibration window is therefore drawn with exactly the values a whole-image drawing
-picks. Recipes with a ``[segmentation]`` section are drawn whole (the graph of a segmentation does
-not split); :func:`common.rgbn.segmentation.segment_rgbn` bounds their memory itself.
+picks. A recipe with a ``[segmentation]`` section is segmented first, over the whole image but
+window by window (:func:`common.rgbn.segmentation.segment_source`: SLIC superpixels per window,
+merged across the windows' seams on one graph; 4 bytes a pixel of labels kept), and every tile
+(and the calibration window) is drawn with its window of those labels, so a segment is one
+segment across tiles.
 
 The output is kept as 8/16-bit integers (the recipe's ``bits``): 200 Mpx of 8-bit RGB + alpha is
 800 MB; the input is read window by window from an :class:`RGBNImage` in memory or, for faces
@@ -111,8 +114,6 @@ def halo_px(recipe, dpi: float, resolved: list | None = None) -> int:
 
 def needs_tiles(image: RGBNImage, recipe, tile: int | None = None) -> bool:
     """Whether :func:`common.render.render` should draw ``image`` in tiles."""
-    if recipe.segmentation is not None:
-        return False
     h, w = image.shape
     if tile is not None:
         return max(h, w) > tile
@@ -152,15 +153,24 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     if isinstance(source, RGBNImage):
         source = MemorySource(source)
     h, w = source.shape
-    if recipe.segmentation is not None:
-        raise ValueError(f"recipe {recipe.name!r} has a [segmentation] section: it is drawn whole, not in tiles")
+    labels = None
+    if recipe.segmentation is not None and any(
+            "segments" in layer or "exclude_segments" in layer or "segments" in STYLES[layer["style"]].needs
+            for layer in recipe.layers):
+        from common.rgbn.segmentation import segment_source
+
+        if progress:
+            progress(0.0, f"segmenting {w}x{h} px")
+        labels = segment_source(source, **recipe.segmentation)
+    cut = lambda r0, r1, c0, c1: None if labels is None else labels[r0:r1, c0:c1]  # noqa: E731
     # 1. calibration on the centred window
     side_h = min(h, int(np.sqrt(calibration_mpx * 1e6 * h / w)))
     side_w = min(w, int(calibration_mpx * 1e6 / max(side_h, 1)))
     r0, c0 = (h - side_h) // 2, (w - side_w) // 2
     if progress:
         progress(0.0, f"calibrating exposure on {side_w}x{side_h} px")
-    calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None)
+    calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None,
+                          cut(r0, r0 + side_h, c0, c0 + side_w))
     resolved = calib.resolved
     skipped = calib.skipped
     del calib
@@ -182,7 +192,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
         if progress:
             progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
         ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
-        part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved)
+        part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb))
         core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
         rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
         alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)
@@ -193,9 +203,10 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
 
 
 def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = None):
-    """Draw an RGBN image stored in an open HDF5 group (an artifact): read whole when it is small
-    or its recipe segments, else window by window (:class:`H5Source`), so a face larger than
-    memory draws within the tile budget. Returns ``(Rendering, dpi)``."""
+    """Draw an RGBN image stored in an open HDF5 group (an artifact): read whole when it is small,
+    else window by window (:class:`H5Source`), so a face larger than memory draws within the tile
+    budget (a recipe that segments keeps 4 bytes a pixel of labels besides).
+    Returns ``(Rendering, dpi)``."""
     from common.render.recipes import STYLES, load_recipe, render, style_recipe
     from common.rgbn.image import read_rgbn
 
@@ -206,7 +217,7 @@ def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = 
             from common.store import ArtifactError
             raise ArtifactError(f"RGBN data in {group.file.filename} lacks '{name}'")
     h, w = group["mask"].shape
-    if recipe.segmentation is None and h * w > TILE_MPX * 1e6:
+    if h * w > TILE_MPX * 1e6:
         source = H5Source(group)
         return render_tiled(source, recipe, progress=progress), source.dpi
     image = read_rgbn(group)

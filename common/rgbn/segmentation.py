@@ -101,18 +101,8 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
             parts.append((normals, np.float32(normal_weight)))
     if not parts:
         raise ValueError("colour_weight and normal_weight are both 0: no dissimilarity to segment by")
-    if not scale > 0:
-        raise ValueError(f"scale must be > 0, got {scale}")
-    if min_size < 1:
-        raise ValueError(f"min_size must be >= 1, got {min_size}")
-    if sigma_px < 0:
-        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    superpixel_px = _check_params(shape, scale, sigma_px, min_size, superpixel_px)
     mask = check_mask(mask, shape)
-    if superpixel_px == "auto":
-        superpixel_px = 64 if shape[0] * shape[1] > 0.25e6 else None
-    if superpixel_px is not None and (isinstance(superpixel_px, bool) or not isinstance(superpixel_px, (int, float))
-                                      or superpixel_px < 4):
-        raise ValueError(f'superpixel_px must be a number >= 4, "auto" or None, got {superpixel_px!r}')
     if max_megapixels is not None and shape[0] * shape[1] > max_megapixels * 1e6:
         return _segment_downsampled(albedo, normals, mask, shape, scale=scale, sigma_px=sigma_px, min_size=min_size,
                                     colour_weight=colour_weight, normal_weight=normal_weight,
@@ -130,14 +120,11 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
                                     colour_weight=colour_weight, normal_weight=normal_weight, max_megapixels=None)
             return out
     if superpixel_px is not None:
-        # the Gaussian is linear: each 3-channel part is blurred as it is (one contiguous OpenCV
-        # call) and weighted into the feature stack, rather than weighting, stacking and blurring six
-        feats = np.empty(shape + (3 * len(parts),), np.float32)
-        for i, (values, weight) in enumerate(parts):
-            if sigma_px > 0:
-                values = gaussian_blur(values, float(sigma_px))
-            np.multiply(values, weight, out=feats[..., 3 * i:3 * i + 3])
-        return _segment_superpixels(feats, mask, scale=scale, min_size=min_size, superpixel_px=float(superpixel_px))
+        h, w = shape
+        return _segment_superpixels(_feature_windows(lambda r0, r1, c0, c1: (
+            [None if v is None else v[r0:r1, c0:c1] for v in (albedo, normals)], mask[r0:r1, c0:c1]),
+            shape, sigma_px, colour_weight, normal_weight), shape, scale=scale, min_size=min_size,
+            superpixel_px=float(superpixel_px))
     feats = np.concatenate([values * weight for values, weight in parts], axis=2)
     if not mask.all():
         # background becomes one far-away constant so no segment straddles the mask border
@@ -154,60 +141,149 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
     return _relabel_by_area(labels, mask)
 
 
+def _check_params(shape, scale, sigma_px, min_size, superpixel_px):
+    """Refuse bad [segmentation] numbers by name; returns superpixel_px with "auto" resolved."""
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0, got {scale}")
+    if min_size < 1:
+        raise ValueError(f"min_size must be >= 1, got {min_size}")
+    if sigma_px < 0:
+        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    if superpixel_px == "auto":
+        superpixel_px = 64 if shape[0] * shape[1] > 0.25e6 else None
+    if superpixel_px is not None and (isinstance(superpixel_px, bool) or not isinstance(superpixel_px, (int, float))
+                                      or superpixel_px < 4):
+        raise ValueError(f'superpixel_px must be a number >= 4, "auto" or None, got {superpixel_px!r}')
+    return superpixel_px
+
+
+def segment_source(source, *, scale: float = 1.0, sigma_px: float = 0.8, min_size: int = 64,
+                   colour_weight: float = 1.0, normal_weight: float = 1.0, max_megapixels: float | None = None,
+                   superpixel_px="auto", tile: int = 2048) -> np.ndarray:
+    """:func:`segment_rgbn` of an image read window by window, in bounded memory.
+
+    ``source`` has ``shape`` and ``window(r0, r1, c0, c1) -> RGBNImage`` (as
+    :class:`common.render.tiles.MemorySource` and ``H5Source``). On the superpixel path the
+    colour and normals are read, blurred (with a halo, so the result is the whole-image blur's)
+    and cut into SLIC superpixels one ``tile`` x ``tile`` window at a time, and only the (H, W)
+    int32 label map (4 bytes a pixel) and a few numbers per superpixel are kept for the merging.
+    Small images (the pixel graph), ``superpixel_px=None`` and ``max_megapixels`` read the whole
+    image and call :func:`segment_rgbn`. Parameters and labels as :func:`segment_rgbn`; the SLIC
+    tiles start at the image's corner (:func:`segment_rgbn` starts them at the corner of the
+    fragment's bounding box when the mask leaves a wide margin, so the two can differ there).
+    """
+    h, w = source.shape
+    superpixel_px = _check_params((h, w), scale, sigma_px, min_size, superpixel_px)
+    kw = dict(scale=scale, sigma_px=sigma_px, min_size=min_size, colour_weight=colour_weight,
+              normal_weight=normal_weight)
+    if superpixel_px is None or (max_megapixels is not None and h * w > max_megapixels * 1e6):
+        im = source.window(0, h, 0, w)
+        return segment_rgbn(im.albedo, im.normals, mask=im.mask, max_megapixels=max_megapixels,
+                            superpixel_px=superpixel_px, **kw)
+    probe = source.window(0, 1, 0, 1)
+    if colour_weight < 0 or normal_weight < 0:
+        raise ValueError(f"colour_weight and normal_weight must be >= 0, got {colour_weight}, {normal_weight}")
+    if not ((probe.albedo is not None and colour_weight > 0) or (probe.normals is not None and normal_weight > 0)):
+        raise ValueError("no colour or normals with a weight > 0: no dissimilarity to segment by")
+
+    def read(r0, r1, c0, c1):
+        im = source.window(r0, r1, c0, c1)
+        return [im.albedo, None if im.normals is None else check_normals(im.normals)], im.mask
+
+    return _segment_superpixels(_feature_windows(read, (h, w), sigma_px, colour_weight, normal_weight), (h, w),
+                                scale=scale, min_size=min_size, superpixel_px=float(superpixel_px), tile=tile)
+
+
 #: A superpixel's initial internal difference, in standard deviations of its pixels' features:
 #: the largest edge of the pixel graph's spanning tree inside a region is a few deviations.
 SPREAD_FACTOR = 1.25
 
 
-def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, min_size: int,
-                         superpixel_px: float, tile: int = 2048) -> np.ndarray:
-    """SLIC superpixels (in tiles) merged by Felzenszwalb-Huttenlocher's criterion on their
-    adjacency graph; labels by decreasing area, -1 outside the mask."""
+def _feature_windows(read, shape, sigma_px: float, colour_weight: float, normal_weight: float):
+    """``window(r0, r1, c0, c1) -> (features, mask)``: the weighted, blurred colour+normal
+    channels of a window, read with ``read(r0, r1, c0, c1) -> ([albedo, normals], mask)`` with a
+    halo of 4 sigma + 2 px, so windows agree with a whole-image blur (exactly for sigma_px < 3,
+    where the Gaussian is applied directly; the Gaussian is linear, so each 3-channel part is
+    blurred by one contiguous OpenCV call and weighted into the stack)."""
+    h, w = shape
+    halo = int(np.ceil(4.0 * sigma_px)) + 2 if sigma_px > 0 else 0
+
+    def window(r0, r1, c0, c1):
+        ra, rb, ca, cb = max(0, r0 - halo), min(h, r1 + halo), max(0, c0 - halo), min(w, c1 + halo)
+        (albedo, normals), mask = read(ra, rb, ca, cb)
+        parts = [(np.asarray(v, np.float32), np.float32(wt)) for v, wt in ((albedo, colour_weight),
+                                                                           (normals, normal_weight))
+                 if v is not None and wt > 0]
+        feats = np.empty((r1 - r0, c1 - c0, 3 * len(parts)), np.float32)
+        core = (slice(r0 - ra, r1 - ra), slice(c0 - ca, c1 - ca))
+        for i, (values, weight) in enumerate(parts):
+            if sigma_px > 0:
+                values = gaussian_blur(values, float(sigma_px))
+            np.multiply(values[core], weight, out=feats[..., 3 * i:3 * i + 3])
+        return feats, np.asarray(mask, bool)[core]
+
+    return window
+
+
+def _segment_superpixels(window, shape, *, scale: float, min_size: int, superpixel_px: float,
+                         tile: int = 2048) -> np.ndarray:
+    """SLIC superpixels (in tiles of ``tile`` px, each read by ``window(r0, r1, c0, c1) ->
+    (features, mask)``) merged by Felzenszwalb-Huttenlocher's criterion on their adjacency graph;
+    labels by decreasing area, -1 outside the mask. Memory: the (H, W) int32 label map, one tile's
+    work and a few numbers per superpixel."""
     from skimage.segmentation import slic
 
-    h, w = mask.shape
+    h, w = shape
     sp = np.full((h, w), -1, np.int32)
     nxt = 0
+    areas, sums, sqs = [], [], []
     for r0 in range(0, h, tile):
         for c0 in range(0, w, tile):
-            win = (slice(r0, min(h, r0 + tile)), slice(c0, min(w, c0 + tile)))
-            m = mask[win]
+            r1, c1 = min(h, r0 + tile), min(w, c0 + tile)
+            feats, m = window(r0, r1, c0, c1)
             if not m.any():
                 continue
             n_seg = max(1, int(m.size / superpixel_px))
-            lab = slic(feats[win], n_segments=n_seg, compactness=0.05, sigma=0, channel_axis=-1, start_label=0,
+            lab = slic(feats, n_segments=n_seg, compactness=0.05, sigma=0, channel_axis=-1, start_label=0,
                        max_num_iter=5, enforce_connectivity=True)
             # a superpixel that straddles the mask border is cut by it; the tile's labels that
-            # occur inside the mask are numbered densely after the previous tiles' (a bincount and
-            # a cumulative sum: linear, no sort)
+            # occur inside the mask are numbered densely (a bincount and a cumulative sum: linear,
+            # no sort), after the previous tiles'
             present = np.bincount(lab[m] if not m.all() else lab.ravel(), minlength=int(lab.max()) + 1) > 0
-            dense = np.cumsum(present) - 1 + nxt
-            sp[win] = np.where(m, dense[lab], -1)
-            nxt += int(present.sum())
+            dense = np.cumsum(present) - 1
+            n = int(present.sum())
+            local = np.where(m, dense[lab], -1)
+            sp[r0:r1, c0:c1] = np.where(m, local + nxt, -1)
+            # per-superpixel sums over bin local + 1 (bin 0: outside the mask, dropped)
+            flat = (local + 1).ravel()
+            areas.append(np.bincount(flat, minlength=n + 1)[1:].astype(np.float64))
+            s1, s2 = [], []
+            for c in range(feats.shape[2]):
+                v = feats[..., c].ravel().astype(np.float64)
+                s1.append(np.bincount(flat, weights=v, minlength=n + 1)[1:])
+                v *= v
+                s2.append(np.bincount(flat, weights=v, minlength=n + 1)[1:])
+            sums.append(np.stack(s1, axis=1))
+            sqs.append(np.stack(s2, axis=1))
+            nxt += n
     k = nxt
     if k == 0:
-        return np.full((h, w), -1, np.int32)
-    # per-superpixel sums over bin sp + 1 (bin 0: outside the mask, dropped): no boolean gathers
-    flat = (sp + 1).ravel()
-    area = np.bincount(flat, minlength=k + 1)[1:].astype(np.float64)
-    sums, sq = [], []
-    for c in range(feats.shape[2]):
-        v = feats[..., c].ravel().astype(np.float64)
-        sums.append(np.bincount(flat, weights=v, minlength=k + 1)[1:])
-        v *= v
-        sq.append(np.bincount(flat, weights=v, minlength=k + 1)[1:])
-    means = np.stack(sums, axis=1) / np.maximum(area, 1)[:, None]
-    var = np.maximum(np.stack(sq, axis=1) / np.maximum(area, 1)[:, None] - means ** 2, 0.0)
+        return sp
+    area = np.concatenate(areas)
+    sums, sq = np.concatenate(sums), np.concatenate(sqs)
+    means = sums / np.maximum(area, 1)[:, None]
+    var = np.maximum(sq / np.maximum(area, 1)[:, None] - means ** 2, 0.0)
     # a superpixel starts with the internal difference of its own pixels (their spread), as the
     # pixel graph's Int(C) would have grown while building it
     spread = SPREAD_FACTOR * np.sqrt(var.sum(axis=1))
-    # adjacency of superpixels (4-connected)
+    # adjacency of superpixels (4-connected), in strips of rows so temporaries stay small
     pairs = []
-    for a, b in ((sp[:, :-1], sp[:, 1:]), (sp[:-1], sp[1:])):
-        d = (a != b) & (a >= 0) & (b >= 0)
-        a, b = a[d].astype(np.int64), b[d].astype(np.int64)
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        pairs.append(lo * k + hi)
+    for r0 in range(0, h, tile):
+        strip = sp[r0:min(h, r0 + tile + 1)]
+        for a, b in ((strip[:tile, :-1], strip[:tile, 1:]), (strip[:-1], strip[1:])):
+            d = (a != b) & (a >= 0) & (b >= 0)
+            a, b = a[d].astype(np.int64), b[d].astype(np.int64)
+            pairs.append(np.unique(np.minimum(a, b) * k + np.maximum(a, b)))
     codes = np.unique(np.concatenate(pairs)) if pairs else np.zeros(0, np.int64)
     ea, eb = codes // k, codes % k
     weight = np.sqrt(((means[ea] - means[eb]) ** 2).sum(axis=1))
@@ -238,7 +314,10 @@ def _segment_superpixels(feats: np.ndarray, mask: np.ndarray, *, scale: float, m
     root = np.array([find(i) for i in range(k)], np.int64)
     # number the segments by decreasing area on the superpixels, then one gather over the image
     seg = _relabel_by_area(root, np.ones(k, bool), weights=area)
-    return np.where(sp >= 0, seg[np.maximum(sp, 0)], -1).astype(np.int32)
+    for r0 in range(0, h, tile):   # in place, strip by strip
+        strip = sp[r0:r0 + tile]
+        strip[...] = np.where(strip >= 0, seg[np.maximum(strip, 0)], -1)
+    return sp
 
 
 def _segment_downsampled(albedo, normals, mask, shape, *, max_megapixels, **kw):

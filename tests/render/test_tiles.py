@@ -6,6 +6,7 @@ import pytest
 from common.render.recipes import STYLES, load_recipe, render, style_recipe
 from common.render.tiles import H5Source, MemorySource, halo_px, render_tiled
 from common.rgbn.image import RGBNImage, write_rgbn
+from common.rgbn.segmentation import segment_rgbn
 from tests.rgbn.analytic import normals_from_height
 
 SIZE, TILE = 256, 64
@@ -67,8 +68,16 @@ def test_render_goes_to_tiles_for_a_large_image_and_returns_8_bit(relief):
     assert np.abs(np.round(whole.rgb * 255) - out.rgb).max() <= 1
 
 
-def test_a_recipe_with_segments_is_not_cut_into_tiles(relief):
+def test_a_recipe_with_segments_draws_the_same_in_tiles_as_whole(relief):
+    """The segments are found once for the whole image and every tile draws with its window of
+    them: no seams, the same picture as the whole drawing (up to 8-bit rounding)."""
     recipe = load_recipe("segments")
-    with pytest.raises(ValueError, match="segmentation"):
-        render_tiled(relief, recipe, tile=TILE)
-    assert render(relief, recipe, tile=TILE).rgb.dtype == np.float32  # drawn whole
+    recipe.layers[0]["scales"] = 3  # exaggerated: a halo that fits this small image, as above
+    whole = render(relief, recipe)
+    tiled = render(relief, recipe, tile=TILE)
+    assert len(np.unique(segment_rgbn(relief.albedo, relief.normals, mask=relief.mask,
+                                      **recipe.segmentation))) > 2  # segments to draw
+    assert tiled.rgb.dtype == np.uint8 and whole.rgb.dtype == np.float32
+    assert TILE + halo_px(recipe, relief.dpi, whole.resolved) < SIZE
+    assert np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64)).max() <= 1.0
+    assert whole.resolved == tiled.resolved

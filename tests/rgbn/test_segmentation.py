@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from common.rgbn.segmentation import segment_means, segment_rgbn
+from common.rgbn.image import RGBNImage
+from common.rgbn.segmentation import segment_means, segment_rgbn, segment_source
 from tests.rgbn.analytic import tilted_plane
 
 
@@ -79,3 +80,46 @@ def test_a_fragment_with_a_background_margin_is_segmented_inside_its_box_only():
     labels = segment_rgbn(None, n, mask=mask, scale=20, sigma_px=0, min_size=50)
     assert (labels[~mask] == -1).all()
     assert labels[30, 15] != labels[30, 50] and len(np.unique(labels[mask])) == 2
+
+
+def _quadrants(size=600, seed=0):
+    """Four regions: two orientations (left/right) x two colours (top/bottom), with noise."""
+    rng = np.random.default_rng(seed)
+    n = two_orientations(size)
+    n = n + rng.normal(0, 0.01, n.shape).astype(np.float32)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    albedo = np.full(n.shape, 0.5, np.float32)
+    albedo[size // 2:] = (0.7, 0.3, 0.2)
+    albedo += rng.normal(0, 0.01, albedo.shape).astype(np.float32)
+    return RGBNImage(albedo=albedo, mask=np.ones((size, size), bool), dpi=600.0, normals=n)
+
+
+def test_window_by_window_segmentation_is_the_whole_images():
+    from common.render.tiles import MemorySource
+
+    img = _quadrants()
+    # min_size above the 1-2 px strips the pre-smoothing ramps make along the 600-px boundaries
+    kw = dict(scale=400.0, sigma_px=1.0, min_size=2000)
+    whole = segment_rgbn(img.albedo, img.normals, mask=img.mask, **kw)
+    # superpixels in one SLIC window: the same labels, exactly (windows blurred with a halo)
+    assert np.array_equal(segment_source(MemorySource(img), **kw), whole)
+    # SLIC in 256-px windows, merged across their seams: the same four regions
+    tiled = segment_source(MemorySource(img), tile=256, **kw)
+    assert tiled.dtype == np.int32 and len(np.unique(whole)) == 4 and len(np.unique(tiled)) == 4
+    inner = np.ones(whole.shape, bool)
+    inner[295:305] = inner[:, 295:305] = False  # away from the true boundaries (at 300)
+    assert (tiled[inner] == whole[inner]).all()
+    # the quadrants' labels by area are the generator's regions
+    for r, c in ((100, 100), (100, 500), (500, 100), (500, 500)):
+        assert len(np.unique(tiled[r - 90:r + 90, c - 90:c + 90])) == 1
+
+
+def test_window_by_window_segmentation_keeps_minus_one_outside_the_mask_and_refuses_bad_numbers():
+    from common.render.tiles import MemorySource
+
+    img = _quadrants()
+    img.mask[:, :40] = False
+    labels = segment_source(MemorySource(img), tile=256, scale=400.0, sigma_px=1.0, min_size=400)
+    assert (labels[:, :40] == -1).all() and (labels[:, 40:] >= 0).all()
+    with pytest.raises(ValueError, match="min_size"):
+        segment_source(MemorySource(img), min_size=0)
