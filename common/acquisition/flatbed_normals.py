@@ -349,14 +349,21 @@ def rerender_residuals_at(image: RGBNImage, pix: np.ndarray, valid: np.ndarray, 
         shading[:, g] = (A[:, :1] * n[g, 0] + A[:, 1:2] * n[g, 1] + A[:, 2:3] * (n[g, 2] + c))
     out = []
     for k in range(K):
-        shade = shading[k]
-        use = solved & valid[k] & (pix[k].max(axis=1) < saturation)
-        if not use.any():
+        p = pix[k]
+        # channel by channel: numpy's reductions over a length-3 axis are slow on millions of pixels
+        unsat = (p[:, 0] < saturation) & (p[:, 1] < saturation) & (p[:, 2] < saturation)
+        usef = (solved & valid[k] & unsat).astype(np.float32)
+        n_use = float(usef.sum())
+        if n_use == 0:
             out.append(float("nan"))
             continue
-        obs = pix[k][use]
-        d = obs - shade[use, None] * alb[use]
-        out.append(float(np.sqrt(np.mean(d ** 2)) / max(float(obs.mean()), 1e-9)))
+        sq = np.zeros(len(idx), np.float32)
+        for ch in range(3):
+            d = p[:, ch] - shading[k] * alb[:, ch]
+            sq += d * d
+        ss = float(usef @ sq)
+        so = float(usef @ (p[:, 0] + p[:, 1] + p[:, 2]))
+        out.append(float(np.sqrt(ss / (3 * n_use)) / max(so / (3 * n_use), 1e-9)))
     return out
 
 

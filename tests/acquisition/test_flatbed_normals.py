@@ -6,7 +6,8 @@ import pytest
 
 from common.acquisition.calibration import calibrate_scanner, simulated_target_operator
 from common.acquisition.flatbed_normals import (_solve_samples, face_depth_map, light_rows, rerender,
-                                                rerender_residual, solve_face, solve_normals)
+                                                rerender_residual, rerender_residuals_at, solve_face,
+                                                solve_normals)
 from common.acquisition.flatbed_sim import SimulatedFlatbed, demo_surface
 from common.rgbn.image import RGBNImage
 
@@ -94,6 +95,31 @@ def test_rerender_reproduces_the_scans_from_the_solution():
     out = solve_normals(imgs, angles, A)
     np.testing.assert_allclose(rerender(out, angles, A), imgs, atol=1e-4)
     assert rerender_residual(out, imgs, angles, A) < 1e-4
+
+
+def test_rerender_residual_per_scan_from_samples():
+    n, rho = _field(seed=5)
+    angles = (0, 90, 180, 270)
+    imgs = _render(n, rho, angles)
+    out = solve_normals(imgs, angles, A)
+    idx = np.arange(n.shape[0] * n.shape[1])
+    pix = imgs.reshape(4, -1, 3).copy()
+    valid = np.ones((4, len(idx)), bool)
+    assert max(rerender_residuals_at(out, pix, valid, idx, angles, A)) < 1e-4
+    # scan 2 read 10 % brighter: its residual is RMS(0.1 x prediction) / mean(1.1 x prediction)
+    pix[2] *= 1.1
+    pred = imgs[2].reshape(-1, 3).astype(np.float64)
+    expect = np.sqrt(np.mean((0.1 * pred) ** 2)) / np.mean(1.1 * pred)
+    r = rerender_residuals_at(out, pix, valid, idx, angles, A)
+    assert r[2] == pytest.approx(expect, rel=1e-3) and max(r[0], r[1], r[3]) < 1e-4
+    # the same with one model per pixel (all equal) and with saturated samples left out
+    r2 = rerender_residuals_at(out, pix, valid, idx, angles, np.tile(A, (len(idx), 1)))
+    assert r2 == pytest.approx(r, rel=1e-5)
+    pix[2, :10] = 1.0
+    keep = np.ones(len(idx), bool)
+    keep[:10] = False
+    expect = np.sqrt(np.mean((0.1 * pred[keep]) ** 2)) / np.mean(1.1 * pred[keep])
+    assert rerender_residuals_at(out, pix, valid, idx, angles, A)[2] == pytest.approx(expect, rel=1e-3)
 
 
 def test_bad_inputs_are_named():
