@@ -2,9 +2,12 @@
 ``render.ready`` (§7.3).
 
 Config ``[services.renderer]``: ``recipe`` = a shipped recipe name (``configs/recipes/<name>.toml``)
-or a path to a TOML file; default ``"default"``. The output path is keyed by the RGBN digest,
-this stage's version and the recipe text, so a re-delivered job finds its output and a new
-recipe makes a new illustration.
+or a path to a TOML file; default ``"default"``. ``archive_tiles`` (default true): also cut the
+tiles the archive pages show of the face and of its illustration
+(:func:`common.web.relight.cut_archive_tiles`), so a fragment page opens at once instead of
+cutting them on its first view. The output path is keyed by the RGBN digest, this stage's version
+and the recipe text, so a re-delivered job finds its output and a new recipe makes a new
+illustration; tiles are keyed by their artifact's content, so a re-delivered job finds them too.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from common.render.recipes import load_recipe
 from common.render.tiles import render_h5
 from common.rgbn.image import SCHEMA as RGBN_SCHEMA
 from common.store import ArtifactRef, content_key
+from common.web.relight import cut_archive_tiles
 
 SERVICE = "renderer"
 VERSION = f"render-2.0/schema-{SCHEMA_VERSION}"  # 2.0: readable defaults, colour relief, tiles
@@ -49,4 +53,8 @@ def handle(job: dict, ctx) -> list[dict]:
             "recipe": recipe.name, "inputs": [ref.to_dict()]})
     else:
         out = ctx.store.ref(relpath)
+    if (ctx.config or {}).get("archive_tiles", True):
+        for source in (ref.path, out.path):
+            cut_archive_tiles(ctx.store, source)
+        ctx.progress(1.0, "archive tiles cut")
     return [new_message("render.ready", fragment=fragment, face=face, artifact=out, recipe=recipe.name)]

@@ -453,6 +453,24 @@ class RelightCache:
         return total
 
 
+def cut_archive_tiles(store, source_relpath: str, *, progress=None) -> int:
+    """Cut everything the archive pages show of one artifact, once, so no first view waits for it.
+
+    For an RGBN face: the 8-bit albedo / normal-map pyramid (IIIF, deep zoom,
+    :meth:`common.web.tiles.TileCache.pyramid`) and the relight tiles of every level but full
+    resolution (:meth:`RelightCache.cut`; level-0 tiles are cut on demand, 0.1 s CPU each); for a
+    render artifact: its pyramid. Existing tiles are kept (cached by the artifact's content key),
+    so calling it again costs a directory look-up. Returns the number of tiles there are.
+    Used by the renderer stage when a face arrives and by ``tessera web --cut-tiles``.
+    """
+    from common.web.tiles import TileCache
+
+    tiles = int(TileCache(store).pyramid(source_relpath)["tiles"])
+    if "/rgbn/" in source_relpath:
+        tiles += RelightCache(store, source_relpath).cut(min_level=1, progress=progress)
+    return tiles
+
+
 # ---- the viewer's styles as offline styles ------------------------------------------------------
 
 #: The styles the viewer's shaders draw (``services/web/static/viewer/<style>.frag``) and, per style,

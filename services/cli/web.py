@@ -64,8 +64,8 @@ def cut_tiles(cfg, fragments: list[str]) -> int:
     from common.imports.export import fragment_ids
     from common.imports.progress import ProgressBar
     from common.store import Store
-    from common.web.relight import RelightCache
-    from common.web.tiles import TileCache, face_sources
+    from common.web.relight import cut_archive_tiles
+    from common.web.tiles import face_sources
 
     store = Store(cfg["storage"]["root"], create=False)
     ids = fragments or fragment_ids(store)
@@ -75,13 +75,10 @@ def cut_tiles(cfg, fragments: list[str]) -> int:
     if missing:
         print(f"error: no face on storage for {', '.join(missing)}")
         return 2
-    cache, bar, failed = TileCache(store), ProgressBar(len(sources), "cut tiles"), 0
+    bar, failed = ProgressBar(len(sources), "cut tiles"), 0
     for i, rel in enumerate(sources):
         try:
-            info = cache.pyramid(rel)
-            if "/rgbn/" in rel:   # the fragment page's relight tiles too (every level but full resolution)
-                RelightCache(store, rel).cut(min_level=1)
-            bar.update(i + 1, f"{rel} ({info['tiles']} tiles)")
+            bar.update(i + 1, f"{rel} ({cut_archive_tiles(store, rel)} tiles)")
         except Exception as exc:   # one bad artifact must not stop the others
             failed += 1
             bar.update(i + 1, f"{rel}: {exc}")

@@ -59,3 +59,29 @@ def test_wrong_event_type_is_refused(rgbn_job):
     store, job = rgbn_job
     with pytest.raises(MessageError, match="rgbn.ready"):
         renderer.handle(dict(job, type="features.ready"), Ctx(store))
+
+
+def test_a_rendered_face_has_its_archive_tiles_cut_so_no_first_view_waits(tmp_path):
+    from common.web.relight import RelightCache
+    from common.web.tiles import pyramid_folder, pyramid_levels
+
+    store = Store(tmp_path / "store")
+    n, mask = sphere(300, 12.0, 0.1)   # 300 px: two pyramid levels of 256-px tiles
+    img = RGBNImage(albedo=np.full((300, 300, 3), 0.6), mask=mask, dpi=254.0, normals=n)
+    ref = save_rgbn(store, "fragments/F2/rgbn/front-abc.h5", img)
+    job = new_message("rgbn.ready", fragment="F2", face="front", artifact=ref)
+    (event,) = renderer.handle(job, Ctx(store))
+    for source in (ref.path, event["artifact"]["path"]):
+        assert store.path(f"{pyramid_folder(source)}/pyramid.json").is_file()
+    # the relight tiles of every level but full resolution: level 1 is 150 x 150, one tile
+    assert pyramid_levels(300, 300) == [(300, 300), (150, 150)]
+    relight = RelightCache(store, ref.path)
+    assert store.path(relight.tile_relpath(1, 0, 0)).is_file()
+    assert not store.path(relight.tile_relpath(0, 0, 0)).is_file()   # level 0 is cut on demand
+
+
+def test_archive_tiles_can_be_left_to_the_first_view(rgbn_job):
+    store, job = rgbn_job
+    renderer.handle(job, Ctx(store, {"archive_tiles": False}))
+    assert not (store.root / "fragments" / "F1" / "tiles").exists()
+    assert not (store.root / "fragments" / "F1" / "viewer").exists()
