@@ -279,4 +279,7 @@ def format_report(cal) -> str:
                  + (f", {dropped} dropped (clipped)" if dropped else ""))
     lines.append(f"fit RMS residual {cal.fit_rms:.4f}; leave-one-out RMS error: first order {cal.cv_rmse['first']:.4f}, "
                  f"second order {cal.cv_rmse['second']:.4f} (full scale 1, albedo 1)")
+    if any(float(v) != 0 for v in cal.a_per_mm):
+        lines.append(f"a read at {cal.a_depth_mm:g} mm from the glass; change per mm of distance: a_per_mm = ("
+                     + ", ".join(f"{v:+.4f}" for v in cal.a_per_mm) + ")")
     return "\n".join(lines)
