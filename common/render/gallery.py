@@ -272,8 +272,13 @@ the values it chose (and the noise evidence); written back into a recipe they fi
 Any size: an image above 16 Mpx is drawn in overlapping tiles (the halo covers 4 sigma of the
 widest filter, line lengths and shadows) that share the exposure chosen on a central calibration
 window of <= 4 Mpx; tiled and whole drawings agree within 1/255 (`tests/render/test_tiles.py`). The
-renderer service reads a large face window by window from its HDF5 artifact. Output is 8 or 16 bit
-(`bits` / `--bits`); the computation is float32 throughout.
+renderer service reads a large face window by window from its HDF5 artifact. A recipe with a
+`[segmentation]` section is tiled too: the segments are found first for the whole image, window by
+window (`segment_source`: SLIC superpixels in 2048-px windows read with a blur halo, merged across the
+windows' seams on one Felzenszwalb-Huttenlocher graph; the labels are identical to the in-memory
+`segment_rgbn`'s, `tests/rgbn/test_segmentation.py`), kept as 4 bytes a pixel, and every tile is drawn
+with its window of them. Output is 8 or 16 bit (`bits` / `--bits`); the computation is float32
+throughout.
 
 Inputs are checked: `--convention auto` (the default) reads a normal map both ways and keeps the
 reading whose curl (`dp/dy - dq/dx` of the gradient field) is smaller, logging both medians and their
