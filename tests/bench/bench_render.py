@@ -3,7 +3,8 @@
 
 Run ``python tests/bench/bench_render.py`` (``--quick``: only the per-megapixel part;
 ``--sizes 3464 7141``: the sides of the style runs, default 12 and 51 Mpx; ``--huge``: also draw
-a procedural 200-Mpx face window by window, as the renderer does from an HDF5 artifact).
+a procedural 200-Mpx face window by window with raking light, the default and the segments recipes,
+as the renderer does from an HDF5 artifact).
 Targets (issue 18, on the shared 2-core machine; CPU time is reported because wall time depends
 on the other jobs): every style <= 1.0 CPU s/Mpx, shading styles <= 0.3; peak RSS <= 4 GB at any
 size (the in-memory input image included); tone range (5th-95th percentile span of the
@@ -269,7 +270,7 @@ def main() -> int:
     if args.huge:
         mpx = args.huge ** 2 / 1e6
         print(f"{args.huge} x {args.huge} = {mpx:.0f} Mpx procedural face, drawn window by window:")
-        for style in ("raking", "default"):
+        for style in ("raking", "default", "segments"):  # segments: labels found window by window, then tiles
             r = _run(style, args.huge, huge=True)
             if isinstance(r, str):
                 print(f"  {style:28s} FAILED: {r}")
