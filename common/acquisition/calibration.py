@@ -602,8 +602,9 @@ def lamp_direction_from_shadows(scans: list, masks: list, dpi: float, *, ring_mm
         if not m8.any():
             continue
         lum = to_float(scan).mean(axis=2)
-        ring = cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r_out + 1,) * 2)) > 0
-        ring &= ~(cv2.dilate(m8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r_in + 1,) * 2)) > 0)
+        # the ring by the distance to the mask (linear time; a dilation by a 10 mm disc costs its area per pixel)
+        dist = cv2.distanceTransform((m8 == 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        ring = (dist > r_in) & (dist <= r_out)
         if not ring.any():
             continue
         bed = float(np.percentile(lum[ring], 80))
