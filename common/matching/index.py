@@ -63,6 +63,9 @@ RIBBON_CANDIDATES = 50
 DOCK_CANDIDATES = 12
 #: stage 3 adds the earlier stages' relative evidence to the docking's (see _rank_by_docking)
 DOCK_KEEPS_EARLIER_EVIDENCE = True
+#: stage 3 adds the pair's paint continuity (best over the docking's candidate poses) to the join's
+#: logit (:func:`common.matching.paint.with_paint`), where both fragments have a boundary profile
+DOCK_USES_PAINT = True
 
 
 @dataclass
@@ -82,6 +85,7 @@ class Candidate:
     ribbon_arc_mm: tuple | None = None       # (arc on the query, arc on the other) of the ribbon's best run
     docking: Docking | None = None           # stage 3: the other fragment docked against the query
     docking_contact_mm: float = float("nan")  # its shared-crack length less the two hubnesses (mm)
+    paint_mm: float = float("nan")           # stage 3: paint continuing across the crack (mm, paint.py)
 
 
 class MatchIndex:
@@ -113,6 +117,11 @@ class MatchIndex:
         self.dock_hubness: dict[str, float] = {}
         #: fragment → paint along its outline as deviations from its plaster (for the docking)
         self.paint: dict[str, np.ndarray] = {}
+        #: fragment → boundary profile as given (for its paint field, built when first needed)
+        self._raw_profiles: dict[str, np.ndarray] = {}
+        self._paint_fields: dict = {}
+        #: paint continuity by unordered pair, mm (model-independent, like the dockings)
+        self._paint_pairs: dict[tuple[str, str], float] = {}
 
     def __len__(self) -> int:
         return len(self._order)
@@ -132,11 +141,14 @@ class MatchIndex:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
         self.profiles.pop(cues.fragment, None)
         self.paint.pop(cues.fragment, None)
+        self._raw_profiles.pop(cues.fragment, None)
+        self._paint_fields.pop(cues.fragment, None)
         if boundary_profile is not None:
             p = np.asarray(boundary_profile, np.float32)
             names = boundary_channel_names()
             if p.ndim == 2 and len(p) >= 3 and p.shape[1] == len(names):
                 self.profiles[cues.fragment] = prepare_ribbon(p, names)
+                self._raw_profiles[cues.fragment] = p
                 # the profile runs from the contour's first point in its order, as contour_mm does
                 self.paint[cues.fragment] = paint_from_profile(p)
         if cues.fragment in self.cues:
@@ -161,6 +173,8 @@ class MatchIndex:
         self.contours.pop(fragment, None)
         self.profiles.pop(fragment, None)
         self.paint.pop(fragment, None)
+        self._raw_profiles.pop(fragment, None)
+        self._paint_fields.pop(fragment, None)
         self.hubness.pop(fragment, None)
         self._forget_dockings(fragment)
         if not in_tail:
@@ -387,6 +401,27 @@ class MatchIndex:
         self.dock_hubness.pop(fragment, None)
         for key in [k for k in self._dockings if fragment in k]:
             del self._dockings[key]
+        for key in [k for k in self._paint_pairs if fragment in k]:
+            del self._paint_pairs[key]
+
+    def paint_pair(self, fragment: str, other: str) -> float:
+        """Paint continuing across the crack between two fragments, mm (cached per pair): the best
+        :func:`~common.matching.paint.paint_continuity` over the docking's candidate poses
+        (:func:`~common.matching.paint.paint_pair_mm`); NaN when either has no outline or profile."""
+        from common.matching.paint import paint_field_from_profile, paint_pair_mm
+
+        key = (fragment, other) if fragment < other else (other, fragment)
+        if key in self._paint_pairs:
+            return self._paint_pairs[key]
+        if not all(f in self._raw_profiles and f in self.contours for f in key):
+            return float("nan")
+        for f in key:
+            if f not in self._paint_fields:
+                self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
+        mm, _ = paint_pair_mm(self._paint_fields[key[0]], self._paint_fields[key[1]], self.contours[key[0]],
+                              self.contours[key[1]])
+        self._paint_pairs[key] = float(mm)
+        return float(mm)
 
     def docking(self, fragment: str, other: str) -> Docking:
         """``other`` docked against ``fragment`` (pose of ``other`` in ``fragment``'s frame), cached."""
@@ -432,9 +467,15 @@ class MatchIndex:
                 shift = np.where(ok, lb - lb[ok].mean(), 0.0)
                 lp = np.log(np.clip(prob, 1e-12, 1 - 1e-12)) - np.log(np.clip(1 - prob, 1e-12, 1 - 1e-12))
                 prob = 1.0 / (1.0 + np.exp(-(lp + shift)))
-        for c, k, p in zip(head, corrected, prob):
+        paint = np.full(len(head), np.nan)
+        if DOCK_USES_PAINT:
+            from common.matching.paint import with_paint
+
+            paint = np.array([self.paint_pair(fragment, c.other) for c in head])
+            prob = np.where(np.isfinite(paint), with_paint(prob, np.nan_to_num(paint), model.docking[0]), prob)
+        for c, k, p, m in zip(head, corrected, prob, paint):
             d = self.docking(fragment, c.other)
-            c.docking, c.docking_contact_mm, c.probability = d, float(k), float(p)
+            c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
             c.alignment = Alignment(d.angle_deg, d.tx_mm, d.ty_mm, float("nan"), d.contact_mm, d.overlap_mm2,
                                     float(k))
         head.sort(key=lambda c: -c.probability)

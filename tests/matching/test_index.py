@@ -246,3 +246,38 @@ def test_model_keeps_its_docking_calibration_through_storage(tmp_path, small_wal
     back = load_model(store, save_model(store, model))
     assert back.docking == (0.02, -3.0)
     assert replace(model, docking=(0.03, -3.0)).digest() != model.digest()
+
+
+def test_docking_stage_adds_the_pairs_paint_continuity(small_wall, monkeypatch):
+    """Stage 3 with boundary profiles: each docked candidate's logit gains its paint continuity (best
+    over the docking's candidate poses, computed independently here), cached per pair; without
+    profiles (or with the paint switched off) the probabilities are the geometric ones."""
+    from dataclasses import replace
+
+    import common.matching.index as index_mod
+    from common.matching.paint import paint_field_from_profile, paint_pair_mm, with_paint
+
+    wall, tables, cues, poses = small_wall
+    model = replace(_model(small_wall), docking=(0.05, -2.0))
+    ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:8]
+    index = MatchIndex()
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    q, others = ids[0], ids[1:]
+    monkeypatch.setattr(index_mod, "DOCK_USES_PAINT", False)
+    geometric = {c.other: c.probability for c in index.rank(cues[q], others, model, dock_candidates=3)[:3]}
+    monkeypatch.setattr(index_mod, "DOCK_USES_PAINT", True)
+    ranked = index.rank(cues[q], others, model, dock_candidates=3)
+    head = ranked[:3]
+    assert {c.other for c in head} == set(geometric)
+    fq = paint_field_from_profile(tables[q].contour_mm, tables[q].boundary_profile)
+    for c in head:
+        fo = paint_field_from_profile(tables[c.other].contour_mm, tables[c.other].boundary_profile)
+        a, b = (fq, fo) if q < c.other else (fo, fq)
+        ca, cb = (tables[q].contour_mm, tables[c.other].contour_mm)[:: 1 if q < c.other else -1]
+        mm, _ = paint_pair_mm(a, b, ca, cb)
+        assert np.isfinite(c.paint_mm) and c.paint_mm == __import__("pytest").approx(mm)
+        assert c.probability == __import__("pytest").approx(float(with_paint(geometric[c.other], mm, 0.05)), rel=1e-6)
+    assert [c.probability for c in head] == sorted((c.probability for c in head), reverse=True)
+    assert len(index._paint_pairs) == 3                      # cached per pair
+    assert index.paint_pair(head[0].other, q) == head[0].paint_mm
