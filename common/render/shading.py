@@ -156,13 +156,26 @@ def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarra
     out = colours.copy()
     if centres.shape[0] == 0:
         return out
-    # nearest centre in chunks keeps a 16-Mpx image within memory
-    flat_idx = np.flatnonzero(mask.ravel())
-    flat = out.reshape(-1, 3)
-    for start in range(0, flat_idx.size, 1 << 20):
-        idx = flat_idx[start:start + (1 << 20)]
-        d = ((flat[idx, None, :] - centres[None]) ** 2).sum(axis=2)
-        flat[idx] = centres[np.argmin(d, axis=1)]
+    # blocks of ~1 Mpx rows, one centre at a time (squared distance channel by channel, the
+    # first of equally near centres kept, as argmin): no per-pixel gathers, bounded memory
+    step = max(1, (1 << 20) // max(colours.shape[1], 1))
+    for r0 in range(0, colours.shape[0], step):
+        block = colours[r0:r0 + step]
+        best = idx = None
+        for j, centre in enumerate(centres):
+            d = block[..., 0] - centre[0]
+            d *= d
+            for ch in (1, 2):
+                e = block[..., ch] - centre[ch]
+                e *= e
+                d += e
+            if best is None:
+                best, idx = d, np.zeros(d.shape, np.intp)
+            else:
+                closer = d < best
+                np.copyto(best, d, where=closer)
+                idx[closer] = j
+        np.copyto(out[r0:r0 + step], centres[idx], where=mask[r0:r0 + step, :, None])
     return out
 
 

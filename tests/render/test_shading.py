@@ -162,3 +162,18 @@ def test_exaggerated_coarse_grid_is_aligned_to_the_whole_image_for_tiles():
     inner = (slice(halo, None), slice(halo, None))
     m = mask[r0:, c0:][inner]
     assert np.abs(part[inner] - whole[r0:, c0:][inner])[m].max() < 1e-3
+
+
+def test_nearest_colours_is_the_argmin_of_the_distances_and_keeps_the_background():
+    from common.render.shading import nearest_colours
+
+    rng = np.random.default_rng(3)
+    colours = rng.random((1200, 1000, 3), dtype=np.float32)  # > 1 Mpx: more than one block of rows
+    colours[0, :4] = (0.5, 0.5, 0.5)  # equally near centres 0 and 1: the first is kept, as argmin
+    centres = np.array([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5], [0.1, 0.9, 0.2], [0.9, 0.1, 0.8]], np.float32)
+    mask = rng.random((1200, 1000)) > 0.2
+    out = nearest_colours(colours, centres, mask=mask)
+    d = ((colours[..., None, :] - centres) ** 2).sum(axis=3)
+    expect = np.where(mask[..., None], centres[np.argmin(d, axis=2)], colours)
+    assert np.array_equal(out, expect)
+    assert np.array_equal(out[0, :4][mask[0, :4]], np.tile(centres[0], (int(mask[0, :4].sum()), 1)))
