@@ -533,7 +533,8 @@ def face_depth_map(normals: np.ndarray, mask: np.ndarray, pixel_mm: float, *, gr
     rhs.append((gy[ys, xs] + gy[ys + 1, xs]) / 2 * step)
     n_eq, n_un = base + len(ys), int(mg.sum())
     # one anchor per region (its first cell at height 0) makes the system non-singular
-    first = np.array([ids[lab == c][0] for c in range(1, ncomp)], np.int64)
+    _, at = np.unique(lab[mg], return_index=True)         # labels 1..ncomp-1 in order; their first cells
+    first = np.asarray(at, np.int64)
     eq = n_eq + np.arange(len(first))
     rows.append(eq)
     cols.append(first)
@@ -543,17 +544,18 @@ def face_depth_map(normals: np.ndarray, mask: np.ndarray, pixel_mm: float, *, gr
                       shape=(n_eq + len(first), n_un))
     h = spl.spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
     hgrid[mg] = h
+    top = np.full(ncomp, -np.inf)
+    np.maximum.at(top, lab[mg], hgrid[mg])                # each region's highest point rests on the glass
     dist = np.full((h2, w2), np.nan)
-    for c in range(1, ncomp):
-        r = lab == c
-        dist[r] = np.nanmax(hgrid[r]) - hgrid[r]
+    dist[mg] = top[lab[mg]] - hgrid[mg]
     # back to the pixels: bilinear on the grid's cell centres, holes filled from the nearest cell
     fill = np.where(mg, dist, 0.0).astype(np.float32)
     wgt = mg.astype(np.float32)
     up = cv2.resize(fill, (w2 * k, h2 * k), interpolation=cv2.INTER_LINEAR)[:H, :W]
     uw = cv2.resize(wgt, (w2 * k, h2 * k), interpolation=cv2.INTER_LINEAR)[:H, :W]
-    near = cv2.resize(np.where(mg, dist, np.nanmedian(dist[mg])).astype(np.float32), (w2 * k, h2 * k),
-                      interpolation=cv2.INTER_NEAREST)[:H, :W]
+    from scipy.ndimage import distance_transform_edt
+    iy, ix = distance_transform_edt(~mg, return_distances=False, return_indices=True)   # nearest integrated cell
+    near = cv2.resize(dist[iy, ix].astype(np.float32), (w2 * k, h2 * k), interpolation=cv2.INTER_NEAREST)[:H, :W]
     d = np.where(uw > 0.25, up / np.maximum(uw, 1e-6), near)
     out[mask] = d[mask]
     return out
