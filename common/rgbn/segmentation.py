@@ -48,7 +48,8 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
     superpixel_px : int, "auto" or None
         Full-resolution segmentation of a large image goes through superpixels: SLIC
         (scikit-image's compiled implementation, on the weighted colour+normal channels, in
-        tiles of <= 4 Mpx so memory stays bounded) cuts the image into regions of about this
+        2048-px windows blurred with a halo; :func:`segment_source` reads them one at a time from
+        an image larger than memory) cuts the image into regions of about this
         many pixels, and Felzenszwalb-Huttenlocher's merging runs on their adjacency graph with
         the distance between region means as the edge weight and region areas in pixels.
         "auto": 64-pixel superpixels above 0.25 Mpx, the pixel graph below. None: always the
