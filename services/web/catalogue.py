@@ -16,18 +16,13 @@ from common.web.bench import check_fragment_id
 from common.web.catalogue import COLOUR_FAMILIES, FIELDS, STAGE_ORDER, check_changes
 
 from .auth import body, who, writes
-from .station import requires, station
+from .station import answers_in_json, requires, station
 
 log = logging.getLogger("tessera.web")
 
-bp = Blueprint("catalogue", __name__)
+bp = answers_in_json(Blueprint("catalogue", __name__))
 
 needs_catalogue = requires("catalogue", "the catalogue is not available on this station")
-
-
-@bp.errorhandler(404)
-def not_found(exc):
-    return jsonify(error=getattr(exc, "description", "not found")), 404
 
 
 def _fid(fid: str) -> str:

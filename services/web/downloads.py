@@ -16,16 +16,11 @@ from flask import Blueprint, abort, jsonify, send_file, url_for
 from common.web.downloads import export_folder, export_key
 from common.store import Store
 
-from .station import station
+from .station import answers_in_json, station
 from .tiles import fragment_or_404
 
-bp = Blueprint("downloads", __name__)
+bp = answers_in_json(Blueprint("downloads", __name__))
 _lock = threading.Lock()   # one export at a time in this process (an export reads whole faces)
-
-
-@bp.errorhandler(404)
-def not_found(exc):
-    return jsonify(error=getattr(exc, "description", "not found")), 404
 
 
 def _store() -> Store:

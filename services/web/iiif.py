@@ -13,34 +13,17 @@ from __future__ import annotations
 
 from flask import Blueprint, Response, jsonify, redirect, request, url_for
 
-from common.store import ArtifactError
 from common.web import iiif
 
-from .station import station
+from .station import answers_in_json, station
 from .tiles import fragment_or_404, pyramid_info
 
-bp = Blueprint("iiif", __name__)
+bp = answers_in_json(Blueprint("iiif", __name__))
 
 
 @bp.errorhandler(iiif.IIIFError)
 def iiif_error(exc: iiif.IIIFError):
     return jsonify(error=str(exc)), exc.status
-
-
-@bp.errorhandler(404)
-def not_found(exc):
-    return jsonify(error=getattr(exc, "description", "not found")), 404
-
-
-@bp.errorhandler(ArtifactError)
-def unreadable(exc):
-    # a face on storage that cannot be read (truncated, replaced, not HDF5): say so, serve the rest
-    return jsonify(error=f"the face cannot be read: {exc}"), 500
-
-
-@bp.errorhandler(400)
-def bad_request(exc):
-    return jsonify(error=getattr(exc, "description", "bad request")), 400
 
 
 @bp.after_request

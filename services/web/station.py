@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from flask import abort, current_app
+from flask import abort, current_app, jsonify
 
 from common.web.bench import BenchSession
 
@@ -64,6 +64,25 @@ def requires(part: str, message: str) -> Callable:
             return view(*args, **kwargs)
         return checked
     return wrap
+
+
+def answers_in_json(bp):
+    """Make a blueprint of JSON routes answer its 404s and unreadable artifacts as JSON.
+
+    ``{"error": ...}`` with 404, or 500 for a face on storage that cannot be read (truncated,
+    replaced, not HDF5): the error is said and the rest of the archive is served. Returns ``bp``.
+    """
+    from common.store import ArtifactError
+
+    @bp.errorhandler(404)
+    def not_found(exc):
+        return jsonify(error=getattr(exc, "description", "not found")), 404
+
+    @bp.errorhandler(ArtifactError)
+    def unreadable(exc):
+        return jsonify(error=f"the face cannot be read: {exc}"), 500
+
+    return bp
 
 
 # --------------------------------------------------------------------------------------------

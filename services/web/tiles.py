@@ -17,13 +17,13 @@ from __future__ import annotations
 
 from flask import Blueprint, Response, abort, jsonify, send_file, url_for
 
-from common.store import ArtifactError, ArtifactMissing
+from common.store import ArtifactMissing
 from common.web.bench import check_fragment_id
 from common.web.tiles import TILES_VERSION, dzi_tile, dzi_xml, encode_png, face_sources, pyramid_folder
 
-from .station import station
+from .station import answers_in_json, station
 
-bp = Blueprint("tiles", __name__)
+bp = answers_in_json(Blueprint("tiles", __name__))
 
 
 def fragment_or_404(fid: str) -> dict:
@@ -63,17 +63,6 @@ def pyramid_info(fid: str, face: str, layer: str) -> dict:
     info.update(fragment=fid, face=face, layer=layer, pyramid=name,
                 tiles=template.replace("/0/0_0.png", "/{level}/{col}_{row}.png"))
     return info
-
-
-@bp.errorhandler(404)
-def not_found(exc):
-    return jsonify(error=getattr(exc, "description", "not found")), 404
-
-
-@bp.errorhandler(ArtifactError)
-def unreadable(exc):
-    # a face on storage that cannot be read (truncated, replaced, not HDF5): say so, serve the rest
-    return jsonify(error=f"the face cannot be read: {exc}"), 500
 
 
 @bp.get("/api/tiles/<fid>")
