@@ -209,9 +209,6 @@ def atomic_file(final: Path) -> Iterator[str]:
         raise
 
 
-_atomic_file = atomic_file  # old private name, still imported by code being changed this session
-
-
 def _write_bytes(path: str, data: bytes) -> None:
     """Write ``data`` to ``path`` with ordinary file I/O and fsync it (errors surface as OSError)."""
     with open(path, "wb") as fh:

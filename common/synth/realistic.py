@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.store import _atomic_file  # the project's one atomic write (temporary name, then rename)
+from common.store import atomic_file  # the project's one atomic write (temporary name, then rename)
 from common.synth.noise import FractalField
 from common.synth.painting import Painting
 
@@ -529,7 +529,7 @@ def write_fragment_png(fragment, directory: str | os.PathLike, wall_id: str, *,
     ok, png = cv2.imencode(".png", np.ascontiguousarray(canvas[..., [2, 1, 0, 3]]), [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:
         raise ValueError(f"fragment {f.id}: PNG encoding failed")
-    with _atomic_file(folder / f"{f.id}.png") as tmp:
+    with atomic_file(folder / f"{f.id}.png") as tmp:
         Path(tmp).write_bytes(png.tobytes())
     if f.pose is None:
         return None
@@ -548,6 +548,6 @@ def write_truth_csv(directory: str | os.PathLike, wall_id: str, rows: list) -> P
     out = Path(directory) / wall_id
     out.mkdir(parents=True, exist_ok=True)
     lines = ["rpf,x,y,rot"] + [f"{n},{x:.3f},{y:.3f},{r:.6f}" for n, x, y, r in rows]
-    with _atomic_file(out / "truth.csv") as tmp:
+    with atomic_file(out / "truth.csv") as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
     return out
