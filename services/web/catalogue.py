@@ -16,7 +16,7 @@ from common.web.bench import check_fragment_id
 from common.web.catalogue import COLOUR_FAMILIES, FIELDS, STAGE_ORDER, check_changes
 
 from .auth import body, who, writes
-from .station import answers_in_json, requires, station
+from .station import answers_in_json, requires, station, submit_or_503
 
 log = logging.getLogger("tessera.web")
 
@@ -95,13 +95,7 @@ def edit(fid):
     by = who()
     msg = new_message("fragment.annotated", fragment=fid, changes=changes, by=by,
                       previous={k: row[k] for k in changes})
-    if st.link is None:
-        return jsonify(error="the broker is not configured on this station; the edit was not sent"), 503
-    try:
-        delivered = st.link.submit(msg)
-    except Exception as exc:  # the page must say the edit did not go through
-        log.warning("edit %s not sent: %s", msg["uid"], exc)
-        return jsonify(error=f"the edit could not be sent to the broker: {exc}"), 503
+    delivered = submit_or_503(msg, "edit")
     entry = {"fragment": fid, "uid": msg["uid"], "time": msg["time"], "by": by, "changes": changes,
              "delivered": delivered}
     st.sent_edits.appendleft(entry)

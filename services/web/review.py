@@ -7,17 +7,13 @@ Proposals, verdict history and pictures come from the matcher's proposal store
 
 from __future__ import annotations
 
-import logging
-
 from flask import Blueprint, abort, jsonify, render_template, request
 
 from common.messages import new_message
 from common.web.bench import check_fragment_id
 
 from .auth import body, who, writes
-from .station import requires, station
-
-log = logging.getLogger("tessera.web")
+from .station import requires, station, submit_or_503
 
 bp = Blueprint("review", __name__)
 
@@ -90,13 +86,7 @@ def verdict():
     msg = new_message("match.verified", fragment=prop["fragment_a"], other=prop["fragment_b"], verdict=verdict,
                       proposal=prop["id"], probability=prop["probability"], by=by,
                       model_version=prop.get("model_version"))
-    if st.link is None:
-        return jsonify(error="the broker is not configured on this station; the verdict was not sent"), 503
-    try:
-        delivered = st.link.submit(msg)
-    except Exception as exc:  # the page must say the verdict did not go through
-        log.warning("verdict %s not sent: %s", msg["uid"], exc)
-        return jsonify(error=f"the verdict could not be sent to the broker: {exc}"), 503
+    delivered = submit_or_503(msg, "verdict")
     entry = {"fragment_a": prop["fragment_a"], "fragment_b": prop["fragment_b"], "verdict": verdict, "by": by,
              "time": msg["time"], "uid": msg["uid"], "proposal": prop["id"], "delivered": delivered}
     st.sent_verdicts.appendleft(entry)

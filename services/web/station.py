@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from flask import abort, current_app, jsonify
+from flask import abort, current_app, jsonify, make_response
 
 from common.web.bench import BenchSession
 
@@ -65,6 +65,21 @@ def requires(part: str, message: str) -> Callable:
         return checked
     return wrap
 
+
+def submit_or_503(msg: dict, what: str) -> bool:
+    """Send a write (a verdict, a metadata edit) through the station's bus link; return whether
+    the broker took it now (False: kept in the durable outbox for later).
+
+    Answers 503 with ``{"error": ...}`` naming ``what`` when the station has no broker configured
+    or the outbox refuses it: the page must say the write did not go through."""
+    st = station()
+    if st.link is None:
+        abort(make_response(jsonify(error=f"the broker is not configured on this station; the {what} was not sent"), 503))
+    try:
+        return st.link.submit(msg)
+    except Exception as exc:
+        log.warning("%s %s not sent: %s", what, msg["uid"], exc)
+        abort(make_response(jsonify(error=f"the {what} could not be sent to the broker: {exc}"), 503))
 
 def answers_in_json(bp):
     """Make a blueprint of JSON routes answer its 404s and unreadable artifacts as JSON.

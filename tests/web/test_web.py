@@ -352,3 +352,25 @@ def test_status_says_plainly_when_the_broker_is_down(station_config):
     r = app.test_client().get("/api/status")
     assert r.status_code == 503 and "cannot be reached" in r.json["error"]
     link.close()
+
+
+def test_a_write_the_bus_cannot_take_is_answered_503_naming_it(tmp_path):
+    from werkzeug.exceptions import HTTPException
+
+    from services.web.station import station, submit_or_503
+
+    class RefusingLink:
+        def submit(self, msg):
+            raise OSError("outbox disk full")
+
+    app = web.create_app(token=TOKEN, store_root=tmp_path)
+    with app.test_request_context("/"):
+        with pytest.raises(HTTPException) as no_broker:
+            submit_or_503({"uid": "0" * 32}, "verdict")
+        station().link = RefusingLink()
+        with pytest.raises(HTTPException) as refused:
+            submit_or_503({"uid": "0" * 32}, "edit")
+    assert no_broker.value.response.status_code == 503
+    assert no_broker.value.response.get_json()["error"].endswith("the verdict was not sent")
+    assert refused.value.response.status_code == 503
+    assert refused.value.response.get_json()["error"] == "the edit could not be sent to the broker: outbox disk full"
