@@ -363,7 +363,8 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     first maps L* through :func:`tone_curve` so that ``lo -> 20`` and ``hi -> 80`` (give the 5th
     and 95th percentiles, :func:`lightness_range`), scaling a* and b* with L* (the hue is kept).
     A colour that sRGB cannot show after all is pulled towards the grey of its lightness
-    (chroma reduced, hue and lightness kept) instead of having a channel clipped.
+    (:func:`gamut_map_lab`: chroma reduced, hue and lightness kept) instead of having a channel
+    clipped.
 
     Parameters
     ----------
@@ -412,30 +413,118 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     r = np.clip(relief, -1.0, 1.0) * np.float32(strength)
     L = L + r * np.where(r > 0, 100.0 - L, L)
     lab[..., 0] = L
-    rgb = cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)
-    return _into_gamut(rgb, L)
+    # OpenCV's Lab2RGB clips each channel: the colours it clipped are mapped again, chroma only
+    return _into_gamut(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB), lab)
 
 
-def _into_gamut(rgb: np.ndarray, L: np.ndarray) -> np.ndarray:
-    """Colours outside [0, 1] (a saturated paint lightened past what sRGB can show) pulled towards
-    the grey of the same lightness until they fit: hue and lightness kept, chroma reduced —
-    instead of clipping a channel, which would shift the hue and flatten the relief."""
-    # one pass (cv2.inRange: every channel within [0, 1]) instead of two reductions over the
-    # 3-channel axis, which numpy runs slowly on large images
-    bad = cv2.inRange(np.asarray(rgb, np.float32), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)) == 0
-    if not bad.any():
-        return rgb.astype(np.float32, copy=False)
-    c = rgb[bad]
-    g = np.clip(cv2.cvtColor(np.stack([L[bad], np.zeros_like(L[bad]), np.zeros_like(L[bad])], axis=1)[None]
-                             .astype(np.float32), cv2.COLOR_Lab2RGB)[0, :, :1], 0.0, 1.0)
-    d = c - g
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_hi = np.where(d > 1e-7, (1.0 - g) / d, np.inf)
-        t_lo = np.where(d < -1e-7, (0.0 - g) / d, np.inf)
-    t = np.clip(np.minimum(t_hi, t_lo).min(axis=1, keepdims=True), 0.0, 1.0)
-    out = rgb.copy()
-    out[bad] = g + t * d
-    return np.clip(out, 0.0, 1.0).astype(np.float32)
+#: CIE XYZ -> linear sRGB and the D65 white, with OpenCV's constants (``COLOR_Lab2RGB``), so the
+#: colours this module computes itself agree with OpenCV's where both are in gamut.
+_XYZ_TO_RGB = np.array([[3.240479, -1.537150, -0.498535],
+                        [-0.969256, 1.875991, 0.041556],
+                        [0.055648, -0.204043, 1.057311]], np.float32)
+_WHITE_X, _WHITE_Z = 0.950456, 1.088754
+#: Bisection steps of the gamut mapping: the chroma kept is within 2^-16 of its largest in-gamut value.
+GAMUT_STEPS = 16
+#: A linear channel this far outside [0, 1] is float rounding, not a colour outside the gamut.
+_GAMUT_EPS = 1e-5
+
+
+def lab_to_linear_rgb(L: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """CIELAB (D65) to linear sRGB **without clipping**: a colour sRGB cannot show has a channel
+    below 0 or above 1 (OpenCV's float ``COLOR_Lab2RGB`` / ``Lab2LRGB`` clip each channel, which is
+    why :func:`lightness_relief` does not use them for such colours).
+
+    Parameters
+    ----------
+    L, a, b : (N,) float
+        L* in [0, 100], a* and b*.
+
+    Returns
+    -------
+    (N, 3) float32
+        Linear RGB, unbounded.
+
+    References
+    ----------
+    CIE 15:2004, eqs. 8.6-8.8 (inverse CIELAB); IEC 61966-2-1 (sRGB primaries, D65).
+    """
+    L = np.asarray(L, np.float32)
+    low = L <= 7.9996  # OpenCV's split: Y = L / 903.3 below, ((L + 16) / 116)^3 above
+    fy = np.where(low, 7.787 * (L / 903.3) + 16.0 / 116.0, (L + 16.0) / 116.0).astype(np.float32)
+    Y = np.where(low, L / 903.3, fy * fy * fy)
+
+    def finv(f):
+        return np.where(f > 0.206893, f * f * f, (f - 16.0 / 116.0) / 7.787)
+
+    X = finv(fy + np.asarray(a, np.float32) / 500.0) * _WHITE_X
+    Z = finv(fy - np.asarray(b, np.float32) / 200.0) * _WHITE_Z
+    return (np.stack([X, Y, Z], axis=-1) @ _XYZ_TO_RGB.T).astype(np.float32)
+
+
+def gamut_map_lab(L: np.ndarray, a: np.ndarray, b: np.ndarray, *, steps: int = GAMUT_STEPS) -> np.ndarray:
+    """Colours given in CIELAB brought into the sRGB gamut by reducing their chroma only: L* and
+    the hue angle ``atan2(b*, a*)`` are kept, and (a*, b*) are scaled by the largest ``s`` in
+    [0, 1] for which the colour fits (found by bisection; ``s = 0``, the grey of that lightness,
+    always fits). A colour already inside is returned unchanged.
+
+    Parameters
+    ----------
+    L, a, b : (N,) float
+        L* in [0, 100], a* and b*.
+    steps : int
+        Bisection steps: ``s`` is within ``2**-steps`` below its largest in-gamut value.
+
+    Returns
+    -------
+    (N, 3) float32
+        Linear RGB in [0, 1].
+
+    References
+    ----------
+    Morovič, *Color Gamut Mapping* (Wiley 2008), §10.2: lightness- and hue-preserving chroma
+    clipping towards the lightness axis.
+    """
+    L = np.clip(np.asarray(L, np.float32), 0.0, 100.0)
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    rgb = lab_to_linear_rgb(L, a, b)
+    out = ~((rgb >= -_GAMUT_EPS) & (rgb <= 1.0 + _GAMUT_EPS)).all(axis=-1)
+    if out.any():
+        Lo, ao, bo = L[out], a[out], b[out]
+        lo = np.zeros(Lo.shape, np.float32)   # always inside (the grey)
+        hi = np.ones(Lo.shape, np.float32)    # outside
+        for _ in range(steps):
+            mid = 0.5 * (lo + hi)
+            c = lab_to_linear_rgb(Lo, mid * ao, mid * bo)
+            fits = ((c >= 0.0) & (c <= 1.0)).all(axis=-1)
+            lo = np.where(fits, mid, lo)
+            hi = np.where(fits, hi, mid)
+        rgb[out] = lab_to_linear_rgb(Lo, lo * ao, lo * bo)
+    return np.clip(rgb, 0.0, 1.0)
+
+
+def _into_gamut(rgb: np.ndarray, lab: np.ndarray) -> np.ndarray:
+    """The display colours of ``lab`` (``rgb``: OpenCV's ``Lab2RGB`` of it, each channel clipped),
+    with every colour sRGB cannot show replaced by :func:`gamut_map_lab` (hue and lightness kept,
+    chroma reduced) instead of having a channel clipped, which would shift the hue and flatten the
+    relief. Only a colour OpenCV left with a channel at 0 or 1 can be one, so only those are
+    recomputed."""
+    from common.rgbn.io import linear_to_srgb
+
+    rgb = np.asarray(rgb, np.float32)
+    # one pass (cv2.inRange: every channel strictly inside) instead of reductions over the 3-channel
+    # axis, which numpy runs slowly on large images
+    edge = cv2.inRange(rgb, (1e-6, 1e-6, 1e-6), (1.0 - 1e-6, 1.0 - 1e-6, 1.0 - 1e-6)) == 0
+    if not edge.any():
+        return rgb
+    lab_e = np.asarray(lab, np.float32)[edge]
+    exact = lab_to_linear_rgb(lab_e[:, 0], lab_e[:, 1], lab_e[:, 2])
+    outside = ~((exact >= -_GAMUT_EPS) & (exact <= 1.0 + _GAMUT_EPS)).all(axis=1)
+    if outside.any():
+        idx = np.flatnonzero(edge.ravel())[outside]
+        mapped = gamut_map_lab(lab_e[outside, 0], lab_e[outside, 1], lab_e[outside, 2])
+        rgb = rgb.copy() if not rgb.flags.writeable else rgb
+        rgb.reshape(-1, 3)[idx] = linear_to_srgb(mapped)
+    return rgb
 
 
 def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:

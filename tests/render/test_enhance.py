@@ -4,7 +4,7 @@ import pytest
 
 from common.render._util import as_light, dot_light
 from common.render.enhance import (block_artefacts, coarse_normals, detail_shading, level_light, level_normals,
-                                   lightness_relief, normal_noise, normal_unsharp_masking, relief_scale_px,
+                                   gamut_map_lab, lab_to_linear_rgb, lightness_relief, normal_noise, normal_unsharp_masking, relief_scale_px,
                                    robust_range, shoulder, specular_enhancement, tone_curve)
 from common.rgbn.io import linear_to_srgb
 from tests.rgbn.analytic import gaussian_bump, normals_from_height, tilted_plane
@@ -152,14 +152,69 @@ def test_bad_arguments_are_named():
         relief_scale_px(_flat(4), 0)
 
 
-def test_lightness_relief_pulls_out_of_gamut_colours_to_their_grey_without_clipping():
-    """The one-pass gamut check (cv2.inRange) finds exactly the colours a per-channel test finds."""
-    from common.render.enhance import _into_gamut
+def _lab_of_display(rgb):
+    """CIELAB of display sRGB in float64 by scikit-image (an implementation independent of ours and
+    more precise than OpenCV's float tables)."""
+    from skimage.color import rgb2lab
+
+    return rgb2lab(np.asarray(rgb, np.float64))
+
+
+def test_an_out_of_gamut_colour_is_mapped_with_its_hue_and_lightness_kept_and_chroma_reduced():
+    """Pure sRGB blue lightened by relief leaves the gamut (sRGB has no light saturated blue).
+    Documented: L* = L + strength r (100 - L) exactly, the hue kept, the chroma reduced to the
+    largest that fits — so the colour lands on the gamut's surface (a channel at 0 or 1)."""
+    blue = np.zeros((1, 4, 3), np.float32)
+    blue[..., 2] = 1.0
+    relief = np.array([[0.0, 0.3, 0.6, 1.0]], np.float32)
+    out = lightness_relief(blue, relief, strength=0.6)
+    lab_in = cv2.cvtColor(blue, cv2.COLOR_LRGB2Lab)[0, 0]
+    expected_L = lab_in[0] + 0.6 * relief[0] * (100.0 - lab_in[0])     # the documented soft light
+    lab_out = _lab_of_display(out)[0]
+    hue_in = np.degrees(np.arctan2(lab_in[2], lab_in[1]))
+    hue_out = np.degrees(np.arctan2(lab_out[:, 2], lab_out[:, 1]))
+    assert np.abs(lab_out[:, 0] - expected_L).max() < 0.05
+    assert np.abs(hue_out - hue_in).max() < 0.2
+    chroma_in, chroma_out = np.hypot(lab_in[1], lab_in[2]), np.hypot(lab_out[:, 1], lab_out[:, 2])
+    assert np.all(np.diff(chroma_out) < -5) and chroma_out[0] == pytest.approx(chroma_in, rel=0.01)
+    # on the gamut's surface: the chroma cannot grow (blue stays at 1, red and green above 0)
+    assert np.all(out.max(axis=2) > 0.999) and out.min() >= 0.0 and out.max() <= 1.0
+    # what clipping each channel does instead (OpenCV's float Lab2RGB): the hue turns by degrees
+    lab_req = np.stack([expected_L, np.full(4, lab_in[1]), np.full(4, lab_in[2])], axis=1)[None].astype(np.float32)
+    clipped = _lab_of_display(cv2.cvtColor(lab_req, cv2.COLOR_Lab2RGB))[0]
+    assert np.abs(np.degrees(np.arctan2(clipped[1:, 2], clipped[1:, 1])) - hue_in).max() > 3.0
+
+
+def test_gamut_mapping_of_a_primary_pushed_outwards_returns_the_primary():
+    """At blue's lightness and hue, the most chroma sRGB can show is blue's own: the cube's corner.
+    Twice that chroma maps back onto (0, 0, 1) exactly (analytic), and a colour inside is unchanged."""
+    lab = cv2.cvtColor(np.array([[[0.0, 0.0, 1.0], [0.3, 0.2, 0.1]]], np.float32), cv2.COLOR_LRGB2Lab)[0]
+    L, a, b = lab[:, 0], lab[:, 1] * np.array([2.0, 1.0], np.float32), lab[:, 2] * np.array([2.0, 1.0], np.float32)
+    assert lab_to_linear_rgb(L[:1], a[:1], b[:1]).min() < -0.05        # really outside
+    out = gamut_map_lab(L, a, b)
+    assert np.allclose(out[0], (0.0, 0.0, 1.0), atol=2e-3)
+    assert np.allclose(out[1], (0.3, 0.2, 0.1), atol=1e-4)
+    assert np.allclose(lab_to_linear_rgb(L, lab[:, 1], lab[:, 2]), [(0.0, 0.0, 1.0), (0.3, 0.2, 0.1)], atol=1e-4)
+
+
+def test_lightness_relief_recomputes_only_what_opencv_clipped():
+    """Colours inside the gamut come out as OpenCV's Lab2RGB draws them; none is left clipped."""
     rng = np.random.default_rng(0)
-    rgb = rng.uniform(-0.3, 1.3, (64, 64, 3)).astype(np.float32)
-    L = rng.uniform(5, 95, (64, 64)).astype(np.float32)
-    out = _into_gamut(rgb, L)
-    inside = (rgb.max(axis=2) <= 1) & (rgb.min(axis=2) >= 0)
-    assert np.array_equal(out[inside], rgb[inside])             # in-gamut colours untouched
-    assert out.min() >= 0 and out.max() <= 1
-    assert not np.array_equal(out[~inside], rgb[~inside])
+    albedo = rng.uniform(0.0, 1.0, (64, 64, 3)).astype(np.float32)
+    relief = rng.uniform(-1.0, 1.0, (64, 64)).astype(np.float32)
+    out = lightness_relief(albedo, relief, strength=0.9)
+    lab = cv2.cvtColor(albedo, cv2.COLOR_LRGB2Lab)
+    L = lab[..., 0]
+    r = relief * 0.9
+    lab[..., 0] = L + r * np.where(r > 0, 100.0 - L, L)
+    exact = lab_to_linear_rgb(lab[..., 0], lab[..., 1], lab[..., 2])
+    inside = ((exact >= 0) & (exact <= 1)).all(axis=2)
+    assert 0.05 < 1 - inside.mean() < 0.95                              # both kinds present
+    assert np.abs(out[inside] - cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)[inside]).max() < 1e-6
+    lab_out = _lab_of_display(out)
+    hue_err = np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(lab_out[..., 2], lab_out[..., 1])
+                                                       - np.arctan2(lab[..., 2], lab[..., 1]))))))
+    # the mapped colours keep their hue (where there is chroma to have one) and lightness
+    chromatic = ~inside & (np.hypot(lab_out[..., 1], lab_out[..., 2]) > 5)
+    assert hue_err[chromatic].max() < 0.2
+    assert np.abs(lab_out[..., 0] - lab[..., 0])[~inside].max() < 0.05

@@ -129,3 +129,32 @@ def test_the_comparison_sees_a_wrong_light(parity_page):
     shader = _shader(page, "lambertian", turned, h, w)
     mad = float(np.abs(shader - offline)[image.mask].mean())
     assert mad > 5 * LIMIT, f"a light turned by 90 degrees differs by only {mad:.2f}/255"
+
+
+@pytest.mark.parametrize("style,extra", [("normal_unsharp", {"colour": True}),
+                                         ("exaggerated", {"colour": True, "strength": 1.0, "exposure": "auto"})])
+def test_the_shader_maps_colours_outside_the_gamut_as_offline(parity_page, style, extra):
+    """Where the colour leaves sRGB's gamut (the face's saturated red lightened or exposed), both
+    keep L* and hue and reduce the chroma (``enhance.gamut_map_lab``), pixel for pixel; clipping
+    each channel instead (OpenCV's float Lab2RGB, what both did before) is far from either."""
+    from unittest import mock
+
+    from common.render import enhance
+
+    page, image, errors = parity_page
+    params = page.evaluate("() => tesseraViewer.info")
+    h, w = image.mask.shape
+    values = _values(page, image, style, extra, params)
+    offline = _offline(image, style, values, params)
+    with mock.patch.object(enhance, "_into_gamut", lambda rgb, lab: rgb):
+        clipped = _offline(image, style, values, params)
+    shader = _shader(page, style, values, h, w)
+    assert not errors, errors
+    mapped = image.mask & (np.abs(offline - clipped).max(axis=2) > 3)
+    assert mapped.mean() > 0.01, f"{style}: only {mapped.mean():.4f} of the face leaves the gamut"
+    to_offline = float(np.abs(shader - offline)[mapped].mean())
+    to_clipped = float(np.abs(shader - clipped)[mapped].mean())
+    print(f"\n{style} {extra}: {mapped.sum()} px mapped into the gamut; mean |shader - offline| there "
+          f"{to_offline:.3f}/255, |shader - clipped| {to_clipped:.3f}/255")
+    assert to_offline <= LIMIT
+    assert to_clipped > 2 * LIMIT

@@ -59,17 +59,31 @@ vec3 linear_to_lab(vec3 c) {
   return vec3(L, 500.0 * (lab_f(X) - fy), 200.0 * (fy - lab_f(Z)));
 }
 float lab_finv(float f) { return f > 0.206893 ? f * f * f : (f - 16.0 / 116.0) / 7.787; }
-// sRGB-encoded and clipped to [0, 1] per channel, as OpenCV's float Lab2RGB does (so the offline
-// enhance._into_gamut finds no colour outside [0, 1] after it: a channel is clipped, as here)
-vec3 lab_to_srgb(vec3 lab) {
+// enhance.lab_to_linear_rgb: CIELAB to linear sRGB with OpenCV's constants, NOT clipped
+vec3 lab_to_linear(vec3 lab) {
   float fy, Y;
   if (lab.x <= 7.9996) { Y = lab.x / 903.3; fy = 7.787 * Y + 16.0 / 116.0; }
   else { fy = (lab.x + 16.0) / 116.0; Y = fy * fy * fy; }
   float X = lab_finv(lab.y / 500.0 + fy) * 0.950456;
   float Z = lab_finv(fy - lab.z / 200.0) * 1.088754;
-  vec3 rgb = vec3( 3.240479 * X - 1.537150 * Y - 0.498535 * Z,
-                  -0.969256 * X + 1.875991 * Y + 0.041556 * Z,
-                   0.055648 * X - 0.204043 * Y + 1.057311 * Z);
+  return vec3( 3.240479 * X - 1.537150 * Y - 0.498535 * Z,
+              -0.969256 * X + 1.875991 * Y + 0.041556 * Z,
+               0.055648 * X - 0.204043 * Y + 1.057311 * Z);
+}
+bool in_gamut(vec3 c, float eps) { return all(greaterThanEqual(c, vec3(-eps))) && all(lessThanEqual(c, vec3(1.0 + eps))); }
+// enhance.gamut_map_lab + _into_gamut: a colour sRGB cannot show keeps its L* and hue, its chroma
+// scaled by the largest s in [0, 1] that fits (GAMUT_STEPS = 16 bisection steps), then sRGB-encoded
+vec3 lab_to_srgb(vec3 lab) {
+  lab.x = clamp(lab.x, 0.0, 100.0);
+  vec3 rgb = lab_to_linear(lab);
+  if (!in_gamut(rgb, 1e-5)) {
+    float lo = 0.0, hi = 1.0;
+    for (int i = 0; i < 16; i++) {
+      float mid = 0.5 * (lo + hi);
+      if (in_gamut(lab_to_linear(vec3(lab.x, mid * lab.yz)), 0.0)) lo = mid; else hi = mid;
+    }
+    rgb = lab_to_linear(vec3(lab.x, lo * lab.yz));
+  }
   return linear_to_srgb(rgb);
 }
 // enhance.lightness_relief: relief in [-1, 1] as a soft-light on L* only; exposure.x < 0 = none
