@@ -5,7 +5,7 @@ What it measures (real processes, the real stages, synthetic fragments from the 
 1. **per-stage latency** with one fragment alone in the station (no queueing: service time plus
    bus overhead) — solver, features, renderer, matcher;
 2. **throughput**: ``--fragments N`` submitted at once to a station with one worker per stage, all
-   pinned to core 0 (``os.sched_setaffinity`` via ``taskset``), then with two workers per stage,
+   pinned to core 0 (``os.sched_setaffinity`` in the child), then with two workers per stage,
    one set per core; fragments per hour end to end, per-fragment end-to-end time, per-stage
    latency under load;
 3. **matching cost vs number of fragments**: the matcher stage's ``handle`` timed in-process as
@@ -22,10 +22,8 @@ import json
 import os
 import platform
 import shutil
-import signal
 import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -97,9 +95,11 @@ def _capture(config, root: Path, n: int) -> tuple[list[dict], float]:
 
 
 class _Station:
-    """Broker + pinned workers over loopback, storage in its own directory."""
+    """Broker + workers over loopback, storage in its own directory; the processes are
+    :class:`services.cli.station.Children` (the station's own spawner), pinned per core."""
 
     def __init__(self, base: Path, source: Path, name: str):
+        from services.cli.station import Children
         self.dir = base / name
         shutil.copytree(source, self.dir / "storage")
         port, feed = _free_port(), _free_port()
@@ -111,28 +111,18 @@ class _Station:
             "[client]", "timeout_s = 5.0", "retries = 3"]) + "\n")
         from common.config import load_config
         self.config = load_config(self.config_path)
-        self.procs: list[subprocess.Popen] = []
+        self.children = Children(["--config", str(self.config_path)], self.dir,
+                                 env=dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1"))
+        #: child name -> what its peak memory is reported under (the stage, or "broker")
+        self.roles: dict[str, str] = {}
 
-    def spawn(self, *args: str, cpu: int | None = None) -> subprocess.Popen:
-        cmd = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())", *args,
-               "--config", str(self.config_path)]
-        if cpu is not None and shutil.which("taskset"):
-            cmd = ["taskset", "-c", str(cpu), *cmd]
-        log = open(self.dir / f"{args[0]}-{args[-1]}-{len(self.procs)}.log", "wb")
-        env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
-        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=self.dir)
-        self.procs.append(p)
-        return p
+    def spawn(self, role: str, *args: str, cpu: int | None = None) -> None:
+        name = f"{role}-{len(self.roles)}"
+        self.children.start(name, *args, cpu=cpu)
+        self.roles[name] = role
 
     def stop(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        self.children.stop(grace_s=20.0)
 
 
 def _rss_mb(pid: int) -> float:
@@ -154,11 +144,11 @@ def _pipeline_run(base: Path, source: Path, name: str, events: list[dict], sets:
     from common.messages import unpack
     st = _Station(base, source, name)
     try:
-        st.spawn("broker", cpu=sets[0])
+        st.spawn("broker", "broker", cpu=sets[0])
         stages = ("solver", "features", "renderer", "matcher")
         for cpu in sets:
             for stage in stages:
-                st.spawn("worker", stage, cpu=cpu)
+                st.spawn(stage, "worker", stage, cpu=cpu)
         with BrokerClient.from_config(st.config) as c:
             deadline = time.monotonic() + 60
             while True:
@@ -191,9 +181,9 @@ def _pipeline_run(base: Path, source: Path, name: str, events: list[dict], sets:
                 s = c.status()
                 if s["completed"] + len(s["parked"]) >= need and not s["in_flight"] and not any(s["queues"].values()):
                     break
-                for p in st.procs:
-                    peak_rss[p.args[-3] if p.args[-3] != "broker" else "broker"] = max(
-                        peak_rss[p.args[-3]], _rss_mb(p.pid))
+                for child, p in st.children.procs.items():
+                    role = st.roles[child]
+                    peak_rss[role] = max(peak_rss[role], _rss_mb(p.pid))
                 if time.time() - t_submit > timeout_s:
                     raise RuntimeError(f"{name}: not done after {timeout_s} s; logs in {st.dir}")
                 time.sleep(0.5)

@@ -56,9 +56,10 @@ def add_parser(sub) -> None:
 class Children:
     """The station's child processes, started and stopped together."""
 
-    def __init__(self, config_args: list[str], log_dir: Path):
+    def __init__(self, config_args: list[str], log_dir: Path, env: dict | None = None):
         self.config_args = config_args
         self.log_dir = log_dir
+        self.env = env  # None: this process's environment
         self.procs: dict[str, subprocess.Popen] = {}
         self.args: dict[str, tuple] = {}
         self.deaths: dict[str, collections.deque] = collections.defaultdict(collections.deque)
@@ -70,14 +71,17 @@ class Children:
         """The command line of a child running ``tessera <args>`` with the station's config."""
         return [sys.executable, "-c", _LAUNCH, *args, *self.config_args]
 
-    def start(self, name: str, *args: str, to_terminal: bool = False) -> subprocess.Popen:
+    def start(self, name: str, *args: str, to_terminal: bool = False, cpu: int | None = None) -> subprocess.Popen:
+        """Start ``tessera <args>`` as child ``name`` (log ``<log_dir>/<name>.log``); ``cpu``: pin it
+        to that core (``tessera perf`` measures one worker set per core)."""
         out = None if to_terminal else open(self.log_dir / f"{name}.log", "ab")
-        p = subprocess.Popen(self.command(*args), stdout=out,
-                             stderr=subprocess.STDOUT if out else None, start_new_session=True)
+        pin = None if cpu is None else (lambda: os.sched_setaffinity(0, {cpu}))
+        p = subprocess.Popen(self.command(*args), stdout=out, stderr=subprocess.STDOUT if out else None,
+                             start_new_session=True, env=self.env, preexec_fn=pin)
         if out is not None:
             out.close()  # the child holds its own descriptor
         self.procs[name] = p
-        self.args[name] = (args, to_terminal)
+        self.args[name] = (args, to_terminal, cpu)
         log.info("started %s (pid %d)%s", name, p.pid, "" if to_terminal else f", log {self.log_dir / (name + '.log')}")
         return p
 
@@ -105,8 +109,8 @@ class Children:
                 print(f"station: {msg}", file=out, flush=True)
             elif now >= self.restart_at[name]:
                 del self.restart_at[name]
-                args, to_terminal = self.args[name]
-                self.start(name, *args, to_terminal=to_terminal)
+                args, to_terminal, cpu = self.args[name]
+                self.start(name, *args, to_terminal=to_terminal, cpu=cpu)
                 self.restarts[name] += 1
 
     def stop(self, grace_s: float = 10.0) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -118,3 +119,23 @@ def test_a_crash_loop_is_reported_with_growing_back_off(tmp_path, monkeypatch):
     text = out.getvalue()
     assert "solver exited with status 3; restarting it in 1 s" in text
     assert "CRASH LOOP: solver died 5 times" in text
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this platform")
+def test_a_pinned_child_runs_on_its_core_and_keeps_it_across_a_restart(tmp_path, monkeypatch):
+    # `tessera perf` pins one worker set per core through the station's own spawner
+    import io
+
+    from services.cli import station
+    kids = station.Children([], tmp_path, env=dict(os.environ, TESSERA_PIN_TEST="1"))
+    script = ("import os, sys; print(sorted(os.sched_getaffinity(0)), os.environ.get('TESSERA_PIN_TEST'), flush=True);"
+              " sys.exit(3)")
+    monkeypatch.setattr(kids, "command", lambda *a: [sys.executable, "-c", script])
+    core = max(os.sched_getaffinity(0))
+    kids.start("solver", "worker", "solver", cpu=core)
+    kids.procs["solver"].wait(10)
+    kids.supervise(0.0, io.StringIO())
+    kids.supervise(kids.restart_at["solver"], io.StringIO())   # restarted with the same pinning
+    kids.procs["solver"].wait(10)
+    lines = (tmp_path / "solver.log").read_text().splitlines()
+    assert lines == [f"[{core}] 1", f"[{core}] 1"]
