@@ -16,34 +16,24 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
-import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import cv2
 import pytest
 
-from .conftest import TOKEN, free_port, wait_for
+from .conftest import TOKEN, free_port
+from .viewer_support import CHROMIUM, CHROMIUM_ARGS, children, require_browser, wait_for_web
 
 pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 DOCS = REPO / "docs" / "web"
 SHOTS: Path | None = None   # set by the ``live`` fixture
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+# the bench and review pages draw no WebGL: no software GL needed
+BENCH_CHROMIUM_ARGS = [*CHROMIUM_ARGS, "--disable-gpu"]
 STAGES = ("solver", "features", "matcher", "renderer")
 MAX_PNG_BYTES = 300_000
-
-
-def _require_browser():
-    if importlib.util.find_spec("playwright") is None:
-        pytest.skip("browser tests need the pip package 'playwright' (pip install playwright)")
-    if not os.path.exists(CHROMIUM):
-        pytest.skip(f"browser tests need Debian's Chromium at {CHROMIUM} (apt-get install -y chromium)")
 
 
 def _shot(page, name: str) -> None:
@@ -137,42 +127,17 @@ long_poll_s = 2.0
         self.config_path = root / "station.toml"
         self.config_path.write_text(text)
         self.config = load_config(self.config_path)
-        self.procs: list[subprocess.Popen] = []
+        self.children = children(self.config_path, root)
         self.url = f"http://127.0.0.1:{self.web_port}"
 
-    def spawn(self, *args: str) -> subprocess.Popen:
-        log = open(self.root / f"{'-'.join(args)}.log", "wb")
-        env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
-        p = subprocess.Popen([sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
-                              *args, "--config", str(self.config_path)], stdout=log, stderr=subprocess.STDOUT,
-                             cwd=self.root, env=env)
-        self.procs.append(p)
-        return p
-
     def start(self) -> None:
-        self.spawn("broker")
+        self.children.start("broker", "broker")
         for stage in ["noop", *self.stages]:
-            self.spawn("worker", stage)
-        web = self.spawn("web")
-
-        def answers():
-            if web.poll() is not None:
-                raise AssertionError(f"tessera web exited: {(self.root / 'web.log').read_text()[-2000:]}")
-            try:
-                return urllib.request.urlopen(self.url + "/status", timeout=2).status == 200
-            except OSError:
-                return False
-        wait_for(answers, 60, "tessera web to answer", interval=0.3)
+            self.children.start(stage, "worker", stage)
+        wait_for_web(self.children.start("web", "web"), self.url, self.root / "web.log")
 
     def stop(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.terminate()
-        for p in self.procs:
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        self.children.stop(grace_s=10.0)
 
     def logs(self) -> str:
         return "\n".join(f"--- {f.name}\n{f.read_text()[-1500:]}" for f in sorted(self.root.glob("*.log")))
@@ -180,7 +145,7 @@ long_poll_s = 2.0
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    _require_browser()
+    require_browser()
     global SHOTS
     station = LiveStation(tmp_path_factory.mktemp("station"))
     SHOTS = DOCS if os.environ.get("TESSERA_WEB_SCREENSHOTS") == "1" else station.root / "screenshots"
@@ -193,11 +158,11 @@ def live(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser():
-    _require_browser()
+    require_browser()
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        b = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
         yield b
         b.close()
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import subprocess
-import sys
 import urllib.request
 from pathlib import Path
 
@@ -75,32 +73,36 @@ port = {self.port}
 token = "{TOKEN}"
 """)
         self.url = f"http://127.0.0.1:{self.port}"
-        self.proc = None
+        self.children = None
 
     def start(self) -> "WebProcess":
-        self.log = open(self.root / "web.log", "wb")
-        env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
-                                      "web", "--no-scanner", "--config", str(self.config)],
-                                     stdout=self.log, stderr=subprocess.STDOUT, cwd=self.root, env=env)
-
-        def answers():
-            if self.proc.poll() is not None:
-                raise AssertionError(f"tessera web exited: {(self.root / 'web.log').read_text()[-2000:]}")
-            try:
-                return urllib.request.urlopen(self.url + "/status", timeout=2).status == 200
-            except OSError:
-                return False
-        wait_for(answers, 60, "tessera web to answer", interval=0.3)
+        self.children = children(self.config, self.root)
+        wait_for_web(self.children.start("web", "web", "--no-scanner"), self.url, self.root / "web.log")
         return self
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
+        if self.children is not None:
+            self.children.stop(grace_s=10.0)
+
+
+def children(config: Path, root: Path):
+    """The station's own spawner (:class:`services.cli.station.Children`) for processes of a test
+    station with this config; logs ``<root>/<name>.log``."""
+    from services.cli.station import Children
+
+    return Children(["--config", str(config)], root, env=dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1"))
+
+
+def wait_for_web(proc, url: str, log: Path, timeout_s: float = 60) -> None:
+    """Wait until ``tessera web`` (process ``proc``) answers ``/status``; its log if it exits first."""
+    def answers():
+        if proc.poll() is not None:
+            raise AssertionError(f"tessera web exited: {log.read_text()[-2000:]}")
+        try:
+            return urllib.request.urlopen(url + "/status", timeout=2).status == 200
+        except OSError:
+            return False
+    wait_for(answers, timeout_s, "tessera web to answer", interval=0.3)
 
 
 def open_viewer(page, url: str, timeout_ms: int = 60_000) -> None:
