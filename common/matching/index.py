@@ -46,8 +46,10 @@ from scipy.spatial import cKDTree
 
 from common.features.boundary import boundary_channel_names
 from common.matching.alignment import Alignment, align_fragments
-from common.matching.docking import (DOCK_HUB_TOP, Docking, dock_outlines, docking_contact_mm, hub_corrected,
-                                     invert_docking, paint_from_profile)
+from collections import OrderedDict
+
+from common.matching.docking import (DOCK_HUB_TOP, Docking, DockingFrame, dock_frames, docking_contact_mm,
+                                     hub_corrected, invert_docking, paint_from_profile)
 from common.matching.models import MatchModel
 from common.matching.pairs import FragmentCues, _columnwise, _descs, strip_gap
 from common.matching.ribbon import (RIBBON_WINDOW_MM, prepare_ribbon, ribbon_population, ribbon_probability,
@@ -66,6 +68,12 @@ DOCK_KEEPS_EARLIER_EVIDENCE = True
 #: stage 3 adds the pair's paint continuity (best over the docking's candidate poses) to the join's
 #: logit (:func:`common.matching.paint.with_paint`), where both fragments have a boundary profile
 DOCK_USES_PAINT = True
+#: with paint, a pair's one docking keeps this many candidate poses (this many per rotation): its best is the
+#: pair's pose, and the paint continuity is the best over all of them (paint.paint_pair_mm)
+DOCK_PAINT_POSES, DOCK_PAINT_PER_ANGLE = 30, 3
+#: docking frames (docking.DockingFrame: a fragment's maps and spectra at every rotation, which serve all
+#: its partners) are kept for the most recently docked fragments, within this many MB
+DOCK_FRAMES_MB = 512
 
 
 @dataclass
@@ -122,6 +130,8 @@ class MatchIndex:
         self._paint_fields: dict = {}
         #: paint continuity by unordered pair, mm (model-independent, like the dockings)
         self._paint_pairs: dict[tuple[str, str], float] = {}
+        #: fragment → its docking frame, least recently used first (bounded by DOCK_FRAMES_MB)
+        self._frames: OrderedDict[str, DockingFrame] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self._order)
@@ -139,6 +149,7 @@ class MatchIndex:
         """
         if contour_mm is not None:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
+            self._frames.pop(cues.fragment, None)
         self.profiles.pop(cues.fragment, None)
         self.paint.pop(cues.fragment, None)
         self._raw_profiles.pop(cues.fragment, None)
@@ -399,6 +410,7 @@ class MatchIndex:
 
     def _forget_dockings(self, fragment: str) -> None:
         self.dock_hubness.pop(fragment, None)
+        self._frames.pop(fragment, None)
         for key in [k for k in self._dockings if fragment in k]:
             del self._dockings[key]
         for key in [k for k in self._paint_pairs if fragment in k]:
@@ -406,33 +418,71 @@ class MatchIndex:
 
     def paint_pair(self, fragment: str, other: str) -> float:
         """Paint continuing across the crack between two fragments, mm (cached per pair): the best
-        :func:`~common.matching.paint.paint_continuity` over the docking's candidate poses
+        :func:`~common.matching.paint.paint_continuity` over the pair's docking's candidate poses
         (:func:`~common.matching.paint.paint_pair_mm`); NaN when either has no outline or profile."""
-        from common.matching.paint import paint_field_from_profile, paint_pair_mm
-
         key = (fragment, other) if fragment < other else (other, fragment)
-        if key in self._paint_pairs:
-            return self._paint_pairs[key]
-        if not all(f in self._raw_profiles and f in self.contours for f in key):
-            return float("nan")
-        for f in key:
-            if f not in self._paint_fields:
-                self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
-        mm, _ = paint_pair_mm(self._paint_fields[key[0]], self._paint_fields[key[1]], self.contours[key[0]],
-                              self.contours[key[1]])
-        self._paint_pairs[key] = float(mm)
-        return float(mm)
+        if key not in self._paint_pairs:
+            if not all(f in self._raw_profiles and f in self.contours for f in key):
+                return float("nan")
+            self._dock_pair(key, paint=True)
+        return self._paint_pairs[key]
 
     def docking(self, fragment: str, other: str) -> Docking:
         """``other`` docked against ``fragment`` (pose of ``other`` in ``fragment``'s frame), cached."""
         key = (fragment, other) if fragment < other else (other, fragment)
-        d = self._dockings.get(key)
-        if d is None:
-            # paint carried across the gap where both fragments have a boundary profile
-            d = dock_outlines(self.contours[key[0]], self.contours[key[1]], paint_a=self.paint.get(key[0]),
-                              paint_b=self.paint.get(key[1]), n_poses=1)[0]
-            self._dockings[key] = d
+        if key not in self._dockings:
+            self._dock_pair(key, paint=DOCK_USES_PAINT and all(f in self._raw_profiles for f in key))
+        d = self._dockings[key]
         return d if key[0] == fragment else invert_docking(d)
+
+    def _frame(self, fragment: str) -> DockingFrame:
+        """The fragment's docking frame (kept: its maps and spectra serve all its partners)."""
+        frame = self._frames.pop(fragment, None)
+        if frame is None:
+            frame = DockingFrame(self.contours[fragment])
+        self._frames[fragment] = frame   # most recently used last
+        return frame
+
+    def _dock_pairs(self, fragment: str, others) -> None:
+        """Dock ``fragment`` with each of ``others`` not docked yet, in order of FFT size, so that a turned
+        fragment's spectra (:class:`~common.matching.docking.DockingFrame`) are computed once per size."""
+        keys = {(fragment, o) if fragment < o else (o, fragment) for o in others if o in self.contours}
+        keys = [k for k in keys if k not in self._dockings or
+                (DOCK_USES_PAINT and k not in self._paint_pairs and all(f in self._raw_profiles for f in k))]
+        for k in sorted(keys, key=lambda k: (self._frame(k[0]).fft_size(self._frame(k[1])), k)):
+            if k not in self._dockings:
+                self.docking(*k)
+            if DOCK_USES_PAINT:
+                self.paint_pair(*k)
+
+    def _dock_pair(self, key: tuple[str, str], paint: bool) -> None:
+        """Dock a pair once (the second of ``key`` turned against the first) and cache what it gives: the
+        pose (the best docking), and with ``paint`` also the paint continuity over the same docking's
+        :data:`DOCK_PAINT_POSES` candidate poses — one search for both. Without paint the docking is
+        coarse to fine (a single pose)."""
+        frames = self._frame(key[0]), self._frame(key[1])
+        # paint carried across the gap inside the FFT where both have a boundary profile (off by default)
+        kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
+        if paint:
+            from common.matching.paint import paint_field_from_profile, paint_pair_mm
+
+            docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE, **kw)
+            for f in key:
+                if f not in self._paint_fields:
+                    self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
+            mm, _ = paint_pair_mm(self._paint_fields[key[0]], self._paint_fields[key[1]], self.contours[key[0]],
+                                  self.contours[key[1]], docks=docks)
+            self._paint_pairs[key] = float(mm)
+            self._dockings.setdefault(key, docks[0])
+        else:
+            self._dockings[key] = dock_frames(*frames, n_poses=1, **kw)[0]
+        # the frames of the least recently docked fragments go first when over budget (never these two)
+        budget = DOCK_FRAMES_MB * 2 ** 20
+        held = sum(f.nbytes for f in self._frames.values())
+        for f in list(self._frames)[:-2]:
+            if held <= budget:
+                break
+            held -= self._frames.pop(f).nbytes
 
     def uses_docking(self, fragment: str, model: MatchModel) -> bool:
         """Whether stage 3 docks this fragment's candidates (an outline and a calibrated model)."""
@@ -449,6 +499,7 @@ class MatchIndex:
             return ranked
         docked = {id(c) for c in head}
         tail = [c for c in ranked if id(c) not in docked]
+        self._dock_pairs(fragment, [c.other for c in head])
         contact = np.array([docking_contact_mm(self.docking(fragment, c.other)) for c in head])
         if len(head) >= DOCK_HUB_TOP:
             self.dock_hubness[fragment] = float(np.sort(contact)[-DOCK_HUB_TOP:].mean())

@@ -494,7 +494,7 @@ PAINT_PAIR_WEIGHT = 8.0
 
 
 def paint_pair_mm(field_a: PaintField, field_b: PaintField, contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *,
-                  n_poses: int = 30, per_angle: int = 3) -> tuple[float, tuple]:
+                  n_poses: int = 30, per_angle: int = 3, docks=None) -> tuple[float, tuple]:
     """A pair's paint evidence: the best :func:`paint_continuity` over the docking's candidate poses.
 
     Whether two fragments are neighbours at all (not which pose): on real frescoes the paint tells
@@ -509,6 +509,9 @@ def paint_pair_mm(field_a: PaintField, field_b: PaintField, contour_a_mm: np.nda
         Their outlines in the same frames (``FeatureTable.contour_mm``).
     n_poses, per_angle : int
         Candidate poses of :func:`common.matching.docking.dock_outlines`.
+    docks : list of Docking, optional
+        The pair's docking already done (B in A's frame, e.g. by the index's stage 3, whose best is the
+        pair's pose): its poses are the candidates, and the contours are not docked again.
 
     Returns
     -------
@@ -519,7 +522,10 @@ def paint_pair_mm(field_a: PaintField, field_b: PaintField, contour_a_mm: np.nda
     """
     from common.matching.docking import dock_outlines
 
-    docks = dock_outlines(contour_a_mm, contour_b_mm, n_poses=n_poses, per_angle=per_angle)
+    if docks is None:
+        docks = dock_outlines(contour_a_mm, contour_b_mm, n_poses=n_poses, per_angle=per_angle)
+    if not len(docks):
+        raise ValueError("docks must hold at least one candidate pose")
     poses = np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float)
     scores = paint_continuity(field_a, field_b, poses)
     i = int(np.argmax(scores))
