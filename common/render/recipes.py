@@ -153,9 +153,21 @@ def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exp
 
 
 def _smoothed(image: RGBNImage, sigma_px: float) -> np.ndarray:
+    """The normals smoothed at ``sigma_px`` (:func:`common.rgbn.smoothing.smooth_normals`). In a
+    recipe of several layers each scale is computed once and shared (exaggerated shading's finest
+    level is the noise scale that discontinuity lines and the lit styles smooth at); a single
+    layer keeps nothing, so its memory is not raised."""
     from common.rgbn.smoothing import smooth_normals
 
-    return smooth_normals(image.normals, sigma_px, mask=image.mask) if sigma_px > 0 else image.normals
+    if not sigma_px > 0:
+        return image.normals
+    k = ("smoothed", id(image.normals), image.shape, float(sigma_px))
+    if k in _cache:
+        return _cache[k]
+    out = smooth_normals(image.normals, sigma_px, mask=image.mask)
+    if _cache.get("share_smoothed"):
+        _cache[k] = out
+    return out
 
 
 def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
@@ -281,9 +293,10 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
 
 def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r):
     s0 = _noise_px(image, sigma0_px, r, "sigma0_px")
+    shared = _smoothed(image, s0) if _cache.get("share_smoothed") and s0 > 0 else None
     return _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=s0,
                                         sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
-                                        base_weight=base_weight,
+                                        base_weight=base_weight, finest=shared,
                                         origin=image.attrs.get("tile_origin", (0, 0))) - np.float32(0.5)
 
 
@@ -877,6 +890,8 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
     canvas[:] = np.asarray(recipe.background, np.float32)
     cover = np.zeros(image.shape, np.float32)
     chosen = []
+    # layers share the normals they smooth at the same scale (kept for this drawing only)
+    _cache["share_smoothed"] = len(layers) > 1
     for i, layer in enumerate(layers):
         if progress:
             progress(i / len(layers), f"drawing {layer['style']}")

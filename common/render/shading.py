@@ -217,7 +217,8 @@ def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None
 def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray | None = None,
                         scales: int = 8, sigma0_px: float = 1.0, sigma_ratio: float = 2.0,
                         contrast: float = 10.0, detail: float = 0.5, base_weight: float = 0.3,
-                        foreshortening: bool = True, origin=(0, 0), coarse: bool = True) -> np.ndarray:
+                        foreshortening: bool = True, origin=(0, 0), coarse: bool = True,
+                        finest: np.ndarray | None = None) -> np.ndarray:
     """Exaggerated shading (Rusinkiewicz, Burns & DeCarlo 2006) of a normal map (§7.3.5).
 
     With normals ``n_i`` smoothed at ``sigma_i = sigma0 * ratio^i`` (i = 0..scales, the last one
@@ -257,6 +258,10 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
         Draw the pairs of levels whose finer sigma is >= 4 px on grids 2, 4, … times coarser
         (default; within 1/255 of the full-resolution result at a half to a third of its cost).
         False computes every level at full resolution (the reference).
+    finest : (H, W, 3) float, optional
+        The normals already smoothed at ``sigma0_px`` (:func:`common.rgbn.smoothing.smooth_normals`
+        with the same mask and ``foreshortening``): a recipe computes them once for all its layers.
+        None computes them here.
 
     Returns
     -------
@@ -301,8 +306,13 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
     # each level is smoothed once, on its own grid (the finest ones at full resolution, walked
     # from fine to coarse so that only two are alive at 16 Mpx); a pair's coarser level is
     # brought to the finer one's grid by bilinear interpolation and renormalised
-    full = iter_scale_space(normals, [s for s, f in zip(sigmas, grids) if f == 1], mask=mask,
-                            foreshortening=foreshortening)
+    full_sigmas = [s for s, f in zip(sigmas, grids) if f == 1]
+    if finest is not None and full_sigmas:
+        if np.shape(finest) != normals.shape:
+            raise ValueError(f"finest must be {normals.shape}, got {np.shape(finest)}")
+        full = _chain(finest, iter_scale_space(normals, full_sigmas[1:], mask=mask, foreshortening=foreshortening))
+    else:
+        full = iter_scale_space(normals, full_sigmas, mask=mask, foreshortening=foreshortening)
     pyramid = None
     acc: dict = {}
     prev = None
@@ -336,6 +346,15 @@ def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a
     c = dot_light(n_fine, l) - lc * np.einsum("...i,...i->...", n_fine, n_coarse)
     c /= np.sqrt(np.maximum(1.0 - lc * lc, 1e-8))
     return np.clip(a * c, -1.0, 1.0)
+
+
+def _chain(first, rest):
+    """``first``, then what the generator ``rest`` yields (closing this closes ``rest``)."""
+    try:
+        yield first
+        yield from rest
+    finally:
+        rest.close()
 
 
 def _coarse_factor(sigma_px: float, h: int, w: int, enabled: bool = True) -> int:

@@ -289,36 +289,74 @@ def _segment_superpixels(window, shape, *, scale: float, min_size: int, superpix
     ea, eb = codes // k, codes % k
     weight = np.sqrt(((means[ea] - means[eb]) ** 2).sum(axis=1))
     order = np.argsort(weight, kind="stable")
-    ea, eb, weight = ea[order].tolist(), eb[order].tolist(), weight[order].tolist()
-    parent = list(range(k))
-    size = area.tolist()
-    internal = spread.tolist()
-    tau = float(scale) / 255.0  # as scikit-image (and the reference code on 8-bit images)
-
-    def find(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for a, b, wt in zip(ea, eb, weight):
-        ra, rb = find(a), find(b)
-        if ra != rb and wt <= min(internal[ra] + tau / size[ra], internal[rb] + tau / size[rb]):
-            parent[rb] = ra
-            size[ra] += size[rb]
-            internal[ra] = max(wt, internal[ra], internal[rb])
-    for a, b in zip(ea, eb):
-        ra, rb = find(a), find(b)
-        if ra != rb and (size[ra] < min_size or size[rb] < min_size):
-            parent[rb] = ra
-            size[ra] += size[rb]
-    root = np.array([find(i) for i in range(k)], np.int64)
+    ea, eb = ea[order], eb[order]
+    root = _felzenszwalb_merge(ea, eb, weight[order], area, spread, float(scale) / 255.0, int(min_size))
     # number the segments by decreasing area on the superpixels, then one gather over the image
     seg = _relabel_by_area(root, np.ones(k, bool), weights=area)
     for r0 in range(0, h, tile):   # in place, strip by strip
         strip = sp[r0:r0 + tile]
         strip[...] = np.where(strip >= 0, seg[np.maximum(strip, 0)], -1)
     return sp
+
+
+def _felzenszwalb_merge(ea: np.ndarray, eb: np.ndarray, weight: np.ndarray, area: np.ndarray,
+                        spread: np.ndarray, tau: float, min_size: int) -> np.ndarray:
+    """Felzenszwalb-Huttenlocher merging of a region graph: edges ``(ea[i], eb[i])`` in increasing
+    ``weight`` join two components when ``weight <= min(Int(C) + tau / |C|)`` over both (Int
+    starting at ``spread``, |C| at ``area``), then components under ``min_size`` join a neighbour;
+    returns each node's component root.
+
+    The merge is sequential (each decision depends on the earlier ones), so it runs as a Python
+    loop over the edges; what is not sequential is done in numpy: the minimum-size pass visits only
+    the edges with an end in a component still under ``min_size`` after the first pass (an edge
+    between two components of at least ``min_size`` can never join them, and components only grow),
+    and the roots are found by pointer jumping over the whole parent array.
+
+    References
+    ----------
+    P. F. Felzenszwalb, D. P. Huttenlocher, "Efficient graph-based image segmentation", IJCV 59(2),
+    2004, §4 (the criterion) and §5 (the minimum size).
+    """
+    k = area.shape[0]
+    parent = list(range(k))
+    size = area.tolist()
+    thresh = (spread + tau / np.maximum(area, 1e-12)).tolist()   # Int(C) + tau / |C|, per root
+    internal = spread.tolist()
+    for a, b, wt in zip(ea.tolist(), eb.tolist(), weight.tolist()):
+        # find with path halving, inlined (a function call per lookup costs as much as the rest)
+        while parent[a] != a:
+            parent[a] = a = parent[parent[a]]
+        while parent[b] != b:
+            parent[b] = b = parent[parent[b]]
+        if a != b and wt <= thresh[a] and wt <= thresh[b]:
+            parent[b] = a
+            size[a] += size[b]
+            internal[a] = i = max(wt, internal[a], internal[b])
+            thresh[a] = i + tau / size[a]
+    root = _roots(np.asarray(parent, np.int64))
+    small = np.asarray(size)[root] < min_size
+    keep = small[ea] | small[eb]
+    if keep.any():
+        parent = root.tolist()   # already flat: every node points at its root
+        for a, b in zip(ea[keep].tolist(), eb[keep].tolist()):
+            while parent[a] != a:
+                parent[a] = a = parent[parent[a]]
+            while parent[b] != b:
+                parent[b] = b = parent[parent[b]]
+            if a != b and (size[a] < min_size or size[b] < min_size):
+                parent[b] = a
+                size[a] += size[b]
+        root = _roots(np.asarray(parent, np.int64))
+    return root
+
+
+def _roots(parent: np.ndarray) -> np.ndarray:
+    """The root of every node of a union-find forest, by pointer jumping (log depth passes)."""
+    while True:
+        up = parent[parent]
+        if np.array_equal(up, parent):
+            return parent
+        parent = up
 
 
 def _segment_downsampled(albedo, normals, mask, shape, *, max_megapixels, **kw):

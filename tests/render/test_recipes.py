@@ -209,3 +209,42 @@ def test_segment_boundaries_as_a_style_brings_its_own_segmentation(fragment):
     assert recipe.segmentation is not None
     out = render(fragment, recipe)
     assert out.rgb.shape == (72, 72, 3) and np.isfinite(out.rgb).all()
+
+
+def test_layers_sharing_smoothed_normals_draw_what_each_draws_alone(fragment):
+    """In a recipe the layers share the normals smoothed at one scale (exaggerated's finest level,
+    discontinuity lines at the noise scale): the picture is the layers drawn one by one, each
+    smoothing for itself, composed; and the smoothing runs once."""
+    import common.rgbn.smoothing as smoothing
+    from common.render import recipes
+
+    text = """
+name = "shared"
+[[layer]]
+style = "exaggerated"
+[[layer]]
+style = "discontinuity_lines"
+"""
+    from common.render import shading
+
+    sigmas = []
+    real = smoothing.iter_scale_space
+
+    def counted(normals, sigmas_px, **k):
+        sigmas_px = list(sigmas_px)
+        sigmas.extend(sigmas_px)
+        return real(normals, sigmas_px, **k)
+
+    smoothing.iter_scale_space = shading.iter_scale_space = counted
+    try:
+        both = render(fragment, parse_recipe(text))
+    finally:
+        smoothing.iter_scale_space = shading.iter_scale_space = real
+    s0 = both.resolved[0]["sigma0_px"]
+    assert s0 == both.resolved[1]["sigma_px"] > 0          # one scale for both layers
+    assert sigmas.count(s0) == 1                            # smoothed at it once, not once per layer
+    canvas = np.ones((72, 72, 3), np.float32)
+    for style in ("exaggerated", "discontinuity_lines"):
+        layer = STYLES[style].draw(fragment)                                 # alone: nothing shared
+        canvas = recipes._blend(canvas, layer.rgb, layer.alpha.astype(np.float32), "normal")
+    assert np.abs(both.rgb - np.clip(canvas, 0, 1)).max() < 1e-6

@@ -177,3 +177,15 @@ def test_nearest_colours_is_the_argmin_of_the_distances_and_keeps_the_background
     expect = np.where(mask[..., None], centres[np.argmin(d, axis=2)], colours)
     assert np.array_equal(out, expect)
     assert np.array_equal(out[0, :4][mask[0, :4]], np.tile(centres[0], (int(mask[0, :4].sum()), 1)))
+
+
+def test_exaggerated_with_its_finest_level_given_draws_the_same():
+    """A recipe hands exaggerated shading the normals it already smoothed at sigma0: same picture."""
+    from common.rgbn.smoothing import smooth_normals
+
+    n, mask = _rough_relief()
+    own = exaggerated_shading(n, mask=mask, sigma0_px=1.5, scales=6)
+    given = exaggerated_shading(n, mask=mask, sigma0_px=1.5, scales=6, finest=smooth_normals(n, 1.5, mask=mask))
+    assert np.array_equal(own, given)
+    with pytest.raises(ValueError, match="finest"):
+        exaggerated_shading(n, mask=mask, sigma0_px=1.5, finest=n[1:])
