@@ -1,0 +1,108 @@
+"""The relative pose of a proposed join: the docking's candidate poses re-ranked by geometry and paint.
+
+Stage 3 docks two fragment outlines (:func:`common.matching.docking.dock_outlines`) and keeps the
+best few local maxima of the correlation as *candidate poses*. On real broken frescoes the
+geometric score alone prefers a wrong candidate: material lost along the crack erodes the
+outlines smooth, so two pieces face each other along *more* outline at a wrong pose than at the
+true one (17 of 21 RePAIR pairs, 73 of 80 synthetic pairs; docs/matching.md, "Why the true pose
+scores low"). Paint that continues across the crack (:func:`common.matching.paint.paint_continuity`)
+is evidence the geometry does not have, so the pose of a pair is the candidate with the best
+
+    score_mm = contact_mm + weight × paint_mm
+
+``contact_mm`` the docking's geometric score as millimetres of shared crack
+(:func:`~common.matching.docking.docking_contact_mm`) and ``paint_mm`` the paint evidence at that
+candidate (millimetres of crack with paint continuing; ≈ 0 for plain plaster, so a plain crack
+keeps the geometric choice). This is the hybrid (geometric + pictorial) pairwise alignment of
+Shahar, Elkin & Ben-Shahar (2025) restricted to the docking's candidates. The weight
+(:data:`POSE_PAINT_WEIGHT`) was chosen on realistic synthetic walls that the figures are not
+measured on (``tests/bench/bench_pose.py``), never on the real collections.
+
+What was tried and measured not to help (docs/matching.md, "Poses that fit"): a gap-tolerant
+point-to-curve refinement of the chosen candidate (it slides the piece along the crack: geometry
+prefers wrong poses locally too), a local search of the paint alone around it, and choosing each
+pair's pose so that no stretch of outline faces two partners within an object (even among true
+pairs only).
+
+The pose convention is the docking's: fragment-frame millimetres (x right, y down) and
+``p_a = R(angle_deg) @ p_b + (tx_mm, ty_mm)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from common.matching.docking import DOCK_CELL_MM, Docking, docking_contact_mm
+
+#: weight of a candidate's paint evidence (mm of crack with continuing paint) against its geometric
+#: contact (mm of shared crack) when choosing a pair's pose among the docking's candidates; chosen on
+#: realistic synthetic walls (``generate_wall(16, seed 31–36, preset="pompeii")``, pose accuracy within
+#: 5° and 5 mm of their true pairs' 30 candidates: ``python tests/bench/bench_pose.py``), not on the
+#: walls or collections the figures in docs/matching.md are measured on
+POSE_PAINT_WEIGHT = 6.0
+
+
+def pose_scores(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
+                cell_mm: float = DOCK_CELL_MM) -> np.ndarray:
+    """Score of each candidate pose of a pair: geometric contact plus weighted paint evidence, mm.
+
+    Parameters
+    ----------
+    dockings : sequence of Docking
+        The pair's candidate poses (B in A's frame), e.g. ``dock_outlines(..., n_poses=30, per_angle=3)``.
+    paint_mm : (N,) array_like
+        Paint evidence at each candidate, mm of crack
+        (:func:`common.matching.paint.paint_continuity` of the two fragments' paint fields at the
+        candidates' ``(angle_deg, tx_mm, ty_mm)``); NaN counts as no evidence (0).
+    weight : float
+        Millimetres of contact one millimetre of continuing paint is worth (>= 0; 0: geometry alone).
+    cell_mm : float
+        Cell of the docking that produced the candidates (its score is in cells).
+
+    Returns
+    -------
+    (N,) float
+        ``contact_mm + weight × paint_mm`` for each candidate.
+
+    Examples
+    --------
+    >>> from common.matching.docking import Docking
+    >>> d = [Docking(0, 0, 0, 60.0, 45, 0), Docking(90, 5, 0, 50.0, 37.5, 0)]
+    >>> pose_scores(d, [0.0, 4.0], weight=2.0).round(1).tolist()      # 45 mm; 37.5 + 2 × 4 mm
+    [45.0, 45.5]
+    """
+    docks = list(dockings)
+    paint = np.asarray(paint_mm, float).reshape(-1)
+    if not docks:
+        raise ValueError("dockings is empty: a pair needs at least one candidate pose")
+    if len(paint) != len(docks):
+        raise ValueError(f"paint_mm has {len(paint)} values for {len(docks)} candidate poses")
+    if not (np.isfinite(weight) and weight >= 0):
+        raise ValueError(f"weight must be finite and >= 0, got {weight}")
+    if not cell_mm > 0:
+        raise ValueError(f"cell_mm must be positive, got {cell_mm}")
+    contact = np.array([docking_contact_mm(d, cell_mm) for d in docks], float)
+    return contact + weight * np.nan_to_num(paint, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
+                cell_mm: float = DOCK_CELL_MM) -> Docking:
+    """The pair's pose: the candidate with the best :func:`pose_scores` (the first on a tie).
+
+    The returned :class:`~common.matching.docking.Docking` is the candidate itself (its own
+    geometric score, contact and overlap), so a ranking that uses the docking's best contact as a
+    pair's evidence is unchanged by which pose is proposed.
+
+    Examples
+    --------
+    >>> from common.matching.docking import Docking
+    >>> d = [Docking(0, 0, 0, 60.0, 45, 0), Docking(90, 5, 0, 50.0, 37.5, 0)]
+    >>> choose_pose(d, [0.0, 4.0], weight=2.0).angle_deg                  # paint tips it
+    90
+    >>> choose_pose(d, [0.0, 4.0], weight=0.0).angle_deg                  # geometry alone
+    0
+    """
+    docks = list(dockings)
+    return docks[int(np.argmax(pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm)))]

@@ -1,0 +1,139 @@
+"""Pose accuracy of the proposed joins: the docking's candidate poses chosen by geometry and paint (issue 15).
+
+    python tests/bench/bench_pose.py [--collection ../shared/data/repair-dev] [--dpi 150]
+                                     [--train 31-36] [--test 21-23] [--weights 0,0.5,1,2,3,4,6,8]
+
+For every true neighbour pair of realistic synthetic walls (``generate_wall(16, seed, dpi=40,
+preset="pompeii")``, the generator's ground truth) and of a placed collection (RePAIR), the pair is
+docked as the station's stage 3 docks it (``dock_outlines(..., n_poses=30, per_angle=3)``: the
+candidate poses of ``index.DOCK_PAINT_POSES``), the paint continuity of each candidate is scored from
+the stored outline and boundary profile (``paint_field_from_profile``, ``paint_continuity``), and the
+pose is chosen by :func:`common.matching.pose.choose_pose` at each ``--weights`` value. It prints the
+pose accuracy (share of true pairs whose chosen pose is within 5° and 5 mm of the truth, at B's centre)
+per weight on the training walls (the weight is chosen there: best mean, ties to the smaller
+weight), the test walls and the collection, the ceiling (a candidate within 5°/5 mm exists), and
+the CPU per pair of the docking and of the paint scores. Figures in docs/matching.md ("Poses that fit").
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from common.matching.alignment import pose_matrix  # noqa: E402
+from common.matching.collection import relative_pose_error  # noqa: E402
+from common.matching.docking import dock_outlines  # noqa: E402
+from common.matching.paint import paint_continuity, paint_field_from_profile  # noqa: E402
+from common.matching.pose import POSE_PAINT_WEIGHT, choose_pose  # noqa: E402
+
+N_POSES, PER_ANGLE = 30, 3
+
+
+def seeds(text: str) -> list[int]:
+    if not text:
+        return []
+    if "-" in text:
+        lo, hi = (int(v) for v in text.split("-"))
+        return list(range(lo, hi + 1))
+    return [int(v) for v in text.split(",")]
+
+
+def wall_pairs(wall) -> tuple[list[dict], float, float]:
+    """Every true pair's candidates, paint scores and pose errors; (pairs, docking CPU s, paint CPU s)."""
+    from common.matching.online import wall_cues
+
+    tables, _, poses = wall_cues(wall)
+    ok = {k for k, t in tables.items() if poses.get(k) is not None and len(t.contour_mm) > 3}
+    fields, out, cpu_dock, cpu_paint = {}, [], 0.0, 0.0
+    for a, b, *_ in wall.adjacency:
+        if a not in ok or b not in ok:
+            continue
+        ca, cb = tables[a].contour_mm, tables[b].contour_mm
+        c0 = time.process_time()
+        docks = dock_outlines(ca, cb, n_poses=N_POSES, per_angle=PER_ANGLE)
+        c1 = time.process_time()
+        for f in (a, b):
+            if f not in fields:
+                fields[f] = paint_field_from_profile(tables[f].contour_mm, tables[f].boundary_profile)
+        paint = paint_continuity(fields[a], fields[b], np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks]))
+        c2 = time.process_time()
+        cpu_dock, cpu_paint = cpu_dock + c1 - c0, cpu_paint + c2 - c1
+        err = np.array([relative_pose_error(poses[a], poses[b], (d.angle_deg, d.tx_mm, d.ty_mm), cb.mean(axis=0))
+                        for d in docks])
+        out.append({"docks": docks, "paint": paint, "err": err})
+    return out, cpu_dock, cpu_paint
+
+
+def accuracy(pairs: list[dict], weight: float) -> float:
+    hits = 0
+    for p in pairs:
+        chosen = choose_pose(p["docks"], p["paint"], weight=weight)
+        e = p["err"][p["docks"].index(chosen)]
+        hits += bool(e[0] <= 5 and e[1] <= 5)
+    return hits / len(pairs) if pairs else float("nan")
+
+
+def ceiling(pairs: list[dict]) -> float:
+    return float(np.mean([np.any((p["err"][:, 0] <= 5) & (p["err"][:, 1] <= 5)) for p in pairs]))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--collection", default="../shared/data/repair-dev")
+    p.add_argument("--dpi", type=float, default=150.0)
+    p.add_argument("--train", default="31-36", help="training wall seeds (the weight is chosen on these)")
+    p.add_argument("--test", default="21-23", help="test wall seeds")
+    p.add_argument("--weights", default="0,0.5,1,2,3,4,6,8")
+    args = p.parse_args(argv)
+    from common.synth.wall import generate_wall
+
+    weights = [float(w) for w in args.weights.split(",")]
+    t0, c0 = time.time(), time.process_time()
+    sets: dict[str, list] = {}
+    costs = []
+    for role, ss in (("train", seeds(args.train)), ("test", seeds(args.test))):
+        for s in ss:
+            wall = generate_wall(16, seed=s, dpi=40, preset="pompeii", colour_only=True)
+            pairs, cd, cp = wall_pairs(wall)
+            sets[f"{role} {s}"] = pairs
+            costs.append((f"synthetic {s}", len(pairs), cd, cp))
+    if args.collection and Path(args.collection).is_dir():
+        from common.matching.collection import collection_wall
+
+        pairs, cd, cp = wall_pairs(collection_wall(args.collection, dpi=args.dpi))
+        sets["collection"] = pairs
+        costs.append((args.collection, len(pairs), cd, cp))
+    elif args.collection:
+        print(f"{args.collection}: no such directory, skipped")
+
+    names = list(sets)
+    print(f"\npose accuracy (5°, 5 mm) of the chosen candidate, {N_POSES} candidates ({PER_ANGLE} per rotation)")
+    print(f"{'weight':>7s} " + " ".join(f"{n:>11s}" for n in names) + f" {'train mean':>10s} {'test mean':>9s}")
+    table = {}
+    for w in weights:
+        acc = {n: accuracy(sets[n], w) for n in names}
+        table[w] = acc
+        tr = [acc[n] for n in names if n.startswith("train")]
+        te = [acc[n] for n in names if n.startswith("test")]
+        print(f"{w:7.2f} " + " ".join(f"{acc[n]:11.3f}" for n in names) +
+              f" {np.mean(tr) if tr else float('nan'):10.3f} {np.mean(te) if te else float('nan'):9.3f}")
+    print(f"{'ceiling':>7s} " + " ".join(f"{ceiling(sets[n]):11.3f}" for n in names))
+    train = [n for n in names if n.startswith("train")]
+    if train:
+        best = max(weights, key=lambda w: (round(float(np.mean([table[w][n] for n in train])), 9), -w))
+        print(f"\nweight chosen on the training walls: {best:g} (pose.POSE_PAINT_WEIGHT = {POSE_PAINT_WEIGHT:g})")
+    print("\nCPU per pair: " + "; ".join(f"{n} ({k} pairs): docking {cd / max(k, 1) * 1e3:.0f} ms, "
+                                         f"paint of {N_POSES} candidates {cp / max(k, 1) * 1e3:.0f} ms"
+                                         for n, k, cd, cp in costs))
+    print(f"{time.time() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,124 @@
+"""A pair's pose chosen among the docking's candidates by geometry and paint (common/matching/pose.py).
+
+Analytic case: a plaster slab cut straight through with 3 mm of material lost; A is left of the cut,
+B right of it, both rectangles as tall as the slab. B fits as well turned over (180°) and against A's
+other long side, so the outline alone cannot place it; a red band crossing the cut at a slant
+continues from A into B only at the true pose.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from common.matching.docking import Docking, dock_outlines, docking_contact_mm
+from common.matching.paint import paint_continuity, paint_field
+from common.matching.pose import choose_pose, pose_scores
+
+PX_MM = 0.25
+PLASTER = (0.74, 0.70, 0.62)
+RED = (0.55, 0.12, 0.08)
+
+
+def _contour_mm(mask):
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    return max(cs, key=len)[:, 0, :].astype(float) * PX_MM
+
+
+def _case(band=True, gap_mm=3.0, cut_mm=30.0, width_mm=24.0, seed=0):
+    """A (the slab left of the cut) and B (``width_mm`` right of it, as tall as A), 60 mm tall: albedo,
+    mask and the true pose of B in A's frame (B's image is the slab's region right of the lost
+    material). The band runs at 20° to the cut's normal, so it continues only at the true pose."""
+    rng = np.random.default_rng(seed)
+    h, w = int(60 / PX_MM), int(80 / PX_MM)
+    slab = np.empty((h, w, 3), np.float32)
+    slab[:] = PLASTER
+    slab *= 1 + rng.normal(0, 0.01, (h, w, 1)).astype(np.float32)
+    if band:  # 5 mm wide red band through the point (cut, 22 mm) at 20° from the horizontal
+        yy, xx = np.mgrid[0:h, 0:w] * PX_MM
+        a = np.radians(20.0)
+        slab[np.abs(-(xx - cut_mm) * np.sin(a) + (yy - 22.0) * np.cos(a)) < 2.5] = RED
+    ca = int(round((cut_mm - gap_mm / 2) / PX_MM))
+    cb = int(round((cut_mm + gap_mm / 2) / PX_MM))
+    mask_a = np.zeros((h, w), bool)
+    mask_a[4:h - 4, 4:ca] = True
+    alb_a = np.where(mask_a[..., None], slab, 0).astype(np.float32)
+    piece = slab[:, cb:cb + int(width_mm / PX_MM) + 4].copy()
+    mask_b = np.zeros(piece.shape[:2], bool)
+    mask_b[4:h - 4, :-4] = True
+    alb_b = np.where(mask_b[..., None], piece, 0).astype(np.float32)
+    return alb_a, mask_a, alb_b, mask_b, (0.0, cb * PX_MM, 0.0)
+
+
+def _error(pose, truth, centre_b):
+    """Angle (deg) and displacement of B's centre (mm) between a pose and the truth."""
+    d_angle = abs((pose[0] - truth[0] + 180) % 360 - 180)
+
+    def place(p):
+        a = np.radians(p[0])
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ centre_b + p[1:3]
+
+    return d_angle, float(np.hypot(*(place(np.array(pose, float)) - place(np.array(truth, float)))))
+
+
+def _candidates(band=True):
+    alb_a, mask_a, alb_b, mask_b, truth = _case(band=band)
+    ca, cb = _contour_mm(mask_a), _contour_mm(mask_b)
+    docks = dock_outlines(ca, cb, n_poses=30, per_angle=3)
+    poses = np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks])
+    paint = paint_continuity(paint_field(alb_a, mask_a, PX_MM), paint_field(alb_b, mask_b, PX_MM), poses)
+    errors = np.array([_error(p, truth, cb.mean(axis=0)) for p in poses])
+    return docks, paint, errors
+
+
+@pytest.fixture(scope="module")
+def banded():
+    return _candidates(band=True)
+
+
+def test_the_outline_alone_cannot_place_the_short_piece(banded):
+    docks, _, errors = banded
+    right = (errors[:, 0] <= 5) & (errors[:, 1] <= 5)
+    assert right.any(), "the docking's candidates must include the true pose"
+    contact = np.array([docking_contact_mm(d) for d in docks])
+    # a pose at least 8 mm away scores as well as the true one, to within 10 % (turned over, other side)
+    far = errors[:, 1] > 8
+    assert contact[far].max() >= 0.9 * contact[right].max()
+
+
+def test_paint_across_the_crack_picks_the_true_pose(banded):
+    docks, paint, errors = banded
+    chosen = choose_pose(docks, paint)
+    e = errors[docks.index(chosen)]
+    assert e[0] <= 5 and e[1] <= 5, f"chosen pose off by {e[0]:.1f} deg, {e[1]:.1f} mm"
+    # geometry alone picks a wrong pose here (ties broken by order); the paint is what moved the choice
+    geometric = int(np.argmax([d.score for d in docks]))
+    assert errors[geometric][1] > 8 and paint[docks.index(chosen)] > paint[geometric] + 5.0
+
+
+def test_plain_plaster_leaves_the_geometric_choice():
+    docks, paint, _ = _candidates(band=False)
+    assert np.all(np.abs(paint) < 1.0)        # plaster meeting plaster is no evidence either way
+    best = max(docks, key=docking_contact_mm)
+    chosen = choose_pose(docks, paint)
+    assert docking_contact_mm(chosen) >= docking_contact_mm(best) - 1.0
+
+
+def test_weight_zero_is_geometry_alone(banded):
+    docks, paint, _ = banded
+    assert choose_pose(docks, paint, weight=0.0) is docks[int(np.argmax([d.score for d in docks]))]
+
+
+def test_scores_add_paint_to_contact_in_mm():
+    d = [Docking(0.0, 0.0, 0.0, 40.0, 30.0, 0.0), Docking(10.0, 1.0, 2.0, 20.0, 15.0, 0.0)]
+    # score in 1.5 mm cells counts both outlines: 40 cells = 30 mm of crack
+    np.testing.assert_allclose(pose_scores(d, [1.0, np.nan], weight=2.0), [32.0, 15.0])
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(dockings=[], paint_mm=[]), "empty"),
+    (dict(dockings=[Docking(0, 0, 0, 1, 1, 0)], paint_mm=[1.0, 2.0]), "2 values for 1"),
+    (dict(dockings=[Docking(0, 0, 0, 1, 1, 0)], paint_mm=[1.0], weight=-1.0), "weight"),
+])
+def test_bad_input_is_named(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        pose_scores(**kwargs)
