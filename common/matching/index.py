@@ -130,6 +130,8 @@ class MatchIndex:
         self._paint_fields: dict = {}
         #: paint continuity by unordered pair, mm (model-independent, like the dockings)
         self._paint_pairs: dict[tuple[str, str], float] = {}
+        #: pose by unordered pair where paint chose it among the docking's candidates (pose.choose_pose)
+        self._poses: dict[tuple[str, str], Docking] = {}
         #: fragment → its docking frame, least recently used first (bounded by DOCK_FRAMES_MB)
         self._frames: OrderedDict[str, DockingFrame] = OrderedDict()
 
@@ -415,6 +417,8 @@ class MatchIndex:
             del self._dockings[key]
         for key in [k for k in self._paint_pairs if fragment in k]:
             del self._paint_pairs[key]
+        for key in [k for k in self._poses if fragment in k]:
+            del self._poses[key]
 
     def paint_pair(self, fragment: str, other: str) -> float:
         """Paint continuing across the crack between two fragments, mm (cached per pair): the best
@@ -433,6 +437,16 @@ class MatchIndex:
         if key not in self._dockings:
             self._dock_pair(key, paint=DOCK_USES_PAINT and all(f in self._raw_profiles for f in key))
         d = self._dockings[key]
+        return d if key[0] == fragment else invert_docking(d)
+
+    def pose(self, fragment: str, other: str) -> Docking:
+        """The proposed pose of ``other`` in ``fragment``'s frame: the docking's candidate with the best
+        contact plus paint continuity (:func:`~common.matching.pose.choose_pose`) where the pair was docked
+        with paint, else the best docking."""
+        key = (fragment, other) if fragment < other else (other, fragment)
+        d = self._poses.get(key)
+        if d is None:
+            return self.docking(fragment, other)
         return d if key[0] == fragment else invert_docking(d)
 
     def _frame(self, fragment: str) -> DockingFrame:
@@ -464,15 +478,19 @@ class MatchIndex:
         # paint carried across the gap inside the FFT where both have a boundary profile (off by default)
         kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
         if paint:
-            from common.matching.paint import paint_field_from_profile, paint_pair_mm
+            from common.matching.paint import paint_continuity, paint_field_from_profile
+            from common.matching.pose import choose_pose
 
             docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE, **kw)
             for f in key:
                 if f not in self._paint_fields:
                     self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
-            mm, _ = paint_pair_mm(self._paint_fields[key[0]], self._paint_fields[key[1]], self.contours[key[0]],
-                                  self.contours[key[1]], docks=docks)
-            self._paint_pairs[key] = float(mm)
+            # the paint continuity at every candidate: its best is the pair's paint evidence
+            # (paint.paint_pair_mm), and with the contact it chooses the pair's pose (pose.choose_pose)
+            paint_mm = paint_continuity(self._paint_fields[key[0]], self._paint_fields[key[1]],
+                                        np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float))
+            self._paint_pairs[key] = float(np.max(paint_mm))
+            self._poses[key] = choose_pose(docks, paint_mm)
             self._dockings.setdefault(key, docks[0])
         else:
             self._dockings[key] = dock_frames(*frames, n_poses=1, **kw)[0]
@@ -527,7 +545,8 @@ class MatchIndex:
         for c, k, p, m in zip(head, corrected, prob, paint):
             d = self.docking(fragment, c.other)
             c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
-            c.alignment = Alignment(d.angle_deg, d.tx_mm, d.ty_mm, float("nan"), d.contact_mm, d.overlap_mm2,
+            q = self.pose(fragment, c.other)   # the proposed pose: chosen by contact and paint
+            c.alignment = Alignment(q.angle_deg, q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2,
                                     float(k))
         head.sort(key=lambda c: -c.probability)
         floor = head[-1].probability
