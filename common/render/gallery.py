@@ -16,6 +16,13 @@ masking — so a reader compares them pixel for pixel. Subjects:
 * ``cat``, ``owl``, ``ball`` (``SUBJECTS``; not drawn by default to keep the pages small) — the
   psm-seitz objects and the DiLiGenT ball's ground truth.
 
+Beside them, one *judgement sheet* per subject (``docs/gallery/judgement_<subject>.png``,
+:func:`judgement_sheet`): the defaults (the ``default`` recipe) in the first column, RTIViewer-style
+normal unsharp masking and raking light beside, each column labelled; the whole subject reduced,
+then two 1:1 crops — the window with the most relief and the one with the darkest colour — so a
+conservator judges relief, colour and noise pixel for pixel. ``python -m common.render.gallery
+--judgement`` draws only these.
+
 The physical scales (dpi) are nominal: none of these captures records one.
 """
 
@@ -158,42 +165,53 @@ ABOUT = {
 }
 
 
+def load_subjects(data: Path, subjects=None) -> tuple[dict, dict]:
+    """The subjects solved from ``data`` and reduced to :data:`MAX_SIDE`: ({name: image},
+    {name: why it could not be drawn})."""
+    rows, failed = {}, {}
+    for name in subjects or DEFAULT_SUBJECTS:
+        try:
+            rows[name] = _downsample(SUBJECTS[name](data), MAX_SIDE)
+        except Exception as exc:  # a missing data set or solver must not stop the others
+            log.warning("gallery subject %s unavailable: %s", name, exc)
+            failed[name] = f"{type(exc).__name__}: {exc}"
+    return rows, failed
+
+
 def make_gallery(data: Path, out: Path, *, subjects=None) -> Path:
-    """Render every gallery style and every shipped recipe on every available subject."""
+    """Render every gallery style and every shipped recipe on every available subject, and the
+    judgement sheets (:func:`make_judgement`)."""
     from common.render.enhance import relief_scale_px
 
     pictures = out / "gallery"
     pictures.mkdir(parents=True, exist_ok=True)
     for old in pictures.glob("*.png"):
         old.unlink()
-    rows, failed, noise = {}, {}, {}
-    for name in subjects or DEFAULT_SUBJECTS:
-        try:
-            image = _downsample(SUBJECTS[name](data), MAX_SIDE)
-        except Exception as exc:  # a missing data set or solver must not stop the others
-            log.warning("gallery subject %s unavailable: %s", name, exc)
-            failed[name] = f"{type(exc).__name__}: {exc}"
-            continue
-        rows[name] = image
-        noise[name] = relief_scale_px(image.normals, image.dpi, image.mask)
+    rows, failed = load_subjects(data, subjects)
+    noise = {name: relief_scale_px(image.normals, image.dpi, image.mask) for name, image in rows.items()}
     crops = {name: _crop_window(image) for name, image in rows.items()}
     compare = {name: (render(image, "raking").rgb, render(image, "normal_unsharp").rgb)
                for name, image in rows.items()}
     recipes = {s: style_recipe(s, **p) for s, p in GALLERY_STYLES.items()}
     recipes.update({f"recipe-{p.stem}": load_recipe(p) for p in sorted(RECIPE_DIR.glob("*.toml"))})
     figures = {}
+    judged = {name: {"raking": compare[name][0], "normal_unsharp": compare[name][1]} for name in rows}
     for key, recipe in recipes.items():
         log.info("drawing %s", key)
         sheet_rows = []
         for name, image in rows.items():
             drawn = render(image, recipe).rgb
+            if key == "recipe-default":
+                judged[name]["default"] = drawn
             figures[(key, name)] = _tone(drawn, image.mask)
             win = crops[name]
             sheet_rows.append(_row(drawn, [drawn[win], compare[name][0][win], compare[name][1][win]]))
         sheet = np.round(np.clip(_stack(sheet_rows), 0, 1) * 255).astype(np.uint8)
         cv2.imwrite(str(pictures / f"{key}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR),
                     [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    _write_markdown(out / "gallery.md", rows, recipes, failed, figures, noise)
+    log.info("drawing the judgement sheets")
+    judgement = make_judgement(rows, pictures, judged)
+    _write_markdown(out / "gallery.md", rows, recipes, failed, figures, noise, judgement)
     return out / "gallery.md"
 
 
@@ -246,6 +264,148 @@ def _stack(rows: list, gap: int = 6) -> np.ndarray:
     return np.concatenate(out[:-1], axis=0)
 
 
+#: The judgement sheets' columns: (label, recipe or style) — the defaults first, then what a
+#: conservator would otherwise use (RTIViewer's enhancement, raking light), all at their defaults.
+JUDGEMENT_COLUMNS = (("default recipe (Tessera's defaults)", "default"),
+                     ("RTIViewer-style unsharp masking (gain 3, 1 mm)", "normal_unsharp"),
+                     ("raking light (12 deg, levelled)", "raking"))
+#: Size of the judgement sheets' 1:1 crops (height, width), pixels.
+JUDGEMENT_CROP = (160, 240)
+
+
+def _window(score: np.ndarray, mask: np.ndarray, size: tuple, *, best=np.argmax, away_from=None) -> tuple:
+    """The (rows, cols) slices of the ``size`` window, fully inside the image, whose mean ``score``
+    over the fragment is the best (``np.argmax`` or ``np.argmin``); windows less than 90 % on the
+    fragment are not considered, nor (when another is left) windows overlapping the window
+    ``away_from`` by more than a quarter of their area."""
+    h, w = mask.shape
+    ch, cw = min(size[0], h), min(size[1], w)
+    m = mask.astype(np.float32)
+    total = cv2.boxFilter(np.where(mask, score, 0).astype(np.float32), -1, (cw, ch), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    cover = cv2.boxFilter(m, -1, (cw, ch), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    mean = total / np.maximum(cover, 1.0)
+    # box centres whose window lies inside the image and on the fragment
+    ok = np.zeros((h, w), bool)
+    ok[ch // 2:h - (ch - 1) // 2, cw // 2:w - (cw - 1) // 2] = True
+    ok &= cover >= 0.9 * ch * cw
+    if not ok.any():
+        ok[ch // 2:h - (ch - 1) // 2, cw // 2:w - (cw - 1) // 2] = True
+    if away_from is not None:
+        rows, cols = np.arange(h)[:, None] - ch // 2, np.arange(w)[None, :] - cw // 2   # window origins
+        dr = np.clip(ch - np.abs(rows - away_from[0].start), 0, None)
+        dc = np.clip(cw - np.abs(cols - away_from[1].start), 0, None)
+        apart = ok & (dr * dc <= 0.25 * ch * cw)
+        if apart.any():
+            ok = apart
+    mean = np.where(ok, mean, np.nan)
+    r, c = np.unravel_index(int(np.nanargmax(mean) if best is np.argmax else np.nanargmin(mean)), mean.shape)
+    r0, c0 = int(np.clip(r - ch // 2, 0, h - ch)), int(np.clip(c - cw // 2, 0, w - cw))
+    return (slice(r0, r0 + ch), slice(c0, c0 + cw))
+
+
+def judgement_windows(image: RGBNImage) -> dict:
+    """The judgement sheet's two 1:1 windows: ``"most relief"`` (largest mean change of the normals
+    between neighbouring pixels) and ``"darkest colour"`` (lowest mean albedo luminance, overlapping
+    the first by at most a quarter where the subject leaves room)."""
+    dx = np.abs(np.diff(image.normals[..., :2], axis=1, append=image.normals[:, -1:, :2])).sum(axis=2)
+    dy = np.abs(np.diff(image.normals[..., :2], axis=0, append=image.normals[-1:, :, :2])).sum(axis=2)
+    lum = image.albedo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    relief = _window(dx + dy, image.mask, JUDGEMENT_CROP)
+    return {"most relief": relief,
+            "darkest colour": _window(lum, image.mask, JUDGEMENT_CROP, best=np.argmin, away_from=relief)}
+
+
+def _text(canvas: np.ndarray, text: str, x: int, y: int, scale: float = 0.45, bold: bool = False) -> None:
+    """Black text, baseline at ``y`` (an (H, W, 3) uint8 image, in place)."""
+    cv2.putText(canvas, text, (int(x), int(y)), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0),
+                2 if bold else 1, cv2.LINE_AA)
+
+
+def judgement_sheet(name: str, image: RGBNImage, drawn: dict | None = None) -> tuple[np.ndarray, dict]:
+    """One subject's judgement sheet: a column per :data:`JUDGEMENT_COLUMNS` entry, labelled on
+    top; rows: the whole subject reduced to the column width, then the windows of
+    :func:`judgement_windows` at 1:1, each row labelled on the left. ``drawn`` maps a column's
+    recipe to its rendering (drawn here when missing). Returns the sheet (8-bit RGB) and per
+    column the figures of :func:`judgement_figures`."""
+    drawn = dict(drawn or {})
+    for _, recipe in JUDGEMENT_COLUMNS:
+        if recipe not in drawn:
+            drawn[recipe] = render(image, recipe).rgb
+    wins = judgement_windows(image)
+    h, w = image.shape
+    col_w = max(JUDGEMENT_CROP[1], 320)
+    scale = min(1.0, col_w / w)
+    whole_h = max(1, int(round(h * scale)))
+    left, gap, head, title_h = 150, 8, 40, 30
+    marks = dict(zip(wins, "AB"))
+    rows = [(f"whole ({100 * scale:.0f} %)", None, whole_h)] + [(f"{marks[k]}: {k}, 1:1", win, win[0].stop - win[0].start)
+                                                               for k, win in wins.items()]
+    height = title_h + head + sum(r[2] + gap for r in rows)
+    width = left + len(JUDGEMENT_COLUMNS) * (col_w + gap)
+    sheet = np.full((height, width, 3), 255, np.uint8)
+    _text(sheet, f"{name}: the defaults judged against RTIViewer-style enhancement and raking light "
+                 f"({w} x {h} px, crops at 1:1)", 8, 20, 0.5, bold=True)
+    figures = {}
+    for j, (label, recipe) in enumerate(JUDGEMENT_COLUMNS):
+        x = left + j * (col_w + gap)
+        words, line, y = label.split(), "", title_h + 16
+        for word in words:   # wrap the label over two lines at the column width
+            trial = (line + " " + word).strip()
+            if cv2.getTextSize(trial, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)[0][0] > col_w and line:
+                _text(sheet, line, x, y)
+                line, y = word, y + 16
+            else:
+                line = trial
+        _text(sheet, line, x, y)
+        rgb = np.round(np.clip(drawn[recipe], 0.0, 1.0) * 255).astype(np.uint8)
+        figures[label] = judgement_figures(drawn[recipe], image.mask)
+        y = title_h + head
+        for row_label, win, rh in rows:
+            if win is None:   # the whole, with the windows A and B outlined
+                part = cv2.resize(rgb, (int(round(w * scale)), whole_h), interpolation=cv2.INTER_AREA)
+                for key, (rs, cs) in wins.items():
+                    p0 = (int(cs.start * scale), int(rs.start * scale))
+                    p1 = (int((cs.stop - 1) * scale), int((rs.stop - 1) * scale))
+                    cv2.rectangle(part, p0, p1, (255, 0, 255), 1, cv2.LINE_AA)
+                    cv2.putText(part, marks[key], (p0[0] + 3, p0[1] + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                                (255, 0, 255), 1, cv2.LINE_AA)
+            else:
+                part = rgb[win]
+            sheet[y:y + part.shape[0], x:x + part.shape[1]] = part
+            if j == 0:
+                _text(sheet, row_label, 8, y + 16)
+                if win is not None:
+                    _text(sheet, f"rows {win[0].start}-{win[0].stop}", 8, y + 34, 0.4)
+                    _text(sheet, f"cols {win[1].start}-{win[1].stop}", 8, y + 50, 0.4)
+            y += rh + gap
+    return sheet, figures
+
+
+def judgement_figures(rgb: np.ndarray, mask: np.ndarray) -> dict:
+    """What the judgement table reports of a drawing on the fragment: median luminance (0-255),
+    the 5th-95th percentile span of the luminance (share of the range) and the median HSV
+    saturation (0-255)."""
+    q = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+    lum = (q.astype(np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32))[mask]
+    sat = cv2.cvtColor(q, cv2.COLOR_RGB2HSV)[..., 1][mask]
+    if lum.size == 0:
+        return {"median": 0.0, "span": 0.0, "saturation": 0.0}
+    p5, p95 = np.percentile(lum, [5, 95])
+    return {"median": float(np.median(lum)), "span": float((p95 - p5) / 255), "saturation": float(np.median(sat))}
+
+
+def make_judgement(rows: dict, pictures: Path, drawn: dict | None = None) -> dict:
+    """Write ``judgement_<subject>.png`` for every subject of ``rows`` into ``pictures``; returns
+    {subject: {column label: figures}}."""
+    out = {}
+    for name, image in rows.items():
+        sheet, out[name] = judgement_sheet(name, image, (drawn or {}).get(name))
+        cv2.imwrite(str(pictures / f"judgement_{name}.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR),
+                    [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    return out
+
+
 HEAD = """# Illustration gallery (§7.3)
 
 Every style and every shipped recipe (`configs/recipes/`) drawn **with its defaults** on real captures
@@ -284,6 +444,9 @@ Inputs are checked: `--convention auto` (the default) reads a normal map both wa
 reading whose curl (`dp/dy - dq/dx` of the gradient field) is smaller, logging both medians and their
 ratio (undecided below 1.2: OpenGL assumed and said so); a file that does not decode to unit vectors
 facing the viewer (a photograph, an albedo) is refused with the share that failed.
+
+Per-style speed, memory and tone range at 12, 51 and 200 Mpx, how they were measured, and the history of
+the figures: [gallery/measured.md](gallery/measured.md).
 """
 
 
@@ -331,11 +494,39 @@ def _recipe_reference() -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures: dict, noise: dict) -> None:
+def _judgement_markdown(rows: dict, judgement: dict) -> list:
+    lines = ["## Judgement sheets", "",
+             "One sheet per subject, `docs/gallery/judgement_<subject>.png`: the columns, labelled on the sheet, are "
+             + ", ".join(f"**{label}**" for label, _ in JUDGEMENT_COLUMNS)
+             + ", each at its defaults; the rows are the whole subject reduced (the windows outlined, "
+             "lettered A and B), then two 1:1 windows of "
+             f"{JUDGEMENT_CROP[1]} x {JUDGEMENT_CROP[0]} px — the most relief (largest change of the normals) and the "
+             "darkest colour (lowest albedo luminance; overlapping the first by at most a quarter where the subject "
+             "leaves room) — whose position is printed beside them. Drawn by "
+             "`python -m common.render.gallery` (all pictures) or `python -m common.render.gallery --judgement` "
+             "(these sheets only).", "",
+             "Figures on the fragment: median luminance (0-255) / 5th-95th percentile span of the luminance / "
+             "median HSV saturation (0-255).", "",
+             "| subject | " + " | ".join(label for label, _ in JUDGEMENT_COLUMNS) + " |",
+             "|---" * (len(JUDGEMENT_COLUMNS) + 1) + "|"]
+    for name in rows:
+        cells = []
+        for label, _ in JUDGEMENT_COLUMNS:
+            f = judgement[name][label]
+            cells.append(f"{f['median']:.0f} / {100 * f['span']:.0f} % / {f['saturation']:.0f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("")
+    for name in rows:
+        lines += [f"![judgement sheet, {name}: default recipe, RTIViewer-style unsharp masking, raking light]"
+                  f"(gallery/judgement_{name}.png)", ""]
+    return lines
+
+
+def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures: dict, noise: dict,
+                    judgement: dict | None = None) -> None:
     lines = [HEAD.rstrip(), "", _recipe_reference().rstrip(), ""]
-    measured = path.parent / "gallery" / "measured.md"
-    if measured.is_file():
-        lines += [measured.read_text().rstrip(), ""]
+    if judgement:
+        lines += _judgement_markdown(rows, judgement)
     lines += ["## Subjects", ""]
     for name in rows:
         sigma, ev = noise[name]
@@ -364,8 +555,27 @@ def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures
     path.write_text("\n".join(lines) + "\n")
 
 
-if __name__ == "__main__":
+def main(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m common.render.gallery", description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", nargs="?", type=Path,
+                        default=Path(__file__).resolve().parents[3] / "shared" / "data", help="the data folder")
+    parser.add_argument("out", nargs="?", type=Path, default=Path(__file__).resolve().parents[2] / "docs",
+                        help="where gallery.md and gallery/ are written")
+    parser.add_argument("--judgement", action="store_true",
+                        help="draw only the judgement sheets (gallery/judgement_<subject>.png) and print their figures")
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    data_dir = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[3] / "shared" / "data"
-    out_dir = Path(sys.argv[2]) if len(sys.argv) > 2 else Path(__file__).resolve().parents[2] / "docs"
-    print(make_gallery(data_dir, out_dir))
+    if args.judgement:
+        rows, _ = load_subjects(args.data)
+        pictures = args.out / "gallery"
+        pictures.mkdir(parents=True, exist_ok=True)
+        print("\n".join(_judgement_markdown(rows, make_judgement(rows, pictures))))
+    else:
+        print(make_gallery(args.data, args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
