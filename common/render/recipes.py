@@ -851,16 +851,19 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
     ----------
     Toler-Franklin 2011, §7.3 and Fig. 7.15 (per-segment styles).
     """
+    from common.render._heap import reuse_freed_memory
+
     if isinstance(recipe, str):
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
     if not isinstance(image, RGBNImage):
         raise ValueError(f"image must be an RGBNImage, got {type(image).__name__}")
-    if resolved is None:
-        from common.render.tiles import needs_tiles, render_tiled
+    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
+        if resolved is None:
+            from common.render.tiles import needs_tiles, render_tiled
 
-        if needs_tiles(image, recipe, tile):
-            return render_tiled(image, recipe, tile=tile, progress=progress)
-    return _render_whole(image, recipe, progress, resolved)
+            if needs_tiles(image, recipe, tile):
+                return render_tiled(image, recipe, tile=tile, progress=progress)
+        return _render_whole(image, recipe, progress, resolved)
 
 
 def _render_whole(image, recipe, progress, resolved, labels=None) -> Rendering:

@@ -152,6 +152,13 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     Rendering
         ``rgb`` (H, W, 3) and ``alpha`` (H, W) as uint8 / uint16 (the recipe's ``bits``).
     """
+    from common.render._heap import reuse_freed_memory
+
+    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
+        return _render_tiled(source, recipe, tile, progress, calibration_mpx)
+
+
+def _render_tiled(source, recipe, tile, progress, calibration_mpx):
     from common.render.recipes import STYLES, Rendering, _render_whole, load_recipe, style_recipe
 
     if isinstance(recipe, str):
