@@ -112,14 +112,16 @@ def child(style: str, size: int) -> None:
     gc.collect()
     input_mb = _status_mb("VmRSS")
     reset = _reset_peak()  # so the peak is the rendering's, not the test image generator's
-    t, c = time.perf_counter(), time.process_time()
+    t, c, u = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF)
     recipe = load_recipe(style[len("recipe-"):]) if style.startswith("recipe-") else style_recipe(style)
     drawn = render(img, recipe)
-    seconds, cpu = time.perf_counter() - t, time.process_time() - c
+    seconds, cpu, v = time.perf_counter() - t, time.process_time() - c, resource.getrusage(resource.RUSAGE_SELF)
     peak_mb = _status_mb("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     span, clipped = tone_range(drawn.rgb, img.mask)
     print(json.dumps({"style": style, "seconds": seconds, "cpu_seconds": cpu, "peak_rss_mb": peak_mb,
-                      "rss_before_mb": input_mb, "tone_span": span, "clipped": clipped}))
+                      "rss_before_mb": input_mb, "tone_span": span, "clipped": clipped,
+                      "user_seconds": v.ru_utime - u.ru_utime, "sys_seconds": v.ru_stime - u.ru_stime,
+                      "page_faults": v.ru_minflt - u.ru_minflt, "load": _load()}))
 
 
 def tone_range(rgb: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
@@ -198,13 +200,15 @@ def huge_child(style: str, size: int) -> None:
     from common.render.tiles import render_tiled
 
     reset = _reset_peak()
-    t, c = time.perf_counter(), time.process_time()
+    t, c, u = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF)
     drawn = render_tiled(ProceduralSource(size), style)
-    seconds, cpu = time.perf_counter() - t, time.process_time() - c
+    seconds, cpu, v = time.perf_counter() - t, time.process_time() - c, resource.getrusage(resource.RUSAGE_SELF)
     peak_mb = _status_mb("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     span, clipped = tone_range(drawn.rgb, np.ones(drawn.alpha.shape, bool))
     print(json.dumps({"style": style, "seconds": seconds, "cpu_seconds": cpu, "peak_rss_mb": peak_mb,
-                      "rss_before_mb": 0.0, "tone_span": span, "clipped": clipped}))
+                      "rss_before_mb": 0.0, "tone_span": span, "clipped": clipped,
+                      "user_seconds": v.ru_utime - u.ru_utime, "sys_seconds": v.ru_stime - u.ru_stime,
+                      "page_faults": v.ru_minflt - u.ru_minflt, "load": _load()}))
 
 
 def _run(style: str, size: int, huge: bool = False) -> dict | str:
@@ -249,9 +253,12 @@ def main() -> int:
     worst = 0.0
     for size in args.sizes:
         mpx = size * size / 1e6
+        if not styles:
+            break
         print(f"{size} x {size} = {mpx:.1f} Mpx, one fresh process per style (peak RSS includes the input image; "
               f"load average {_load()}):")
-        print(f"  {'style':28s} {'wall s':>7s} {'CPU s/Mpx':>10s} {'peak MB':>8s} {'tone':>6s} {'clipped':>8s}")
+        print(f"  {'style':28s} {'wall s':>7s} {'CPU s/Mpx':>10s} {'user+sys s':>11s} {'peak MB':>8s} {'tone':>6s} "
+              f"{'clipped':>8s} {'load':>5s}")
         for style in styles:
             r = _run(style, size)
             if isinstance(r, str):
@@ -265,8 +272,10 @@ def main() -> int:
                 flags.append("tone<50%")
             if r["peak_rss_mb"] > 4096:
                 flags.append("RSS>4GB")
-            print(f"  {style:28s} {r['seconds']:7.1f} {cpu:10.3f} {r['peak_rss_mb']:8.0f} {100 * r['tone_span']:5.0f}% "
-                  f"{100 * r['clipped']:7.2f}%  {' '.join(flags) or 'ok'}")
+            split = f"{r['user_seconds']:.1f}+{r['sys_seconds']:.1f}"
+            print(f"  {style:28s} {r['seconds']:7.1f} {cpu:10.3f} {split:>11s} {r['peak_rss_mb']:8.0f} "
+                  f"{100 * r['tone_span']:5.0f}% {100 * r['clipped']:7.2f}% {r['load']:>5s}  {' '.join(flags) or 'ok'}",
+                  flush=True)
     if args.huge:
         mpx = args.huge ** 2 / 1e6
         print(f"{args.huge} x {args.huge} = {mpx:.0f} Mpx procedural face, drawn window by window:")
@@ -276,8 +285,9 @@ def main() -> int:
                 print(f"  {style:28s} FAILED: {r}")
                 continue
             worst = max(worst, r["peak_rss_mb"])
-            print(f"  {style:28s} {r['seconds']:7.1f} s wall {r['cpu_seconds'] / mpx:7.3f} CPU s/Mpx  peak "
-                  f"{r['peak_rss_mb']:.0f} MB  tone {100 * r['tone_span']:.0f}%")
+            print(f"  {style:28s} {r['seconds']:7.1f} s wall {r['cpu_seconds'] / mpx:7.3f} CPU s/Mpx "
+                  f"(user {r['user_seconds']:.0f} s + sys {r['sys_seconds']:.0f} s)  peak {r['peak_rss_mb']:.0f} MB  "
+                  f"tone {100 * r['tone_span']:.0f}%  load {r['load']}", flush=True)
     print(f"  worst peak RSS {worst:.0f} MB   target <= 4096 MB   {'ok' if worst <= 4096 else 'OVER'}")
     return 0
 
