@@ -186,3 +186,87 @@ def pair_precision_recall(pair_scores: dict, neighbours) -> dict:
     # recall is relative to all true pairs, including those never scored (pruned away)
     res["recall"] = res["recall"] * y.sum() / len(truth)
     return res
+
+
+@dataclass
+class StageTrace:
+    """One fragment's candidates as each stage of :meth:`~common.matching.index.MatchIndex.rank` leaves them.
+
+    ``order[stage]`` lists the other fragments best first after that stage, for the stages
+    ``"prune"`` (the KD-tree's ``n_candidates`` nearest, stage 1), ``"patch"`` (stage 2, every
+    other fragment it scores), ``"ribbon"`` (stage 2½: what stage 2 passed on, re-ranked) and
+    ``"dock"`` (stage 3 and the final order of the query's own list). ``probability`` holds the final
+    join probability of each other fragment in the list; ``evidence`` each candidate's stage scores:
+    ``patch_logit`` (stage 2, hubness-corrected), ``ribbon`` (the ribbon score), ``contact_mm`` (the
+    docking contact less both hubnesses) and ``paint_mm`` (paint continuity); NaN where a stage did not
+    score it.
+    """
+
+    fragment: str
+    order: dict
+    probability: dict
+    evidence: dict
+
+
+def trace_stages(index, model, fragment: str, others, *, n_candidates: int = 100, **rank_options) -> StageTrace:
+    """Rank ``fragment`` against ``others`` with :meth:`~common.matching.index.MatchIndex.rank`,
+    recording every stage's order (:class:`StageTrace`): where true partners are lost.
+
+    Stage 1 (the KD-tree's ``n_candidates``, which :func:`rank_all_pairs` skips by ranking every other
+    fragment) is recorded beside; ``rank_options`` go to ``rank``.
+    """
+    cues = index.cues[fragment]
+    others = [o for o in others if o != fragment]
+    order = {"prune": index.candidates(cues, model, n_candidates)}
+    stages: dict = {}
+    final = index.rank(cues, others, model, evidence_for=0, trace=stages, **rank_options)
+    for stage, found in stages.items():
+        order[stage] = [c.other for c in found]
+    order.setdefault("ribbon", order["patch"])
+    order.setdefault("dock", order["ribbon"])
+    evidence = {c.other: {"patch_logit": c.patch_logit, "ribbon": c.ribbon_score, "contact_mm": c.docking_contact_mm,
+                          "paint_mm": c.paint_mm} for c in stages["patch"] + final}
+    return StageTrace(fragment, order, {c.other: c.probability for c in final}, evidence)
+
+
+def stage_recall(traces, neighbours, ks=(1, 5, 10)) -> dict:
+    """Where the true neighbours are lost: for each stage of :func:`trace_stages`, the share of true
+    neighbour links (each pair counted from both sides, as :func:`top_k_recall`) still in the
+    fragment's list, and in its top ``k``; ``"final"`` is the pooled ranking (the larger of the two
+    sides' probabilities, :func:`top_k_recall`).
+
+    Returns
+    -------
+    dict stage → {"kept": share in the list, k: share in the top k}, plus ``"ranks"``: stage →
+    the rank (0 = first) of each link, None where the stage dropped it.
+    """
+    truth: dict = {}
+    for a, b, *_ in neighbours:
+        truth.setdefault(str(a), set()).add(str(b))
+        truth.setdefault(str(b), set()).add(str(a))
+    traces = {t.fragment: t for t in traces}
+    links = [(f, o) for f in traces for o in sorted(truth.get(f, ()))]
+    out: dict = {"ranks": {}}
+    pooled: dict = {}
+    for t in traces.values():
+        for o, p in t.probability.items():
+            key = tuple(sorted((t.fragment, o)))
+            pooled[key] = max(pooled.get(key, 0.0), p)
+    final: dict = {}
+    for (a, b), s in pooled.items():
+        final.setdefault(a, []).append((s, b))
+        final.setdefault(b, []).append((s, a))
+    final = {f: [o for _, o in sorted(v, key=lambda x: -x[0])] for f, v in final.items()}
+    for stage in ("prune", "patch", "ribbon", "dock", "final"):
+        ranks = []
+        for f, o in links:
+            lst = final.get(f, []) if stage == "final" else traces[f].order[stage]
+            ranks.append(lst.index(o) if o in lst else None)
+        n = max(len(ranks), 1)
+        row = {"kept": sum(r is not None for r in ranks) / n}
+        for k in ks:
+            row[int(k)] = sum(r is not None and r < k for r in ranks) / n
+        out[stage] = row
+        out["ranks"][stage] = ranks
+    out["links"] = links
+    return out

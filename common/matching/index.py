@@ -94,6 +94,7 @@ class Candidate:
     docking: Docking | None = None           # stage 3: the other fragment docked against the query
     docking_contact_mm: float = float("nan")  # its shared-crack length less the two hubnesses (mm)
     paint_mm: float = float("nan")           # stage 3: paint continuing across the crack (mm, paint.py)
+    patch_logit: float = float("nan")        # stage 2: logit of the hubness-corrected probability
 
 
 class MatchIndex:
@@ -356,7 +357,8 @@ class MatchIndex:
             ev = (self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
                   if evidence_for is None or rank < evidence_for else None)
             out.append(Candidate(cues.fragment, self._order[o], float(corrected[j]), int(ia[0]), int(ib[0]),
-                                 np.column_stack([ia, ib]), ev, patch_probability=p))
+                                 np.column_stack([ia, ib]), ev, patch_probability=p,
+                                 patch_logit=float(np.log(max(corrected[j], 1e-12)) - np.log(max(1 - corrected[j], 1e-12)))))
         return out
 
     def refresh_hubness(self, fragments, model: MatchModel, *, n_candidates: int = 100) -> int:
@@ -524,24 +526,15 @@ class MatchIndex:
         centre = float(np.median(list(self.dock_hubness.values()))) if self.dock_hubness else 0.0
         corrected = hub_corrected(contact, self.dock_hubness.get(fragment, centre),
                                   [self.dock_hubness.get(c.other, centre) for c in head], centre)
-        prob = ribbon_probability(corrected, model.docking)
-        if DOCK_KEEPS_EARLIER_EVIDENCE:
-            # the earlier stages' evidence (paint, patches: which fresco a piece comes from) is kept
-            # as independent evidence: its logit relative to the docked candidates' mean is added
-            # (naive Bayes), so the docking's own calibration sets the level
-            before = np.array([c.probability for c in head], float)
-            ok = np.isfinite(before)
-            if ok.sum() >= 2:
-                lb = np.log(np.clip(before, 1e-6, 1 - 1e-6)) - np.log(np.clip(1 - before, 1e-6, 1 - 1e-6))
-                shift = np.where(ok, lb - lb[ok].mean(), 0.0)
-                lp = np.log(np.clip(prob, 1e-12, 1 - 1e-12)) - np.log(np.clip(1 - prob, 1e-12, 1 - 1e-12))
-                prob = 1.0 / (1.0 + np.exp(-(lp + shift)))
         paint = np.full(len(head), np.nan)
         if DOCK_USES_PAINT:
-            from common.matching.paint import with_paint
-
             paint = np.array([self.paint_pair(fragment, c.other) for c in head])
-            prob = np.where(np.isfinite(paint), with_paint(prob, np.nan_to_num(paint), model.docking[0]), prob)
+        if model.combination is not None:
+            # every stage's evidence weighed as learned on synthetic pairs (online.stage_combination)
+            prob = model.combined_probability([c.patch_logit for c in head], [c.ribbon_score for c in head],
+                                              corrected, paint)
+        else:
+            prob = _dock_by_rules(head, ribbon_probability(corrected, model.docking), paint, model)
         for c, k, p, m in zip(head, corrected, prob, paint):
             d = self.docking(fragment, c.other)
             c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
@@ -556,7 +549,7 @@ class MatchIndex:
 
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
              ribbon_candidates: int = RIBBON_CANDIDATES, dock_candidates: int = DOCK_CANDIDATES,
-             evidence_for: int | None = None) -> list[Candidate]:
+             evidence_for: int | None = None, trace: dict | None = None) -> list[Candidate]:
         """Stages 2, 2½ and 3 for one fragment against ``others``, best first.
 
         Stage 2 orders ``others`` by the patch classifier; where the ribbon applies, its best
@@ -564,9 +557,13 @@ class MatchIndex:
         valid patch (a small fragment still has a boundary) — are re-ranked by the ribbon and the
         rest dropped. Where the model has a docking calibration, the best ``dock_candidates`` are
         then docked and re-ranked (:meth:`_rank_by_docking`). ``evidence_for``: attach evidence rows
-        to the best this many of stage 2 (None: all).
+        to the best this many of stage 2 (None: all). ``trace``: a dict that receives each stage's
+        candidate list as it leaves the stage (``"patch"``, ``"ribbon"``, ``"dock"``;
+        :func:`common.matching.evaluation.trace_stages`).
         """
+        trace = {} if trace is None else trace
         found = self.score(cues, others, model, evidence_for=evidence_for)
+        trace["patch"] = list(found)
         if self.uses_ribbon(cues.fragment, model):
             head = found[:ribbon_candidates]
             scored = {c.other for c in found}
@@ -574,8 +571,10 @@ class MatchIndex:
             head += [Candidate(cues.fragment, o, float("nan"), -1, -1, np.zeros((0, 2), int), np.zeros((0, n_cols)))
                      for o in others if o != cues.fragment and o not in scored and o in self.profiles]
             found = self._rank_by_ribbon(cues.fragment, head, model)
+        trace["ribbon"] = list(found)
         if self.uses_docking(cues.fragment, model) and dock_candidates > 0:
             found = self._rank_by_docking(cues.fragment, found, model, dock_candidates)
+        trace["dock"] = list(found)
         return found
 
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
@@ -609,6 +608,28 @@ class MatchIndex:
                     arcs_b = np.concatenate([[c.ribbon_arc_mm[1]], arcs_b])   # wrapped by the aligner
                 c.alignment = align_fragments(contour_a, contour_b, anchors=(arcs_a, arcs_b) if len(arcs_a) else None)
         return ranked
+
+
+def _dock_by_rules(head: list[Candidate], prob: np.ndarray, paint: np.ndarray, model: MatchModel) -> np.ndarray:
+    """Stage 3's fixed combination, for models without a learned one: the docking's probability
+    ``prob``, plus the earlier stages' logit relative to the docked candidates' mean
+    (:data:`DOCK_KEEPS_EARLIER_EVIDENCE`), plus the paint (:func:`~common.matching.paint.with_paint`)."""
+    if DOCK_KEEPS_EARLIER_EVIDENCE:
+        # the earlier stages' evidence (paint, patches: which fresco a piece comes from) is kept
+        # as independent evidence: its logit relative to the docked candidates' mean is added
+        # (naive Bayes), so the docking's own calibration sets the level
+        before = np.array([c.probability for c in head], float)
+        ok = np.isfinite(before)
+        if ok.sum() >= 2:
+            lb = np.log(np.clip(before, 1e-6, 1 - 1e-6)) - np.log(np.clip(1 - before, 1e-6, 1 - 1e-6))
+            shift = np.where(ok, lb - lb[ok].mean(), 0.0)
+            lp = np.log(np.clip(prob, 1e-12, 1 - 1e-12)) - np.log(np.clip(1 - prob, 1e-12, 1 - 1e-12))
+            prob = 1.0 / (1.0 + np.exp(-(lp + shift)))
+    if DOCK_USES_PAINT:
+        from common.matching.paint import with_paint
+
+        prob = np.where(np.isfinite(paint), with_paint(prob, np.nan_to_num(paint), model.docking[0]), prob)
+    return prob
 
 
 def _strip_gap_all(strips_a: np.ndarray, strips_b: np.ndarray) -> np.ndarray:

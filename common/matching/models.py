@@ -5,7 +5,8 @@ holding only arrays and strings: the correspondence column names, the imputation
 missing features, the standardisation (mean, scale), the logistic-regression coefficients and
 intercept, the pair-aggregation rule and the per-fragment pruning weights, and (attributes
 ``ribbon_slope``, ``ribbon_intercept``, optional) the calibration of the colour-ribbon score, and
-(``docking_slope``, ``docking_intercept``, optional) that of the docking contact. Loading reads those
+(``docking_slope``, ``docking_intercept``, optional) that of the docking contact, and (``combination``,
+optional) the learned combination of the stage scores in stage 3. Loading reads those
 numbers back; nothing is executed, so a model file from another lab is safe to open (unlike a
 pickled scikit-learn estimator, which can run arbitrary code when loaded).
 """
@@ -23,6 +24,8 @@ from common.store import ArtifactError, ArtifactRef, Store
 SCHEMA = "tessera.matchmodel"
 SCHEMA_VERSION = 1
 MODEL_DIR = "models/matcher"
+#: stage 3's learned combination (:attr:`MatchModel.combination`) weighs these stage scores, as logits
+COMBINATION_TERMS = ("patch", "ribbon", "docking", "paint")
 
 
 @dataclass
@@ -57,6 +60,12 @@ class MatchModel:
         Calibration of the hubness-corrected docking contact (mm, :mod:`common.matching.docking`)
         into a join probability (stage 3, :meth:`common.matching.index.MatchIndex.rank`); None:
         no docking (models made before it).
+    combination : 9 floats or None
+        Stage 3's learned combination of the stage scores of a docked candidate
+        (:meth:`combined_probability`): weights of the :data:`COMBINATION_TERMS` (4), intercept, and
+        the value each term takes when missing (4). Fitted on synthetic pairs
+        (:func:`common.matching.online.stage_combination`); None: stage 3 adds the earlier evidence and
+        the paint to the docking's logit by fixed rules (:meth:`common.matching.index.MatchIndex.rank`).
     """
 
     columns: list[str]
@@ -71,6 +80,7 @@ class MatchModel:
     training: tuple | None = field(default=None, repr=False)
     ribbon: tuple | None = None
     docking: tuple | None = None
+    combination: tuple | None = None
 
     def __post_init__(self):
         self.columns = [str(c) for c in self.columns]
@@ -95,6 +105,14 @@ class MatchModel:
             if len(r) != 2 or not all(np.isfinite(r)):
                 raise ValueError(f"model docking calibration must be two finite numbers, got {self.docking}")
             self.docking = r
+        if self.combination is not None:
+            r = tuple(float(v) for v in self.combination)
+            if len(r) != 2 * len(COMBINATION_TERMS) + 1 or not all(np.isfinite(r)):
+                raise ValueError(f"model combination must be {2 * len(COMBINATION_TERMS) + 1} finite numbers, "
+                                 f"got {self.combination}")
+            if self.docking is None:
+                raise ValueError("a model combination needs the docking calibration (its terms are in its units)")
+            self.combination = r
 
     @property
     def sequence(self) -> int:
@@ -114,6 +132,33 @@ class MatchModel:
         """Match probability of (K, D) correspondence rows."""
         return 1.0 / (1.0 + np.exp(-np.clip(self.decision(x), -60, 60)))
 
+    def stage_terms(self, patch_logit, ribbon_score, contact_mm, paint_mm) -> np.ndarray:
+        """The :data:`COMBINATION_TERMS` of candidates as logits, (N, 4), NaN where a stage did not score.
+
+        ``patch``: stage 2's hubness-corrected logit; ``ribbon``: the ribbon score through the ribbon
+        calibration; ``docking``: the hub-corrected docking contact (mm) through the docking
+        calibration; ``paint``: the paint continuity (mm of crack) times the docking calibration's slope
+        (a millimetre of continuing paint as a millimetre of contact, :func:`common.matching.paint.with_paint`).
+        """
+        if self.docking is None:
+            raise ValueError("stage terms need the model's docking calibration")
+        rs, rb = self.ribbon if self.ribbon is not None else (np.nan, np.nan)
+        ds, db = self.docking
+        return np.column_stack([np.asarray(patch_logit, float), rs * np.asarray(ribbon_score, float) + rb,
+                                ds * np.asarray(contact_mm, float) + db, ds * np.asarray(paint_mm, float)])
+
+    def combined_probability(self, patch_logit, ribbon_score, contact_mm, paint_mm) -> np.ndarray:
+        """Join probability of docked candidates from all their stage scores (stage 3):
+        ``σ(Σ_k w_k t_k + b)`` over the :meth:`stage_terms` ``t`` (a missing term takes its stored
+        value), with the learned :attr:`combination`."""
+        if self.combination is None:
+            raise ValueError("the model has no learned stage combination")
+        n = len(COMBINATION_TERMS)
+        c = np.asarray(self.combination)
+        t = self.stage_terms(patch_logit, ribbon_score, contact_mm, paint_mm)
+        t = np.where(np.isfinite(t), t, c[n + 1:])
+        return 1.0 / (1.0 + np.exp(-np.clip(t @ c[:n] + c[n], -60, 60)))
+
     def column_weights(self, columns: list[str]) -> np.ndarray:
         """|w| / s for ``columns`` (0 where absent): the weighted-L1 pruning metric (§5.2.1)."""
         idx = {c: i for i, c in enumerate(self.columns)}
@@ -124,11 +169,13 @@ class MatchModel:
         return content_key(json.dumps(self.columns), self.impute.tobytes().hex(), self.mean.tobytes().hex(),
                            self.scale.tobytes().hex(), self.coef.tobytes().hex(), repr(self.intercept),
                            str(self.top_m), *([repr(self.ribbon)] if self.ribbon is not None else []),
-                           *([f"docking {self.docking!r}"] if self.docking is not None else []), length=8)
+                           *([f"docking {self.docking!r}"] if self.docking is not None else []),
+                           *([f"combination {self.combination!r}"] if self.combination is not None else []), length=8)
 
 
 def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: int = 3, info: dict | None = None,
-                        ribbon: tuple | None = None, docking: tuple | None = None) -> MatchModel:
+                        ribbon: tuple | None = None, docking: tuple | None = None,
+                        combination: tuple | None = None) -> MatchModel:
     """Extract the numbers of a fitted logistic pipeline (from :func:`make_classifier`) into a model."""
     imp = pipeline.named_steps["impute"]
     sc = pipeline.named_steps["scale"]
@@ -137,7 +184,7 @@ def model_from_pipeline(pipeline, columns: list[str], *, sequence: int, top_m: i
         raise ValueError("only a linear (logistic) classifier can be stored as a MatchModel")
     m = MatchModel(columns=list(columns), impute=imp.statistics_, mean=sc.mean_, scale=sc.scale_,
                    coef=clf.coef_.ravel(), intercept=float(clf.intercept_[0]), top_m=top_m, info=dict(info or {}),
-                   ribbon=ribbon, docking=docking)
+                   ribbon=ribbon, docking=docking, combination=combination)
     m.version = f"{int(sequence):04d}-{m.digest()}"
     return m
 
@@ -155,6 +202,8 @@ def save_model(store: Store, model: MatchModel, *, provenance: dict | None = Non
             f.attrs["ribbon_slope"], f.attrs["ribbon_intercept"] = model.ribbon
         if model.docking is not None:
             f.attrs["docking_slope"], f.attrs["docking_intercept"] = model.docking
+        if model.combination is not None:
+            f.attrs["combination"] = np.asarray(model.combination, np.float64)
         f.create_dataset("columns", data=np.array(model.columns, dtype=object), dtype=_str_dtype())
         for name in ("impute", "mean", "scale", "coef"):
             f.create_dataset(name, data=getattr(model, name).astype(np.float64))
@@ -185,7 +234,9 @@ def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
                               ribbon=((float(f.attrs["ribbon_slope"]), float(f.attrs["ribbon_intercept"]))
                                       if "ribbon_slope" in f.attrs else None),
                               docking=((float(f.attrs["docking_slope"]), float(f.attrs["docking_intercept"]))
-                                       if "docking_slope" in f.attrs else None))
+                                       if "docking_slope" in f.attrs else None),
+                              combination=(tuple(float(v) for v in f.attrs["combination"])
+                                           if "combination" in f.attrs else None))
         except (KeyError, ValueError) as exc:
             raise ArtifactError(f"model {getattr(ref, 'path', ref)} is malformed: {exc}") from exc
 

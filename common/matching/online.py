@@ -10,6 +10,9 @@
   decision on a real fragment outweighs a synthetic example); the logistic regression is re-fitted
   on the union and becomes the next model version.
 * :func:`rerank` — new probabilities for stored proposals under the new model.
+* :func:`stage_combination` / :func:`with_combination` — stage 3's weighing of every stage's score
+  (patch classifier, ribbon, docking, paint), learned by a logistic regression on the docked candidates
+  of a synthetic wall with ground truth.
 
 The ribbon calibration (:func:`common.matching.ribbon.fit_ribbon_calibration`) is fitted once, on
 the bootstrap wall's fragment pairs, and carried over by every refit: verdicts teach the patch
@@ -17,6 +20,8 @@ classifier, which chooses the candidates the ribbon ranks.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -140,6 +145,74 @@ def docking_calibration(wall, *, contours: dict | None = None, paint: dict | Non
     return fit_ribbon_calibration(scores, y)
 
 
+def stage_combination(tables: dict, cues: dict, adjacency, model: MatchModel, *, C: float = 1.0,
+                      progress=None) -> tuple | None:
+    """Stage 3's combination of the stage scores, learned on a wall with ground truth.
+
+    Every fragment of the wall is ranked against all others by the staged matcher under ``model``
+    (:func:`common.matching.evaluation.trace_stages`, stages 2–3 as the station ranks), and each
+    *docked* candidate becomes a row of its :meth:`~common.matching.models.MatchModel.stage_terms`
+    (stage 2's hubness-corrected logit, the ribbon's, the docking's, the paint's; a missing term takes
+    the mean of the others), labelled 1 for a true neighbour. A logistic regression on those rows
+    (unweighted, so its probability is the share of true joins among docked candidates, comparable
+    between queries) gives the weights: stacking the stages' calibrated scores (Wolpert 1992, *Stacked
+    generalization*) instead of adding their logits as if independent.
+
+    Parameters
+    ----------
+    tables, cues : dict id → FeatureTable / FragmentCues of the wall
+    adjacency : true neighbour pairs ``(a, b, ...)``
+    model : the model (with ribbon and docking calibrations) whose stages are combined
+    C : inverse L2 regularisation of the logistic regression
+
+    Returns
+    -------
+    The :attr:`~common.matching.models.MatchModel.combination` (weights, intercept, fill values), or
+    None when the wall gives too few docked true or false candidates (fewer than 5 of either).
+    """
+    from sklearn.linear_model import LogisticRegression
+
+    from common.matching.evaluation import trace_stages
+    from common.matching.index import MatchIndex
+
+    if model.docking is None:
+        raise ValueError("the stage combination needs a model with a docking calibration")
+    index = MatchIndex()
+    for f in sorted(cues):
+        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    ids = list(index._order)
+    index.refresh_hubness(ids, replace(model, combination=None), n_candidates=100)
+    truth: dict = {}
+    for a, b, *_ in adjacency:
+        truth.setdefault(a, set()).add(b)
+        truth.setdefault(b, set()).add(a)
+    terms, labels = [], []
+    for i, f in enumerate(ids):
+        t = trace_stages(index, replace(model, combination=None), f, ids)
+        docked = [o for o in t.order["dock"] if np.isfinite(t.evidence[o]["contact_mm"])]
+        ev = [t.evidence[o] for o in docked]
+        terms.append(model.stage_terms([e["patch_logit"] for e in ev], [e["ribbon"] for e in ev],
+                                       [e["contact_mm"] for e in ev], [e["paint_mm"] for e in ev]))
+        labels += [o in truth.get(f, ()) for o in docked]
+        if progress and (i % 10 == 0 or i == len(ids) - 1):
+            progress((i + 1) / len(ids), f"stage combination: ranked {i + 1}/{len(ids)} fragments")
+    x, y = np.vstack(terms) if terms else np.zeros((0, 4)), np.asarray(labels, bool)
+    if y.sum() < 5 or (~y).sum() < 5:
+        return None
+    with np.errstate(invalid="ignore"):
+        fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0)
+    fill = np.where(np.isfinite(fill), fill, 0.0)
+    lr = LogisticRegression(C=C, max_iter=1000).fit(np.where(np.isfinite(x), x, fill), y)
+    return (*lr.coef_[0].tolist(), float(lr.intercept_[0]), *fill.tolist())
+
+
+def with_combination(model: MatchModel, combination: tuple | None) -> MatchModel:
+    """The model with stage 3's learned combination (:func:`stage_combination`), re-versioned."""
+    m = replace(model, combination=combination)
+    m.version = f"{m.sequence:04d}-{m.digest()}"
+    return m
+
+
 def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None) -> MatchModel:
     """A first model trained on a synthetic wall, for a station that has no verdicts yet."""
     from common.synth.wall import generate_wall
@@ -202,6 +275,7 @@ def refit_with_verdicts(base_x: np.ndarray, base_y: np.ndarray, verdicts: list[t
     model, _ = train_model(ts, sequence=previous.sequence + 1, C=float(C if C is not None else previous.info.get("C", 1.0)),
                            sample_weight=w, top_m=previous.top_m, info=info, ribbon=previous.ribbon,
                            docking=previous.docking)
+    model = with_combination(model, previous.combination)
     model.training = (np.asarray(base_x, float), np.asarray(base_y, int), np.ones(len(base_y)))
     return model
 
