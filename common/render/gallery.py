@@ -409,8 +409,11 @@ def make_judgement(rows: dict, pictures: Path, drawn: dict | None = None) -> dic
 HEAD = """# Illustration gallery (§7.3)
 
 Every style and every shipped recipe (`configs/recipes/`) drawn **with its defaults** on real captures
-by `python -m common.render.gallery` (regenerate after changing a style): each picture shows the style
-beside raking light and RTIViewer-style normal unsharp masking, with 1:1 crops.
+by `python -m common.render.gallery` (regenerate after changing a style; it reads `../shared/data`
+and rewrites this page and `docs/gallery/`): each picture shows the style beside raking light and
+RTIViewer-style normal unsharp masking, with 1:1 crops; the labelled judgement sheets (below) put the
+defaults beside RTIViewer-style enhancement and raking light (`python -m common.render.gallery
+--judgement` redraws only those).
 
 Draw your own:
 
@@ -428,9 +431,15 @@ lightness, hue and chroma kept), its smoothing from the noise of the normal map 
 8x8 JPEG blocks of the source images detected and smoothed over) and from the dpi, and lights a
 near-flat surface (a painting, a relief) relative to its own slow undulation. `tessera render` logs
 the values it chose (and the noise evidence); written back into a recipe they fix the picture.
+Relief and exposure act on CIELAB lightness; a colour they would push outside sRGB keeps its
+lightness and hue and loses chroma only, down to the largest chroma sRGB can show there
+(`enhance.gamut_map_lab`, by bisection; OpenCV's float Lab->RGB, which clips each channel and so
+turns the hue, is used only for the colours inside the gamut). The web viewer's shaders do the same
+(`services/web/static/viewer/common.glsl`, `tests/web/test_shader_parity.py`).
 
 Any size: an image above 16 Mpx is drawn in overlapping tiles (the halo covers 4 sigma of the
-widest filter, line lengths and shadows) that share the exposure chosen on a central calibration
+widest filter — 3 sigma of exaggerated shading's base level, whose share of the picture keeps the
+difference under 1/255 — line lengths and shadows) that share the exposure chosen on a central calibration
 window of <= 4 Mpx; tiled and whole drawings agree within 1/255 (`tests/render/test_tiles.py`). The
 renderer service reads a large face window by window from its HDF5 artifact. A recipe with a
 `[segmentation]` section is tiled too: the segments are found first for the whole image, window by
@@ -438,7 +447,11 @@ window (`segment_source`: SLIC superpixels in 2048-px windows read with a blur h
 windows' seams on one Felzenszwalb-Huttenlocher graph; the labels are identical to the in-memory
 `segment_rgbn`'s, `tests/rgbn/test_segmentation.py`), kept as 4 bytes a pixel, and every tile is drawn
 with its window of them. Output is 8 or 16 bit (`bits` / `--bits`); the computation is float32
-throughout.
+throughout. The layers of a recipe share the normals they smooth at the same scale (exaggerated
+shading's finest level is the noise scale discontinuity lines smooth at), and while a rendering
+runs, freed arrays are reused instead of being handed back to the kernel and page-faulted in
+again (`common/render/_heap.py`: about a quarter of the CPU time of a 12-Mpx rendering on the
+station machine).
 
 Inputs are checked: `--convention auto` (the default) reads a normal map both ways and keeps the
 reading whose curl (`dp/dy - dq/dx` of the gradient field) is smaller, logging both medians and their
