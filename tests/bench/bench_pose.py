@@ -2,6 +2,7 @@
 
     python tests/bench/bench_pose.py [--collection ../shared/data/repair-dev] [--dpi 150]
                                      [--train 31-36] [--test 21-23] [--weights 0,0.5,1,2,3,4,6,8]
+                                     [--picture docs/matching/pose_repair.png]
 
 For every true neighbour pair of realistic synthetic walls (``generate_wall(16, seed, dpi=40,
 preset="pompeii")``, the generator's ground truth) and of a placed collection (RePAIR), the pair is
@@ -12,7 +13,9 @@ pose is chosen by :func:`common.matching.pose.choose_pose` at each ``--weights``
 pose accuracy (share of true pairs whose chosen pose is within 5° and 5 mm of the truth, at B's centre)
 per weight on the training walls (the weight is chosen there: best mean, ties to the smaller
 weight), the test walls and the collection, the ceiling (a candidate within 5°/5 mm exists), and
-the CPU per pair of the docking and of the paint scores. Figures in docs/matching.md ("Poses that fit").
+the CPU per pair of the docking and of the paint scores. ``--picture`` draws the collection's true pairs:
+A's outline, B at its true pose (green), at the geometric docking's choice (grey) and at
+:data:`~common.matching.pose.POSE_PAINT_WEIGHT`'s choice (red). Figures in docs/matching.md ("Poses that fit").
 """
 
 from __future__ import annotations
@@ -66,8 +69,55 @@ def wall_pairs(wall) -> tuple[list[dict], float, float]:
         cpu_dock, cpu_paint = cpu_dock + c1 - c0, cpu_paint + c2 - c1
         err = np.array([relative_pose_error(poses[a], poses[b], (d.angle_deg, d.tx_mm, d.ty_mm), cb.mean(axis=0))
                         for d in docks])
-        out.append({"docks": docks, "paint": paint, "err": err})
+        out.append({"docks": docks, "paint": paint, "err": err, "contours": (ca, cb), "names": (a, b),
+                    "truth": _relative(poses[a], poses[b])})
     return out, cpu_dock, cpu_paint
+
+
+def _relative(pose_a, pose_b) -> tuple[float, float, float]:
+    m = np.linalg.inv(pose_matrix(*pose_a)) @ pose_matrix(*pose_b)
+    return float(np.degrees(np.arctan2(m[1, 0], m[0, 0]))), float(m[0, 2]), float(m[1, 2])
+
+
+def picture(pairs: list[dict], path: str, weight: float) -> None:
+    """One panel per pair: A (black), B at the truth (green), the geometric choice (grey), the chosen pose (red)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(pairs)
+    cols = min(6, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 3 * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    for ax, p in zip(axes.flat, pairs):
+        ca, cb = p["contours"]
+        geometric = choose_pose(p["docks"], p["paint"], weight=0.0)
+        chosen = choose_pose(p["docks"], p["paint"], weight=weight)
+        e = p["err"][p["docks"].index(chosen)]
+        ax.fill(*np.vstack([ca, ca[:1]]).T, color="0.85", lw=0)
+        ax.plot(*np.vstack([ca, ca[:1]]).T, color="k", lw=0.8)
+        for pose, colour, lw in ((p["truth"], "tab:green", 1.6), ((geometric.angle_deg, geometric.tx_mm, geometric.ty_mm),
+                                                                 "0.55", 0.8),
+                                 ((chosen.angle_deg, chosen.tx_mm, chosen.ty_mm), "tab:red", 1.0)):
+            m = pose_matrix(*pose)
+            q = np.vstack([cb, cb[:1]]) @ m[:2, :2].T + m[:2, 2]
+            ax.plot(*q.T, color=colour, lw=lw)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()   # y down, as the images
+        right = e[0] <= 5 and e[1] <= 5
+        a, b = (n.replace("_intact_mesh", "").replace("RPf_", "")[-6:] for n in p["names"])
+        ax.set_title(f"{a}–{b}: {e[0]:.0f}°, {e[1]:.0f} mm"
+                     + (" ✓" if right else ""), fontsize=8)
+    fig.suptitle(f"A filled; B at the truth (green), the docking's choice (grey), contact + {weight:g} × paint (red)",
+                 fontsize=9)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    print(f"picture: {path}")
 
 
 def accuracy(pairs: list[dict], weight: float) -> float:
@@ -90,6 +140,7 @@ def main(argv=None) -> int:
     p.add_argument("--train", default="31-36", help="training wall seeds (the weight is chosen on these)")
     p.add_argument("--test", default="21-23", help="test wall seeds")
     p.add_argument("--weights", default="0,0.5,1,2,3,4,6,8")
+    p.add_argument("--picture", default="", help="PNG of the collection's true pairs at the chosen poses")
     args = p.parse_args(argv)
     from common.synth.wall import generate_wall
 
@@ -131,6 +182,8 @@ def main(argv=None) -> int:
     print("\nCPU per pair: " + "; ".join(f"{n} ({k} pairs): docking {cd / max(k, 1) * 1e3:.0f} ms, "
                                          f"paint of {N_POSES} candidates {cp / max(k, 1) * 1e3:.0f} ms"
                                          for n, k, cd, cp in costs))
+    if args.picture and sets.get("collection"):
+        picture(sets["collection"], args.picture, POSE_PAINT_WEIGHT)
     print(f"{time.time() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
     return 0
 
