@@ -99,9 +99,10 @@ def picture(pairs: list[dict], path: str, weight: float) -> None:
         e = p["err"][p["docks"].index(chosen)]
         ax.fill(*np.vstack([ca, ca[:1]]).T, color="0.85", lw=0)
         ax.plot(*np.vstack([ca, ca[:1]]).T, color="k", lw=0.8)
-        for pose, colour, lw in ((p["truth"], "tab:green", 1.6), ((geometric.angle_deg, geometric.tx_mm, geometric.ty_mm),
-                                                                 "0.55", 0.8),
-                                 ((chosen.angle_deg, chosen.tx_mm, chosen.ty_mm), "tab:red", 1.0)):
+        drawn = ((p["truth"], "tab:green", 1.6),
+                 ((geometric.angle_deg, geometric.tx_mm, geometric.ty_mm), "0.55", 0.8),
+                 ((chosen.angle_deg, chosen.tx_mm, chosen.ty_mm), "tab:red", 1.0))
+        for pose, colour, lw in drawn:
             m = pose_matrix(*pose)
             q = np.vstack([cb, cb[:1]]) @ m[:2, :2].T + m[:2, 2]
             ax.plot(*q.T, color=colour, lw=lw)
