@@ -69,7 +69,8 @@ DOCK_KEEPS_EARLIER_EVIDENCE = True
 #: logit (:func:`common.matching.paint.with_paint`), where both fragments have a boundary profile
 DOCK_USES_PAINT = True
 #: with paint, a pair's one docking keeps this many candidate poses (this many per rotation): its best is the
-#: pair's pose, and the paint continuity is the best over all of them (paint.paint_pair_mm)
+#: pair's geometric evidence, the paint continuity is the best over all of them (paint.paint_pair_mm), and the
+#: pair's proposed pose is the one of them with the best contact + paint (pose.choose_pose)
 DOCK_PAINT_POSES, DOCK_PAINT_PER_ANGLE = 30, 3
 #: docking frames (docking.DockingFrame: a fragment's maps and spectra at every rotation, which serve all
 #: its partners) are kept for the most recently docked fragments, within this many MB
