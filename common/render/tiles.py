@@ -126,6 +126,29 @@ def needs_tiles(image: RGBNImage, recipe, tile: int | None = None) -> bool:
     return h * w > TILE_MPX * 1e6
 
 
+def tile_grid(shape, halo: int, budget_px: float = TILE_MPX * 1e6) -> tuple[int, int]:
+    """Rows and columns of tiles for an image of ``shape`` whose tiles, halo included, stay within
+    ``budget_px`` pixels each, chosen to draw the fewest pixels in all (cores of equal size; the
+    halo is drawn once per tile side, so fewer, squarer tiles are cheaper — but a tile may be
+    oblong when that saves a row or column of them)."""
+    h, w = shape
+    best = None
+    for rows in range(1, h + 1):
+        th = min(h, -(-h // rows) + 2 * halo)
+        if th * min(w, 1 + 2 * halo) > budget_px and th > 1:
+            continue
+        for cols in range(1, w + 1):
+            tw = min(w, -(-w // cols) + 2 * halo)
+            if th * tw <= budget_px:
+                drawn = rows * cols * th * tw
+                if best is None or drawn < best[0]:
+                    best = (drawn, rows, cols)
+                break
+        if best is not None and rows * min(h, 2 * halo + 1) * w > best[0]:
+            break   # more rows only draw more halo
+    return (best[1], best[2]) if best else (h, w)
+
+
 def _spans(length: int, core: int) -> list[tuple[int, int]]:
     n = max(1, int(np.ceil(length / core)))
     edges = np.linspace(0, length, n + 1).round().astype(int)
@@ -192,15 +215,20 @@ def _render_tiled(source, recipe, tile, progress, calibration_mpx):
     log.info("exposure and scales from the %dx%d calibration window: %s", side_w, side_h, resolved)
     # 2. tiles
     halo = halo_px(drawn_recipe, source.dpi, resolved)
-    if tile is None:
-        tile = max(256, int(np.sqrt(TILE_MPX * 1e6)) - 2 * halo)
+    if tile is None:   # the tiling that draws the fewest pixels within the budget
+        rows, cols = tile_grid((h, w), halo, TILE_MPX * 1e6)
+        row_spans, col_spans = _spans(h, -(-h // rows)), _spans(w, -(-w // cols))
+    else:
+        row_spans, col_spans = _spans(h, tile), _spans(w, tile)
+        rows, cols = len(row_spans), len(col_spans)
     bits = recipe.bits
     dtype = np.uint8 if bits == 8 else np.uint16
     full = np.float32(255.0 if bits == 8 else 65535.0)
     rgb = np.empty((h, w, 3), dtype)
     alpha = np.empty((h, w), dtype)
-    spans = [(rs, cs) for rs in _spans(h, tile) for cs in _spans(w, tile)]
-    log.info("drawing %dx%d px in %d tiles (core <= %d px, halo %d px)", w, h, len(spans), tile, halo)
+    spans = [(rs, cs) for rs in row_spans for cs in col_spans]
+    log.info("drawing %dx%d px in %d x %d tiles (core <= %d x %d px, halo %d px)", w, h, rows, cols,
+             -(-h // rows), -(-w // cols), halo)
     for i, ((a, b), (c, d)) in enumerate(spans):
         if progress:
             progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
