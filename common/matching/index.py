@@ -95,6 +95,7 @@ class Candidate:
     docking: Docking | None = None           # stage 3: the other fragment docked against the query
     docking_contact_mm: float = float("nan")  # its shared-crack length less the two hubnesses (mm)
     paint_mm: float = float("nan")           # stage 3: paint continuing across the crack (mm, paint.py)
+    fresco_llr: float = float("nan")         # same-fresco log-likelihood ratio (fresco.py), NaN when not computed
     patch_logit: float = float("nan")        # stage 2: logit of the hubness-corrected probability
 
 
@@ -548,6 +549,40 @@ class MatchIndex:
             c.probability = min(c.probability, floor) if np.isfinite(c.probability) else c.probability
         return head + tail
 
+    def _fresco_signature(self, fragment: str):
+        """The fragment's :class:`~common.matching.fresco.FrescoSignature` (from its boundary profile and
+        face colour; cached while its profile is the same object), None without a profile."""
+        from common.matching.fresco import profile_signature
+
+        prof = self._raw_profiles.get(fragment)
+        cache = self.__dict__.setdefault("_fresco_signatures", {})   # fragment → (profile, signature)
+        if prof is None:
+            cache.pop(fragment, None)
+            return None
+        if fragment not in cache or cache[fragment][0] is not prof:
+            keys = [d.key for d in _descs()[0]]
+            face = self.cues[fragment].values[[keys.index(f"fragment.colour_mean_{c}") for c in "rgb"]]
+            cache[fragment] = (prof, profile_signature(prof, face_rgb=face))
+        return cache[fragment][1]
+
+    def _rank_by_fresco(self, fragment: str, candidates: list[Candidate]) -> list[Candidate]:
+        """Which fresco a piece comes from (:mod:`common.matching.fresco`), after stage 2½: the same-fresco
+        log-likelihood ratio of the query and each candidate is added to the candidate's logit
+        (``FRESCO_WEIGHT`` × ratio), so it decides with the earlier stages which candidates stage 3 docks
+        and stays in their evidence there (``DOCK_KEEPS_EARLIER_EVIDENCE``). Without fitted parameters,
+        a weight of 0 or a profile, the order is kept."""
+        from common.matching import fresco
+
+        sig = self._fresco_signature(fragment)
+        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None or sig is None:
+            return candidates
+        for c in candidates:
+            other = self._fresco_signature(c.other)
+            if other is not None and np.isfinite(c.probability):
+                c.fresco_llr = fresco.fresco_llr(sig, other)
+                c.probability = float(fresco.with_fresco(c.probability, c.fresco_llr, fresco.FRESCO_WEIGHT))
+        return sorted(candidates, key=lambda c: -c.probability if np.isfinite(c.probability) else np.inf)
+
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
              ribbon_candidates: int = RIBBON_CANDIDATES, dock_candidates: int = DOCK_CANDIDATES,
              evidence_for: int | None = None, trace: dict | None = None) -> list[Candidate]:
@@ -573,6 +608,8 @@ class MatchIndex:
                      for o in others if o != cues.fragment and o not in scored and o in self.profiles]
             found = self._rank_by_ribbon(cues.fragment, head, model)
         trace["ribbon"] = list(found)
+        found = self._rank_by_fresco(cues.fragment, found)
+        trace["fresco"] = list(found)
         if self.uses_docking(cues.fragment, model) and dock_candidates > 0:
             found = self._rank_by_docking(cues.fragment, found, model, dock_candidates)
         trace["dock"] = list(found)

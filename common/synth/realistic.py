@@ -10,6 +10,7 @@ several frescoes painted with one palette.
 
 - :data:`PRESETS` -- the ``generate_wall`` arguments of the ``pompeii`` preset;
 - :func:`plaster_palette` -- the colours several walls share (one ``palette_seed``);
+- :func:`wall_ground` -- one wall's plaster when the walls of a house share their plaster;
 - :func:`paint_plaster` -- a plain plaster wall with sparse painted elements (a
   :class:`~common.synth.painting.Painting`);
 - :class:`MaterialLoss` -- how much plaster each crack lost, a function of the crack (the pair
@@ -83,12 +84,46 @@ def plaster_palette(palette_seed: int) -> dict:
     names = sorted(_PAINTS)
     chosen = ["red ochre"] + list(rng.choice([n for n in names if n != "red ochre"], int(rng.integers(3, 6)),
                                             replace=False))
-    return dict(grounds=grounds, paints={n: jitter(_PAINTS[n], 6.0) for n in chosen})
+    paints = {n: jitter(_PAINTS[n], 6.0) for n in chosen}
+    # drawn last, so the grounds and paints above do not depend on it
+    house = int(rng.integers(len(grounds)))
+    return dict(grounds=grounds, paints=paints, house_ground=grounds[house])
+
+
+def wall_ground(palette: dict, wall_seed: int, *, jitter_srgb: float = 3.0) -> np.ndarray:
+    """The plaster ground of one wall of a house whose walls share their plaster.
+
+    The frescoes of one house were laid on one lime mix (``palette["house_ground"]``); each wall's
+    batch and ageing shift its tone a little: a brightness offset ``N(0, jitter_srgb)`` and a tint
+    ``N(0, jitter_srgb / 4)`` per channel (8-bit sRGB levels), as :func:`plaster_palette` jitters its
+    colours. Used by ``generate_wall(..., house_plaster=True)``; measured against RePAIR's frescoes in
+    docs/matching.md ("Which fresco a piece comes from").
+
+    Parameters
+    ----------
+    palette : dict
+        From :func:`plaster_palette`.
+    wall_seed : int
+        The wall's seed.
+    jitter_srgb : float
+        Wall-to-wall brightness spread, 8-bit sRGB levels.
+
+    Returns
+    -------
+    (3,) float32
+        Linear RGB.
+    """
+    if "house_ground" not in palette:
+        raise ValueError("palette has no 'house_ground' (make it with plaster_palette)")
+    rng = np.random.default_rng([int(wall_seed), 4243])
+    srgb = np.where(palette["house_ground"] <= 0.0031308, 12.92 * palette["house_ground"],
+                    1.055 * np.power(palette["house_ground"], 1 / 2.4) - 0.055) * 255.0
+    return np.clip(_lin(srgb + rng.normal(0, jitter_srgb) + rng.normal(0, jitter_srgb / 4, 3)), 0, 1).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------------- painting
 def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *, palette: dict | None = None,
-                  res_mm: float = 0.4) -> Painting:
+                  res_mm: float = 0.4, ground: np.ndarray | None = None) -> Painting:
     """A mostly plain plaster wall with sparse, faded painted elements.
 
     Plain lime-white or grey plaster (mottled at centimetre scale, speckled by the aggregate)
@@ -106,6 +141,9 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     res_mm : float
         Raster pixel size (0.4 mm: the painted elements are broad and faded; sampling a
         fragment interpolates it bilinearly).
+    ground : (3,) array, optional
+        The plaster's linear RGB (:func:`wall_ground`); default one of the palette's grounds, drawn
+        from ``rng``.
 
     Returns
     -------
@@ -126,7 +164,8 @@ def paint_plaster(width_mm: float, height_mm: float, rng: np.random.Generator, *
     W, H = int(np.ceil(width_mm / res_mm)), int(np.ceil(height_mm / res_mm))
     k = 1.0 / res_mm
     G = np.array([[res_mm, 0.0, 0.0], [0.0, res_mm, 0.0]])
-    ground = palette["grounds"][int(rng.integers(len(palette["grounds"])))]
+    drawn = palette["grounds"][int(rng.integers(len(palette["grounds"])))]   # drawn either way: same stream
+    ground = drawn if ground is None else np.asarray(ground, np.float32)
     img = np.empty((H, W, 3), np.float32)
     img[:] = ground
     # centimetre-scale mottling (lime wash, dirt) and a second, greyer blotching

@@ -34,7 +34,7 @@ from common.synth.breakage import Fracture, fracture_recursive, fracture_voronoi
 from common.synth.noise import FractalField
 from common.synth.painting import Painting, paint_wall, painting_from_image
 from common.synth.realistic import (PRESETS, REGION_FRACTION, MaterialLoss, lose_material, paint_plaster,
-                                   plaster_palette, recovered_region, round_outline)
+                                   plaster_palette, recovered_region, round_outline, wall_ground)
 from common.synth.relief import WallRelief, normals_from_height
 
 log = logging.getLogger(__name__)
@@ -178,7 +178,7 @@ class _Look:
 
 def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image, median_size_mm, sigma,
           jag_mm, aspect=1.5, image_width_mm=None, palette=None, fracture_kw=None, relief_res_mm=0.25,
-          relief=True, loss=None, region_rng=None) -> _Plan:
+          relief=True, loss=None, region_rng=None, ground=None) -> _Plan:
     if image is not None:
         aspect = image.shape[1] / image.shape[0]
         width = image_width_mm or np.sqrt(n_pieces * _AREA_FACTOR * median_size_mm ** 2 * aspect)
@@ -189,7 +189,7 @@ def _plan(n_pieces: int, rng_paint, rng_relief, rng_break, *, mode, style, image
         H = float(np.sqrt(area / aspect)) + 8.0
         W = float(aspect * (H - 8.0)) + 8.0
         if style == "pompeii":
-            painting = paint_plaster(W, H, rng_paint, palette=palette)
+            painting = paint_plaster(W, H, rng_paint, palette=palette, ground=ground)
         else:
             painting = paint_wall(W, H, rng_paint, style=style)
     wall_relief = WallRelief(painting, rng_relief, res_mm=relief_res_mm) if relief else None
@@ -403,6 +403,9 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         :func:`~common.synth.realistic.recovered_region`), ``surface_wear`` (pits and hairline
         cracks; off in the preset), ``fade_fraction``, ``discolour_fraction``, ``relief_res_mm``, ``loss``
         (None, 'pompeii' or a dict of :class:`~common.synth.realistic.MaterialLoss` arguments).
+        ``house_plaster`` (True: the 'pompeii' walls of one ``palette_seed`` share their plaster, each
+        wall's tone a little off the house's, :func:`~common.synth.realistic.wall_ground`; default
+        False, each wall draws one of the palette's grounds).
 
     Returns
     -------
@@ -424,6 +427,9 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
     known = {"min_size_mm", "max_size_mm", "jag_scale_mm", "chips_per_cm", "round_mm", "fade_fraction",
              "discolour_fraction", "relief_res_mm", "loss", "edge_noise_mm", "border_weight", "irregular_area",
              "surface_wear"}
+    # walls of one palette share their plaster (realistic.wall_ground); off unless asked, so the walls made
+    # before keep their colours and ids
+    house_plaster = bool(preset_overrides.pop("house_plaster", False))
     if set(preset_overrides) - known:
         raise ValueError(f"unknown argument(s) {sorted(set(preset_overrides) - known)}; known: {sorted(known)}")
     base = dict(_LEGACY, **(PRESETS[preset] if preset else {}))
@@ -466,6 +472,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         params.update(preset=preset, palette_seed=int(seed if palette_seed is None else palette_seed),
                       colour_only=bool(colour_only), min_shared_mm=min_shared_mm, loss=loss_kw,
                       **{k: base.get(k) for k in sorted(known - {"loss"})})
+        if house_plaster:
+            params["house_plaster"] = True
     wall_id = f"s{int(seed)}n{n_fragments}-{content_key(json.dumps(params, sort_keys=True), length=6)}"
     ss = np.random.SeedSequence(int(seed))
     s_paint, s_relief, s_break, s_choice, s_spur, s_frag = ss.spawn(6)
@@ -481,7 +489,8 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         palette = plaster_palette(params["palette_seed"]) if style == "pompeii" else None
         fkw = {k: base[k] for k in ("min_size_mm", "max_size_mm", "jag_scale_mm") if base.get(k) is not None}
         extra = dict(palette=palette, fracture_kw=fkw, relief_res_mm=base.get("relief_res_mm") or 0.25,
-                     relief=not colour_only)
+                     relief=not colour_only,
+                     ground=wall_ground(palette, seed) if house_plaster and palette is not None else None)
         if base.get("irregular_area") and image is None:
             # break a larger wall and keep an irregular patch of it (no straight outer edges)
             extra["region_rng"] = np.random.default_rng([int(seed), 4241])
@@ -515,7 +524,9 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         # another wall: the other style, or for 'pompeii' another wall of the same palette
         other = "pompeii" if style == "pompeii" else ("roman" if style == "aegean" else "aegean")
         splan = _plan(n_spur + 4, sr, sr, sr, mode=mode, style=other, image=None, median_size_mm=median_size_mm, sigma=sigma, jag_mm=jag_mm,
-                      loss=MaterialLoss(int(seed) + 7919, **loss_kw) if loss_kw is not None else None, **extra)
+                      loss=MaterialLoss(int(seed) + 7919, **loss_kw) if loss_kw is not None else None,
+                      **dict(extra, ground=wall_ground(extra["palette"], int(seed) + 7919)
+                             if extra.get("ground") is not None else None))
         sc = splan.fracture.coarse_labels
         sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)
         cand = np.nonzero(sareas * splan.fracture.grid_mm ** 2 >= 25.0)[0]
