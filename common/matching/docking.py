@@ -411,12 +411,19 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
                 overlap_weight: float = DOCK_OVERLAP_WEIGHT, paint_a: np.ndarray | None = None,
                 paint_b: np.ndarray | None = None, paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3,
                 per_angle: int = 1, min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0,
-                coarse_angles: int = None) -> list[Docking]:
+                coarse_angles: int = None, coarse_poses: int = 0) -> list[Docking]:
     """:func:`dock_outlines` of two prepared outlines (:class:`DockingFrame`, same grid and band), reusing
     what they keep: A's spectra and B's turned maps and spectra are computed once per fragment (and FFT
     size) and serve every partner, so docking one fragment against many costs one inverse transform per
     rotation and partner. The same poses as :func:`dock_outlines` (which builds the two frames and calls
-    this); parameters as there."""
+    this); parameters as there, and
+
+    coarse_poses : int
+        0: with ``per_angle`` > 1 every rotation is searched on the fine grid. N > 0: the candidate search
+        is coarse to fine too — every rotation on the grid of twice the cell (``per_angle`` maxima each),
+        then only the rotations of its best N distinct candidates on the fine grid (so fewer than
+        ``n_poses`` candidates may come back when N rotations hold fewer distinct maxima).
+    """
     if frame_a.params != frame_b.params:
         raise ValueError(f"the two frames must share the grid and band (cell, gap, taper, near weight), "
                          f"got {frame_a.params} and {frame_b.params}")
@@ -511,6 +518,10 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         coarse = dock_frames(frame_a.coarser(), frame_b.coarser(), step_deg=step_deg, overlap_weight=overlap_weight,
                              n_poses=coarse_angles, coarse_angles=0)
         angles = sorted({round((c.angle_deg + k * step_deg) % 360.0, 9) for c in coarse for k in (-1, 0, 1)})
+    elif coarse_poses > 0 and per_angle > 1 and not use_paint:
+        coarse = dock_frames(frame_a.coarser(), frame_b.coarser(), step_deg=step_deg, overlap_weight=overlap_weight,
+                             n_poses=coarse_poses, per_angle=per_angle, min_shift_mm=min_shift_mm, coarse_angles=0)
+        angles = sorted({round(c.angle_deg % 360.0, 9) for c in coarse})
     found = [p for angle in angles for p in at(angle)]
     found.sort(key=lambda p: -p.score)
     best = found[0]

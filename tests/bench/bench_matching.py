@@ -19,8 +19,14 @@ targets: ≤ 100 ms per new fragment, ≤ 10 min full re-rank, ≤ 4 GB at n = 2
 
 ``--pool DIR`` fills the index from a real placed collection instead (RePAIR's fragments: 75–115
 patches each, outlines 10–20 cm) and gives the model the docking calibration of the bootstrap
-model, so the proposal time includes stage 3 (docking the best
-:data:`~common.matching.index.DOCK_CANDIDATES`) at real sizes; it prints the docking cost per pair too.
+model, so the proposal time includes stage 3 (docking the best ``--dock-candidates``, default
+:data:`~common.matching.index.DOCK_CANDIDATES`, with their paint continuity) at real sizes. It prints
+the docking cost per pair (one search of 30 candidate poses, the query's frame kept, as stage 3 does),
+and beside each proposal's CPU the CPU of the same proposal without stage 3 (stages 1–2½: the model
+without its docking calibration), so stage 3's share is the difference; the alignment check is not
+run (stage 3's docked pose is the alignment). The queries' ids sort after the index's, so each query
+is the turned fragment of its dockings (its frame serves all its partners), as a new fragment is at
+the station.
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from common.matching.index import MatchIndex  # noqa: E402
+from common.matching.index import DOCK_CANDIDATES, MatchIndex  # noqa: E402
 from common.matching.online import ribbon_calibration, rerank, train_model, wall_cues  # noqa: E402
 from common.matching.pairs import FragmentCues, training_set  # noqa: E402
 from common.synth.wall import generate_wall  # noqa: E402
@@ -62,6 +68,8 @@ def main() -> int:
     ap.add_argument("--pool", help="a placed collection (repair-dev layout) whose real fragments fill the index; "
                                    "proposals then include the docking (stage 3)")
     ap.add_argument("--dpi", type=float, default=150.0, help="nominal dpi of --pool's images (default 150)")
+    ap.add_argument("--dock-candidates", type=int, default=DOCK_CANDIDATES,
+                    help=f"with --pool: candidates docked per proposal (default {DOCK_CANDIDATES})")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     rng = np.random.default_rng(0)
@@ -74,9 +82,10 @@ def main() -> int:
     model2.coef = model.coef * (1 + 0.05 * rng.standard_normal(model.coef.shape))
     model2.version = "0002-bench"
     pool = [(cues[f], tables[f].contour_mm, tables[f].boundary_profile) for f in cues if len(cues[f]) >= 3]
+    plain = None
     if args.pool:
         from common.matching.collection import collection_wall
-        from common.matching.docking import dock_outlines
+        from common.matching.docking import DockingFrame, dock_frames
         from common.matching.online import docking_calibration
 
         real = generate_wall(16, seed=1, dpi=40.0, preset="pompeii", colour_only=True)
@@ -84,17 +93,23 @@ def main() -> int:
         rw = collection_wall(args.pool, dpi=args.dpi)
         rtables, rcues, _ = wall_cues(rw)
         pool = [(rcues[f], rtables[f].contour_mm, rtables[f].boundary_profile) for f in rcues if len(rcues[f]) >= 3]
-        pairs = [(pool[i][1], pool[j][1]) for i, j in rng.integers(len(pool), size=(10, 2))]
+        plain = copy.deepcopy(model)
+        plain.docking = None
+        MatchIndex.rank.__kwdefaults__["dock_candidates"] = args.dock_candidates
+        query = DockingFrame(pool[0][1])
+        pairs = [pool[i][1] for i in rng.integers(len(pool), size=12)]
         tc = time.process_time()
-        for a, b in pairs:
-            dock_outlines(a, b, n_poses=1)
-        print(f"docking one pair of real fragments: {1e3 * (time.process_time() - tc) / len(pairs):.0f} ms CPU")
+        for a in pairs:
+            dock_frames(DockingFrame(a), query, n_poses=30, per_angle=3)
+        print(f"docking one pair of real fragments (30 poses, the query's frame kept): "
+              f"{1e3 * (time.process_time() - tc) / len(pairs):.0f} ms CPU; {args.dock_candidates} docked per proposal")
     print(f"model trained on {wall.id} in {time.perf_counter() - t:.1f} s; pool of {len(pool)} fragments; "
           f"median {int(np.median([len(p[0]) for p in pool]))} patches, "
           f"{int(np.median([len(p[2]) for p in pool]))} boundary samples per fragment")
     print("wall-clock times on a shared machine; 'cpu' columns are this process's CPU time")
     print(f"{'n':>6s} {'build s':>8s} {'propose ms med/p90':>21s} {'cpu ms':>8s} {'align3 ms':>10s} "
-          f"{'full re-rank s/cpu s':>19s} {'re-score s':>10s} {'peak RSS MB':>12s}")
+          f"{'full re-rank s/cpu s':>19s} {'re-score s':>10s} {'peak RSS MB':>12s}"
+          + (f" {'cpu ms w/o stage 3':>18s} {'frames MB':>9s}" if plain else ""))
     index = MatchIndex()
     n_done = 0
     for n in sizes:
@@ -111,7 +126,7 @@ def main() -> int:
         index.refresh_hubness(index._order, model)
         hub_s = time.perf_counter() - t
         # one new fragment at a time: add, propose (stage 1 + 2), then remove it again
-        times, cpu, align_times = [], [], []
+        times, cpu, align_times, cpu_plain = [], [], [], []
         for r in range(args.repeats):
             c, contour, profile = pool[rng.integers(len(pool))]
             q = jittered(c, f"Q{n}-{r}", rng)
@@ -120,9 +135,15 @@ def main() -> int:
             found = index.propose(q, model, n_candidates=100, top=10, check=0)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - tc)
-            t = time.perf_counter()
-            index.propose(q, model, n_candidates=100, top=10, check=3)
-            align_times.append(time.perf_counter() - t - times[-1])
+            if plain is not None:
+                tc = time.process_time()
+                index.propose(q, plain, n_candidates=100, top=10, check=0)
+                cpu_plain.append(time.process_time() - tc)
+                align_times.append(np.nan)
+            else:
+                t = time.perf_counter()
+                index.propose(q, model, n_candidates=100, top=10, check=3)
+                align_times.append(time.perf_counter() - t - times[-1])
             index.remove(q.fragment)
         # full re-rank after a model update: re-propose for every fragment under model2
         full = full_cpu = np.nan
@@ -139,7 +160,9 @@ def main() -> int:
         print(f"hubness of {n} fragments: {hub_s:.1f} s")
         print(f"{n:6d} {build:8.2f} {1e3 * np.median(times):10.1f} / {1e3 * np.percentile(times, 90):7.1f} "
               f"{1e3 * np.median(cpu):8.1f} {1e3 * np.median(align_times):10.1f} {full:9.1f} / {full_cpu:7.1f} "
-              f"{rescore:10.1f} {peak_rss_mb():12.0f}")
+              f"{rescore:10.1f} {peak_rss_mb():12.0f}"
+              + (f" {1e3 * np.median(cpu_plain):18.1f} {sum(f.nbytes for f in index._frames.values()) / 2 ** 20:9.0f}"
+                 if plain else ""))
         sys.stdout.flush()
         assert found and np.isfinite(found[0].ribbon_score)  # the last query got ribbon-ranked proposals
         assert not args.pool or found[0].docking is not None   # ... and docked ones with --pool

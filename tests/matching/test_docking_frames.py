@@ -90,3 +90,20 @@ def test_stage_three_docks_each_pair_once_for_pose_and_paint(small_wall, monkeyp
         if budget == 0:
             assert len(index._frames) == 2
     assert ranked[0] == ranked[512]
+
+
+def test_coarse_candidate_search_finds_the_full_searchs_best():
+    """``coarse_poses``: the 30-pose search on the coarse grid first, then only its candidates' rotations
+    on the fine grid — the best pose within a step and two cells of the full search's, fewer rotations."""
+    a, b = _broken_slab(5, gap_mm=3.0)
+    moved = _move(b, 63.0, (80.0, 10.0))
+    full = dock_outlines(a, moved, n_poses=30, per_angle=3)
+    quick = dock_frames(DockingFrame(a), DockingFrame(moved), n_poses=30, per_angle=3, coarse_poses=10)
+    # at most 3 poses on each of the (up to) 10 rotations searched finely, plus the best refined a third step
+    assert 10 <= len(quick) <= 30 and len({round(d.angle_deg, 3) for d in quick}) <= 10 + 1
+    assert abs((full[0].angle_deg - quick[0].angle_deg + 180) % 360 - 180) <= 4.0 + 1e-6
+    c = moved.mean(axis=0)
+    at_full = _move(c[None], full[0].angle_deg, (full[0].tx_mm, full[0].ty_mm))[0]
+    at_quick = _move(c[None], quick[0].angle_deg, (quick[0].tx_mm, quick[0].ty_mm))[0]
+    assert np.hypot(*(at_full - at_quick)) <= 3.0
+    assert quick[0].score >= 0.95 * full[0].score
