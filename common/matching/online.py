@@ -33,6 +33,11 @@ from common.matching.ribbon import fit_ribbon_calibration, pair_ribbon_scores
 
 #: sample weight of one verdict row relative to one bootstrap row
 VERDICT_WEIGHT = 5.0
+#: the bootstrap model (and ``tessera evaluate``'s models) use stage 3's learned combination of the stage
+#: scores (:func:`stage_combination`); off: stage 3 combines them by fixed rules. Off since 2026-11-25:
+#: it lifts pooled top-5 on the synthetic wall and DAFNE but the bootstrap's fit lowers RePAIR's
+#: within-object @3 from 1.000 to 0.750 (docs/matching.md, "Stage 3's learned combination")
+STAGE_COMBINATION = False
 
 
 def wall_cues(wall, *, progress=None, work_pixel_mm: float = 0.1):
@@ -224,13 +229,17 @@ def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0,
     # the kind of collection it has to work on; colour-only, since only the outlines are used
     real = generate_wall(max(12, n_fragments // 4), seed=seed + 1, dpi=min(dpi, 40.0), preset="pompeii",
                          colour_only=True)
-    real_tables, _, _ = wall_cues(real)
+    real_tables, real_cues, _ = wall_cues(real)
     docking = docking_calibration(real, contours={f: t.contour_mm for f, t in real_tables.items()},
                                   paint={f: paint_from_profile(t.boundary_profile) for f, t in real_tables.items()},
                                   seed=seed, negatives_per_positive=2.0)
     model, _ = train_model(ts, sequence=1, ribbon=ribbon_calibration(tables, wall.adjacency), docking=docking,
                            info={"docking_trained_on": f"synthetic wall {real.id} (preset pompeii, seed {seed + 1})",
                                  "trained_on": f"synthetic wall {wall.id} ({n_fragments} fragments, seed {seed}, {dpi:g} dpi)"})
+    if docking is not None and STAGE_COMBINATION:
+        # stage 3's weighing of the stage scores, learned on the realistic wall's staged ranking (lost material
+        # along the cracks, where the docking and the paint carry evidence), as the docking's calibration is
+        model = with_combination(model, stage_combination(real_tables, real_cues, real.adjacency, model))
     return model
 
 

@@ -20,6 +20,7 @@ from common.features.boundary import boundary_channel_names
 from common.matching.evaluation import (confusion_rates, grouped_cross_validation, pair_precision_recall,
                                         precision_recall, rank_all_pairs, top_k_recall)
 from common.matching.index import MatchIndex
+from common.matching import online
 from common.matching.online import (docking_calibration, ribbon_calibration, stage_combination, train_model, wall_cues,
                                     with_combination)
 from common.matching.pairs import training_set
@@ -199,9 +200,11 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     say(0.66, "docking calibration on the training wall")
     model, pipe = train_model(ts, info={"trained_on": wall.id}, ribbon=ribbon_calibration(tables, wall.adjacency),
                               docking=_docking_of(wall, tables, seed))
-    # stage 3's combination of the stage scores, learned on the training wall's own ranking
+    # stage 3's combination of the stage scores, learned on the training wall's own ranking: the station's
+    # stage 3 when online.STAGE_COMBINATION is set, else measured beside the fixed rules
     say(0.68, "stage combination on the training wall")
-    model = with_combination(model, stage_combination(tables, cues, wall.adjacency, model))
+    combination = stage_combination(tables, cues, wall.adjacency, model)
+    model = with_combination(model, combination if online.STAGE_COMBINATION else None)
     pred = pipe.predict(ts2.x)
     rates = confusion_rates(ts2.y, pred)
     ap2 = precision_recall(ts2.y, model.probability(ts2.x))["ap"]
@@ -215,13 +218,14 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     idx2 = _index_of(tables2, cues2)
     scores = rank_all_pairs(idx2, model, progress=lambda f, t: say(0.72 + 0.15 * f, t))
     topk = {"synthetic (train seed %d, test seed %d)" % (seed, test_seed): top_k_recall(scores, wall2.adjacency, KS)}
-    # for comparison: stage 3 by the fixed rules (no learned combination; the same index, so the same dockings)
-    ruled = rank_all_pairs(idx2, replace(model, combination=None))
-    topk["synthetic, stage 3 by fixed rules (no learned combination)"] = top_k_recall(ruled, wall2.adjacency, KS)
+    # for comparison: stage 3 by the other combination (the same index, so the same dockings)
+    other, name = _other_combination(model, combination)
+    if other is not None:
+        topk[f"synthetic, stage 3 by {name}"] = top_k_recall(rank_all_pairs(idx2, other), wall2.adjacency, KS)
     # for comparison: without the docking (stages 2 + 2½), stage 2 alone, and the ribbon alone on every pair
-    undocked = rank_all_pairs(_index_of(tables2, cues2), replace(model, docking=None))
+    undocked = rank_all_pairs(_index_of(tables2, cues2), replace(model, docking=None, combination=None))
     topk["synthetic, without docking (stages 2 + ribbon)"] = top_k_recall(undocked, wall2.adjacency, KS)
-    plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None, docking=None))
+    plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None, docking=None, combination=None))
     topk["synthetic, stage 2 only (patch classifier)"] = top_k_recall(plain, wall2.adjacency, KS)
     alone = pair_ribbon_scores({f: t.boundary_profile for f, t in tables2.items()}, boundary_channel_names())
     topk["synthetic, colour ribbon alone (every pair)"] = top_k_recall(alone, wall2.adjacency, KS)
@@ -235,7 +239,7 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     if dafne:
         say(0.88, "DAFNE (colour and contour only)")
         result["dafne"] = _evaluate_dafne(dafne, out, folds=folds, negatives_per_positive=negatives_per_positive,
-                                          topk=topk, pair_curves=pair_curves, combination=model.combination)
+                                          topk=topk, pair_curves=pair_curves, combination=combination)
         result["pair_ap"]["dafne"] = result["dafne"]["pair_ap"]
     write_csv([{"ranking": name, **{f"top{k}": v for k, v in rec.items()}} for name, rec in topk.items()],
               out / "topk.csv")
@@ -244,6 +248,16 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     log.info("evaluation done in %.0f s", time.time() - t0)
     say(1.0, "done")
     return result
+
+
+def _other_combination(model, combination):
+    """The model with stage 3's other combination (learned ↔ fixed rules) and its name, for a row beside;
+    (None, "") when there is no learned one."""
+    if model.combination is not None:
+        return replace(model, combination=None), "fixed rules (no learned combination)"
+    if combination is None or model.docking is None:
+        return None, ""
+    return with_combination(model, combination), "the learned combination (fitted on the synthetic training wall)"
 
 
 def _docking_of(wall, tables, seed):
@@ -259,7 +273,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     """DAFNE: grouped CV on colour+curvature cues; top-k by training on one half of the fresco and
     ranking the other half (the halves split by the fragments' x position), both ways. ``combination``:
     stage 3's learned combination (fitted on the synthetic training wall; its terms are calibrated
-    logits, so it carries over to each half's model)."""
+    logits, so it carries over to each half's model), used as the main ranking when
+    ``online.STAGE_COMBINATION`` is set and beside it otherwise."""
     from common.synth.dafne import import_dafne
     from common.synth.wall import Wall
 
@@ -278,7 +293,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     cut = float(np.median(list(xs.values())))
     halves = [{f for f in xs if xs[f] < cut}, {f for f in xs if xs[f] >= cut}]
     spurious = {f.id for f in wall.fragments if f.pose is None}
-    all_scores, ruled_scores, undocked_scores, plain_scores, alone_scores = {}, {}, {}, {}, {}
+    all_scores, other_scores, undocked_scores, plain_scores, alone_scores = {}, {}, {}, {}, {}
+    other_name = ""
     for h in range(2):
         train_ids, test_ids = halves[h], halves[1 - h] | spurious
         adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
@@ -288,20 +304,25 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
                     wall.dpi)
         model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr),
                                docking=_docking_of(half, {f: tables[f] for f in train_ids}, h))
-        model = with_combination(model, combination if model.docking is not None else None)
+        if online.STAGE_COMBINATION and model.docking is not None:
+            model = with_combination(model, combination)
         idx = _index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids})
         all_scores.update(rank_all_pairs(idx, model))
-        ruled_scores.update(rank_all_pairs(idx, replace(model, combination=None)))
+        other, other_name = _other_combination(model, combination)
+        if other is not None:
+            other_scores.update(rank_all_pairs(idx, other))
         undocked_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids},
-                                                        {f: cues[f] for f in test_ids}), replace(model, docking=None)))
+                                                        {f: cues[f] for f in test_ids}),
+                                              replace(model, docking=None, combination=None)))
         plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids}),
-                                           replace(model, ribbon=None, docking=None)))
+                                           replace(model, ribbon=None, docking=None, combination=None)))
         alone_scores.update(pair_ribbon_scores({f: tables[f].boundary_profile for f in test_ids},
                                                boundary_channel_names()))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
     rec = top_k_recall(all_scores, adj_te, KS)
     topk["DAFNE (train one half, rank the other)"] = rec
-    topk["DAFNE, stage 3 by fixed rules (no learned combination)"] = top_k_recall(ruled_scores, adj_te, KS)
+    if other_scores:
+        topk[f"DAFNE, stage 3 by {other_name}"] = top_k_recall(other_scores, adj_te, KS)
     topk["DAFNE, without docking (stages 2 + ribbon)"] = top_k_recall(undocked_scores, adj_te, KS)
     topk["DAFNE, stage 2 only"] = top_k_recall(plain_scores, adj_te, KS)
     topk["DAFNE, colour ribbon alone"] = top_k_recall(alone_scores, adj_te, KS)
