@@ -158,6 +158,34 @@ def print_table(name, rec, n_links):
         print(f"| {label} | {r['kept']:.3f} | " + " | ".join(f"{r[k]:.3f}" for k in KS) + f" | {med} |")
 
 
+def plot_stage_recall(result: dict, path) -> None:
+    """The tables as a picture: per set, the share of true links in reach and in the top 5 / 12 after each stage."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(result), figsize=(4.2 * len(result), 3.6), dpi=90, squeeze=False)
+    short = ["1 prune", "2 patch", "2½ ribbon", "3 dock+paint", "final pooled"]
+    for ax, (name, rec) in zip(axes[0], result.items()):
+        for key, label, style in (("kept", "in reach", "k-"), ("12", "top 12", "C0o-"), ("5", "top 5", "C3o-"),
+                                  ("1", "top 1", "C2o:")):
+            # keys are ints in a fresh result and strings once read back from --json
+            ys = [rec["table"][s][key] if key in rec["table"][s] else rec["table"][s][int(key)] for s, _ in STAGES]
+            ax.plot(range(len(STAGES)), ys, style, label=label)
+        ax.axhline(0.8, color="0.6", lw=0.8, ls="--")
+        ax.set_xticks(range(len(STAGES)))
+        ax.set_xticklabels(short, rotation=30, fontsize=7)
+        ax.set_ylim(0, 1.02)
+        ax.set_title(f"{name} ({len(rec['links'])} links)", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("share of true neighbour links")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle("Where the true partners are lost (dashed: the 0.8 target)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def main(argv=None):
     from common.matching.evaluation import stage_recall
 
@@ -165,6 +193,7 @@ def main(argv=None):
     ap.add_argument("--sets", default="synthetic,dafne,repair")
     ap.add_argument("--cache", help="directory for the prepared sets (pickles)")
     ap.add_argument("--json", help="write the tables and the per-link ranks as JSON")
+    ap.add_argument("--png", help="draw the tables (share in reach and in the top 1/5/12 per stage) into this file")
     ap.add_argument("--traces", help="directory: pickle each set's traces and true pairs (<set>.traces.pkl)")
     args = ap.parse_args(argv)
     builders = {"synthetic": build_synthetic, "synthetic-train": build_synthetic, "dafne": build_dafne,
@@ -189,6 +218,8 @@ def main(argv=None):
         result[name] = {"table": {s: rec[s] for s, _ in STAGES}, "links": rec["links"], "ranks": rec["ranks"]}
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1, default=str))
+    if args.png and result:
+        plot_stage_recall(result, args.png)
 
 
 if __name__ == "__main__":
