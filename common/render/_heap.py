@@ -26,8 +26,9 @@ import threading
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
 #: glibc's defaults, restored afterwards: 65536 mmapped blocks, a 128 KiB trim threshold.
 _DEFAULT_MMAP_MAX, _DEFAULT_TRIM_THRESHOLD = 65536, 128 * 1024
-#: Free memory kept at the heap's top during a rendering (not trimmed between arrays), bytes.
-_KEEP_BYTES = 1 << 30
+#: Free memory kept at the heap's top during a rendering (not trimmed between arrays), bytes: one
+#: 16-Mpx float32 normal map (192 MB) fits, so the usual array is not handed back and faulted in again.
+_KEEP_BYTES = 256 << 20
 
 _lock = threading.Lock()
 _depth = 0
@@ -50,7 +51,7 @@ def _glibc():
 @contextlib.contextmanager
 def reuse_freed_memory():
     """Context manager: large allocations come from the heap (glibc ``M_MMAP_MAX = 0``, up to
-    1 GiB of free heap kept) while it is open; on leaving the outermost one the defaults are
+    256 MiB of free heap kept) while it is open; on leaving the outermost one the defaults are
     restored and the free heap is returned to the kernel. Re-entrant; a no-op without glibc."""
     global _depth
     lib = _glibc()

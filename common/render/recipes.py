@@ -857,12 +857,12 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
     if not isinstance(image, RGBNImage):
         raise ValueError(f"image must be an RGBNImage, got {type(image).__name__}")
-    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
-        if resolved is None:
-            from common.render.tiles import needs_tiles, render_tiled
+    if resolved is None:
+        from common.render.tiles import needs_tiles, render_tiled
 
-            if needs_tiles(image, recipe, tile):
-                return render_tiled(image, recipe, tile=tile, progress=progress)
+        if needs_tiles(image, recipe, tile):   # each tile reuses its own freed arrays
+            return render_tiled(image, recipe, tile=tile, progress=progress)
+    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
         return _render_whole(image, recipe, progress, resolved)
 
 

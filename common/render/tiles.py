@@ -126,29 +126,6 @@ def needs_tiles(image: RGBNImage, recipe, tile: int | None = None) -> bool:
     return h * w > TILE_MPX * 1e6
 
 
-def tile_grid(shape, halo: int, budget_px: float = TILE_MPX * 1e6) -> tuple[int, int]:
-    """Rows and columns of tiles for an image of ``shape`` whose tiles, halo included, stay within
-    ``budget_px`` pixels each, chosen to draw the fewest pixels in all (cores of equal size; the
-    halo is drawn once per tile side, so fewer, squarer tiles are cheaper — but a tile may be
-    oblong when that saves a row or column of them)."""
-    h, w = shape
-    best = None
-    for rows in range(1, h + 1):
-        th = min(h, -(-h // rows) + 2 * halo)
-        if th * min(w, 1 + 2 * halo) > budget_px and th > 1:
-            continue
-        for cols in range(1, w + 1):
-            tw = min(w, -(-w // cols) + 2 * halo)
-            if th * tw <= budget_px:
-                drawn = rows * cols * th * tw
-                if best is None or drawn < best[0]:
-                    best = (drawn, rows, cols)
-                break
-        if best is not None and rows * min(h, 2 * halo + 1) * w > best[0]:
-            break   # more rows only draw more halo
-    return (best[1], best[2]) if best else (h, w)
-
-
 def _spans(length: int, core: int) -> list[tuple[int, int]]:
     n = max(1, int(np.ceil(length / core)))
     edges = np.linspace(0, length, n + 1).round().astype(int)
@@ -176,12 +153,6 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
         ``rgb`` (H, W, 3) and ``alpha`` (H, W) as uint8 / uint16 (the recipe's ``bits``).
     """
     from common.render._heap import reuse_freed_memory
-
-    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
-        return _render_tiled(source, recipe, tile, progress, calibration_mpx)
-
-
-def _render_tiled(source, recipe, tile, progress, calibration_mpx):
     from common.render.recipes import STYLES, Rendering, _render_whole, load_recipe, style_recipe
 
     if isinstance(recipe, str):
@@ -197,7 +168,8 @@ def _render_tiled(source, recipe, tile, progress, calibration_mpx):
 
         if progress:
             progress(0.0, f"segmenting {w}x{h} px")
-        labels = segment_source(source, **recipe.segmentation)
+        with reuse_freed_memory():
+            labels = segment_source(source, **recipe.segmentation)
     cut = lambda r0, r1, c0, c1: None if labels is None else labels[r0:r1, c0:c1]  # noqa: E731
     # 1. calibration on the centred window
     side_h = min(h, int(np.sqrt(calibration_mpx * 1e6 * h / w)))
@@ -205,8 +177,11 @@ def _render_tiled(source, recipe, tile, progress, calibration_mpx):
     r0, c0 = (h - side_h) // 2, (w - side_w) // 2
     if progress:
         progress(0.0, f"calibrating exposure on {side_w}x{side_h} px")
-    calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None,
-                          cut(r0, r0 + side_h, c0, c0 + side_w))
+    # each drawing reuses its freed arrays (_heap) and hands the memory back when it ends, so one
+    # tile's heap does not stay beside the next one's (the output and the labels are not in it)
+    with reuse_freed_memory():
+        calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None,
+                              cut(r0, r0 + side_h, c0, c0 + side_w))
     resolved = calib.resolved
     skipped = calib.skipped
     del calib
@@ -215,29 +190,25 @@ def _render_tiled(source, recipe, tile, progress, calibration_mpx):
     log.info("exposure and scales from the %dx%d calibration window: %s", side_w, side_h, resolved)
     # 2. tiles
     halo = halo_px(drawn_recipe, source.dpi, resolved)
-    if tile is None:   # the tiling that draws the fewest pixels within the budget
-        rows, cols = tile_grid((h, w), halo, TILE_MPX * 1e6)
-        row_spans, col_spans = _spans(h, -(-h // rows)), _spans(w, -(-w // cols))
-    else:
-        row_spans, col_spans = _spans(h, tile), _spans(w, tile)
-        rows, cols = len(row_spans), len(col_spans)
+    if tile is None:
+        tile = max(256, int(np.sqrt(TILE_MPX * 1e6)) - 2 * halo)
     bits = recipe.bits
     dtype = np.uint8 if bits == 8 else np.uint16
     full = np.float32(255.0 if bits == 8 else 65535.0)
     rgb = np.empty((h, w, 3), dtype)
     alpha = np.empty((h, w), dtype)
-    spans = [(rs, cs) for rs in row_spans for cs in col_spans]
-    log.info("drawing %dx%d px in %d x %d tiles (core <= %d x %d px, halo %d px)", w, h, rows, cols,
-             -(-h // rows), -(-w // cols), halo)
+    spans = [(rs, cs) for rs in _spans(h, tile) for cs in _spans(w, tile)]
+    log.info("drawing %dx%d px in %d tiles (core <= %d px, halo %d px)", w, h, len(spans), tile, halo)
     for i, ((a, b), (c, d)) in enumerate(spans):
         if progress:
             progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
         ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
-        part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb))
-        core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
-        rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
-        alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)
-        del part
+        with reuse_freed_memory():
+            part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb))
+            core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
+            rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
+            alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)
+            del part
     if progress:
         progress(1.0, "done")
     return Rendering(rgb, alpha, recipe, skipped, resolved)

@@ -103,35 +103,3 @@ def test_exaggerated_with_all_six_scales_draws_the_same_in_tiles_with_its_3_sigm
     diff = np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64))
     assert diff.max() <= 1.0
     assert np.ptp(whole.rgb) > 0.5                                # a picture with relief in it
-
-
-def test_the_automatic_tiling_draws_fewest_pixels_within_the_budget():
-    """tile_grid against every grid of up to 12 x 12 tiles: within the budget, and none of those
-    that fit draws fewer pixels (cores of equal size, halo on every side inside the image)."""
-    from common.render.tiles import tile_grid
-
-    def cost(shape, halo, rows, cols):
-        th = min(shape[0], -(-shape[0] // rows) + 2 * halo)
-        tw = min(shape[1], -(-shape[1] // cols) + 2 * halo)
-        return th * tw, rows * cols * th * tw
-
-    for shape, halo, budget in (((7141, 7141), 284, 16e6), ((14142, 14142), 284, 16e6), ((900, 2500), 40, 4e5),
-                                ((3000, 400), 120, 3e5), ((500, 500), 10, 1e6)):
-        rows, cols = tile_grid(shape, halo, budget)
-        area, drawn = cost(shape, halo, rows, cols)
-        assert area <= budget
-        fits = [cost(shape, halo, r, c)[1] for r in range(1, 13) for c in range(1, 13)
-                if cost(shape, halo, r, c)[0] <= budget]
-        assert drawn == min(fits)
-
-
-def test_automatically_chosen_tiles_draw_the_same_as_the_whole(relief, monkeypatch):
-    from common.render import tiles
-
-    recipe = style_recipe("colour_relief")
-    whole = render(relief, recipe)
-    monkeypatch.setattr(tiles, "TILE_MPX", 0.03)   # 30,000 px a tile: several oblong tiles here
-    tiled = render_tiled(relief, recipe)
-    rows, cols = tiles.tile_grid(relief.shape, halo_px(recipe, relief.dpi, whole.resolved), 0.03e6)
-    assert rows * cols > 2
-    assert np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64)).max() <= 1.0
