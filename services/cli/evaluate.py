@@ -10,8 +10,9 @@
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
 feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
 ``crosswall.csv`` (train on one wall, test on another, §5.8.5), ``topk.csv``/``topk.png``
-(share of each fragment's true neighbours among its k best proposals, for the matcher's
-hubness-corrected ranking and, for comparison, the uncorrected one) and, with ``--dafne``, the
+(share of each fragment's true neighbours among its k best proposals, for the station's staged
+ranking and, for comparison, stage 3 by the learned combination of the stage scores fitted on the
+training wall, no docking, stage 2 alone and the ribbon alone) and, with ``--dafne``, the
 same for the colour-only DAFNE set. The second trains a model on a synthetic wall and installs it
 as the current model of a station's matcher (storage root ``ROOT``). The third ranks a real, placed
 collection (``../shared/data/repair-dev`` layout: one folder per object with RGBA fragment images and
