@@ -7,12 +7,17 @@ sides' probabilities, as ``tessera evaluate`` counts top-k), and the share of tr
 (in the stage's list) and in its top 1 / 5 / 10 / 12 / 50:
 
     python tests/bench/bench_stage_recall.py [--sets synthetic,dafne,repair] [--cache DIR] [--json FILE]
+                                             [--png FILE] [--traces DIR]
 
 Sets: ``synthetic`` — ``tessera evaluate``'s walls (150 fragments, 100 dpi, train seed 11, test seed 12;
 model and its ribbon/docking calibrations fitted on the training wall); ``dafne`` — the DAFNE halves
 (train one half, rank the other with the spurious fragments, both ways); ``repair`` —
 ../shared/data/repair-dev at 150 dpi, pooled, with the station's bootstrap model (nothing fitted on it).
-``--cache DIR`` keeps the feature tables and models between runs (pickles; the first run builds them).
+``--cache DIR`` keeps the feature tables and models between runs (pickles; the first run builds them);
+``--traces DIR`` keeps each set's traces (to re-rank them offline, e.g. by another stage-3 combination);
+the set ``synthetic-train`` traces the training wall with its own model (what stage 3's learned
+combination is fitted on; never a test figure). Figures and timings: docs/matching.md, "Where the true
+partners are lost".
 """
 
 from __future__ import annotations
