@@ -230,8 +230,16 @@ def main() -> int:
                         help="also a procedural face of this side drawn window by window (default 14142 = 200 Mpx)")
     parser.add_argument("--size", type=int, default=4096, help=argparse.SUPPRESS)
     parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--no-heap-reuse", action="store_true",
+                        help="with --child/--huge-child: draw without common.render._heap's reuse of freed arrays "
+                             "(to measure what it is worth)")
     parser.add_argument("--huge-child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.no_heap_reuse:
+        import contextlib
+
+        from common.render import _heap
+        _heap.reuse_freed_memory = contextlib.nullcontext
     if args.child:
         child(args.child, args.size)
         return 0
