@@ -6,8 +6,9 @@ fresh ``mmap`` and returns it with ``munmap`` when freed, so each new array page
 pages again, and the kernel zeroes them. On the shared station machine this was measured at a
 quarter of a rendering's CPU time: the segments recipe at 12 Mpx, 245,000-252,000 minor page
 faults and 4.9-6.2 s of system time beside 11.9-12.0 s of user time; with mmap off, 39,000
-faults, 2.1 s system, 11.4 s user (``tests/bench/bench_render.py --child recipe-segments --size
-3464``, ``GLIBC_TUNABLES=glibc.malloc.mmap_max=0``, load 16-18).
+faults, 1.6-2.1 s system, 11.4 s user (``tests/bench/bench_render.py --child recipe-segments --size
+3464``, ``GLIBC_TUNABLES=glibc.malloc.mmap_max=0``, load 15-18; ``--no-heap-reuse`` measures this
+module's effect the same way).
 
 :func:`reuse_freed_memory` turns glibc's mmap off for the duration of a rendering, so large
 arrays come from the heap and a freed one is reused by the next, and afterwards restores the

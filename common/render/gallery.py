@@ -450,16 +450,17 @@ with its window of them. Output is 8 or 16 bit (`bits` / `--bits`); the computat
 throughout. The layers of a recipe share the normals they smooth at the same scale (exaggerated
 shading's finest level is the noise scale discontinuity lines smooth at), and while a rendering
 runs, freed arrays are reused instead of being handed back to the kernel and page-faulted in
-again (`common/render/_heap.py`: about a quarter of the CPU time of a 12-Mpx rendering on the
-station machine).
+again (`common/render/_heap.py`: the segments recipe 8-21 % less CPU time at 12 Mpx in three
+paired runs on the station machine, for 120-240 MB more peak memory; per tile when tiled, so a
+tile's memory is handed back before the next).
 
 Inputs are checked: `--convention auto` (the default) reads a normal map both ways and keeps the
 reading whose curl (`dp/dy - dq/dx` of the gradient field) is smaller, logging both medians and their
 ratio (undecided below 1.2: OpenGL assumed and said so); a file that does not decode to unit vectors
 facing the viewer (a photograph, an albedo) is refused with the share that failed.
 
-Per-style speed, memory and tone range at 12, 51 and 200 Mpx, how they were measured, and the history of
-the figures: [gallery/measured.md](gallery/measured.md).
+The figures measured now follow (the first section of `docs/gallery/measured.md`, copied here by the
+gallery); that file keeps how each earlier figure was measured: [gallery/measured.md](gallery/measured.md).
 """
 
 
@@ -537,7 +538,13 @@ def _judgement_markdown(rows: dict, judgement: dict) -> list:
 
 def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures: dict, noise: dict,
                     judgement: dict | None = None) -> None:
-    lines = [HEAD.rstrip(), "", _recipe_reference().rstrip(), ""]
+    lines = [HEAD.rstrip(), ""]
+    measured = path.parent / "gallery" / "measured.md"
+    if measured.is_file():   # its first section: the current figures (the rest is their history)
+        text = measured.read_text()
+        cut = text.find("\n## ", text.find("## ") + 3)
+        lines += [(text if cut < 0 else text[:cut]).rstrip(), ""]
+    lines += [_recipe_reference().rstrip(), ""]
     if judgement:
         lines += _judgement_markdown(rows, judgement)
     lines += ["## Subjects", ""]
