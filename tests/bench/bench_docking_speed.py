@@ -15,13 +15,13 @@ A proposal docks one new fragment against its best 12 candidates (``index.DOCK_C
 * **one search, frames kept** — what stage 3 does now (``MatchIndex._dock_pair``): one
   ``dock_frames(n_poses=30, per_angle=3)`` per pair gives the pose (its best) and the paint's
   candidates, the query's :class:`~common.matching.docking.DockingFrame` (its maps and spectra at the
-  90 rotations) serving all its partners; the query is turned (B) against every partner, as in the
-  station where the new fragment has the newest id;
+  90 rotations) serving all its partners, docked in order of FFT size as the index does; the query is
+  turned (B) against every partner, as in the station where the new fragment has the newest id;
 * **one search, no frames kept** — the same search with fresh frames per pair (the worst case of the
   cache: a partner the query is held against);
 * the paint scoring of the 30 poses (``paint_continuity``), the same in all three;
 
-and it prints the frames' memory (bytes a frame holds after serving all partners, as fragment B) and
+and it prints the frames' memory (bytes the query's frame holds while it serves its partners) and
 whether the one search gives the same pose and paint evidence as the two (it must: the same search).
 """
 
@@ -85,22 +85,23 @@ def main() -> int:
     frame_bytes = []
     for q, partners in work:
         frame_q = DockingFrame(contour[q])
-        for o in partners:
-            docks = timed("one search, frames kept", lambda: dock_frames(DockingFrame(contour[o]), frame_q, n_poses=30,
-                                                                         per_angle=3))
+        frames = {o: DockingFrame(contour[o]) for o in partners}
+        # in order of FFT size, as the index docks them (MatchIndex._dock_pairs): one size's spectra at a time
+        for o in sorted(partners, key=lambda o: frames[o].fft_size(frame_q)):
+            docks = timed("one search, frames kept", lambda: dock_frames(frames[o], frame_q, n_poses=30, per_angle=3))
             pose, docks_before, mm = before[q, o]
             same_docks += docks == docks_before
             same_paint += paint_pair_mm(field[o], field[q], contour[o], contour[q], docks=docks)[0] == mm
             same_pose += abs(docks[0].score - pose.score) < 1e-3
-        frame_bytes.append(frame_q.nbytes)
+            frame_bytes.append(frame_q.nbytes)
     for k, v in cpu.items():
         print(f"{k:42s} {1e3 * v / n_pairs:7.1f} ms CPU per pair")
     two = cpu["two searches: the pose (coarse to fine)"] + cpu["two searches: 30 paint poses"]
     one = cpu["one search, frames kept"]
     print(f"{'stage 3 docking per pair: before / now':42s} {1e3 * two / n_pairs:7.1f} / {1e3 * one / n_pairs:.1f} ms CPU "
           f"({two / one:.1f}x)")
-    print(f"query frame after serving {args.partners} partners: {np.median(frame_bytes) / 2 ** 20:.0f} MB median, "
-          f"{np.max(frame_bytes) / 2 ** 20:.0f} MB max")
+    print(f"a query's frame while it serves its partners (one FFT size's turned spectra kept): "
+          f"{np.median(frame_bytes) / 2 ** 20:.0f} MB median, {np.max(frame_bytes) / 2 ** 20:.0f} MB max")
     print(f"one search with kept frames = the 30-pose search without: {same_docks}/{n_pairs} pairs (same poses and "
           f"scores), same paint evidence {same_paint}/{n_pairs}; its best pose scores as the coarse-to-fine pose for "
           f"{same_pose}/{n_pairs} (the rest: the full search finds a better one)")
