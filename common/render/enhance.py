@@ -510,7 +510,7 @@ def _into_gamut(rgb: np.ndarray, lab: np.ndarray) -> np.ndarray:
     recomputed."""
     from common.rgbn.io import linear_to_srgb
 
-    rgb = np.asarray(rgb, np.float32)
+    rgb = np.ascontiguousarray(rgb, np.float32)   # written through a flat view below
     # one pass (cv2.inRange: every channel strictly inside) instead of reductions over the 3-channel
     # axis, which numpy runs slowly on large images
     edge = cv2.inRange(rgb, (1e-6, 1e-6, 1e-6), (1.0 - 1e-6, 1.0 - 1e-6, 1.0 - 1e-6)) == 0
@@ -522,7 +522,7 @@ def _into_gamut(rgb: np.ndarray, lab: np.ndarray) -> np.ndarray:
     if outside.any():
         idx = np.flatnonzero(edge.ravel())[outside]
         mapped = gamut_map_lab(lab_e[outside, 0], lab_e[outside, 1], lab_e[outside, 2])
-        rgb = rgb.copy() if not rgb.flags.writeable else rgb
+        rgb = rgb if rgb.flags.writeable else rgb.copy()
         rgb.reshape(-1, 3)[idx] = linear_to_srgb(mapped)
     return rgb
 
