@@ -246,7 +246,8 @@ class DockingFrame:
         """The same outline on a grid of twice the cell (the coarse pass of coarse to fine), kept."""
         if self._coarser is None:
             cell, gap, taper, near = self.params
-            self._coarser = DockingFrame(self.contour_mm, cell_mm=2 * cell, gap_mm=gap, taper_mm=taper, near_weight=near)
+            self._coarser = DockingFrame(self.contour_mm, cell_mm=2 * cell, gap_mm=gap, taper_mm=taper,
+                                         near_weight=near)
         return self._coarser
 
     def fft_size(self, turned: "DockingFrame") -> int:
@@ -423,6 +424,13 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         is coarse to fine too — every rotation on the grid of twice the cell (``per_angle`` maxima each),
         then only the rotations of its best N distinct candidates on the fine grid (so fewer than
         ``n_poses`` candidates may come back when N rotations hold fewer distinct maxima).
+
+    Examples
+    --------
+    >>> sq = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float)
+    >>> turned = DockingFrame(sq)                       # kept: serves every partner
+    >>> [dock_frames(DockingFrame(sq * s), turned)[0] == dock_outlines(sq * s, sq)[0] for s in (1.0, 1.5)]
+    [True, True]
     """
     if frame_a.params != frame_b.params:
         raise ValueError(f"the two frames must share the grid and band (cell, gap, taper, near weight), "

@@ -60,7 +60,8 @@ def main() -> int:
     work = [(q, [ids[i] for i in rng.choice(len(ids), size=min(args.partners, len(ids) - 1) + 1, replace=False)
                  if ids[i] != q][:args.partners]) for q in queries]
     n_pairs = sum(len(p) for _, p in work)
-    print(f"{args.collection}: {len(ids)} fragments, {len(queries)} queries x {args.partners} partners = {n_pairs} pairs")
+    print(f"{args.collection}: {len(ids)} fragments, {len(queries)} queries x {args.partners} partners "
+          f"= {n_pairs} pairs")
 
     cpu: dict[str, float] = {}
 
@@ -98,7 +99,8 @@ def main() -> int:
         print(f"{k:42s} {1e3 * v / n_pairs:7.1f} ms CPU per pair")
     two = cpu["two searches: the pose (coarse to fine)"] + cpu["two searches: 30 paint poses"]
     one = cpu["one search, frames kept"]
-    print(f"{'stage 3 docking per pair: before / now':42s} {1e3 * two / n_pairs:7.1f} / {1e3 * one / n_pairs:.1f} ms CPU "
+    print(f"{'stage 3 docking per pair: before / now':42s} {1e3 * two / n_pairs:7.1f} / "
+          f"{1e3 * one / n_pairs:.1f} ms CPU "
           f"({two / one:.1f}x)")
     print(f"a query's frame while it serves its partners (one FFT size's turned spectra kept): "
           f"{np.median(frame_bytes) / 2 ** 20:.0f} MB median, {np.max(frame_bytes) / 2 ** 20:.0f} MB max")
