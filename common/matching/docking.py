@@ -386,6 +386,11 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     -------
     list of Docking, best first.
 
+    See Also
+    --------
+    dock_frames : the same with the two outlines prepared once (:class:`DockingFrame`): to dock one
+        fragment against many, keep its frame (the index's stage 3 does).
+
     References
     ----------
     E. Katchalski-Katzir et al., "Molecular surface recognition: determination of geometric fit
