@@ -608,7 +608,8 @@ class MatchIndex:
                      for o in others if o != cues.fragment and o not in scored and o in self.profiles]
             found = self._rank_by_ribbon(cues.fragment, head, model)
         trace["ribbon"] = list(found)
-        found = self._rank_by_fresco(cues.fragment, found)
+        if self.uses_ribbon(cues.fragment, model):   # after stage 2½ only (propose's evidence rows follow it)
+            found = self._rank_by_fresco(cues.fragment, found)
         trace["fresco"] = list(found)
         if self.uses_docking(cues.fragment, model) and dock_candidates > 0:
             found = self._rank_by_docking(cues.fragment, found, model, dock_candidates)

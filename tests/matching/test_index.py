@@ -155,10 +155,15 @@ def _ribbon_setup(small_wall):
     return model, wall2, cues2, index
 
 
-def test_colour_ribbon_ranks_more_true_neighbours_than_stage_2_alone(small_wall):
+def test_colour_ribbon_ranks_more_true_neighbours_than_stage_2_alone(small_wall, monkeypatch):
     """Top-k recall of the ground-truth neighbours of a wall the model never saw: the staged ranking
-    with the colour ribbon (stage 2½) must beat stage 2 alone (the same model without calibration)."""
+    with the colour ribbon (stage 2½) must beat stage 2 alone (the same model without calibration);
+    the same-fresco step after stage 2½ (fresco.py) is off, so only the ribbon differs."""
     import dataclasses
+
+    from common.matching import fresco
+
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 0.0)
 
     from common.matching.evaluation import rank_all_pairs, top_k_recall
 
@@ -179,7 +184,11 @@ def test_propose_with_the_ribbon_gives_calibrated_probabilities_even_without_pat
     assert len(found) == 8 and found[0].alignment is not None
     probs = [c.probability for c in found]
     assert probs == sorted(probs, reverse=True)
-    np.testing.assert_allclose(probs, ribbon_probability([c.ribbon_score for c in found], model.ribbon))
+    # the ribbon's calibrated probability, with the same-fresco ratio added to its logit (fresco.py)
+    from common.matching import fresco
+
+    np.testing.assert_allclose(probs, fresco.with_fresco(ribbon_probability([c.ribbon_score for c in found], model.ribbon),
+                                                         [c.fresco_llr for c in found], fresco.FRESCO_WEIGHT))
     assert all(c.evidence is not None and len(c.evidence) == model.top_m for c in found if c.patch_a >= 0)
     # a fragment too small for a valid patch: stage 2 cannot score it, the ribbon still ranks it
     small = next(c for c in cues2.values() if len(c) == 0)
