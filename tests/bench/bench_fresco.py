@@ -9,10 +9,14 @@ fresco and of different frescoes, and the AUC of "different pairs differ more th
 (:func:`common.matching.fresco.fit_fresco_llr`) is fitted on synthetic collections only and its
 AUC on RePAIR printed beside.
 
-    python tests/bench/bench_fresco.py [--repair ../shared/data/repair-dev] [--walls 4] [--fit]
-        [--cache DIR]
+    python tests/bench/bench_fresco.py [--repair ../shared/data/repair-dev] [--fit] [--cache DIR]
+        [--house-plaster] [--overrides JSON] [--train "41,42,43,44p5;..."] [--test "51,52,53,54p7;..."]
 
-``--fit`` prints the fitted parameters (what :data:`common.matching.fresco.FRESCO_LLR` holds).
+Collections are given as wall seeds, ``p``, the palette seed; ``;`` separates collections (pairs are
+only formed within one). ``--fit`` fits the ratio on the training collections and prints it with its
+AUC on every set: :data:`common.matching.fresco.FRESCO_LLR` is the output of
+``--fit --house-plaster --overrides '{"fade_fraction": 0.0, "discolour_fraction": 0.0}'`` (the defaults'
+collections).
 """
 
 from __future__ import annotations

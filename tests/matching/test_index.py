@@ -187,8 +187,8 @@ def test_propose_with_the_ribbon_gives_calibrated_probabilities_even_without_pat
     # the ribbon's calibrated probability, with the same-fresco ratio added to its logit (fresco.py)
     from common.matching import fresco
 
-    np.testing.assert_allclose(probs, fresco.with_fresco(ribbon_probability([c.ribbon_score for c in found], model.ribbon),
-                                                         [c.fresco_llr for c in found], fresco.FRESCO_WEIGHT))
+    ribbon = ribbon_probability([c.ribbon_score for c in found], model.ribbon)
+    np.testing.assert_allclose(probs, fresco.with_fresco(ribbon, [c.fresco_llr for c in found], fresco.FRESCO_WEIGHT))
     assert all(c.evidence is not None and len(c.evidence) == model.top_m for c in found if c.patch_a >= 0)
     # a fragment too small for a valid patch: stage 2 cannot score it, the ribbon still ranks it
     small = next(c for c in cues2.values() if len(c) == 0)
