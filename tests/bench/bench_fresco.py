@@ -12,8 +12,8 @@ AUC on RePAIR printed beside.
     python tests/bench/bench_fresco.py [--repair ../shared/data/repair-dev] [--fit] [--cache DIR]
         [--house-plaster] [--overrides JSON] [--train "41,42,43,44p5;..."] [--test "51,52,53,54p7;..."]
 
-Collections are given as wall seeds, ``p``, the palette seed; ``;`` separates collections (pairs are
-only formed within one). ``--fit`` fits the ratio on the training collections and prints it with its
+Collections are given as wall seeds, ``p``, the palette seed (``41,42,43,44p5``, or a palette per wall:
+``41p5,42p5,43p6,44p6``); ``;`` separates collections (pairs are only formed within one). ``--fit`` fits the ratio on the training collections and prints it with its
 AUC on every set: :data:`common.matching.fresco.FRESCO_LLR` is the output of
 ``--fit --house-plaster --overrides '{"fade_fraction": 0.0, "discolour_fraction": 0.0}'`` (the defaults'
 collections).
@@ -185,8 +185,11 @@ def main(argv=None):
     for tag, spec in (("train", args.train), ("test", args.test)):
         parts = []
         for k, coll in enumerate(spec.split(";")):
-            seeds, pal = coll.split("p")
-            walls = [(int(x), int(pal)) for x in seeds.split(",")]
+            if coll.count("p") > 1:   # every wall with its own palette: "41p5,42p5,43p6,44p6"
+                walls = [tuple(int(v) for v in w.split("p")) for w in coll.split(",")]
+            else:                     # one palette for the collection: "41,42,43,44p5"
+                seeds, pal = coll.split("p")
+                walls = [(int(x), int(pal)) for x in seeds.split(",")]
             d = factory_data(walls, cache, h.replace(" ", "_") + "_" + "_".join(f"{s}p{p}" for s, p in walls),
                              args.house_plaster, ov)
             parts.append(dict(d, collections=[k] * len(d["groups"])))
