@@ -31,9 +31,21 @@ their order. On the synthetic test wall this raises top-5 recall of true neighbo
 about 0.5 (docs/matching.md). Fragments without a boundary profile (feature tables older than schema
 version 2) or a model without a ribbon calibration keep the stage-2 ranking.
 
-Stage 3 — **check** the best few per fragment with :func:`common.matching.alignment.align_fragments`
-(anchored at the ribbon's best run and the best patch pairs), which gives the proposed pose and the
-gap/contact/overlap.
+**Same fresco** — after stage 2½ each candidate's probability gains the log-likelihood ratio that
+the two fragments come from one fresco (:mod:`common.matching.fresco`: their boundaries' plaster
+and paint colours), so that in a collection of several frescoes the later stages, which judge the
+crack alone, do not lift pieces of another fresco.
+
+Stage 3 — **dock** the best ``DOCK_CANDIDATES`` per fragment (:mod:`common.matching.docking`:
+gap-tolerant outline complementarity searched over every pose by FFT correlation, one search per
+pair giving 30 candidate poses, the fragment's turned maps kept across its partners). The contact,
+corrected for both fragments' docking hubness, is calibrated into the join probability; the earlier
+stages' evidence and the paint continuing across the crack (:mod:`common.matching.paint`, its best
+over the candidate poses) are added to its logit. The proposed pose is the candidate with the best
+contact plus paint (:func:`common.matching.pose.choose_pose`). Candidates that stage 3 does not dock
+keep their order below the docked ones; without a docking calibration the best ``check`` are
+aligned by :func:`common.matching.alignment.align_fragments` instead. Measured figures of every
+stage: docs/matching.md.
 """
 
 from __future__ import annotations
@@ -514,8 +526,9 @@ class MatchIndex:
                          dock_candidates: int) -> list[Candidate]:
         """Stage 3 for one query fragment: its best ``dock_candidates`` are docked
         (:func:`~common.matching.docking.dock_outlines`, gap-tolerant), their contact corrected for
-        both fragments' docking hubness and calibrated into the join probability; they come first,
-        best first, each with the docked pose as its alignment. The rest follow, never above them."""
+        both fragments' docking hubness and calibrated into the join probability (with the earlier
+        evidence and the paint, or the model's learned combination); they come first, best first,
+        each with its chosen pose (:meth:`pose`) as its alignment. The rest follow, never above them."""
         head = [c for c in ranked[:dock_candidates] if c.other in self.contours]
         if not head:
             return ranked
@@ -591,10 +604,11 @@ class MatchIndex:
         Stage 2 orders ``others`` by the patch classifier; where the ribbon applies, its best
         ``ribbon_candidates`` — plus the others stage 2 cannot score because one of the two has no
         valid patch (a small fragment still has a boundary) — are re-ranked by the ribbon and the
-        rest dropped. Where the model has a docking calibration, the best ``dock_candidates`` are
-        then docked and re-ranked (:meth:`_rank_by_docking`). ``evidence_for``: attach evidence rows
-        to the best this many of stage 2 (None: all). ``trace``: a dict that receives each stage's
-        candidate list as it leaves the stage (``"patch"``, ``"ribbon"``, ``"dock"``;
+        rest dropped, and the same-fresco ratio is added (:meth:`_rank_by_fresco`). Where the model
+        has a docking calibration, the best ``dock_candidates`` are then docked and re-ranked
+        (:meth:`_rank_by_docking`). ``evidence_for``: attach evidence rows to the best this many of
+        stage 2 (None: all). ``trace``: a dict that receives each stage's candidate list as it
+        leaves the stage (``"patch"``, ``"ribbon"``, ``"fresco"``, ``"dock"``;
         :func:`common.matching.evaluation.trace_stages`).
         """
         trace = {} if trace is None else trace
