@@ -181,9 +181,10 @@ def test_without_a_proposal_store_the_api_says_so(tmp_path):
 # -- in Chromium, against a real station ------------------------------------------------------
 @pytest.mark.slow
 def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
-    from .test_browser import CHROMIUM, CHROMIUM_ARGS, DOCS, LiveStation, _require_browser
+    from .test_browser import BENCH_CHROMIUM_ARGS, DOCS, LiveStation
+    from .viewer_support import CHROMIUM, require_browser
 
-    _require_browser()
+    require_browser()
     from playwright.sync_api import sync_playwright
 
     live = LiveStation(tmp_path)
@@ -213,7 +214,7 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
                     f"return c ? +c.dataset.{attr} : 0; }}")
 
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
             page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
             page.goto(f"{live.url}/reconstruction")
             page.wait_for_selector("#recon-empty:not([hidden])", timeout=30_000)
