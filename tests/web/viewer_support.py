@@ -80,6 +80,11 @@ token = "{TOKEN}"
         wait_for_web(self.children.start("web", "web", "--no-scanner"), self.url, self.root / "web.log")
         return self
 
+    @property
+    def proc(self):
+        """The ``tessera web`` process (its pid for CPU accounting)."""
+        return self.children.procs["web"]
+
     def stop(self) -> None:
         if self.children is not None:
             self.children.stop(grace_s=10.0)
