@@ -114,9 +114,11 @@ def tone_curve(values: np.ndarray, low: float, high: float) -> np.ndarray:
 def shoulder(values: np.ndarray, knee: float = 0.8) -> np.ndarray:
     """Highlight roll-off: identity below ``knee``, then ``knee + (1 - knee) tanh((v - knee) /
     (1 - knee))`` — values above 1 approach white instead of clipping (slope 1 at the knee)."""
-    v = np.asarray(values, np.float32)
-    room = np.float32(1.0 - knee)
-    return np.where(v <= knee, v, np.float32(knee) + room * np.tanh((v - np.float32(knee)) / room)).astype(np.float32)
+    v = np.array(values, np.float32)   # a copy, rolled off in place where it is above the knee
+    room, k = np.float32(1.0 - knee), np.float32(knee)
+    over = v > k
+    v[over] = k + room * np.tanh((v[over] - k) / room)   # usually a small share of the pixels
+    return v
 
 
 # ---- noise of a normal map ----------------------------------------------------------------------
