@@ -43,3 +43,20 @@ def test_freed_arrays_are_reused_inside_a_rendering_and_returned_after():
     assert min(faults["outside"]) > 0.9 * PAGES   # mmap'd afresh: every page faulted, every time
     assert max(faults["inside"]) < 0.1 * PAGES    # the freed array's pages are reused
     assert min(faults["after"]) > 0.9 * PAGES     # defaults back: the memory went back to the kernel
+
+
+def test_numpy_asks_for_no_huge_pages_during_a_rendering_and_as_before_after():
+    # huge-page compaction at the fault was most of a rendering's erratic system time (_heap)
+    from numpy._core import multiarray
+
+    from common.render._heap import reuse_freed_memory
+
+    was = multiarray._set_madvise_hugepage(True)
+    try:
+        with reuse_freed_memory():
+            with reuse_freed_memory():
+                assert multiarray._get_madvise_hugepage() is False
+            assert multiarray._get_madvise_hugepage() is False
+        assert multiarray._get_madvise_hugepage() is True
+    finally:
+        multiarray._set_madvise_hugepage(was)
