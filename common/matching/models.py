@@ -123,10 +123,19 @@ class MatchModel:
         x = np.asarray(x, dtype=float)
         if x.ndim != 2 or x.shape[1] != len(self.columns):
             raise ValueError(f"x must be (K, {len(self.columns)}), got {x.shape}")
-        # folded: w·(x − μ)/s + b = x·(w/s) + (b − μ·w/s); missing values take the imputed value
+        w, constant = self.linear()
+        x = np.where(np.isnan(x), self.impute, x)   # missing values take the imputed value
+        return x @ w + constant
+
+    def linear(self) -> tuple[np.ndarray, float]:
+        """The decision function on raw correspondence rows: ``logit = x · w + constant``.
+
+        Folded from the standardised model, ``w·(x − μ)/s + b = x·(w/s) + (b − μ·w/s)``, so a caller
+        can add up one column at a time without building the rows (stage 2,
+        :meth:`common.matching.index.MatchIndex.score`).
+        """
         w = self.coef / self.scale
-        x = np.where(np.isnan(x), self.impute, x)
-        return x @ w + (self.intercept - self.mean @ w)
+        return w, float(self.intercept - self.mean @ w)
 
     def probability(self, x: np.ndarray) -> np.ndarray:
         """Match probability of (K, D) correspondence rows."""

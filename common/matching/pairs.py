@@ -180,12 +180,17 @@ def _rule_arrays(descs):
 _RULES_CACHE: dict = {}
 
 
-def _columnwise(descs, a, b):
-    """Vectorised :func:`correspondence` over columns (same rules, all columns at once)."""
+def column_rules(descs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each column's correspondence rule: (is ``abs_sum``, is ``angle_diff``, angle period or inf)."""
     key = id(descs)
     if key not in _RULES_CACHE:
         _RULES_CACHE[key] = _rule_arrays(descs)
-    is_sum, is_angle, period = _RULES_CACHE[key]
+    return _RULES_CACHE[key]
+
+
+def _columnwise(descs, a, b):
+    """Vectorised :func:`correspondence` over columns (same rules, all columns at once)."""
+    is_sum, is_angle, period = column_rules(descs)
     out = np.abs(a - b)
     if is_sum.any():
         out[..., is_sum] = np.abs(a + b)[..., is_sum]

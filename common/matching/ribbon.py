@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from common.threads import one_blas_thread
@@ -193,16 +194,13 @@ def sample_rarity(a: RibbonProfile, population: RibbonPopulation, *, fragment=No
 
 def _shifted_min(d: np.ndarray, tol: int, axis: int) -> np.ndarray:
     """Minimum over ±tol samples along ``axis``: wrapped around a closed profile (axis 0), or
-    inside padded segments (axis 1, where the padding supplies the wrap)."""
-    out = d.copy()
-    for s in range(1, tol + 1):
-        if axis == 0:
-            np.minimum(out, np.roll(d, s, axis=0), out=out)
-            np.minimum(out, np.roll(d, -s, axis=0), out=out)
-        else:
-            np.minimum(out[:, s:], d[:, :-s], out=out[:, s:])
-            np.minimum(out[:, :-s], d[:, s:], out=out[:, :-s])
-    return out
+    inside padded segments (axis 1, where the padding supplies the wrap; at the array's ends the
+    window is cut short)."""
+    if axis == 0:   # wrap: the last rows before the first, the first after the last
+        d = d[np.arange(-tol, len(d) + tol) % len(d)]
+        kernel = np.ones((2 * tol + 1, 1), np.uint8)
+        return cv2.erode(d, kernel, borderType=cv2.BORDER_REPLICATE)[tol:-tol]
+    return cv2.erode(d, np.ones((1, 2 * tol + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
 def ribbon_scores(a: RibbonProfile, others: list, *, rarity: np.ndarray | None = None,
@@ -249,10 +247,11 @@ def _ribbon_scores(a, others, window_mm, tolerance_mm, offset):
     na = len(a)
     tol = int(round(tolerance_mm / a.step_mm))
     win = max(1, min(int(round(window_mm / a.step_mm)), na))
-    # every B reversed and padded by `tol` samples of its own wrap, stacked: one matrix product
-    # gives D for all of them, and the tolerance along B never reaches into another fragment
-    idx = [(lens[j] - 1 - np.arange(-tol, lens[j] + tol)) % lens[j] for j in ok]
-    offsets = np.concatenate([[0], np.cumsum(lens[ok] + 2 * tol)])
+    # every B reversed and padded with its own wrap — `tol` samples before, `tol + win` after — and
+    # stacked: one matrix product gives D for all of them, the tolerance along B never reaches into
+    # another fragment, and a run of `win` samples from any start stays inside its fragment's block
+    idx = [(lens[j] - 1 - np.arange(-tol, lens[j] + tol + win)) % lens[j] for j in ok]
+    offsets = np.concatenate([[0], np.cumsum(lens[ok] + 2 * tol + win)])
     d = np.empty((na, offsets[-1]))
     # thickness counts only where both fragments have it (a colour-only scan is not a mismatch)
     thick = np.array([a.has_thickness and others[j].has_thickness for j in ok])
@@ -266,31 +265,33 @@ def _ribbon_scores(a, others, window_mm, tolerance_mm, offset):
             q = a.rows[(kind, flag)][0]
             o = np.vstack([others[ok[t]].rows[(kind, flag)][1][idx[t]] for t in sel])
             dd = q @ o.T if dd is None else np.minimum(dd, q @ o.T)
-        d[:, cols] = np.sqrt(np.maximum(dd, 0.0))
+        np.maximum(dd, 0.0, out=dd)
+        d[:, cols] = np.sqrt(dd, out=dd)
     if offset is not None:
         if offset.shape != (na,):
             raise ValueError(f"rarity must be ({na},), one value per sample of A, got {offset.shape}")
         d -= offset[:, None]
     if tol:
         d = np.minimum(_shifted_min(d, tol, 0), _shifted_min(d, tol, 1))
-    # diagonals: row r of G (one per B sample j0 of each fragment) holds D[i mod na, j0 + i mod nb]
-    # for i = 0 … na + win − 1, so window sums along it are every placement of the run
-    ii = np.arange(na + win)
-    cols_idx = np.vstack([offsets[t] + tol + (ii[None, :] + np.arange(lens[j])[:, None]) % lens[j]
-                          for t, j in enumerate(ok)])
-    g = d[(ii % na)[None, :], cols_idx]
-    c = np.zeros((len(g), na + win + 1))
-    np.cumsum(g, axis=1, out=c[:, 1:])
-    sums = c[:, win:win + na] - c[:, :na]                 # (rows, na): run starting at A sample i
-    best_i = np.argmin(sums, axis=1)
-    best = sums[np.arange(len(sums)), best_i]
+    # a run starting at A sample i and B sample j is the diagonal D[i + t, j + t], t < win (A wraps,
+    # B's padding holds its wrap): the sum of `win` shifted views of D with A's first rows appended
+    d = np.vstack([d, d[:win - 1]])
+    n_cols = offsets[-1] - win + 1
+    sums = d[:na, :n_cols].copy()
+    for t in range(1, win):
+        sums += d[t:t + na, t:t + n_cols]
+    # column offsets[t] + tol + j: the runs starting at B sample j of fragment t, (rows = A start i)
+    starts = np.concatenate([offsets[t] + tol + np.arange(lens[j]) for t, j in enumerate(ok)])
+    sums = sums[:, starts]                                # (na, rows): A start i × B start
+    best_i = np.argmin(sums, axis=0)
+    best = sums[best_i, np.arange(sums.shape[1])]
     bounds = np.concatenate([[0], np.cumsum(lens[ok])])
     for t, j in enumerate(ok):
         r0 = bounds[t] + int(np.argmin(best[bounds[t]:bounds[t + 1]]))
         j0, i0 = r0 - bounds[t], int(best_i[r0])
         score[j] = -best[r0] / win
         arc_a[j] = i0 * a.step_mm
-        arc_b[j] = (lens[j] - 1 - (i0 + j0) % lens[j]) * others[j].step_mm   # B's own forward arc
+        arc_b[j] = (lens[j] - 1 - j0) * others[j].step_mm   # B's own forward arc
     return score, arc_a, arc_b
 
 

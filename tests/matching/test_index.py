@@ -1,6 +1,7 @@
 """The staged index: incremental adds equal a rebuild, pruning follows the model's fragment cues."""
 
 import numpy as np
+import pytest
 
 from common.matching.index import MatchIndex
 from common.matching.online import train_model
@@ -290,3 +291,31 @@ def test_docking_stage_adds_the_pairs_paint_continuity(small_wall, monkeypatch):
     assert [c.probability for c in head] == sorted((c.probability for c in head), reverse=True)
     assert len(index._paint_pairs) == 3                      # cached per pair
     assert index.paint_pair(head[0].other, q) == head[0].paint_mm
+
+
+def test_stage_2_scores_missing_cues_as_the_model_imputes_them(small_wall):
+    # colour-only fragments have no normal cues: NaN columns take the model's imputed value, as
+    # model.probability does on the correspondence rows
+    import dataclasses
+    wall, tables, cues, poses = small_wall
+    model = _model(small_wall)
+    rng = np.random.default_rng(5)
+    ids = [f for f in cues if len(cues[f]) >= 3][:10]
+    holed = {}
+    for k, f in enumerate(ids):
+        patches, strips = cues[f].patches.copy(), [s.copy() for s in cues[f].strips]
+        if k % 2:   # every other fragment lacks a few cues altogether, one patch lacks all
+            patches[:, rng.choice(patches.shape[1], 6, replace=False)] = np.nan
+        patches[0, :] = np.nan
+        strips[0][1] = np.nan
+        holed[f] = dataclasses.replace(cues[f], patches=patches, strips=strips)
+    index = MatchIndex()
+    for f in ids:
+        index.add(holed[f], tables[f].contour_mm)
+    q = holed[ids[1]]
+    got = {c.other: c.patch_probability for c in index.score(q, ids, model)}
+    assert len(got) == len(ids) - 1
+    for other in ids:
+        if other != q.fragment:
+            p = np.sort(model.probability(pair_rows(q, holed[other])))[::-1][:model.top_m].mean()
+            assert got[other] == pytest.approx(p, rel=1e-9)

@@ -174,3 +174,32 @@ def test_rarity_lets_a_match_of_unusual_colours_beat_a_match_of_a_plain_field():
     assert rarity[30:].mean() > 5 * rarity[:20].mean()                     # bands rare, grey common
     corrected, _, _ = ribbon_scores(profiles["a"], others, rarity=rarity)
     assert corrected[0] > corrected[1], corrected
+
+
+def _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset):
+    """The module docstring's score written out directly: D of every sample pair (B run backwards,
+    both closed), its minimum over ±tolerance along either profile, the best mean over a run."""
+    flag = a.has_thickness and b.has_thickness
+    d2 = np.minimum(*[a.rows[(k, flag)][0] @ b.rows[(k, flag)][1].T for k in ("sqrt", "std")])
+    d = np.sqrt(np.maximum(d2, 0.0))[:, ::-1] - offset[:, None]        # column j: B sample nb-1-j
+    tol, win = round(tolerance_mm / a.step_mm), min(round(window_mm / a.step_mm), len(a))
+    along_a = np.min([np.roll(d, s, axis=0) for s in range(-tol, tol + 1)], axis=0)
+    along_b = np.min([np.roll(d, s, axis=1) for s in range(-tol, tol + 1)], axis=0)
+    t = np.minimum(along_a, along_b)
+    runs = sum(np.roll(np.roll(t, -s, axis=0), -s, axis=1) for s in range(win)) / win   # run from (i, j)
+    return -runs.min(), runs
+
+
+@pytest.mark.parametrize("window_mm, tolerance_mm", [(20.0, 3.0), (4.0, 2.0), (500.0, 0.0)])
+def test_scores_and_best_runs_equal_the_definition(window_mm, tolerance_mm):
+    a = _decoys(1)[0]
+    others = _decoys(4)[1:] + [_ribbon(_piece(*_painting(9), _cut(9), upper=True)[0])]
+    offset = np.random.default_rng(0).uniform(0, 0.05, len(a))
+    score, arc_a, arc_b = ribbon_scores(a, others, rarity=offset, rarity_weight=1.0,
+                                        window_mm=window_mm, tolerance_mm=tolerance_mm)
+    for b, s, i0, j_arc in zip(others, score, arc_a, arc_b):
+        best, runs = _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset)
+        assert s == pytest.approx(best, abs=1e-12)
+        # the reported run (A forwards from arc_a, B backwards from arc_b) is a best one
+        i, j = int(round(i0 / a.step_mm)), len(b) - 1 - int(round(j_arc / b.step_mm))
+        assert -runs[i, j] == pytest.approx(best, abs=1e-12)
