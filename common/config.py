@@ -72,6 +72,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "fragment.ready": ["solver"],
         "rgbn.ready": ["features", "renderer"],
         "features.ready": ["matcher"],
+        "match.ranked": ["matcher"],
         "match.verified": ["matcher"],
     },
     "scanner": {

@@ -47,6 +47,8 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "render.ready": ("An illustration of one face is on storage.", ("fragment", "face", "artifact")),
     "match.proposed": ("A ranked join proposal between two fragments, with probability and pose.",
                        ("fragment", "other", "probability")),
+    "match.ranked": ("A fragment's joins were proposed from the fast stages (1-2½); the matcher docks its best "
+                     "candidates next and proposes again with poses.", ("fragment", "face", "artifact")),
     "match.verified": ("A person confirmed or rejected a proposal.", ("fragment", "other", "verdict")),
     "fragment.annotated": ("A person edited a fragment's catalogue metadata (find-spot, context, date, notes, "
                            "inventory); carries the changed fields and who.", ("fragment", "changes", "by")),

@@ -3,7 +3,12 @@
 * ``features.ready`` (front face): the feature artifact is recorded in the proposal store, the
   fragment is added to the in-memory index (only its own cues are computed — nothing else is
   recomputed), its joins are proposed by the staged matcher (:mod:`common.matching.index`), stored,
-  and returned as ``match.proposed`` events. Back faces are recorded but not matched.
+  and returned as ``match.proposed`` events. Back faces are recorded but not matched. Where the
+  model docks (stage 3, about a second per fragment at real sizes), this first answer comes from
+  stages 1–2½ alone (``stage: "ranked"``, no pose, ~0.1 s) with a ``match.ranked`` event, which is
+  routed back to a matcher:
+* ``match.ranked``: the fragment's best candidates are docked, and its joins proposed again with
+  their poses (``stage: "docked"``), updating every join the first answer proposed.
 * ``match.verified``: the verdict is stored (a re-delivered message is ignored), the logistic
   regression is re-fitted on its bootstrap rows plus every verdict's evidence
   (:func:`common.matching.online.refit_with_verdicts`), saved as the next model version
@@ -34,7 +39,7 @@ from common.matching.proposals import Proposal, ProposalStore, ordered_pair
 from common.messages import MessageError, new_message
 
 SERVICE = "matcher"
-VERSION = "matcher-1.1"  # 1.1: colour-ribbon stage
+VERSION = "matcher-1.2"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked)
 
 _STATES: dict = {}
 
@@ -86,9 +91,11 @@ def handle(job: dict, ctx) -> list[dict]:
     kind = job.get("type")
     if kind == "features.ready":
         return _on_features(job, ctx)
+    if kind == "match.ranked":
+        return _on_ranked(job, ctx)
     if kind == "match.verified":
         return _on_verified(job, ctx)
-    raise MessageError(f"matcher handles features.ready and match.verified, got {kind!r}")
+    raise MessageError(f"matcher handles features.ready, match.ranked and match.verified, got {kind!r}")
 
 
 def _on_features(job: dict, ctx) -> list[dict]:
@@ -101,15 +108,43 @@ def _on_features(job: dict, ctx) -> list[dict]:
     _sync(st, ctx)  # indexes the new fragment (only its own cues are computed)
     cfg = ctx.config or {}
     cues = st.index.cues[fragment]
+    # docking follows as its own job: the first answer is the fast stages' (module docstring)
+    dock_later = st.index.uses_docking(fragment, st.model)
     ctx.progress(0.6, f"proposing joins among {len(st.index)} fragments")
     found = st.index.propose(cues, st.model, n_candidates=int(cfg.get("n_candidates", 100)),
-                             top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)))
+                             top=int(cfg.get("top", 10)), check=0 if dock_later else int(cfg.get("check", 3)),
+                             dock=not dock_later)
+    events = _proposed(found, st, ctx, "ranked" if dock_later else "docked")
+    if dock_later:
+        events.append(new_message("match.ranked", fragment=fragment, face=face, artifact=job["artifact"],
+                                  model_version=st.model.version, fragments=len(st.index),
+                                  proposed=[c.other for c in found]))
+    return events
+
+
+def _on_ranked(job: dict, ctx) -> list[dict]:
+    fragment = str(job["fragment"])
+    st = _state(ctx)
+    if st.seen.get(fragment) != job["artifact"].get("sha256"):
+        # newer features replaced the ranked ones: their own features.ready brings their match.ranked
+        ctx.log.info("fragment %s: features changed since it was ranked; not docking the old ones", fragment)
+        return []
+    cfg = ctx.config or {}
+    proposed = [str(o) for o in job.get("proposed") or [] if o in st.index]
+    ctx.progress(0.3, f"docking the best candidates of {fragment}")
+    found = st.index.propose(st.index.cues[fragment], st.model, n_candidates=int(cfg.get("n_candidates", 100)),
+                             top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), also=proposed)
+    return _proposed(found, st, ctx, "docked")
+
+
+def _proposed(found, st: _State, ctx, stage: str) -> list[dict]:
+    """Store a fragment's proposals and return their ``match.proposed`` events."""
     columns = correspondence_columns()
     props = [_proposal(c, st, columns) for c in found]
     stored = st.db.upsert(props) if props else []
-    ctx.log.info("fragment %s: %d proposals (best %.3f)", fragment, len(stored),
-                 stored[0].probability if stored else float("nan"))
-    return [new_message("match.proposed", **p.to_event_fields()) for p in stored]
+    ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", found[0].fragment if found else "-", len(stored),
+                 stage, stored[0].probability if stored else float("nan"))
+    return [new_message("match.proposed", stage=stage, **p.to_event_fields()) for p in stored]
 
 
 def _proposal(c, st: _State, columns) -> Proposal:

@@ -104,3 +104,34 @@ def test_unknown_job_type_is_refused(station):
     with pytest.raises(MessageError, match="matcher handles"):
         matcher.handle(new_message("rgbn.ready", fragment="F", face="front",
                                    artifact={"path": "x", "sha256": "0" * 64, "bytes": 1}), ctx)
+
+
+def test_a_docking_model_answers_from_the_fast_stages_then_docks_in_a_job_of_its_own(station):
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    model = load_model(store, db.current_model()["artifact"])
+    model.docking = (0.15, -4.0)            # a docking stage (its calibration's values do not matter here)
+    model.version = "0002-docking"
+    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
+    ids = [f.id for f in wall.fragments[:14]]
+    ids.sort(key=lambda i: _n_patches(store, arts[i]) >= 5)
+    for fid in ids[:-1]:
+        matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx)
+    first = matcher.handle(new_message("features.ready", fragment=ids[-1], face="front", artifact=arts[ids[-1]]), ctx)
+    proposed = [validate(e) for e in first if e["type"] == "match.proposed"]
+    (ranked,) = [validate(e) for e in first if e["type"] == "match.ranked"]
+    assert proposed and all(e["stage"] == "ranked" and "pose" not in e for e in proposed)
+    assert ranked["fragment"] == ids[-1] and ranked["artifact"] == arts[ids[-1]].to_dict()
+    others = {e["other"] if e["fragment"] == ids[-1] else e["fragment"] for e in proposed}
+    assert set(ranked["proposed"]) == others
+
+    docked = [validate(e) for e in matcher.handle(ranked, ctx)]
+    assert docked and all(e["type"] == "match.proposed" and e["stage"] == "docked" for e in docked)
+    assert any("pose" in e and e["alignment"]["contact_mm"] >= 0 for e in docked)
+    # every join of the first answer is answered again, and the store holds the docked answer
+    assert others <= {e["other"] if e["fragment"] == ids[-1] else e["fragment"] for e in docked}
+    for e in docked:
+        assert db.get(e["fragment"], e["other"]).probability == pytest.approx(e["probability"])
+    # a match.ranked for features that were replaced since is skipped (the new ones bring their own)
+    stale = dict(ranked, artifact=dict(ranked["artifact"], sha256="0" * 64))
+    assert matcher.handle(stale, ctx) == []
