@@ -270,7 +270,8 @@ def _demo(config, kids: Children, stages: list[str], n: int) -> int:
         ok &= complete and not failures[f]
         note = "; ".join(failures[f]) or (parked[f]["error"] if f in parked else "")
         print(f"{f:<20}" + "".join(f"{v:>10}" for v in row) + f"  {note}")
-    print("(events per stage: one per face from solver, features and renderer; one per join proposal from the matcher)")
+    print("(events per stage: one per face from solver, features and renderer; from the matcher one per join "
+          "proposal, and again once docked where the docking changed it)")
     for name in sorted(kids.restarts):
         print(f"{name} was restarted {kids.restarts[name]} time(s)"
               f"{' (CRASH LOOP)' if name in kids.crash_loops else ''}; see its log in {Path(config['storage']['root']) / 'logs'}")
