@@ -24,6 +24,7 @@ import platform
 import shutil
 import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -116,10 +117,11 @@ class _Station:
         #: child name -> what its peak memory is reported under (the stage, or "broker")
         self.roles: dict[str, str] = {}
 
-    def spawn(self, role: str, *args: str, cpu: int | None = None) -> None:
+    def spawn(self, role: str, *args: str, cpu: int | None = None) -> subprocess.Popen:
+        """Start ``tessera <args>``, its memory reported under ``role``; returns the process."""
         name = f"{role}-{len(self.roles)}"
-        self.children.start(name, *args, cpu=cpu)
         self.roles[name] = role
+        return self.children.start(name, *args, cpu=cpu)
 
     def stop(self) -> None:
         self.children.stop(grace_s=20.0)

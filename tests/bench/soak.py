@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     restarts: list[list[float]] = []
     t0 = time.time()  # the station's clock: capture (serial, simulated) is not station time
     restarts.append([t0, float("inf")])
-    broker = st.spawn("broker")
+    broker = st.spawn("broker", "broker")
     with BrokerClient.from_config(st.config, timeout_s=2.0, retries=1000) as c0:
         c0.status()
     restarts[-1][1] = time.time()
@@ -276,7 +276,7 @@ def main(argv=None) -> int:
     workers: dict[tuple[int, str], object] = {}
     for s in (0, 1):
         for stage in STAGES:
-            workers[(s, stage)] = st.spawn("worker", stage)
+            workers[(s, stage)] = st.spawn(stage, "worker", stage)
     rss = collections.defaultdict(list)
     faults = collections.Counter()
     stop = threading.Event()
@@ -352,7 +352,7 @@ def main(argv=None) -> int:
                     broker.send_signal(signal.SIGKILL)
                     broker.wait()
                     time.sleep(1.0)
-                    broker = st.spawn("broker")
+                    broker = st.spawn("broker", "broker")
                     broker_done = True
                     restarts[-1][1] = time.time() + 10.0  # start-up (journal replay) is not "serving"
                     faults["broker restarts"] += 1
@@ -371,7 +371,7 @@ def main(argv=None) -> int:
                     key = rng.choice(sorted(workers))
                     workers[key].send_signal(signal.SIGKILL)
                     workers[key].wait()
-                    workers[key] = st.spawn("worker", key[1])
+                    workers[key] = st.spawn(key[1], "worker", key[1])
                     faults["workers killed"] += 1
                     next_kill = time.monotonic() + args.kill_every
 
