@@ -176,3 +176,37 @@ def test_scanner_status_without_operator_text_gets_plain_language():
 
     d = describe_error(ScannerError("simulated device fault SANE_STATUS_JAMMED", status="SANE_STATUS_JAMMED"))
     assert d["kind"] == "scanner" and "jam" in d["message"] and "SANE" not in d["message"]
+
+
+def test_the_bench_says_where_the_scans_are_when_only_the_broker_is_away(tmp_path, monkeypatch):
+    # issue 19: with the lab's storage reachable and only the broker away, the scans are on the
+    # lab's storage (not "kept on this machine"); with the storage away too, they are spooled here
+    import common.acquisition.capture as capture
+    from common.config import load_config
+    from services.web.station import StationLink, build_bench
+    from tests.conftest import free_port
+
+    cfg = load_config(None, {"storage.root": str(tmp_path / "storage"), "scanner.spool_dir": str(tmp_path / "bench"),
+                             "broker.port": free_port(), "broker.feed_port": free_port(),
+                             "client.timeout_s": 0.2, "client.retries": 1})
+    monkeypatch.setattr(capture, "write_scans", lambda store, fid, result: store.write(
+        f"fragments/{fid}/scans/scans-k.h5", "tessera.scans", 1, lambda f: f.create_dataset("x", data=[1])))
+
+    @dataclass
+    class Result:
+        fragment_id: str
+        device: str = "sim"
+        colour_only: bool = True
+
+    link = StationLink(cfg)
+    try:
+        deliver = build_bench(cfg, link=link, scanner=object())._deliver
+        out = deliver("F0003", Result("F0003"))
+        assert not out["sent"] and not out["spooled"]
+        assert link.storage.exists(out["artifact"])
+        assert "on the lab's storage" in out["message"] and "kept on this machine" not in out["message"]
+        monkeypatch.setattr(link.storage, "available", lambda: False)
+        out = deliver("F0004", Result("F0004"))
+        assert out["spooled"] and "message" not in out   # the session then says: kept on this machine
+    finally:
+        link.close()
