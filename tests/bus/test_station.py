@@ -139,3 +139,14 @@ def test_a_pinned_child_runs_on_its_core_and_keeps_it_across_a_restart(tmp_path,
     kids.procs["solver"].wait(10)
     lines = (tmp_path / "solver.log").read_text().splitlines()
     assert lines == [f"[{core}] 1", f"[{core}] 1"]
+
+
+def test_a_perf_station_starts_the_command_it_is_given_and_hands_back_the_process(tmp_path):
+    # the soak kills and restarts the processes of `tessera perf`'s station: spawn must start
+    # `tessera <args>` (not the role's name) and return the process (it once did neither)
+    from services.cli.perf import _Station
+    (tmp_path / "source").mkdir()
+    st = _Station(tmp_path, tmp_path / "source", "st")
+    p = st.spawn("probe", "keys", "--help")
+    assert p.wait(60) == 0 and st.roles == {"probe-0": "probe"}
+    assert "usage: tessera keys" in (st.dir / "probe-0.log").read_text()
