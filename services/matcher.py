@@ -112,8 +112,7 @@ def _on_features(job: dict, ctx) -> list[dict]:
     dock_later = st.index.uses_docking(fragment, st.model)
     ctx.progress(0.6, f"proposing joins among {len(st.index)} fragments")
     found = st.index.propose(cues, st.model, n_candidates=int(cfg.get("n_candidates", 100)),
-                             top=int(cfg.get("top", 10)), check=0 if dock_later else int(cfg.get("check", 3)),
-                             dock=not dock_later)
+                             top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), dock=not dock_later)
     events = _proposed(found, st, ctx, "ranked" if dock_later else "docked")
     if dock_later:
         events.append(new_message("match.ranked", fragment=fragment, face=face, artifact=job["artifact"],

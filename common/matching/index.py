@@ -323,7 +323,7 @@ class MatchIndex:
         with one_blas_thread():
             return self._score(cues, others, model, chunk_rows, evidence_for, update_hubness)
 
-    def _score(self, cues, others, model, chunk_rows, evidence_for, update_hubness=True):
+    def _score(self, cues, others, model, chunk_rows, evidence_for, update_hubness):
         self._ensure()
         if len(cues) == 0 or not others:
             return []
@@ -378,7 +378,7 @@ class MatchIndex:
         for rank, j in enumerate(order):
             p, k, o, (ia, ib) = found[j]
             # evidence rows (what a verdict will teach) only for the candidates that are kept
-            ev = (self._rows(cues, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd, ia=ia)
+            ev = (self._rows(cues, ia, rows_b[seg[k] + ib], np.full(len(ib), k), fcol, nf, npd, pd)
                   if evidence_for is None or rank < evidence_for else None)
             out.append(Candidate(cues.fragment, self._order[o], float(corrected[j]), int(ia[0]), int(ib[0]),
                                  np.column_stack([ia, ib]), ev, patch_probability=p,
@@ -426,23 +426,14 @@ class MatchIndex:
             z += g
         return z
 
-    def _rows(self, cues, rows_b, owner, fcol, nf, npd, pd, ia=None):
-        """Correspondence rows: every query patch × ``rows_b`` (or the pairs ``ia`` × ``rows_b``)."""
-        if ia is not None:
-            x = np.empty((len(ia), nf + npd + len(self._strips)))
-            x[:, :nf] = fcol[owner]
-            x[:, nf:nf + npd] = _columnwise(pd, cues.patches[ia], self._patches[rows_b])
-            for m, s in enumerate(self._strips):
-                x[:, nf + npd + m] = strip_gap(cues.strips[m][ia], s[rows_b])
-            return x
-        # all pairs: broadcast instead of gathering repeated copies
-        na, nb = len(cues), len(rows_b)
-        x = np.empty((na, nb, nf + npd + len(self._strips)))
-        x[:, :, :nf] = fcol[owner][None, :, :]
-        x[:, :, nf:nf + npd] = _columnwise(pd, cues.patches[:, None, :], self._patches[rows_b][None, :, :])
+    def _rows(self, cues, ia, rows_b, owner, fcol, nf, npd, pd):
+        """Correspondence rows of the patch pairs ``ia`` × ``rows_b`` (query patch, indexed patch)."""
+        x = np.empty((len(ia), nf + npd + len(self._strips)))
+        x[:, :nf] = fcol[owner]
+        x[:, nf:nf + npd] = _columnwise(pd, cues.patches[ia], self._patches[rows_b])
         for m, s in enumerate(self._strips):
-            x[:, :, nf + npd + m] = _strip_gap_all(cues.strips[m], s[rows_b])
-        return x.reshape(na * nb, -1)
+            x[:, nf + npd + m] = strip_gap(cues.strips[m][ia], s[rows_b])
+        return x
 
     def uses_ribbon(self, fragment: str, model: MatchModel) -> bool:
         """Whether stage 2½ ranks this fragment's candidates (a boundary profile and a calibrated model)."""
@@ -676,7 +667,8 @@ class MatchIndex:
                 also=()) -> list[Candidate]:
         """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned.
 
-        ``dock=False`` stops after stages 1–2½ (the matcher's first, fast answer; it docks next).
+        ``dock=False`` stops after stages 1–2½, neither docking nor aligning (the matcher's first,
+        fast answer; it docks next).
         ``also``: fragments to return even when they fall below the ``top`` (a re-ranking updates
         every join it proposed before), after the top ones.
         """
@@ -687,8 +679,9 @@ class MatchIndex:
             self.refresh_hubness(others, model, n_candidates=n_candidates)
         ribbon = self.uses_ribbon(cues.fragment, model)
         also = set(also)
+        no_stage_3 = {} if dock else {"dock_candidates": 0}   # else rank's own default
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
-                           evidence_for=0 if (ribbon or also) else top, **({} if dock else {"dock_candidates": 0}))
+                           evidence_for=0 if (ribbon or also) else top, **no_stage_3)
         ranked = ranked[:top] + [c for c in ranked[top:] if c.other in also]
         if ribbon or also:
             # the evidence rows (what a verdict will teach) of the kept candidates only: a patch
@@ -697,7 +690,7 @@ class MatchIndex:
             for e in self.score(cues, list(kept), model, evidence_for=None, update_hubness=False):
                 kept[e.other].evidence = e.evidence
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
-        if contour_a is not None:
+        if contour_a is not None and dock:
             for c in ranked[:check]:
                 contour_b = self.contours.get(c.other)
                 if contour_b is None or c.alignment is not None:   # docked in stage 3 already
