@@ -28,7 +28,8 @@ def test_incremental_index_scores_like_direct_patch_pair_evaluation(small_wall):
     got = {c.other: c.patch_probability for c in index.score(q, ids[1:], model)}
     for other in ids[1:]:
         p = np.sort(model.probability(pair_rows(q, cues[other])))[::-1][:model.top_m].mean()
-        assert got[other] == __import__("pytest").approx(p, rel=1e-9)
+        # stage 2 adds its grid up in float32 (index._patch_logits): ~1e-5 of the logit
+        assert got[other] == __import__("pytest").approx(p, rel=1e-4)
     # removing the last fragment and adding it back changes nothing
     index.remove(ids[-1])
     index.add(cues[ids[-1]], tables[ids[-1]].contour_mm)
@@ -318,4 +319,4 @@ def test_stage_2_scores_missing_cues_as_the_model_imputes_them(small_wall):
     for other in ids:
         if other != q.fragment:
             p = np.sort(model.probability(pair_rows(q, holed[other])))[::-1][:model.top_m].mean()
-            assert got[other] == pytest.approx(p, rel=1e-9)
+            assert got[other] == pytest.approx(p, rel=1e-4)   # float32 grid, as above
