@@ -700,11 +700,12 @@ class MatchIndex:
     def propose(self, cues: FragmentCues, model: MatchModel, *, n_candidates: int = 100, top: int = 10,
                 check: int = 3, contour_mm: np.ndarray | None = None,
                 ribbon_candidates: int = RIBBON_CANDIDATES, dock: bool = True,
-                also=()) -> list[Candidate]:
+                dock_candidates: int = DOCK_CANDIDATES, also=()) -> list[Candidate]:
         """Stages 1–3 for one fragment: the ``top`` most probable joins, the best ``check`` aligned.
 
         ``dock=False`` stops after stages 1–2½, neither docking nor aligning (the matcher's first,
-        fast answer; it docks next).
+        fast answer; it docks next); ``dock_candidates``: how many of the best stage 3 docks (where
+        the model has a docking calibration).
         ``also``: fragments to return even when they fall below the ``top`` (a re-ranking updates
         every join it proposed before), after the top ones.
         """
@@ -715,9 +716,8 @@ class MatchIndex:
             self.refresh_hubness(others, model, n_candidates=n_candidates)
         ribbon = self.uses_ribbon(cues.fragment, model)
         also = set(also)
-        no_stage_3 = {} if dock else {"dock_candidates": 0}   # else rank's own default
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
-                           evidence_for=0 if (ribbon or also) else top, **no_stage_3)
+                           evidence_for=0 if (ribbon or also) else top, dock_candidates=dock_candidates if dock else 0)
         ranked = ranked[:top] + [c for c in ranked[top:] if c.other in also]
         if ribbon or also:
             # the evidence rows (what a verdict will teach) of the kept candidates only

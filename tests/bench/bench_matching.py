@@ -28,7 +28,12 @@ so stage 3's share is the difference; with ``--full-rerank-max`` every fragment 
 docked once (the arrivals), then re-ranked under a new model (the dockings cached); the alignment check is not
 run (stage 3's docked pose is the alignment). The queries' ids sort after the index's, so each query
 is the turned fragment of its dockings (its frame serves all its partners), as a new fragment is at
-the station.
+the station. At sizes where that would take hours, ``--rerank-sample K`` estimates the re-rank instead:
+every fragment's hubness under the new model (measured whole) plus n × the mean re-rank of K sampled
+fragments, each proposed and docked under the old model first.
+
+    python tests/bench/bench_matching.py --pool ../shared/data/repair-dev --sizes 2000 --repeats 10 \
+        --full-rerank-max 0 --rerank-sample 40 --hubness pool
 """
 
 from __future__ import annotations
@@ -76,8 +81,13 @@ def main() -> int:
                          "copy (pool: one pass per pool fragment; for large n on a busy machine)")
     ap.add_argument("--dock-candidates", type=int, default=DOCK_CANDIDATES,
                     help=f"with --pool: candidates docked per proposal (default {DOCK_CANDIDATES})")
+    ap.add_argument("--rerank-sample", type=int, default=0,
+                    help="with --pool, at sizes above --full-rerank-max: estimate the full re-rank from this many "
+                         "fragments (each proposed and docked on arrival, then re-ranked under the new model) plus "
+                         "every fragment's hubness under the new model")
     args = ap.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
+    docked = args.dock_candidates
     rng = np.random.default_rng(0)
 
     t = time.perf_counter()
@@ -98,7 +108,6 @@ def main() -> int:
         rw = collection_wall(args.pool, dpi=args.dpi)
         rtables, rcues, _ = wall_cues(rw)
         pool = [(rcues[f], rtables[f].contour_mm, rtables[f].boundary_profile) for f in rcues if len(rcues[f]) >= 3]
-        MatchIndex.rank.__kwdefaults__["dock_candidates"] = args.dock_candidates
         query = DockingFrame(pool[0][1])
         pairs = [pool[i][1] for i in rng.integers(len(pool), size=12)]
         tc = time.process_time()
@@ -147,7 +156,7 @@ def main() -> int:
             q = jittered(c, f"Q{n}-{r}", rng)
             t, tc = time.perf_counter(), time.process_time()
             index.add(q, contour, profile + 0.02 * rng.standard_normal(profile.shape))
-            found = index.propose(q, model, n_candidates=100, top=10, check=0)
+            found = index.propose(q, model, n_candidates=100, top=10, check=0, dock_candidates=docked)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - tc)
             if args.pool:
@@ -170,14 +179,35 @@ def main() -> int:
                 # dockings do not depend on the model, so the re-rank docks only pairs new to a best 12
                 t, tc = time.perf_counter(), time.process_time()
                 for f in list(index._order):
-                    index.propose(index.cues[f], model, n_candidates=100, top=10, check=0)
+                    index.propose(index.cues[f], model, n_candidates=100, top=10, check=0, dock_candidates=docked)
                 print(f"every fragment proposed and docked once (arrivals): {time.perf_counter() - t:.0f} s wall, "
                       f"{time.process_time() - tc:.0f} s CPU")
             t, tc = time.perf_counter(), time.process_time()
             for f in list(index._order):
-                for cnd in index.propose(index.cues[f], model2, n_candidates=100, top=10, check=0):
+                for cnd in index.propose(index.cues[f], model2, n_candidates=100, top=10, check=0,
+                                         dock_candidates=docked):
                     stored_pairs.append((f, cnd.other))
             full, full_cpu = time.perf_counter() - t, time.process_time() - tc
+        elif args.pool and args.rerank_sample:
+            # the re-rank is one pass per fragment: its hubness under the new model (once each), then its
+            # proposal, docking only pairs new to its best 12 (the rest were docked on arrival). Every
+            # fragment's hubness is measured whole; the proposals on a sample, as their mean times n
+            sample = [str(f) for f in rng.choice(index._order, args.rerank_sample, replace=False)]
+            for f in sample:   # arrivals: proposed and docked under the old model
+                index.propose(index.cues[f], model, n_candidates=100, top=10, check=0, dock_candidates=docked)
+            tc = time.process_time()
+            index.refresh_hubness(index._order, model2)
+            hub2 = time.process_time() - tc
+            per = []
+            for f in sample:
+                tc = time.process_time()
+                index.propose(index.cues[f], model2, n_candidates=100, top=10, check=0, dock_candidates=docked)
+                per.append(time.process_time() - tc)
+            full_cpu = hub2 + n * float(np.mean(per))
+            print(f"full re-rank at n = {n}, estimated: hubness of all {n} under the new model {hub2:.0f} s CPU + "
+                  f"{n} × {1e3 * np.mean(per):.0f} ms CPU per proposal (mean of {len(per)}; median "
+                  f"{1e3 * np.median(per):.0f}, max {1e3 * np.max(per):.0f}) = {full_cpu:.0f} s CPU "
+                  f"({full_cpu / 60:.1f} min)")
         t = time.perf_counter()
         rerank(index, model, stored_pairs)
         rescore = time.perf_counter() - t
