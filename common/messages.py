@@ -32,6 +32,15 @@ FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 #: ``face``: 1-32 lower-case letters, digits, '_' or '-' (``front``, ``back``)
 FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
+#: ``match.verified`` ``verdict``: what producers send
+VERDICTS = ("confirmed", "rejected")
+#: what readers also accept for a verdict (older tools sent booleans)
+_VERDICT_WORDS = {"confirmed": "confirmed", "confirm": "confirmed", "accept": "confirmed", "accepted": "confirmed",
+                  "yes": "confirmed", "rejected": "rejected", "reject": "rejected", "no": "rejected"}
+#: ``fragment.annotated`` ``changes``: the catalogue fields a person may edit, and their length
+ANNOTATION_FIELDS = ("inventory", "find_spot", "context", "date", "notes")
+MAX_ANNOTATION_CHARS = 2000
+MAX_BY_CHARS = 64
 
 
 class MessageError(ValueError):
@@ -57,6 +66,20 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "noop.job": ("A job for the no-op stage: plumbing tests and the broker benchmark.", ()),
     "noop.done": ("The no-op stage finished a job; names the job and when the worker received it.", ("job",)),
 }
+
+
+def verdict_of(value: Any) -> str:
+    """The verdict (``"confirmed"`` or ``"rejected"``) a ``match.verified`` ``verdict`` field means.
+
+    Producers send one of :data:`VERDICTS`; ``True``/``False`` (sent by older tools) and a few
+    words (``confirm``, ``accept``, ``reject``, ``yes``, ``no``) are read as well. Anything else
+    raises :class:`MessageError`.
+    """
+    if value is True or value is False:
+        return "confirmed" if value else "rejected"
+    if isinstance(value, str) and value in _VERDICT_WORDS:
+        return _VERDICT_WORDS[value]
+    raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {_short(value)}")
 
 
 def new_message(type: str, **fields: Any) -> dict:
@@ -122,7 +145,9 @@ def validate(msg: Any) -> dict:
     Besides the required fields of its type: ``uid`` is 32 hex digits (:data:`UID_PATTERN`),
     ``time`` a finite number of seconds, ``fragment``/``other`` match :data:`FRAGMENT_PATTERN`,
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
-    ``sha256`` and a non-negative ``bytes``, ``probability`` is in [0, 1]; the whole document is
+    ``sha256`` and a non-negative ``bytes``, ``probability`` is in [0, 1], a ``match.verified``
+    verdict is one :func:`verdict_of` reads, a ``fragment.annotated`` edit changes only
+    :data:`ANNOTATION_FIELDS` (text of at most :data:`MAX_ANNOTATION_CHARS`); the whole document is
     at most :data:`MAX_DEPTH` deep, with strings, maps and lists within :data:`MAX_STRING_CHARS`
     and :data:`MAX_ITEMS` and integers within 64 bits.
     """
@@ -131,7 +156,9 @@ def validate(msg: Any) -> dict:
     for key in ("v", "type", "uid", "time"):
         if key not in msg:
             raise MessageError(f"message lacks required field {key!r}")
-    if msg["v"] != VERSION or isinstance(msg["v"], bool):
+    if type(msg["v"]) is not int:  # not True, not 1.0: docs/messages.md says an integer
+        raise MessageError(f"message schema version {_short(msg['v'])} is not an integer")
+    if msg["v"] != VERSION:
         raise MessageError(f"message schema version {_short(msg['v'])} not supported (this reader speaks v{VERSION})")
     kind = msg["type"]
     if not isinstance(kind, str) or kind not in EVENT_TYPES:
@@ -158,8 +185,16 @@ def validate(msg: Any) -> dict:
         ch, by = msg["changes"], msg["by"]
         if not (isinstance(ch, Mapping) and ch and all(isinstance(k, str) and isinstance(v, str) for k, v in ch.items())):
             raise MessageError(f"{kind} message: changes {str(ch)[:80]!r} is not a non-empty map of field to text")
-        if not isinstance(by, str) or len(by) > 64:
-            raise MessageError(f"{kind} message: by {str(by)[:80]!r} is not a name of at most 64 characters")
+        for k, v in ch.items():
+            if k not in ANNOTATION_FIELDS:
+                raise MessageError(f"{kind} message: changes field {k[:40]!r} is not one of {', '.join(ANNOTATION_FIELDS)}")
+            if len(v) > MAX_ANNOTATION_CHARS:
+                raise MessageError(f"{kind} message: changes field {k} is {len(v)} characters "
+                                   f"(at most {MAX_ANNOTATION_CHARS})")
+        if not isinstance(by, str) or len(by) > MAX_BY_CHARS:
+            raise MessageError(f"{kind} message: by {str(by)[:80]!r} is not a name of at most {MAX_BY_CHARS} characters")
+    if kind == "match.verified":
+        verdict_of(msg["verdict"])
     if "probability" in msg:
         p = msg["probability"]
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan

@@ -36,7 +36,7 @@ from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_di
 from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
 from common.matching.proposals import Proposal, ProposalStore, ordered_pair
-from common.messages import MessageError, new_message
+from common.messages import MessageError, new_message, verdict_of
 
 SERVICE = "matcher"
 VERSION = "matcher-1.2"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked)
@@ -87,7 +87,7 @@ def _sync(st: _State, ctx) -> None:
 
 
 def handle(job: dict, ctx) -> list[dict]:
-    """Route a ``features.ready`` or ``match.verified`` job; return the events to publish."""
+    """Route a ``features.ready``, ``match.ranked`` or ``match.verified`` job; return the events to publish."""
     kind = job.get("type")
     if kind == "features.ready":
         return _on_features(job, ctx)
@@ -161,26 +161,22 @@ def _proposal(c, st: _State, columns) -> Proposal:
             th = math.radians(pose[0])
             cs, sn = math.cos(th), math.sin(th)
             pose = (-pose[0], -(cs * pose[1] + sn * pose[2]), -(-sn * pose[1] + cs * pose[2]))
+    alignment = None
+    if c.alignment is not None:
+        # the alignment's own pose is the other's in the query's frame; the stored proposal (and its
+        # match.proposed) states every pose as fragment_b in fragment_a's frame, like ``pose``
+        alignment = dict(c.alignment.to_dict(), angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
     ev = evidence_dict(c, columns)
     ev["query"] = c.fragment
     return Proposal(a, b, c.probability, st.model.version,
                     patch_a=patch_q if a == c.fragment else patch_o, patch_b=patch_o if a == c.fragment else patch_q,
                     angle_deg=pose[0] if pose else None, tx_mm=pose[1] if pose else None,
-                    ty_mm=pose[2] if pose else None, alignment=c.alignment.to_dict() if c.alignment else None,
-                    evidence=ev)
-
-
-def _verdict(value) -> str:
-    if value in (True, "confirmed", "confirm", "accept", "accepted", "yes"):
-        return "confirmed"
-    if value in (False, "rejected", "reject", "no"):
-        return "rejected"
-    raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {value!r}")
+                    ty_mm=pose[2] if pose else None, alignment=alignment, evidence=ev)
 
 
 def _on_verified(job: dict, ctx) -> list[dict]:
     st = _state(ctx)
-    verdict = _verdict(job["verdict"])
+    verdict = verdict_of(job["verdict"])
     a, b = ordered_pair(job["fragment"], job["other"])
     if st.db.get(a, b) is None and a in st.index and b in st.index:
         # a verdict on a pair the matcher never proposed: score it so the verdict has evidence

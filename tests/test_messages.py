@@ -43,7 +43,7 @@ def test_garbage_bytes_are_a_message_error():
 
 
 def test_unknown_fields_are_kept_for_readers_to_ignore():
-    m = new_message("match.verified", fragment="A", other="B", verdict=True, note="new field")
+    m = new_message("match.verified", fragment="A", other="B", verdict="confirmed", note="new field")
     assert unpack(pack(m))["note"] == "new field"
 
 
@@ -124,3 +124,143 @@ def test_nan_in_other_fields_is_allowed():
     m = new_message("match.proposed", fragment="A", other="B", probability=0.5,
                     alignment={"residual_mm": float("nan")})
     assert unpack(pack(m))["alignment"]["residual_mm"] != unpack(pack(m))["alignment"]["residual_mm"]
+
+
+# -- the contract of docs/messages.md against the code (audit of docs vs code) -------------------
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _section(kind: str) -> str:
+    """The text of ``### `kind` `` in docs/messages.md, up to the next heading."""
+    m = re.search(rf"^### `{re.escape(kind)}`\n(.*?)(?=^##)", DOC.read_text(), re.S | re.M)
+    assert m, f"docs/messages.md has no section for {kind}"
+    return m.group(1)
+
+
+def test_the_docs_list_exactly_the_required_fields_the_schema_checks():
+    """Each section's "Required: ..." names the fields EVENT_TYPES requires, no more, no fewer."""
+    for kind, (_, required) in EVENT_TYPES.items():
+        text = _section(kind)
+        if "Required:" not in text:
+            assert not required, f"docs/messages.md: {kind} has no 'Required:' list"
+            continue
+        rest = text.split("Required:", 1)[1]
+        while re.search(r"\([^()]*\)", rest):   # explanations in parentheses, innermost first
+            rest = re.sub(r"\([^()]*\)", "", rest)
+        listed = re.findall(r"`([a-z_]+)`", re.split(r";|\.\s", rest, maxsplit=1)[0])
+        assert sorted(listed) == sorted(required), f"{kind}: docs require {listed}, EVENT_TYPES {list(required)}"
+
+
+def _builders():
+    """(file, line, type, field names) of every ``new_message("<type>", field=...)`` and importer
+    ``Output("<type>", ref, {field: ...})`` in the product's code."""
+    import ast
+    for path in sorted([*(_ROOT / "common").rglob("*.py"), *(_ROOT / "services").rglob("*.py")]):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Call):
+                continue
+            name = getattr(node.func, "attr", getattr(node.func, "id", None))
+            if not node.args or name not in ("new_message", "Output"):
+                continue
+            kind = node.args[0].value if isinstance(node.args[0], ast.Constant) else None  # None: computed
+            if name == "new_message":
+                fields = [kw.arg for kw in node.keywords if kw.arg]
+            elif name == "Output" and len(node.args) >= 3 and isinstance(node.args[2], ast.Dict):
+                fields = [k.value for k in node.args[2].keys if isinstance(k, ast.Constant)]
+            else:
+                continue
+            yield path.relative_to(_ROOT).as_posix(), node.lineno, kind, fields
+
+
+def test_every_message_the_code_builds_is_a_documented_type_with_documented_fields():
+    """A field a producer sets that docs/messages.md does not name in the type's section (or in
+    the common fields) is drift: another lab's subscriber cannot know what it means."""
+    common = re.search(r"## Common fields\n(.*?)## Message types", DOC.read_text(), re.S).group(1)
+    # builders whose type is computed: the types they may build
+    computed = {"common/bus/broker.py": ("stage.failed", "input.rejected"),   # _job_failed: parked or rejected
+                "common/imports/driver.py": ()}                               # Output(...)'s, checked below
+    seen, undocumented = set(), []
+    for where, line, kind, fields in _builders():
+        if kind is None:
+            assert where in computed, f"{where}:{line} builds a message of a computed type: list which in this test"
+            kinds = computed[where]
+        else:
+            assert kind in EVENT_TYPES, f"{where}:{line} builds an undeclared message type {kind!r}"
+            kinds = (kind,)
+        for k in kinds:
+            seen.add(k)
+            text = _section(k)
+            undocumented += [f"{where}:{line} {k}.{f}" for f in fields if f"`{f}`" not in text + common]
+    assert not undocumented, "fields set by the code but not in docs/messages.md:\n" + "\n".join(undocumented)
+    # noop.job is submitted by tests and the broker benchmark with any fields
+    assert seen >= set(EVENT_TYPES) - {"noop.job"}, f"no builder found for {set(EVENT_TYPES) - seen}"
+
+
+def test_match_proposed_fields_are_documented():
+    from common.matching.proposals import Proposal
+    p = Proposal("A", "B", 0.5, "m1", patch_a=1, patch_b=None, angle_deg=10.0, tx_mm=1.0, ty_mm=2.0,
+                 alignment={"angle_deg": 10.0, "tx_mm": 1.0, "ty_mm": 2.0, "gap_mm": float("nan"),
+                            "contact_mm": 12.0, "overlap_mm2": 0.0, "score": 11.0}, id=3)
+    m = new_message("match.proposed", stage="docked", **p.to_event_fields())
+    text = _section("match.proposed")
+    for key in set(m) - {"v", "type", "uid", "time"}:
+        assert f"`{key}`" in text, f"match.proposed.{key} is not documented"
+    for key in m["alignment"]:
+        assert f"`{key}`" in text, f"match.proposed.alignment.{key} is not documented"
+
+
+def test_the_routing_the_docs_state_is_the_default_config():
+    from common.config import DEFAULTS
+    text = DOC.read_text()
+    m = re.search(r"config's `\[routing\]` table\s*\(default: (.*?)\)\.", text, re.S)
+    assert m, "docs/messages.md does not state the default routing"
+    documented: dict = {}
+    for kind, services in re.findall(r"`([a-z.]+) → ([a-z, ]+)`", m.group(1)):
+        documented[kind] = [s.strip() for s in services.split(",")]
+    assert documented == DEFAULTS["routing"]
+
+
+@pytest.mark.parametrize("v", [1.0, True, "1"])
+def test_the_schema_version_must_be_the_integer_1(v):
+    with pytest.raises(MessageError, match="schema version"):
+        validate(_doc(v=v))
+
+
+@pytest.mark.parametrize("value, meaning", [("confirmed", "confirmed"), ("rejected", "rejected"),
+                                            (True, "confirmed"), (False, "rejected")])
+def test_verdicts_are_read_as_documented(value, meaning):
+    from common.messages import verdict_of
+    assert verdict_of(validate(_doc(type="match.verified", fragment="A", other="B", verdict=value))["verdict"]) == meaning
+
+
+@pytest.mark.parametrize("value", ["maybe", 1, None, "", ["confirmed"]])
+def test_a_verdict_that_is_neither_confirmed_nor_rejected_is_refused_at_the_door(value):
+    """docs/messages.md: verdict is confirmed or rejected. It was journaled, published and routed
+    to the matcher, which then parked the job; the review pages showed the raw value."""
+    with pytest.raises(MessageError, match="verdict"):
+        validate(_doc(type="match.verified", fragment="A", other="B", verdict=value))
+
+
+@pytest.mark.parametrize("changes, phrase", [
+    ({"colour": "red"}, "not one of"),
+    ({"notes": "x" * 2001}, "at most 2000"),
+    ({"notes": 3}, "map of field to text"),
+    ({}, "non-empty"),
+])
+def test_an_annotation_outside_the_documented_fields_is_refused_at_the_door(changes, phrase):
+    """docs/messages.md: fields inventory, find_spot, context, date, notes; at most 2,000 characters
+    each. An edit submitted with other fields was journaled and published, then refused by every
+    catalogue that applied it."""
+    with pytest.raises(MessageError, match=phrase):
+        validate(_doc(type="fragment.annotated", fragment="F1", by="M. Rossi", changes=changes))
+    ok = {"inventory": "I-1", "find_spot": "Room 3", "context": "", "date": "1990", "notes": "x" * 2000}
+    assert validate(_doc(type="fragment.annotated", fragment="F1", by="M. Rossi", changes=ok))["changes"] == ok
+
+
+def test_the_catalogue_edits_the_fields_the_schema_declares():
+    from common.messages import ANNOTATION_FIELDS, MAX_ANNOTATION_CHARS
+    from common.web.catalogue import FIELDS, MAX_FIELD_CHARS
+    assert (tuple(FIELDS), MAX_FIELD_CHARS) == (ANNOTATION_FIELDS, MAX_ANNOTATION_CHARS)
+    assert all(f"`{f}`" in _section("fragment.annotated") for f in ANNOTATION_FIELDS)

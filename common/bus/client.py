@@ -6,7 +6,7 @@ conservator's verdict is a ``match.verified`` event) and any script::
     from common.bus.client import BrokerClient
     from common.messages import new_message
     with BrokerClient.from_config(cfg) as bus:
-        seq = bus.submit(new_message("match.verified", fragment="F0001", other="F0002", verdict=True))
+        seq = bus.submit(new_message("match.verified", fragment="F0001", other="F0002", verdict="confirmed"))
         print(bus.status()["queues"])
 
 Every call has a timeout (``[client] timeout_s``) and retries (``retries``, Lazy Pirate

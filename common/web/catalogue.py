@@ -33,14 +33,16 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
+from common.messages import ANNOTATION_FIELDS, MAX_ANNOTATION_CHARS
 from common.store import ArtifactError, Store
 
 log = logging.getLogger("tessera.web")
 
-#: metadata fields a person edits (``tessera import images --manifest`` columns)
-FIELDS = ("inventory", "find_spot", "context", "date", "notes")
+#: metadata fields a person edits (``tessera import images --manifest`` columns); the
+#: ``fragment.annotated`` schema (:mod:`common.messages`, checked at the broker) declares them
+FIELDS = ANNOTATION_FIELDS
 #: longest value of a field, characters
-MAX_FIELD_CHARS = 2000
+MAX_FIELD_CHARS = MAX_ANNOTATION_CHARS
 #: pipeline stages in order (:data:`common.web.pipeline.STAGES`)
 STAGE_ORDER = ("scanned", "normals", "features", "matched", "rendered")
 #: colour families a fragment can be filtered by (:func:`colour_family`)

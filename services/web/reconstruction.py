@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 from flask import Blueprint, abort, current_app, jsonify, render_template, request, send_file, url_for
 
+from common.messages import verdict_of
 from common.web.bench import check_fragment_id
 
 from .station import EXTENSION, requires, station
@@ -64,7 +65,7 @@ class _Live:
         with self.lock:
             self.arriving.append({"fragment_a": min(event["fragment"], event["other"]),
                                   "fragment_b": max(event["fragment"], event["other"]),
-                                  "verdict": event.get("verdict"), "by": event.get("by"), "time": event.get("time"),
+                                  "verdict": verdict_of(event.get("verdict")), "by": event.get("by"), "time": event.get("time"),
                                   "uid": event.get("uid"), "seq": seq})
             self.feed_seen += 1
 
