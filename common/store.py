@@ -393,9 +393,15 @@ class Store:
         try:
             if schema is not None and f.attrs.get("schema") != schema:
                 raise ArtifactError(f"artifact {relpath} has schema {f.attrs.get('schema')!r}, expected {schema!r}")
-            if version is not None and int(f.attrs.get("schema_version", 0)) > int(version):
-                raise ArtifactError(f"artifact {relpath} has schema version {int(f.attrs['schema_version'])}; "
-                                    f"this reader understands up to {int(version)}")
+            if version is not None:
+                found = f.attrs.get("schema_version", 0)
+                try:
+                    found = int(found)
+                except (TypeError, ValueError):
+                    raise ArtifactError(f"artifact {relpath} has schema version {found!r}, not an integer") from None
+                if found > int(version):
+                    raise ArtifactError(f"artifact {relpath} ({f.attrs.get('schema')}) has schema version {found}; "
+                                        f"this reader understands up to {int(version)} (written by a newer Tessera?)")
             yield f
         finally:
             f.close()

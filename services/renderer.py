@@ -19,7 +19,7 @@ from common.render.artifact import SCHEMA_VERSION, save_rendering
 from common.limits import check_rgbn_file
 from common.render.recipes import load_recipe
 from common.render.tiles import render_h5
-from common.rgbn.image import SCHEMA as RGBN_SCHEMA
+from common.rgbn.image import SCHEMA as RGBN_SCHEMA, SCHEMA_VERSION as RGBN_VERSION
 from common.store import ArtifactRef, content_key
 from common.web.relight import cut_archive_tiles
 
@@ -42,7 +42,7 @@ def handle(job: dict, ctx) -> list[dict]:
     recipe = load_recipe((ctx.config or {}).get("recipe", "default"))
     relpath = output_path(fragment, face, ref.sha256, recipe.source)
     if not ctx.store.exists(relpath):
-        with ctx.store.open(ref, schema=RGBN_SCHEMA) as f:
+        with ctx.store.open(ref, schema=RGBN_SCHEMA, version=RGBN_VERSION) as f:
             check_rgbn_file(f)  # absurd dpi or sizes: rejected before a pixel is read
             # a large face is read and drawn tile by tile (bounded memory)
             drawn, dpi = render_h5(f, recipe, progress=lambda p, t: ctx.progress(0.05 + 0.9 * p, t))

@@ -471,7 +471,7 @@ def save_calibration(store: Store, cal: Calibration) -> ArtifactRef:
 
 def load_calibration(store: Store, ref) -> Calibration:
     """Read a ``tessera.calibration`` artifact."""
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         try:
             cal = Calibration(scanner=str(f.attrs["scanner"]), a=f["a"][()], second_order=f["second_order"][()],
                               cv_rmse=json.loads(f.attrs["cv_rmse"]), order=int(f.attrs["order"]),

@@ -293,7 +293,7 @@ def read_scans(store: Store, ref, *, check_limits: bool = False) -> CaptureResul
     ``check_limits``: first check every scan's declared dpi, size and area against the sane ranges
     of :mod:`common.limits` (as the solver does with its input), before a pixel is read.
     """
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         if check_limits:
             check_scans_file(f)
         try:

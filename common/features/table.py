@@ -446,7 +446,7 @@ def save_features(store: Store, relpath: str, tables: FeatureTable | Mapping[str
 def load_features(store: Store, ref: ArtifactRef | Mapping | str, face: str | None = None) -> FeatureTable:
     """Load (and digest-check, when given a pointer) the table of ``face`` (default: the only or
     the front one) from a ``tessera.features`` artifact."""
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         faces = [k for k in f.keys() if isinstance(f[k], h5py.Group)]
         if face is None:
             face = "front" if "front" in faces else (faces[0] if len(faces) == 1 else None)

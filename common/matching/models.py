@@ -229,7 +229,7 @@ def save_model(store: Store, model: MatchModel, *, provenance: dict | None = Non
 
 def load_model(store: Store, ref: ArtifactRef | dict | str) -> MatchModel:
     """Read a model artifact (digest-checked when given a pointer); only numbers and strings are read."""
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         try:
             cols = [c.decode() if isinstance(c, bytes) else str(c) for c in f["columns"][()]]
             training = None

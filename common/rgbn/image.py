@@ -137,7 +137,7 @@ def load_rgbn(store: Store, ref: ArtifactRef | Mapping | str, *, check_limits: b
     ``check_limits``: first check its declared dpi and sizes against the sane ranges of
     :mod:`common.limits` (as a stage does with its input), before a pixel is read.
     """
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         if check_limits:
             check_rgbn_file(f)
         return read_rgbn(f)

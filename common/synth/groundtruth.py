@@ -118,7 +118,7 @@ def save_groundtruth(store: Store, wall: Wall, relpath: str | None = None, *,
 
 def load_groundtruth(store: Store, ref: ArtifactRef | Mapping | str) -> Wall:
     """Load (and digest-check, given a pointer) a ``tessera.groundtruth`` artifact."""
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         return read_groundtruth(f)
 
 

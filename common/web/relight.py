@@ -332,9 +332,9 @@ class RelightCache:
 
     def open_artifact(self):
         """The face's RGBN artifact, open for reading."""
-        from common.rgbn.image import SCHEMA
+        from common.rgbn.image import SCHEMA, SCHEMA_VERSION
 
-        return self.store.open(self.rgbn_relpath, schema=SCHEMA)
+        return self.store.open(self.rgbn_relpath, schema=SCHEMA, version=SCHEMA_VERSION)
 
     def _put(self, relpath: str, data: bytes) -> None:
         from common.store import write_file  # the project's one atomic write

@@ -299,8 +299,8 @@ def cut_source(store: Store, source_relpath: str, *, tile_px: int = TILE_PX,
 
     ``progress(rows_done, rows)`` is called after each band of level 0.
     """
-    from common.render.artifact import SCHEMA as RENDER
-    from common.rgbn.image import SCHEMA as RGBN
+    from common.render.artifact import SCHEMA as RENDER, SCHEMA_VERSION as RENDER_VERSION
+    from common.rgbn.image import SCHEMA as RGBN, SCHEMA_VERSION as RGBN_VERSION
 
     folder = pyramid_folder(source_relpath)
     info_path = store.path(f"{folder}/pyramid.json")
@@ -309,7 +309,8 @@ def cut_source(store: Store, source_relpath: str, *, tile_px: int = TILE_PX,
     t0, c0 = time.perf_counter(), time.process_time()
     ref = store.ref(source_relpath)
     kind = folder.rsplit("/", 1)[1].split("-", 1)[0]
-    with store.open(ref, schema=RGBN if kind == "rgbn" else RENDER) as f:
+    with store.open(ref, schema=RGBN if kind == "rgbn" else RENDER,
+                    version=RGBN_VERSION if kind == "rgbn" else RENDER_VERSION) as f:
         try:
             if kind == "rgbn":
                 names = ["albedo"] + (["normals"] if "normals" in f else [])
@@ -433,12 +434,12 @@ def face_thumbnail(store: Store, rgbn_relpath: str, max_px: int = 128) -> np.nda
     The top level of a pyramid with ``max_px`` tiles, computed the same way (band by band, bounded
     memory) without writing any tile. Returns ``(h, w, 4)`` uint8 RGBA (display sRGB, alpha = coverage).
     """
-    from common.rgbn.image import SCHEMA as RGBN
+    from common.rgbn.image import SCHEMA as RGBN, SCHEMA_VERSION as RGBN_VERSION
 
     if int(max_px) < 1:
         raise ValueError(f"max_px must be >= 1, got {max_px}")
     top: dict[str, np.ndarray] = {}
-    with store.open(rgbn_relpath, schema=RGBN) as f:
+    with store.open(rgbn_relpath, schema=RGBN, version=RGBN_VERSION) as f:
         try:
             height, width = f["mask"].shape
             levels = pyramid_levels(height, width, max_px)

@@ -1,0 +1,132 @@
+"""docs/storage.md against the code: every artifact reader refuses a file of a newer schema version
+with an error naming it, and the schemas and versions the doc lists are the code's."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.store import ArtifactError, Store
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "storage.md"
+
+
+def _readers():
+    """(name, schema module, path the reader accepts, call(store, ref)) of every artifact reader."""
+    from common.acquisition import calibration, capture
+    from common.features import table
+    from common.matching import models
+    from common.rgbn import image
+    from common.synth import groundtruth
+    from common.web import relight, tiles
+    rgbn = "fragments/F1/rgbn/front-0123456789abcdef.h5"
+    return [
+        ("load_rgbn", image, rgbn, lambda s, r: image.load_rgbn(s, r)),
+        ("load_features", table, "fragments/F1/features/front-k.h5", lambda s, r: table.load_features(s, r)),
+        ("read_scans", capture, "fragments/F1/scans/scans-k.h5", lambda s, r: capture.read_scans(s, r)),
+        ("load_calibration", calibration, "calibration/sim/x.h5", lambda s, r: calibration.load_calibration(s, r)),
+        ("load_model", models, "models/matcher/m.h5", lambda s, r: models.load_model(s, r)),
+        ("load_groundtruth", groundtruth, "synth/wall.h5", lambda s, r: groundtruth.load_groundtruth(s, r)),
+        ("tiles.cut_source", image, rgbn, lambda s, r: tiles.cut_source(s, r.path)),
+        ("tiles.face_thumbnail", image, rgbn, lambda s, r: tiles.face_thumbnail(s, r.path)),
+        ("RelightCache.open_artifact", image, rgbn,
+         lambda s, r: relight.RelightCache(s, r.path).open_artifact().__enter__()),
+    ]
+
+
+@pytest.mark.parametrize("name", [r[0] for r in _readers()])
+def test_a_file_of_a_newer_schema_version_is_refused_naming_the_versions(tmp_path, name):
+    """A newer writer's file was read as if it had this reader's layout (no reader passed its
+    version to Store.open): a layout change would be misread or fail with a KeyError."""
+    _, module, relpath, read = next(r for r in _readers() if r[0] == name)
+    store = Store(tmp_path)
+    newer = module.SCHEMA_VERSION + 1
+    ref = store.write(relpath, module.SCHEMA, newer, lambda f: f.create_dataset("x", data=np.zeros(3)))
+    with pytest.raises(ArtifactError, match=rf"\({re.escape(module.SCHEMA)}\) has schema version {newer}; "
+                                            rf"this reader understands up to {module.SCHEMA_VERSION}"):
+        read(store, ref)
+
+
+def test_the_renderer_refuses_a_newer_rgbn_file(tmp_path):
+    import logging
+
+    from common.bus.worker import StageContext
+    from common.messages import new_message
+    from common.rgbn import image
+    import services.renderer as renderer
+    store = Store(tmp_path)
+    ref = store.write("fragments/F1/rgbn/front-k.h5", image.SCHEMA, image.SCHEMA_VERSION + 1,
+                      lambda f: f.create_dataset("x", data=np.zeros(3)))
+    ctx = StageContext(store=store, config={"archive_tiles": False}, log=logging.getLogger("test"),
+                       progress=lambda f, t: None, service="renderer")
+    with pytest.raises(ArtifactError, match=f"schema version {image.SCHEMA_VERSION + 1}"):
+        renderer.handle(new_message("rgbn.ready", fragment="F1", face="front", artifact=ref), ctx)
+
+
+# files whose reader cannot be changed in this audit (another engineer's module): keep the list short
+_NO_VERSION_YET = {"common/render/artifact.py"}
+
+
+def test_every_reader_that_checks_a_schema_also_checks_its_version():
+    """``Store.open(ref, schema=...)`` without ``version=`` accepts any newer file: name both."""
+    missing = []
+    for path in sorted([*(ROOT / "common").rglob("*.py"), *(ROOT / "services").rglob("*.py")]):
+        rel = path.relative_to(ROOT).as_posix()
+        for node in ast.walk(ast.parse(path.read_text(), rel)):
+            if (isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "open"
+                    and {k.arg for k in node.keywords} >= {"schema"} and "version" not in {k.arg for k in node.keywords}):
+                if rel not in _NO_VERSION_YET:
+                    missing.append(f"{rel}:{node.lineno}")
+    assert not missing, f"Store.open with a schema but no version: {missing}"
+
+
+def test_the_schema_table_lists_the_codes_schemas_and_versions():
+    from common.acquisition import calibration, capture
+    from common.features import table
+    from common.matching import models
+    from common.render import artifact
+    from common.rgbn import image
+    from common.synth import groundtruth
+    doc = DOC.read_text()
+    rows = dict(re.findall(r"^\| `(tessera\.[a-z]+)` \| (\d+) \|", doc, re.M))
+    code = {m.SCHEMA: str(m.SCHEMA_VERSION) for m in (calibration, capture, table, models, artifact, image, groundtruth)}
+    code["tessera.noop"] = "1"
+    assert rows == code
+    # the tree at the top names the same schemas
+    tree = re.search(r"```\n<root>/\n(.*?)```", doc, re.S).group(1)
+    assert set(re.findall(r"tessera\.[a-z]+", tree)) >= set(code) - {"tessera.groundtruth", "tessera.noop"}
+
+
+def test_the_rgbn_and_scans_layouts_in_the_doc_are_what_the_writers_write(tmp_path):
+    """Datasets and attributes named in the schema table's rows are the ones written."""
+    from common.acquisition.capture import CaptureResult, Scan, write_scans
+    from common.rgbn.image import RGBNImage, save_rgbn
+    doc = DOC.read_text()
+    store = Store(tmp_path)
+    img = RGBNImage(albedo=np.full((4, 5, 3), 0.5), mask=np.ones((4, 5), bool), dpi=300.0,
+                    normals=np.dstack([np.zeros((4, 5)), np.zeros((4, 5)), np.ones((4, 5))]),
+                    confidence=np.ones((4, 5)), discontinuity=np.zeros((4, 5, 2)), height_mm=np.zeros((4, 5)))
+    ref = save_rgbn(store, "fragments/F1/rgbn/front-k.h5", img)
+    row = re.search(r"^\| `tessera\.rgbn` .*$", doc, re.M).group(0)
+    with store.open(ref) as f:
+        for name, ds in f.items():
+            assert f"`{name}` ({', '.join(map(str, ('H', 'W') + ds.shape[2:]))})" in row, name
+            assert str(ds.dtype) in row, (name, ds.dtype)
+        for attr in ("dpi", "pixel_mm", "normal_convention"):
+            assert attr in f.attrs and f"`{attr}`" in row
+    scans = CaptureResult("F1", "sim", {"front": [Scan(np.zeros((4, 5, 3), np.uint16), 300.0, 0, (0, 0, 1, 1), 16)]},
+                          colour_only=True)
+    ref = write_scans(store, "F1", scans)
+    row = re.search(r"^\| `tessera\.scans` .*$", doc, re.M).group(0)
+    with store.open(ref) as f:
+        for attr in ("fragment", "device", "calibration", "colour_only"):
+            assert attr in f.attrs and f"`{attr}`" in row
+        d = f["front"]["scan_0"]
+        for attr in d.attrs:
+            assert f"`{attr}`" in row, attr
+        assert set(f) == {"front", "back"}
