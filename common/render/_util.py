@@ -80,7 +80,10 @@ def smoothstep(edge0, edge1, x):
 
 def grey(value: np.ndarray) -> np.ndarray:
     """(H, W) -> (H, W, 3)."""
-    return np.repeat(np.asarray(value, np.float32)[..., None], 3, axis=2)
+    import cv2
+
+    v = np.ascontiguousarray(value, np.float32)
+    return cv2.merge([v, v, v]).reshape(v.shape + (3,))   # one interleaving pass (np.repeat: three)
 
 
 def display_albedo(albedo: np.ndarray) -> np.ndarray:

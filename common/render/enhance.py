@@ -25,11 +25,37 @@ _SAMPLE = 1 << 20
 
 def _sample(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     """Values on the mask (all pixels when None), subsampled on a regular stride to <= _SAMPLE."""
-    v = values if mask is None else values[np.asarray(mask, bool)]
-    v = np.asarray(v).ravel()
+    values = np.asarray(values)
+    if mask is None:
+        v = values.ravel()
+    elif values.ndim == 2:
+        v = masked_stride(values, mask, _SAMPLE)
+    else:
+        v = values[np.asarray(mask, bool)].ravel()
     if v.size > _SAMPLE:
         v = v[:: int(np.ceil(v.size / _SAMPLE))]
     return v[np.isfinite(v)]
+
+
+def masked_stride(values: np.ndarray, mask: np.ndarray, limit: int = _SAMPLE) -> np.ndarray:
+    """``values[mask][::step]`` with ``step = ceil(count / limit)`` (count = mask pixels), without
+    gathering every mask pixel first: rows of ~1 Mpx at a time, each keeping the mask pixels whose
+    rank among all of them is a multiple of ``step``. (N,) for (H, W) values, (N, C) for (H, W, C)."""
+    values = np.asarray(values)
+    mask = np.asarray(mask, bool)
+    count = int(np.count_nonzero(mask))
+    step = max(1, int(np.ceil(count / limit))) if count else 1
+    if step == 1:
+        return values[mask]
+    h, w = mask.shape
+    rows = max(1, (1 << 20) // max(w, 1))
+    parts, seen = [], 0
+    for r0 in range(0, h, rows):
+        at = np.flatnonzero(mask[r0:r0 + rows])   # this block's mask pixels, ranks seen, seen + 1, …
+        flat = values[r0:r0 + rows].reshape((-1,) + values.shape[2:])
+        parts.append(flat[at[(-seen) % step::step]])
+        seen += at.size
+    return np.concatenate(parts) if parts else values[mask]
 
 
 def robust_range(values: np.ndarray, mask: np.ndarray | None = None, *,
@@ -108,7 +134,12 @@ def tone_curve(values: np.ndarray, low: float, high: float) -> np.ndarray:
     if not high > low:
         return np.full(values.shape, 0.5, np.float32)
     k = np.float32(np.arctanh(TONE_SPAN[1] * 2 - 1) / (0.5 * (high - low)))
-    return (0.5 + 0.5 * np.tanh(k * (values - np.float32(0.5 * (low + high))))).astype(np.float32)
+    out = values - np.float32(0.5 * (low + high))   # the only array made: the rest is in place
+    out *= k
+    np.tanh(out, out=out)
+    out *= np.float32(0.5)
+    out += np.float32(0.5)
+    return out
 
 
 def shoulder(values: np.ndarray, knee: float = 0.8) -> np.ndarray:
@@ -245,15 +276,17 @@ class Coarse(NamedTuple):
     factor: int
     offset: tuple
 
-    def full(self, shape) -> np.ndarray:
-        """Bilinear interpolation to the full grid ``shape`` (edges replicated)."""
+    def full(self, shape, rows=None) -> np.ndarray:
+        """Bilinear interpolation to the full grid ``shape`` (edges replicated); ``rows`` =
+        (r0, r1): only those rows of it (the same values)."""
         h, w = shape
+        r0, r1 = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
         if self.factor == 1 and self.values.shape[:2] == (h, w):
-            return self.values
+            return self.values[r0:r1]
         f = float(self.factor)
         m = np.array([[1 / f, 0.0, (0.5 - self.offset[1]) / f - 0.5],
-                      [0.0, 1 / f, (0.5 - self.offset[0]) / f - 0.5]], np.float64)
-        return cv2.warpAffine(self.values, m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                      [0.0, 1 / f, (0.5 + r0 - self.offset[0]) / f - 0.5]], np.float64)
+        return cv2.warpAffine(self.values, m, (w, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -279,11 +312,19 @@ def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     if hh < 2 or ww < 2:
         c = smooth_normals(normals, sigma_px, mask=mask)
         return c if full_size else Coarse(c, 1, (0, 0))
-    win = (slice(o[0], o[0] + hh * f), slice(o[1], o[1] + ww * f))
-    n, m = normals[win], mask[win]
-    wgt = np.where(m, 1.0 / np.maximum(n[..., 2], 0.05), 0.0).astype(np.float32)
-    small_w = cv2.resize(wgt, (ww, hh), interpolation=cv2.INTER_AREA)
-    small_n = cv2.resize(np.ascontiguousarray(n * wgt[..., None]), (ww, hh), interpolation=cv2.INTER_AREA)
+    from common.rgbn.smoothing import strips, weighted_stack
+
+    # the 1/nz-weighted stack (w n, w) area-averaged onto the grid, strip by strip (no
+    # full-resolution temporary)
+    small = np.empty((hh, ww, 4), np.float32)
+    cols = slice(o[1], o[1] + ww * f)
+    for i0, i1, _, _ in strips((hh, ww * f), 0, pixels=max(1 << 20, ww * f) // f):
+        rows = slice(o[0] + i0 * f, o[0] + i1 * f)
+        st = weighted_stack(normals[rows, cols], mask[rows, cols], nz_min=0.05)
+        small[i0:i1] = cv2.resize(st, (ww, i1 - i0), interpolation=cv2.INTER_AREA).reshape(i1 - i0, ww, 4)
+    small_w = np.ascontiguousarray(small[..., 3])
+    small_n = np.ascontiguousarray(small[..., :3])
+    del small
     small_n /= np.maximum(small_w, 1e-12)[..., None]
     small_n /= np.maximum(np.linalg.norm(small_n, axis=2, keepdims=True), 1e-12)
     coarse = Coarse(smooth_normals(small_n, sigma_px / f, mask=small_w > 0), f, o)
@@ -348,8 +389,9 @@ def level_light(light, coarse, shape) -> np.ndarray:
     out[..., 0] = l[0] * cz + uy * l[2] + ux * k
     out[..., 1] = l[1] * cz - ux * l[2] + uy * k
     out[..., 2] = l[2] * cz + (ux * l[1] - uy * l[0])
-    out = Coarse(out, grid.factor, grid.offset).full(shape)
-    return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
+    from common.rgbn.smoothing import unit_rows
+
+    return unit_rows(Coarse(out, grid.factor, grid.offset).full(shape))
 
 
 # ---- colour plus relief -------------------------------------------------------------------------
@@ -400,20 +442,26 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
         raise ValueError(f"relief must be {albedo.shape[:2]}, got {relief.shape}")
     # OpenCV's float LRGB2Lab takes linear RGB in [0, 1] and gives L* in [0, 100]; Lab2RGB gives
     # sRGB-encoded values back (its own gamma tables: no per-pixel power here)
-    lab = cv2.cvtColor(np.ascontiguousarray(np.clip(albedo, 0.0, 1.0)), cv2.COLOR_LRGB2Lab)
+    inside = albedo.size and float(albedo.min()) >= 0.0 and float(albedo.max()) <= 1.0
+    lab = cv2.cvtColor(np.ascontiguousarray(albedo if inside else np.clip(albedo, 0.0, 1.0)), cv2.COLOR_LRGB2Lab)
     L = lab[..., 0]
     if exposure is not None:
         lo, hi = float(exposure[0]), float(exposure[1])
         if hi > lo:
-            L2 = 100.0 * tone_curve(L, lo, hi)
+            L2 = tone_curve(L, lo, hi)
+            L2 *= np.float32(100.0)
             # an exposure change scales chroma with lightness (a darker print of the same paint),
             # so a saturated colour made darker stays a colour sRGB can show
-            k = np.clip(L2 / np.maximum(L, 1.0), 0.0, 2.0)
+            k = np.maximum(L, np.float32(1.0))
+            np.divide(L2, k, out=k)
+            np.clip(k, 0.0, 2.0, out=k)
             lab[..., 1] *= k
             lab[..., 2] *= k
+            del k
             L = L2
-    r = np.clip(relief, -1.0, 1.0) * np.float32(strength)
-    L = L + r * np.where(r > 0, 100.0 - L, L)
+    if strength > 0:
+        r = np.clip(relief, -1.0, 1.0) * np.float32(strength)
+        L = L + r * np.where(r > 0, 100.0 - L, L)
     lab[..., 0] = L
     # OpenCV's Lab2RGB clips each channel: the colours it clipped are mapped again, chroma only
     return _into_gamut(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB), lab)
@@ -538,9 +586,7 @@ def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple
 
     albedo = np.asarray(albedo, np.float32)
     m = check_mask(mask, albedo.shape[:2])
-    flat = albedo.reshape(-1, 3)[m.ravel()]
-    if flat.shape[0] > _SAMPLE:
-        flat = flat[:: int(np.ceil(flat.shape[0] / _SAMPLE))]
+    flat = masked_stride(albedo, m, _SAMPLE)
     if flat.shape[0] == 0:
         return 5.0, 95.0
     L = cv2.cvtColor(np.ascontiguousarray(np.clip(flat, 0.0, 1.0)[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]
@@ -557,9 +603,7 @@ def lightness_spread(albedo: np.ndarray, mask: np.ndarray | None = None) -> floa
     itself varies (a painting 40-70, one metal or one plaster 5-15)."""
     albedo = np.asarray(albedo, np.float32)
     m = check_mask(mask, albedo.shape[:2])
-    flat = albedo.reshape(-1, 3)[m.ravel()]
-    if flat.shape[0] > _SAMPLE:
-        flat = flat[:: int(np.ceil(flat.shape[0] / _SAMPLE))]
+    flat = masked_stride(albedo, m, _SAMPLE)
     if flat.shape[0] == 0:
         return 0.0
     L = cv2.cvtColor(np.ascontiguousarray(np.clip(flat, 0.0, 1.0)[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]

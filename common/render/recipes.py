@@ -408,7 +408,7 @@ def draw_multiscale_mean_curvature(image: RGBNImage, scales: int = 5, sigma0_mm=
     r["sigma0_mm"] = float(sigma0_mm)
     acc = _shading.multiscale_mean_curvature_shading(
         image.normals, image.dpi, mask=image.mask, scales=scales, sigma0_mm=float(sigma0_mm),
-        sigma_ratio=sigma_ratio, gain=1.0, detail=detail, raw=True)
+        sigma_ratio=sigma_ratio, gain=1.0, detail=detail, raw=True, origin=image.attrs.get("tile_origin", (0, 0)))
     if isinstance(gain, (int, float)) and gain < 0:
         gain = AUTO
     # the sum is not symmetric about 0 (coarse scales add a bias): its 5th / 95th percentiles are
@@ -889,9 +889,10 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
         from common.rgbn.segmentation import segment_rgbn
 
         labels = segment_rgbn(image.albedo, image.normals, mask=image.mask, **(recipe.segmentation or {}))
-    canvas = np.empty(image.shape + (3,), np.float32)
-    canvas[:] = np.asarray(recipe.background, np.float32)
-    cover = np.zeros(image.shape, np.float32)
+    # the canvas and the coverage are made after the first layer is drawn, from the memory its
+    # temporaries freed (_heap), so they do not raise the drawing's peak; a first layer that
+    # covers all or nothing of each pixel is itself the canvas (_adopt_as_canvas)
+    canvas = cover = None
     chosen = []
     # layers share the normals they smooth at the same scale (kept for this drawing only)
     _cache["share_smoothed"] = len(layers) > 1
@@ -911,12 +912,44 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
             a = a * np.isin(labels, layer["segments"])
         if labels is not None and "exclude_segments" in layer:
             a = a * ~np.isin(labels, layer["exclude_segments"])
-        canvas = _blend(canvas, drawn.rgb, a.astype(np.float32), layer.get("blend", "normal"))
+        a = a.astype(np.float32, copy=False)
+        blend = layer.get("blend", "normal")
+        if canvas is None:
+            cover = np.zeros(image.shape, np.float32)
+            canvas = _adopt_as_canvas(drawn.rgb, a, blend, image, recipe.background)
+            if canvas is None:
+                canvas = np.empty(image.shape + (3,), np.float32)
+                canvas[:] = np.asarray(recipe.background, np.float32)
+                canvas = _blend(canvas, drawn.rgb, a, blend)
+        else:
+            canvas = _blend(canvas, drawn.rgb, a, blend)
+        del drawn
         np.maximum(cover, a, out=cover)
     if progress:
         progress(1.0, "done")
-    return Rendering(np.clip(canvas, 0.0, 1.0), np.clip(np.maximum(cover, image.mask), 0.0, 1.0), recipe, skipped,
-                     chosen)
+    np.clip(canvas, 0.0, 1.0, out=canvas)
+    np.maximum(cover, image.mask, out=cover)
+    return Rendering(canvas, np.clip(cover, 0.0, 1.0, out=cover), recipe, skipped, chosen)
+
+
+def _adopt_as_canvas(rgb, alpha, blend: str, image: RGBNImage, background):
+    """The first layer's own colour array made the canvas, with the background put where the layer
+    does not cover: what a normal blend onto the background gives when the coverage is all or
+    nothing (a shading style on its mask), without a canvas of its own to fill and copy into.
+    None when that does not apply (another blend, partial coverage, an array the image or the
+    drawing's cache also holds)."""
+    if blend != "normal" or not isinstance(rgb, np.ndarray) or rgb.dtype != np.float32 \
+            or rgb.shape != image.shape + (3,) or not rgb.flags.c_contiguous or not rgb.flags.writeable:
+        return None
+    held = [image.albedo, image.normals, image.mask] + [v for v in _cache.values() if isinstance(v, np.ndarray)]
+    if any(x is not None and np.may_share_memory(rgb, x) for x in held):
+        return None
+    on = alpha >= 1.0
+    off = alpha <= 0.0
+    if np.count_nonzero(on) + np.count_nonzero(off) != alpha.size:
+        return None
+    rgb[off] = np.asarray(background, np.float32)
+    return rgb
 
 
 def _preprocess(image: RGBNImage, pre: dict) -> RGBNImage:
@@ -940,8 +973,9 @@ def _blend(base: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, mode: str) -> n
         on = alpha >= 1.0
         if np.count_nonzero(on) + np.count_nonzero(alpha <= 0.0) == alpha.size:
             # coverage is all or nothing (a shading style on its mask): a copy, not a mix
-            np.copyto(base, rgb, where=on[..., None])
-            return base
+            from common.rgbn.smoothing import copy_where
+
+            return copy_where(base, np.asarray(rgb, np.float32), on)
     a = alpha[..., None]
     if mode == "normal":
         top = rgb

@@ -38,6 +38,19 @@ def gaussian_blur(values: np.ndarray, sigma_px: float) -> np.ndarray:
     return out
 
 
+def blurs_directly(sigma_px: float, shape) -> bool:
+    """Whether :func:`gaussian_blur` applies ``sigma_px`` at full resolution on an image of
+    ``shape`` (else on a downsampled copy)."""
+    h, w = shape[:2]
+    return not (sigma_px / 2 >= _DIRECT_SIGMA / 2 and min(h, w) // 2 >= 8)
+
+
+def gaussian_reach(sigma_px: float) -> int:
+    """Rows (or columns) a full-resolution :func:`gaussian_blur` reads on each side: OpenCV's
+    float Gaussian kernel has ``2 * round(4 sigma) + 1`` taps, so 4 sigma, plus one for rounding."""
+    return int(np.ceil(4.0 * sigma_px)) + 1
+
+
 def _blur_direct(values: np.ndarray, sigma_px: float) -> np.ndarray:
     # OpenCV filters at most 4 channels in one call efficiently for all builds; split larger stacks.
     if values.ndim == 3 and values.shape[2] > 4:

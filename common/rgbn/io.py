@@ -29,15 +29,31 @@ _TIFF = (".tif", ".tiff")
 
 
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
-    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32; two arrays of the input's size
+    are made, the rest is computed in place)."""
+    arr = np.asarray(values, dtype=np.float32)
+    v = np.clip(np.atleast_1d(arr), 0.0, 1.0)
+    out = v + np.float32(0.055)
+    out /= np.float32(1.055)
+    np.power(out, np.float32(2.4), out=out)
+    low = v <= 0.04045
+    v /= np.float32(12.92)
+    np.copyto(out, v, where=low)
+    return out.reshape(arr.shape)
 
 
 def linear_to_srgb(values: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encoding of linear values in [0, 1]."""
-    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
-    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055).astype(np.float32)
+    """IEC 61966-2-1 sRGB encoding of linear values in [0, 1] (float32; two arrays of the input's
+    size are made, the rest is computed in place)."""
+    arr = np.asarray(values, dtype=np.float32)
+    v = np.clip(np.atleast_1d(arr), 0.0, 1.0)
+    out = np.power(v, np.float32(1 / 2.4))
+    out *= np.float32(1.055)
+    out -= np.float32(0.055)
+    low = v <= 0.0031308
+    v *= np.float32(12.92)
+    np.copyto(out, v, where=low)
+    return out.reshape(arr.shape)
 
 
 def _read_raw(path: Path) -> tuple[np.ndarray, float]:

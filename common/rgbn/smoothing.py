@@ -10,10 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.rgbn._filters import check_mask, check_normals, gaussian_blur
+from common.rgbn._filters import _blur_direct, blurs_directly, check_mask, check_normals, gaussian_blur, gaussian_reach
 
 #: Smallest nz used in the 1/nz weight: silhouette pixels (nz -> 0) would otherwise dominate.
 NZ_MIN = 0.05
+#: Pixels of one strip when a full-resolution smoothing is computed strip by strip (rows with a
+#: halo of the kernel's reach): its temporaries (~60 bytes a pixel) then stay in the processor's
+#: cache and in memory already mapped, instead of being page-faulted in at the size of the image
+#: (at 12 Mpx a fresh 144 MB array costs ~35,000 faults).
+STRIP_PIXELS = 1 << 20
 
 
 def foreshortening_weights(normals: np.ndarray, mask: np.ndarray | None = None, *,
@@ -74,36 +79,149 @@ def smooth_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     return next(iter_scale_space(normals, [sigma_px], mask=mask, foreshortening=foreshortening, nz_min=nz_min))
 
 
+def weighted_stack(normals: np.ndarray, mask: np.ndarray | None = None, *, foreshortening: bool = True,
+                   nz_min: float = NZ_MIN) -> np.ndarray:
+    """The (H, W, 4) float32 stack ``(w n, w)`` whose Gaussian blur, normalised, is the smoothed
+    normal field (§7.2.1): ``w = mask / max(nz, nz_min)`` (``mask`` alone without foreshortening).
+    One stack serves every scale of a scale space, and coarser grids of it
+    (:class:`common.render.shading._WeightedPyramid`)."""
+    import cv2
+
+    normals = np.ascontiguousarray(check_normals(normals))
+    mask = check_mask(mask, normals.shape[:2])
+    w = foreshortening_weights(normals, mask, nz_min=nz_min) if foreshortening else mask.astype(np.float32)
+    h, wd = normals.shape[:2]
+    # (n, 1) by OpenCV's alpha channel, then times (w, w, w, w): one interleaved pass each
+    stack = cv2.cvtColor(normals, cv2.COLOR_BGR2BGRA).reshape(h, wd, 4)
+    cv2.multiply(stack, cv2.merge([w, w, w, w]).reshape(h, wd, 4), dst=stack)
+    return stack
+
+
 def iter_scale_space(normals: np.ndarray, sigmas_px, *, mask: np.ndarray | None = None,
                      foreshortening: bool = True, nz_min: float = NZ_MIN):
-    """Yield :func:`smooth_normals` at each sigma in turn, sharing the weighted stack (§7.2.1).
+    """Yield :func:`smooth_normals` at each sigma in turn (§7.2.1).
 
     Only one level is alive at a time unless the caller keeps it, which bounds the memory of
-    many-scale styles on 16-Mpx images.
+    many-scale styles on 16-Mpx images. A sigma that :func:`common.rgbn._filters.gaussian_blur`
+    applies at full resolution is computed in row strips (:func:`smoothed_rows`), so the
+    weighted stack and its blur never exist at the image's size; larger sigmas share one
+    full-size weighted stack (made when the first of them comes).
     """
     normals = check_normals(normals)
     mask = check_mask(mask, normals.shape[:2])
-    w = foreshortening_weights(normals, mask, nz_min=nz_min) if foreshortening else mask.astype(np.float32)
-    stack = np.empty(normals.shape[:2] + (4,), np.float32)
-    np.multiply(normals, w[..., None], out=stack[..., :3])
-    stack[..., 3] = w
-    floor = np.float32(1e-6 * max(float(w.max(initial=0.0)), 1e-12))
+    floor = weight_floor(normals, mask, foreshortening=foreshortening, nz_min=nz_min)
+    stack = None
     for sigma in sigmas_px:
         if not np.isfinite(sigma) or sigma < 0:
             raise ValueError(f"sigma_px must be a finite number >= 0, got {sigma}")
         if sigma == 0:
             yield normals.copy()
             continue
+        if blurs_directly(sigma, normals.shape):
+            out = np.empty(normals.shape, np.float32)
+            for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(sigma)):
+                smoothed_rows(normals, mask, float(sigma), (r0, r1), (a0, a1), floor,
+                              foreshortening=foreshortening, nz_min=nz_min, out=out[r0:r1])
+            yield out
+            continue
+        if stack is None:
+            stack = weighted_stack(normals, mask, foreshortening=foreshortening, nz_min=nz_min)
         blurred = gaussian_blur(stack, float(sigma))
-        v = blurred[..., :3]
-        norm = np.sqrt(np.einsum("...i,...i->...", v, v))
         # where no mask pixel is in reach the weight sum vanishes: keep the input there
         empty = blurred[..., 3] <= floor
-        np.maximum(norm, 1e-12, out=norm)
-        out = v / norm[..., None]
+        out = unit_rows(blurred)
+        del blurred
         if empty.any():
-            out[empty] = normals[empty]
+            copy_where(out, normals, empty)
         yield out
+
+
+def weight_floor(normals: np.ndarray, mask: np.ndarray, *, foreshortening: bool = True,
+                 nz_min: float = NZ_MIN) -> np.float32:
+    """A millionth of the largest smoothing weight of the image (1 / the smallest nz on the mask):
+    a blurred weight sum at or below it means no mask pixel within reach."""
+    if not mask.any():
+        wmax = 0.0
+    elif foreshortening:
+        nz = np.min(normals[..., 2], where=mask, initial=np.float32(np.inf))
+        wmax = float(np.float32(1.0) / np.maximum(np.float32(nz), np.float32(nz_min)))
+    else:
+        wmax = 1.0
+    return np.float32(1e-6 * max(wmax, 1e-12))
+
+
+def strips(shape, halo: int, pixels: int = STRIP_PIXELS):
+    """Row strips of an image of ``shape`` for a filter that reads ``halo`` rows on each side:
+    yields ``(r0, r1, a0, a1)``, the strip's rows and the rows to read (clipped to the image).
+    A strip holds about ``pixels`` pixels and at least 4 halos of rows."""
+    h, w = shape[:2]
+    rows = max(4 * int(halo), pixels // max(int(w), 1), 16)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        yield r0, r1, max(0, r0 - halo), min(h, r1 + halo)
+
+
+def smoothed_rows(normals: np.ndarray, mask: np.ndarray, sigma_px: float, rows, window, floor, *,
+                  stack: np.ndarray | None = None, foreshortening: bool = True, nz_min: float = NZ_MIN,
+                  out: np.ndarray | None = None) -> np.ndarray:
+    """Rows ``r0:r1`` (``rows``) of :func:`smooth_normals`, computed from rows ``a0:a1``
+    (``window``) only: exact for a sigma blurred at full resolution when the window reaches
+    :func:`common.rgbn._filters.gaussian_reach` of it beyond the rows (the kernel never reads
+    past it; :func:`strips` gives such windows). ``floor``: :func:`weight_floor` of the whole
+    image; ``stack``: :func:`weighted_stack` of the window's rows, when the caller smooths them at
+    several sigmas; ``out``: a contiguous (r1 - r0, W, 3) float32 array to write to.
+    Returns the (r1 - r0, W, 3) float32 unit normals."""
+    (r0, r1), (a0, a1) = rows, window
+    if stack is None:
+        stack = weighted_stack(normals[a0:a1], mask[a0:a1], foreshortening=foreshortening, nz_min=nz_min)
+    b = _blur_direct(stack, float(sigma_px))[r0 - a0:r1 - a0]
+    empty = b[..., 3] <= floor
+    res = unit_rows(b, out=out)
+    if empty.any():
+        copy_where(res, np.ascontiguousarray(normals[r0:r1]), empty)
+    return res
+
+
+def unit_rows(blurred: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+    """The first three channels of an (H, W, 4) or (H, W, 3) float32 array as unit vectors,
+    (H, W, 3) float32 (zero vectors -> 0): ``v / max(|v|, 1e-12)``, as a product with the
+    reciprocal length. The squared lengths are one matrix-vector product; the channels are
+    taken out and scaled by OpenCV, which, unlike numpy, does not slow down on an interleaved
+    last axis. ``out``: a contiguous (H, W, 3) float32 array to write to."""
+    import cv2
+
+    if blurred.ndim != 3 or blurred.shape[2] not in (3, 4):
+        raise ValueError(f"expected an (H, W, 3) or (H, W, 4) array, got shape {blurred.shape}")
+    b = np.ascontiguousarray(blurred, np.float32)
+    c = b.shape[2]
+    inv = np.multiply(b, b) @ np.array([1.0, 1.0, 1.0, 0.0][:c], np.float32)   # |v|^2
+    np.sqrt(inv, out=inv)
+    np.maximum(inv, 1e-12, out=inv)
+    np.reciprocal(inv, out=inv)
+    shape = b.shape[:2] + (3,)
+    if out is None:
+        out = np.empty(shape, np.float32)
+    if c == 4:
+        cv2.cvtColor(b, cv2.COLOR_BGRA2BGR, dst=out)   # drops the fourth channel, order kept
+    else:
+        np.copyto(out, b)
+    cv2.multiply(out, cv2.merge([inv, inv, inv]), dst=out)
+    return out
+
+
+def copy_where(dst: np.ndarray, src: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``dst[where] = src[where]`` in place, ``where`` an (H, W) bool mask and ``dst``, ``src``
+    (H, W) or (H, W, C) arrays of one dtype: OpenCV's masked copy (one pass, no gather of the
+    selected pixels) when ``dst`` is contiguous, else numpy's. Returns ``dst``."""
+    import cv2
+
+    where = np.asarray(where, bool)
+    if (dst.flags.c_contiguous and src.shape == dst.shape and src.dtype == dst.dtype
+            and where.shape == dst.shape[:2] and dst.ndim in (2, 3) and (dst.ndim == 2 or dst.shape[2] <= 4)):
+        cv2.copyTo(np.ascontiguousarray(src), np.ascontiguousarray(where).view(np.uint8), dst)
+    else:
+        np.copyto(dst, src, where=where[..., None] if dst.ndim == 3 and where.ndim == 2 else where)
+    return dst
 
 
 def smooth_albedo(albedo: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None) -> np.ndarray:

@@ -218,3 +218,14 @@ def test_lightness_relief_recomputes_only_what_opencv_clipped():
     chromatic = ~inside & (np.hypot(lab_out[..., 1], lab_out[..., 2]) > 5)
     assert hue_err[chromatic].max() < 0.2
     assert np.abs(lab_out[..., 0] - lab[..., 0])[~inside].max() < 0.05
+
+
+def test_masked_stride_is_every_kth_mask_pixel_in_order():
+    from common.render.enhance import masked_stride
+    rng = np.random.default_rng(2)
+    v = rng.random((1500, 1100, 3)).astype(np.float32)
+    m = rng.random((1500, 1100)) > 0.4
+    for limit in (1, 1000, 123457, 10 ** 8):
+        step = int(np.ceil(np.count_nonzero(m) / limit))
+        assert np.array_equal(masked_stride(v, m, limit), v[m][::step])
+        assert np.array_equal(masked_stride(v[..., 1], m, limit), v[..., 1][m][::step])

@@ -189,3 +189,63 @@ def test_exaggerated_with_its_finest_level_given_draws_the_same():
     assert np.array_equal(own, given)
     with pytest.raises(ValueError, match="finest"):
         exaggerated_shading(n, mask=mask, sigma0_px=1.5, finest=n[1:])
+
+
+def _relief(size=320, seed=3):
+    """A multi-scale relief with a round outline (height in pixels of 25.4/1200 mm)."""
+    import cv2
+
+    from tests.rgbn.analytic import normals_from_height
+    rng = np.random.default_rng(seed)
+    blur = lambda a, s: cv2.GaussianBlur(a.astype(np.float32), (0, 0), s)  # noqa: E731
+    h = blur(rng.standard_normal((size, size)), 24) * 600 + blur(rng.standard_normal((size, size)), 4) * 20
+    gy, gx = np.gradient(h)
+    n = normals_from_height(gx * 0.02, -gy * 0.02).astype(np.float32)
+    yy, xx = np.mgrid[0:size, 0:size]
+    mask = (xx - size / 2) ** 2 + (yy - size / 2) ** 2 < (0.47 * size) ** 2
+    return n, mask
+
+
+def test_multiscale_curvature_on_coarse_grids_is_within_a_level_of_the_exact_gaussian_scale_space():
+    """Reference computed independently: every level an exact full-resolution Gaussian (OpenCV,
+    no downsampling) of the 1/nz-weighted normals, its mean curvature at full resolution."""
+    import cv2
+
+    from common.render.enhance import robust_range, tone_curve
+    from common.rgbn.curvature import mean_curvature
+    n, mask = _relief()
+    dpi, sigmas = 1200.0, [0.1 * 2 ** i for i in range(5)]      # 4.7 ... 76 px: grids 1, 2, 4, 8, 8
+    w = np.where(mask, 1.0 / np.maximum(n[..., 2], 0.05), 0.0).astype(np.float32)
+    stack = np.dstack([n * w[..., None], w]).astype(np.float32)
+    exact = np.zeros(mask.shape, np.float64)
+    for s in sigmas:
+        b = cv2.GaussianBlur(stack, (0, 0), s * dpi / 25.4, borderType=cv2.BORDER_REFLECT)[..., :3]
+        v = (b / np.maximum(np.linalg.norm(b, axis=2, keepdims=True), 1e-12)).astype(np.float32)
+        exact += s / len(sigmas) * mean_curvature(v, dpi)
+    exact[~mask] = 0
+    got = multiscale_mean_curvature_shading(n, dpi, mask=mask, sigma0_mm=0.1, raw=True)
+    lo, hi = robust_range(exact, mask, clip_percent=5.0)
+    d = np.abs(tone_curve(exact, lo, hi) - tone_curve(got, lo, hi))[mask] * 255
+    assert d.max() < 1.5 and d.mean() < 0.5
+
+
+def test_multiscale_curvature_coarse_grids_are_aligned_to_the_whole_image_for_tiles():
+    n, mask = _relief(512)
+    whole = multiscale_mean_curvature_shading(n, 600.0, mask=mask, raw=True)   # 2.4 ... 38 px: grids 1-8
+    r0, c0 = 37, 21          # a window whose origin is not on any coarse grid
+    part = multiscale_mean_curvature_shading(n[r0:, c0:], 600.0, mask=mask[r0:, c0:], raw=True, origin=(r0, c0))
+    inner = (slice(200 - r0, 320 - r0), slice(200 - c0, 320 - c0))   # 4 sigma from both windows' edges
+    assert np.abs(part[inner] - whole[r0:, c0:][inner]).max() < 1e-4 * np.abs(whole).max()
+
+
+@pytest.mark.parametrize("strip_pixels", [4096, 1 << 30])
+def test_exaggerated_shading_drawn_in_row_strips_equals_the_whole_image_drawing(monkeypatch, strip_pixels):
+    """The full-resolution levels are drawn strip by strip with a halo of the kernel's reach:
+    strips of 13 rows and one strip of the whole image draw the same picture."""
+    from common.rgbn import smoothing
+    n, mask = _relief(200)
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", 1 << 30)
+    ref = exaggerated_shading(n, mask=mask, scales=4, sigma0_px=1.5)
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", strip_pixels)
+    got = exaggerated_shading(n, mask=mask, scales=4, sigma0_px=1.5)
+    assert np.abs(got - ref).max() < 1e-6

@@ -84,3 +84,25 @@ def test_bad_sigma_is_refused_by_name(sigma):
 def test_wrong_normal_shape_is_refused():
     with pytest.raises(ValueError, match="normals"):
         smooth_normals(np.zeros((8, 8)), 1.0)
+
+
+def test_smoothing_in_row_strips_is_the_normalised_convolution_of_the_whole_image(monkeypatch):
+    """Independent reference: the 1/nz-weighted stack blurred whole by OpenCV, normalised."""
+    import cv2
+
+    from common.rgbn import smoothing
+    rng = np.random.default_rng(5)
+    n = rng.normal(0, 0.3, (150, 97, 3)).astype(np.float32)
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    mask = np.zeros((150, 97), bool)
+    mask[20:130, 10:90] = True
+    w = np.where(mask, 1.0 / np.maximum(n[..., 2], 0.05), 0.0).astype(np.float32)
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", 97 * 9)   # strips of 9-16 rows
+    for sigma in (0.8, 2.5, 4.0):
+        b = cv2.GaussianBlur(np.dstack([n * w[..., None], w]), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        ref = b[..., :3] / np.maximum(np.linalg.norm(b[..., :3], axis=2, keepdims=True), 1e-30)
+        got = smooth_normals(n, sigma, mask=mask)
+        reach = b[..., 3] > 1e-6 * w.max()
+        assert np.abs(got - ref)[reach].max() < 1e-5
+        assert np.array_equal(got[~reach], n[~reach])   # nothing within reach: the input kept
