@@ -43,10 +43,17 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from common.bus.security import SecurityError
+    from common.config import ConfigError
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except (ConfigError, SecurityError) as exc:
+        # a bad setting or key file: one line naming it (DESIGN: "a bad config fails at start with
+        # a clear message"; docs/security.md), not a traceback
+        print(f"tessera {args.command}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,0 +1,67 @@
+"""docs/web.md "Access" and docs/security.md against the web app: every page, the archive's too,
+loads only what the station serves (no CDN, no font or script from elsewhere), under a
+Content-Security-Policy of 'self'; every static file names no outside address."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.rgbn.image import RGBNImage, save_rgbn
+from common.store import Store
+from services import web
+
+from .conftest import TOKEN
+
+STATIC = Path(web.__file__).resolve().parent / "static"
+TEMPLATES = Path(web.__file__).resolve().parent / "templates"
+# identifiers that look like addresses but are never fetched (XML namespaces)
+_NOT_FETCHED = {"http://www.w3.org/2000/svg"}
+
+
+@pytest.fixture
+def archive_app(tmp_path):
+    from common.web.catalogue import Catalogue
+    store = Store(tmp_path)
+    h, w = 40, 50
+    img = RGBNImage(albedo=np.full((h, w, 3), 0.5), mask=np.ones((h, w), bool), dpi=300.0,
+                    normals=np.dstack([np.zeros((h, w)), np.zeros((h, w)), np.ones((h, w))]))
+    save_rgbn(store, "fragments/F1/rgbn/front-0123456789abcdef.h5", img)
+    return web.create_app(token=TOKEN, store_root=tmp_path, catalogue=Catalogue(tmp_path / "web" / "cat.sqlite", store))
+
+
+def test_every_page_the_archive_included_loads_only_the_stations_assets(archive_app):
+    """test_web.py checked the bench, review, status and login pages; the archive's pages
+    (catalogue, fragment page, reconstruction) are pages of the same station."""
+    c = archive_app.test_client()
+    for page in ("/bench", "/review", "/status", "/login", "/fragments", "/fragments/F1", "/reconstruction"):
+        r = c.get(page)
+        assert r.status_code == 200, page
+        html = r.get_data(as_text=True)
+        refs = re.findall(r'(?:src|href)="([^"]*)"', html)
+        assert refs and all(ref.startswith("/") and not ref.startswith("//") for ref in refs), (page, refs)
+        for ref in refs:
+            if ref.startswith("/static/"):
+                assert c.get(ref).status_code == 200, (page, ref)
+        csp = r.headers["Content-Security-Policy"]
+        assert "default-src 'self'" in csp and "script-src 'self'" in csp and "frame-ancestors 'none'" in csp, page
+        assert r.headers["X-Frame-Options"] == "DENY"
+
+
+def test_no_static_file_or_template_names_an_outside_address():
+    files = [p for p in [*STATIC.rglob("*"), *TEMPLATES.rglob("*")] if p.is_file()]
+    assert any(p.suffix == ".js" for p in files) and any(p.suffix == ".frag" for p in files)
+    found = []
+    for p in files:
+        text = p.read_text(errors="replace")
+        found += [f"{p.name}: {u}" for u in re.findall(r"https?://[^\s\"'<>)`]+", text) if u not in _NOT_FETCHED]
+    assert not found, found
+
+
+def test_api_answers_are_not_cached_and_carry_the_same_policy(archive_app):
+    r = archive_app.test_client().get("/api/catalogue")
+    assert r.status_code == 200
+    assert r.headers["Cache-Control"] == "no-store" and "default-src 'self'" in r.headers["Content-Security-Policy"]
