@@ -24,6 +24,7 @@ MAX_MESSAGE_BYTES = 256 * 1024    # packed size of one message
 MAX_DEPTH = 16                    # nesting of maps and lists (the message itself is depth 1)
 MAX_STRING_CHARS = 16384          # any one string (an error text is cut to this by its sender)
 MAX_ITEMS = 10000                 # entries of any one map or list
+MAX_PATH_CHARS = 1024             # an artifact pointer's path
 INT_RANGE = (-(2 ** 63), 2 ** 63 - 1)  # integers a journal, SQLite or a JSON reader can hold
 #: ``uid``: 32 lower-case hex digits (a UUID4 ``hex``)
 UID_PATTERN = re.compile(r"^[0-9a-f]{32}$")
@@ -175,8 +176,10 @@ def validate(msg: Any) -> dict:
         if not (isinstance(art, Mapping) and {"path", "sha256", "bytes"} <= set(art)):
             raise MessageError(f"{kind} message has a malformed artifact pointer {str(art)[:120]!r}")
         path, sha, size = art["path"], art["sha256"], art["bytes"]
-        if not isinstance(path, str) or not path or path.startswith("/") or ".." in path.split("/") or len(path) > 1024:
+        if not isinstance(path, str) or not path or path.startswith("/") or ".." in path.split("/"):
             raise MessageError(f"{kind} message: artifact path {str(path)[:120]!r} must be relative to the storage root")
+        if len(path) > MAX_PATH_CHARS:
+            raise MessageError(f"{kind} message: artifact path of {len(path)} characters (at most {MAX_PATH_CHARS})")
         if not (isinstance(sha, str) and _SHA256.match(sha)):
             raise MessageError(f"{kind} message: artifact sha256 {str(sha)[:80]!r} is not 64 hex digits")
         if isinstance(size, bool) or not isinstance(size, int) or size < 0:

@@ -89,6 +89,9 @@ def _doc(**over):
     ({"x": "y" * 20000}, "string of 20000"),
     ({"x": list(range(20000))}, "20000 entries"),
     ({"x": {1: 2}}, "non-text key"),
+    ({"x": {"k" * 257: 1}}, "key longer than 256"),
+    ({"artifact": {"path": "a/" * 512 + "b.h5", "sha256": "0" * 64, "bytes": 1}}, "at most 1024"),
+    ({"artifact": {"path": "a.h5", "sha256": "A" * 64, "bytes": 1}}, "64 hex"),
 ])
 def test_fields_are_validated_by_type_and_range(over, phrase):
     with pytest.raises(MessageError, match=phrase):
