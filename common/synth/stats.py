@@ -70,6 +70,36 @@ def _crop(rgba: np.ndarray, pad: int = 2):
     return rgba[r0:r1, c0:c1].copy(), c0, r0
 
 
+def _read_truth(path: Path, images: set) -> dict:
+    """``truth.csv`` of one object: ``{image file name: (x, y, rot)}``. A fragment may be named by its
+    file name (RePAIR's ``RPf_00072_intact_mesh.png``) or its stem; a missing column, a value that is
+    not a number, a name given twice or one that matches no image of the folder is refused, naming the
+    file and line (a typo would otherwise leave a placed piece silently unplaced)."""
+    truth = {}
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in ("rpf", "x", "y", "rot") if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected rpf,x,y,rot)")
+        for row in reader:
+            line = reader.line_num
+            name = (row["rpf"] or "").strip()
+            if name not in images and f"{name}.png" in images:
+                name = f"{name}.png"
+            if name not in images:
+                raise ValueError(f"{path}, line {line}: {row['rpf']!r} names no fragment image in {path.parent}")
+            if name in truth:
+                raise ValueError(f"{path}, line {line}: {name} is placed twice")
+            try:
+                truth[name] = tuple(float(row[c]) for c in ("x", "y", "rot"))
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}, line {line}: x, y and rot must be numbers, got "
+                                 f"{row['x']!r}, {row['y']!r}, {row['rot']!r}") from None
+            if not all(np.isfinite(truth[name])):
+                raise ValueError(f"{path}, line {line}: x, y and rot must be finite, got {truth[name]}")
+    return truth
+
+
 def read_collection(path: str | os.PathLike) -> list[Piece]:
     """Read a collection laid out as ``repair-dev``: one folder per object with RGBA PNG fragments
     and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
@@ -90,12 +120,9 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
         raise ValueError(f"path {root} is not a directory")
     pieces = []
     for obj in sorted(p for p in root.iterdir() if p.is_dir()):
-        truth = {}
-        if (obj / "truth.csv").is_file():
-            with open(obj / "truth.csv", newline="") as fh:
-                for row in csv.DictReader(fh):
-                    truth[row["rpf"]] = (float(row["x"]), float(row["y"]), float(row["rot"]))
-        for png in sorted(obj.glob("*.png")):
+        pngs = sorted(obj.glob("*.png"))
+        truth = _read_truth(obj / "truth.csv", {p.name for p in pngs}) if (obj / "truth.csv").is_file() else {}
+        for png in pngs:
             img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
             if img is None or img.ndim != 3 or img.shape[2] != 4:
                 raise ValueError(f"fragment image {png} is missing or not RGBA")

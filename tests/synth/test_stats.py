@@ -75,3 +75,39 @@ def test_real_collection_statistics_when_the_repair_set_is_present():
     assert s["plain_edge_all"] > 0.7
     table = comparison_table({"real": s})
     assert "| smallest gap per pair, mm" in table and table.count("\n") > 15
+
+
+def _collection_with_truth(root, truth_text):
+    import cv2
+
+    obj = root / "objA"
+    obj.mkdir(parents=True)
+    rgba = np.zeros((20, 30, 4), np.uint8)
+    rgba[4:16, 5:25] = (160, 150, 140, 255)
+    for name in ("p1", "p2"):
+        cv2.imwrite(str(obj / f"{name}.png"), rgba)
+    (obj / "truth.csv").write_text(truth_text)
+    return obj
+
+
+def test_truth_rows_may_name_a_fragment_by_file_name_or_stem(tmp_path):
+    _collection_with_truth(tmp_path, "rpf,x,y,rot\np1.png,10,20,0\np2,40,20,90\n")
+    placed = {p.id: p.matrix for p in read_collection(tmp_path)}
+    assert placed["p1"] is not None and placed["p2"] is not None
+    # p1: not turned, its crop's corner (col 3, row 2 after the 2-px pad) lands at (10 + 3, 20 + 2)
+    assert np.allclose(placed["p1"] @ [0, 0, 1], [13, 22])
+
+
+@pytest.mark.parametrize("text, words", [
+    ("rpf,x,y\np1.png,1,2\n", ["truth.csv", "missing column", "rot"]),
+    ("rpf,x,y,rot\np1.png,abc,2,0\n", ["truth.csv, line 2", "numbers", "'abc'"]),
+    ("rpf,x,y,rot\np1.png,1,2,0\np9.png,1,2,0\n", ["truth.csv, line 3", "'p9.png'", "names no fragment image"]),
+    ("rpf,x,y,rot\np1.png,1,2,0\np1,5,2,0\n", ["line 3", "p1.png is placed twice"]),
+    ("rpf,x,y,rot\np1.png,1,nan,0\n", ["line 2", "finite"]),
+])
+def test_a_bad_truth_file_is_refused_naming_the_file_line_and_problem(tmp_path, text, words):
+    _collection_with_truth(tmp_path, text)
+    with pytest.raises(ValueError) as err:
+        read_collection(tmp_path)
+    for w in words:
+        assert w in str(err.value), (w, str(err.value))
