@@ -130,3 +130,40 @@ def test_the_rgbn_and_scans_layouts_in_the_doc_are_what_the_writers_write(tmp_pa
         for attr in d.attrs:
             assert f"`{attr}`" in row, attr
         assert set(f) == {"front", "back"}
+
+
+def test_the_sane_ranges_the_doc_states_are_common_limits():
+    from common import limits
+    m = re.search(r"must be ([\d,]+)…([\d,]+) dpi, each image at most (\d+) Mpx, and no side longer than (\d+) m\b",
+                  DOC.read_text())
+    assert m, "docs/storage.md no longer states the sane ranges in the expected words"
+    lo, hi, mpx, metres = (float(g.replace(",", "")) for g in m.groups())
+    assert (lo, hi) == limits.DPI_RANGE
+    assert mpx * 1e6 == limits.MAX_IMAGE_PIXELS and metres * 1000 == limits.MAX_EXTENT_MM
+
+
+def test_the_features_artifact_layout_in_docs_features_is_what_save_features_writes(tmp_path):
+    from common.features.table import FeatureTable, save_features
+    n, m = 3, 5
+    t = FeatureTable(values={"a": 1.0}, patch_names=["p"], patch_values=np.zeros((n, 1)),
+                     patch_centers_mm=np.zeros((n, 2)), patch_normals=np.zeros((n, 2)), patch_arc_mm=np.zeros(n),
+                     patch_kind=np.array(["p10"] * n), patch_coverage=np.ones(n), patch_contour_mm=np.zeros((n, 2)),
+                     contour_mm=np.zeros((m, 2)), contour_normals=np.zeros((m, 2)), dpi=300.0, face="front",
+                     fragment="F1", work_pixel_mm=0.1, missing_data=[], boundary_names=["b"],
+                     boundary_profile=np.zeros((4, 1)), boundary_step_mm=1.0)
+    store = Store(tmp_path)
+    ref = save_features(store, "fragments/F1/features/front-k.h5", t)
+    text = (ROOT / "docs" / "features.md").read_text()
+    section = re.search(r"## Artifact `tessera\.features`.*?\n\n(.*?)\n\n", text, re.S).group(1)
+    named = set(re.findall(r"`([a-z_]+)", section))
+    with store.open(ref) as f:
+        assert "faces" in f.attrs and "faces" in named
+        g = f["front"]
+        written = set(g) | set(g.attrs)
+    assert written <= named, f"written but not in docs/features.md: {sorted(written - named)}"
+    assert f"schema version {table_version()}" in text
+
+
+def table_version():
+    from common.features.table import SCHEMA_VERSION
+    return SCHEMA_VERSION
