@@ -670,11 +670,13 @@ class Broker:
         except Exception as exc:
             self._reject(f"undecodable result of job {jid}: {exc}", job=jid, service=job.service)
             return
+        invalid, first_error = 0, ""
         for ev in events[:1000]:
             try:
                 ev = messages.validate(ev)
             except messages.MessageError as exc:
-                self._reject(f"job {jid} returned an invalid event: {exc}", job=jid, service=job.service)
+                invalid += 1
+                first_error = first_error or str(exc)
                 continue
             if ev["uid"] in self._uids:
                 continue
@@ -686,6 +688,10 @@ class Broker:
             seq = self.accept_event(ev)
             self._outputs.add(key)
             self._ops.append(("output", key, seq))
+        if invalid:  # one input.rejected per job (docs/messages.md), however many events were invalid
+            ctx = {k: job.event[k] for k in ("fragment", "face") if k in job.event}
+            self._reject(f"job {jid} returned {invalid} invalid event(s); the first: {first_error}", job=jid,
+                         service=job.service, input=job.event.get("uid"), **ctx)
 
     def _job_failed(self, job: Job, error: str, *, rejected: bool = False, host: str = "") -> None:
         job.failures += 1
