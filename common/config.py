@@ -43,7 +43,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "broker": {
         "host": "127.0.0.1",             # where clients and workers connect
-        "bind": "*",                     # interface the broker binds
+        "bind": "127.0.0.1",             # interface the broker binds: loopback (one machine); "*" opens it
+                                         # to the network, where CURVE should be on (docs/security.md)
         "port": 5555,                    # ROUTER: workers and clients
         "feed_port": 5556,               # PUB: the event feed
         "journal_dir": "tessera-data/broker",  # LOCAL disk, never NFS

@@ -118,3 +118,26 @@ def test_a_bad_setting_is_one_line_not_a_traceback(capsys):
     assert tessera(["status", "--set", "broker.port=abc"]) == 2
     err = capsys.readouterr().err
     assert "broker.port" in err and "Traceback" not in err
+
+
+def test_a_one_machine_station_listens_on_loopback_only(tmp_path):
+    """docs/security.md: "On one machine the bus listens on loopback and nothing else can reach it".
+    The embedded default bound every interface (`bind = "*"`), with CURVE off: anyone on the
+    network could submit jobs and verdicts or read the feed."""
+    import zmq
+
+    from common.bus.broker import Broker
+    from common.config import load_config
+    from tests.conftest import free_port
+    cfg = load_config(None, {"broker.port": free_port(), "broker.feed_port": free_port(),
+                             "broker.journal_dir": str(tmp_path / "journal"), "storage.root": str(tmp_path / "s")})
+    assert cfg["broker"]["bind"] == "127.0.0.1" and not cfg["security"]["curve"]
+    b = Broker(cfg)
+    b.bind()
+    try:
+        for sock in (b.router, b.feed):
+            assert sock.getsockopt(zmq.LAST_ENDPOINT).decode().startswith("tcp://127.0.0.1:")
+    finally:
+        b.close()
+    lab = load_config(Path(__file__).resolve().parents[2] / "configs" / "lab.toml")
+    assert lab["broker"]["bind"] == "*", "the lab layout listens on the network (and says to turn CURVE on)"
