@@ -25,6 +25,7 @@ MAX_DEPTH = 16                    # nesting of maps and lists (the message itsel
 MAX_STRING_CHARS = 16384          # any one string (an error text is cut to this by its sender)
 MAX_ITEMS = 10000                 # entries of any one map or list
 MAX_PATH_CHARS = 1024             # an artifact pointer's path
+MAX_KEY_CHARS = 256               # any map key
 INT_RANGE = (-(2 ** 63), 2 ** 63 - 1)  # integers a journal, SQLite or a JSON reader can hold
 #: ``uid``: 32 lower-case hex digits (a UUID4 ``hex``)
 UID_PATTERN = re.compile(r"^[0-9a-f]{32}$")
@@ -111,8 +112,8 @@ def _check_shape(msg: Mapping) -> None:
                 for k in obj:
                     if not isinstance(k, str):
                         raise MessageError(f"message has a non-text key {str(k)[:40]!r}")
-                    if len(k) > 256:
-                        raise MessageError("message has a key longer than 256 characters")
+                    if len(k) > MAX_KEY_CHARS:
+                        raise MessageError(f"message has a key longer than {MAX_KEY_CHARS} characters")
                 stack.extend((v, depth + 1) for v in obj.values())
             else:
                 stack.extend((v, depth + 1) for v in obj)

@@ -267,3 +267,18 @@ def test_the_catalogue_edits_the_fields_the_schema_declares():
     from common.web.catalogue import FIELDS, MAX_FIELD_CHARS
     assert (tuple(FIELDS), MAX_FIELD_CHARS) == (ANNOTATION_FIELDS, MAX_ANNOTATION_CHARS)
     assert all(f"`{f}`" in _section("fragment.annotated") for f in ANNOTATION_FIELDS)
+
+
+def test_the_limits_the_docs_state_are_the_codes():
+    from common import messages
+    from common.bus import broker
+    text = " ".join(DOC.read_text().split())
+    num = lambda s: int(s.replace(",", ""))  # noqa: E731
+    m = re.search(r"at most \*\*(\d+) KiB\*\* packed, nested at most \*\*(\d+)\*\* levels", text)
+    assert m and num(m.group(1)) * 1024 == messages.MAX_MESSAGE_BYTES and num(m.group(2)) == messages.MAX_DEPTH
+    m = re.search(r"any string at most ([\d,]+) characters, any map or list at most ([\d,]+) entries, map keys are "
+                  r"strings of at most (\d+) characters", text)
+    assert m and (num(m.group(1)), num(m.group(2)), num(m.group(3))) == (messages.MAX_STRING_CHARS, messages.MAX_ITEMS,
+                                                                        messages.MAX_KEY_CHARS)
+    assert re.search(r"Frames larger than 1 MiB are dropped", text) and broker.MAX_FRAME_BYTES == 1 << 20
+    assert f"at most {messages.MAX_PATH_CHARS:,} characters" in text
