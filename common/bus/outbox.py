@@ -72,10 +72,26 @@ class Outbox:
             return int(cur.lastrowid)
 
     def pending(self) -> list[tuple[int, dict, str | None]]:
-        """Entries waiting, oldest first: ``(id, event, spooled path or None)``."""
+        """Entries waiting, oldest first: ``(id, event, spooled path or None)``.
+
+        An entry that is not a valid message now (written by an older, laxer version) is listed
+        as decoded, without validation; :meth:`drain` sets it aside when it comes to it.
+        """
         with self._lock:
             rows = self._con.execute("SELECT id, body, spooled FROM outbox ORDER BY id").fetchall()
-        return [(i, messages.unpack(b), s) for i, b, s in rows]
+        out = []
+        for i, b, s in rows:
+            try:
+                event = messages.unpack(b)
+            except messages.MessageError:
+                import msgpack
+                try:
+                    event = msgpack.unpackb(b, raw=False, strict_map_key=False)
+                except Exception:  # noqa: BLE001 - msgpack raises several types for garbage
+                    event = None
+                event = event if isinstance(event, dict) else {}
+            out.append((i, event, s))
+        return out
 
     def refused(self) -> list[tuple[int, dict, str]]:
         """Entries the broker refused for good: ``(id, event, reason)``, kept for a person to see."""
