@@ -49,9 +49,9 @@ STAGE_ORDER = ("scanned", "normals", "features", "matched", "rendered")
 COLOUR_FAMILIES = ("white", "grey", "black", "red", "orange", "yellow", "green", "blue", "purple")
 #: longest side of the thumbnails, pixels
 THUMB_PX = 128
-#: event types that change a fragment's row
+#: event types that change a fragment's row (``input.rejected`` parks a job like ``stage.failed``)
 FRAGMENT_EVENTS = ("fragment.ready", "rgbn.ready", "features.ready", "render.ready", "stage.failed",
-                   "fragment.annotated")
+                   "input.rejected", "fragment.annotated")
 #: event types that change join counts
 JOIN_EVENTS = ("match.proposed", "match.verified")
 

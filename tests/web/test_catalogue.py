@@ -274,3 +274,20 @@ def test_a_damaged_face_is_listed_without_a_thumbnail_and_stops_nothing(tmp_path
     assert c.rebuild() == 2
     rows = {r["id"]: r for r in c.query()["fragments"]}
     assert rows["G1"]["has_thumb"] and not rows["G2"]["has_thumb"] and rows["G2"]["colour"] == ""
+
+
+def test_a_rejected_input_marks_its_fragment_failed_like_a_failed_stage(collection):
+    """docs/messages.md: input.rejected parks the job at once, as stage.failed does after the last
+    attempt; the catalogue re-indexed a fragment on stage.failed only, so a fragment whose scans
+    were refused (truncated, wrong digest, newer schema) kept its old state until a rebuild."""
+    from common.messages import new_message
+
+    store, c, db = collection
+    assert c.get("F004")["state"] != "failed"
+    failed = {"F004": {"solver": "ArtifactError: artifact … has schema version 2; this reader understands up to 1"}}
+    event = new_message("input.rejected", service="solver", error=failed["F004"]["solver"], fragment="F004",
+                        job="0123456789ab-solver", attempts=1)
+    assert c.apply(event, 10, failed=failed) == "reindexed"
+    assert c.get("F004")["state"] == "failed"
+    summary = new_message("input.rejected", error="3 frame(s) refused", source="broker", refused=3)
+    assert c.apply(summary, 11) == "ignored", "the broker's refusal summary names no fragment"
