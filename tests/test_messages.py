@@ -282,3 +282,25 @@ def test_the_limits_the_docs_state_are_the_codes():
                                                                         messages.MAX_KEY_CHARS)
     assert re.search(r"Frames larger than 1 MiB are dropped", text) and broker.MAX_FRAME_BYTES == 1 << 20
     assert f"at most {messages.MAX_PATH_CHARS:,} characters" in text
+
+
+def test_the_bus_commands_the_docs_list_are_the_protocols():
+    from common.bus import broker, protocol as P
+    text = DOC.read_text()
+    client = re.search(r"\| command \| body \| reply body \(msgpack\) \|\n\|[-| ]+\|\n((?:\|.*\n)+)", text).group(1)
+    documented = {re.match(r"\| `([A-Z]+)`", row).group(1) for row in client.splitlines()}
+    src = Path(broker.__file__).read_text()
+    handled = set(re.findall(r"command == P\.([A-Z]+):", src[src.index("def _client_message"):src.index("def status")]))
+    assert documented == handled == {"SUBMIT", "STATUS", "RERUN", "SINCE", "PENDING"}
+    assert all(getattr(P, c) == c.encode() for c in documented)
+    workers = re.search(r"### Workers \(header `TW1`\)\n(.*?)\n\n", text, re.S).group(1)
+    rows = re.findall(r"\| (worker → broker|broker → worker) \| `([A-Z]+)", workers)
+    assert {c for d, c in rows if d.startswith("worker")} == {"READY", "HEARTBEAT", "PROGRESS", "RESULT", "FAIL",
+                                                               "DISCONNECT"}
+    to_worker = set()
+    for row in re.findall(r"^\| broker → worker \| (.*)$", workers, re.M):
+        to_worker |= set(re.findall(r"`([A-Z]+)", row))
+    assert to_worker == {"JOB", "HEARTBEAT", "DISCONNECT"}
+    assert all(getattr(P, c) == c.encode() for c in to_worker | {c for _, c in rows})
+    assert (P.WORKER, P.CLIENT, P.FAIL_ERROR, P.FAIL_REJECTED) == (b"TW1", b"TC1", b"error", b"rejected")
+    assert '"error"|"rejected"' in workers.replace("\\|", "|")
