@@ -303,7 +303,7 @@ def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     normals = check_normals(normals)
     mask = check_mask(mask, normals.shape[:2])
     h, w = normals.shape[:2]
-    f = int(max(1, min(sigma_px // 4, min(h, w) // 8)))
+    f = coarse_grid(sigma_px, (h, w))
     if f == 1:
         c = smooth_normals(normals, sigma_px, mask=mask)
         return c if full_size else Coarse(c, 1, (0, 0))
@@ -312,21 +312,10 @@ def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     if hh < 2 or ww < 2:
         c = smooth_normals(normals, sigma_px, mask=mask)
         return c if full_size else Coarse(c, 1, (0, 0))
-    from common.rgbn.smoothing import strips, weighted_stack
-
-    # the 1/nz-weighted stack (w n, w) area-averaged onto the grid, strip by strip (no
-    # full-resolution temporary)
     small = np.empty((hh, ww, 4), np.float32)
-    cols = slice(o[1], o[1] + ww * f)
-    for i0, i1, _, _ in strips((hh, ww * f), 0, pixels=max(1 << 20, ww * f) // f):
-        rows = slice(o[0] + i0 * f, o[0] + i1 * f)
-        st = weighted_stack(normals[rows, cols], mask[rows, cols], nz_min=0.05)
-        small[i0:i1] = cv2.resize(st, (ww, i1 - i0), interpolation=cv2.INTER_AREA).reshape(i1 - i0, ww, 4)
-    small_w = np.ascontiguousarray(small[..., 3])
-    small_n = np.ascontiguousarray(small[..., :3])
+    area_stack(normals, mask, f, o, out=small)
+    small_n, small_w = unit_cells(small)
     del small
-    small_n /= np.maximum(small_w, 1e-12)[..., None]
-    small_n /= np.maximum(np.linalg.norm(small_n, axis=2, keepdims=True), 1e-12)
     coarse = Coarse(smooth_normals(small_n, sigma_px / f, mask=small_w > 0), f, o)
     if not full_size:
         return coarse
@@ -334,14 +323,77 @@ def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | N
     return out / np.maximum(np.sqrt(np.einsum("...i,...i->...", out, out)), 1e-12)[..., None]
 
 
+def coarse_grid(sigma_px: float, shape) -> int:
+    """Grid step of :func:`coarse_normals` for ``sigma_px`` on an image of ``shape``."""
+    return int(max(1, min(sigma_px // 4, min(shape[:2]) // 8)))
+
+
+def area_stack(normals: np.ndarray, mask: np.ndarray, f: int, offset=(0, 0), *, out: np.ndarray) -> np.ndarray:
+    """The 1/nz-weighted stack (w n, w) (:func:`common.rgbn.smoothing.weighted_stack`, nz >= 0.05)
+    area-averaged onto the cells of ``f`` x ``f`` pixels whose first starts at ``offset`` (row,
+    column): ``out`` (hh, ww, 4) float32, filled strip by strip (no full-resolution temporary)."""
+    from common.rgbn.smoothing import strips, weighted_stack
+
+    hh, ww = out.shape[:2]
+    cols = slice(offset[1], offset[1] + ww * f)
+    for i0, i1, _, _ in strips((hh, ww * f), 0, pixels=max(1 << 20, ww * f) // f):
+        rows = slice(offset[0] + i0 * f, offset[0] + i1 * f)
+        st = weighted_stack(normals[rows, cols], mask[rows, cols], nz_min=0.05)
+        out[i0:i1] = cv2.resize(st, (ww, i1 - i0), interpolation=cv2.INTER_AREA).reshape(i1 - i0, ww, 4)
+    return out
+
+
+def unit_cells(small: np.ndarray):
+    """(unit normals (hh, ww, 3), weights (hh, ww)) of an area-averaged stack (:func:`area_stack`)."""
+    small_w = np.ascontiguousarray(small[..., 3])
+    small_n = np.ascontiguousarray(small[..., :3])
+    small_n /= np.maximum(small_w, 1e-12)[..., None]
+    small_n /= np.maximum(np.linalg.norm(small_n, axis=2, keepdims=True), 1e-12)
+    return small_n, small_w
+
+
+def whole_coarse_normals(source, sigma_px: float):
+    """:func:`coarse_normals` of a whole image (``full_size=False``, origin (0, 0)) read window
+    by window from ``source`` (``shape`` and ``window(r0, r1, c0, c1) -> RGBNImage``): the cells
+    are area-averaged a strip of rows at a time, so only the coarse grid is held. None when the
+    field is not taken on a coarser grid (f = 1)."""
+    h, w = source.shape
+    f = coarse_grid(sigma_px, (h, w))
+    hh, ww = h // f, w // f
+    if f == 1 or hh < 2 or ww < 2:
+        return None
+    small = np.empty((hh, ww, 4), np.float32)
+    rows = max(1, (1 << 24) // max(ww * f * f, 1))   # ~16 Mpx read at a time
+    for i0 in range(0, hh, rows):
+        i1 = min(hh, i0 + rows)
+        win = source.window(i0 * f, i1 * f, 0, ww * f)
+        area_stack(win.normals, win.mask, f, (0, 0), out=small[i0:i1])
+    small_n, small_w = unit_cells(small)
+    return Coarse(smooth_normals(small_n, sigma_px / f, mask=small_w > 0), f, (0, 0))
+
+
+def coarse_window(coarse: Coarse, r0: int, r1: int, c0: int, c1: int) -> Coarse:
+    """The cells of a whole image's :class:`Coarse` field (offset (0, 0)) that the window rows
+    ``r0:r1``, columns ``c0:c1`` interpolate from — those over the window and one more ring —
+    as a :class:`Coarse` of the window: its :meth:`Coarse.full` on the window is the whole
+    field's on those pixels."""
+    f = coarse.factor
+    hh, ww = coarse.values.shape[:2]
+    i0, i1 = max(0, r0 // f - 1), min(hh, -(-r1 // f) + 1)
+    j0, j1 = max(0, c0 // f - 1), min(ww, -(-c1 // f) + 1)
+    return Coarse(coarse.values[i0:i1, j0:j1], f, (i0 * f - r0, j0 * f - c0))
+
+
 def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,
-                  origin=(0, 0)) -> np.ndarray:
+                  origin=(0, 0), coarse: Coarse | None = None) -> np.ndarray:
     """Normals relative to the surface's own slow undulation: every normal is rotated by the
     rotation that takes the normal field smoothed at ``sigma_px`` to the view axis (0, 0, 1).
 
     A raking light then rakes the *surface* (a painting whose solved normals carry the slow tilt
     of near lights, a warped panel) instead of putting half of it in shadow. Detail finer than
     ``sigma_px`` is unchanged; a plane becomes (0, 0, 1).
+
+    ``coarse``: the smoothed field, when given (a tile's window of the whole image's).
 
     Examples
     --------
@@ -350,7 +402,12 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     [0.0, 0.0, 1.0]
     """
     normals = check_normals(normals)
-    c = coarse_normals(normals, sigma_px, mask=mask, origin=origin)
+    if coarse is None:
+        c = coarse_normals(normals, sigma_px, mask=mask, origin=origin)
+    else:   # the field given (a tile's window of the whole image's, :func:`coarse_window`)
+        from common.rgbn.smoothing import unit_rows
+
+        c = unit_rows(coarse.full(normals.shape[:2]))
     cz = np.maximum(c[..., 2], 1e-3)
     # Rodrigues for the rotation taking c to z: axis v = c x z = (cy, -cx, 0), cos = cz
     vx, vy = c[..., 1], -c[..., 0]
@@ -577,13 +634,23 @@ def _into_gamut(rgb: np.ndarray, lab: np.ndarray) -> np.ndarray:
     return rgb
 
 
+#: The narrowest lightness range (L* units) that an exposure stretches to L* 20-80: a colour
+#: varying less is drawn with a range this wide (the tone curve's gain stays <= 60 / 6 = 10) ...
+MIN_LIGHTNESS_RANGE = 6.0
+#: ... and at least this many times the pixel noise of its lightness, so the capture's noise is
+#: drawn at most 60 / 10 = 6 L* strong ...
+NOISE_RANGES = 10.0
+#: ... but never wider than this (L*): a colour that varies this much is stretched as it is.
+MAX_LIGHTNESS_FLOOR = 15.0
+
+
 def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:
     """The 5th and 95th percentiles of CIELAB L* (0-100) of a linear albedo: the ``exposure`` of
     :func:`lightness_relief`, which puts them at L* 20 and 80. A range already wider than 20-80
-    is kept; a nearly uniform colour is widened to at least 15 L* units (the tone curve's gain
-    stays <= 4, so it does not turn into amplified noise)."""
-    from common.rgbn.io import linear_to_srgb
-
+    is kept. A nearly uniform colour (one metal, one plaster: less than 15 L* between the
+    percentiles) is stretched as it is when its spread is at least :data:`MIN_LIGHTNESS_RANGE`
+    and :data:`NOISE_RANGES` times its pixel noise (:func:`lightness_noise`), else widened to
+    that (so a colour that is mostly noise is not turned into amplified noise)."""
     albedo = np.asarray(albedo, np.float32)
     m = check_mask(mask, albedo.shape[:2])
     flat = masked_stride(albedo, m, _SAMPLE)
@@ -594,8 +661,29 @@ def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple
     if lo <= 20.0 and hi >= 80.0:
         return 20.0, 80.0
     mid = 0.5 * (lo + hi)
-    half = max(0.5 * (hi - lo), 7.5)
+    half = 0.5 * (hi - lo)
+    if 2.0 * half < MAX_LIGHTNESS_FLOOR:
+        floor = min(MAX_LIGHTNESS_FLOOR, max(MIN_LIGHTNESS_RANGE, NOISE_RANGES * lightness_noise(albedo, m)))
+        half = max(half, 0.5 * floor)
     return float(mid - half), float(mid + half)
+
+
+def lightness_noise(albedo: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Standard deviation of the pixel-scale noise of CIELAB L* (0-100) of a linear albedo, by
+    Immerkær's Laplacian-residual estimator (as :func:`normal_noise`) on up to five 1024-px
+    windows: about 0.1 for clean 8-bit sRGB, 0.3-1 for a scan or a JPEG photograph."""
+    albedo = np.asarray(albedo, np.float32)
+    mask = check_mask(mask, albedo.shape[:2])
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    res = []
+    for win in _windows(albedo.shape[:2]):
+        m = cv2.erode(mask[win].astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                      borderValue=0) > 0
+        L = cv2.cvtColor(np.ascontiguousarray(np.clip(albedo[win], 0.0, 1.0)), cv2.COLOR_LRGB2Lab)[..., 0]
+        res.append(np.abs(cv2.filter2D(np.ascontiguousarray(L), cv2.CV_32F, kernel,
+                                       borderType=cv2.BORDER_REFLECT)[m]))
+    v = np.concatenate(res) if res else np.zeros(0, np.float32)
+    return 1.4826 * float(np.median(v)) / 6.0 if v.size else 0.0
 
 
 def lightness_spread(albedo: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -187,6 +187,12 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
 
 
 def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
+    """The coarse normal field levelling smooths at ``sigma`` (a :class:`enhance.Coarse`): a
+    tile's window of the whole image's when the tiles were given it (:func:`_render_whole`'s
+    ``coarse``), else computed from this image."""
+    seeded = _cache.get(("whole coarse", float(sigma)))
+    if seeded is not None:
+        return seeded
     k = ("coarse", id(image.normals), image.shape, sigma)
     if k not in _cache:
         _cache[k] = _enhance.coarse_normals(image.normals, sigma, mask=image.mask, full_size=False,
@@ -207,7 +213,9 @@ def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:
     """The normals levelled (:func:`common.render.enhance.level_normals`) when ``level`` says so."""
     sigma = _level_sigma(image, level, resolved)
     return (_enhance.level_normals(image.normals, sigma, mask=image.mask,
-                                   origin=image.attrs.get("tile_origin", (0, 0))) if sigma > 0 else image.normals)
+                                   origin=image.attrs.get("tile_origin", (0, 0)),
+                                   coarse=_cache.get(("whole coarse", float(sigma))))
+            if sigma > 0 else image.normals)
 
 
 def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
@@ -279,16 +287,7 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
     kd = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
     out = _shading.gooch(n, light, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
     # Gooch compresses lightness into its warm-cool ramp: expose the result's lightness (hues kept)
-    from common.rgbn.io import srgb_to_linear
-
-    if isinstance(exposure, str) and exposure == "none":
-        r["exposure"] = "none"
-        return _cover(image, out, r)
-    lin = srgb_to_linear(out)
-    rng = _enhance.lightness_range(lin, image.mask) if _is_auto(exposure) else (float(exposure[0]), float(exposure[1]))
-    r["exposure"] = [float(rng[0]), float(rng[1])]
-    return _cover(image, _enhance.lightness_relief(lin, np.zeros(image.shape, np.float32), strength=0.0,
-                                                   exposure=rng), r)
+    return _cover(image, _exposed_lightness(out, image.mask, exposure, r, "exposure"), r)
 
 
 def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r):
@@ -362,8 +361,10 @@ def draw_normal_unsharp(image: RGBNImage, light=(135.0, 45.0), sigma_mm: float =
 
 def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: float = 0.6, exponent: float = 30.0,
                   colour: bool = True, sigma_px="auto", exposure="auto", level="auto",
-                  colour_exposure="auto") -> Layer:
-    """Specular enhancement (Malzbender et al. 2001): the surface drawn as glossy, highlights show slope."""
+                  colour_exposure="auto", lightness="auto") -> Layer:
+    """Specular enhancement (Malzbender et al. 2001): the surface drawn as glossy, highlights show
+    slope; the brightest highlights roll off below white (exposure), then the picture's lightness
+    is spread over the tone range (lightness: hue kept)."""
     r = {}
     n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
     light = _light(image, light, level, r)
@@ -372,7 +373,27 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
                                         clip=False)
     lum = out @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     lo, hi = _range(lum, image.mask, exposure, r, "exposure")
-    return _cover(image, _enhance.shoulder(out / np.float32(max(hi, 1e-6))), r)
+    del lum
+    out *= np.float32(1.0 / max(hi, 1e-6))
+    out = _enhance.shoulder(out)
+    # diffuse times an exposed colour plus highlights scaled by the brightest: the lightness a
+    # uniform material keeps can be narrow (a coin: 47 % of the tone range), so it is exposed too
+    return _cover(image, _exposed_lightness(out, image.mask, lightness, r), r)
+
+
+def _exposed_lightness(display: np.ndarray, mask, value, resolved: dict, key: str = "lightness") -> np.ndarray:
+    """A drawn colour picture (display values in [0, 1]) with its CIELAB lightness exposed: the
+    5th / 95th percentiles drawn at L* 20 / 80 ("auto", :func:`common.render.enhance.lightness_range`),
+    a given [low, high] in L*, or as drawn ("none"); hue and chroma kept."""
+    from common.rgbn.io import srgb_to_linear
+
+    if isinstance(value, str) and value == "none":
+        resolved[key] = "none"
+        return display
+    lin = srgb_to_linear(display)
+    rng = _enhance.lightness_range(lin, mask) if _is_auto(value) else (float(value[0]), float(value[1]))
+    resolved[key] = [float(rng[0]), float(rng[1])]
+    return _enhance.lightness_relief(lin, np.zeros(mask.shape, np.float32), strength=0.0, exposure=rng)
 
 
 def draw_mean_curvature(image: RGBNImage, sigma_mm="auto", radius_mm="auto") -> Layer:
@@ -503,8 +524,10 @@ def draw_discontinuity_shadows(image: RGBNImage, light=(135.0, 45.0), length_px:
 
 def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0, sigma_c: float = 0.08,
                      sigma_n: float = 0.3, relief: float = 0.6, paper: float = 0.25, edge_darkening: float = 0.8,
-                     seed: int = 0, colour_exposure="auto") -> Layer:
-    """Watercolour: bilateral-flattened washes, relief density, paper texture, edge darkening (§7.3.8)."""
+                     seed: int = 0, colour_exposure="auto", lightness="auto") -> Layer:
+    """Watercolour: bilateral-flattened washes, relief density, paper texture, edge darkening (§7.3.8);
+    the picture's lightness is then spread over the tone range (the washes flatten a narrow colour
+    further: the flatbed coin's used 49.9 % of it)."""
     from common.rgbn.bilateral import joint_bilateral
 
     r = {}
@@ -512,9 +535,9 @@ def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0
                                 sigma_n=sigma_n if image.normals is not None else np.inf, mask=image.mask,
                                 filter_normals=False)     # only the washes are drawn
     shown = _exposed_colour(replace(image, albedo=washes), colour_exposure, r, "colour_exposure")
-    return _cover(image, _paint.watercolour(shown, image.normals, light, mask=image.mask,
-                                            relief=relief, paper=paper, edge_darkening=edge_darkening, seed=seed,
-                                            origin=image.attrs.get("tile_origin", (0, 0))), r)
+    out = _paint.watercolour(shown, image.normals, light, mask=image.mask, relief=relief, paper=paper,
+                             edge_darkening=edge_darkening, seed=seed, origin=image.attrs.get("tile_origin", (0, 0)))
+    return _cover(image, _exposed_lightness(out, image.mask, lightness, r), r)
 
 
 def draw_segment_boundaries(image: RGBNImage, labels=None, width_px: float = 1.0,
@@ -571,7 +594,10 @@ PARAM_DOCS = {
     "exposure": '"auto" (from robust percentiles of the drawing: lightness 5th/95th -> L* 20/80, or shading '
                 '5th/95th -> 0.2/0.8), "none" (as computed), or [low, high] in the style\'s own units',
     "colour_exposure": '"auto": the colour\'s CIELAB lightness, 5th/95th percentiles drawn at L* 20/80 (hue and '
-                       'chroma kept); "none": the colour as captured; or [low, high] in L* (0-100)',
+                       'chroma kept; a colour varying less than 15 L* is stretched as it is unless that is under '
+                       '6 L* or 10 x its pixel noise); "none": the colour as captured; or [low, high] in L* (0-100)',
+    "lightness": '"auto": the drawn picture\'s CIELAB lightness, 5th/95th percentiles drawn at L* 20/80 (hue and '
+                 'chroma kept); "none": as drawn; or [low, high] in L* (0-100)',
     "sigma_px": 'smoothing of the normals (Gaussian sigma, pixels); "auto" = the scale that brings the map\'s '
                 'noise to 0.004 (>= 2 px with JPEG blocks; x2 for curvature and lines, x3 for toon)',
     "sigma_mm": "scale of the relief drawn, mm: detail finer than this is enhanced (unsharp masking), or the "
@@ -866,11 +892,14 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         return _render_whole(image, recipe, progress, resolved)
 
 
-def _render_whole(image, recipe, progress, resolved, labels=None) -> Rendering:
+def _render_whole(image, recipe, progress, resolved, labels=None, coarse=None) -> Rendering:
     """Draw one image (or one tile) in memory; the per-image cache lives for this call only.
     ``labels``: the recipe's segments on this window (a tile gets its window of the whole
-    image's), None to segment the image here."""
+    image's), None to segment the image here. ``coarse``: {sigma: Coarse}, this window of the
+    whole image's coarse normal fields for levelling (:func:`common.render.enhance.coarse_window`)."""
     _cache.clear()
+    for sigma, field in (coarse or {}).items():
+        _cache[("whole coarse", float(sigma))] = field
     try:
         return _render_image(image, recipe, progress, resolved, labels)
     finally:

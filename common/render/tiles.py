@@ -74,10 +74,11 @@ class H5Source:
                          attrs={"tile_origin": (r0, c0)}, **kw)
 
 
-def halo_px(recipe, dpi: float, resolved: list | None = None) -> int:
+def halo_px(recipe, dpi: float, resolved: list | None = None, whole_levels=()) -> int:
     """Margin (pixels) a tile needs so that every layer of ``recipe`` sees all it reads: 4 sigma
     of its widest Gaussian plus its line lengths, widths and shadow lengths (``resolved``: the
-    values of "auto" parameters, see :class:`common.render.Layer`)."""
+    values of "auto" parameters, see :class:`common.render.Layer`). ``whole_levels``: levelling
+    scales whose coarse field the tiles are given from the whole image (they need no halo)."""
     from common.render.recipes import _LAYER_KEYS
 
     mm = dpi / 25.4
@@ -97,7 +98,9 @@ def halo_px(recipe, dpi: float, resolved: list | None = None) -> int:
         num = {k: float(v) for k, v in params.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
         sigma = max([v for k, v in num.items() if k.startswith("sigma") and k.endswith("_px")] + [0.0])
         sigma = max([sigma] + [v * mm for k, v in num.items() if k.startswith("sigma") and k.endswith("_mm")])
-        sigma = max(sigma, num.get("sigma_x", 0.0), num.get("fine_px", 0.0), num.get("level", 0.0))
+        level = num.get("level", 0.0)
+        sigma = max(sigma, num.get("sigma_x", 0.0), num.get("fine_px", 0.0),
+                    0.0 if level in whole_levels else level)
         style = layer["style"]
         reach_sigmas = 4.0
         if style == "exaggerated":
@@ -188,8 +191,21 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     layers_drawn = [layer for layer in recipe.layers if layer["style"] not in skipped] or [{"style": "albedo"}]
     drawn_recipe = replace(recipe, layers=layers_drawn) if skipped else recipe
     log.info("exposure and scales from the %dx%d calibration window: %s", side_w, side_h, resolved)
-    # 2. tiles
-    halo = halo_px(drawn_recipe, source.dpi, resolved)
+    # 2. the coarse normal fields that levelling lights the surface by, for the whole image at
+    # once (a few thousand cells): a tile gets its window of them, so their 4-sigma reach (384 px
+    # at the usual 96 px) is not drawn again around every tile, and tiles and a whole drawing agree
+    # (not after a [preprocess], which changes the normals tile by tile)
+    whole = {}
+    for r in ([] if drawn_recipe.preprocess else resolved):
+        sigma = r.get("level")
+        if isinstance(sigma, (int, float)) and sigma > 0 and float(sigma) not in whole:
+            from common.render.enhance import whole_coarse_normals
+
+            field = whole_coarse_normals(source, float(sigma))
+            if field is not None:
+                whole[float(sigma)] = field
+    # 3. tiles
+    halo = halo_px(drawn_recipe, source.dpi, resolved, whole_levels=set(whole))
     if tile is None:
         tile = max(256, int(np.sqrt(TILE_MPX * 1e6)) - 2 * halo)
     bits = recipe.bits
@@ -204,7 +220,11 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
             progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
         ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
         with reuse_freed_memory():
-            part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb))
+            from common.render.enhance import coarse_window
+
+            seeds = {sigma: coarse_window(field, ra, rb, ca, cb) for sigma, field in whole.items()}
+            part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb),
+                                 seeds)
             core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
             rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
             alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)

@@ -284,7 +284,12 @@ def _segment_superpixels(window, shape, *, scale: float, min_size: int, superpix
         for a, b in ((strip[:tile, :-1], strip[:tile, 1:]), (strip[:-1], strip[1:])):
             d = (a != b) & (a >= 0) & (b >= 0)
             a, b = a[d].astype(np.int64), b[d].astype(np.int64)
-            pairs.append(np.unique(np.minimum(a, b) * k + np.maximum(a, b)))
+            codes = np.minimum(a, b) * k + np.maximum(a, b)
+            # a boundary is crossed by the same pair pixel after pixel: drop those repeats
+            # (linear) before the sort-based unique sees the codes
+            if codes.size > 1:
+                codes = codes[np.concatenate(([True], codes[1:] != codes[:-1]))]
+            pairs.append(np.unique(codes))
     codes = np.unique(np.concatenate(pairs)) if pairs else np.zeros(0, np.int64)
     ea, eb = codes // k, codes % k
     weight = np.sqrt(((means[ea] - means[eb]) ** 2).sum(axis=1))

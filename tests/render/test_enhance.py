@@ -229,3 +229,51 @@ def test_masked_stride_is_every_kth_mask_pixel_in_order():
         step = int(np.ceil(np.count_nonzero(m) / limit))
         assert np.array_equal(masked_stride(v, m, limit), v[m][::step])
         assert np.array_equal(masked_stride(v[..., 1], m, limit), v[..., 1][m][::step])
+
+
+def _low_contrast_fragment(spread_l, noise_l, size=256, seed=4):
+    """An RGBN image of one colour whose CIELAB lightness varies smoothly over ``spread_l`` L*
+    (5th-95th percentile) around L* 75, plus white noise of ``noise_l`` L* (a metal coin's
+    albedo), on a flat surface."""
+    import cv2
+
+    from common.rgbn.image import RGBNImage
+    rng = np.random.default_rng(seed)
+    pattern = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(np.float32), (0, 0), 12)
+    lo, hi = np.percentile(pattern, [5, 95])
+    L = 75.0 + spread_l * ((pattern - lo) / (hi - lo) - 0.5) + rng.normal(0, noise_l, (size, size))
+    lab = np.dstack([L, np.full_like(L, 4.0), np.full_like(L, 14.0)]).astype(np.float32)
+    albedo = cv2.cvtColor(lab, cv2.COLOR_Lab2LRGB)
+    normals = np.zeros((size, size, 3), np.float32)
+    normals[..., 2] = 1.0
+    return RGBNImage(albedo=albedo, mask=np.ones((size, size), bool), dpi=600.0, normals=normals)
+
+
+def _tone_span(rgb):
+    """5th-95th percentile span of the 8-bit luminance, as a share of the range (the bench's measure)."""
+    lum = np.round(np.clip(rgb, 0, 1) * 255) @ np.array([0.2126, 0.7152, 0.0722])
+    p5, p95 = np.percentile(lum, [5, 95])
+    return (p95 - p5) / 255
+
+
+@pytest.mark.parametrize("style", ["albedo", "toon", "specular", "watercolour"])
+def test_a_low_contrast_colour_is_exposed_over_half_the_tone_range_by_default(style):
+    """A colour that varies 8 L* with 0.5 L* of noise (the flatbed coin: 7.9 and 0.58) is
+    stretched to L* 20-80 (the old fixed 15-L* floor drew it over a third of the range)."""
+    from common.render.recipes import render
+    image = _low_contrast_fragment(8.0, 0.5)
+    out = render(image, style)
+    assert _tone_span(out.rgb) >= 0.5
+
+
+def test_a_colour_that_is_mostly_noise_is_not_stretched_into_amplified_noise():
+    """1.5 L* of spread with 0.5 L* of noise: the range is widened to 10 x the noise (5 L*) or
+    6 L*, so the noise is drawn at most ~6 L* strong (gain <= 10), not at 60 L* / 1.5."""
+    from common.render.enhance import MIN_LIGHTNESS_RANGE, lightness_noise, lightness_range
+    image = _low_contrast_fragment(1.5, 0.5)
+    assert abs(lightness_noise(image.albedo) - 0.5) < 0.1
+    lo, hi = lightness_range(image.albedo)
+    assert hi - lo >= MIN_LIGHTNESS_RANGE - 1e-6
+    image = _low_contrast_fragment(1.0, 1.0)   # noise 1 L*: 10 L* of range
+    lo, hi = lightness_range(image.albedo)
+    assert 9.0 <= hi - lo <= 11.0

@@ -103,3 +103,17 @@ def test_exaggerated_with_all_six_scales_draws_the_same_in_tiles_with_its_3_sigm
     diff = np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64))
     assert diff.max() <= 1.0
     assert np.ptp(whole.rgb) > 0.5                                # a picture with relief in it
+
+
+def test_tiles_take_the_levelling_field_from_the_whole_image_and_need_no_halo_for_it(relief):
+    """Levelling's coarse normal field (4 sigma = 160 px of reach here) is computed once for the
+    whole image and every tile interpolates its window of it: the halo does not grow with it and
+    the tiles still draw the whole image's picture."""
+    recipe = style_recipe("raking", level=40.0)
+    whole = render(relief, recipe)
+    assert halo_px(recipe, relief.dpi, whole.resolved) >= 4 * 40
+    assert halo_px(recipe, relief.dpi, whole.resolved, whole_levels={40.0}) < 40
+    tiled = render_tiled(relief, recipe, tile=TILE)
+    assert np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64)).max() <= 1.0
+    assert np.abs(np.round(render(relief, style_recipe("suggestive_contours", level=40.0)).rgb * 255)
+                  - render_tiled(relief, style_recipe("suggestive_contours", level=40.0), tile=TILE).rgb).max() <= 1.0

@@ -27,7 +27,7 @@ CASES = [
     ("albedo", {"exposure": "none"}), ("albedo", {}),
     ("lambertian", {}), ("lambertian", {"colour": False}),
     ("raking", {}), ("raking", {"colour": True, "azimuth_deg": 200.0, "elevation_deg": 20.0}),
-    ("specular", {}), ("specular", {"colour": False, "exponent": 60.0}),
+    ("specular", {}), ("specular", {"colour": False, "exponent": 60.0}), ("specular", {"lightness": "auto"}),
     ("normal_unsharp", {}), ("normal_unsharp", {"colour": True}),
     ("exaggerated", {}), ("exaggerated", {"colour": True, "exposure": "auto"}),
     ("mean_curvature", {}),

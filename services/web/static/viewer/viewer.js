@@ -60,10 +60,11 @@ const RelightViewer = (() => {
     specular: {
       label: "Specular enhancement", needsNormals: true,
       defaults: { light: [135, 45], kd: 0.6, ks: 0.6, exponent: 30, colour: true, exposure: [0.0, 0.8],
-                  colour_exposure: "none" },
+                  colour_exposure: "none", lightness: "none" },
       uniforms: (p) => ({ u_kd: ["1f", p.kd], u_ks: ["1f", p.ks], u_exponent: ["1f", p.exponent],
                           u_exposure: ["2f", range(p.exposure)], u_colour_on: ["1i", p.colour ? 1 : 0],
-                          u_colour_exposure: ["2f", range(p.colour_exposure)] }),
+                          u_colour_exposure: ["2f", range(p.colour_exposure)],
+                          u_lightness: ["2f", range(p.lightness)] }),
     },
     normal_unsharp: {
       label: "Normal unsharp masking", needsNormals: true,
