@@ -84,6 +84,27 @@ def verdict_of(value: Any) -> str:
     raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {_short(value)}")
 
 
+#: a relative pose's fields: B in A's frame, ``p_a = R(angle_deg) p_b + (tx_mm, ty_mm)``
+POSE_FIELDS = ("angle_deg", "tx_mm", "ty_mm")
+#: the largest translation a pose may state, mm (a join across a 10 m wall)
+MAX_POSE_MM = 10_000.0
+
+
+def pose_of(value: Any, what: str = "pose") -> dict:
+    """A pose map (:data:`POSE_FIELDS`, finite numbers, the angle within ±360°, the translation within
+    ±:data:`MAX_POSE_MM`) as plain floats; anything else raises :class:`MessageError` naming ``what``."""
+    if not (isinstance(value, Mapping) and set(value) == set(POSE_FIELDS)):
+        raise MessageError(f"{what} must be a map of exactly {', '.join(POSE_FIELDS)}, got {_short(value)}")
+    out = {}
+    for k in POSE_FIELDS:
+        v = value[k]
+        limit = 360.0 if k == "angle_deg" else MAX_POSE_MM
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not -limit <= v <= limit:   # also refuses nan
+            raise MessageError(f"{what} {k} {_short(v)} is not a number within ±{limit:g}")
+        out[k] = float(v)
+    return out
+
+
 def new_message(type: str, **fields: Any) -> dict:
     """A new message document of ``type`` with fresh ``uid`` and ``time``.
 
@@ -148,7 +169,8 @@ def validate(msg: Any) -> dict:
     ``time`` a finite number of seconds, ``fragment``/``other`` match :data:`FRAGMENT_PATTERN`,
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
     ``sha256`` and a non-negative ``bytes``, ``probability`` is in [0, 1], a ``match.verified``
-    verdict is one :func:`verdict_of` reads, a ``fragment.annotated`` edit changes only
+    verdict is one :func:`verdict_of` reads and its optional ``pose`` one :func:`pose_of` reads, a
+    ``fragment.annotated`` edit changes only
     :data:`ANNOTATION_FIELDS` (text of at most :data:`MAX_ANNOTATION_CHARS`); the whole document is
     at most :data:`MAX_DEPTH` deep, with strings, maps and lists within :data:`MAX_STRING_CHARS`
     and :data:`MAX_ITEMS` and integers within 64 bits.
@@ -199,6 +221,8 @@ def validate(msg: Any) -> dict:
             raise MessageError(f"{kind} message: by {str(by)[:80]!r} is not a name of at most {MAX_BY_CHARS} characters")
     if kind == "match.verified":
         verdict_of(msg["verdict"])
+        if msg.get("pose") is not None:
+            pose_of(msg["pose"], f"{kind} message: pose")
     if "probability" in msg:
         p = msg["probability"]
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan

@@ -26,7 +26,6 @@ Config (``[services.matcher]``, all optional): ``db``, ``journal_mode`` ("WAL"),
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from common.features import load_features
@@ -35,6 +34,7 @@ from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_di
                                     verdict_rows)
 from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
+from common.matching.pose import inverse_pose
 from common.matching.proposals import Proposal, ProposalStore, ordered_pair
 from common.messages import MessageError, new_message, verdict_of
 
@@ -158,9 +158,7 @@ def _proposal(c, st: _State, columns) -> Proposal:
     if c.alignment is not None:
         pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
         if a != c.fragment:   # stored as b in a: invert
-            th = math.radians(pose[0])
-            cs, sn = math.cos(th), math.sin(th)
-            pose = (-pose[0], -(cs * pose[1] + sn * pose[2]), -(-sn * pose[1] + cs * pose[2]))
+            pose = inverse_pose(*pose)
     alignment = None
     if c.alignment is not None:
         # the alignment's own pose is the other's in the query's frame; the stored proposal (and its
@@ -183,8 +181,9 @@ def _on_verified(job: dict, ctx) -> list[dict]:
         found = st.index.rank(st.index.cues[a], [b], st.model)
         if found:
             st.db.upsert([_proposal(found[0], st, correspondence_columns())])
-    recorded = st.db.record_verdict(a, b, verdict, by=job.get("by"), note=job.get("note"),
-                                    message_uid=job.get("uid"), when=job.get("time"))
+    # the pose the person set on the review page (other in fragment's frame), when they moved it
+    recorded = st.db.record_verdict(job["fragment"], job["other"], verdict, by=job.get("by"), note=job.get("note"),
+                                    message_uid=job.get("uid"), when=job.get("time"), pose=job.get("pose"))
     if recorded is None:
         ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
         return []

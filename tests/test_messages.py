@@ -246,6 +246,25 @@ def test_a_verdict_that_is_neither_confirmed_nor_rejected_is_refused_at_the_door
         validate(_doc(type="match.verified", fragment="A", other="B", verdict=value))
 
 
+def test_a_verdict_may_carry_the_pose_the_person_set():
+    pose = {"angle_deg": -30.0, "tx_mm": 12.0, "ty_mm": 4}
+    msg = validate(_doc(type="match.verified", fragment="A", other="B", verdict="confirmed", pose=pose))
+    assert msg["pose"] == pose
+
+
+@pytest.mark.parametrize("pose, phrase", [
+    ({"angle_deg": 1.0, "tx_mm": 2.0}, "exactly"),
+    ({"angle_deg": 1.0, "tx_mm": 2.0, "ty_mm": 3.0, "z": 0.0}, "exactly"),
+    ({"angle_deg": float("nan"), "tx_mm": 2.0, "ty_mm": 3.0}, "angle_deg"),
+    ({"angle_deg": 1.0, "tx_mm": 2e7, "ty_mm": 3.0}, "tx_mm"),
+    ({"angle_deg": 1.0, "tx_mm": "2", "ty_mm": 3.0}, "tx_mm"),
+    ([1.0, 2.0, 3.0], "map"),
+])
+def test_a_verdicts_pose_that_is_not_a_pose_is_refused(pose, phrase):
+    with pytest.raises(MessageError, match=phrase):
+        validate(_doc(type="match.verified", fragment="A", other="B", verdict="confirmed", pose=pose))
+
+
 @pytest.mark.parametrize("changes, phrase", [
     ({"colour": "red"}, "not one of"),
     ({"notes": "x" * 2001}, "at most 2000"),

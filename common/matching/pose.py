@@ -106,3 +106,45 @@ def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_P
     """
     docks = list(dockings)
     return docks[int(np.argmax(pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm)))]
+
+
+def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.0)) -> tuple[float, float, float]:
+    """A pose corrected by a person: fragment B turned by ``turn_deg`` about its own centre, then moved
+    by ``shift_mm`` (both in A's frame, as the review page draws the join).
+
+    Parameters
+    ----------
+    pose : (3,) angle_deg, tx_mm, ty_mm
+        B in A's frame, ``p_a = R(angle_deg) p_b + t``.
+    centre_b_mm : (2,)
+        B's centre in B's own frame, mm (the point it turns about).
+    turn_deg : float
+        Turn added, degrees (the pose convention's sense: clockwise on screen, y down).
+    shift_mm : (2,)
+        Move of B's centre in A's frame, mm (x right, y down).
+
+    Returns
+    -------
+    (angle_deg, tx_mm, ty_mm) with ``R(angle + turn) c_b + t' = R(angle) c_b + t + shift``: B's centre
+    lands where it was, moved by ``shift_mm``, and B is turned by ``turn_deg`` about it.
+    """
+    values = np.array([*np.ravel(pose), *np.ravel(centre_b_mm), turn_deg, *np.ravel(shift_mm)], float)
+    if values.shape != (8,) or not np.all(np.isfinite(values)):
+        raise ValueError("pose (3), centre_b_mm (2), turn_deg and shift_mm (2) must be finite numbers, got "
+                         f"{pose!r}, {centre_b_mm!r}, {turn_deg!r}, {shift_mm!r}")
+    angle, tx, ty, cx, cy, turn, sx, sy = values
+
+    def rot(deg):
+        a = np.radians(deg)
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    centre_a = rot(angle) @ (cx, cy) + (tx, ty) + (sx, sy)
+    t = centre_a - rot(angle + turn) @ (cx, cy)
+    return float((angle + turn + 180.0) % 360.0 - 180.0), float(t[0]), float(t[1])
+
+
+def inverse_pose(angle_deg: float, tx_mm: float, ty_mm: float) -> tuple[float, float, float]:
+    """The same relative pose seen from the other fragment: A in B's frame, ``p_b = Rᵀ (p_a − t)``."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    return float(-angle_deg), float(-(c * tx_mm + s * ty_mm)), float(-(-s * tx_mm + c * ty_mm))

@@ -266,14 +266,28 @@ class ProposalStore:
 
     # -- verdicts ------------------------------------------------------------------------
     def record_verdict(self, a: str, b: str, verdict: str, *, by: str | None = None, note: str | None = None,
-                       message_uid: str | None = None, when: float | None = None) -> Verdict | None:
+                       message_uid: str | None = None, when: float | None = None,
+                       pose: dict | None = None) -> Verdict | None:
         """Store a person's verdict on a pair and set the proposal's status.
 
         Idempotent per message: a re-delivered ``match.verified`` (same ``message_uid``) is
         ignored and returns None. The full history is kept; the latest verdict sets the status.
+        ``pose``: the pose the person set (``b`` in ``a``'s frame: angle_deg, tx_mm, ty_mm), kept with
+        the verdict instead of the proposal's.
         """
         if verdict not in VERDICTS:
             raise ValueError(f"verdict must be one of {VERDICTS}, got {verdict!r}")
+        if pose is not None:
+            from common.messages import MessageError, pose_of
+
+            try:
+                pose = pose_of(pose)
+            except MessageError as exc:
+                raise ValueError(str(exc)) from None
+            if (a, b) != ordered_pair(a, b):   # stored as the second in the first's frame
+                from common.matching.pose import inverse_pose
+
+                pose = dict(zip(("angle_deg", "tx_mm", "ty_mm"), inverse_pose(*pose.values())))
         a, b = ordered_pair(a, b)
         when = time.time() if when is None else float(when)
         with self._tx():
@@ -282,9 +296,10 @@ class ProposalStore:
                 return None
             prop = self._db.execute("SELECT id, model_version, angle_deg, tx_mm, ty_mm FROM proposals "
                                     "WHERE fragment_a=? AND fragment_b=?", (a, b)).fetchone()
-            # the pose the person saw is kept with the verdict: a later re-rank may move the proposal's
-            pose = ({"angle_deg": prop["angle_deg"], "tx_mm": prop["tx_mm"], "ty_mm": prop["ty_mm"]}
-                    if prop and prop["angle_deg"] is not None else None)
+            # the pose the person saw (or set) is kept with the verdict: a later re-rank may move the proposal's
+            if pose is None:
+                pose = ({"angle_deg": prop["angle_deg"], "tx_mm": prop["tx_mm"], "ty_mm": prop["ty_mm"]}
+                        if prop and prop["angle_deg"] is not None else None)
             cur = self._db.execute(
                 "INSERT INTO verdicts (fragment_a, fragment_b, verdict, by, note, proposal_id, model_version, message_uid,"
                 " time, pose) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",

@@ -194,8 +194,32 @@ class ReviewData:
         rel = f"fragments/{fragment}/rgbn/{files[-1].name}"
         return rel, load_rgbn(self.store, rel)
 
-    def picture(self, pid: int, view: str, *, max_side_px: int = 640) -> bytes:
-        """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``.
+    def adjusted_pose(self, pid: int, turn_deg: float = 0.0, shift_mm=(0.0, 0.0), *, max_side_px: int = 640) -> dict:
+        """The proposal's pose with fragment B turned by ``turn_deg`` about its centre and moved by
+        ``shift_mm`` in A's frame (:func:`common.matching.pose.adjusted_pose`): what the review page's
+        pose controls show and a verdict then keeps. Raises LookupError when the proposal or its pose
+        is missing."""
+        from common.matching.pose import adjusted_pose
+
+        prop = self.proposal(pid)
+        if prop is None:
+            raise LookupError(f"no proposal {pid}")
+        if prop["pose"] is None:
+            raise LookupError(f"proposal {pid} has no proposed pose yet")
+        b, _ = self._fragment_picture(prop["fragment_b"], "colour", max(128, max_side_px // 2))
+        ys, xs = np.nonzero(b.mask)
+        if not len(xs):
+            raise LookupError(f"fragment {prop['fragment_b']} has no pixel on its mask")
+        pose = prop["pose"]
+        angle, tx, ty = adjusted_pose((pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]),
+                                      (xs.mean() * b.pixel_mm, ys.mean() * b.pixel_mm),
+                                      turn_deg=turn_deg, shift_mm=shift_mm)
+        return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty}
+
+    def picture(self, pid: int, view: str, *, max_side_px: int = 640, pose: dict | None = None) -> bytes:
+        """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``;
+        the joined views at ``pose`` (angle_deg, tx_mm, ty_mm: B in A's frame) when given, else at the
+        proposal's.
 
         Raises LookupError when the proposal, an image or the pose is missing.
         """
@@ -204,6 +228,8 @@ class ReviewData:
         prop = self.proposal(pid)
         if prop is None:
             raise LookupError(f"no proposal {pid}")
+        if pose is not None:
+            prop = dict(prop, pose=pose)
         key = (pid, view, max_side_px, prop["pose"] and tuple(prop["pose"].values()))
         with self._cache_lock:
             if key in self._cache:

@@ -57,14 +57,44 @@ def history():
     return jsonify(history=recorded, sent=list(waiting))
 
 
+#: the pose adjustment a conservator may set: turn of B about its centre, degrees, and its move, mm
+ADJUST_LIMITS = {"turn_deg": 360.0, "shift_x_mm": 1000.0, "shift_y_mm": 1000.0}
+
+
+def _adjustment(values) -> dict:
+    """The pose adjustment in ``values`` (query arguments or a JSON body's ``adjust``): each of
+    :data:`ADJUST_LIMITS` a finite number within its limit (0 when absent); 400 naming the field."""
+    out = {}
+    for k, limit in ADJUST_LIMITS.items():
+        v = values.get(k, 0.0) if values is not None else 0.0
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            abort(400, f"{k} must be a number, got {str(v)[:40]!r}")
+        if not -limit <= v <= limit:   # also refuses nan
+            abort(400, f"{k} must be within ±{limit:g}, got {v}")
+        out[k] = v
+    return out
+
+
+def _adjusted(st, pid: int, adjust: dict) -> dict | None:
+    """The proposal's pose with the conservator's adjustment (None when there is none to make)."""
+    if not any(adjust.values()):
+        return None
+    return st.review.adjusted_pose(pid, adjust["turn_deg"], (adjust["shift_x_mm"], adjust["shift_y_mm"]),
+                                   max_side_px=int(st.settings["picture_px"]))
+
+
 @bp.get("/api/review/picture/<int:pid>/<view>.png")
 @needs_proposals
 def picture(pid, view):
     st = station()
     if view not in VIEWS or not 0 <= pid < 2 ** 63:  # no proposal id beyond SQLite's integers
         abort(404)
+    adjust = _adjustment(request.args)
     try:
-        png = st.review.picture(pid, view, max_side_px=int(st.settings["picture_px"]))
+        pose = _adjusted(st, pid, adjust) if view.startswith("joined") else None
+        png = st.review.picture(pid, view, max_side_px=int(st.settings["picture_px"]), pose=pose)
     except LookupError as exc:
         return jsonify(error=str(exc)), 404
     return png, 200, {"Content-Type": "image/png", "Cache-Control": "private, max-age=60"}
@@ -83,9 +113,17 @@ def verdict():
     if prop is None:
         return jsonify(error=f"no proposal {b.get('proposal')!r}"), 404
     by = who()
+    if b.get("adjust") is not None and not isinstance(b.get("adjust"), dict):
+        return jsonify(error="adjust must be an object of turn_deg, shift_x_mm, shift_y_mm"), 400
+    adjust = _adjustment(b.get("adjust"))
+    try:   # the pose the conservator set (or saw) is the one the verdict keeps
+        pose = _adjusted(st, prop["id"], adjust) or prop.get("pose")
+    except LookupError as exc:
+        return jsonify(error=str(exc)), 409
+    extra = {"pose": pose} if pose else {}
     msg = new_message("match.verified", fragment=prop["fragment_a"], other=prop["fragment_b"], verdict=verdict,
                       proposal=prop["id"], probability=prop["probability"], by=by,
-                      model_version=prop.get("model_version"))
+                      model_version=prop.get("model_version"), **extra)
     delivered = submit_or_503(msg, "verdict")
     entry = {"fragment_a": prop["fragment_a"], "fragment_b": prop["fragment_b"], "verdict": verdict, "by": by,
              "time": msg["time"], "uid": msg["uid"], "proposal": prop["id"], "delivered": delivered}

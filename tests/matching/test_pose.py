@@ -122,3 +122,34 @@ def test_scores_add_paint_to_contact_in_mm():
 def test_bad_input_is_named(kwargs, message):
     with pytest.raises(ValueError, match=message):
         pose_scores(**kwargs)
+
+
+def _apply(pose, p):
+    a = np.radians(pose[0])
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ p + pose[1:]
+
+
+def test_a_person_turns_b_about_its_centre_and_moves_it_in_as_frame():
+    from common.matching.pose import adjusted_pose
+
+    pose, centre = (30.0, 12.0, -4.0), np.array([20.0, 10.0])
+    corner = np.array([0.0, 0.0])
+    new = adjusted_pose(pose, centre, turn_deg=90.0, shift_mm=(2.0, -3.0))
+    # B's centre moved by the shift exactly, and the angle gained the turn
+    assert np.allclose(_apply(np.array(new), centre), _apply(np.array(pose), centre) + (2.0, -3.0))
+    assert new[0] == pytest.approx(120.0)
+    # the rest of B turned a quarter about its centre: the corner's offset from the centre turned by 90°
+    before = _apply(np.array(pose), corner) - _apply(np.array(pose), centre)
+    after = _apply(np.array(new), corner) - _apply(np.array(new), centre)
+    assert np.allclose(after, [[0, -1], [1, 0]] @ before)
+    assert adjusted_pose(pose, centre) == pytest.approx(pose)                  # nothing changed
+    assert adjusted_pose((170.0, 0, 0), centre, turn_deg=20.0)[0] == pytest.approx(-170.0)   # wrapped
+
+
+def test_an_adjustment_that_is_not_a_number_is_refused():
+    from common.matching.pose import adjusted_pose
+
+    with pytest.raises(ValueError, match="finite"):
+        adjusted_pose((0, 0, 0), (1, 1), turn_deg=float("nan"))
+    with pytest.raises(ValueError, match="shift_mm"):
+        adjusted_pose((0, 0, 0), (1, 1), shift_mm=(1, 2, 3))

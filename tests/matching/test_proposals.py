@@ -89,6 +89,22 @@ def test_confirmed_pair_keeps_the_pose_the_person_saw(tmp_path):
         assert s.record_verdict("A", "Z", "rejected", message_uid="u2").pose is None
 
 
+def test_a_pose_the_person_set_is_kept_instead_of_the_proposals(tmp_path):
+    from common.matching.pose import inverse_pose
+
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("A", "B", 0.8)])
+        set_pose = {"angle_deg": 12.5, "tx_mm": 3.0, "ty_mm": -1.0}
+        assert s.record_verdict("A", "B", "confirmed", message_uid="u1", pose=set_pose).pose == set_pose
+        assert s.verdicts("A")[-1].pose == set_pose
+        assert s.get("A", "B").angle_deg == 10.0   # the proposal keeps the matcher's pose
+        # given from B's side (A in B's frame), it is stored as B in A's frame
+        v = s.record_verdict("B", "A", "confirmed", message_uid="u2", pose=set_pose)
+        assert tuple(v.pose.values()) == pytest.approx(inverse_pose(12.5, 3.0, -1.0))
+        with pytest.raises(ValueError, match="tx_mm"):
+            s.record_verdict("A", "B", "confirmed", pose={"angle_deg": 1.0, "tx_mm": float("nan"), "ty_mm": 0.0})
+
+
 def test_database_from_before_verdict_poses_opens_and_gains_the_column(tmp_path):
     db = tmp_path / "old.sqlite"
     with ProposalStore(db) as s:

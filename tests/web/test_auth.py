@@ -74,7 +74,7 @@ def test_wrong_bearer_tokens_are_slowed_and_the_right_one_is_not(tmp_path):
 class _SqliteReview:
     """Stands in for the review data: looks the proposal id up in SQLite as the real one does."""
 
-    def picture(self, pid, view, max_side_px=640):
+    def picture(self, pid, view, max_side_px=640, pose=None):
         import sqlite3
         con = sqlite3.connect(":memory:")
         con.execute("SELECT ?", (pid,)).fetchone()  # OverflowError beyond 64 bits

@@ -240,6 +240,21 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
         for view in ("joined-colour", "joined-relief", "pair-colour", "pair-relief"):
             page.wait_for_function(f"() => document.getElementById('{view}').complete && "
                                    f"document.getElementById('{view}').naturalWidth > 0", timeout=60_000)
+        # the conservator corrects the pose: B turned 1° clockwise ("]" twice) and moved 0.5 mm right
+        import json
+        import urllib.request
+
+        with urllib.request.urlopen(f"{live.url}/api/review/queue") as r:
+            proposed = next(p["pose"] for p in json.load(r)["proposals"] if (p["fragment_a"], p["fragment_b"]) == first)
+        page.keyboard.press("]")
+        page.keyboard.press("]")
+        page.keyboard.press("Shift+ArrowRight")
+        page.wait_for_selector("#pose-adjust:has-text('turned 1.0°, moved (0.5, 0.0) mm')", timeout=5_000)
+        assert page.inner_text("#proposal-title") == f"{first[0]} ↔ {first[1]}"   # shift+arrow did not move the queue
+        src = page.get_attribute("#joined-colour", "src")
+        assert "turn_deg=1.000" in src and "shift_x_mm=0.500" in src
+        page.wait_for_function("() => document.getElementById('joined-colour').complete && "
+                               "document.getElementById('joined-colour').naturalWidth > 0", timeout=60_000)
         _shot(page, "review")
         page.keyboard.press("c")   # confirm, from the keyboard
         page.wait_for_selector("#review-message:has-text('Confirmed')", timeout=15_000)
@@ -249,6 +264,7 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
         verified = [e for e in events if e["type"] == "match.verified"]
         assert [(e["fragment"], e["other"], e["verdict"], e["by"]) for e in verified] == \
             [(first[0], first[1], "confirmed", "A. Conservator")]
+        assert verified[0]["pose"]["angle_deg"] == pytest.approx(proposed["angle_deg"] + 1.0, abs=1e-6)
         if "matcher" in live.stages:   # the matcher records it; the page shows the stored history
             recorded = f"#history tr[data-state='recorded']:has-text('{first[0]} ↔ {first[1]}')"
             try:

@@ -374,3 +374,45 @@ def test_a_write_the_bus_cannot_take_is_answered_503_naming_it(tmp_path):
     assert no_broker.value.response.get_json()["error"].endswith("the verdict was not sent")
     assert refused.value.response.status_code == 503
     assert refused.value.response.get_json()["error"] == "the edit could not be sent to the broker: outbox disk full"
+
+
+def test_the_conservator_corrects_the_pose_and_the_verdict_keeps_it(review_app, station_config):
+    """The review page's pose controls: B turned about its centre and moved in A's frame; the joined
+    picture shows it and the verdict's match.verified carries that pose (docs/web.md, review page)."""
+    from common.bus.client import BrokerClient
+    from common.matching.pose import adjusted_pose
+
+    app, review = review_app
+    c = app.test_client()
+    pid = c.get("/api/review/queue").json["proposals"][0]["id"]
+    pixel_mm = 25.4 / 200
+
+    def width_px(query=""):
+        img = cv2.imdecode(np.frombuffer(c.get(f"/api/review/picture/{pid}/joined-colour.png{query}").data, np.uint8), 1)
+        cols = np.flatnonzero(np.any(img != [40, 40, 40], axis=2).any(axis=0))
+        return cols[-1] - cols[0] + 1
+
+    # B (the right half) moved 5 mm right: the join is 5 mm (39 px) wider
+    assert abs(width_px("?shift_x_mm=5") - width_px() - 5 / pixel_mm) <= 3
+    for bad in ("?turn_deg=nan", "?shift_x_mm=abc", "?shift_y_mm=5000"):
+        assert c.get(f"/api/review/picture/{pid}/joined-colour.png{bad}").status_code == 400, bad
+
+    adjust = {"turn_deg": 10.0, "shift_x_mm": 2.0, "shift_y_mm": -1.0}
+    r = c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed", "adjust": adjust}, headers=BEARER)
+    assert r.status_code == 200
+    with BrokerClient.from_config(station_config) as bus:
+        events = [unpack(bytes(b)) for _, b in bus.since(0)["events"]]
+    pose = [e for e in events if e["type"] == "match.verified"][-1]["pose"]
+    # B's centre: its mask (columns 0-59 of the 90 x 60 half) in its own frame, mm
+    centre = ((60 - 1) / 2 * pixel_mm, (90 - 1) / 2 * pixel_mm)
+    expected = adjusted_pose((0.0, 60 * pixel_mm, 0.0), centre, turn_deg=10.0, shift_mm=(2.0, -1.0))
+    assert (pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]) == pytest.approx(expected, abs=0.02)
+    # without an adjustment the verdict keeps the proposed pose; a malformed adjustment is refused
+    r = c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed"}, headers=BEARER)
+    assert r.status_code == 200
+    with BrokerClient.from_config(station_config) as bus:
+        events = [unpack(bytes(b)) for _, b in bus.since(0)["events"]]
+    assert [e for e in events if e["type"] == "match.verified"][-1]["pose"] == pytest.approx(
+        {"angle_deg": 0.0, "tx_mm": 60 * pixel_mm, "ty_mm": 0.0})
+    assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed", "adjust": [1, 2]},
+                  headers=BEARER).status_code == 400

@@ -5,30 +5,58 @@
   const VIEWS = ["joined-colour", "joined-relief", "pair-colour", "pair-relief"];
   let items = [], index = -1, filter = document.querySelector(".review").dataset.fragment || "";
   const skipped = new Set();
+  // the conservator's correction of the proposed pose: B turned about its centre (deg), moved (mm)
+  const STEP_MM = 0.5, STEP_DEG = 0.5;
+  let adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+
+  function adjusted() { return adjust.turn_deg !== 0 || adjust.shift_x_mm !== 0 || adjust.shift_y_mm !== 0; }
+
+  function showPictures(p) {
+    const q = adjusted() ? "?" + new URLSearchParams(Object.entries(adjust).map(([k, v]) => [k, v.toFixed(3)])) : "";
+    for (const v of VIEWS) {
+      const img = $(v);
+      img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
+      img.src = `/api/review/picture/${p.id}/${v}.png${v.startsWith("joined") ? q : ""}`;
+    }
+    $("pose-adjust").textContent = adjusted()
+      ? `B turned ${adjust.turn_deg.toFixed(1)}°, moved (${adjust.shift_x_mm.toFixed(1)}, ${adjust.shift_y_mm.toFixed(1)}) mm — the verdict keeps this pose`
+      : "";
+  }
+
+  function nudge(turn, dx, dy) {
+    const p = items[index];
+    if (!p || !p.pose) return;
+    if (turn === null) adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+    else {
+      adjust.turn_deg = Math.round((adjust.turn_deg + turn) * 1000) / 1000;
+      adjust.shift_x_mm = Math.round((adjust.shift_x_mm + dx) * 1000) / 1000;
+      adjust.shift_y_mm = Math.round((adjust.shift_y_mm + dy) * 1000) / 1000;
+    }
+    showPictures(p);
+  }
 
   function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
 
   function select(i) {
+    if (i !== index) adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
     index = i;
     [...$("queue").children].forEach((li, k) => li.classList.toggle("current", k === i));
     const p = items[i];
     const enabled = !!p && Tessera.loggedIn();   // a decided pair may be decided again (latest verdict counts)
     for (const b of ["confirm-button", "reject-button"]) $(b).disabled = !enabled;
     $("skip-button").disabled = !p;
+    for (const b of document.querySelectorAll("#pose-controls button")) b.disabled = !p || !p.pose;
     if (!p) {
       $("proposal-title").textContent = items.length ? "Select a proposal" : "Nothing to review";
       $("proposal-meta").textContent = "";
       for (const v of VIEWS) { $(v).removeAttribute("src"); }
+      $("pose-adjust").textContent = "";
       return;
     }
     $("proposal-title").textContent = `${p.fragment_a} ↔ ${p.fragment_b}`;
     const pose = p.pose ? `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "no pose yet";
     $("proposal-meta").textContent = `probability ${pct(p.probability)} · ${p.status} · ${pose} · model ${p.model_version}`;
-    for (const v of VIEWS) {
-      const img = $(v);
-      img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
-      img.src = `/api/review/picture/${p.id}/${v}.png`;
-    }
+    showPictures(p);
     if (!Tessera.loggedIn()) $("review-message").textContent = "Log in (top right) to confirm or reject.";
   }
 
@@ -77,7 +105,7 @@
     }
     if ($("confirm-button").disabled) return;
     $("confirm-button").disabled = $("reject-button").disabled = true;
-    const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind });
+    const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind, adjust });
     if (!r.ok) {
       $("review-message").textContent = r.data.error || `refused (${r.status})`;
       select(index);
@@ -96,6 +124,12 @@
   $("confirm-button").addEventListener("click", () => verdict("confirmed"));
   $("reject-button").addEventListener("click", () => verdict("rejected"));
   $("skip-button").addEventListener("click", () => verdict("skip"));
+  for (const b of document.querySelectorAll("#pose-controls button")) {
+    b.addEventListener("click", () => {
+      const [turn, dx, dy] = (b.dataset.nudge || "").split(",").map(Number);
+      nudge(b.dataset.nudge === "reset" ? null : turn * STEP_DEG, dx * STEP_MM, dy * STEP_MM);
+    });
+  }
   $("fragment-filter").addEventListener("submit", (ev) => {
     ev.preventDefault();
     filter = $("filter-id").value.trim();
@@ -106,7 +140,12 @@
   document.addEventListener("keydown", (ev) => {
     if (Tessera.typingInField(ev) || ev.ctrlKey || ev.metaKey || ev.altKey) return;
     const k = ev.key.toLowerCase();
-    if (k === "c" || k === "y") verdict("confirmed");
+    if (ev.shiftKey && k.startsWith("arrow")) {   // move B: shift + arrows
+      const d = { arrowleft: [-1, 0], arrowright: [1, 0], arrowup: [0, -1], arrowdown: [0, 1] }[k];
+      nudge(0, d[0] * STEP_MM, d[1] * STEP_MM);
+    } else if (k === "[" || k === "]") nudge(k === "]" ? STEP_DEG : -STEP_DEG, 0, 0);   // turn B
+    else if (k === "0") nudge(null);
+    else if (k === "c" || k === "y") verdict("confirmed");
     else if (k === "r" || k === "n") verdict("rejected");
     else if (k === "s" || k === "arrowright") verdict("skip");
     else if (k === "arrowdown" || k === "j") { if (index + 1 < items.length) select(index + 1); }
