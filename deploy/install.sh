@@ -2,7 +2,8 @@
 # Installs Tessera on a Debian machine (run as root, or with sudo), from this checkout:
 #   1. Debian packages: Python and its venv module, a C compiler and headers (python-sane is built
 #      from source), SANE for real scanners and its `test` backend, Chromium for the browser tests,
-#      iproute2 and util-linux for the multi-host test in network namespaces and CPU pinning;
+#      iproute2 and util-linux for the multi-host test in network namespaces and CPU pinning,
+#      libmagic1 for IIIF's image validator (a test dependency);
 #   2. a virtual environment, /opt/tessera/venv (or $TESSERA_VENV), made with the first `python3`
 #      on PATH (3.11 or newer: Debian's own or another), holding Tessera installed editable from
 #      this checkout with its extras (test, sane, web);
@@ -45,7 +46,8 @@ command -v dpkg-query >/dev/null && command -v apt-get >/dev/null \
 
 # --- what has to change (nothing is changed in this part) ---------------------------------------
 debs=(python3 python3-venv python3-dev gcc libc6-dev libsane1 libsane-dev)
-[ "$runtime" = 1 ] || debs+=(sane-utils chromium iproute2 util-linux)
+# libmagic1: python-magic, which IIIF's image validator (a test extra) imports
+[ "$runtime" = 1 ] || debs+=(sane-utils chromium iproute2 util-linux libmagic1)
 extras=test,sane,web
 [ "$runtime" = 1 ] && extras=sane,web
 missing=()

@@ -1,16 +1,18 @@
-"""IIIF Image API 3.0 (compliance level 2, plus mirroring and the gray quality) over the cached
-tile pyramids, and IIIF Presentation API 3.0 manifests of fragments.
+"""IIIF Image API 3.0 (compliance level 2, plus mirroring, upscaling, the gray and bitonal qualities
+and the profile and canonical link headers) over the cached tile pyramids, and IIIF Presentation
+API 3.0 manifests of fragments.
 
 Image requests are ``{region}/{size}/{rotation}/{quality}.{format}`` (IIIF Image API 3.0 §4):
 
 * region: ``full``, ``square``, ``x,y,w,h`` (pixels), ``pct:x,y,w,h``; a region reaching past the
   image is cut to it, one entirely outside is an error;
-* size: ``max``, ``w,``, ``,h``, ``w,h``, ``!w,h`` (fit inside), ``pct:n``; with a leading ``^``
-  the result may be larger than the region (upscaling), without it that is an error; every size
-  is limited by :data:`MAX_AREA` (``max`` is shrunk to fit);
+* size: ``max``, ``w,``, ``,h``, ``w,h``, ``!w,h`` (fit inside, never larger than the region),
+  ``pct:n``; with a leading ``^`` the result may be larger than the region (upscaling), without it
+  that is an error; every size is limited by :data:`MAX_AREA` (``max`` is shrunk to fit, ``^max``
+  is the region scaled to that area, §4.2);
 * rotation: ``0``, ``90``, ``180``, ``270`` (clockwise), with a leading ``!`` mirrored first
-  (left-right); quality ``default``, ``color`` or ``gray``; format ``jpg`` or ``png`` (PNG keeps
-  the alpha channel: the fragment's coverage).
+  (left-right), ``360`` is ``0``; quality ``default`` (= ``color``), ``color``, ``gray`` or
+  ``bitonal``; format ``jpg`` or ``png`` (PNG keeps the alpha channel: the fragment's coverage).
 
 A request is served from the pyramid level whose resolution is the coarsest at or above the
 requested one (:func:`pyramid_level_for`), cut from its tiles and area-resampled to the size.
@@ -34,9 +36,12 @@ import numpy as np
 #: largest output image, pixels (``maxArea`` of info.json)
 MAX_AREA = 16 * 1024 * 1024
 IMAGE_CONTEXT = "http://iiif.io/api/image/3/context.json"
+#: the compliance level claimed, and its profile document (the ``Link: rel="profile"`` header, §6)
+PROFILE = "level2"
+PROFILE_URI = f"http://iiif.io/api/image/3/{PROFILE}.json"
 PRESENTATION_CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 FORMATS = {"jpg": "image/jpeg", "png": "image/png"}
-QUALITIES = ("default", "color", "gray")
+QUALITIES = ("default", "color", "gray", "bitonal")
 ROTATIONS = (0, 90, 180, 270)
 
 _NUM = r"\d+(?:\.\d+)?"
@@ -114,10 +119,13 @@ def parse_size(size: str, w: int, h: int, *, max_area: int = MAX_AREA) -> tuple[
     s = size[1:] if up else size
     aspect = w / h
     if s == "max":
-        out = (w, h)
-        if w * h > max_area:
-            f = math.sqrt(max_area / (w * h))
-            out = (max(1, int(w * f)), max(1, int(h * f)))
+        # max: the region, shrunk to MAX_AREA if larger; ^max: the region scaled to MAX_AREA (§4.2)
+        if w * h <= max_area and not up:
+            return w, h
+        f = math.sqrt(max_area / (w * h))
+        out = (max(1, int(w * f)), max(1, int(h * f)))
+        while out[0] * out[1] > max_area:
+            out = (max(1, out[0] - 1), max(1, int((out[0] - 1) / aspect)))
         return out
     m = re.fullmatch(rf"pct:({_NUM})", s)
     if m:
@@ -130,9 +138,11 @@ def parse_size(size: str, w: int, h: int, *, max_area: int = MAX_AREA) -> tuple[
         oh = int(s[1:])
         out = (int(round(oh * aspect)), oh)
     elif re.fullmatch(r"!\d+,\d+", s):
+        # the largest size inside the box; without ^ also no larger than the region (§4.2: "as
+        # large as possible but not larger than the extracted region, w or h")
         bw, bh = (int(v) for v in s[1:].split(","))
-        f = min(bw / w, bh / h)
-        out = (int(round(w * f)), int(round(h * f)))
+        f = min(bw / w, bh / h) if up else min(bw / w, bh / h, 1.0)
+        out = (min(bw, int(round(w * f))), min(bh, int(round(h * f))))
     elif re.fullmatch(r"\d+,\d+", s):
         out = tuple(int(v) for v in s.split(","))
     else:
@@ -150,10 +160,11 @@ def parse_size(size: str, w: int, h: int, *, max_area: int = MAX_AREA) -> tuple[
 def parse_request(region: str, size: str, rotation: str, quality_format: str, width: int,
                   height: int) -> ImageRequest:
     """Parse the four path parts of an image request (rotation by 90s, optionally mirrored;
-    default/color/gray; jpg/png)."""
+    default/color/gray/bitonal; jpg/png)."""
     mirror = rotation.startswith("!")
     m = re.fullmatch(rf"{_NUM}", rotation[1:] if mirror else rotation)
     degrees = float(m.group(0)) if m else -1.0
+    degrees = 0.0 if degrees == 360.0 else degrees
     if degrees not in ROTATIONS:
         raise IIIFError(f"rotation {rotation!r} is not supported (0, 90, 180 or 270, optionally after !)", 400)
     quality, _, fmt = quality_format.rpartition(".")
@@ -199,14 +210,31 @@ def render_request(req: ImageRequest, levels: list[Mapping], read: Callable[[int
 
 def finish(rgba: np.ndarray, req: ImageRequest) -> np.ndarray:
     """The last steps of a request after the size (Image API 3.0 §4.4-4.5): mirror (left-right),
-    rotate clockwise by ``req.rotation`` degrees, then the gray quality (ITU-R BT.601 luma of the
-    display values, alpha kept)."""
+    rotate clockwise by ``req.rotation`` degrees, then the quality: ``gray`` is the ITU-R BT.601
+    luma of the display values, ``bitonal`` that luma thresholded at mid-grey (black or white);
+    alpha kept."""
     out = rgba[:, ::-1] if req.mirror else rgba
     out = np.rot90(out, k=-(req.rotation // 90)) if req.rotation else out
-    if req.quality == "gray":
+    if req.quality in ("gray", "bitonal"):
         luma = cv2.cvtColor(np.ascontiguousarray(out[..., :3]), cv2.COLOR_RGB2GRAY)
+        if req.quality == "bitonal":
+            luma = np.where(luma >= 128, 255, 0).astype(np.uint8)
         out = np.dstack([luma, luma, luma, out[..., 3]])
     return np.ascontiguousarray(out)
+
+
+def canonical_path(req: ImageRequest, width: int, height: int) -> str:
+    """The canonical ``region/size/rotation/quality.format`` of a request (Image API 3.0 §4.8), for
+    the ``Link: rel="canonical"`` header: ``full`` or ``x,y,w,h``; ``max`` when the size is what
+    ``max`` gives, else ``w,h`` (``^w,h`` when upscaled); ``!`` and an integer; the quality."""
+    region = "full" if (req.x, req.y, req.w, req.h) == (0, 0, width, height) else f"{req.x},{req.y},{req.w},{req.h}"
+    if (req.width, req.height) == parse_size("max", req.w, req.h):
+        size = "max"
+    else:
+        up = req.width > req.w or req.height > req.h
+        size = f"{'^' if up else ''}{req.width},{req.height}"
+    rotation = f"{'!' if req.mirror else ''}{req.rotation}"
+    return f"{region}/{size}/{rotation}/{req.quality}.{req.fmt}"
 
 
 def encode(rgba: np.ndarray, fmt: str, *, jpeg_quality: int = 90) -> bytes:
@@ -228,14 +256,15 @@ def info_json(service_id: str, info: Mapping) -> dict:
     levels = info["levels"]
     return {
         "@context": IMAGE_CONTEXT, "id": service_id, "type": "ImageService3",
-        "protocol": "http://iiif.io/api/image", "profile": "level2",
+        "protocol": "http://iiif.io/api/image", "profile": PROFILE,
         "width": info["width"], "height": info["height"], "maxArea": MAX_AREA,
         "sizes": [{"width": lv["width"], "height": lv["height"]} for lv in reversed(levels)
                   if lv["width"] * lv["height"] <= MAX_AREA],
         "tiles": [{"width": info["tile_px"], "height": info["tile_px"],
                    "scaleFactors": [2 ** lv["level"] for lv in levels]}],
-        "extraQualities": ["gray"],
-        "extraFeatures": ["mirroring", "sizeUpscaling"],
+        # every quality beyond default must be listed (§4.4), color too
+        "extraQualities": ["color", "gray", "bitonal"],
+        "extraFeatures": ["mirroring", "sizeUpscaling", "profileLinkHeader", "canonicalLinkHeader"],
         "preferredFormats": ["png", "jpg"],
     }
 
@@ -268,7 +297,7 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
             sid = f"{base}/iiif/image/{image_id(fragment, face, layer)}"
             return {"id": f"{sid}/full/max/0/default.{fmt}", "type": "Image", "format": FORMATS[fmt],
                     "width": f["width"], "height": f["height"], "label": {"en": [layer]},
-                    "service": [{"id": sid, "type": "ImageService3", "profile": "level2"}]}
+                    "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}
 
         paintable = [layer for layer in f["layers"] if layer != "normals"]
         body = image(paintable[0]) if len(paintable) == 1 else {"type": "Choice",

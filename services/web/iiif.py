@@ -51,6 +51,7 @@ def info(identifier):
     body = iiif.info_json(f"{_base()}/iiif/image/{identifier}", _pyramid(identifier))
     resp = jsonify(body)
     resp.headers["Content-Type"] = f'application/ld+json;profile="{iiif.IMAGE_CONTEXT}"'
+    resp.headers["Link"] = f'<{iiif.PROFILE_URI}>;rel="profile"'
     return resp
 
 
@@ -64,7 +65,8 @@ def image(identifier, region, size, rotation, quality_format):
                              lambda level, y0, y1, x0, x1: cache.region(source, layer, level, y0, y1, x0, x1))
     resp = Response(iiif.encode(iiif.finish(px, req), req.fmt), mimetype=iiif.FORMATS[req.fmt])
     resp.headers["Cache-Control"] = "public, max-age=600"
-    resp.headers["Link"] = f'<{iiif.IMAGE_CONTEXT}>;rel="profile"'
+    canonical = f"{_base()}/iiif/image/{identifier}/{iiif.canonical_path(req, info['width'], info['height'])}"
+    resp.headers["Link"] = f'<{iiif.PROFILE_URI}>;rel="profile", <{canonical}>;rel="canonical"'
     return resp
 
 

@@ -34,9 +34,18 @@ def test_bad_regions_are_400(region):
 
 @pytest.mark.parametrize("size, want", [
     ("max", (400, 300)), ("200,", (200, 150)), (",150", (200, 150)), ("200,100", (200, 100)),
-    ("!200,200", (200, 150)), ("pct:50", (200, 150)), ("^800,", (800, 600)), ("^max", (400, 300))])
+    ("!200,200", (200, 150)), ("pct:50", (200, 150)), ("^800,", (800, 600)),
+    ("!800,800", (400, 300)), ("^!800,800", (800, 600)), ("^!800,450", (600, 450))])
 def test_sizes(size, want):
     assert iiif.parse_size(size, 400, 300) == want
+
+
+def test_caret_max_is_the_region_scaled_to_max_area():
+    # Image API 3.0 §4.2: "^max: the extracted region is scaled to the maximum size permitted by
+    # maxWidth, maxHeight, or maxArea" (this server has maxArea only)
+    w, h = iiif.parse_size("^max", 400, 300, max_area=1_000_000)
+    assert w * h <= 1_000_000 and (w + 2) * (h + 2) > 1_000_000 and abs(w / h - 4 / 3) < 0.01
+    assert iiif.parse_size("^max", 400, 300) == (4729, 3547)
 
 
 def test_sizes_beyond_the_region_need_the_caret_and_max_is_limited_by_max_area():
@@ -53,10 +62,23 @@ def test_requests_accept_rotations_by_90s_the_three_qualities_and_jpg_or_png_onl
     assert (r.width, r.height, r.fmt, r.rotation, r.mirror) == (40, 30, "png", 0, False)
     r = iiif.parse_request("full", "max", "!270", "gray.jpg", 40, 30)
     assert (r.rotation, r.mirror, r.quality) == (270, True, "gray")
+    r = iiif.parse_request("full", "max", "360", "bitonal.png", 40, 30)
+    assert (r.rotation, r.quality) == (0, "bitonal")
     for args, phrase in ((("45", "default.jpg"), "rotation"), (("-90", "default.jpg"), "rotation"),
-                         (("0", "bitonal.jpg"), "quality"), (("0", "default.gif"), "format")):
+                         (("0", "grey.jpg"), "quality"), (("0", "default.gif"), "format")):
         with pytest.raises(iiif.IIIFError, match=phrase):
             iiif.parse_request("full", "max", *args, 40, 30)
+
+
+@pytest.mark.parametrize("args, want", [
+    (("full", "max", "0", "default.jpg"), "full/max/0/default.jpg"),
+    (("0,0,400,300", "pct:100", "0.0", "default.jpg"), "full/max/0/default.jpg"),
+    (("square", "!100,100", "!90", "color.png"), "50,0,300,300/100,100/!90/color.png"),
+    (("pct:50,50,100,100", "100,", "180", "gray.jpg"), "200,150,200,150/100,75/180/gray.jpg"),
+    (("10,10,20,20", "^40,", "0", "bitonal.png"), "10,10,20,20/^40,40/0/bitonal.png")])
+def test_canonical_paths(args, want):
+    # Image API 3.0 §4.8: full or x,y,w,h; max, w,h or ^w,h; ! and an integer; the quality asked
+    assert iiif.canonical_path(iiif.parse_request(*args, 400, 300), 400, 300) == want
 
 
 def test_the_level_is_the_coarsest_with_enough_resolution():
@@ -100,6 +122,9 @@ def test_info_json_describes_the_image_and_its_tiles(station):
     info = json.loads(r.data)
     assert info["@context"] == "http://iiif.io/api/image/3/context.json" and info["type"] == "ImageService3"
     assert info["id"] == "http://localhost/iiif/image/F7~front~albedo" and info["profile"] == "level2"
+    # §4.4: every quality beyond default is listed, color included; §6: the level's profile document
+    assert info["extraQualities"] == ["color", "gray", "bitonal"]
+    assert r.headers["Link"] == '<http://iiif.io/api/image/3/level2.json>;rel="profile"'
     assert (info["width"], info["height"]) == (520, 300)
     assert info["tiles"] == [{"width": 256, "height": 256, "scaleFactors": [1, 2, 4]}]
     assert info["sizes"][0] == {"width": 130, "height": 75} and info["sizes"][-1] == {"width": 520, "height": 300}
@@ -132,6 +157,9 @@ def test_rotation_mirroring_and_gray_are_applied_after_the_size(station):
     luma = region.astype(float) @ [0.299, 0.587, 0.114]
     assert np.abs(gray[..., 0].astype(float) - luma).max() <= 1.5
     assert np.array_equal(gray[..., 0], gray[..., 1]) and (gray[..., 3] == 255).all()
+    bitonal = _png(c.get("/iiif/image/F7~front~albedo/100,50,300,200/max/0/bitonal.png").data)
+    assert set(np.unique(bitonal[..., :3])) <= {0, 255} and np.array_equal(bitonal[..., 0], bitonal[..., 2])
+    assert ((bitonal[..., 0] == 255) == (gray[..., 0] >= 128)).all() and (bitonal[..., 3] == 255).all()
 
 
 def test_sizes_are_area_averages_of_the_source(station):
