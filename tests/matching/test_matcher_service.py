@@ -77,6 +77,15 @@ def test_verdict_refits_a_new_model_version_and_is_idempotent(station):
     assert {p.model_version for p in db.pending(10 ** 6)} == {after["version"]}
     matcher.handle(msg, ctx)   # re-delivered: no second verdict, no new model
     assert len(db.verdicts()) == 1 and db.current_model()["version"] == after["version"]
+    # a verdict with the pose the person set (other in fragment's frame, here given from B's side)
+    # keeps that pose, stored as B in A's frame, for the reconstruction
+    from common.matching.pose import inverse_pose
+
+    set_pose = {"angle_deg": 33.0, "tx_mm": 20.0, "ty_mm": -7.5}
+    matcher.handle(new_message("match.verified", fragment=top.fragment_b, other=top.fragment_a,
+                               verdict="confirmed", pose=set_pose), ctx)
+    stored = db.verdicts()[-1].pose
+    assert tuple(stored.values()) == pytest.approx(inverse_pose(33.0, 20.0, -7.5))
 
 
 def test_rejections_lower_the_probability_of_similar_pairs(station):
