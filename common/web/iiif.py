@@ -43,6 +43,8 @@ PRESENTATION_CONTEXT = "http://iiif.io/api/presentation/3/context.json"
 FORMATS = {"jpg": "image/jpeg", "png": "image/png"}
 QUALITIES = ("default", "color", "gray", "bitonal")
 ROTATIONS = (0, 90, 180, 270)
+#: thumbnails in manifests fit in this square (pixels)
+THUMBNAIL_PX = 256
 
 _NUM = r"\d+(?:\.\d+)?"
 
@@ -286,7 +288,9 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
         The fragment's page on the station.
 
     Each canvas is painted with the albedo; renders are offered as a ``Choice``; the normal map is
-    linked from the canvas as a ``rendering`` (PNG, OpenGL (n + 1) / 2) and its image service.
+    linked from the canvas as a ``rendering`` (PNG, OpenGL (n + 1) / 2) and its image service. Each
+    canvas and the manifest (its first canvas's) have a ``thumbnail``: the albedo fitted in
+    :data:`THUMBNAIL_PX` square (a Manifest SHOULD have one, Presentation 3.0 §3.2).
     """
     mid = f"{base}/iiif/presentation/{fragment}/manifest"
     canvases = []
@@ -300,11 +304,16 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
                     "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}
 
         paintable = [layer for layer in f["layers"] if layer != "normals"]
+        sid = f"{base}/iiif/image/{image_id(fragment, face, paintable[0])}"
+        tw, th = parse_size(f"!{THUMBNAIL_PX},{THUMBNAIL_PX}", f["width"], f["height"])
+        thumbnail = [{"id": f"{sid}/full/{tw},{th}/0/default.jpg", "type": "Image", "format": FORMATS["jpg"],
+                      "width": tw, "height": th,
+                      "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}]
         body = image(paintable[0]) if len(paintable) == 1 else {"type": "Choice",
                                                                 "items": [image(layer) for layer in paintable]}
         canvas = {
             "id": cid, "type": "Canvas", "label": {"en": [f"{fragment} {face}"]},
-            "width": f["width"], "height": f["height"],
+            "width": f["width"], "height": f["height"], "thumbnail": thumbnail,
             "items": [{"id": f"{cid}/page", "type": "AnnotationPage", "items": [{
                 "id": f"{cid}/page/painting", "type": "Annotation", "motivation": "painting", "body": body,
                 "target": cid}]}],
@@ -324,6 +333,8 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
         "metadata": [{"label": {"en": [k]}, "value": {"none": [str(v)]}} for k, v in metadata.items() if v],
         "items": canvases,
     }
+    if canvases:
+        out["thumbnail"] = canvases[0]["thumbnail"]
     if homepage:
         out["homepage"] = [{"id": homepage, "type": "Text", "label": {"en": [f"Fragment {fragment}"]},
                             "format": "text/html"}]

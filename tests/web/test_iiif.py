@@ -225,3 +225,49 @@ def test_renders_are_offered_as_a_choice_on_the_canvas(station, tmp_path):
     assert [b["label"]["en"][0] for b in body["items"]] == ["albedo", "render-toon"]
     got = cv2.imdecode(np.frombuffer(c.get(body["items"][1]["id"].replace("http://localhost", "")).data, np.uint8), 1)
     assert got.shape == (300, 520, 3) and np.abs(got.astype(int) - 200).max() <= 2   # jpg of the drawn image
+
+
+# -- the manifest against the IIIF Presentation 3 models (PyPI iiif-prezi3) -------------------------
+
+def _differences(a, b, path=""):
+    """Where JSON ``b`` differs from ``a``: paths of missing keys and changed values."""
+    if type(a) is not type(b):
+        return [f"{path}: {a!r} -> {b!r}"]
+    if isinstance(a, dict):
+        return [f"{path}/{k}" for k in a.keys() ^ b.keys()] + \
+            [d for k in a.keys() & b.keys() for d in _differences(a[k], b[k], f"{path}/{k}")]
+    if isinstance(a, list):
+        return [f"{path}: {len(a)} -> {len(b)} items"] if len(a) != len(b) else \
+            [d for i, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{path}[{i}]")]
+    return [] if a == b else [f"{path}: {a!r} -> {b!r}"]
+
+
+@pytest.mark.parametrize("with_render", [False, True])
+def test_manifests_are_valid_presentation_3_models(station, tmp_path, with_render):
+    """The manifest loads into iiif-prezi3's Manifest (pydantic, strict: types, absolute URL ids,
+    language maps, services, annotation pages, Choice bodies) and comes back out the same, but for
+    what its ``rendering`` model (an external link: id, type, label, format) does not keep."""
+    from iiif_prezi3 import Manifest
+
+    c, _ = station
+    if with_render:
+        drawn = np.full((300, 520, 3), 200, np.uint8)
+
+        def fill(f):
+            f.create_dataset("image", data=drawn)
+            f.create_dataset("alpha", data=np.full((300, 520), 255, np.uint8))
+            f.attrs.update(recipe="toon", bits=8, dpi=254.0)
+        Store(tmp_path).write("fragments/F7/renders/front-00000000000000e7.h5", "tessera.render", 1, fill,
+                              provenance={"inputs": [{"path": "fragments/F7/rgbn/front-00000000000000f7.h5"}]})
+    m = json.loads(c.get("/iiif/presentation/F7/manifest").data)
+    model = Manifest(**m)                                  # raises pydantic.ValidationError on any error
+    assert str(model.id) == m["id"] and len(model.items) == 2
+    back = json.loads(model.jsonld())
+    assert back["@context"] == "http://iiif.io/api/presentation/3/context.json"
+    dropped = {f"/items[1]/rendering[0]/{k}" for k in ("service", "width", "height")}
+    assert set(_differences(m, back)) == dropped
+    # thumbnails: the albedo at a size the image service lists as fitting, and it is served at that size
+    thumb = m["thumbnail"][0]
+    assert (thumb["width"], thumb["height"]) == (256, 148) and thumb["id"].endswith("/full/256,148/0/default.jpg")
+    img = cv2.imdecode(np.frombuffer(c.get(thumb["id"].replace("http://localhost", "")).data, np.uint8), 1)
+    assert img.shape == (148, 256, 3)
