@@ -343,23 +343,33 @@ def palette_distance(a: FrescoSignature, b: FrescoSignature) -> float:
     return 0.5 * float(a.palette_share @ d.min(axis=1) + b.palette_share @ d.min(axis=0))
 
 
-def pair_features(a: FrescoSignature, b: FrescoSignature) -> np.ndarray:
-    """The differences of two signatures (:data:`PAIR_FEATURES`).
+def pair_features(a: FrescoSignature, b: FrescoSignature, features=PAIR_FEATURES) -> np.ndarray:
+    """The differences of two signatures (``features``, default all of :data:`PAIR_FEATURES`, in order).
 
     The Bhattacharyya distance of their a*b* histograms (:func:`chroma_distance`), ``|ΔL*|`` and
     ``|Δa*b*|`` of the plaster, ``|Δ spread|``, ``|ΔL*|`` and ``|Δa*b*|`` of the face's
     mean colour (0 where either is unknown), the palette distance (0 where either shows no paint) and
-    whether both show paint (0/1).
+    whether both show paint (0/1). Only the features asked for are computed (the ratio uses one).
     """
-    pal = palette_distance(a, b)
-    both = float(np.isfinite(pal))
-    face = a.face_lab - b.face_lab
-    face = np.nan_to_num(face, nan=0.0)
-    return np.array([chroma_distance(a, b), abs(a.plaster_lab[0] - b.plaster_lab[0]),
-                     float(np.hypot(*(a.plaster_lab[1:] - b.plaster_lab[1:]))),
-                     abs(a.plaster_spread_l - b.plaster_spread_l),
-                     abs(face[0]), float(np.hypot(face[1], face[2])),
-                     pal if both else 0.0, both])
+    def face():
+        return np.nan_to_num(a.face_lab - b.face_lab, nan=0.0)
+
+    def palette():
+        pal = palette_distance(a, b)
+        return pal if np.isfinite(pal) else 0.0
+
+    rules = {"chroma_bhattacharyya": lambda: chroma_distance(a, b),
+             "d_plaster_L": lambda: abs(a.plaster_lab[0] - b.plaster_lab[0]),
+             "d_plaster_ab": lambda: float(np.hypot(*(a.plaster_lab[1:] - b.plaster_lab[1:]))),
+             "d_spread_L": lambda: abs(a.plaster_spread_l - b.plaster_spread_l),
+             "d_face_L": lambda: abs(face()[0]),
+             "d_face_ab": lambda: float(np.hypot(*face()[1:])),
+             "palette_de": palette,
+             "both_painted": lambda: float(np.isfinite(palette_distance(a, b)))}
+    unknown = [f for f in features if f not in rules]
+    if unknown:
+        raise ValueError(f"unknown pair features {unknown}; known: {', '.join(PAIR_FEATURES)}")
+    return np.array([float(rules[f]()) for f in features])
 
 
 def _pairs(groups, collections=None):
@@ -443,8 +453,7 @@ def fresco_llr(a: FrescoSignature, b: FrescoSignature, params: dict | None = Non
     p = FRESCO_LLR if params is None else params
     if p is None:
         raise ValueError("no fitted same-fresco parameters (FRESCO_LLR is None): run fit_fresco_llr")
-    cols = [PAIR_FEATURES.index(f) for f in p["features"]]
-    x = (pair_features(a, b)[cols] - np.asarray(p["mean"])) / np.asarray(p["scale"])
+    x = (pair_features(a, b, p["features"]) - np.asarray(p["mean"])) / np.asarray(p["scale"])
     return float(np.clip(x @ np.asarray(p["coef"]) + p["intercept"], -p["clip"], p["clip"]))
 
 
