@@ -44,7 +44,7 @@ def save_rendering(store: Store, relpath: str, rendering: Rendering, *, dpi: flo
 
 def load_rendering(store: Store, ref) -> tuple[np.ndarray, np.ndarray, dict]:
     """(image (H, W, 3) float in [0, 1], alpha (H, W), attributes) of a ``tessera.render`` artifact."""
-    with store.open(ref, schema=SCHEMA) as f:
+    with store.open(ref, schema=SCHEMA, version=SCHEMA_VERSION) as f:
         try:
             bits = int(f.attrs["bits"])
             full = 255.0 if bits == 8 else 65535.0
