@@ -28,7 +28,17 @@ def iiif_error(exc: iiif.IIIFError):
 
 @bp.after_request
 def cross_origin(resp):
+    """CORS on every answer (Image API 3.0 §7.1), the preflight (OPTIONS) pattern included: any
+    origin may read, with GET or HEAD, sending any header it asks for (no credentials: nothing here
+    is private); the Link header (profile, canonical) readable by scripts."""
     resp.headers["Access-Control-Allow-Origin"] = "*"
+    resp.headers["Access-Control-Expose-Headers"] = "Link"
+    if request.method == "OPTIONS":
+        resp.headers["Access-Control-Allow-Methods"] = "GET, HEAD, OPTIONS"
+        asked = request.headers.get("Access-Control-Request-Headers")
+        if asked:
+            resp.headers["Access-Control-Allow-Headers"] = asked
+        resp.headers["Access-Control-Max-Age"] = "86400"
     return resp
 
 

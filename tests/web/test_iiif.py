@@ -134,6 +134,23 @@ def test_info_json_describes_the_image_and_its_tiles(station):
     assert c.get("/iiif/image/nonsense/info.json").status_code == 404
 
 
+def test_cors_preflight_answers_any_origin(station):
+    # Image API 3.0 §7.1: CORS, "including the Access-Control-Allow-Origin header and the preflight
+    # request pattern" — a viewer on another site sending a non-simple header must get through
+    c, _ = station
+    for url in ("/iiif/image/F7~front~albedo/info.json", "/iiif/image/F7~front~albedo/0,0,256,256/256,/0/default.png",
+                "/iiif/presentation/F7/manifest"):
+        r = c.options(url, headers={"Origin": "https://museum.example", "Access-Control-Request-Method": "GET",
+                                    "Access-Control-Request-Headers": "accept, x-requested-with"})
+        assert r.status_code == 200, url
+        assert r.headers["Access-Control-Allow-Origin"] == "*"
+        assert "GET" in r.headers["Access-Control-Allow-Methods"]
+        assert r.headers["Access-Control-Allow-Headers"] == "accept, x-requested-with"
+        g = c.get(url, headers={"Origin": "https://museum.example"})
+        assert g.status_code == 200 and g.headers["Access-Control-Allow-Origin"] == "*"
+    assert c.head("/iiif/image/F7~front~albedo/full/max/0/default.jpg").status_code == 200
+
+
 def test_regions_at_full_size_are_the_source_pixels(station):
     c, srgb = station
     r = c.get("/iiif/image/F7~front~albedo/100,50,300,200/max/0/default.png")
