@@ -287,14 +287,15 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
     homepage : str, optional
         The fragment's page on the station.
 
-    Each canvas is painted with the albedo; renders are offered as a ``Choice``; the normal map is
+    Canvases come front, back, then other faces by name (:func:`face_order`). Each canvas is
+    painted with the albedo; renders are offered as a ``Choice``; the normal map is
     linked from the canvas as a ``rendering`` (PNG, OpenGL (n + 1) / 2) and its image service. Each
     canvas and the manifest (its first canvas's) have a ``thumbnail``: the albedo fitted in
     :data:`THUMBNAIL_PX` square (a Manifest SHOULD have one, Presentation 3.0 §3.2).
     """
     mid = f"{base}/iiif/presentation/{fragment}/manifest"
     canvases = []
-    for face, f in faces.items():
+    for face, f in sorted(faces.items(), key=lambda kv: face_order(kv[0])):
         cid = f"{base}/iiif/presentation/{fragment}/canvas/{face}"
 
         def image(layer, fmt="jpg"):
@@ -339,6 +340,12 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
         out["homepage"] = [{"id": homepage, "type": "Text", "label": {"en": [f"Fragment {fragment}"]},
                             "format": "text/html"}]
     return out
+
+
+def face_order(face: str) -> tuple:
+    """Sort key of faces in a manifest: ``front``, ``back``, then the others by name (a viewer opens
+    the first canvas)."""
+    return ({"front": 0, "back": 1}.get(face, 2), face)
 
 
 def image_id(fragment: str, face: str, layer: str) -> str:

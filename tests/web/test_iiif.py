@@ -207,13 +207,13 @@ def test_the_manifest_has_a_canvas_per_face_metadata_and_the_normal_map(station)
     assert r.status_code == 200 and r.headers["Access-Control-Allow-Origin"] == "*"
     m = json.loads(r.data)
     assert m["@context"] == "http://iiif.io/api/presentation/3/context.json" and m["type"] == "Manifest"
-    assert [cv["label"]["en"][0] for cv in m["items"]] == ["F7 back", "F7 front"]
-    front = m["items"][1]
+    assert [cv["label"]["en"][0] for cv in m["items"]] == ["F7 front", "F7 back"]   # front first: what viewers open
+    front = m["items"][0]
     assert (front["width"], front["height"]) == (520, 300)
     body = front["items"][0]["items"][0]["body"]
     assert body["service"][0]["id"] == "http://localhost/iiif/image/F7~front~albedo"
     assert front["rendering"][0]["id"].endswith("F7~front~normals/full/max/0/default.png")
-    assert "rendering" not in m["items"][0]                      # the back face has no normals
+    assert "rendering" not in m["items"][1]                      # the back face has no normals
     assert front["service"][0]["physicalScale"] == pytest.approx(0.1)
     labels = {e["label"]["en"][0]: e["value"]["none"][0] for e in m["metadata"]}
     assert labels == {"Inventory": "INV-77", "Find-spot": "Room 2"}
@@ -237,7 +237,7 @@ def test_renders_are_offered_as_a_choice_on_the_canvas(station, tmp_path):
     store.write("fragments/F7/renders/front-00000000000000e7.h5", "tessera.render", 1, fill,
                 provenance={"inputs": [{"path": "fragments/F7/rgbn/front-00000000000000f7.h5"}]})
     m = json.loads(c.get("/iiif/presentation/F7/manifest").data)
-    body = m["items"][1]["items"][0]["items"][0]["body"]
+    body = m["items"][0]["items"][0]["items"][0]["body"]
     assert body["type"] == "Choice"
     assert [b["label"]["en"][0] for b in body["items"]] == ["albedo", "render-toon"]
     got = cv2.imdecode(np.frombuffer(c.get(body["items"][1]["id"].replace("http://localhost", "")).data, np.uint8), 1)
@@ -281,7 +281,7 @@ def test_manifests_are_valid_presentation_3_models(station, tmp_path, with_rende
     assert str(model.id) == m["id"] and len(model.items) == 2
     back = json.loads(model.jsonld())
     assert back["@context"] == "http://iiif.io/api/presentation/3/context.json"
-    dropped = {f"/items[1]/rendering[0]/{k}" for k in ("service", "width", "height")}
+    dropped = {f"/items[0]/rendering[0]/{k}" for k in ("service", "width", "height")}
     assert set(_differences(m, back)) == dropped
     # thumbnails: the albedo at a size the image service lists as fitting, and it is served at that size
     thumb = m["thumbnail"][0]
