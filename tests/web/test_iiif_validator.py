@@ -27,7 +27,7 @@ import pytest
 
 from common.web import iiif
 
-from .viewer_support import WebProcess
+from .viewer_support import WebProcess, relief_face
 
 pytestmark = pytest.mark.slow      # ~15 s: a tessera web process and ~40 validator runs
 
@@ -60,6 +60,8 @@ def server(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("iiif-validator")
     save_rgbn(Store(root / "storage"), "fragments/V-1/rgbn/front-v1.h5", validator_test_image())
+    # a face whose sides are no multiple of the tile size, for the sizes and tiles info.json lists
+    save_rgbn(Store(root / "storage"), "fragments/V-2/rgbn/front-v2.h5", relief_face(530, 700))
     web = WebProcess(root).start()
     try:
         yield web.url.removeprefix("http://")
@@ -145,3 +147,43 @@ def test_the_link_headers_name_the_level2_profile_and_the_canonical_request(serv
     assert f'<http://{server}/iiif/image/{IDENTIFIER}/100,200,300,400/75,100/!90/color.png>;rel="canonical"' in link
     with urllib.request.urlopen(f"http://{server}/iiif/image/{IDENTIFIER}/full/max/0/default.jpg") as r:
         assert f"/iiif/image/{IDENTIFIER}/full/max/0/default.jpg>;rel=\"canonical\"" in r.headers["Link"]
+
+
+def test_every_size_and_tile_info_json_lists_is_served_at_that_size(server):
+    """Compliance (Image API 3.0, §3.2 of the compliance document): "an image service whose Image
+    Information response includes the sizes property must support requests for the sizes listed,
+    and [with] the tiles property must support requests for the sizes implicit in the width, height
+    and scaleFactors values given for tiles" — the tile requests as the 3.0 implementation notes
+    (§3) compute them, partial tiles on the right and bottom edges included."""
+    import io
+    import json
+    import urllib.request
+
+    from PIL import Image
+
+    base = f"http://{server}/iiif/image/V-2~front~albedo"
+    with urllib.request.urlopen(f"{base}/info.json") as r:
+        info = json.load(r)
+    width, height = info["width"], info["height"]
+    assert (width, height) == (700, 530)
+
+    def fetch(path):
+        with urllib.request.urlopen(f"{base}/{path}") as r:
+            assert r.status == 200, path
+            return Image.open(io.BytesIO(r.read())).size
+
+    for size in info["sizes"]:
+        assert fetch(f"full/{size['width']},{size['height']}/0/default.jpg") == (size["width"], size["height"])
+    requests = 0
+    for tiles in info["tiles"]:
+        tw, th = tiles["width"], tiles.get("height", tiles["width"])
+        for s in tiles["scaleFactors"]:
+            for m in range(-(-height // (th * s))):
+                for n in range(-(-width // (tw * s))):
+                    xr, yr = n * tw * s, m * th * s
+                    wr, hr = min(tw * s, width - xr), min(th * s, height - yr)
+                    ws = tw if xr + tw * s <= width else (width - xr + s - 1) // s
+                    hs = th if yr + th * s <= height else (height - yr + s - 1) // s
+                    assert fetch(f"{xr},{yr},{wr},{hr}/{ws},{hs}/0/default.png") == (ws, hs)
+                    requests += 1
+    assert requests == 9 + 4 + 1          # scale factors 1, 2, 4: 3 x 3, 2 x 2 and 1 tile
