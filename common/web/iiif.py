@@ -228,10 +228,12 @@ def finish(rgba: np.ndarray, req: ImageRequest) -> np.ndarray:
 def canonical_path(req: ImageRequest, width: int, height: int) -> str:
     """The canonical ``region/size/rotation/quality.format`` of a request (Image API 3.0 §4.8), for
     the ``Link: rel="canonical"`` header: ``full`` or ``x,y,w,h``; ``max`` when the size is what
-    ``max`` gives, else ``w,h`` (``^w,h`` when upscaled); ``!`` and an integer; the quality."""
+    ``max`` gives, ``^max`` when what ``^max`` gives, else ``w,h`` (``^w,h`` when upscaled); ``!`` and an integer; the quality."""
     region = "full" if (req.x, req.y, req.w, req.h) == (0, 0, width, height) else f"{req.x},{req.y},{req.w},{req.h}"
     if (req.width, req.height) == parse_size("max", req.w, req.h):
         size = "max"
+    elif (req.width, req.height) == parse_size("^max", req.w, req.h):
+        size = "^max"
     else:
         up = req.width > req.w or req.height > req.h
         size = f"{'^' if up else ''}{req.width},{req.height}"

@@ -75,7 +75,8 @@ def test_requests_accept_rotations_by_90s_the_three_qualities_and_jpg_or_png_onl
     (("0,0,400,300", "pct:100", "0.0", "default.jpg"), "full/max/0/default.jpg"),
     (("square", "!100,100", "!90", "color.png"), "50,0,300,300/100,100/!90/color.png"),
     (("pct:50,50,100,100", "100,", "180", "gray.jpg"), "200,150,200,150/100,75/180/gray.jpg"),
-    (("10,10,20,20", "^40,", "0", "bitonal.png"), "10,10,20,20/^40,40/0/bitonal.png")])
+    (("10,10,20,20", "^40,", "0", "bitonal.png"), "10,10,20,20/^40,40/0/bitonal.png"),
+    (("full", "^max", "0", "default.jpg"), "full/^max/0/default.jpg")])
 def test_canonical_paths(args, want):
     # Image API 3.0 §4.8: full or x,y,w,h; max, w,h or ^w,h; ! and an integer; the quality asked
     assert iiif.canonical_path(iiif.parse_request(*args, 400, 300), 400, 300) == want
