@@ -33,7 +33,7 @@ training wall's fragment pairs (:func:`fit_ribbon_calibration`), stored with the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -145,6 +145,15 @@ class RibbonPopulation:
 
     rows: dict              # (kind, with thickness) → (N, C + 2) other-side rows
     owner: dict             # with thickness → (N,) fragment id of each of those samples
+    trees: dict = field(default_factory=dict)   # (kind, with thickness) → KD-tree of the samples, made on first use
+
+    def tree(self, kind: str, flag: bool):
+        """KD-tree of the samples' values of one colour kind (:func:`sample_rarity`)."""
+        if (kind, flag) not in self.trees:
+            from scipy.spatial import cKDTree
+
+            self.trees[(kind, flag)] = cKDTree(-0.5 * self.rows[(kind, flag)][:, :-2])   # other side: −2x
+        return self.trees[(kind, flag)]
 
 
 def ribbon_population(profiles: dict, *, max_samples: int = RIBBON_POPULATION_SAMPLES,
@@ -181,20 +190,28 @@ def sample_rarity(a: RibbonProfile, population: RibbonPopulation, *, fragment=No
     """
     flag = bool(a.has_thickness and True in population.owner)
     own = population.owner[flag] == fragment       # A's own samples are not its neighbours
-    k = max(1, min(k, len(own) - int(own.sum())))
-    out = np.empty(len(a))
-    # rows of A in blocks whose distances to the population stay in the processor's cache
-    step = max(1, RIBBON_BLOCK_CELLS // (2 * len(own)))
-    with one_blas_thread():
-        for r0 in range(0, len(a), step):
-            d2 = None
-            for kind in ("sqrt", "std"):
-                m = a.rows[(kind, flag)][0][r0:r0 + step] @ population.rows[(kind, flag)].T
-                d2 = m if d2 is None else np.minimum(d2, m, out=d2)
-            d2[:, own] = np.inf
-            part = np.partition(d2, k - 1, axis=1)[:, :k]      # squared distances: the root of k only
-            out[r0:r0 + step] = np.sqrt(np.maximum(np.where(np.isfinite(part), part, 0.0), 0.0)).mean(axis=1)
-    return out
+    n_own = int(own.sum())
+    k = max(1, min(k, len(own) - n_own))
+    if not len(a):
+        return np.zeros(0)
+    # The k nearest under the smaller of the two kinds' distances are among each kind's k nearest
+    # (a sample nearest by its smaller distance has k others nearer in that kind otherwise), so two
+    # KD-tree queries of k + (A's own samples) neighbours each hold them: exact, without the
+    # K × population distance matrices.
+    m = min(len(own), k + n_own)
+    xs = {kind: a.rows[(kind, flag)][0][:, :-2] for kind in ("sqrt", "std")}
+    idx = np.hstack([population.tree(kind, flag).query(xs[kind], k=m)[1].reshape(len(a), m)
+                     for kind in ("sqrt", "std")])
+    idx.sort(axis=1)
+    d2 = None
+    for kind in ("sqrt", "std"):
+        diff = xs[kind][:, None, :] + 0.5 * population.rows[(kind, flag)][idx, :-2]   # x_A − x_pop
+        dk = np.einsum("ijk,ijk->ij", diff, diff)
+        d2 = dk if d2 is None else np.minimum(d2, dk)
+    d2[own[idx]] = np.inf
+    d2[:, 1:][idx[:, 1:] == idx[:, :-1]] = np.inf     # a sample both queries found counts once
+    part = np.partition(d2, k - 1, axis=1)[:, :k]
+    return np.sqrt(np.where(np.isfinite(part), part, 0.0)).mean(axis=1)
 
 
 def _shifted_min(d: np.ndarray, tol: int, axis: int) -> np.ndarray:

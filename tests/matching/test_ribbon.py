@@ -141,12 +141,8 @@ def _flat_profile(colours):
     return _ribbon(p)
 
 
-@pytest.mark.parametrize("block_cells", [1 << 17, 1])   # A's samples in one block, or one at a time
-def test_rarity_is_low_for_common_colours_and_ignores_the_fragments_own_samples(block_cells, monkeypatch):
-    import common.matching.ribbon as ribbon
+def test_rarity_is_low_for_common_colours_and_ignores_the_fragments_own_samples():
     from common.matching.ribbon import ribbon_population, sample_rarity
-
-    monkeypatch.setattr(ribbon, "RIBBON_BLOCK_CELLS", block_cells)
 
     grey, red = np.full((40, 3), 0.6), np.tile([0.9, 0.2, 0.2], (40, 1))
     profiles = {f"g{i}": _flat_profile(grey) for i in range(5)} | {"red": _flat_profile(red)}
@@ -212,3 +208,31 @@ def test_scores_and_best_runs_equal_the_definition(window_mm, tolerance_mm, bloc
         # the reported run (A forwards from arc_a, B backwards from arc_b) is a best one
         i, j = int(round(i0 / a.step_mm)), len(b) - 1 - int(round(j_arc / b.step_mm))
         assert -runs[i, j] == pytest.approx(best, abs=1e-6)
+
+
+@pytest.mark.parametrize("k", [1, 10, 40])
+def test_rarity_equals_its_definition_by_brute_force(k):
+    """sample_rarity finds neighbours with two KD-trees; the docstring's definition, written out:
+    every population sample not of A, its distance the smaller of the two colour kinds', the mean of
+    the k nearest."""
+    from common.matching.ribbon import ribbon_population, sample_rarity
+
+    rng = np.random.default_rng(3)
+
+    def two_kinds(n):   # √albedo and standardised channels unrelated, so the smaller distance switches kind
+        prof = np.full((n, len(NAMES)), np.nan, np.float32)
+        for c, name in enumerate(NAMES):
+            if not name.startswith("thickness@"):
+                prof[:, c] = rng.uniform(0.1, 0.9, n)   # each channel drawn on its own
+        return _ribbon(prof)
+
+    profiles = {f"f{i}": two_kinds(int(rng.integers(20, 60))) for i in range(12)}
+    pop = ribbon_population(profiles, max_samples=300, seed=1)
+    for fid in ("f0", "f5"):
+        a = profiles[fid]
+        got = sample_rarity(a, pop, fragment=fid, k=k)
+        d = np.min([np.linalg.norm(a.rows[(kind, False)][0][:, None, :-2]
+                                   + 0.5 * pop.rows[(kind, False)][None, :, :-2], axis=2) for kind in ("sqrt", "std")],
+                   axis=0)
+        d = d[:, pop.owner[False] != fid]
+        np.testing.assert_allclose(got, np.sort(d, axis=1)[:, :k].mean(axis=1), rtol=1e-9, atol=1e-12)
