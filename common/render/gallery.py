@@ -427,7 +427,10 @@ tessera render --normals N.png --albedo A.png --dpi 600 --style ridges_valleys -
 Readable by default: every style picks its exposure and contrast from robust percentiles of what it
 draws (the 5th and 95th percentiles land at 0.2 and 0.8 of the tone range through an S-curve whose
 tails roll off, so a pixel saturates only ~4.5 half-ranges out; colour is exposed on its CIELAB
-lightness, hue and chroma kept), its smoothing from the noise of the normal map (Immerkær's estimator;
+lightness, hue and chroma kept — a colour varying less than 15 L* is stretched as it is unless that is
+under 6 L* or 10 times the pixel noise of its lightness, so one metal or one plaster uses the range but
+noise is drawn at most ~6 L* strong; specular enhancement and watercolour also expose the lightness of
+what they drew), its smoothing from the noise of the normal map (Immerkær's estimator;
 8x8 JPEG blocks of the source images detected and smoothed over) and from the dpi, and lights a
 near-flat surface (a painting, a relief) relative to its own slow undulation. `tessera render` logs
 the values it chose (and the noise evidence); written back into a recipe they fix the picture.
@@ -440,14 +443,20 @@ turns the hue, is used only for the colours inside the gamut). The web viewer's 
 Any size: an image above 16 Mpx is drawn in overlapping tiles (the halo covers 4 sigma of the
 widest filter — 3 sigma of exaggerated shading's base level, whose share of the picture keeps the
 difference under 1/255 — line lengths and shadows) that share the exposure chosen on a central calibration
-window of <= 4 Mpx; tiled and whole drawings agree within 1/255 (`tests/render/test_tiles.py`). The
+window of <= 4 Mpx; the coarse normal field that levelling lights a near-flat surface by (sigma up to
+96 px) is computed once for the whole image, window by window, and each tile interpolates its window
+of it, so its 4-sigma reach is not drawn again around every tile; tiled and whole drawings agree within
+1/255 (`tests/render/test_tiles.py`). The
 renderer service reads a large face window by window from its HDF5 artifact. A recipe with a
 `[segmentation]` section is tiled too: the segments are found first for the whole image, window by
 window (`segment_source`: SLIC superpixels in 2048-px windows read with a blur halo, merged across the
 windows' seams on one Felzenszwalb-Huttenlocher graph; the labels are identical to the in-memory
 `segment_rgbn`'s, `tests/rgbn/test_segmentation.py`), kept as 4 bytes a pixel, and every tile is drawn
 with its window of them. Output is 8 or 16 bit (`bits` / `--bits`); the computation is float32
-throughout. The layers of a recipe share the normals they smooth at the same scale (exaggerated
+throughout. Full-resolution smoothing, exaggerated shading's fine levels and multiscale curvature's
+fine levels are computed in row strips of ~1 Mpx with a halo of the kernel's reach, so their
+temporaries never have the image's size; coarser levels are taken on grids aligned to the whole
+image's. The layers of a recipe share the normals they smooth at the same scale (exaggerated
 shading's finest level is the noise scale discontinuity lines smooth at), and while a rendering
 runs, freed arrays are reused instead of being handed back to the kernel and page-faulted in
 again (`common/render/_heap.py`: the segments recipe 8-21 % less CPU time at 12 Mpx in three

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from common.render import lines as _lines
@@ -287,7 +288,7 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
     kd = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
     out = _shading.gooch(n, light, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
     # Gooch compresses lightness into its warm-cool ramp: expose the result's lightness (hues kept)
-    return _cover(image, _exposed_lightness(out, image.mask, exposure, r, "exposure"), r)
+    return _cover(image, _exposed_lightness(out, image.mask, exposure, r, "exposure", only_narrow=False), r)
 
 
 def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r):
@@ -363,8 +364,8 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
                   colour: bool = True, sigma_px="auto", exposure="auto", level="auto",
                   colour_exposure="auto", lightness="auto") -> Layer:
     """Specular enhancement (Malzbender et al. 2001): the surface drawn as glossy, highlights show
-    slope; the brightest highlights roll off below white (exposure), then the picture's lightness
-    is spread over the tone range (lightness: hue kept)."""
+    slope; the brightest highlights roll off below white (exposure), then a picture whose lightness
+    is narrow is spread over the tone range (lightness: hue kept)."""
     r = {}
     n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
     light = _light(image, light, level, r)
@@ -381,12 +382,27 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
     return _cover(image, _exposed_lightness(out, image.mask, lightness, r), r)
 
 
-def _exposed_lightness(display: np.ndarray, mask, value, resolved: dict, key: str = "lightness") -> np.ndarray:
+#: "auto" lightness leaves a drawn picture whose CIELAB lightness spans at least this much (L*)
+#: between its 5th and 95th percentiles as drawn: a little over half the tone range, as the
+#: luminance of display values spans a few per cent less than L* does (the flatbed coin's
+#: watercolour: 50.7 L*, 49.9 % of the range).
+KEEP_LIGHTNESS_SPAN = 55.0
+
+
+def _exposed_lightness(display: np.ndarray, mask, value, resolved: dict, key: str = "lightness", *,
+                       only_narrow: bool = True) -> np.ndarray:
     """A drawn colour picture (display values in [0, 1]) with its CIELAB lightness exposed: the
-    5th / 95th percentiles drawn at L* 20 / 80 ("auto", :func:`common.render.enhance.lightness_range`),
-    a given [low, high] in L*, or as drawn ("none"); hue and chroma kept."""
+    5th / 95th percentiles drawn at L* 20 / 80 ("auto", :func:`common.render.enhance.lightness_range`;
+    with ``only_narrow`` only when they are less than :data:`KEEP_LIGHTNESS_SPAN` apart, judged on
+    a sample, else "none"), a given [low, high] in L*, or as drawn ("none"); hue and chroma kept."""
     from common.rgbn.io import srgb_to_linear
 
+    if _is_auto(value) and only_narrow:
+        sample = srgb_to_linear(_enhance.masked_stride(display, mask))
+        lightness = cv2.cvtColor(np.ascontiguousarray(sample[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]
+        lo, hi = _enhance.robust_range(lightness, clip_percent=5.0)
+        if hi - lo >= KEEP_LIGHTNESS_SPAN:
+            value = "none"
     if isinstance(value, str) and value == "none":
         resolved[key] = "none"
         return display
@@ -526,8 +542,8 @@ def draw_watercolour(image: RGBNImage, light=(135.0, 45.0), sigma_x: float = 4.0
                      sigma_n: float = 0.3, relief: float = 0.6, paper: float = 0.25, edge_darkening: float = 0.8,
                      seed: int = 0, colour_exposure="auto", lightness="auto") -> Layer:
     """Watercolour: bilateral-flattened washes, relief density, paper texture, edge darkening (§7.3.8);
-    the picture's lightness is then spread over the tone range (the washes flatten a narrow colour
-    further: the flatbed coin's used 49.9 % of it)."""
+    a picture whose lightness is narrow is then spread over the tone range (the washes flatten a
+    narrow colour further: the flatbed coin's used 49.9 % of it)."""
     from common.rgbn.bilateral import joint_bilateral
 
     r = {}
@@ -596,8 +612,9 @@ PARAM_DOCS = {
     "colour_exposure": '"auto": the colour\'s CIELAB lightness, 5th/95th percentiles drawn at L* 20/80 (hue and '
                        'chroma kept; a colour varying less than 15 L* is stretched as it is unless that is under '
                        '6 L* or 10 x its pixel noise); "none": the colour as captured; or [low, high] in L* (0-100)',
-    "lightness": '"auto": the drawn picture\'s CIELAB lightness, 5th/95th percentiles drawn at L* 20/80 (hue and '
-                 'chroma kept); "none": as drawn; or [low, high] in L* (0-100)',
+    "lightness": '"auto": a drawn picture whose CIELAB lightness spans less than 55 L* between its 5th and 95th '
+                 'percentiles gets them drawn at L* 20/80 (hue and chroma kept), a wider one is left as drawn; '
+                 '"none": as drawn; or [low, high] in L* (0-100)',
     "sigma_px": 'smoothing of the normals (Gaussian sigma, pixels); "auto" = the scale that brings the map\'s '
                 'noise to 0.004 (>= 2 px with JPEG blocks; x2 for curvature and lines, x3 for toon)',
     "sigma_mm": "scale of the relief drawn, mm: detail finer than this is enhanced (unsharp masking), or the "
