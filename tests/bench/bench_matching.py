@@ -193,6 +193,10 @@ def main() -> int:
             # proposal, docking only pairs new to its best 12 (the rest were docked on arrival). Every
             # fragment's hubness is measured whole; the proposals on a sample, as their mean times n
             sample = [str(f) for f in rng.choice(index._order, args.rerank_sample, replace=False)]
+            # every fragment's own hubness under the old model too (not its pool fragment's copy), so the
+            # two models' best 12 differ only by the model change, as at a station
+            index.hubness.clear()
+            index.refresh_hubness(index._order, model)
             for f in sample:   # arrivals: proposed and docked under the old model
                 index.propose(index.cues[f], model, n_candidates=100, top=10, check=0, dock_candidates=docked)
             tc = time.process_time()
