@@ -154,15 +154,13 @@ def _proposal(c, st: _State, columns) -> Proposal:
     # a candidate only the ribbon scored (a fragment without a valid patch) has no patch pair
     patch_q = int(qa[c.patch_a]) if c.patch_a >= 0 else None
     patch_o = int(qb[c.patch_b]) if c.patch_b >= 0 else None
-    pose = None
+    pose = alignment = None
     if c.alignment is not None:
         pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
         if a != c.fragment:   # stored as b in a: invert
             pose = inverse_pose(*pose)
-    alignment = None
-    if c.alignment is not None:
-        # the alignment's own pose is the other's in the query's frame; the stored proposal (and its
-        # match.proposed) states every pose as fragment_b in fragment_a's frame, like ``pose``
+        # the stored proposal (and its match.proposed) states every pose as fragment_b in fragment_a's
+        # frame, the alignment's own too
         alignment = dict(c.alignment.to_dict(), angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
     ev = evidence_dict(c, columns)
     ev["query"] = c.fragment

@@ -51,6 +51,11 @@ def _created(path: Path) -> str:
     return ""
 
 
+def face_order(face: str) -> tuple:
+    """Sort key of a fragment's faces wherever they are listed: ``front``, ``back``, then the others by name."""
+    return ({"front": 0, "back": 1}.get(face, 2), face)
+
+
 def latest_faces(store: Store, fragment: str) -> dict[str, str]:
     """``{face: relative path}`` of the newest RGBN artifact of each face of ``fragment``."""
     folder = store.path(f"fragments/{fragment}/rgbn")

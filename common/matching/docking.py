@@ -600,12 +600,16 @@ def docking_contact_mm(docking: Docking, cell_mm: float = DOCK_CELL_MM) -> float
     return float(docking.score) * cell_mm / 2.0
 
 
+def inverse_pose(angle_deg: float, tx_mm: float, ty_mm: float) -> tuple[float, float, float]:
+    """The same relative pose seen from the other fragment: A in B's frame, ``p_b = Rᵀ (p_a − t)``."""
+    t = -_rotation(angle_deg).T @ np.array([tx_mm, ty_mm], float)
+    return float(-angle_deg), float(t[0]), float(t[1])
+
+
 def invert_docking(docking: Docking) -> Docking:
-    """The same docking seen from B: pose of A in B's frame (``p_b = Rᵀ (p_a − t)``)."""
-    r = _rotation(docking.angle_deg)
-    t = -r.T @ np.array([docking.tx_mm, docking.ty_mm])
-    return Docking(-docking.angle_deg, float(t[0]), float(t[1]), docking.score, docking.contact_mm,
-                   docking.overlap_mm2)
+    """The same docking seen from B: pose of A in B's frame (:func:`inverse_pose`)."""
+    return Docking(*inverse_pose(docking.angle_deg, docking.tx_mm, docking.ty_mm), docking.score,
+                   docking.contact_mm, docking.overlap_mm2)
 
 
 def hub_corrected(contact_mm, hub_query: float, hub_others, centre: float) -> np.ndarray:

@@ -34,7 +34,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from common.matching.docking import DOCK_CELL_MM, Docking, docking_contact_mm
+from common.matching.docking import DOCK_CELL_MM, Docking, _rotation, docking_contact_mm
+# a pose seen from the other fragment: defined beside invert_docking, offered here with the other pose helpers
+from common.matching.docking import inverse_pose  # noqa: F401
 
 #: weight of a candidate's paint evidence (mm of crack with continuing paint) against its geometric
 #: contact (mm of shared crack) when choosing a pair's pose among the docking's candidates; chosen on
@@ -133,18 +135,6 @@ def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.
         raise ValueError("pose (3), centre_b_mm (2), turn_deg and shift_mm (2) must be finite numbers, got "
                          f"{pose!r}, {centre_b_mm!r}, {turn_deg!r}, {shift_mm!r}")
     angle, tx, ty, cx, cy, turn, sx, sy = values
-
-    def rot(deg):
-        a = np.radians(deg)
-        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-
-    centre_a = rot(angle) @ (cx, cy) + (tx, ty) + (sx, sy)
-    t = centre_a - rot(angle + turn) @ (cx, cy)
+    centre_a = _rotation(angle) @ (cx, cy) + (tx, ty) + (sx, sy)
+    t = centre_a - _rotation(angle + turn) @ (cx, cy)
     return float((angle + turn + 180.0) % 360.0 - 180.0), float(t[0]), float(t[1])
-
-
-def inverse_pose(angle_deg: float, tx_mm: float, ty_mm: float) -> tuple[float, float, float]:
-    """The same relative pose seen from the other fragment: A in B's frame, ``p_b = Rᵀ (p_a − t)``."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
-    return float(-angle_deg), float(-(c * tx_mm + s * ty_mm)), float(-(-s * tx_mm + c * ty_mm))

@@ -289,7 +289,8 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
     homepage : str, optional
         The fragment's page on the station.
 
-    Canvases come front, back, then other faces by name (:func:`face_order`). Each canvas is
+    Canvases come front, back, then other faces by name (:func:`common.imports.export.face_order`:
+    a viewer opens the first). Each canvas is
     painted with the albedo; renders are offered as a ``Choice``; the normal map is
     linked from the canvas as a ``rendering`` (PNG, OpenGL (n + 1) / 2) and its image service. Each
     canvas and the manifest (its first canvas's) have a ``thumbnail``: the albedo fitted in
@@ -297,6 +298,8 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
     """
     mid = f"{base}/iiif/presentation/{fragment}/manifest"
     canvases = []
+    from common.imports.export import face_order
+
     for face, f in sorted(faces.items(), key=lambda kv: face_order(kv[0])):
         cid = f"{base}/iiif/presentation/{fragment}/canvas/{face}"
 
@@ -342,12 +345,6 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
         out["homepage"] = [{"id": homepage, "type": "Text", "label": {"en": [f"Fragment {fragment}"]},
                             "format": "text/html"}]
     return out
-
-
-def face_order(face: str) -> tuple:
-    """Sort key of faces in a manifest: ``front``, ``back``, then the others by name (a viewer opens
-    the first canvas)."""
-    return ({"front": 0, "back": 1}.get(face, 2), face)
 
 
 def image_id(fragment: str, face: str, layer: str) -> str:

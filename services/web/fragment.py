@@ -84,9 +84,10 @@ def _cache(fid: str, stem: str):
 def _face_list(fid: str) -> list[dict]:
     """``[{face, artifact, relight}]``: each face's newest RGBN artifact and its relight API, the
     front first, then the back, then any other face."""
+    from common.imports.export import face_order
+
     out = []
-    order = {"front": 0, "back": 1}
-    for face, rel in sorted(_faces(fid).items(), key=lambda kv: (order.get(kv[0], 2), kv[0])):
+    for face, rel in sorted(_faces(fid).items(), key=lambda kv: face_order(kv[0])):
         stem = rel.rsplit("/", 1)[1][:-3]
         out.append({"face": face, "artifact": rel,
                     "relight": url_for("fragment.params", fid=fid, stem=stem).rsplit("/", 1)[0]})
