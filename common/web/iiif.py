@@ -303,18 +303,19 @@ def manifest(base: str, fragment: str, faces: Mapping[str, Mapping], metadata: M
     for face, f in sorted(faces.items(), key=lambda kv: face_order(kv[0])):
         cid = f"{base}/iiif/presentation/{fragment}/canvas/{face}"
 
-        def image(layer, fmt="jpg"):
+        def image(layer, fmt="jpg", size=None):
+            """The layer as an Image with its service: whole (``max``), or at ``size`` (w, h)."""
             sid = f"{base}/iiif/image/{image_id(fragment, face, layer)}"
-            return {"id": f"{sid}/full/max/0/default.{fmt}", "type": "Image", "format": FORMATS[fmt],
-                    "width": f["width"], "height": f["height"], "label": {"en": [layer]},
-                    "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}
+            w, h = size or (f["width"], f["height"])
+            out = {"id": f"{sid}/full/{f'{w},{h}' if size else 'max'}/0/default.{fmt}", "type": "Image",
+                   "format": FORMATS[fmt], "width": w, "height": h, "label": {"en": [layer]},
+                   "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}
+            if size:
+                del out["label"]
+            return out
 
         paintable = [layer for layer in f["layers"] if layer != "normals"]
-        sid = f"{base}/iiif/image/{image_id(fragment, face, paintable[0])}"
-        tw, th = parse_size(f"!{THUMBNAIL_PX},{THUMBNAIL_PX}", f["width"], f["height"])
-        thumbnail = [{"id": f"{sid}/full/{tw},{th}/0/default.jpg", "type": "Image", "format": FORMATS["jpg"],
-                      "width": tw, "height": th,
-                      "service": [{"id": sid, "type": "ImageService3", "profile": PROFILE}]}]
+        thumbnail = [image(paintable[0], size=parse_size(f"!{THUMBNAIL_PX},{THUMBNAIL_PX}", f["width"], f["height"]))]
         body = image(paintable[0]) if len(paintable) == 1 else {"type": "Choice",
                                                                 "items": [image(layer) for layer in paintable]}
         canvas = {
