@@ -168,7 +168,7 @@ def validate(msg: Any) -> dict:
     Besides the required fields of its type: ``uid`` is 32 hex digits (:data:`UID_PATTERN`),
     ``time`` a finite number of seconds, ``fragment``/``other`` match :data:`FRAGMENT_PATTERN`,
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
-    ``sha256`` and a non-negative ``bytes``, ``probability`` is in [0, 1], a ``match.verified``
+    ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.verified``
     verdict is one :func:`verdict_of` reads and its optional ``pose`` one :func:`pose_of` reads, a
     ``fragment.annotated`` edit changes only
     :data:`ANNOTATION_FIELDS` (text of at most :data:`MAX_ANNOTATION_CHARS`); the whole document is
@@ -223,10 +223,11 @@ def validate(msg: Any) -> dict:
         verdict_of(msg["verdict"])
         if msg.get("pose") is not None:
             pose_of(msg["pose"], f"{kind} message: pose")
-    if "probability" in msg:
-        p = msg["probability"]
-        if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan
-            raise MessageError(f"{kind} message: probability {str(p)[:40]!r} is not in [0, 1]")
+    for name in ("probability", "mutual"):
+        if name in msg:
+            p = msg[name]
+            if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:  # also refuses nan
+                raise MessageError(f"{kind} message: {name} {str(p)[:40]!r} is not in [0, 1]")
     if not (isinstance(msg["uid"], str) and UID_PATTERN.match(msg["uid"])):
         raise MessageError(f"{kind} message: uid {str(msg['uid'])[:80]!r} is not 32 lower-case hex digits")
     t = msg["time"]

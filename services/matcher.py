@@ -28,6 +28,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from common.features import load_features
 from common.matching.models import load_model, save_model
 from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_dict, refit_with_verdicts, rerank,
@@ -113,6 +115,8 @@ def _on_features(job: dict, ctx) -> list[dict]:
     ctx.progress(0.6, f"proposing joins among {len(st.index)} fragments")
     found = st.index.propose(cues, st.model, n_candidates=int(cfg.get("n_candidates", 100)),
                              top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), dock=not dock_later)
+    if not dock_later:
+        _rank_partners_again(found, st, ctx)
     events = _proposed(found, st, ctx, "ranked" if dock_later else "docked")
     if dock_later:
         events.append(new_message("match.ranked", fragment=fragment, face=face, artifact=job["artifact"],
@@ -133,7 +137,35 @@ def _on_ranked(job: dict, ctx) -> list[dict]:
     ctx.progress(0.3, f"docking the best candidates of {fragment}")
     found = st.index.propose(st.index.cues[fragment], st.model, n_candidates=int(cfg.get("n_candidates", 100)),
                              top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), also=proposed)
+    _rank_partners_again(found, st, ctx)
     return _proposed(found, st, ctx, "docked")
+
+
+def _rank_partners_again(found, st: _State, ctx) -> None:
+    """Mutual proximity needs each partner's view of the new fragment: the best ``reciprocal``
+    (config, default 10) partners whose kept ranking predates it are ranked again
+    (:meth:`MatchIndex.rank_again`); then the mutual proximity of every stored pair of the fragment
+    and of those partners is brought up to date (``found``'s own on the candidates, stored by
+    :func:`_proposed`)."""
+    if not found:
+        return
+    fragment = found[0].fragment
+    n = int((ctx.config or {}).get("reciprocal", 10))
+    stale = [c.other for c in found[:n] if fragment not in st.index.rankings.get(c.other, ())]
+    if stale:
+        ctx.progress(0.7, f"ranking {len(stale)} partners of {fragment} again (mutual proximity)")
+        st.index.rank_again(stale, st.model, n_candidates=int((ctx.config or {}).get("n_candidates", 100)))
+    for c, m in zip(found, st.index.mutual(fragment, [c.other for c in found])):
+        c.mutual = m
+    mine = {c.other for c in found}
+    updates = []
+    for f in [fragment, *stale]:
+        for p in st.db.ranked(f, limit=10 ** 6):
+            other = p.other(f)
+            if f == fragment and other in mine:
+                continue   # stored with the proposal itself
+            updates.append((f, other, st.index.mutual(f, [other])[0]))
+    st.db.set_mutual(updates)
 
 
 def _proposed(found, st: _State, ctx, stage: str) -> list[dict]:
@@ -164,7 +196,7 @@ def _proposal(c, st: _State, columns) -> Proposal:
         alignment = dict(c.alignment.to_dict(), angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
     ev = evidence_dict(c, columns)
     ev["query"] = c.fragment
-    return Proposal(a, b, c.probability, st.model.version,
+    return Proposal(a, b, c.probability, st.model.version, mutual=c.mutual if np.isfinite(c.mutual) else None,
                     patch_a=patch_q if a == c.fragment else patch_o, patch_b=patch_o if a == c.fragment else patch_q,
                     angle_deg=pose[0] if pose else None, tx_mm=pose[1] if pose else None,
                     ty_mm=pose[2] if pose else None, alignment=alignment, evidence=ev)

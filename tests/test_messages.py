@@ -323,3 +323,13 @@ def test_the_bus_commands_the_docs_list_are_the_protocols():
     assert all(getattr(P, c) == c.encode() for c in to_worker | {c for _, c in rows})
     assert (P.WORKER, P.CLIENT, P.FAIL_ERROR, P.FAIL_REJECTED) == (b"TW1", b"TC1", b"error", b"rejected")
     assert '"error"|"rejected"' in workers.replace("\\|", "|")
+
+
+@pytest.mark.parametrize("bad", [1.5, -0.1, float("nan"), "0.9", True])
+def test_a_proposal_with_a_mutual_proximity_out_of_range_is_refused(bad):
+    with pytest.raises(MessageError, match="mutual"):
+        new_message("match.proposed", fragment="F-1", other="F-2", probability=0.5, mutual=bad)
+    msg = new_message("match.proposed", fragment="F-1", other="F-2", probability=0.5, mutual=0.5)
+    msg["mutual"] = bad   # as a peer might send it
+    with pytest.raises(MessageError, match="mutual"):
+        validate(msg)

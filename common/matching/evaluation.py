@@ -110,8 +110,9 @@ def grouped_cross_validation(x: np.ndarray, y: np.ndarray, groups: np.ndarray, c
     return CVResult(kind, subset if isinstance(subset, str) else "+".join(subset), scores, pred, y, rates, ap, folds)
 
 
-def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=None) -> dict:
-    """Probability of every (candidate) fragment pair of an index under a model.
+def rank_all_pairs(index, model, *, n_candidates: int | None = None, pooling: str = "mutual",
+                   progress=None) -> dict:
+    """Score of every (candidate) fragment pair of an index under a model, pooled over both sides.
 
     Every fragment's hubness is estimated first, as the matcher service does when it proposes the
     fragment (:meth:`~common.matching.index.MatchIndex.refresh_hubness`, 100 pruned candidates).
@@ -119,21 +120,40 @@ def rank_all_pairs(index, model, *, n_candidates: int | None = None, progress=No
     ranked as :meth:`~common.matching.index.MatchIndex.propose` ranks them: stage 2, then the
     colour ribbon on the best :data:`~common.matching.index.RIBBON_CANDIDATES` when the fragment
     has a boundary profile and the model a ribbon calibration
-    (:meth:`~common.matching.index.MatchIndex.rank`; pairs it drops are not proposed). Returns ``{(a, b): probability}`` with ``a < b``, the larger of the two sides'.
+    (:meth:`~common.matching.index.MatchIndex.rank`; pairs it drops are not proposed).
+
+    ``pooling``: how a pair's two rankings become one score — ``"mutual"`` (the station's:
+    :func:`~common.matching.mutual.mutual_pair_scores` of both fragments' lists) or ``"max"`` (the
+    larger of the two sides' probabilities; before mutual proximity). Returns ``{(a, b): score}``
+    with ``a < b``.
     """
+    from common.matching.mutual import mutual_pair_scores
+
+    if pooling not in ("mutual", "max"):
+        raise ValueError(f"pooling is 'mutual' or 'max', got {pooling!r}")
+    lists, best = rank_lists(index, model, n_candidates=n_candidates, progress=progress)
+    return mutual_pair_scores(lists) if pooling == "mutual" else best
+
+
+def rank_lists(index, model, *, n_candidates: int | None = None, progress=None) -> tuple[dict, dict]:
+    """Every fragment's ranking (:func:`rank_all_pairs`): ``(lists, best)`` with ``lists`` fragment →
+    its candidates best first and ``best`` ``{(a, b): the larger of the two sides' probabilities}``."""
     order = list(index._order)
     # each fragment's hubness as the matcher service has it: from its own proposal (pruned candidates)
     index.refresh_hubness(order, model, n_candidates=100 if n_candidates is None else n_candidates)
-    out: dict = {}
+    best: dict = {}
+    lists: dict = {}
     for i, f in enumerate(order):
         cues = index.cues[f]
         others = [o for o in order if o != f] if n_candidates is None else index.candidates(cues, model, n_candidates)
-        for c in index.rank(cues, others, model):
+        ranked = index.rank(cues, others, model)
+        lists[f] = [c.other for c in ranked]
+        for c in ranked:
             key = tuple(sorted((c.fragment, c.other)))
-            out[key] = max(out.get(key, 0.0), c.probability)
+            best[key] = max(best.get(key, 0.0), c.probability)
         if progress and (i % 10 == 0 or i == len(order) - 1):
             progress((i + 1) / len(order), f"ranked {i + 1}/{len(order)} fragments")
-    return out
+    return lists, best
 
 
 def top_k_recall(pair_scores: dict, neighbours, ks=(1, 3, 5, 10), fragments=None) -> dict:

@@ -44,8 +44,14 @@ stages' evidence and the paint continuing across the crack (:mod:`common.matchin
 over the candidate poses) are added to its logit. The proposed pose is the candidate with the best
 contact plus paint (:func:`common.matching.pose.choose_pose`). Candidates that stage 3 does not dock
 keep their order below the docked ones; without a docking calibration the best ``check`` are
-aligned by :func:`common.matching.alignment.align_fragments` instead. Measured figures of every
-stage: docs/matching.md.
+aligned by :func:`common.matching.alignment.align_fragments` instead.
+
+**Mutual proximity** — every fragment's last full ranking is kept (:attr:`MatchIndex.rankings`), and
+a pair's standing in both fragments' rankings is one symmetric score
+(:func:`common.matching.mutual.mutual_proximity`; :meth:`MatchIndex.mutual`): a probability is
+calibrated against its own query's other candidates, so the station orders a fragment's proposals,
+which come from several queries, by it. :meth:`MatchIndex.rank_again` brings a fragment's ranking up
+to date after new fragments arrived. Measured figures of every stage: docs/matching.md.
 """
 
 from __future__ import annotations
@@ -109,6 +115,7 @@ class Candidate:
     paint_mm: float = float("nan")           # stage 3: paint continuing across the crack (mm, paint.py)
     fresco_llr: float = float("nan")         # same-fresco log-likelihood ratio (fresco.py), NaN when not computed
     patch_logit: float = float("nan")        # stage 2: logit of the hubness-corrected probability
+    mutual: float = float("nan")             # mutual proximity of the pair (MatchIndex.mutual), set by propose
 
 
 class MatchIndex:
@@ -149,6 +156,8 @@ class MatchIndex:
         self._poses: dict[tuple[str, str], Docking] = {}
         #: fragment → its docking frame, least recently used first (bounded by DOCK_FRAMES_MB)
         self._frames: OrderedDict[str, DockingFrame] = OrderedDict()
+        #: fragment → its candidates best first, from its last full ranking (propose, rank_again)
+        self.rankings: dict[str, list[str]] = {}
 
     def __len__(self) -> int:
         return len(self._order)
@@ -182,6 +191,7 @@ class MatchIndex:
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
+            self.rankings.pop(cues.fragment, None)
             self._forget_dockings(cues.fragment)
             self._dirty = True
             return
@@ -204,6 +214,7 @@ class MatchIndex:
         self._raw_profiles.pop(fragment, None)
         self._paint_fields.pop(fragment, None)
         self.hubness.pop(fragment, None)
+        self.rankings.pop(fragment, None)
         self._forget_dockings(fragment)
         if not in_tail:
             self._tree = None
@@ -718,7 +729,10 @@ class MatchIndex:
         also = set(also)
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
                            evidence_for=0 if (ribbon or also) else top, dock_candidates=dock_candidates if dock else 0)
+        self.rankings[cues.fragment] = [c.other for c in ranked]
         ranked = ranked[:top] + [c for c in ranked[top:] if c.other in also]
+        for c, m in zip(ranked, self.mutual(cues.fragment, [c.other for c in ranked])):
+            c.mutual = m
         if ribbon or also:
             # the evidence rows (what a verdict will teach) of the kept candidates only
             for c in ranked:
@@ -737,6 +751,38 @@ class MatchIndex:
                     arcs_b = np.concatenate([[c.ribbon_arc_mm[1]], arcs_b])   # wrapped by the aligner
                 c.alignment = align_fragments(contour_a, contour_b, anchors=(arcs_a, arcs_b) if len(arcs_a) else None)
         return ranked
+
+
+    def mutual(self, fragment: str, others) -> list[float]:
+        """Mutual proximity of (``fragment``, other) for each of ``others`` from the two fragments' kept
+        rankings (:func:`common.matching.mutual.mutual_proximity`; a fragment not in the other's
+        ranking, or without one, counts as its last)."""
+        from common.matching.mutual import mutual_proximity
+
+        mine = self.rankings.get(fragment, [])
+        pos = {o: i + 1 for i, o in enumerate(mine)}
+        out = []
+        for o in others:
+            theirs = self.rankings.get(o, [])
+            r_ba = next((i + 1 for i, x in enumerate(theirs) if x == fragment), None)
+            out.append(mutual_proximity(pos.get(o), max(len(mine), 1), r_ba, max(len(theirs), 1)))
+        return out
+
+    def rank_again(self, fragments, model: MatchModel, *, n_candidates: int = 100) -> list[str]:
+        """Rank each of ``fragments`` again against its candidates now (stages 1–3, as :meth:`propose`,
+        without evidence or alignment) and keep the ranking: what a partner's ranking needs once new
+        fragments arrived, for :meth:`mutual`. Dockings are cached by pair, so only pairs new to a
+        fragment's best are docked. Returns the fragments ranked."""
+        done = []
+        for f in fragments:
+            if f not in self.cues or not len(self.cues[f]):
+                continue
+            others = self.candidates(self.cues[f], model, n_candidates)
+            if self.use_hubness:
+                self.refresh_hubness(others, model, n_candidates=n_candidates)
+            self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0)]
+            done.append(f)
+        return done
 
 
 def _dock_by_rules(head: list[Candidate], prob: np.ndarray, paint: np.ndarray, model: MatchModel) -> np.ndarray:

@@ -29,6 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 STATUSES = ("pending", "confirmed", "rejected")
+#: the order of a fragment's proposals and of the review queue: mutual proximity (both fragments'
+#: rankings, comparable across queries), then the probability (one query's), pairs without a mutual
+#: proximity (stored before it existed) last
+ORDER = "mutual IS NULL, mutual DESC, probability DESC, id"
 VERDICTS = ("confirmed", "rejected")
 
 _SCHEMA = """
@@ -47,6 +51,7 @@ CREATE TABLE IF NOT EXISTS proposals (
     model_version TEXT NOT NULL,
     status TEXT NOT NULL DEFAULT 'pending',
     created REAL NOT NULL, updated REAL NOT NULL,
+    mutual REAL,
     UNIQUE (fragment_a, fragment_b));
 CREATE INDEX IF NOT EXISTS proposals_a ON proposals (fragment_a, probability DESC);
 CREATE INDEX IF NOT EXISTS proposals_b ON proposals (fragment_b, probability DESC);
@@ -88,6 +93,9 @@ class Proposal:
     id: int | None = None
     created: float = 0.0
     updated: float = 0.0
+    #: mutual proximity of the pair in both fragments' rankings (common.matching.mutual), in [0, 1);
+    #: what a fragment's proposals and the review queue are ordered by; None before it is known
+    mutual: float | None = None
 
     def other(self, fragment: str) -> str:
         return self.fragment_b if fragment == self.fragment_a else self.fragment_a
@@ -97,6 +105,8 @@ class Proposal:
         d = {"fragment": self.fragment_a, "other": self.fragment_b, "probability": float(self.probability),
              "model_version": self.model_version, "proposal": self.id, "status": self.status,
              "patches": [self.patch_a, self.patch_b]}
+        if self.mutual is not None:
+            d["mutual"] = float(self.mutual)
         if self.angle_deg is not None:
             d["pose"] = {"angle_deg": self.angle_deg, "tx_mm": self.tx_mm, "ty_mm": self.ty_mm,
                          "frame": "other in fragment: p_fragment = R(angle) p_other + t, mm, x right, y down"}
@@ -152,6 +162,10 @@ class ProposalStore:
         # databases made before verdicts kept the pose: add the column (NULL for old verdicts)
         if "pose" not in {r["name"] for r in self._db.execute("PRAGMA table_info(verdicts)")}:
             self._db.execute("ALTER TABLE verdicts ADD COLUMN pose TEXT")
+        # databases made before mutual proximity: add the column (NULL until the pair is ranked again)
+        if "mutual" not in {r["name"] for r in self._db.execute("PRAGMA table_info(proposals)")}:
+            self._db.execute("ALTER TABLE proposals ADD COLUMN mutual REAL")
+        self._db.execute("CREATE INDEX IF NOT EXISTS proposals_status_mutual ON proposals (status, mutual DESC)")
 
     def close(self) -> None:
         self._db.close()
@@ -218,16 +232,18 @@ class ProposalStore:
                     raise ValueError("proposal fragments must be in stored order: use ordered_pair()")
                 self._db.execute(
                     """INSERT INTO proposals (fragment_a, fragment_b, patch_a, patch_b, probability, angle_deg, tx_mm,
-                       ty_mm, alignment, evidence, model_version, status, created, updated)
-                       VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?)
+                       ty_mm, alignment, evidence, model_version, status, created, updated, mutual)
+                       VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?, ?)
                        ON CONFLICT(fragment_a, fragment_b) DO UPDATE SET patch_a=excluded.patch_a,
                        patch_b=excluded.patch_b, probability=excluded.probability,
                        angle_deg=COALESCE(excluded.angle_deg, angle_deg), tx_mm=COALESCE(excluded.tx_mm, tx_mm),
                        ty_mm=COALESCE(excluded.ty_mm, ty_mm), alignment=COALESCE(excluded.alignment, alignment),
-                       evidence=excluded.evidence, model_version=excluded.model_version, updated=excluded.updated""",
+                       evidence=excluded.evidence, model_version=excluded.model_version, updated=excluded.updated,
+                       mutual=COALESCE(excluded.mutual, mutual)""",
                     (a, b, p.patch_a, p.patch_b, float(p.probability), p.angle_deg, p.tx_mm, p.ty_mm,
                      json.dumps(p.alignment) if p.alignment else None,
-                     json.dumps(p.evidence) if p.evidence else None, p.model_version, now, now))
+                     json.dumps(p.evidence) if p.evidence else None, p.model_version, now, now,
+                     None if p.mutual is None else float(p.mutual)))
                 out.append(self.get(a, b))
         return out
 
@@ -237,17 +253,28 @@ class ProposalStore:
         return _proposal(row) if row else None
 
     def ranked(self, fragment: str, limit: int = 20, *, status: str | None = None) -> list[Proposal]:
-        """Proposals involving ``fragment``, most probable first."""
+        """Proposals involving ``fragment``, best first (:data:`ORDER`)."""
         extra = " AND status=?" if status else ""
         args = (fragment,) + ((status,) if status else ())
         q = (f"SELECT * FROM (SELECT * FROM proposals WHERE fragment_a=?{extra} UNION ALL "
-             f"SELECT * FROM proposals WHERE fragment_b=?{extra}) ORDER BY probability DESC, id LIMIT ?")
+             f"SELECT * FROM proposals WHERE fragment_b=?{extra}) ORDER BY {ORDER} LIMIT ?")
         return [_proposal(r) for r in self._db.execute(q, args + args + (int(limit),))]
 
     def pending(self, limit: int = 100) -> list[Proposal]:
-        """All pending proposals, most probable first."""
-        q = "SELECT * FROM proposals WHERE status='pending' ORDER BY probability DESC, id LIMIT ?"
+        """All pending proposals, best first (:data:`ORDER`)."""
+        q = f"SELECT * FROM proposals WHERE status='pending' ORDER BY {ORDER} LIMIT ?"
         return [_proposal(r) for r in self._db.execute(q, (int(limit),))]
+
+    def set_mutual(self, updates: list[tuple[str, str, float]]) -> int:
+        """Set the mutual proximity of stored pairs ``(a, b, mutual)`` (either order); pairs not
+        stored are skipped. Returns how many rows changed."""
+        n = 0
+        with self._tx():
+            for a, b, m in updates:
+                a, b = ordered_pair(a, b)
+                n += self._db.execute("UPDATE proposals SET mutual=? WHERE fragment_a=? AND fragment_b=?",
+                                      (float(m), a, b)).rowcount
+        return n
 
     def all(self) -> list[Proposal]:
         return [_proposal(r) for r in self._db.execute("SELECT * FROM proposals ORDER BY id")]
@@ -356,4 +383,5 @@ def _proposal(r: sqlite3.Row) -> Proposal:
                     angle_deg=r["angle_deg"], tx_mm=r["tx_mm"], ty_mm=r["ty_mm"],
                     alignment=json.loads(r["alignment"]) if r["alignment"] else None,
                     evidence=json.loads(r["evidence"]) if r["evidence"] else None,
-                    status=r["status"], id=r["id"], created=r["created"], updated=r["updated"])
+                    status=r["status"], id=r["id"], created=r["created"], updated=r["updated"],
+                    mutual=r["mutual"])

@@ -343,19 +343,25 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     Neighbours: placed outlines within ``near_px`` along ``min_run_px`` image pixels
     (:func:`~common.matching.collection.collection_wall`; the defaults are RePAIR's).
 
+    A fragment's list is in the station's order: its pairs by mutual proximity of the two
+    fragments' rankings (:mod:`common.matching.mutual`; the station's proposal store orders them so).
+
     Returns
     -------
     dict
         ``pooled_topk`` {1, 5, 10} (share of true neighbour links among a fragment's top k, pooled),
         ``within_object_recall`` {1, 3} (hit rate, ../shared/data/README.md) with
         ``within_object_random`` and ``within_object_incidence`` beside it, ``pair_ap`` (pooled
-        pairs ranked by probability), ``pose_accuracy`` (share of all true neighbour pairs whose
+        pairs ranked by mutual proximity); the same by each query's own order and probability
+        (before mutual proximity: ``within_object_recall_by_query``, ``pooled_topk_by_probability``
+        — a pair's larger probability —, ``pair_ap_by_probability``), ``pose_accuracy`` (share of all true neighbour pairs whose
         proposed relative pose is within 5° and 5 mm), ``pose_errors``, ``n_fragments``,
         ``n_true_pairs``, ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
     """
     from common.matching.alignment import pose_matrix
     from common.matching.collection import collection_wall, relative_pose_error, within_object_recall
     from common.matching.docking import docking_score_at
+    from common.matching.mutual import mutual_pair_scores
     from common.matching.online import bootstrap_model
 
     say = progress or (lambda f, t: None)
@@ -370,25 +376,31 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     obj = {f.id: f.notes.get("object") for f in wall.fragments}
     ids = list(index._order)
     index.refresh_hubness(ids, model, n_candidates=100)
-    pooled, within, proposed = {}, {}, {}
+    pooled_max, pooled_lists, within_query, proposed = {}, {}, {}, {}
     for i, f in enumerate(ids):
         ranked = index.rank(index.cues[f], [o for o in ids if o != f], model)
+        pooled_lists[f] = [c.other for c in ranked]
         for c in ranked:
             key = tuple(sorted((f, c.other)))
-            pooled[key] = max(pooled.get(key, 0.0), c.probability)
+            pooled_max[key] = max(pooled_max.get(key, 0.0), c.probability)
         mates = [o for o in ids if o != f and obj[o] == obj[f]]
         if mates:
             ranked_w = index.rank(index.cues[f], mates, model, dock_candidates=len(mates))
-            within[f] = [c.other for c in ranked_w]
+            within_query[f] = [c.other for c in ranked_w]
             for c in ranked_w:
                 if c.alignment is not None:
                     proposed[(f, c.other)] = c.alignment
         say(0.4 + 0.55 * (i + 1) / len(ids), f"ranked {i + 1}/{len(ids)} fragments")
+    # the station's order of a fragment's proposals: mutual proximity of both fragments' rankings
+    pooled = mutual_pair_scores(pooled_lists)
+    mp_within = mutual_pair_scores(within_query)
+    within = {f: sorted(order, key=lambda o: -mp_within[tuple(sorted((f, o)))]) for f, order in within_query.items()}
     truth: dict = {}
     for a, b, *_ in wall.adjacency:
         truth.setdefault(a, set()).add(b)
         truth.setdefault(b, set()).add(a)
     wo = within_object_recall(within, truth, ks=(1, 3))
+    wo_query = within_object_recall(within_query, truth, ks=(1, 3))
     errors = []
     for a, b, *_ in wall.adjacency:
         al = proposed.get((a, b))
@@ -407,12 +419,15 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
                        "score_best": best})
     ok = sum(1 for e in errors if e["angle_deg"] is not None and e["angle_deg"] <= 5 and e["shift_mm"] <= 5)
     ppr = pair_precision_recall(pooled, wall.adjacency)
+    ppr_max = pair_precision_recall(pooled_max, wall.adjacency)
     result = {
         "collection": str(path), "dpi": float(dpi), "model": model.version,
         "pooled_topk": top_k_recall(pooled, wall.adjacency, (1, 5, 10)),
+        "pooled_topk_by_probability": top_k_recall(pooled_max, wall.adjacency, (1, 5, 10)),
         "within_object_recall": wo["recall"], "within_object_random": wo["random"],
+        "within_object_recall_by_query": wo_query["recall"],
         "within_object_incidence": wo["incidence"], "within_object_fragments": wo["n"],
-        "pair_ap": float(ppr["ap"]), "pose_accuracy": ok / len(errors) if errors else float("nan"),
+        "pair_ap": float(ppr["ap"]), "pair_ap_by_probability": float(ppr_max["ap"]), "pose_accuracy": ok / len(errors) if errors else float("nan"),
         "true_pose_scores_below_best": sum(1 for e in errors if e.get("score_best", np.nan) > e["score_at_truth"]),
         "pose_errors": errors, "n_fragments": len(wall.fragments), "n_true_pairs": len(wall.adjacency),
         "seconds": time.time() - t0, "cpu_seconds": time.process_time() - c0,

@@ -35,7 +35,8 @@ def proposal_dict(p) -> dict:
     if p.angle_deg is not None and p.tx_mm is not None and p.ty_mm is not None:
         pose = {"angle_deg": float(p.angle_deg), "tx_mm": float(p.tx_mm), "ty_mm": float(p.ty_mm)}
     return {"id": int(p.id), "fragment_a": p.fragment_a, "fragment_b": p.fragment_b,
-            "probability": float(p.probability), "status": p.status, "model_version": p.model_version,
+            "probability": float(p.probability), "mutual": None if p.mutual is None else float(p.mutual),
+            "status": p.status, "model_version": p.model_version,
             "pose": pose, "alignment": p.alignment, "updated": p.updated}
 
 

@@ -119,13 +119,15 @@ def _collection(args, progress) -> int:
         raise SystemExit(f"--collection {args.collection}: {exc}")
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
           f"pairs, {res['dpi']:g} dpi, model {res['model']}")
-    print("pooled top-k (links): " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items()))
+    print("pooled top-k (links), mutual proximity: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items())
+          + "; by probability: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk_by_probability"].items()))
     print("within-object recall: " + ", ".join(f"@{k}: {v:.3f} (random {res['within_object_random'][k]:.3f}, "
-                                                f"incidence {res['within_object_incidence'][k]:.3f})"
+                                                f"incidence {res['within_object_incidence'][k]:.3f}, "
+                                                f"one query's order {res['within_object_recall_by_query'][k]:.3f})"
                                                 for k, v in res["within_object_recall"].items()))
     print(f"true pose scored below the docking's best pose for {res['true_pose_scores_below_best']} of "
           f"{res['n_true_pairs']} true pairs")
-    print(f"pair AP {res['pair_ap']:.3f}; pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f}; "
+    print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f}; "
           f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -150,7 +150,7 @@ def main() -> int:
             index.refresh_hubness(index._order, model)
         hub_s = time.perf_counter() - t
         # one new fragment at a time: add, propose (stage 1 + 2), then remove it again
-        times, cpu, align_times, cpu_plain = [], [], [], []
+        times, cpu, align_times, cpu_plain, cpu_mutual = [], [], [], [], []
         for r in range(args.repeats):
             c, contour, profile = pool[rng.integers(len(pool))]
             q = jittered(c, f"Q{n}-{r}", rng)
@@ -159,6 +159,11 @@ def main() -> int:
             found = index.propose(q, model, n_candidates=100, top=10, check=0, dock_candidates=docked)
             times.append(time.perf_counter() - t)
             cpu.append(time.process_time() - tc)
+            # the matcher's docked answer then ranks the best partners again for mutual proximity
+            # (services/matcher.py, _rank_partners_again: those whose ranking predates the new fragment)
+            tc = time.process_time()
+            index.rank_again([c.other for c in found if q.fragment not in index.rankings.get(c.other, ())], model)
+            cpu_mutual.append(time.process_time() - tc)
             if args.pool:
                 # the matcher's first answer (services/matcher.py): stages 1–2½, docking left to its own job
                 tc = time.process_time()
@@ -216,6 +221,8 @@ def main() -> int:
         rerank(index, model, stored_pairs)
         rescore = time.perf_counter() - t
         print(f"hubness of {n} fragments: {hub_s:.1f} s")
+        print(f"partners ranked again after the docked answer (mutual proximity): median "
+              f"{1e3 * np.median(cpu_mutual):.0f} ms CPU, max {1e3 * np.max(cpu_mutual):.0f} ms")
         print(f"{n:6d} {build:8.2f} {1e3 * np.median(times):10.1f} / {1e3 * np.percentile(times, 90):7.1f} "
               f"{1e3 * np.median(cpu):8.1f} {1e3 * np.median(align_times):10.1f} {full:9.1f} / {full_cpu:7.1f} "
               f"{rescore:10.1f} {peak_rss_mb():12.0f}"

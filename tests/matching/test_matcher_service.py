@@ -47,7 +47,20 @@ def test_features_ready_proposes_ranked_joins_and_stores_them(station):
     last = [e for e in events if ids[-1] in (e["fragment"], e["other"])]
     assert 1 <= len(last) <= 5
     ranked = db.ranked(ids[-1])
-    assert [p.probability for p in ranked] == sorted((p.probability for p in ranked), reverse=True)
+    # a fragment's proposals come from several queries: ordered by their mutual proximity, which
+    # every stored pair has, in [0, 1)
+    assert all(p.mutual is not None and 0.0 <= p.mutual < 1.0 for p in db.all())
+    assert [p.mutual for p in ranked] == sorted((p.mutual for p in ranked), reverse=True)
+    # the last fragment's best partners were ranked again, so their rankings know it, and its
+    # proposals' mutual proximity is the closed form of its rank in both rankings
+    st = matcher._state(ctx)
+    mine = st.index.rankings[ids[-1]]
+    for p in ranked[:3]:
+        other = p.other(ids[-1])
+        theirs = st.index.rankings[other]
+        assert ids[-1] in theirs
+        x = (mine.index(other) + 1) / len(mine) * (theirs.index(ids[-1]) + 1) / len(theirs)
+        assert p.mutual == pytest.approx(1 - x * (1 - np.log(x)), abs=1e-9)
     assert db.count() >= len(ids)
     # the best proposals were aligned: their pose maps B onto A without overlap
     aligned = [p for p in db.all() if p.alignment]

@@ -117,3 +117,38 @@ def test_database_from_before_verdict_poses_opens_and_gains_the_column(tmp_path)
     with ProposalStore(db) as s:
         assert s.verdicts()[0].pose is None
         assert s.record_verdict("A", "B", "rejected", message_uid="u2").pose["tx_mm"] == 1.0
+
+
+def test_proposals_are_ordered_by_mutual_proximity_then_probability(tmp_path):
+    # probabilities from different queries are not comparable; the mutual proximity of both
+    # fragments' rankings is, so it orders a fragment's list and the queue (pairs without one last)
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("F1", "F2", 0.3), make("F1", "F3", 0.99), make("F1", "F4", 0.6), make("F1", "F5", 0.95)])
+        assert s.set_mutual([("F2", "F1", 0.9), ("F1", "F3", 0.2), ("F1", "F4", 0.5), ("F1", "F9", 0.7)]) == 3
+        assert [p.other("F1") for p in s.ranked("F1")] == ["F2", "F4", "F3", "F5"]
+        assert [p.other("F1") for p in s.pending()] == ["F2", "F4", "F3", "F5"]
+        assert s.get("F1", "F2").mutual == 0.9 and s.get("F1", "F5").mutual is None
+        # an upsert without a mutual proximity keeps the stored one; one with it replaces it
+        s.upsert([make("F1", "F2", 0.4)])
+        assert s.get("F1", "F2").mutual == 0.9
+        p = make("F1", "F2", 0.4)
+        p.mutual = 0.1
+        s.upsert([p])
+        assert s.get("F1", "F2").mutual == 0.1
+        assert s.get("F1", "F2").to_event_fields()["mutual"] == 0.1
+
+
+def test_database_from_before_mutual_proximity_opens_and_gains_the_column(tmp_path):
+    db = tmp_path / "old.sqlite"
+    with ProposalStore(db) as s:
+        s.upsert([make("A", "B", 0.8), make("A", "C", 0.9)])
+    con = sqlite3.connect(db)   # make it look like an old database: no mutual column
+    con.execute("DROP INDEX proposals_status_mutual")
+    con.execute("ALTER TABLE proposals DROP COLUMN mutual")
+    con.commit()
+    con.close()
+    with ProposalStore(db) as s:
+        assert [p.mutual for p in s.ranked("A")] == [None, None]
+        assert [p.other("A") for p in s.ranked("A")] == ["C", "B"]   # by probability until known
+        s.set_mutual([("A", "B", 0.5)])
+        assert [p.other("A") for p in s.ranked("A")] == ["B", "C"]

@@ -55,7 +55,8 @@
     }
     $("proposal-title").textContent = `${p.fragment_a} ↔ ${p.fragment_b}`;
     const pose = p.pose ? `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "no pose yet";
-    $("proposal-meta").textContent = `probability ${pct(p.probability)} · ${p.status} · ${pose} · model ${p.model_version}`;
+    const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual ${p.mutual.toFixed(3)}`;
+    $("proposal-meta").textContent = `probability ${pct(p.probability)}${mutual} · ${p.status} · ${pose} · model ${p.model_version}`;
     showPictures(p);
     if (!Tessera.loggedIn()) $("review-message").textContent = "Log in (top right) to confirm or reject.";
   }
