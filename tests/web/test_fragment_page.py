@@ -239,7 +239,8 @@ def test_bad_requests_are_refused_with_a_reason(client, url, code, words):
 @pytest.mark.slow
 def test_fragment_page_in_chromium(tmp_path):
     """First picture, relighting by dragging, zoom to the level-0 tiles, a measurement in mm that
-    matches the image's dpi, the scale bar, joins as links."""
+    matches the image's dpi, the scale bar, joins as links; every request goes to the station
+    (OpenSeadragon's too), relighting uploads no texture, a face let go frees its textures."""
     require_browser()
     from playwright.sync_api import sync_playwright
 
@@ -260,8 +261,9 @@ def test_fragment_page_in_chromium(tmp_path):
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
-            errors = []
+            errors, requests = [], []
             page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("request", lambda r: requests.append(r.url))
             open_viewer(page, f"{web.url}/fragments/F-1?face=front")
             first = page.evaluate("() => tesseraViewer.stats.firstTileMs")
             assert first is not None and page.evaluate("() => tesseraViewer.level()") >= 1
@@ -296,6 +298,10 @@ def test_fragment_page_in_chromium(tmp_path):
                     let s = 0; for (let i = 0; i < px.length; i += 4) s += px[i] + px[i + 1] + px[i + 2];
                     return s / (px.length / 4 * 3); }""")
             assert len({round(m, 1) for m in means.values()}) == len(means), means
+            # relighting is uniforms only: frames with another light upload no texture
+            uploads = page.evaluate("() => tesseraViewer.stats.uploads")
+            assert page.evaluate("() => tesseraViewer.frameTime(5)") > 0
+            assert page.evaluate("() => tesseraViewer.stats.uploads") == uploads
             page.select_option("#style", "raking")
             screenshot(page, shots / "fragment-raking.png")
 
@@ -314,6 +320,9 @@ def test_fragment_page_in_chromium(tmp_path):
             page.mouse.move(cx, cy)
             page.mouse.wheel(0, -400)
             page.wait_for_function(f"() => tesseraViewer.view.zoom > {v1['zoom']} * 1.5")
+            # (OpenSeadragon animates the zoom: wait until the view has arrived)
+            page.wait_for_function("""() => { const a = tesseraViewer.view, b = tesseraViewer.currentView();
+                return a.zoom === b.zoom && a.cx === b.cx && a.cy === b.cy; }""")
             after = page.evaluate(f"() => tesseraViewer.toImage({cx - box['x']} * {dpr}, {cy - box['y']} * {dpr})")
             # the point under the pointer stays (within the rounding of event coordinates to a CSS pixel)
             tol = dpr / v1["zoom"]
@@ -339,9 +348,12 @@ def test_fragment_page_in_chromium(tmp_path):
             assert abs(bar["px"] - bar["mm"] * 600.0 / 25.4 * zoom) < 1e-6 and 40 <= bar["px"] / dpr <= 130
             screenshot(page, shots / "fragment-measure.png")
 
-            # the back: another face in the same canvas, the front's viewer let go
+            # the back: another face in the same canvas, the front's viewer let go with its textures
+            page.evaluate("() => { window.front = tesseraViewer; }")
+            assert page.evaluate("() => front.stats.gpuTiles") > 0
             page.click("#faces button[data-face=back]")
             page.wait_for_function("() => tesseraViewer.info.width === 700 && tesseraViewer.stats.complete")
+            assert page.evaluate("() => front.stats.gpuTiles") == 0
             assert page.text_content("#face-info").startswith("29.6 × 21.2 mm")
             screenshot(page, shots / "fragment-back.png")
             page.click("#faces button[data-face=front]")
@@ -352,6 +364,9 @@ def test_fragment_page_in_chromium(tmp_path):
             open_viewer(page, page.url)
             assert page.locator("#faces button").count() == 1
             assert not errors, errors
+            # nothing from outside the station: no CDN, and none of OpenSeadragon's default addresses
+            outside = [u for u in requests if not u.startswith(web.url + "/")]
+            assert requests and not outside, outside
             browser.close()
     finally:
         web.stop()

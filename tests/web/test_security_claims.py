@@ -1,9 +1,11 @@
 """docs/web.md "Access" and docs/security.md against the web app: every page, the archive's too,
 loads only what the station serves (no CDN, no font or script from elsewhere), under a
-Content-Security-Policy of 'self'; every static file names no outside address."""
+Content-Security-Policy of 'self'; every static file of ours names no outside address; the vendored
+OpenSeadragon is the file its vendoring script recorded."""
 
 from __future__ import annotations
 
+import hashlib
 import re
 from pathlib import Path
 
@@ -18,6 +20,7 @@ from .conftest import TOKEN
 
 STATIC = Path(web.__file__).resolve().parent / "static"
 TEMPLATES = Path(web.__file__).resolve().parent / "templates"
+VENDOR = STATIC / "vendor"
 # identifiers that look like addresses but are never fetched (XML namespaces)
 _NOT_FETCHED = {"http://www.w3.org/2000/svg"}
 
@@ -52,7 +55,11 @@ def test_every_page_the_archive_included_loads_only_the_stations_assets(archive_
 
 
 def test_no_static_file_or_template_names_an_outside_address():
-    files = [p for p in [*STATIC.rglob("*"), *TEMPLATES.rglob("*")] if p.is_file()]
+    """Our files, that is: the vendored libraries (static/vendor/) carry addresses that are
+    identifiers (IIIF contexts, the Deep Zoom namespace) or defaults of tile sources the station
+    never opens; what the fragment page really requests, OpenSeadragon's included, is checked in
+    Chromium (test_fragment_page.py: every request goes to the station)."""
+    files = [p for p in [*STATIC.rglob("*"), *TEMPLATES.rglob("*")] if p.is_file() and not p.is_relative_to(VENDOR)]
     assert any(p.suffix == ".js" for p in files) and any(p.suffix == ".frag" for p in files)
     found = []
     for p in files:
@@ -65,3 +72,17 @@ def test_api_answers_are_not_cached_and_carry_the_same_policy(archive_app):
     r = archive_app.test_client().get("/api/catalogue")
     assert r.status_code == 200
     assert r.headers["Cache-Control"] == "no-store" and "default-src 'self'" in r.headers["Content-Security-Policy"]
+
+
+def test_the_served_openseadragon_is_the_vendored_release(archive_app):
+    """deploy/vendor-openseadragon.sh recorded the npm release's sha256 beside the file; the station
+    serves exactly that file, with its licence, and the fragment page loads it from the station."""
+    folder = VENDOR / "openseadragon"
+    recorded, name = (folder / "openseadragon.min.js.sha256").read_text().split()
+    assert name == "openseadragon.min.js" and (folder / "VERSION").read_text().strip() == "6.1.1"
+    c = archive_app.test_client()
+    r = c.get("/static/vendor/openseadragon/openseadragon.min.js")
+    assert r.status_code == 200 and hashlib.sha256(r.data).hexdigest() == recorded
+    assert b"openseadragon 6.1.1" in r.data[:200]
+    assert "Redistribution and use in source and binary forms" in (folder / "LICENSE.txt").read_text()   # BSD-3
+    assert '<script src="/static/vendor/openseadragon/openseadragon.min.js">' in c.get("/fragments/F1").get_data(as_text=True)

@@ -82,7 +82,7 @@
     const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
     const light = viewer ? viewer.light : null;
     if (viewer) viewer.dispose();
-    viewer = new RelightViewer.Viewer($("gl"), $("overlay"), face.relight, p);
+    viewer = new RelightViewer.Viewer($("gl"), $("overlay"), face.relight, p);   // OpenSeadragon fills #gl
     window.tesseraViewer = viewer;     // for the browser tests and the curious
     viewer.onerror = (e) => message(String(e.message || e));
     viewer.onchange = syncControls;
@@ -184,7 +184,7 @@
   }
   $("auto-contrast").addEventListener("click", autoContrast);
   $("fit").addEventListener("click", () => viewer.fit());
-  $("one-to-one").addEventListener("click", () => { viewer.view.zoom = 1; viewer.draw(); });
+  $("one-to-one").addEventListener("click", () => viewer.oneToOne());
 
   function setMode(m) {
     mode = m;
@@ -194,34 +194,40 @@
   for (const b of document.querySelectorAll(".tools button")) b.addEventListener("click", () => setMode(b.dataset.mode));
   setMode("light");
 
-  // ---- pointer: light, pan, measure; wheel zooms; middle or right button always pans --------------
+  // ---- pointer: light, measure; pan and zoom are OpenSeadragon's ---------------------------------
+  // A drag with the left button does what the tool says. In the pan tool, or with Shift, the drag
+  // goes on to OpenSeadragon, which pans (its "canvas-drag", viewer.js). The middle and right buttons
+  // pan here (OpenSeadragon drags with the primary button only). The listeners are on the viewer's
+  // box in the capture phase, so a light or measuring drag is taken before OpenSeadragon sees it.
   const area = $("viewer");
   let drag = null;
   const canvasXY = (e) => {
-    const r = $("gl").getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
+    const r = viewer.canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
     return [(e.clientX - r.left) * dpr, (e.clientY - r.top) * dpr];
   };
   // RTIViewer's light sphere: the pointer's offset from the centre of the view is the light's
   // projection on the image plane (the rim = grazing, the centre = from the viewer)
   function lightFrom(e) {
-    const [x, y] = canvasXY(e), c = $("gl");
-    const dx = (x - c.width / 2) / (Math.min(c.width, c.height) / 2), dy = -(y - c.height / 2) / (Math.min(c.width, c.height) / 2);
+    const [x, y] = canvasXY(e), c = viewer.canvas, half = Math.min(c.width, c.height) / 2;
+    const dx = (x - c.width / 2) / half, dy = -(y - c.height / 2) / half;
     const r = Math.min(1, Math.hypot(dx, dy));
     viewer.setLight(Math.atan2(dy, dx) * 180 / Math.PI, Math.acos(r) * 180 / Math.PI);
   }
   area.addEventListener("contextmenu", (e) => e.preventDefault());
   area.addEventListener("pointerdown", (e) => {
-    if (!viewer) return;
+    if (!viewer || !viewer.osd) return;
+    const m = e.button === 1 || e.button === 2 ? "pan" : e.button === 0 && !e.shiftKey && mode !== "pan" ? mode : null;
+    if (!m) return;                    // OpenSeadragon's: a pan
+    e.stopPropagation();
     area.setPointerCapture(e.pointerId);
-    const m = e.button !== 0 || e.shiftKey ? "pan" : mode;
     drag = { m, last: canvasXY(e) };
     if (m === "light") lightFrom(e);
     if (m === "measure") { viewer.measure = { a: viewer.toImage(...drag.last), b: null }; viewer.draw(); }
-  });
+  }, { capture: true });
   area.addEventListener("pointermove", (e) => {
     if (!drag) return;
     const p = canvasXY(e);
-    if (drag.m === "pan") { viewer.pan(p[0] - drag.last[0], p[1] - drag.last[1]); }
+    if (drag.m === "pan") viewer.pan(p[0] - drag.last[0], p[1] - drag.last[1], true);
     else if (drag.m === "light") lightFrom(e);
     else if (drag.m === "measure") { viewer.measure.b = viewer.toImage(...p); viewer.draw(); syncControls(); }
     drag.last = p;
@@ -229,18 +235,21 @@
   const end = () => { if (drag && drag.m === "light") lightMoved(); drag = null; syncControls(); };
   area.addEventListener("pointerup", end);
   area.addEventListener("pointercancel", end);
+  // the wheel zooms about the pointer, in proportion to the wheel's turn (a touchpad's small steps
+  // too); OpenSeadragon animates it
   area.addEventListener("wheel", (e) => {
-    if (!viewer) return;
+    if (!viewer || !viewer.osd) return;
     e.preventDefault();
+    e.stopPropagation();
     viewer.zoomAt(Math.exp(-e.deltaY * 0.0015), ...canvasXY(e));
-  }, { passive: false });
+  }, { passive: false, capture: true });
   document.addEventListener("keydown", (e) => {
-    if (!viewer || e.target.closest("input, select, textarea")) return;
-    const k = e.key.toLowerCase(), step = 80;
+    if (!viewer || !viewer.osd || e.target.closest("input, select, textarea")) return;
+    const k = e.key.toLowerCase(), step = 80, c = viewer.canvas;
     if (k === "l") setMode("light"); else if (k === "p") setMode("pan"); else if (k === "m") setMode("measure");
-    else if (k === "f") viewer.fit(); else if (k === "1") { viewer.view.zoom = 1; viewer.draw(); }
-    else if (k === "+" || k === "=") viewer.zoomAt(1.25, $("gl").width / 2, $("gl").height / 2);
-    else if (k === "-") viewer.zoomAt(0.8, $("gl").width / 2, $("gl").height / 2);
+    else if (k === "f") viewer.fit(); else if (k === "1") viewer.oneToOne();
+    else if (k === "+" || k === "=") viewer.zoomAt(1.25, c.width / 2, c.height / 2);
+    else if (k === "-") viewer.zoomAt(0.8, c.width / 2, c.height / 2);
     else if (e.key === "ArrowLeft") viewer.pan(step, 0); else if (e.key === "ArrowRight") viewer.pan(-step, 0);
     else if (e.key === "ArrowUp") viewer.pan(0, step); else if (e.key === "ArrowDown") viewer.pan(0, -step);
     else return;

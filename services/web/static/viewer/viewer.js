@@ -1,16 +1,28 @@
-// The relighting viewer: a tiled WebGL2 deep-zoom viewer that shades RGBN fields in the shader.
+// The relighting viewer: OpenSeadragon 6 for deep zoom, a WebGL2 drawer of its own that shades RGBN
+// fields in the style shaders.
 //
 // The server cuts every face into a pyramid of 256-px tiles of the light-independent fields
 // (common/web/relight.py: the normals as solved and smoothed at the scales the styles need, the mean
-// curvature, the display albedo and mask). A tile is fetched once, uploaded once as five textures and
-// kept; moving the light, changing a style's parameters or the contrast only changes uniforms, so a
-// frame is one draw call per visible tile and no texture upload. The style shaders are the files
-// next to this one, named like the offline styles they mirror (common/render/recipes.py).
+// curvature, the display albedo and mask). OpenSeadragon (vendored: static/vendor/openseadragon/)
+// does the navigation and the tile management: zoom, pan and their animation, which level the view
+// needs, the queue of tile requests, the coarser tiles drawn until finer ones arrive, the cache and
+// its eviction. What is ours:
 //
-// No framework, no build step, nothing from the network but this station.
+// * RelightTileSource: the relight pyramid as an OpenSeadragon TileSource; a tile is downloaded as
+//   an ArrayBuffer (HTTP gzip decodes it) into the data type RELIGHT_TILE (typed views of its
+//   fields), which is what OpenSeadragon keeps in its tile cache;
+// * RelightDrawer: an OpenSeadragon.DrawerBase subclass (type "tessera-relight") that accepts only
+//   RELIGHT_TILE. The first time it draws a tile it uploads the tile's five textures and keeps them
+//   as the drawer's private cache of that tile; OpenSeadragon frees them (internalCacheFree) when it
+//   unloads the tile. Moving the light, changing a style's parameters or the contrast only changes
+//   uniforms, so a frame is one draw call per tile OpenSeadragon asks for and no texture upload.
+//
+// The style shaders are the files next to this one, named like the offline styles they mirror
+// (common/render/recipes.py). Nothing is fetched from the network but this station.
 "use strict";
 
 const RelightViewer = (() => {
+  const OSD = OpenSeadragon;
   const HERE = (document.currentScript && document.currentScript.src) ?
     document.currentScript.src.replace(/[^/]*$/, "") : "/static/viewer/";
 
@@ -88,44 +100,69 @@ const RelightViewer = (() => {
     },
   };
 
-  class Viewer {
-    // canvas: the WebGL canvas; overlay: a 2D canvas on top (scale bar, measurements, light)
-    // base: URL of the face's relight API (…/relight), params: its params.json
-    constructor(canvas, overlay, base, params) {
-      this.canvas = canvas;
-      this.overlay = overlay;
+  // ---- the relight pyramid as an OpenSeadragon tile source ------------------------------------
+
+  // The data type of a downloaded tile in OpenSeadragon's cache: {w, h, planes: three Uint16Array
+  // (float16 RGBA: n|n0, n1|n2, n3|nu), curv: Uint16Array (float16 H), colour: Uint8Array (RGBA)}.
+  const RELIGHT_TILE = "tessera-relight-tile";
+
+  // typed views of a tile's bytes (format: common/web/relight.py), checked against its size
+  function unpackTile(buf, w, h, name) {
+    const n = w * h;
+    if (buf.byteLength !== n * 12 * 2 + n * 2 + n * 4) throw new Error(`tile ${name} has ${buf.byteLength} bytes`);
+    // the float16 part is three RGBA planes, one after the other
+    return { w, h, planes: [0, 1, 2].map((k) => new Uint16Array(buf, k * n * 8, n * 4)),
+             curv: new Uint16Array(buf, n * 24, n), colour: new Uint8Array(buf, n * 26, n * 4) };
+  }
+
+  // OpenSeadragon numbers levels from a 1-pixel image up (its maxLevel is full resolution); the
+  // relight pyramid from full resolution (0) down, each level the one before halved, rounding up,
+  // which is OpenSeadragon's own level size. Only the pyramid's levels are offered (minLevel).
+  class RelightTileSource extends OSD.TileSource {
+    constructor(base, params) {
+      const [width, height] = params.levels[0];
+      const maxLevel = Math.ceil(Math.log2(Math.max(width, height, 2)));
+      super({ width, height, tileSize: params.tile_px, tileOverlap: 0,
+              minLevel: maxLevel - (params.levels.length - 1), maxLevel });
       this.base = base;
-      this.info = params;
-      this.tile = params.tile_px;
       this.levels = params.levels;
-      this.pxPerMm = params.dpi / 25.4;
-      this.style = "albedo";
-      this.values = {};
-      for (const [k, s] of Object.entries(STYLES)) this.values[k] = JSON.parse(JSON.stringify(s.defaults));
-      this.light = [135, 45];
-      this.background = [1, 1, 1];
-      this.tiles = new Map();          // "L/r/c" -> {tex: [...], w, h} | "loading" | "failed"
-      this.view = { cx: params.width / 2, cy: params.height / 2, zoom: 1 };
-      this.measure = null;             // {a: [x, y], b: [x, y]} in level-0 pixels
-      this.stats = { firstPictureMs: null, firstTileMs: null, completeMs: null, frames: 0, tilesLoaded: 0, uploadsLastFrame: 0 };
-      this.onchange = null;
-      this._scheduled = false;
     }
 
-    async init() {
-      this.stats.initMs = performance.now();
+    relightLevel(level) { return this.maxLevel - level; }
+
+    getTileUrl(level, x, y) { return `${this.base}/tiles/${this.relightLevel(level)}/${y}_${x}`; }
+
+    // the tile's bytes with fetch (the same request as the page's preload of the top level)
+    downloadTileStart(job) {
+      const t = job.tile, L = this.relightLevel(t.level), size = this.tilePixels(L, t.y, t.x);
+      const name = `${L}/${t.y}/${t.x}`, abort = job.userData.abort = new AbortController();
+      fetch(job.src, { signal: abort.signal }).then((r) => {
+        if (!r.ok) throw new Error(`tile ${name}: HTTP ${r.status}`);
+        return r.arrayBuffer();
+      }).then((buf) => job.finish(unpackTile(buf, size[0], size[1], name), null, RELIGHT_TILE))
+        .catch((e) => { if (!abort.signal.aborted) job.fail(String(e.message || e), null); });
+    }
+
+    // OpenSeadragon has failed the job itself
+    downloadTileAbort(job) { job.userData.abort.abort(); }
+
+    // [w, h] in pixels of tile (row r, column c) of relight level L
+    tilePixels(L, r, c) {
+      const [lw, lh] = this.levels[L], t = this.getTileWidth();
+      return [Math.min(t, lw - c * t), Math.min(t, lh - r * t)];
+    }
+  }
+
+  // ---- the drawer ---------------------------------------------------------------------------
+
+  class RelightDrawer extends OSD.DrawerBase {
+    // options.relight: the Viewer below (style, light, values; stats)
+    constructor(options) {
+      super(options);
+      this.relight = this.options.relight;
       const gl = this.canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true,
                                                      premultipliedAlpha: false, alpha: false });
-      if (!gl) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
       this.gl = gl;
-      this.stats.contextMs = performance.now();
-      const names = Object.keys(STYLES);
-      const [vert, common, ...frags] = await shaderSources();
-      this.stats.sourcesMs = performance.now();
-      // sources now, programs when a style is first drawn (compiling all of them would delay the
-      // first picture); a style's compile error still shows at once: the page draws it first
-      this.sources = {};
-      names.forEach((n, i) => { this.sources[n] = [vert, "#version 300 es\n" + common + "\n" + frags[i]]; });
       this.programs = {};
       this.quad = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, this.quad);
@@ -134,25 +171,81 @@ const RelightViewer = (() => {
       gl.bindVertexArray(this.vao);
       gl.enableVertexAttribArray(0);
       gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
-      this.resize();
-      this.fit();
-      this._observer = new ResizeObserver(() => { this.resize(); this.draw(); });
-      this._observer.observe(this.canvas);
     }
 
-    // let go of the GPU memory and the canvas (another face takes it)
-    dispose() {
-      this.disposed = true;
-      if (this._observer) this._observer.disconnect();
-      const gl = this.gl;
-      if (!gl) return;
-      for (const t of this.tiles.values()) if (t && t.tex) t.tex.forEach((x) => gl.deleteTexture(x));
-      this.tiles.clear();
-      for (const p of Object.values(this.programs || {})) gl.deleteProgram(p.p);
+    // the private cache (the textures) is made in the drawing loop, from the tile's cached
+    // RELIGHT_TILE: one upload when a tile is first drawn
+    get defaultOptions() { return { usePrivateCache: true, preloadCache: false }; }
+
+    getType() { return "tessera-relight"; }
+
+    getSupportedDataFormats() { return [RELIGHT_TILE]; }
+
+    static isSupported() {
+      return !!document.createElement("canvas").getContext("webgl2");
     }
 
-    _program(vsrc, fsrc, name) {
+    canRotate() { return false; }
+
+    // the drawer picks its own filtering (sharp texels when zoomed far in, see draw)
+    setImageSmoothingEnabled() {}
+
+    _createDrawingElement() {
+      const canvas = OSD.makeNeutralElement("canvas"), size = this._canvasSize();
+      canvas.width = size[0];
+      canvas.height = size[1];
+      return canvas;
+    }
+
+    _canvasSize() {
+      const c = this.viewport.getContainerSize(), dpr = OSD.pixelDensityRatio;
+      return [Math.max(1, Math.round(c.x * dpr)), Math.max(1, Math.round(c.y * dpr))];
+    }
+
+    destroy() {
+      this.destroyInternalCache();     // the tiles' textures, while the context is there
       const gl = this.gl;
+      for (const p of Object.values(this.programs)) gl.deleteProgram(p.p);
+      gl.deleteBuffer(this.quad);
+      gl.deleteVertexArray(this.vao);
+      super.destroy();
+      this.container.removeChild(this.canvas);
+      // the GPU memory now, not when the canvas is collected (browsers cap live contexts)
+      const lose = gl.getExtension("WEBGL_lose_context");
+      if (lose) lose.loseContext();
+    }
+
+    // five textures of a tile: three RGBA16F, one R16F, one RGBA8
+    internalCacheCreate(cache) {
+      const gl = this.gl, d = cache.data;
+      const tex = (internal, format, type, data) => {
+        const x = gl.createTexture();
+        gl.bindTexture(gl.TEXTURE_2D, x);
+        gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+        gl.texImage2D(gl.TEXTURE_2D, 0, internal, d.w, d.h, 0, format, type, data);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+        return x;
+      };
+      const textures = d.planes.map((p) => tex(gl.RGBA16F, gl.RGBA, gl.HALF_FLOAT, p));
+      textures.push(tex(gl.R16F, gl.RED, gl.HALF_FLOAT, d.curv));
+      textures.push(tex(gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, d.colour));
+      this.relight.stats.uploads += 1;
+      this.relight.stats.gpuTiles += 1;
+      return { tex: textures, mag: gl.LINEAR };
+    }
+
+    internalCacheFree(data) {
+      if (!this.gl.isContextLost()) data.tex.forEach((x) => this.gl.deleteTexture(x));
+      data.tex = [];
+      this.relight.stats.gpuTiles -= 1;
+    }
+
+    _program(name) {
+      if (this.programs[name]) return this.programs[name];
+      const gl = this.gl, [vsrc, fsrc] = this.relight.sources[name];
       const shader = (type, src) => {
         const s = gl.createShader(type);
         gl.shaderSource(s, src);
@@ -172,65 +265,216 @@ const RelightViewer = (() => {
         const u = gl.getActiveUniform(p, i);
         loc[u.name] = gl.getUniformLocation(p, u.name);
       }
-      return { p, loc };
+      return (this.programs[name] = { p, loc });
     }
 
-    // ---- view --------------------------------------------------------------------------------
-    resize() {
-      const dpr = window.devicePixelRatio || 1;
-      const w = Math.max(1, Math.round(this.canvas.clientWidth * dpr));
-      const h = Math.max(1, Math.round(this.canvas.clientHeight * dpr));
-      for (const c of [this.canvas, this.overlay]) {
-        if (c.width !== w || c.height !== h) { c.width = w; c.height = h; }
+    // Draw the tiles OpenSeadragon asks for (coarser ones first, where finer ones have not arrived)
+    // with the current style's shader, each as a quad at its place in the view.
+    draw(tiledImages) {
+      const v = this.relight, gl = this.gl, t0 = performance.now();
+      const [W, H] = this._canvasSize();
+      if (this.canvas.width !== W || this.canvas.height !== H) { this.canvas.width = W; this.canvas.height = H; }
+      gl.viewport(0, 0, W, H);
+      const bg = v.background;
+      gl.clearColor(bg[0], bg[1], bg[2], 1);
+      gl.clear(gl.COLOR_BUFFER_BIT);
+      const name = v.info.has_normals || !STYLES[v.style].needsNormals ? v.style : "albedo";
+      const prog = this._program(name);
+      gl.useProgram(prog.p);
+      gl.bindVertexArray(this.vao);
+      const set = (u, kind, val) => {
+        const l = prog.loc[u];
+        if (l === undefined || l === null) return;
+        if (kind === "1f") gl.uniform1f(l, val); else if (kind === "1i") gl.uniform1i(l, val);
+        else if (kind === "2f") gl.uniform2f(l, val[0], val[1]); else if (kind === "3f") gl.uniform3f(l, ...val);
+      };
+      set("u_canvas", "2f", [W, H]);
+      set("u_light", "3f", v.lightVector());
+      set("u_background", "3f", bg);
+      for (const [u, [kind, val]] of Object.entries(STYLES[name].uniforms(v.values[name]))) set(u, kind, val);
+      ["u_n01", "u_n23", "u_n3u", "u_curv", "u_colour"].forEach((u, i) => set(u, "1i", i));
+      const view = v.currentView(), target = v.level();
+      let drawn = 0, stand = 0, complete = tiledImages.length > 0;
+      for (const image of tiledImages) {
+        const source = image.source, t = source.getTileWidth();
+        for (const { tile } of image.getTilesToDraw()) {
+          const cache = this.getDataToDraw(tile);
+          if (!cache) continue;
+          const L = source.relightLevel(tile.level), f = 2 ** L;
+          const [w, h] = source.tilePixels(L, tile.y, tile.x);
+          // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
+          const mag = view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
+          cache.tex.forEach((x, i) => {
+            gl.activeTexture(gl.TEXTURE0 + i);
+            gl.bindTexture(gl.TEXTURE_2D, x);
+            if (cache.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
+          });
+          cache.mag = mag;
+          // the tile's exact footprint in level-0 pixels (its level's pixels are 2^L of them)
+          const [x0, y0] = v.toCanvas(tile.x * t * f, tile.y * t * f, view);
+          const [x1, y1] = v.toCanvas((tile.x * t + w) * f, (tile.y * t + h) * f, view);
+          gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
+          gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+          if (L === target) drawn += 1; else stand += 1;
+        }
+        complete = complete && image.getFullyLoaded();
       }
+      v.drawn(drawn, stand, complete && drawn > 0, performance.now() - t0);
+    }
+  }
+  // registered under its type, as OpenSeadragon finds drawers (OpenSeadragon.determineDrawer)
+  OSD.TesseraRelightDrawer = RelightDrawer;
+
+  // ---- the viewer: OpenSeadragon + the drawer, the style and light, the overlay ----------------
+
+  class Viewer {
+    // element: the (empty) element OpenSeadragon fills; overlay: a 2D canvas on top (scale bar,
+    // measurements, light); base: URL of the face's relight API (…/relight), params: its params.json
+    constructor(element, overlay, base, params) {
+      this.element = element;
+      this.overlay = overlay;
+      this.base = base;
+      this.info = params;
+      this.levels = params.levels;
+      this.pxPerMm = params.dpi / 25.4;
+      this.style = "albedo";
+      this.values = {};
+      for (const [k, s] of Object.entries(STYLES)) this.values[k] = JSON.parse(JSON.stringify(s.defaults));
+      this.light = [135, 45];
+      this.background = [1, 1, 1];
+      this.measure = null;             // {a: [x, y], b: [x, y]} in level-0 pixels
+      this.stats = { firstPictureMs: null, firstTileMs: null, completeMs: null, frames: 0, tilesLoaded: 0,
+                    uploads: 0, gpuTiles: 0 };   // tiles uploaded (ever), tiles whose textures are on the GPU now
+      this.onchange = null;
+      this.onerror = null;
     }
 
-    fit() {
-      const { width, height } = this.info;
-      this.view = { cx: width / 2, cy: height / 2,
-                    zoom: Math.min(this.canvas.width / width, this.canvas.height / height) * 0.95 };
+    async init() {
+      this.stats.initMs = performance.now();
+      if (!RelightDrawer.isSupported()) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
+      const [vert, common, ...frags] = await shaderSources();
+      this.stats.sourcesMs = performance.now();
+      // sources now, programs when a style is first drawn (compiling all of them would delay the
+      // first picture); a style's compile error still shows at once: the page draws it first
+      this.sources = {};
+      Object.keys(STYLES).forEach((n, i) => { this.sources[n] = [vert, "#version 300 es\n" + common + "\n" + frags[i]]; });
+      this.osd = OSD({
+        element: this.element,
+        drawer: "tessera-relight",
+        drawerOptions: { "tessera-relight": { relight: this } },
+        // the page has its own buttons and keys (a 1:1, measuring); OpenSeadragon's would load
+        // their pictures from prefixUrl, and its keys (r rotates, f flips) mean other things here
+        showNavigationControl: false,
+        keyboardNavEnabled: false,
+        // the wheel is the page's (zoomAt: proportional to the wheel's delta, smooth on touchpads);
+        // a click does not zoom: a click is how light and measuring start
+        gestureSettingsMouse: { scrollToZoom: false, clickToZoom: false, dblClickToZoom: false },
+        gestureSettingsPen: { clickToZoom: false },
+        // zoom: from a quarter of the fitted face to 16 screen pixels an image pixel (measuring)
+        maxZoomPixelRatio: 16,
+        minZoomImageRatio: 0.2,
+        visibilityRatio: 0.2,
+        preserveImageSizeOnResize: true,
+        // the tiles' CPU copies and textures (~1.5 MB each, twice): a full-HD view needs ~60
+        maxImageCacheCount: 120,
+        // ask for every tile a view lacks at once (OpenSeadragon asks for one a frame by default,
+        // made for 60 frames a second; a frame here can take 100 ms on a CPU rasteriser), the
+        // level the view needs first, not every coarser level on the way (the preloaded one-tile
+        // top level stands in meanwhile): its tiles come ~0.5 s sooner (docs/web.md)
+        maxTilesPerFrame: 32,
+        immediateRender: true,
+        // a tile of a level being cut when a face is first opened may take tens of seconds
+        timeout: 300000,
+      });
+      this.drawer = this.osd.drawer;
+      this.canvas = this.drawer.canvas;
+      this.stats.contextMs = performance.now();
+      this.osd.addHandler("tile-loaded", () => { this.stats.tilesLoaded += 1; });
+      this.osd.addHandler("tile-load-failed", (e) => { if (this.onerror) this.onerror(new Error(e.message)); });
+      this.osd.addHandler("update-viewport", () => this.drawOverlay());
+      // a drag pans with the pointer, not a spring behind it: the image point under the pointer
+      // stays under it (OpenSeadragon animates a mouse drag's pan unless flicking is on)
+      this.osd.addHandler("canvas-drag", (e) => {
+        e.preventDefaultAction = true;
+        this.osd.viewport.panBy(this.osd.viewport.deltaPointsFromPixels(e.delta.negate()), true);
+      });
+      const opened = new Promise((resolve, reject) => {
+        this.osd.addOnceHandler("open", resolve);
+        this.osd.addOnceHandler("open-failed", (e) => reject(new Error(e.message)));
+      });
+      this.osd.open(new RelightTileSource(this.base, this.info));
+      await opened;
+      this.fit(true);
+    }
+
+    // let go of OpenSeadragon, its cache, the GPU memory and the canvas (another face takes it)
+    dispose() {
+      if (this.osd) this.osd.destroy();
+      this.osd = null;
+    }
+
+    // ---- view: image (level-0) pixels and canvas pixels ---------------------------------------
+    // OpenSeadragon's viewport coordinates have the image's width as 1; zoom here is canvas
+    // (device) pixels per image pixel. `view` is where the view is going (OpenSeadragon's target),
+    // currentView() where an animation is now: what is drawn, what the pointer is over.
+    _view(current) {
+      const vp = this.osd.viewport, c = vp.getCenter(current), W = this.info.width;
+      return { cx: c.x * W, cy: c.y * W,
+               zoom: vp.getZoom(current) * vp.getContainerSize().x * OSD.pixelDensityRatio / W };
+    }
+    get view() { return this._view(false); }
+    currentView() { return this._view(true); }
+
+    // go to a view at once (no animation) and draw it
+    set view(v) { this._goTo(v, true); }
+
+    _goTo(v, immediately) {
+      const vp = this.osd.viewport, W = this.info.width;
+      vp.zoomTo(v.zoom * W / (vp.getContainerSize().x * OSD.pixelDensityRatio), null, immediately);
+      vp.panTo(new OSD.Point(v.cx / W, v.cy / W), immediately);
       this.draw();
     }
 
-    // canvas pixels of a level-0 image point and back
-    toCanvas(x, y) {
-      const v = this.view;
+    fit(immediately) {
+      const { width, height } = this.info, c = this.canvas;
+      this._goTo({ cx: width / 2, cy: height / 2,
+                   zoom: Math.min(c.width / width, c.height / height) * 0.95 }, immediately);
+    }
+
+    // one image pixel per canvas pixel, about the centre
+    oneToOne() { this._goTo({ ...this.view, zoom: 1 }, false); }
+
+    // canvas pixels of a level-0 image point and back, in a view (default: the current one)
+    toCanvas(x, y, view) {
+      const v = view || this.currentView();
       return [(x - v.cx) * v.zoom + this.canvas.width / 2, (y - v.cy) * v.zoom + this.canvas.height / 2];
     }
-    toImage(px, py) {
-      const v = this.view;
+    toImage(px, py, view) {
+      const v = view || this.currentView();
       return [(px - this.canvas.width / 2) / v.zoom + v.cx, (py - this.canvas.height / 2) / v.zoom + v.cy];
     }
 
+    // zoom by factor about a canvas point, animated by OpenSeadragon: the image point now under it stays
     zoomAt(factor, px, py) {
-      const [x, y] = this.toImage(px, py);
-      const maxZoom = 16, minZoom = Math.min(this.canvas.width / this.info.width, this.canvas.height / this.info.height) / 4;
-      this.view.zoom = Math.min(maxZoom, Math.max(minZoom, this.view.zoom * factor));
-      this.view.cx = x - (px - this.canvas.width / 2) / this.view.zoom;
-      this.view.cy = y - (py - this.canvas.height / 2) / this.view.zoom;
-      this.draw();
+      const vp = this.osd.viewport, [x, y] = this.toImage(px, py);
+      vp.zoomBy(factor, new OSD.Point(x / this.info.width, y / this.info.width));
+      vp.applyConstraints();
     }
 
-    pan(dx, dy) {
-      this.view.cx -= dx / this.view.zoom;
-      this.view.cy -= dy / this.view.zoom;
-      this.draw();
+    // move the image by (dx, dy) canvas pixels
+    pan(dx, dy, immediately) {
+      const vp = this.osd.viewport, z = this.view.zoom * this.info.width;
+      vp.panBy(new OSD.Point(-dx / z, -dy / z), immediately);
+      if (!immediately) vp.applyConstraints();
     }
 
-    // the level whose pixel is closest to, and not larger than, a canvas pixel
+    // the relight level (0 = full resolution) OpenSeadragon draws at the current zoom: the
+    // coarsest whose pixel still covers at least minPixelRatio (0.5) canvas pixels... read the
+    // other way, the finest that is not smaller than half a canvas pixel
     level() {
-      const L = Math.floor(Math.log2(1 / this.view.zoom) + 1e-6);
+      const zoom = this.currentView().zoom;
+      const L = Math.ceil(Math.log2(this.osd.minPixelRatio / zoom) - 1e-9);
       return Math.min(this.levels.length - 1, Math.max(0, L));
-    }
-
-    visibleTiles(L) {
-      const f = 2 ** L, t = this.tile, [lw, lh] = this.levels[L];
-      const [x0, y0] = this.toImage(0, 0), [x1, y1] = this.toImage(this.canvas.width, this.canvas.height);
-      const c0 = Math.max(0, Math.floor(x0 / f / t)), c1 = Math.min(Math.ceil(lw / t) - 1, Math.floor(x1 / f / t));
-      const r0 = Math.max(0, Math.floor(y0 / f / t)), r1 = Math.min(Math.ceil(lh / t) - 1, Math.floor(y1 / f / t));
-      const out = [];
-      for (let r = r0; r <= r1; r++) for (let c = c0; c <= c1; c++) out.push([r, c]);
-      return out;
     }
 
     // ---- style, light ------------------------------------------------------------------------
@@ -273,150 +517,42 @@ const RelightViewer = (() => {
       this.draw();
     }
 
-    // ---- tiles --------------------------------------------------------------------------------
-    _request(L, r, c) {
-      const key = `${L}/${r}/${c}`;
-      if (this.tiles.has(key)) return;
-      this.tiles.set(key, "loading");
-      fetch(`${this.base}/tiles/${L}/${r}_${c}`).then((resp) => {
-        if (!resp.ok) throw new Error(`tile ${key}: HTTP ${resp.status}`);
-        return resp.arrayBuffer();
-      }).then((buf) => {
-        if (this.disposed) return;
-        this.tiles.set(key, this._upload(L, r, c, buf));
-        this.stats.tilesLoaded += 1;
-        this.draw();
-      }).catch((e) => {
-        this.tiles.set(key, "failed");
-        if (this.onerror) this.onerror(e);
-      });
-    }
-
-    _upload(L, r, c, buf) {
-      const gl = this.gl, t = this.tile, [lw, lh] = this.levels[L];
-      const w = Math.min(t, lw - c * t), h = Math.min(t, lh - r * t);
-      const n = w * h;
-      if (buf.byteLength !== n * 12 * 2 + n * 2 + n * 4) throw new Error(`tile ${L}/${r}/${c} has ${buf.byteLength} bytes`);
-      const tex = (internal, format, type, data) => {
-        const x = gl.createTexture();
-        gl.bindTexture(gl.TEXTURE_2D, x);
-        gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
-        gl.texImage2D(gl.TEXTURE_2D, 0, internal, w, h, 0, format, type, data);
-        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
-        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
-        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-        gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-        return x;
-      };
-      // the float16 part is three RGBA planes, one after the other
-      const planes = [0, 1, 2].map((k) => new Uint16Array(buf, k * n * 8, n * 4));
-      const textures = planes.map((p) => tex(gl.RGBA16F, gl.RGBA, gl.HALF_FLOAT, p));
-      textures.push(tex(gl.R16F, gl.RED, gl.HALF_FLOAT, new Uint16Array(buf, n * 24, n)));
-      textures.push(tex(gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(buf, n * 26, n * 4)));
-      this.stats.uploadsLastFrame += 1;
-      return { tex: textures, w, h, mag: gl.LINEAR };
-    }
-
     // ---- drawing ------------------------------------------------------------------------------
-    draw() {
-      if (this._scheduled || !this.gl || this.disposed) return;
-      this._scheduled = true;
-      requestAnimationFrame(() => { this._scheduled = false; this.render(); });
+    // at OpenSeadragon's next frame (uniforms only: the tiles' textures are there)
+    draw() { if (this.osd) this.osd.forceRedraw(); }
+
+    // Draw now: OpenSeadragon updates the view (and asks for the tiles it needs), then the
+    // drawer draws (what the tests and the frame-time measurement call).
+    render() {
+      const osd = this.osd;
+      osd.viewport.update();
+      osd.world.update(true);
+      osd.world.draw();
+      this.drawOverlay();
     }
 
-    // Draw now: the coarsest level first, then every finer loaded level up to the one the zoom
-    // needs (missing tiles show the coarser picture until they arrive); request what is missing.
-    render() {
-      if (this.disposed) return;
-      const gl = this.gl, t0 = performance.now();
-      const W = this.canvas.width, H = this.canvas.height;
-      gl.viewport(0, 0, W, H);
-      const bg = this.background;
-      gl.clearColor(bg[0], bg[1], bg[2], 1);
-      gl.clear(gl.COLOR_BUFFER_BIT);
-      const style = STYLES[this.info.has_normals || !STYLES[this.style].needsNormals ? this.style : "albedo"];
-      const name = Object.keys(STYLES).find((k) => STYLES[k] === style);
-      if (!this.programs[name]) this.programs[name] = this._program(...this.sources[name], name);
-      const prog = this.programs[name];
-      gl.useProgram(prog.p);
-      gl.bindVertexArray(this.vao);
-      const set = (u, kind, val) => {
-        const l = prog.loc[u];
-        if (l === undefined || l === null) return;
-        if (kind === "1f") gl.uniform1f(l, val); else if (kind === "1i") gl.uniform1i(l, val);
-        else if (kind === "2f") gl.uniform2f(l, val[0], val[1]); else if (kind === "3f") gl.uniform3f(l, ...val);
-      };
-      set("u_canvas", "2f", [W, H]);
-      set("u_light", "3f", this.lightVector());
-      set("u_background", "3f", bg);
-      for (const [u, [kind, val]] of Object.entries(style.uniforms(this.values[name]))) set(u, kind, val);
-      ["u_n01", "u_n23", "u_n3u", "u_curv", "u_colour"].forEach((u, i) => set(u, "1i", i));
-      const target = this.level(), top = this.levels.length - 1, t = this.tile;
-      const drawTile = (tile, L, r, c) => {
-        const f = 2 ** L;
-        // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
-        const mag = this.view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
-        tile.tex.forEach((x, i) => {
-          gl.activeTexture(gl.TEXTURE0 + i);
-          gl.bindTexture(gl.TEXTURE_2D, x);
-          if (tile.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
-        });
-        tile.mag = mag;
-        const [x0, y0] = this.toCanvas(c * t * f, r * t * f);
-        const [x1, y1] = this.toCanvas((c * t + tile.w) * f, (r * t + tile.h) * f);
-        gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
-        gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
-      };
-      const loaded = (L, r, c) => {
-        const x = this.tiles.get(`${L}/${r}/${c}`);
-        return x && typeof x !== "string" ? x : null;
-      };
-      // the top level (one tile) is always wanted: it stands in for anything not there yet
-      if (!this.tiles.has(`${top}/0/0`)) this._request(top, 0, 0);
-      let drawn = 0, missing = 0, stand = 0;
-      // every canvas pixel is shaded once: a visible tile of the level the zoom needs, or where it
-      // has not arrived, its nearest loaded ancestor cut to the tile's rectangle (scissor)
-      for (const [r, c] of this.visibleTiles(target)) {
-        const tile = loaded(target, r, c);
-        if (tile) { drawTile(tile, target, r, c); drawn += 1; continue; }
-        missing += 1;
-        if (!this.tiles.has(`${target}/${r}/${c}`)) this._request(target, r, c);
-        for (let L = target + 1; L <= top; L++) {
-          const k = 2 ** (L - target), a = loaded(L, Math.floor(r / k), Math.floor(c / k));
-          if (!a) continue;
-          const f = 2 ** target;
-          const [x0, y0] = this.toCanvas(c * t * f, r * t * f), [x1, y1] = this.toCanvas((c + 1) * t * f, (r + 1) * t * f);
-          // the canvas pixels whose centres are in the tile (GL counts rows from the bottom)
-          const px0 = Math.round(x0), px1 = Math.round(x1), py0 = Math.round(y0), py1 = Math.round(y1);
-          gl.enable(gl.SCISSOR_TEST);
-          gl.scissor(px0, H - py1, Math.max(0, px1 - px0), Math.max(0, py1 - py0));
-          drawTile(a, L, Math.floor(r / k), Math.floor(c / k));
-          gl.disable(gl.SCISSOR_TEST);
-          stand += 1;
-          break;
-        }
-      }
-      const now = performance.now();
-      if (drawn + stand > 0 && this.stats.firstPictureMs === null) this.stats.firstPictureMs = now;
-      if (drawn > 0 && this.stats.firstTileMs === null) this.stats.firstTileMs = now;
-      if (drawn > 0 && missing === 0 && this.stats.completeMs === null) this.stats.completeMs = now;
-      this.stats.frames += 1;
-      this.stats.lastFrameCpuMs = now - t0;
-      this.stats.complete = missing === 0 && drawn > 0;
-      this.stats.uploadsLastFrame = 0;
-      this.drawOverlay();
+    // the drawer's report of a frame: tiles of the level the view needs, coarser stand-ins, and
+    // whether every tile the view needs was there (OpenSeadragon's "fully loaded")
+    drawn(drawn, stand, complete, ms) {
+      const now = performance.now(), s = this.stats;
+      if (drawn + stand > 0 && s.firstPictureMs === null) s.firstPictureMs = now;
+      if (drawn > 0 && s.firstTileMs === null) s.firstTileMs = now;
+      if (complete && s.completeMs === null) s.completeMs = now;
+      s.frames += 1;
+      s.lastFrameCpuMs = ms;
+      s.complete = complete;
     }
 
     // Mean time of n frames, each a full redraw with another light, finished on the GPU
     // (a 1-pixel readPixels waits for the frame): the relighting frame time.
     frameTime(n) {
-      const gl = this.gl, px = new Uint8Array(4), [az0, el0] = this.light;
+      const gl = this.drawer.gl, px = new Uint8Array(4), [az0, el0] = this.light;
       const t0 = performance.now();
       for (let i = 0; i < n; i++) {
         this.light = [az0 + (360 * i) / n, el0];
         const v = this.values[this.style];
         if (this.style === "raking") v.azimuth_deg = this.light[0]; else if ("light" in v) v.light = this.light.slice();
-        this.render();
+        this.osd.world.draw();
         gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
       }
       const ms = (performance.now() - t0) / n;
@@ -426,7 +562,7 @@ const RelightViewer = (() => {
 
     // RGBA bytes of a canvas rectangle, rows from the top (what the parity test compares)
     pixels(x, y, w, h) {
-      const gl = this.gl, out = new Uint8Array(w * h * 4);
+      const gl = this.drawer.gl, out = new Uint8Array(w * h * 4);
       gl.readPixels(x, this.canvas.height - y - h, w, h, gl.RGBA, gl.UNSIGNED_BYTE, out);
       const flipped = new Uint8Array(w * h * 4), row = w * 4;
       for (let j = 0; j < h; j++) flipped.set(out.subarray((h - 1 - j) * row, (h - j) * row), j * row);
@@ -435,7 +571,7 @@ const RelightViewer = (() => {
 
     // ---- overlay: scale bar, measurement, light direction -------------------------------------
     scaleBar() {
-      const pxPerMm = this.pxPerMm * this.view.zoom;
+      const pxPerMm = this.pxPerMm * this.currentView().zoom;
       const want = 120 / pxPerMm;
       const p = 10 ** Math.floor(Math.log10(want));
       const mm = [1, 2, 5, 10].map((k) => k * p).filter((v) => v <= want).pop() || p;
@@ -449,7 +585,11 @@ const RelightViewer = (() => {
     }
 
     drawOverlay() {
-      const o = this.overlay, g = o.getContext("2d"), dpr = window.devicePixelRatio || 1;
+      const o = this.overlay, dpr = window.devicePixelRatio || 1;
+      if (o.width !== this.canvas.width || o.height !== this.canvas.height) {
+        o.width = this.canvas.width; o.height = this.canvas.height;
+      }
+      const g = o.getContext("2d");
       g.clearRect(0, 0, o.width, o.height);
       g.font = `${13 * dpr}px sans-serif`;
       g.lineWidth = 2 * dpr;
