@@ -8,7 +8,9 @@
   stages 1–2½ alone (``stage: "ranked"``, no pose, ~0.1 s) with a ``match.ranked`` event, which is
   routed back to a matcher:
 * ``match.ranked``: the fragment's best candidates are docked, and its joins proposed again with
-  their poses (``stage: "docked"``), updating every join the first answer proposed.
+  their poses (``stage: "docked"``), updating every join the first answer proposed; its best
+  partners are ranked again first, so every stored pair carries its mutual proximity in both
+  fragments' rankings (what a fragment's proposals and the review queue are ordered by).
 * ``match.verified``: the verdict is stored (a re-delivered message is ignored), the logistic
   regression is re-fitted on its bootstrap rows plus every verdict's evidence
   (:func:`common.matching.online.refit_with_verdicts`), saved as the next model version
@@ -21,7 +23,8 @@ workers on one host, or a restarted one, see the same fragments and the current 
 
 Config (``[services.matcher]``, all optional): ``db``, ``journal_mode`` ("WAL"), ``n_candidates``
 (100), ``top`` (10 proposals per new fragment), ``check`` (3 aligned), ``bootstrap_fragments`` (60),
-``bootstrap_seed`` (0), ``verdict_weight`` (5.0).
+``bootstrap_seed`` (0), ``verdict_weight`` (5.0), ``reciprocal`` (10: partners ranked again after a
+new fragment's docked answer; 0 leaves their rankings as they were).
 """
 
 from __future__ import annotations

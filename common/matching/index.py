@@ -720,11 +720,7 @@ class MatchIndex:
         ``also``: fragments to return even when they fall below the ``top`` (a re-ranking updates
         every join it proposed before), after the top ones.
         """
-        others = self.candidates(cues, model, n_candidates)
-        if self.use_hubness:
-            # candidates without a hubness under this model (a restarted worker, a new model) get one
-            # first: once per fragment and model, so a stream of new fragments stays O(candidates)
-            self.refresh_hubness(others, model, n_candidates=n_candidates)
+        others = self._candidates_with_hubness(cues, model, n_candidates)
         ribbon = self.uses_ribbon(cues.fragment, model)
         also = set(also)
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
@@ -752,6 +748,14 @@ class MatchIndex:
                 c.alignment = align_fragments(contour_a, contour_b, anchors=(arcs_a, arcs_b) if len(arcs_a) else None)
         return ranked
 
+    def _candidates_with_hubness(self, cues: FragmentCues, model: MatchModel, n_candidates: int) -> list[str]:
+        """Stage 1's candidates of a fragment, each with a hubness under ``model``."""
+        others = self.candidates(cues, model, n_candidates)
+        if self.use_hubness:
+            # candidates without a hubness under this model (a restarted worker, a new model) get one
+            # first: once per fragment and model, so a stream of new fragments stays O(candidates)
+            self.refresh_hubness(others, model, n_candidates=n_candidates)
+        return others
 
     def mutual(self, fragment: str, others) -> list[float]:
         """Mutual proximity of (``fragment``, other) for each of ``others`` from the two fragments' kept
@@ -777,9 +781,7 @@ class MatchIndex:
         for f in fragments:
             if f not in self.cues or not len(self.cues[f]):
                 continue
-            others = self.candidates(self.cues[f], model, n_candidates)
-            if self.use_hubness:
-                self.refresh_hubness(others, model, n_candidates=n_candidates)
+            others = self._candidates_with_hubness(self.cues[f], model, n_candidates)
             self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0)]
             done.append(f)
         return done
