@@ -14,7 +14,9 @@
 #   VERSION                       the npm version
 # Commit the four files. The viewer (static/viewer/viewer.js) is written against OpenSeadragon 6's
 # DrawerBase / TileSource API: after a major version change, run tests/web/test_fragment_page.py
-# and tests/web/test_shader_parity.py.
+# and tests/web/test_shader_parity.py; the page's CSP allows the one inline style OpenSeadragon
+# injects by its hash (services/web/__init__.py, OPENSEADRAGON_STYLE_HASH: the test of that name says
+# the new one when the style changed).
 set -euo pipefail
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -51,6 +51,10 @@ from . import iiif as iiif_api
 from . import reconstruction as reconstruction_page
 from . import review as review_pages
 from . import status as status_pages
+
+#: CSP hash of the stylesheet OpenSeadragon 6 injects (static/vendor/openseadragon: its
+#: ``data-openseadragon-mobile-css`` rule), recomputed when the vendored version changes
+OPENSEADRAGON_STYLE_HASH = "sha256-9xTiqzfwFaL2SGb1rmr8gysEwVVjIvqWAgmZgqFqpEE="
 from . import tiles as tiles_api
 from .station import EXTENSION, FeedFollower, Station, StationLink, build_bench
 
@@ -209,8 +213,11 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
         resp.headers.setdefault("X-Frame-Options", "DENY")
         resp.headers.setdefault("X-Content-Type-Options", "nosniff")
         resp.headers.setdefault("Referrer-Policy", "same-origin")  # no-referrer would make Origin "null"
+        # the one inline style OpenSeadragon adds (no focus outline on touch screens) is allowed by
+        # its hash, nothing else inline (tests/web/test_fragment_page.py checks the console)
         resp.headers.setdefault("Content-Security-Policy",
-                                "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+                                "default-src 'self'; img-src 'self' data:; "
+                                f"style-src 'self' '{OPENSEADRAGON_STYLE_HASH}'; script-src 'self'; "
                                 "frame-ancestors 'none'; form-action 'self'")
         if request.path.startswith("/api/"):
             resp.headers.setdefault("Cache-Control", "no-store")

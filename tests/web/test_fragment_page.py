@@ -370,3 +370,42 @@ def test_fragment_page_in_chromium(tmp_path):
             browser.close()
     finally:
         web.stop()
+
+
+def test_fragment_page_keeps_to_its_content_security_policy(tmp_path):
+    """Under the station's own CSP (no bypass) the page, OpenSeadragon included, breaks no rule: the
+    one inline style OpenSeadragon adds is allowed by its hash and nothing else is inline."""
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    _store_with(tmp_path, relief_face(300, 400, dpi=600.0), fid="F-1", stem="front-k1")
+    web = WebProcess(tmp_path).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            console = []
+            page.on("console", lambda m: console.append((m.type, m.text)))
+            open_viewer(page, f"{web.url}/fragments/F-1?face=front")
+            assert page.evaluate("() => !!document.querySelector('style[data-openseadragon-mobile-css]')")
+            browser.close()
+    finally:
+        web.stop()
+    violations = [t for kind, t in console if "Content Security Policy" in t]
+    assert not violations, violations
+
+
+def test_the_csp_allows_exactly_the_style_the_vendored_openseadragon_injects():
+    # a new OpenSeadragon (deploy/vendor-openseadragon.sh) with another inline style fails here,
+    # not silently in the browser
+    import base64
+    import hashlib
+    import re
+
+    from services.web import OPENSEADRAGON_STYLE_HASH
+
+    js = (REPO / "services/web/static/vendor/openseadragon/openseadragon.min.js").read_text()
+    styles = re.findall(r'data-openseadragon-mobile-css","true"\);\w+\.textContent="([^"]*)"', js)
+    assert len(styles) == 1
+    digest = base64.b64encode(hashlib.sha256(styles[0].encode()).digest()).decode()
+    assert OPENSEADRAGON_STYLE_HASH == f"sha256-{digest}"
