@@ -518,7 +518,7 @@ class MatchIndex:
         """Paint continuing across the crack between two fragments, mm (cached per pair): the best
         :func:`~common.matching.paint.paint_continuity` over the pair's docking's candidate poses
         (:func:`~common.matching.paint.paint_pair_mm`); NaN when either has no outline or profile."""
-        key = (fragment, other) if fragment < other else (other, fragment)
+        key = _pair(fragment, other)
         if key not in self._paint_pairs:
             if not all(f in self._raw_profiles and f in self.contours for f in key):
                 return float("nan")
@@ -527,7 +527,7 @@ class MatchIndex:
 
     def docking(self, fragment: str, other: str) -> Docking:
         """``other`` docked against ``fragment`` (pose of ``other`` in ``fragment``'s frame), cached."""
-        key = (fragment, other) if fragment < other else (other, fragment)
+        key = _pair(fragment, other)
         if key not in self._dockings:
             self._dock_pair(key, paint=DOCK_USES_PAINT and all(f in self._raw_profiles for f in key))
         d = self._dockings[key]
@@ -537,7 +537,7 @@ class MatchIndex:
         """The proposed pose of ``other`` in ``fragment``'s frame: the docking's candidate with the best
         contact plus paint continuity (:func:`~common.matching.pose.choose_pose`) where the pair was docked
         with paint, else the best docking."""
-        key = (fragment, other) if fragment < other else (other, fragment)
+        key = _pair(fragment, other)
         d = self._poses.get(key)
         if d is None:
             return self.docking(fragment, other)
@@ -554,7 +554,7 @@ class MatchIndex:
     def _dock_pairs(self, fragment: str, others) -> None:
         """Dock ``fragment`` with each of ``others`` not docked yet, in order of FFT size, so that a turned
         fragment's spectra (:class:`~common.matching.docking.DockingFrame`) are computed once per size."""
-        keys = {(fragment, o) if fragment < o else (o, fragment) for o in others if o in self.contours}
+        keys = {_pair(fragment, o) for o in others if o in self.contours}
         keys = [k for k in keys if k not in self._dockings or
                 (DOCK_USES_PAINT and k not in self._paint_pairs and all(f in self._raw_profiles for f in k))]
         for k in sorted(keys, key=lambda k: (self._frame(k[0]).fft_size(self._frame(k[1])), k)):
@@ -601,13 +601,16 @@ class MatchIndex:
         return model.docking is not None and fragment in self.contours
 
     def _rank_by_docking(self, fragment: str, ranked: list[Candidate], model: MatchModel,
-                         dock_candidates: int) -> list[Candidate]:
+                         dock_candidates: int, docked_only: bool = False) -> list[Candidate]:
         """Stage 3 for one query fragment: its best ``dock_candidates`` are docked
         (:func:`~common.matching.docking.dock_outlines`, gap-tolerant), their contact corrected for
         both fragments' docking hubness and calibrated into the join probability (with the earlier
         evidence and the paint, or the model's learned combination); they come first, best first,
-        each with its chosen pose (:meth:`pose`) as its alignment. The rest follow, never above them."""
+        each with its chosen pose (:meth:`pose`) as its alignment. The rest follow, never above them.
+        ``docked_only``: of the best ``dock_candidates``, only the pairs docked before (no new docking)."""
         head = [c for c in ranked[:dock_candidates] if c.other in self.contours]
+        if docked_only:
+            head = [c for c in head if _pair(fragment, c.other) in self._dockings]
         if not head:
             return ranked
         docked = {id(c) for c in head}
@@ -676,7 +679,8 @@ class MatchIndex:
 
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
              ribbon_candidates: int = RIBBON_CANDIDATES, dock_candidates: int = DOCK_CANDIDATES,
-             evidence_for: int | None = None, trace: dict | None = None) -> list[Candidate]:
+             evidence_for: int | None = None, trace: dict | None = None,
+             docked_only: bool = False) -> list[Candidate]:
         """Stages 2, 2½ and 3 for one fragment against ``others``, best first.
 
         Stage 2 orders ``others`` by the patch classifier; where the ribbon applies, its best
@@ -687,7 +691,8 @@ class MatchIndex:
         (:meth:`_rank_by_docking`). ``evidence_for``: attach evidence rows to the best this many of
         stage 2 (None: all). ``trace``: a dict that receives each stage's candidate list as it
         leaves the stage (``"patch"``, ``"ribbon"``, ``"fresco"``, ``"dock"``;
-        :func:`common.matching.evaluation.trace_stages`).
+        :func:`common.matching.evaluation.trace_stages`). ``docked_only``: stage 3 uses only the
+        pairs among the best ``dock_candidates`` that were docked before (:meth:`rank_again`).
         """
         trace = {} if trace is None else trace
         found = self.score(cues, others, model, evidence_for=evidence_for)
@@ -704,7 +709,7 @@ class MatchIndex:
             found = self._rank_by_fresco(cues.fragment, found)
         trace["fresco"] = list(found)
         if self.uses_docking(cues.fragment, model) and dock_candidates > 0:
-            found = self._rank_by_docking(cues.fragment, found, model, dock_candidates)
+            found = self._rank_by_docking(cues.fragment, found, model, dock_candidates, docked_only)
         trace["dock"] = list(found)
         return found
 
@@ -775,16 +780,24 @@ class MatchIndex:
     def rank_again(self, fragments, model: MatchModel, *, n_candidates: int = 100) -> list[str]:
         """Rank each of ``fragments`` again against its candidates now (stages 1–3, as :meth:`propose`,
         without evidence or alignment) and keep the ranking: what a partner's ranking needs once new
-        fragments arrived, for :meth:`mutual`. Dockings are cached by pair, so only pairs new to a
-        fragment's best are docked. Returns the fragments ranked."""
+        fragments arrived, for :meth:`mutual`. Stage 3 uses the dockings made before and docks no new
+        pair (a new docking costs ~0.1–0.3 s at real sizes; a fragment proposed on arrival has its
+        best docked already, and the new fragment's pair was docked by its own proposal), so a
+        partner costs about a first answer. Returns the fragments ranked."""
         done = []
         for f in fragments:
             if f not in self.cues or not len(self.cues[f]):
                 continue
             others = self._candidates_with_hubness(self.cues[f], model, n_candidates)
-            self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0)]
+            self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0,
+                                                           docked_only=True)]
             done.append(f)
         return done
+
+
+def _pair(a: str, b: str) -> tuple[str, str]:
+    """The key of an unordered pair in the index's caches."""
+    return (a, b) if a < b else (b, a)
 
 
 def _dock_by_rules(head: list[Candidate], prob: np.ndarray, paint: np.ndarray, model: MatchModel) -> np.ndarray:
