@@ -252,8 +252,8 @@ def trace_stages(index, model, fragment: str, others, *, n_candidates: int = 100
 def stage_recall(traces, neighbours, ks=(1, 5, 10)) -> dict:
     """Where the true neighbours are lost: for each stage of :func:`trace_stages`, the share of true
     neighbour links (each pair counted from both sides, as :func:`top_k_recall`) still in the
-    fragment's list, and in its top ``k``; ``"final"`` is the pooled ranking (the larger of the two
-    sides' probabilities, :func:`top_k_recall`).
+    fragment's list, and in its top ``k``; ``"final"`` is the pooled ranking in the station's order
+    (mutual proximity of the traced fragments' final rankings, :func:`rank_all_pairs`).
 
     Returns
     -------
@@ -267,11 +267,10 @@ def stage_recall(traces, neighbours, ks=(1, 5, 10)) -> dict:
     traces = {t.fragment: t for t in traces}
     links = [(f, o) for f in traces for o in sorted(truth.get(f, ()))]
     out: dict = {"ranks": {}}
-    pooled: dict = {}
-    for t in traces.values():
-        for o, p in t.probability.items():
-            key = tuple(sorted((t.fragment, o)))
-            pooled[key] = max(pooled.get(key, 0.0), p)
+    from common.matching.mutual import mutual_pair_scores
+
+    pooled = mutual_pair_scores({t.fragment: sorted(t.probability, key=lambda o: -t.probability[o])
+                                 for t in traces.values()})
     final: dict = {}
     for (a, b), s in pooled.items():
         final.setdefault(a, []).append((s, b))

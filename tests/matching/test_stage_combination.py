@@ -125,7 +125,8 @@ def test_stage_recall_counts_each_link_where_each_stage_left_it():
     assert rec["ranks"]["patch"] == [1, 2, 2] and rec["patch"][2] == pytest.approx(1 / 3)
     assert rec["ranks"]["ribbon"] == [1, None, None] and rec["ribbon"]["kept"] == pytest.approx(1 / 3)
     assert rec["ranks"]["dock"] == [0, None, None]
-    # pooled: a's list b 0.9, c 0.5; d's list b 0.4, c 0.3; a–d never scored by either side
+    # pooled in the station's order (mutual proximity): a's list b, c; d's list b, c; b and c have none;
+    # a–d never scored by either side
     assert rec["ranks"]["final"] == [0, None, None] and rec["final"][1] == pytest.approx(1 / 3)
 
 
