@@ -29,9 +29,8 @@ new fragment's docked answer; 0 leaves their rankings as they were).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
-
-import numpy as np
 
 from common.features import load_features
 from common.matching.models import load_model, save_model
@@ -147,27 +146,21 @@ def _on_ranked(job: dict, ctx) -> list[dict]:
 def _rank_partners_again(found, st: _State, ctx) -> None:
     """Mutual proximity needs each partner's view of the new fragment: the best ``reciprocal``
     (config, default 10) partners whose kept ranking predates it are ranked again
-    (:meth:`MatchIndex.rank_again`); then the mutual proximity of every stored pair of the fragment
-    and of those partners is brought up to date (``found``'s own on the candidates, stored by
-    :func:`_proposed`)."""
+    (:meth:`MatchIndex.rank_again`); then the mutual proximity of the candidates (stored by
+    :func:`_proposed`) and of every stored pair of the fragment and of those partners is brought up
+    to date."""
     if not found:
         return
-    fragment = found[0].fragment
-    n = int((ctx.config or {}).get("reciprocal", 10))
-    stale = [c.other for c in found[:n] if fragment not in st.index.rankings.get(c.other, ())]
-    if stale:
-        ctx.progress(0.7, f"ranking {len(stale)} partners of {fragment} again (mutual proximity)")
-        st.index.rank_again(stale, st.model, n_candidates=int((ctx.config or {}).get("n_candidates", 100)))
+    fragment, cfg = found[0].fragment, ctx.config or {}
+    ctx.progress(0.7, f"ranking the partners of {fragment} again (mutual proximity)")
+    again = st.index.rank_again([c.other for c in found[:int(cfg.get("reciprocal", 10))]], st.model,
+                                knowing=fragment, n_candidates=int(cfg.get("n_candidates", 100)))
     for c, m in zip(found, st.index.mutual(fragment, [c.other for c in found])):
         c.mutual = m
-    mine = {c.other for c in found}
     updates = []
-    for f in [fragment, *stale]:
-        for p in st.db.ranked(f, limit=10 ** 6):
-            other = p.other(f)
-            if f == fragment and other in mine:
-                continue   # stored with the proposal itself
-            updates.append((f, other, st.index.mutual(f, [other])[0]))
+    for f in [fragment, *again]:
+        others = [p.other(f) for p in st.db.ranked(f, limit=10 ** 6)]
+        updates += [(f, o, m) for o, m in zip(others, st.index.mutual(f, others))]
     st.db.set_mutual(updates)
 
 
@@ -199,7 +192,7 @@ def _proposal(c, st: _State, columns) -> Proposal:
         alignment = dict(c.alignment.to_dict(), angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
     ev = evidence_dict(c, columns)
     ev["query"] = c.fragment
-    return Proposal(a, b, c.probability, st.model.version, mutual=c.mutual if np.isfinite(c.mutual) else None,
+    return Proposal(a, b, c.probability, st.model.version, mutual=c.mutual if math.isfinite(c.mutual) else None,
                     patch_a=patch_q if a == c.fragment else patch_o, patch_b=patch_o if a == c.fragment else patch_q,
                     angle_deg=pose[0] if pose else None, tx_mm=pose[1] if pose else None,
                     ty_mm=pose[2] if pose else None, alignment=alignment, evidence=ev)

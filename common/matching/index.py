@@ -764,29 +764,23 @@ class MatchIndex:
 
     def mutual(self, fragment: str, others) -> list[float]:
         """Mutual proximity of (``fragment``, other) for each of ``others`` from the two fragments' kept
-        rankings (:func:`common.matching.mutual.mutual_proximity`; a fragment not in the other's
-        ranking, or without one, counts as its last)."""
-        from common.matching.mutual import mutual_proximity
+        rankings (:func:`common.matching.mutual.mutual_of`)."""
+        from common.matching.mutual import mutual_of
 
-        mine = self.rankings.get(fragment, [])
-        pos = {o: i + 1 for i, o in enumerate(mine)}
-        out = []
-        for o in others:
-            theirs = self.rankings.get(o, [])
-            r_ba = next((i + 1 for i, x in enumerate(theirs) if x == fragment), None)
-            out.append(mutual_proximity(pos.get(o), max(len(mine), 1), r_ba, max(len(theirs), 1)))
-        return out
+        return mutual_of(self.rankings, fragment, others)
 
-    def rank_again(self, fragments, model: MatchModel, *, n_candidates: int = 100) -> list[str]:
+    def rank_again(self, fragments, model: MatchModel, *, knowing: str | None = None,
+                   n_candidates: int = 100) -> list[str]:
         """Rank each of ``fragments`` again against its candidates now (stages 1–3, as :meth:`propose`,
         without evidence or alignment) and keep the ranking: what a partner's ranking needs once new
-        fragments arrived, for :meth:`mutual`. Stage 3 uses the dockings made before and docks no new
-        pair (a new docking costs ~0.1–0.3 s at real sizes; a fragment proposed on arrival has its
-        best docked already, and the new fragment's pair was docked by its own proposal), so a
-        partner costs about a first answer. Returns the fragments ranked."""
+        fragments arrived, for :meth:`mutual`. ``knowing``: only those whose kept ranking lacks this
+        fragment (it predates it). Stage 3 uses the dockings made before and docks no new pair (a new
+        docking costs ~0.1–0.3 s at real sizes; a fragment proposed on arrival has its best docked
+        already, and the new fragment's pair was docked by its own proposal), so a fragment costs
+        about a first answer. Returns the fragments ranked."""
         done = []
         for f in fragments:
-            if f not in self.cues or not len(self.cues[f]):
+            if f not in self.cues or not len(self.cues[f]) or (knowing is not None and knowing in self.rankings.get(f, ())):
                 continue
             others = self._candidates_with_hubness(self.cues[f], model, n_candidates)
             self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0,

@@ -55,7 +55,21 @@ def _relative_rank(rank, n) -> np.ndarray:
     ok = np.isfinite(r) & (r >= 1)
     if np.any(ok & (r > n)):
         raise ValueError(f"rank {r} beyond its list of {n}")
-    return np.where(ok, np.where(ok, r, 1.0) / n, 1.0)
+    return np.where(ok, r, n) / n    # not ranked: last
+
+
+def mutual_of(rankings: dict, fragment: str, others) -> list[float]:
+    """Mutual proximity of (``fragment``, other) for each of ``others`` from kept rankings
+    (``rankings``: fragment → its candidates best first); a fragment missing from the other's
+    ranking, or without one, counts as its last."""
+    mine = rankings.get(fragment, ())
+    pos = {o: i + 1 for i, o in enumerate(mine)}
+    out = []
+    for o in others:
+        theirs = rankings.get(o, ())
+        r_ba = theirs.index(fragment) + 1 if fragment in theirs else None
+        out.append(mutual_proximity(pos.get(o), max(len(mine), 1), r_ba, max(len(theirs), 1)))
+    return out
 
 
 def mutual_pair_scores(rankings: dict) -> dict:
@@ -64,13 +78,8 @@ def mutual_pair_scores(rankings: dict) -> dict:
     ``rankings``: fragment → its candidates best first (a list of ids). Returns ``{(a, b): MP}``
     with ``a < b``.
     """
-    pos = {f: {o: i + 1 for i, o in enumerate(order)} for f, order in rankings.items()}
     out = {}
     for f, order in rankings.items():
-        for o in order:
-            a, b = (f, o) if f < o else (o, f)
-            if (a, b) in out:
-                continue
-            ra, rb = pos.get(a, {}).get(b), pos.get(b, {}).get(a)
-            out[(a, b)] = mutual_proximity(ra, max(len(rankings.get(a, ())), 1), rb, max(len(rankings.get(b, ())), 1))
+        for o, m in zip(order, mutual_of(rankings, f, order)):
+            out.setdefault((f, o) if f < o else (o, f), m)
     return out

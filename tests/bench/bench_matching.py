@@ -162,7 +162,7 @@ def main() -> int:
             # the matcher's docked answer then ranks the best partners again for mutual proximity
             # (services/matcher.py, _rank_partners_again: those whose ranking predates the new fragment)
             tc = time.process_time()
-            index.rank_again([c.other for c in found if q.fragment not in index.rankings.get(c.other, ())], model)
+            index.rank_again([c.other for c in found], model, knowing=q.fragment)
             cpu_mutual.append(time.process_time() - tc)
             if args.pool:
                 # the matcher's first answer (services/matcher.py): stages 1–2½, docking left to its own job
