@@ -10,7 +10,8 @@ light-dependent part of the offline style's formula (``services/web/static/viewe
 A face is cut into a pyramid of :data:`common.web.tiles.TILE_PX`-pixel tiles with the levels of
 the archive's pyramid (:func:`common.web.tiles.pyramid_levels`): level 0 is the face at full
 resolution, level ``L`` the face area-averaged over ``2**L`` cells (masked; normals renormalised),
-down to a level that fits one tile. Unlike the archive's 8-bit albedo / normal-map tiles (cut in
+down to a level that fits :data:`TOP_PX` pixels (two levels below one tile: the first picture is a
+small download). Unlike the archive's 8-bit albedo / normal-map tiles (cut in
 one pass for IIIF and deep zoom), these carry float16 fields, and each tile is computed on its first
 request from a level-0 window with its halo (so the first picture of a face does not wait for
 all of level 0). A tile's fields are computed on its window plus a halo of 4 sigma of the
@@ -56,6 +57,9 @@ EXAGGERATED_SCALES = 3
 FIELDS_VERSION = 1
 #: Channels of the float16 part of a tile, in order.
 NORMAL_FIELDS = ("n", "n0", "n1", "n2", "n3", "nu")
+#: The pyramid goes on halving until the face fits this many pixels: the top tile, the viewer's
+#: first picture, is then ~90 kB instead of ~1.5 MB for a full 256-px tile of float16 fields.
+TOP_PX = 64
 #: Levels of at most this many megapixels are cut whole by :meth:`RelightCache.cut` (about 0.5 GB
 #: of fields and sums at 4 Mpx).
 WHOLE_MPX = 4.0
@@ -107,8 +111,8 @@ def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, sha
     ex = [sigma * 2.0 ** i for i in range(EXAGGERATED_SCALES + 1)]
     unsharp = max(unsharp_sigma_mm * dpi / 25.4, 1.0)
     curv = 2.0 * sigma
-    # the archive's pyramid (common.web.tiles): the same levels as the IIIF / deep-zoom tiles
-    levels = [[lw, lh] for lh, lw in pyramid_levels(h, w, TILE_PX)]
+    # the archive's pyramid (common.web.tiles), continued down to TOP_PX for a small first picture
+    levels = [[lw, lh] for lh, lw in pyramid_levels(h, w, TILE_PX, top_px=TOP_PX)]
     return {"version": FIELDS_VERSION, "dpi": float(dpi), "width": w, "height": h, "tile_px": TILE_PX,
             "levels": levels, "has_normals": has_normals,
             "sigma_px": round(float(sigma), 4), "exaggerated_sigmas_px": [round(float(s), 4) for s in ex],
@@ -354,6 +358,13 @@ class RelightCache:
             self._put(rel, json.dumps(params, sort_keys=True).encode())
             return params
 
+    def tiles_of(self, level: int) -> list[tuple[int, int]]:
+        """``[(row, col)]`` of every tile of ``level``."""
+        params = self.params()
+        lw, lh = params["levels"][level]
+        t = params["tile_px"]
+        return [(r, c) for r in range(-(-lh // t)) for c in range(-(-lw // t))]
+
     def tile_relpath(self, level: int, row: int, col: int) -> str:
         """Where tile (``level``, ``row``, ``col``) is kept, relative to the storage root."""
         return f"{self.folder}/{int(level)}/{int(row)}_{int(col)}.bin.gz"
@@ -384,13 +395,12 @@ class RelightCache:
         t = params["tile_px"]
         normals = np.zeros((lh, lw, 3), np.float32)
         colour = np.zeros((lh, lw, 4), np.uint8)
-        for r in range(-(-lh // t)):
-            for c in range(-(-lw // t)):
-                h, w = min(t, lh - r * t), min(t, lw - c * t)
-                xy, _, col = unpack_tile(self.tile_path(level, r, c).read_bytes(), h, w)
-                core = (slice(r * t, r * t + h), slice(c * t, c * t + w))
-                normals[core + (slice(0, 2),)] = xy[..., :2]
-                colour[core] = col
+        for r, c in self.tiles_of(level):
+            h, w = min(t, lh - r * t), min(t, lw - c * t)
+            xy, _, col = unpack_tile(self.tile_path(level, r, c).read_bytes(), h, w)
+            core = (slice(r * t, r * t + h), slice(c * t, c * t + w))
+            normals[core + (slice(0, 2),)] = xy[..., :2]
+            colour[core] = col
         normals[..., 2] = np.sqrt(np.maximum(1.0 - normals[..., 0] ** 2 - normals[..., 1] ** 2, 0.0))
         return RGBNImage(albedo=srgb_to_linear(colour[..., :3] / np.float32(255.0)), mask=colour[..., 3] > 127,
                          dpi=params["dpi"] / 2 ** level, normals=normals if params["has_normals"] else None)
@@ -411,8 +421,7 @@ class RelightCache:
         :class:`common.imports.progress.ProgressBar` made with ``total`` can show it)."""
         params = self.params()
         t, levels = params["tile_px"], params["levels"]
-        grid = {L: [(r, c) for r in range(-(-lh // t)) for c in range(-(-lw // t))]
-                for L, (lw, lh) in enumerate(levels) if L >= min_level}
+        grid = {L: self.tiles_of(L) for L in range(min_level, len(levels))}
         total, done = sum(len(v) for v in grid.values()), 0
 
         def tick():

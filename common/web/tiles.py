@@ -65,24 +65,29 @@ ENCODING = {
 # --------------------------------------------------------------------------------------------
 # the algorithm
 # --------------------------------------------------------------------------------------------
-def pyramid_levels(height: int, width: int, tile_px: int = TILE_PX) -> list[tuple[int, int]]:
+def pyramid_levels(height: int, width: int, tile_px: int = TILE_PX, top_px: int | None = None) -> list[tuple[int, int]]:
     """Sizes ``(height, width)`` of the levels of a pyramid, level 0 (full resolution) first.
 
     Level ``L + 1`` is level ``L`` halved, rounding up, down to the first level whose sides both
-    fit in one ``tile_px`` tile.
+    fit in ``top_px`` pixels (default: one ``tile_px`` tile).
 
     Examples
     --------
     >>> pyramid_levels(600, 1000)
     [(600, 1000), (300, 500), (150, 250)]
+    >>> pyramid_levels(600, 1000, top_px=64)
+    [(600, 1000), (300, 500), (150, 250), (75, 125), (38, 63)]
     """
     if int(height) < 1 or int(width) < 1:
         raise ValueError(f"height and width must be >= 1 pixel, got {height} x {width}")
     if int(tile_px) < 1:
         raise ValueError(f"tile_px must be >= 1, got {tile_px}")
+    top = int(tile_px if top_px is None else top_px)
+    if not 1 <= top <= int(tile_px):
+        raise ValueError(f"top_px must be in [1, tile_px = {tile_px}], got {top_px}")
     h, w = int(height), int(width)
     levels = [(h, w)]
-    while h > tile_px or w > tile_px:
+    while h > top or w > top:
         h, w = -(-h // 2), -(-w // 2)
         levels.append((h, w))
     return levels

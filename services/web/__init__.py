@@ -28,6 +28,7 @@ Reading is open; everything that writes (scan, verdict, re-run) needs the statio
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import threading
@@ -158,6 +159,20 @@ BLUEPRINTS = (auth_pages.bp, bench_pages.bp, review_pages.bp, status_pages.bp, c
 ReviewViews = review_pages.VIEWS
 
 
+def static_version(path: Path) -> str:
+    """The version a static file's URLs carry (``?v=``): the first 12 hex digits of its sha256, kept
+    per modification time. A page's scripts, styles and the vendored viewer are then cached by the
+    browser for good (``immutable``) and fetched again only when they change."""
+    stat = path.stat()
+    key = (str(path), stat.st_mtime_ns, stat.st_size)
+    if key not in _STATIC_VERSIONS:
+        _STATIC_VERSIONS[key] = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+    return _STATIC_VERSIONS[key]
+
+
+_STATIC_VERSIONS: dict[tuple, str] = {}
+
+
 def create_app(*, token: str, settings: Mapping | None = None, store_root: str | os.PathLike,
                bench: BenchSession | None = None, link: StationLink | None = None, review=None, catalogue=None,
                feed: FeedFollower | None = None) -> Flask:
@@ -197,6 +212,14 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     for bp in BLUEPRINTS:
         app.register_blueprint(bp)
 
+    @app.url_defaults
+    def versioned_static(endpoint, values):
+        # every url_for('static', ...) carries the file's version: cached for good, new when it changes
+        if endpoint == "static" and "v" not in values:
+            path = HERE / "static" / values.get("filename", "")
+            if path.is_file():
+                values["v"] = static_version(path)
+
     @app.get("/")
     def index():
         return redirect(url_for("bench.page") if bench is not None else url_for("review.page"))
@@ -221,6 +244,10 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
                                 "frame-ancestors 'none'; form-action 'self'")
         if request.path.startswith("/api/"):
             resp.headers.setdefault("Cache-Control", "no-store")
+        elif (request.path.startswith("/static/") and resp.status_code == 200
+              and request.args.get("v") == static_version(HERE / "static" / request.path[len("/static/"):])):
+            # a versioned URL names one content: no revalidation on the next page
+            resp.headers["Cache-Control"] = "public, max-age=31536000, immutable"
         return resp
 
     @app.errorhandler(400)

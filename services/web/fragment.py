@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from pathlib import Path
 
 from flask import Blueprint, abort, jsonify, render_template, request, send_file, url_for
 
@@ -22,7 +23,8 @@ log = logging.getLogger("tessera.web")
 
 bp = Blueprint("fragment", __name__)
 
-#: the viewer's shader files (``static/viewer/``), preloaded by the page
+#: the viewer's shader files (``static/viewer/``), carried in the page (no request of their own)
+VIEWER_FOLDER = Path(__file__).resolve().parent / "static" / "viewer"
 SHADER_FILES = ("tile.vert", "common.glsl", "albedo.frag", "lambertian.frag", "raking.frag", "specular.frag",
                 "normal_unsharp.frag", "exaggerated.frag", "mean_curvature.frag")
 
@@ -49,6 +51,25 @@ def _cut_coarse_levels(cache) -> None:
         finally:
             done.set()
     threading.Thread(target=run, name=f"relight-cut {cache.folder}", daemon=True).start()
+
+
+def shader_sources() -> dict[str, str]:
+    """``{file name: source}`` of :data:`SHADER_FILES`, read as they are now (a few kB): the page
+    carries them in a JSON data block, so the viewer compiles its first style without waiting for
+    nine requests over the browser's six connections."""
+    return {name: (VIEWER_FOLDER / name).read_text() for name in SHADER_FILES}
+
+
+def _wait_for_cut(cache, level: int, tiles) -> None:
+    """If the background pass (:func:`_cut_coarse_levels`) writes ``level``, wait until it has
+    written ``tiles`` ``[(row, col)]`` (it goes coarsest first) rather than cut them here too: two
+    computations of one tile would race for the CPU and the first picture would wait for both."""
+    cutting = _cutting.get(cache.folder)
+    if cutting is None or level < (cache.whole_from() or level + 1):
+        return
+    targets = [cache.store.path(cache.tile_relpath(level, r, c)) for r, c in tiles]
+    while not cutting.is_set() and not all(p.is_file() for p in targets):
+        cutting.wait(0.05)
 
 
 def _fid(fid: str) -> str:
@@ -115,7 +136,7 @@ def page(fid):
             _cut_coarse_levels(cache)   # returns at once when they are cut (or being cut) already
             preload.append(f"{first['relight']}/tiles/{len(first['params']['levels']) - 1}/0_0")
     return render_template("fragment.html", page="fragment", fragment=fid, faces=json.dumps(faces),
-                           preload=preload, shaders=SHADER_FILES)
+                           preload=preload, shaders=shader_sources())
 
 
 @bp.get("/api/fragments/<fid>")
@@ -175,12 +196,7 @@ def tile(fid, stem, level, tile):
     except ValueError:
         abort(404, f"no tile {tile!r} (expected <row>_<column>)")
     cache = _cache(fid, stem)
-    cutting = _cutting.get(cache.folder)
-    if cutting is not None and level >= (cache.whole_from() or level + 1):
-        # the background pass writes this level's tiles (the coarsest first): wait for this one
-        target = cache.store.path(cache.tile_relpath(level, row, col))
-        while not cutting.is_set() and not target.is_file():
-            cutting.wait(0.05)
+    _wait_for_cut(cache, level, [(row, col)])
     try:
         path = cache.tile_path(level, row, col)
     except ValueError as exc:
@@ -214,6 +230,7 @@ def auto(fid, stem):
     if not params["has_normals"] and style != "albedo":
         abort(400, f"face {stem} has no normals (colour only): only the albedo style applies")
     level = overview_level(params)
+    _wait_for_cut(cache, level, cache.tiles_of(level))
     try:
         image = cache.level_image(level)
         return jsonify(style=style, level=level, resolved=auto_contrast(image, style, values, params, level=level))

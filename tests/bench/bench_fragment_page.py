@@ -8,9 +8,11 @@ machine without a GPU) opens the page. Prints:
 
 * time to first picture — from navigation start to the first drawn tiles (any level: the
   one-tile top level stands in for the rest), to the first tile of the level the view needs, and to
-  all of them — on a cold cache (the relight fields are computed on these first
-  requests) and on a warm one (a new browser: tiles read from storage); the web server's CPU
-  seconds for the cold open;
+  all of them — for a face never opened (its relight fields are computed on these first requests;
+  the web server's CPU seconds beside it), for the face with its tiles cut, opened ``--opens``
+  times each in a new browser (nothing in its HTTP cache; median), and for the next fragment of a
+  browsing session (the page's scripts cached, that face's tiles cut on arrival but never fetched);
+  each open waits until the web server is idle;
 * the relighting frame time: a full redraw with another light, finished on the GPU (1-pixel
   readPixels), mean of ``--frames``, per style, at the whole-face view and at 1:1;
 * the tile cost: server CPU per level-0 tile (cold), tile bytes, the cache's size on storage, and
@@ -43,6 +45,17 @@ def cpu_of(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def wait_idle(pid: int, quiet_s: float = 1.0, timeout_s: float = 120.0) -> None:
+    """Wait until process ``pid`` has used under 5 % of a CPU for ``quiet_s`` (the web server done
+    with the previous page's requests: its auto contrast, background cuts)."""
+    t_end = time.perf_counter() + timeout_s
+    while time.perf_counter() < t_end:
+        c = cpu_of(pid)
+        time.sleep(quiet_s)
+        if cpu_of(pid) - c < 0.05 * quiet_s:
+            return
+
+
 def folder_bytes(path: Path) -> tuple[int, int]:
     files = [p for p in path.rglob("*") if p.is_file()]
     return len(files), sum(p.stat().st_size for p in files)
@@ -54,6 +67,7 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=3000)
     ap.add_argument("--dpi", type=float, default=600.0)
     ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--opens", type=int, default=5, help="opens of the cut face, each in a new browser")
     args = ap.parse_args()
 
     from playwright.sync_api import sync_playwright
@@ -70,34 +84,61 @@ def main() -> int:
         image = relief_face(args.height, args.width, dpi=args.dpi)
         store = Store(root / "storage")
         save_rgbn(store, "fragments/B-1/rgbn/front-bench.h5", image)
+        save_rgbn(store, "fragments/B-2/rgbn/front-bench.h5", image)   # the next fragment of a session
         del image
+        from common.web.relight import RelightCache
+
+        t, c = time.perf_counter(), time.process_time()
+        RelightCache(store, "fragments/B-2/rgbn/front-bench.h5").cut(min_level=1)   # as the renderer does on arrival
+        print(f"B-2's relight tiles cut ahead (levels >= 1) in {time.perf_counter() - t:.1f} s wall, "
+              f"{time.process_time() - c:.1f} s CPU")
         print(f"face {args.width} x {args.height} px ({args.width * args.height / 1e6:.1f} Mpx) at {args.dpi:g} dpi "
               f"stored in {time.perf_counter() - t:.1f} s wall, {time.process_time() - c:.1f} s CPU")
         web = WebProcess(root).start()
         try:
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-                for label in ("cold", "warm"):
+                def open_page(context, fid, label):
+                    wait_idle(web.proc.pid)
                     cpu0 = cpu_of(web.proc.pid)
-                    page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
+                    page = context.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True) \
+                        if hasattr(context, "new_context") else context.new_page()
                     t = time.perf_counter()
-                    open_viewer(page, f"{web.url}/fragments/B-1", timeout_ms=600_000)
+                    open_viewer(page, f"{web.url}/fragments/{fid}", timeout_ms=600_000)
                     wall = time.perf_counter() - t
                     s = page.evaluate("() => tesseraViewer.stats")
                     lv = page.evaluate("() => [tesseraViewer.level(), tesseraViewer.levels.length]")
-                    print(f"{label:4s} open: first picture {s['firstPictureMs']:.0f} ms, first tile of the level the "
+                    print(f"{label}: first picture {s['firstPictureMs']:.0f} ms, first tile of the level the "
                           f"view needs {s['firstTileMs']:.0f} ms, all of them {s['completeMs']:.0f} ms "
                           f"after navigation start (level {lv[0]} of {lv[1]}, {s['tilesLoaded']} tiles); "
                           f"test wall {wall:.2f} s; server CPU {cpu_of(web.proc.pid) - cpu0:.2f} s")
                     nav = page.evaluate("() => performance.getEntriesByType('navigation')[0].domContentLoadedEventEnd")
-                    top = page.evaluate("() => { const e = performance.getEntriesByType('resource').find("
-                                        "(e) => /tiles\\/\\d+\\/0_0$/.test(e.name)); return e ? e.responseEnd : null; }")
-                    print(f"     page parsed {nav:.0f} ms, viewer init {s['initMs']:.0f} ms, WebGL context {s['contextMs']:.0f} ms, "
-                          f"shader sources {s['sourcesMs']:.0f} ms, first tile response {top or 0:.0f} ms")
-                    if label == "cold":
-                        page.close()
-                        browser.close()
-                        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)  # no HTTP cache
+                    print(f"     page parsed {nav:.0f} ms, viewer init {s['initMs']:.0f} ms, "
+                          f"OpenSeadragon started {s['contextMs']:.0f} ms")
+                    return page, s["firstPictureMs"]
+
+                # a face never opened: its relight fields are computed on these first requests
+                browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+                page, _ = open_page(browser, "B-1", "never-cut face, new browser")
+                # tiles cut: a new browser each time (nothing in its HTTP cache), the server idle
+                firsts = []
+                for i in range(args.opens):
+                    page.close()
+                    browser.close()
+                    browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+                    page, ms = open_page(browser, "B-1", f"tiles cut, new browser ({i + 1}/{args.opens})")
+                    firsts.append(ms)
+                print(f"first picture, tiles cut, new browser: median {np.median(firsts):.0f} ms of {len(firsts)} "
+                      f"(min {min(firsts):.0f}, max {max(firsts):.0f})")
+                # the next fragment in a browsing session: the page's scripts in the HTTP cache (static
+                # URLs are versioned and immutable), the face's tiles cut but never fetched by it
+                context = browser.new_context(viewport={"width": 1280, "height": 900}, bypass_csp=True)
+                first, _ = open_page(context, "B-1", "a first fragment in a new browsing session")
+                nxt, ms = open_page(context, "B-2", "the next fragment, same session")
+                print(f"first picture, the next fragment in a session: {ms:.0f} ms")
+                first.close()
+                nxt.close()
+                context.close()
                 print(f"canvas {page.evaluate('() => [tesseraViewer.canvas.width, tesseraViewer.canvas.height]')}")
                 for style in ("raking", "exaggerated"):
                     cpu0 = cpu_of(web.proc.pid)

@@ -10,13 +10,14 @@ import gzip
 import json
 import math
 import os
+import re
 
 import numpy as np
 import pytest
 
 from .conftest import TOKEN
 from .viewer_support import CHROMIUM, CHROMIUM_ARGS, REPO, WebProcess, open_viewer, relief_face, require_browser, \
-    screenshot, show_one_to_one
+    screenshot, show_one_to_one, wait_complete
 
 
 def _store_with(tmp_path, image, fid="F-1", stem="front-k1"):
@@ -73,7 +74,7 @@ def test_coarse_level_is_the_masked_area_average(tmp_path):
 def test_tiles_are_cut_once_and_kept(tmp_path):
     from common.web.relight import RelightCache
 
-    store = _store_with(tmp_path, relief_face(100, 300))      # level 0: 2 tiles, level 1: 1
+    store = _store_with(tmp_path, relief_face(100, 300))      # level 0: 2 tiles, levels 1-3 (150, 75, 38 px): 1
     cache = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
     path = cache.tile_path(0, 0, 0)
     stamp = path.stat().st_mtime_ns
@@ -84,20 +85,20 @@ def test_tiles_are_cut_once_and_kept(tmp_path):
         cache.tile_path(0, 3, 0)
     # cutting ahead of a view: every tile of every level once, the one already there kept
     seen = []
-    assert cache.cut(min_level=0, progress=lambda done, total: seen.append((done, total))) == 3
-    assert seen == [(1, 3), (2, 3), (3, 3)] and path.stat().st_mtime_ns == stamp
-    assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 3
+    assert cache.cut(min_level=0, progress=lambda done, total: seen.append((done, total))) == 5
+    assert seen == [(k, 5) for k in range(1, 6)] and path.stat().st_mtime_ns == stamp
+    assert len(list((store.root / cache.folder).rglob("*.bin.gz"))) == 5
 
 
 def test_cut_in_one_pass_gives_the_tiles_a_view_asks_for(tmp_path):
     """Coarse levels cut whole from one read of the face hold what tile-by-tile cutting gives."""
     from common.web.relight import RelightCache, unpack_tile
 
-    store = _store_with(tmp_path, relief_face(600, 700))       # levels 700x600, 350x300, 175x150
+    store = _store_with(tmp_path, relief_face(600, 700))       # levels 700x600, 350x300, 175x150, 88x75, 44x38
     on_demand = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
     ahead = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5")
     ahead.folder += "-ahead"
-    assert ahead.cut(min_level=1) == 2 * 2 + 1
+    assert ahead.cut(min_level=1) == 2 * 2 + 1 + 1 + 1
     for level, (r, c), (h, w) in ((1, (1, 1), (300 - 256, 350 - 256)), (1, (0, 0), (256, 256)), (2, (0, 0), (150, 175))):
         a = unpack_tile(on_demand.tile_path(level, r, c).read_bytes(), h, w)
         b = unpack_tile(ahead.tile_path(level, r, c).read_bytes(), h, w)
@@ -190,8 +191,12 @@ def test_page_and_tile_routes(client):
 
     r = client.get("/fragments/F-1")
     assert r.status_code == 200 and b"viewer/viewer.js" in r.data and b"F-1" in r.data
-    for name in web.fragment.SHADER_FILES:     # every preloaded shader file is there
-        assert client.get(f"/static/viewer/{name}").status_code == 200, name
+    # the page carries every shader's source as it is on disk (no request of its own)
+    block = re.search(r'<script type="application/json" id="viewer-shaders">(.*?)</script>', r.get_data(as_text=True), re.S)
+    carried = json.loads(block.group(1))
+    assert set(carried) == set(web.fragment.SHADER_FILES)
+    for name in web.fragment.SHADER_FILES:
+        assert carried[name] == (web.fragment.VIEWER_FOLDER / name).read_text(), name
     p = client.get("/api/fragments/F-1/relight/front-k1/params.json").get_json()
     assert p["width"] == 80 and p["height"] == 60 and p["dpi"] == 300.0
     t = client.get("/api/fragments/F-1/relight/front-k1/tiles/0/0_0")
@@ -208,14 +213,15 @@ def test_opening_a_face_cuts_its_coarse_levels_in_one_background_pass(tmp_path):
     from services import web
     from services.web import fragment
 
-    store = _store_with(tmp_path, relief_face(100, 600), stem="front-k9")   # levels 600x100, 300x50, 150x25
+    store = _store_with(tmp_path, relief_face(100, 600), stem="front-k9")   # levels 600x100, 300x50, ..., 38x7
     app = web.create_app(token=TOKEN, store_root=store.root)
     assert app.test_client().get("/api/fragments/F-1/relight/front-k9/params.json").status_code == 200
     cache = RelightCache(store, "fragments/F-1/rgbn/front-k9.h5")
     assert fragment._cutting[cache.folder].wait(60)
     cut = sorted(p.relative_to(store.root / cache.folder).as_posix()
                  for p in (store.root / cache.folder).rglob("*.bin.gz"))
-    assert cut == ["1/0_0.bin.gz", "1/0_1.bin.gz", "2/0_0.bin.gz"]
+    # and on to the 64-px top level (38 x 7), the viewer's first picture
+    assert cut == ["1/0_0.bin.gz", "1/0_1.bin.gz", "2/0_0.bin.gz", "3/0_0.bin.gz", "4/0_0.bin.gz"]
 
 
 @pytest.mark.parametrize("url,code,words", [
@@ -409,3 +415,44 @@ def test_the_csp_allows_exactly_the_style_the_vendored_openseadragon_injects():
     assert len(styles) == 1
     digest = base64.b64encode(hashlib.sha256(styles[0].encode()).digest()).decode()
     assert OPENSEADRAGON_STYLE_HASH == f"sha256-{digest}"
+
+
+@pytest.mark.slow
+def test_the_top_level_is_the_first_picture_while_the_view_waits_for_its_tiles(tmp_path):
+    """The one-tile top level (64 px) is drawn as soon as it arrives, whatever OpenSeadragon's queue
+    holds: with every other tile held back, the face is already on the canvas; released, the tiles
+    of the level the view needs replace it."""
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    from common.web.relight import TOP_PX, RelightCache
+
+    store = _store_with(tmp_path, relief_face(1300, 2000, dpi=600.0))
+    levels = RelightCache(store, "fragments/F-1/rgbn/front-k1.h5").params()["levels"]
+    top = len(levels) - 1
+    assert max(levels[top]) <= TOP_PX < max(levels[top - 1])
+    web = WebProcess(tmp_path).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1000, "height": 800}, bypass_csp=True)
+            held, release = [], []
+            page.route("**/tiles/**", lambda route: route.continue_() if release or f"/tiles/{top}/0_0" in route.request.url
+                       else held.append(route))
+            page.goto(f"{web.url}/fragments/F-1")
+            page.wait_for_function("() => window.tesseraViewer && tesseraViewer.stats.firstPictureMs !== null",
+                                   timeout=60_000)
+            s = page.evaluate("() => tesseraViewer.stats")
+            assert s["tilesLoaded"] == 0 and held, "the first picture came before any tile OpenSeadragon asked for"
+            # the face is drawn (the centre is on the fragment), not only the background
+            centre = page.evaluate("""() => { const v = tesseraViewer, c = v.canvas; v.render();
+                return Array.from(v.pixels(c.width / 2 - 1, c.height / 2 - 1, 2, 2)); }""")
+            assert max(abs(c - 255) for i, c in enumerate(centre) if i % 4 != 3) > 10, centre
+            release.append(True)
+            for route in held:
+                route.continue_()
+            wait_complete(page)
+            assert page.evaluate("() => tesseraViewer.stats.tilesLoaded") >= len(held)
+            browser.close()
+    finally:
+        web.stop()

@@ -63,6 +63,11 @@ def test_pyramid_levels_halve_rounding_up_until_one_tile():
     assert tiles.pyramid_levels(257, 3) == [(257, 3), (129, 2)]
     with pytest.raises(ValueError, match="height and width"):
         tiles.pyramid_levels(0, 10)
+    # a pyramid can go on below one tile (the relight pyramid's small first picture)
+    assert tiles.pyramid_levels(600, 1000, top_px=64) == [(600, 1000), (300, 500), (150, 250), (75, 125), (38, 63)]
+    assert tiles.pyramid_levels(40, 30, top_px=64) == [(40, 30)]
+    with pytest.raises(ValueError, match="top_px"):
+        tiles.pyramid_levels(600, 1000, top_px=512)
 
 
 def test_every_level_is_the_masked_area_average_of_the_face(cut):

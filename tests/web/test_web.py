@@ -121,6 +121,31 @@ def test_pages_use_only_assets_served_by_the_station(counting_app):
         assert "http://" not in text and "https://" not in text, js
 
 
+def test_static_files_are_versioned_and_cached_for_good(counting_app, tmp_path):
+    """A page's scripts and styles carry their content's hash (?v=): a browser keeps them without
+    asking again; a changed file gets a new URL; a stale or missing version is not cached for good."""
+    import hashlib
+
+    from services import web
+
+    app, _ = counting_app
+    c = app.test_client()
+    html = c.get("/review").get_data(as_text=True)
+    src = re.search(r'src="(/static/tessera\.js\?v=([0-9a-f]+))"', html)
+    want = hashlib.sha256((web.HERE / "static" / "tessera.js").read_bytes()).hexdigest()[:12]
+    assert src and src.group(2) == want
+    r = c.get(src.group(1))
+    assert r.status_code == 200 and r.headers["Cache-Control"] == "public, max-age=31536000, immutable"
+    for stale in ("/static/tessera.js?v=000000000000", "/static/tessera.js"):
+        assert "immutable" not in c.get(stale).headers.get("Cache-Control", ""), stale
+    # the version follows the content
+    f = tmp_path / "x.js"
+    f.write_text("a")
+    v1 = web.static_version(f)
+    f.write_text("bb")
+    assert web.static_version(f) != v1 == hashlib.sha256(b"a").hexdigest()[:12]
+
+
 def test_listens_on_localhost_unless_config_opens_it():
     assert web.web_settings(load_config())["host"] == "127.0.0.1"
     cfg = load_config(None, {"services.web": {"host": "0.0.0.0", "port": 8090}})

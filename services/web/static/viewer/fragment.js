@@ -18,6 +18,7 @@
   async function load() {
     // the faces are in the page: the viewer starts at once; the rest of the fragment follows
     const faces = JSON.parse(root.dataset.faces || "[]");
+    let firstView = null;
     if (!faces.length) { message("This fragment has no RGBN face on storage yet."); }
     else {
       const bar = $("faces");
@@ -28,7 +29,7 @@
         bar.append(b);
       }
       const want = new URLSearchParams(location.search).get("face");
-      openFace(faces.find((f) => f.face === want) || faces[0]);
+      firstView = openFace(faces.find((f) => f.face === want) || faces[0]).then((shown) => shown && viewer.complete);
     }
     const r = await Tessera.api("GET", root.dataset.api);
     if (!r.ok) { if (faces.length) message(r.data.error || `The fragment's joins could not be loaded (HTTP ${r.status}).`); return; }
@@ -43,6 +44,9 @@
     $("proposals-empty").hidden = info.proposals.length > 0;
     if (!info.proposals_available) $("proposals-empty").textContent = "The proposal store is not available on this station.";
     about(info.catalogue);
+    // the first listing exports the files, which reads whole faces: after the first view is drawn,
+    // so a face opened for the first time does not share the server with it
+    if (firstView) await Promise.race([firstView, new Promise((r) => setTimeout(r, 60000))]);
     downloads(info.downloads);
   }
 
@@ -98,6 +102,7 @@
     if (light) viewer.setLight(...light);
     buildStyleControls();
     firstContrast();
+    return true;
   }
 
   // ---- controls ------------------------------------------------------------------------------

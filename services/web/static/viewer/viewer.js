@@ -17,14 +17,17 @@
 //   unloads the tile. Moving the light, changing a style's parameters or the contrast only changes
 //   uniforms, so a frame is one draw call per tile OpenSeadragon asks for and no texture upload.
 //
+// The drawer also keeps the pyramid's one-tile top level (64 px, common/web/relight.TOP_PX), fetched
+// as the viewer starts, as its "preview": drawn under the tiles until the view has all of them, it is
+// the first picture whatever OpenSeadragon's queue holds.
+//
 // The style shaders are the files next to this one, named like the offline styles they mirror
-// (common/render/recipes.py). Nothing is fetched from the network but this station.
+// (common/render/recipes.py); the page carries their sources (no request of their own). Nothing is
+// fetched from the network but this station.
 "use strict";
 
 const RelightViewer = (() => {
   const OSD = OpenSeadragon;
-  const HERE = (document.currentScript && document.currentScript.src) ?
-    document.currentScript.src.replace(/[^/]*$/, "") : "/static/viewer/";
 
   // light_vector of common/render/_util.py: azimuth counter-clockwise from +x (image right),
   // elevation above the image plane; x right, y up, z towards the viewer
@@ -33,16 +36,15 @@ const RelightViewer = (() => {
     return [Math.cos(e) * Math.cos(a), Math.cos(e) * Math.sin(a), Math.sin(e)];
   }
 
-  // the shader files, fetched once as soon as this script runs (in parallel with the page's
-  // other requests)
-  let sources = null;
+  // the shader files' sources, which the page carries in a JSON data block (services/web/fragment.py)
   function shaderSources() {
-    const text = (name) => fetch(HERE + name).then((r) => {
-      if (!r.ok) throw new Error(`shader ${name}: HTTP ${r.status}`);
-      return r.text();
+    const block = document.getElementById("viewer-shaders");
+    if (!block) throw new Error("This page does not carry the viewer's shaders (#viewer-shaders).");
+    const files = JSON.parse(block.textContent);
+    return ["tile.vert", "common.glsl", ...Object.keys(STYLES).map((n) => n + ".frag")].map((name) => {
+      if (typeof files[name] !== "string") throw new Error(`shader ${name} is missing from the page`);
+      return files[name];
     });
-    if (!sources) sources = Promise.all(["tile.vert", "common.glsl", ...Object.keys(STYLES).map((n) => n + ".frag")].map(text));
-    return sources;
   }
 
   // [lo, hi] or "none"/"auto"-less numbers as the shader's vec2 (x < 0 means "none")
@@ -204,6 +206,7 @@ const RelightViewer = (() => {
 
     destroy() {
       this.destroyInternalCache();     // the tiles' textures, while the context is there
+      if (this.preview && this.preview.tex) this.internalCacheFree(this.preview.tex);
       const gl = this.gl;
       for (const p of Object.values(this.programs)) gl.deleteProgram(p.p);
       gl.deleteBuffer(this.quad);
@@ -217,7 +220,11 @@ const RelightViewer = (() => {
 
     // five textures of a tile: three RGBA16F, one R16F, one RGBA8
     internalCacheCreate(cache) {
-      const gl = this.gl, d = cache.data;
+      return this._upload(cache.data);
+    }
+
+    _upload(d) {
+      const gl = this.gl;
       const tex = (internal, format, type, data) => {
         const x = gl.createTexture();
         gl.bindTexture(gl.TEXTURE_2D, x);
@@ -295,27 +302,38 @@ const RelightViewer = (() => {
       ["u_n01", "u_n23", "u_n3u", "u_curv", "u_colour"].forEach((u, i) => set(u, "1i", i));
       const view = v.currentView(), target = v.level();
       let drawn = 0, stand = 0, complete = tiledImages.length > 0;
+      // one quad of a tile's textures at its footprint: tile (r, c) of relight level L, w x h pixels
+      const quad = (tex, L, r, c, w, h) => {
+        const t = this.relight.info.tile_px, f = 2 ** L;
+        // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
+        const mag = view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
+        tex.tex.forEach((x, i) => {
+          gl.activeTexture(gl.TEXTURE0 + i);
+          gl.bindTexture(gl.TEXTURE_2D, x);
+          if (tex.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
+        });
+        tex.mag = mag;
+        // the tile's exact footprint in level-0 pixels (its level's pixels are 2^L of them)
+        const [x0, y0] = v.toCanvas(c * t * f, r * t * f, view);
+        const [x1, y1] = v.toCanvas((c * t + w) * f, (r * t + h) * f, view);
+        gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
+        gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+        if (L === target) drawn += 1; else stand += 1;
+      };
+      // the top level under everything until the view's tiles are all there: the first picture, and
+      // the backdrop where finer tiles have not come (not after: it would shade every pixel twice)
+      const p = this.preview;
+      if (p && !(tiledImages.length > 0 && tiledImages.every((i) => i.getFullyLoaded()))) {
+        if (!p.tex) p.tex = this._upload(p.data);
+        quad(p.tex, p.level, 0, 0, p.data.w, p.data.h);
+      }
       for (const image of tiledImages) {
-        const source = image.source, t = source.getTileWidth();
+        const source = image.source;
         for (const { tile } of image.getTilesToDraw()) {
           const cache = this.getDataToDraw(tile);
           if (!cache) continue;
-          const L = source.relightLevel(tile.level), f = 2 ** L;
-          const [w, h] = source.tilePixels(L, tile.y, tile.x);
-          // sharp texels when a texel covers 4+ canvas pixels (measuring), smooth otherwise
-          const mag = view.zoom * f >= 4 ? gl.NEAREST : gl.LINEAR;
-          cache.tex.forEach((x, i) => {
-            gl.activeTexture(gl.TEXTURE0 + i);
-            gl.bindTexture(gl.TEXTURE_2D, x);
-            if (cache.mag !== mag) gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, mag);
-          });
-          cache.mag = mag;
-          // the tile's exact footprint in level-0 pixels (its level's pixels are 2^L of them)
-          const [x0, y0] = v.toCanvas(tile.x * t * f, tile.y * t * f, view);
-          const [x1, y1] = v.toCanvas((tile.x * t + w) * f, (tile.y * t + h) * f, view);
-          gl.uniform4f(prog.loc.u_rect, x0, y0, x1, y1);
-          gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
-          if (L === target) drawn += 1; else stand += 1;
+          const L = source.relightLevel(tile.level), [w, h] = source.tilePixels(L, tile.y, tile.x);
+          quad(cache, L, tile.y, tile.x, w, h);
         }
         complete = complete && image.getFullyLoaded();
       }
@@ -347,12 +365,23 @@ const RelightViewer = (() => {
                     uploads: 0, gpuTiles: 0 };   // tiles uploaded (ever), tiles whose textures are on the GPU now
       this.onchange = null;
       this.onerror = null;
+      // resolved when the first view has every tile it needs
+      this.complete = new Promise((resolve) => { this._complete = resolve; });
     }
 
     async init() {
       this.stats.initMs = performance.now();
       if (!RelightDrawer.isSupported()) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
-      const [vert, common, ...frags] = await shaderSources();
+      // the one-tile top level is the first picture and the backdrop of every frame (the drawer's
+      // preview): its bytes are on their way while OpenSeadragon starts (the page preloads the
+      // same URL), not queued behind the level the view needs, which OpenSeadragon fetches
+      const top = this.levels.length - 1, [tw, th] = this.levels[top];
+      const preview = fetch(`${this.base}/tiles/${top}/0_0`).then((r) => {
+        if (!r.ok) throw new Error(`tile ${top}/0/0: HTTP ${r.status}`);
+        return r.arrayBuffer();
+      }).then((buf) => unpackTile(buf, tw, th, `${top}/0/0`));
+      const source = new RelightTileSource(this.base, this.info);
+      const [vert, common, ...frags] = shaderSources();
       this.stats.sourcesMs = performance.now();
       // sources now, programs when a style is first drawn (compiling all of them would delay the
       // first picture); a style's compile error still shows at once: the page draws it first
@@ -388,6 +417,8 @@ const RelightViewer = (() => {
       });
       this.drawer = this.osd.drawer;
       this.canvas = this.drawer.canvas;
+      preview.then((d) => { if (this.osd) { this.drawer.preview = { data: d, level: top }; this.draw(); } })
+        .catch((e) => { if (this.onerror) this.onerror(e); });
       this.stats.contextMs = performance.now();
       this.osd.addHandler("tile-loaded", () => { this.stats.tilesLoaded += 1; });
       this.osd.addHandler("tile-load-failed", (e) => { if (this.onerror) this.onerror(new Error(e.message)); });
@@ -402,7 +433,7 @@ const RelightViewer = (() => {
         this.osd.addOnceHandler("open", resolve);
         this.osd.addOnceHandler("open-failed", (e) => reject(new Error(e.message)));
       });
-      this.osd.open(new RelightTileSource(this.base, this.info));
+      this.osd.open(source);
       await opened;
       this.fit(true);
     }
@@ -537,7 +568,7 @@ const RelightViewer = (() => {
       const now = performance.now(), s = this.stats;
       if (drawn + stand > 0 && s.firstPictureMs === null) s.firstPictureMs = now;
       if (drawn > 0 && s.firstTileMs === null) s.firstTileMs = now;
-      if (complete && s.completeMs === null) s.completeMs = now;
+      if (complete && s.completeMs === null) { s.completeMs = now; this._complete(); }
       s.frames += 1;
       s.lastFrameCpuMs = ms;
       s.complete = complete;
@@ -633,6 +664,5 @@ const RelightViewer = (() => {
     }
   }
 
-  shaderSources();
   return { Viewer, STYLES, lightVector };
 })();
