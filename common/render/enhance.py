@@ -805,10 +805,17 @@ def specular_enhancement(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np
     l = as_light(light)
     h = l + np.array([0.0, 0.0, 1.0], np.float32)
     h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    diffuse = np.maximum(dot_light(normals, l), 0.0) * np.float32(kd)
-    spec = np.float32(ks) * np.maximum(dot_light(normals, h), 0.0) ** np.float32(exponent)
-    base = np.full(normals.shape, 0.75, np.float32) if albedo is None else np.asarray(albedo, np.float32)
-    if base.shape != normals.shape:
+    base = np.float32(0.75) if albedo is None else np.asarray(albedo, np.float32)
+    if albedo is not None and base.shape != normals.shape:
         raise ValueError(f"albedo must be {normals.shape}, got {base.shape}")
-    out = base * diffuse[..., None] + spec[..., None]
-    return (np.clip(out, 0.0, 1.0) if clip else out).astype(np.float32)
+    # each term made in place: one colour array and two planes in all
+    diffuse = np.maximum(dot_light(normals, l), np.float32(0.0))
+    diffuse *= np.float32(kd)
+    spec = np.maximum(dot_light(normals, h), np.float32(0.0))
+    np.power(spec, np.float32(exponent), out=spec)
+    spec *= np.float32(ks)
+    out = np.multiply(base, diffuse[..., None], dtype=np.float32) if albedo is not None else \
+        np.repeat((diffuse * base)[..., None], 3, axis=-1)
+    del diffuse
+    out += spec[..., None]
+    return np.clip(out, 0.0, 1.0, out=out) if clip else out

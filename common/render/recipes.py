@@ -104,13 +104,22 @@ def _colour(image: RGBNImage, use_albedo: bool):
 
 def _noise_px(image: RGBNImage, value, resolved: dict, key: str, *, factor: float = 1.0, floor: float = 0.0) -> float:
     """A smoothing scale in pixels: ``value``, or for "auto" ``factor`` x the scale that brings the
-    normal map's noise down (:func:`common.render.enhance.relief_scale_px`), at least ``floor``."""
+    normal map's noise down (:func:`common.render.enhance.relief_scale_px`), at least ``floor``.
+    The noise is measured on the centred calibration window (:func:`common.render.tiles.calibration_window`,
+    the tiled renderer's; the whole image when it is smaller or the window holds under a tenth of
+    the fragment): a statistic of the pixels, which a few megapixels of them give as well as all."""
+    from common.render.tiles import calibration_window
+
     if _is_auto(value) and image.normals is None:
         value = 0.0
     if _is_auto(value):
         k = (id(image.normals), image.shape)
         if k not in _cache:
-            _cache[k] = _enhance.relief_scale_px(image.normals, image.dpi, image.mask)
+            r0, r1, c0, c1 = calibration_window(image.shape)
+            window = (slice(r0, r1), slice(c0, c1))
+            if np.count_nonzero(image.mask[window]) * 10 < np.count_nonzero(image.mask):
+                window = (slice(None), slice(None))
+            _cache[k] = _enhance.relief_scale_px(image.normals[window], image.dpi, image.mask[window])
             log.info("noise of the normal map: %s -> smoothing %.2f px", _cache[k][1], _cache[k][0])
         value = max(factor * _cache[k][0], floor)
     resolved[key] = round(float(value), 4)

@@ -129,6 +129,16 @@ def needs_tiles(image: RGBNImage, recipe, tile: int | None = None) -> bool:
     return h * w > TILE_MPX * 1e6
 
 
+def calibration_window(shape: tuple[int, int], mpx: float = CALIBRATION_MPX) -> tuple[int, int, int, int]:
+    """The centred crop ``(r0, r1, c0, c1)`` of at most ``mpx`` megapixels of an image of ``shape``
+    (the whole image when it is smaller), on which "auto" values are chosen for a large image."""
+    h, w = int(shape[0]), int(shape[1])
+    side_h = min(h, int(np.sqrt(mpx * 1e6 * h / w)))
+    side_w = min(w, int(mpx * 1e6 / max(side_h, 1)))
+    r0, c0 = (h - side_h) // 2, (w - side_w) // 2
+    return r0, r0 + side_h, c0, c0 + side_w
+
+
 def _spans(length: int, core: int) -> list[tuple[int, int]]:
     n = max(1, int(np.ceil(length / core)))
     edges = np.linspace(0, length, n + 1).round().astype(int)
@@ -175,9 +185,8 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
             labels = segment_source(source, **recipe.segmentation)
     cut = lambda r0, r1, c0, c1: None if labels is None else labels[r0:r1, c0:c1]  # noqa: E731
     # 1. calibration on the centred window
-    side_h = min(h, int(np.sqrt(calibration_mpx * 1e6 * h / w)))
-    side_w = min(w, int(calibration_mpx * 1e6 / max(side_h, 1)))
-    r0, c0 = (h - side_h) // 2, (w - side_w) // 2
+    r0, r1, c0, c1 = calibration_window((h, w), calibration_mpx)
+    side_h, side_w = r1 - r0, c1 - c0
     if progress:
         progress(0.0, f"calibrating exposure on {side_w}x{side_h} px")
     # each drawing reuses its freed arrays (_heap) and hands the memory back when it ends, so one

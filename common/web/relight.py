@@ -45,7 +45,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.render.tiles import CALIBRATION_MPX
+from common.render.tiles import calibration_window
 from common.rgbn.curvature import mean_curvature
 from common.rgbn.io import linear_to_srgb
 from common.rgbn.smoothing import smooth_normals
@@ -262,15 +262,6 @@ def level_from_sums(sums: np.ndarray, level: int, has_normals: bool = True):
         s[np.linalg.norm(s, axis=2) < 0.5] = (0.0, 0.0, 1.0)
         nrm = s.astype(np.float32)
     return alb.astype(np.float32), nrm, cm / float(4 ** int(level)) >= 0.5
-
-
-def calibration_window(shape: tuple[int, int], mpx: float = CALIBRATION_MPX) -> tuple[int, int, int, int]:
-    """The centred crop ``(r0, r1, c0, c1)`` of at most ``mpx`` megapixels (the tiled renderer's)."""
-    h, w = shape
-    side_h = min(h, int(np.sqrt(mpx * 1e6 * h / w)))
-    side_w = min(w, int(mpx * 1e6 / max(side_h, 1)))
-    r0, c0 = (h - side_h) // 2, (w - side_w) // 2
-    return r0, r0 + side_h, c0, c0 + side_w
 
 
 def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
