@@ -151,15 +151,18 @@ def _pass_1d(feat, values, weight, sigma_x, r, axis):
     per offset pair +-d serves both neighbours: E[j] = w(j, j + d) is computed once over S + d
     positions and read at j (for +d) and at j - d (for -d). Each strip is padded on its own
     (edge mode for the range guide, zero weight for the values), so memory stays at a few strips
-    beyond the input and output, even at 16 Mpx.
+    beyond the input and output, even at 16 Mpx. Within a strip the channels are planes (one
+    contiguous array each): the squared distance and the sums are then plain vector operations,
+    ~3x faster than reducing over interleaved channels.
     """
     h, w = feat.shape[:2]
-    nc = values.shape[2]
+    nc, nf = values.shape[2], feat.shape[2]
     out = np.empty_like(values)
     rows = _STRIP_ROWS if axis == 1 else 4 * _STRIP_ROWS  # a row strip carries 2r halo rows on axis 0
+    at = 2 if axis == 1 else 1                          # the filtered axis of a (channel, row, column) plane stack
 
-    def along(arr, start, stop):
-        return arr[:, start:stop] if axis == 1 else arr[start:stop]
+    def along(arr, start, stop):   # a plane or a stack of planes, sliced on the filtered axis
+        return arr[..., start:stop] if axis == 1 else arr[..., start:stop, :]
 
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
@@ -172,31 +175,38 @@ def _pass_1d(feat, values, weight, sigma_x, r, axis):
             f_src, v_src, w_src = feat[a0:a1], values[a0:a1], weight[a0:a1]
             lo, hi = r - (r0 - a0), r - (a1 - r1)  # what the image border leaves to pad
             n = r1 - r0
-        pad = ((0, 0), (lo, hi), (0, 0)) if axis == 1 else ((lo, hi), (0, 0), (0, 0))
-        fs = np.pad(f_src, pad, mode="edge")
-        vw = np.concatenate([v_src * w_src[..., None], w_src[..., None]], axis=2)
-        vs = np.pad(vw, pad, mode="constant")
+        pad = [(0, 0), (0, 0), (0, 0)]
+        pad[at] = (lo, hi)
+        fs = np.pad(np.moveaxis(f_src, 2, 0), pad, mode="edge")           # (nf, rows, columns)
+        vs = np.empty((nc + 1,) + w_src.shape, np.float32)
+        np.multiply(np.moveaxis(v_src, 2, 0), w_src, out=vs[:nc])
+        vs[nc] = w_src
+        vs = np.pad(vs, pad, mode="constant")                               # (nc + 1, rows, columns)
         acc = along(vs, r, r + n).copy()  # the centre sample, weight 1
-        tmp = np.empty_like(acc)
+        tmp = np.empty(acc.shape[1:], np.float32)
         for d in range(1, r + 1):
             ls = np.float32(d * d / (2.0 * sigma_x ** 2))
             # E[j] = w(position r - d + j, position r + j) for j in [0, n + d)
-            if feat.shape[2]:
-                diff = along(fs, r, r + n + d) - along(fs, r - d, r + n)
-                e = np.einsum("ijk,ijk->ij", diff, diff)
-                e *= np.float32(-0.5)
-                e -= ls
-            else:
-                e = np.full(along(fs, r, r + n + d).shape[:2], -ls, np.float32)
+            e = np.full(along(vs[0], r, r + n + d).shape, -ls, np.float32)
+            if nf:
+                sq = np.empty_like(e)
+                for k in range(nf):
+                    np.subtract(along(fs[k], r, r + n + d), along(fs[k], r - d, r + n), out=sq)
+                    np.multiply(sq, sq, out=sq)
+                    sq *= np.float32(-0.5)
+                    e += sq
             np.exp(e, out=e)
-            e = e[..., None]
             # +d neighbour of centre r + i is E[i + d]; -d neighbour is E[i]
-            np.multiply(along(vs, r + d, r + d + n), along(e, d, d + n), out=tmp)
-            acc += tmp
-            np.multiply(along(vs, r - d, r - d + n), along(e, 0, n), out=tmp)
-            acc += tmp
-        den = acc[..., nc:]
-        out[r0:r1] = np.where(den > 1e-12, acc[..., :nc] / np.maximum(den, 1e-12), values[r0:r1])
+            e_plus, e_minus = along(e, d, d + n), along(e, 0, n)
+            for c in range(nc + 1):
+                np.multiply(along(vs[c], r + d, r + d + n), e_plus, out=tmp)
+                acc[c] += tmp
+                np.multiply(along(vs[c], r - d, r - d + n), e_minus, out=tmp)
+                acc[c] += tmp
+        den = acc[nc]
+        ok = den > 1e-12
+        res = acc[:nc] / np.maximum(den, 1e-12)
+        out[r0:r1] = np.where(ok[..., None], np.moveaxis(res, 0, 2), values[r0:r1])
     return out
 
 
