@@ -90,6 +90,10 @@ POSE_FIELDS = ("angle_deg", "tx_mm", "ty_mm")
 MAX_POSE_MM = 10_000.0
 
 
+#: most candidate poses a ``match.proposed`` alignment may offer beside its own (``alternatives``)
+MAX_ALTERNATIVE_POSES = 32
+
+
 def pose_of(value: Any, what: str = "pose") -> dict:
     """A pose map (:data:`POSE_FIELDS`, finite numbers, the angle within ±360°, the translation within
     ±:data:`MAX_POSE_MM`) as plain floats; anything else raises :class:`MessageError` naming ``what``."""
@@ -170,7 +174,8 @@ def validate(msg: Any) -> dict:
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
     ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.verified``
     verdict is one :func:`verdict_of` reads and its optional ``pose`` one :func:`pose_of` reads, a
-    ``fragment.annotated`` edit changes only
+    ``match.proposed`` alignment's ``alternatives`` are at most :data:`MAX_ALTERNATIVE_POSES` poses
+    :func:`pose_of` reads, a ``fragment.annotated`` edit changes only
     :data:`ANNOTATION_FIELDS` (text of at most :data:`MAX_ANNOTATION_CHARS`); the whole document is
     at most :data:`MAX_DEPTH` deep, with strings, maps and lists within :data:`MAX_STRING_CHARS`
     and :data:`MAX_ITEMS` and integers within 64 bits.
@@ -219,6 +224,13 @@ def validate(msg: Any) -> dict:
                                    f"(at most {MAX_ANNOTATION_CHARS})")
         if not isinstance(by, str) or len(by) > MAX_BY_CHARS:
             raise MessageError(f"{kind} message: by {str(by)[:80]!r} is not a name of at most {MAX_BY_CHARS} characters")
+    if kind == "match.proposed" and isinstance(msg.get("alignment"), Mapping) and "alternatives" in msg["alignment"]:
+        alts = msg["alignment"]["alternatives"]
+        if not isinstance(alts, (list, tuple)) or len(alts) > MAX_ALTERNATIVE_POSES:
+            raise MessageError(f"{kind} message: alignment alternatives must be a list of at most "
+                               f"{MAX_ALTERNATIVE_POSES} poses, got {_short(alts)}")
+        for i, alt in enumerate(alts):
+            pose_of(alt, f"{kind} message: alignment alternative {i}")
     if kind == "match.verified":
         verdict_of(msg["verdict"])
         if msg.get("pose") is not None:

@@ -30,6 +30,7 @@ new fragment's docked answer; 0 leaves their rankings as they were).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from common.features import load_features
@@ -185,11 +186,14 @@ def _proposal(c, st: _State, columns) -> Proposal:
     pose = alignment = None
     if c.alignment is not None:
         pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
+        alternatives = list(c.alignment.alternatives)
         if a != c.fragment:   # stored as b in a: invert
             pose = inverse_pose(*pose)
+            alternatives = [inverse_pose(*alt) for alt in alternatives]
         # the stored proposal (and its match.proposed) states every pose as fragment_b in fragment_a's
-        # frame, the alignment's own too
-        alignment = dict(c.alignment.to_dict(), angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
+        # frame, the alignment's own and its alternatives too
+        alignment = dict(replace(c.alignment, alternatives=tuple(alternatives)).to_dict(),
+                         angle_deg=float(pose[0]), tx_mm=float(pose[1]), ty_mm=float(pose[2]))
     ev = evidence_dict(c, columns)
     ev["query"] = c.fragment
     return Proposal(a, b, c.probability, st.model.version, mutual=c.mutual if math.isfinite(c.mutual) else None,

@@ -333,3 +333,20 @@ def test_a_proposal_with_a_mutual_proximity_out_of_range_is_refused(bad):
     msg["mutual"] = bad   # as a peer might send it
     with pytest.raises(MessageError, match="mutual"):
         validate(msg)
+
+
+def test_a_proposals_alternative_poses_are_checked():
+    """``match.proposed``'s ``alignment.alternatives`` (docs/messages.md) are poses: a bad one is named,
+    too many are refused."""
+    from common.messages import MAX_ALTERNATIVE_POSES
+
+    ok = {"angle_deg": 10.0, "tx_mm": 1.0, "ty_mm": -2.0}
+    msg = new_message("match.proposed", fragment="A-1", other="B-2", probability=0.5,
+                      alignment={"angle_deg": 0.0, "tx_mm": 0.0, "ty_mm": 0.0, "alternatives": [ok, ok]})
+    assert len(validate(msg)["alignment"]["alternatives"]) == 2
+    with pytest.raises(MessageError, match="alternative 1 tx_mm"):
+        validate(dict(msg, alignment={"alternatives": [ok, dict(ok, tx_mm=float("nan"))]}))
+    with pytest.raises(MessageError, match="alternative 0 must be a map"):
+        validate(dict(msg, alignment={"alternatives": [[1, 2, 3]]}))
+    with pytest.raises(MessageError, match="at most"):
+        validate(dict(msg, alignment={"alternatives": [ok] * (MAX_ALTERNATIVE_POSES + 1)}))

@@ -42,6 +42,9 @@ class Alignment:
         Area where the two aligned outlines overlap (the 2-D volume intersection).
     score : float
         ``contact_mm - overlap_mm2 / penetration_mm``: higher is better.
+    alternatives : tuple of (angle_deg, tx_mm, ty_mm)
+        Other candidate poses of B in A's frame, best first (stage 3's docking offers them; empty
+        otherwise).
     """
 
     angle_deg: float
@@ -51,6 +54,7 @@ class Alignment:
     contact_mm: float
     overlap_mm2: float
     score: float
+    alternatives: tuple = ()
 
     @property
     def matrix(self) -> np.ndarray:
@@ -58,8 +62,11 @@ class Alignment:
         return pose_matrix(self.angle_deg, self.tx_mm, self.ty_mm)
 
     def to_dict(self) -> dict:
-        return {k: float(getattr(self, k)) for k in
-                ("angle_deg", "tx_mm", "ty_mm", "gap_mm", "contact_mm", "overlap_mm2", "score")}
+        d = {k: float(getattr(self, k)) for k in
+             ("angle_deg", "tx_mm", "ty_mm", "gap_mm", "contact_mm", "overlap_mm2", "score")}
+        if self.alternatives:
+            d["alternatives"] = [dict(zip(("angle_deg", "tx_mm", "ty_mm"), map(float, a))) for a in self.alternatives]
+        return d
 
 
 def pose_matrix(angle_deg: float, tx_mm: float, ty_mm: float) -> np.ndarray:

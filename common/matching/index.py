@@ -154,6 +154,8 @@ class MatchIndex:
         self._paint_pairs: dict[tuple[str, str], float] = {}
         #: pose by unordered pair where paint chose it among the docking's candidates (pose.choose_pose)
         self._poses: dict[tuple[str, str], Docking] = {}
+        #: the pair's next-best distinct candidates (pose.ranked_poses), offered beside its pose
+        self._alternatives: dict[tuple[str, str], list[Docking]] = {}
         #: fragment → its docking frame, least recently used first (bounded by DOCK_FRAMES_MB)
         self._frames: OrderedDict[str, DockingFrame] = OrderedDict()
         #: fragment → its candidates best first, from its last full ranking (propose, rank_again)
@@ -513,6 +515,7 @@ class MatchIndex:
             del self._paint_pairs[key]
         for key in [k for k in self._poses if fragment in k]:
             del self._poses[key]
+            self._alternatives.pop(key, None)
 
     def paint_pair(self, fragment: str, other: str) -> float:
         """Paint continuing across the crack between two fragments, mm (cached per pair): the best
@@ -542,6 +545,14 @@ class MatchIndex:
         if d is None:
             return self.docking(fragment, other)
         return d if key[0] == fragment else invert_docking(d)
+
+    def alternatives(self, fragment: str, other: str) -> list[Docking]:
+        """The pair's other candidate poses, best first (of ``other`` in ``fragment``'s frame; at most
+        :data:`~common.matching.pose.ALTERNATIVE_POSES`, none where the pair was not docked with
+        paint): what a person steps through when :meth:`pose` is not the join."""
+        key = _pair(fragment, other)
+        alts = self._alternatives.get(key, [])
+        return list(alts) if key[0] == fragment else [invert_docking(d) for d in alts]
 
     def _frame(self, fragment: str) -> DockingFrame:
         """The fragment's docking frame (kept: its maps and spectra serve all its partners)."""
@@ -573,7 +584,7 @@ class MatchIndex:
         kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
         if paint:
             from common.matching.paint import paint_continuity, paint_field_from_profile
-            from common.matching.pose import choose_pose
+            from common.matching.pose import ALTERNATIVE_POSES, ranked_poses
 
             docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE, **kw)
             for f in key:
@@ -584,7 +595,9 @@ class MatchIndex:
             paint_mm = paint_continuity(self._paint_fields[key[0]], self._paint_fields[key[1]],
                                         np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float))
             self._paint_pairs[key] = float(np.max(paint_mm))
-            self._poses[key] = choose_pose(docks, paint_mm)
+            ranked = ranked_poses(docks, paint_mm)     # the first is pose.choose_pose's
+            self._poses[key] = ranked[0]
+            self._alternatives[key] = ranked[1:1 + ALTERNATIVE_POSES]
             self._dockings.setdefault(key, docks[0])
         else:
             self._dockings[key] = dock_frames(*frames, n_poses=1, **kw)[0]
@@ -636,7 +649,8 @@ class MatchIndex:
             c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
             q = self.pose(fragment, c.other)   # the proposed pose: chosen by contact and paint
             c.alignment = Alignment(q.angle_deg, q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2,
-                                    float(k))
+                                    float(k), tuple((a.angle_deg, a.tx_mm, a.ty_mm)
+                                                    for a in self.alternatives(fragment, c.other)))
         head.sort(key=lambda c: -c.probability)
         floor = head[-1].probability
         for c in tail:

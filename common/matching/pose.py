@@ -44,6 +44,10 @@ from common.matching.docking import inverse_pose  # noqa: F401
 #: 5° and 5 mm of their true pairs' 30 candidates: ``python tests/bench/bench_pose.py``), not on the
 #: walls or collections the figures in docs/matching.md are measured on
 POSE_PAINT_WEIGHT = 6.0
+#: candidate poses a proposal offers beside its chosen one (``alignment.alternatives``), best first:
+#: the review page steps through them when the chosen pose is not the join (the true pose is among
+#: the docking's 30 candidates for about a third of RePAIR's true pairs, chosen for a seventh)
+ALTERNATIVE_POSES = 9
 
 
 def pose_scores(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
@@ -110,6 +114,30 @@ def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_P
     return docks[int(np.argmax(pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm)))]
 
 
+def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
+                 cell_mm: float = DOCK_CELL_MM, distinct_deg: float = 3.0, distinct_mm: float = 3.0) -> list[Docking]:
+    """The pair's candidate poses best first by :func:`pose_scores`, without near repeats: a candidate
+    whose angle is within ``distinct_deg`` and translation within ``distinct_mm`` of a better one's is
+    left out (the docking keeps several maxima per rotation). The first is :func:`choose_pose`'s.
+
+    Examples
+    --------
+    >>> from common.matching.docking import Docking
+    >>> d = [Docking(0, 0, 0, 60.0, 45, 0), Docking(90, 5, 0, 50.0, 37.5, 0), Docking(1, 1, 0, 58.0, 44, 0)]
+    >>> [p.angle_deg for p in ranked_poses(d, [0.0, 4.0, 0.0], weight=2.0)]   # (1, 1) repeats (0, 0)
+    [90, 0]
+    """
+    docks = list(dockings)
+    order = np.argsort(-pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm), kind="stable")
+    kept: list[Docking] = []
+    for i in order:
+        d = docks[int(i)]
+        if not any(abs((d.angle_deg - k.angle_deg + 180.0) % 360.0 - 180.0) <= distinct_deg
+                   and np.hypot(d.tx_mm - k.tx_mm, d.ty_mm - k.ty_mm) <= distinct_mm for k in kept):
+            kept.append(d)
+    return kept
+
+
 def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.0)) -> tuple[float, float, float]:
     """A pose corrected by a person: fragment B turned by ``turn_deg`` about its own centre, then moved
     by ``shift_mm`` (both in A's frame, as the review page draws the join).
@@ -138,3 +166,27 @@ def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.
     centre_a = _rotation(angle) @ (cx, cy) + (tx, ty) + (sx, sy)
     t = centre_a - _rotation(angle + turn) @ (cx, cy)
     return float((angle + turn + 180.0) % 360.0 - 180.0), float(t[0]), float(t[1])
+
+
+def adjustment_between(pose, other, centre_b_mm) -> tuple[float, float, float]:
+    """The correction that turns ``pose`` into ``other`` (both B in A's frame): the inverse of
+    :func:`adjusted_pose`, so ``adjusted_pose(pose, c, turn_deg=t, shift_mm=(sx, sy)) == other``.
+
+    Returns
+    -------
+    (turn_deg, shift_x_mm, shift_y_mm)
+        B turned about its centre (degrees in (-180, 180]) and its centre moved in A's frame (mm).
+
+    Examples
+    --------
+    >>> turn, sx, sy = adjustment_between((0, 0, 0), (90, 0, 0), (10, 0))   # B's centre (10, 0) -> (0, 10)
+    >>> round(turn), round(sx, 6), round(sy, 6)
+    (90, -10.0, 10.0)
+    """
+    values = np.array([*np.ravel(pose), *np.ravel(other), *np.ravel(centre_b_mm)], float)
+    if values.shape != (8,) or not np.all(np.isfinite(values)):
+        raise ValueError(f"pose (3), other (3) and centre_b_mm (2) must be finite numbers, got {pose!r}, {other!r}, "
+                         f"{centre_b_mm!r}")
+    a0, tx0, ty0, a1, tx1, ty1, cx, cy = values
+    shift = _rotation(a1) @ (cx, cy) + (tx1, ty1) - _rotation(a0) @ (cx, cy) - (tx0, ty0)
+    return float(-((a0 - a1 + 180.0) % 360.0 - 180.0)), float(shift[0]), float(shift[1])

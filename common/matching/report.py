@@ -355,7 +355,9 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         pairs ranked by mutual proximity); the same by each query's own order and probability
         (before mutual proximity: ``within_object_recall_by_query``, ``pooled_topk_by_probability``
         — a pair's larger probability —, ``pair_ap_by_probability``), ``pose_accuracy`` (share of all true neighbour pairs whose
-        proposed relative pose is within 5° and 5 mm), ``pose_errors``, ``n_fragments``,
+        proposed relative pose is within 5° and 5 mm), ``pose_offered`` (the same, counting a pair
+        right when its proposed pose or one of its alternatives is: what a person stepping through the
+        review page's candidate poses finds), ``pose_errors``, ``n_fragments``,
         ``n_true_pairs``, ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
     """
     from common.matching.alignment import pose_matrix
@@ -415,9 +417,15 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         centre = tables[b].contour_mm.mean(axis=0)
         e = relative_pose_error(poses[a], poses[b], (al.angle_deg, al.tx_mm, al.ty_mm), centre)
         best = index.docking(a, b).score if (min(a, b), max(a, b)) in index._dockings else float("nan")
+        # the first of the proposed pose and its alternatives (what the review page steps through)
+        # within 5 deg and 5 mm: 0 = the proposed pose, None = none of them
+        offered = [(al.angle_deg, al.tx_mm, al.ty_mm), *al.alternatives]
+        right = [k for k, q in enumerate(offered)
+                 if all(v <= 5 for v in relative_pose_error(poses[a], poses[b], q, centre))]
         errors.append({"a": a, "b": b, "angle_deg": e[0], "shift_mm": e[1], "score_at_truth": at_truth,
-                       "score_best": best})
+                       "score_best": best, "right_pose_offered": right[0] if right else None})
     ok = sum(1 for e in errors if e["angle_deg"] is not None and e["angle_deg"] <= 5 and e["shift_mm"] <= 5)
+    offered_ok = sum(1 for e in errors if e.get("right_pose_offered") is not None)
     ppr = pair_precision_recall(pooled, wall.adjacency)
     ppr_max = pair_precision_recall(pooled_max, wall.adjacency)
     result = {
@@ -428,6 +436,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         "within_object_recall_by_query": wo_query["recall"],
         "within_object_incidence": wo["incidence"], "within_object_fragments": wo["n"],
         "pair_ap": float(ppr["ap"]), "pair_ap_by_probability": float(ppr_max["ap"]), "pose_accuracy": ok / len(errors) if errors else float("nan"),
+        "pose_offered": offered_ok / len(errors) if errors else float("nan"),
         "true_pose_scores_below_best": sum(1 for e in errors if e.get("score_best", np.nan) > e["score_at_truth"]),
         "pose_errors": errors, "n_fragments": len(wall.fragments), "n_true_pairs": len(wall.adjacency),
         "seconds": time.time() - t0, "cpu_seconds": time.process_time() - c0,

@@ -202,6 +202,30 @@ class ReviewData:
         is missing."""
         from common.matching.pose import adjusted_pose
 
+        prop, centre = self._posed(pid, max_side_px)
+        pose = prop["pose"]
+        angle, tx, ty = adjusted_pose((pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]), centre,
+                                      turn_deg=turn_deg, shift_mm=shift_mm)
+        return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty}
+
+    def alternatives(self, pid: int, *, max_side_px: int = 640) -> list[dict]:
+        """The proposal's other candidate poses (``alignment.alternatives``, best first) as the
+        adjustments of its pose that reach them (:func:`common.matching.pose.adjustment_between`):
+        ``[{turn_deg, shift_x_mm, shift_y_mm}]``, what the review page's pose controls then show.
+        Raises LookupError when the proposal or its pose is missing."""
+        from common.matching.pose import adjustment_between
+
+        prop, centre = self._posed(pid, max_side_px)
+        pose = prop["pose"]
+        out = []
+        for alt in (prop.get("alignment") or {}).get("alternatives") or []:
+            turn, sx, sy = adjustment_between((pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]),
+                                              (alt["angle_deg"], alt["tx_mm"], alt["ty_mm"]), centre)
+            out.append({"turn_deg": turn, "shift_x_mm": sx, "shift_y_mm": sy})
+        return out
+
+    def _posed(self, pid: int, max_side_px: int):
+        """(the proposal, B's centre in B's frame, mm): what turning B about its centre needs."""
         prop = self.proposal(pid)
         if prop is None:
             raise LookupError(f"no proposal {pid}")
@@ -211,11 +235,7 @@ class ReviewData:
         ys, xs = np.nonzero(b.mask)
         if not len(xs):
             raise LookupError(f"fragment {prop['fragment_b']} has no pixel on its mask")
-        pose = prop["pose"]
-        angle, tx, ty = adjusted_pose((pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]),
-                                      (xs.mean() * b.pixel_mm, ys.mean() * b.pixel_mm),
-                                      turn_deg=turn_deg, shift_mm=shift_mm)
-        return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty}
+        return prop, (xs.mean() * b.pixel_mm, ys.mean() * b.pixel_mm)
 
     def picture(self, pid: int, view: str, *, max_side_px: int = 640, pose: dict | None = None) -> bytes:
         """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``;

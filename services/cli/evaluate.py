@@ -127,7 +127,8 @@ def _collection(args, progress) -> int:
                                                 for k, v in res["within_object_recall"].items()))
     print(f"true pose scored below the docking's best pose for {res['true_pose_scores_below_best']} of "
           f"{res['n_true_pairs']} true pairs")
-    print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f}; "
+    print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f} "
+          f"(right among the proposed pose and its alternatives: {res['pose_offered']:.3f}); "
           f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -100,6 +100,19 @@ def picture(pid, view):
     return png, 200, {"Content-Type": "image/png", "Cache-Control": "private, max-age=60"}
 
 
+@bp.get("/api/review/alternatives/<int:pid>")
+@needs_proposals
+def alternatives(pid):
+    """The proposal's other candidate poses as adjustments of its pose (best first), for stepping."""
+    st = station()
+    if not 0 <= pid < 2 ** 63:
+        abort(404)
+    try:
+        return jsonify(proposal=pid, alternatives=st.review.alternatives(pid, max_side_px=int(st.settings["picture_px"])))
+    except LookupError as exc:
+        return jsonify(error=str(exc)), 404
+
+
 @bp.post("/api/review/verdict")
 @writes
 @needs_proposals

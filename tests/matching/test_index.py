@@ -320,3 +320,43 @@ def test_stage_2_scores_missing_cues_as_the_model_imputes_them(small_wall):
         if other != q.fragment:
             p = np.sort(model.probability(pair_rows(q, holed[other])))[::-1][:model.top_m].mean()
             assert got[other] == pytest.approx(p, rel=1e-4)   # float32 grid, as above
+
+
+def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_wall):
+    """Stage 3 with paint keeps each pair's next-best distinct candidate poses (pose.ranked_poses of
+    the same 30-pose docking): the candidate's alignment carries them as ``other`` in the query's
+    frame, and seen from the other fragment they are their inverses."""
+    from dataclasses import replace
+
+    from common.matching.alignment import pose_matrix
+    from common.matching.docking import dock_outlines
+    from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
+    from common.matching.paint import paint_continuity, paint_field_from_profile
+    from common.matching.pose import ALTERNATIVE_POSES, ranked_poses
+
+    wall, tables, cues, poses = small_wall
+    model = replace(_model(small_wall), docking=(0.05, -2.0))
+    ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:6]
+    index = MatchIndex()
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    q = ids[0]
+    head = index.rank(cues[q], ids[1:], model, dock_candidates=3)[:3]
+    for c in head:
+        a, b = sorted((q, c.other))
+        docks = dock_outlines(tables[a].contour_mm, tables[b].contour_mm, n_poses=DOCK_PAINT_POSES,
+                              per_angle=DOCK_PAINT_PER_ANGLE)
+        paint = paint_continuity(paint_field_from_profile(tables[a].contour_mm, tables[a].boundary_profile),
+                                 paint_field_from_profile(tables[b].contour_mm, tables[b].boundary_profile),
+                                 np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks]))
+        want = ranked_poses(docks, paint)[1:1 + ALTERNATIVE_POSES]          # b in a's frame
+        got = index.alternatives(a, b)
+        assert 0 < len(got) <= ALTERNATIVE_POSES and len(got) == len(want)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose((g.angle_deg, g.tx_mm, g.ty_mm), (w.angle_deg, w.tx_mm, w.ty_mm), atol=1e-6)
+        for g, h in zip(got, index.alternatives(b, a)):
+            np.testing.assert_allclose(pose_matrix(g.angle_deg, g.tx_mm, g.ty_mm) @ pose_matrix(h.angle_deg, h.tx_mm, h.ty_mm),
+                                       np.eye(3), atol=1e-6)
+        mine = index.alternatives(q, c.other)
+        assert [tuple(map(float, t)) for t in c.alignment.alternatives] == \
+            [(m.angle_deg, m.tx_mm, m.ty_mm) for m in mine]

@@ -42,3 +42,23 @@ def test_pose_and_alignment_of_a_proposal_are_the_same_pose_of_b_in_a(query, oth
     assert fields["pose"]["angle_deg"] == pytest.approx(fields["alignment"]["angle_deg"])
     # patches follow the stored order too
     assert fields["patches"] == ([2, 3] if query == "A1" else [3, 2])
+
+
+@pytest.mark.parametrize("query, other", [("B2", "A1"), ("A1", "B2")])
+def test_a_proposals_alternative_poses_are_in_its_frame_too(query, other):
+    """The docking's other candidate poses travel with the proposal (``alignment.alternatives``),
+    each stated as fragment_b in fragment_a's frame like the pose, and the message carries them."""
+    import services.matcher as matcher
+    from common.messages import new_message
+
+    alts = ((120.0, -8.0, 30.0), (-45.0, 5.0, 2.5))         # other in the query's frame
+    al = Alignment(30.0, 12.0, -4.0, float("nan"), 25.0, 0.5, 24.0, alts)
+    c = Candidate(query, other, 0.8, 2, 3, np.array([[2, 3]]), np.zeros((1, 4)), alignment=al)
+    p = matcher._proposal(c, _state(), ["c0", "c1", "c2", "c3"])
+    got = p.alignment["alternatives"]
+    assert len(got) == 2
+    for g, (angle, tx, ty) in zip(got, alts):
+        expected = pose_matrix(angle, tx, ty) if query == "A1" else np.linalg.inv(pose_matrix(angle, tx, ty))
+        np.testing.assert_allclose(pose_matrix(g["angle_deg"], g["tx_mm"], g["ty_mm"]), expected, atol=1e-9)
+    msg = new_message("match.proposed", **p.to_event_fields())
+    assert msg["alignment"]["alternatives"] == got

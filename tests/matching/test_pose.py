@@ -153,3 +153,38 @@ def test_an_adjustment_that_is_not_a_number_is_refused():
         adjusted_pose((0, 0, 0), (1, 1), turn_deg=float("nan"))
     with pytest.raises(ValueError, match="shift_mm"):
         adjusted_pose((0, 0, 0), (1, 1), shift_mm=(1, 2, 3))
+
+
+def test_ranked_poses_start_with_the_chosen_one_and_skip_near_repeats(banded):
+    """The poses a proposal offers: the chosen one first, then the others by score, none within 3° and
+    3 mm of a better one; where geometry alone chooses a wrong pose, the true pose is among the
+    first ten offered (a person finds it by stepping through)."""
+    from common.matching.pose import ranked_poses
+
+    docks, paint, _ = banded
+    ranked = ranked_poses(docks, paint)
+    assert ranked[0] is choose_pose(docks, paint)
+    scores = dict(zip(map(id, docks), pose_scores(docks, paint)))
+    assert all(scores[id(a)] >= scores[id(b)] for a, b in zip(ranked, ranked[1:]))
+    for i, a in enumerate(ranked):
+        for b in ranked[:i]:
+            assert abs((a.angle_deg - b.angle_deg + 180) % 360 - 180) > 3 or np.hypot(a.tx_mm - b.tx_mm, a.ty_mm - b.ty_mm) > 3
+    errors = banded[2]
+    offered = [errors[docks.index(d)] for d in ranked_poses(docks, paint, weight=0.0)[:10]]
+    assert not (offered[0][0] <= 5 and offered[0][1] <= 5)          # not the one geometry chooses ...
+    assert any(e[0] <= 5 and e[1] <= 5 for e in offered)           # ... but offered beside it
+
+
+def test_the_adjustment_between_two_poses_is_what_adjusted_pose_undoes():
+    from common.matching.pose import adjusted_pose, adjustment_between
+
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        pose, other = rng.uniform([-180, -80, -80], [180, 80, 80], (2, 3))
+        centre = rng.uniform(-30, 60, 2)
+        turn, sx, sy = adjustment_between(pose, other, centre)
+        assert -180 < turn <= 180
+        got = adjusted_pose(pose, centre, turn_deg=turn, shift_mm=(sx, sy))
+        assert abs((got[0] - other[0] + 180) % 360 - 180) < 1e-9 and np.allclose(got[1:], other[1:], atol=1e-9)
+    with pytest.raises(ValueError, match="finite"):
+        adjustment_between((0, 0, 0), (0, float("nan"), 0), (1, 1))

@@ -59,6 +59,12 @@ def test_collection_evaluation_ranks_a_synthetic_collection_and_beats_chance(sma
         assert 0.0 <= res["pooled_topk"][k] <= 1.0
     assert res["pooled_topk"][1] <= res["pooled_topk"][5] <= res["pooled_topk"][10]
     assert 0.0 <= res["pose_accuracy"] <= 1.0 and 0.0 <= res["pair_ap"] <= 1.0
+    # stepping through the alternatives finds at least what the proposed pose gets right; a pair whose
+    # proposed pose is right is found at once
+    assert res["pose_accuracy"] <= res["pose_offered"] <= 1.0
+    for e in res["pose_errors"]:
+        if e["angle_deg"] <= 5 and e["shift_mm"] <= 5:
+            assert e["right_pose_offered"] == 0
     assert all(e["angle_deg"] is not None for e in res["pose_errors"])   # every true pair was docked
     assert 0 <= res["true_pose_scores_below_best"] <= res["n_true_pairs"]
     assert res["within_object_recall"][3] >= res["within_object_recall"][1]

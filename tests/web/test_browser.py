@@ -67,7 +67,11 @@ def _seed_review(cfg) -> list[tuple[str, str]]:
     for k, (a, b, shared) in enumerate(sorted(wall.adjacency, key=lambda x: -x[2])[:3]):
         a, b = ordered_pair(a, b)
         angle, tx, ty = relative_pose(frags[a].pose, frags[b].pose)
-        proposals.append(Proposal(a, b, 0.93 - 0.1 * k, "groundtruth", angle_deg=angle, tx_mm=tx, ty_mm=ty))
+        # the first offers two other candidate poses, as the docking's stage 3 does (the review's P)
+        alternatives = [{"angle_deg": angle + 90.0, "tx_mm": tx + 4.0, "ty_mm": ty},
+                        {"angle_deg": angle - 30.0, "tx_mm": tx, "ty_mm": ty - 3.0}] if k == 0 else []
+        proposals.append(Proposal(a, b, 0.93 - 0.1 * k, "groundtruth", angle_deg=angle, tx_mm=tx, ty_mm=ty,
+                                  alignment={"alternatives": alternatives} if alternatives else None))
         pairs.append((a, b))
     adjacent = {ordered_pair(a, b) for a, b, _ in wall.adjacency}
     ids = sorted(frags)
@@ -245,7 +249,18 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
         import urllib.request
 
         with urllib.request.urlopen(f"{live.url}/api/review/queue") as r:
-            proposed = next(p["pose"] for p in json.load(r)["proposals"] if (p["fragment_a"], p["fragment_b"]) == first)
+            current = next(p for p in json.load(r)["proposals"] if (p["fragment_a"], p["fragment_b"]) == first)
+        proposed = current["pose"]
+        # P steps to the docking's next candidate pose (as an adjustment of the proposed one), 0 back
+        with urllib.request.urlopen(f"{live.url}/api/review/alternatives/{current['id']}") as r:
+            alternatives = json.load(r)["alternatives"]
+        page.keyboard.press("p")
+        if alternatives:
+            page.wait_for_selector(f"#pose-adjust:has-text('candidate pose 2 of {len(alternatives) + 1}')", timeout=5_000)
+            assert f"turn_deg={alternatives[0]['turn_deg']:.3f}" in page.get_attribute("#joined-colour", "src")
+        else:
+            page.wait_for_selector("#pose-adjust:has-text('no other candidate pose')", timeout=5_000)
+        page.keyboard.press("0")
         page.keyboard.press("]")
         page.keyboard.press("]")
         page.keyboard.press("Shift+ArrowRight")

@@ -301,6 +301,10 @@ def _two_fragments(store: Store, pixel_mm: float):
     return (0.0, 60 * pixel_mm, 0.0)
 
 
+#: the docking's other candidate poses of the review fixture's FA-FB proposal (FB in FA's frame)
+ALTERNATIVES = ((90.0, 3.0, 1.0), (-20.0, 5.0, -2.0))
+
+
 @pytest.fixture
 def review_app(station_config, broker):
     from common.matching.proposals import Proposal, ProposalStore
@@ -310,7 +314,10 @@ def review_app(station_config, broker):
     pose = _two_fragments(store, 25.4 / 200)
     review = ReviewData.from_config(station_config)
     with ProposalStore(review.db_path) as db:
-        db.upsert([Proposal("FA", "FB", 0.91, "m1", angle_deg=pose[0], tx_mm=pose[1], ty_mm=pose[2]),
+        db.upsert([Proposal("FA", "FB", 0.91, "m1", angle_deg=pose[0], tx_mm=pose[1], ty_mm=pose[2],
+                            alignment={"angle_deg": pose[0], "tx_mm": pose[1], "ty_mm": pose[2],
+                                       "alternatives": [dict(zip(("angle_deg", "tx_mm", "ty_mm"), alt))
+                                                        for alt in ALTERNATIVES]}),
                    Proposal("FA", "FC", 0.35, "m1")])
     link = web.StationLink(station_config)
     app = web.create_app(token=TOKEN, store_root=store.root, link=link, review=review)
@@ -441,3 +448,23 @@ def test_the_conservator_corrects_the_pose_and_the_verdict_keeps_it(review_app, 
         {"angle_deg": 0.0, "tx_mm": 60 * pixel_mm, "ty_mm": 0.0})
     assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed", "adjust": [1, 2]},
                   headers=BEARER).status_code == 400
+
+
+def test_the_conservator_steps_through_the_dockings_other_poses(review_app):
+    """The review page's "other pose" (P): each of the proposal's alternatives as the adjustment of its
+    pose that reaches it, so the joined picture and the verdict show and keep that pose."""
+    app, review = review_app
+    c = app.test_client()
+    queue = c.get("/api/review/queue").json["proposals"]
+    pid = queue[0]["id"]
+    got = c.get(f"/api/review/alternatives/{pid}").json["alternatives"]
+    assert len(got) == len(ALTERNATIVES)
+    for adj, alt in zip(got, ALTERNATIVES):
+        pose = review.adjusted_pose(pid, adj["turn_deg"], (adj["shift_x_mm"], adj["shift_y_mm"]))
+        assert abs((pose["angle_deg"] - alt[0] + 180) % 360 - 180) < 1e-6
+        assert (pose["tx_mm"], pose["ty_mm"]) == pytest.approx(alt[1:], abs=1e-6)
+        q = "?" + "&".join(f"{k}={v}" for k, v in adj.items())
+        assert c.get(f"/api/review/picture/{pid}/joined-colour.png{q}").status_code == 200
+    r = c.get(f"/api/review/alternatives/{queue[1]['id']}")   # FA-FC: no pose, so nothing to step from
+    assert r.status_code == 404 and "no proposed pose" in r.json["error"]
+    assert c.get("/api/review/alternatives/999999").status_code == 404

@@ -8,6 +8,9 @@
   // the conservator's correction of the proposed pose: B turned about its centre (deg), moved (mm)
   const STEP_MM = 0.5, STEP_DEG = 0.5;
   let adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+  // the docking's other candidate poses of the current proposal (adjustments of its pose), fetched
+  // when first asked for; `shown` is the one on screen (0: the proposed pose)
+  let alternatives = null, shown = 0;
 
   function adjusted() { return adjust.turn_deg !== 0 || adjust.shift_x_mm !== 0 || adjust.shift_y_mm !== 0; }
 
@@ -18,15 +21,31 @@
       img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
       img.src = `/api/review/picture/${p.id}/${v}.png${v.startsWith("joined") ? q : ""}`;
     }
+    const which = alternatives && shown > 0 ? `candidate pose ${shown + 1} of ${alternatives.length + 1}: ` : "";
     $("pose-adjust").textContent = adjusted()
-      ? `B turned ${adjust.turn_deg.toFixed(1)}°, moved (${adjust.shift_x_mm.toFixed(1)}, ${adjust.shift_y_mm.toFixed(1)}) mm — the verdict keeps this pose`
-      : "";
+      ? `${which}B turned ${adjust.turn_deg.toFixed(1)}°, moved (${adjust.shift_x_mm.toFixed(1)}, ${adjust.shift_y_mm.toFixed(1)}) mm — the verdict keeps this pose`
+      : (alternatives && !alternatives.length ? "no other candidate pose" : "");
+  }
+
+  // step through the candidate poses: the proposed one, then the docking's others, best first
+  async function otherPose(step) {
+    const p = items[index];
+    if (!p || !p.pose) return;
+    if (alternatives === null) {
+      const r = await Tessera.api("GET", `/api/review/alternatives/${p.id}`);
+      if (items[index] !== p) return;
+      alternatives = r.ok ? r.data.alternatives : [];
+    }
+    const n = alternatives.length + 1;
+    shown = ((shown + step) % n + n) % n;
+    adjust = shown === 0 ? { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 } : { ...alternatives[shown - 1] };
+    showPictures(p);
   }
 
   function nudge(turn, dx, dy) {
     const p = items[index];
     if (!p || !p.pose) return;
-    if (turn === null) adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+    if (turn === null) { adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 }; shown = 0; }
     else {
       adjust.turn_deg = Math.round((adjust.turn_deg + turn) * 1000) / 1000;
       adjust.shift_x_mm = Math.round((adjust.shift_x_mm + dx) * 1000) / 1000;
@@ -38,7 +57,7 @@
   function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
 
   function select(i) {
-    if (i !== index) adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+    if (i !== index) { adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 }; alternatives = null; shown = 0; }
     index = i;
     [...$("queue").children].forEach((li, k) => li.classList.toggle("current", k === i));
     const p = items[i];
@@ -125,7 +144,8 @@
   $("confirm-button").addEventListener("click", () => verdict("confirmed"));
   $("reject-button").addEventListener("click", () => verdict("rejected"));
   $("skip-button").addEventListener("click", () => verdict("skip"));
-  for (const b of document.querySelectorAll("#pose-controls button")) {
+  $("other-pose").addEventListener("click", (ev) => otherPose(ev.shiftKey ? -1 : 1));
+  for (const b of document.querySelectorAll("#pose-controls button[data-nudge]")) {
     b.addEventListener("click", () => {
       const [turn, dx, dy] = (b.dataset.nudge || "").split(",").map(Number);
       nudge(b.dataset.nudge === "reset" ? null : turn * STEP_DEG, dx * STEP_MM, dy * STEP_MM);
@@ -146,6 +166,7 @@
       nudge(0, d[0] * STEP_MM, d[1] * STEP_MM);
     } else if (k === "[" || k === "]") nudge(k === "]" ? STEP_DEG : -STEP_DEG, 0, 0);   // turn B
     else if (k === "0") nudge(null);
+    else if (k === "p") otherPose(ev.shiftKey ? -1 : 1);
     else if (k === "c" || k === "y") verdict("confirmed");
     else if (k === "r" || k === "n") verdict("rejected");
     else if (k === "s" || k === "arrowright") verdict("skip");
