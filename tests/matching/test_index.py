@@ -259,21 +259,29 @@ def test_model_keeps_its_docking_calibration_through_storage(tmp_path, small_wal
     assert replace(model, docking=(0.03, -3.0)).digest() != model.digest()
 
 
+def _docking_index(small_wall, n: int):
+    """(a model with a docking calibration, the first ``n`` fragments with patches and a boundary
+    profile, an index of them with their outlines and profiles): stage 3 with paint."""
+    from dataclasses import replace
+
+    wall, tables, cues, poses = small_wall
+    model = replace(_model(small_wall), docking=(0.05, -2.0))
+    ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:n]
+    index = MatchIndex()
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    return model, ids, index
+
+
 def test_docking_stage_adds_the_pairs_paint_continuity(small_wall, monkeypatch):
     """Stage 3 with boundary profiles: each docked candidate's logit gains its paint continuity (best
     over the docking's candidate poses, computed independently here), cached per pair; without
     profiles (or with the paint switched off) the probabilities are the geometric ones."""
-    from dataclasses import replace
-
     import common.matching.index as index_mod
     from common.matching.paint import paint_field_from_profile, paint_pair_mm, with_paint
 
     wall, tables, cues, poses = small_wall
-    model = replace(_model(small_wall), docking=(0.05, -2.0))
-    ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:8]
-    index = MatchIndex()
-    for f in ids:
-        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    model, ids, index = _docking_index(small_wall, 8)
     q, others = ids[0], ids[1:]
     monkeypatch.setattr(index_mod, "DOCK_USES_PAINT", False)
     geometric = {c.other: c.probability for c in index.rank(cues[q], others, model, dock_candidates=3)[:3]}
@@ -326,8 +334,6 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
     """Stage 3 with paint keeps each pair's next-best distinct candidate poses (pose.ranked_poses of
     the same 30-pose docking): the candidate's alignment carries them as ``other`` in the query's
     frame, and seen from the other fragment they are their inverses."""
-    from dataclasses import replace
-
     from common.matching.alignment import pose_matrix
     from common.matching.docking import dock_outlines
     from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
@@ -335,11 +341,7 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
     from common.matching.pose import ALTERNATIVE_POSES, ranked_poses
 
     wall, tables, cues, poses = small_wall
-    model = replace(_model(small_wall), docking=(0.05, -2.0))
-    ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:6]
-    index = MatchIndex()
-    for f in ids:
-        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    model, ids, index = _docking_index(small_wall, 6)
     q = ids[0]
     head = index.rank(cues[q], ids[1:], model, dock_candidates=3)[:3]
     for c in head:
