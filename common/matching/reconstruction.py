@@ -664,7 +664,8 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
 # -- open edges --------------------------------------------------------------------------------
 def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster] = (), *,
                limit: int = 10) -> list[dict]:
-    """The most probable next joins along a cluster's open edges.
+    """The most probable next joins along a cluster's open edges, in the station's order of proposals
+    (:data:`common.matching.proposals.ORDER`: mutual proximity, pairs without one last, then probability).
 
     Parameters
     ----------
@@ -678,8 +679,8 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
 
     Returns
     -------
-    list of dict, most probable first: ``proposal`` (id), ``member``, ``newcomer``, ``probability``,
-    ``newcomer_cluster`` (id or None), and ``pose`` — the newcomer's frame in the cluster frame,
+    list of dict, best first: ``proposal`` (id), ``member``, ``newcomer``, ``probability``, ``mutual``
+    (None when the matcher has not ranked the pair in both fragments' lists), ``newcomer_cluster`` (id or None), and ``pose`` — the newcomer's frame in the cluster frame,
     ``(angle_deg, tx_mm, ty_mm)``, composed from the member's solved pose and the proposal's pose —
     or None when the proposal has no pose.
     """
@@ -702,9 +703,12 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
             z = (math.radians(p.angle_deg), float(p.tx_mm), float(p.ty_mm))
             xn = _compose(xm, z if member == a else _inverse(z))
             pose = (math.degrees(float(_wrap(xn[0]))), xn[1], xn[2])
+        mutual = getattr(p, "mutual", None)
         out.append({"proposal": p.id, "member": member, "newcomer": newcomer, "probability": float(p.probability),
-                    "newcomer_cluster": owner.get(newcomer), "pose": pose})
-    out.sort(key=lambda d: (-d["probability"], d["proposal"] if d["proposal"] is not None else 0))
+                    "mutual": None if mutual is None else float(mutual), "newcomer_cluster": owner.get(newcomer),
+                    "pose": pose})
+    out.sort(key=lambda d: (d["mutual"] is None, -(d["mutual"] or 0.0), -d["probability"],
+                            d["proposal"] if d["proposal"] is not None else 0))
     return out[:limit]
 
 

@@ -357,3 +357,24 @@ def test_cli_without_a_database_says_so(tmp_path, capsys):
     (tmp_path / "store").mkdir()
     assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(tmp_path / "o")]) == 2
     assert "no proposal database" in capsys.readouterr().err
+
+
+def test_next_joins_come_in_the_review_queues_order():
+    """Mutual proximity first (the station's order of proposals, ProposalStore.ORDER), pairs the
+    matcher has not ranked both ways last, probability breaking ties."""
+    from types import SimpleNamespace
+
+    from common.matching.reconstruction import Cluster
+
+    cluster = Cluster(id="C:A", root="A", fragments=["A", "B"], poses={"A": (0.0, 0.0, 0.0), "B": (0.0, 10.0, 0.0)},
+                      joins=[Join("A", "B", 0.0, 10.0, 0.0)])
+
+    def prop(pid, other, probability, mutual):
+        return SimpleNamespace(id=pid, fragment_a="A", fragment_b=other, probability=probability, mutual=mutual,
+                               status="pending", angle_deg=None, tx_mm=None, ty_mm=None)
+
+    props = [prop(1, "C", 0.99, None), prop(2, "D", 0.40, 0.95), prop(3, "E", 0.90, 0.60), prop(4, "F", 0.95, 0.60),
+             prop(5, "G", 0.10, None)]
+    got = next_joins(cluster, props, [cluster])
+    assert [d["newcomer"] for d in got] == ["D", "F", "E", "C", "G"]
+    assert got[0]["mutual"] == 0.95 and got[3]["mutual"] is None

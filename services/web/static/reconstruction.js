@@ -94,7 +94,7 @@
       text: `set aside: ${a} ↔ ${b} (on the most conflicting loops, or confirmed last) — check it on the review page` })));
     const next = Tessera.el("ol", { class: "next-joins" }, ...c.next_joins.map((n) => Tessera.el("li", { "data-newcomer": n.newcomer },
       Tessera.el("a", { href: `/review?fragment=${encodeURIComponent(n.newcomer)}`, text: `${n.member} ↔ ${n.newcomer}` }),
-      Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}` }))));
+      Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.mutual === null || n.mutual === undefined ? "" : " · mutual " + n.mutual.toFixed(2)}${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}` }))));
     return Tessera.el("section", { class: "card cluster", "data-cluster": c.id, "data-size": c.fragments.length,
                                    "data-joins": c.joins.length, "data-conflicts": conflicting.length },
       head, drawCluster(c, data), loops,
