@@ -125,7 +125,8 @@ def _collection(args, progress) -> int:
                                                 f"incidence {res['within_object_incidence'][k]:.3f}, "
                                                 f"one query's order {res['within_object_recall_by_query'][k]:.3f})"
                                                 for k, v in res["within_object_recall"].items()))
-    print(f"true pose scored below the docking's best pose for {res['true_pose_scores_below_best']} of "
+    print(f"the docking's geometric score puts a wrong pose (off by more than 5 deg or 5 mm) above the true one for "
+          f"{res['wrong_pose_scores_above_truth']} of "
           f"{res['n_true_pairs']} true pairs")
     print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f} "
           f"(right among the proposed pose and its alternatives: {res['pose_offered']:.3f}); "

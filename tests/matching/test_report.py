@@ -66,7 +66,10 @@ def test_collection_evaluation_ranks_a_synthetic_collection_and_beats_chance(sma
         if e["angle_deg"] <= 5 and e["shift_mm"] <= 5:
             assert e["right_pose_offered"] == 0
     assert all(e["angle_deg"] is not None for e in res["pose_errors"])   # every true pair was docked
-    assert 0 <= res["true_pose_scores_below_best"] <= res["n_true_pairs"]
+    # a wrong best pose above the truth is counted, a right one is not
+    assert res["wrong_pose_scores_above_truth"] == sum(1 for e in res["pose_errors"] if e["best_right"] is False
+                                                       and e["score_best"] > e["score_at_truth"])
+    assert all(e["best_right"] is not None for e in res["pose_errors"])
     assert res["within_object_recall"][3] >= res["within_object_recall"][1]
     assert res["within_object_random"][3] >= res["within_object_random"][1] > 0
     assert (tmp_path / "out" / "collection_examples.png").stat().st_size > 1000
