@@ -3,6 +3,7 @@
     python tests/bench/bench_pose.py [--collection ../shared/data/repair-dev] [--dpi 150]
                                      [--train 31-36] [--test 21-23] [--weights 0,0.5,1,2,3,4,6,8]
                                      [--picture docs/matching/pose_repair.png]
+                                     [--lines [--line-weight 20]]
 
 For every true neighbour pair of realistic synthetic walls (``generate_wall(16, seed, dpi=40,
 preset="pompeii")``, the generator's ground truth) and of a placed collection (RePAIR), the pair is
@@ -16,6 +17,13 @@ weight), the test walls and the collection, the ceiling (a candidate within 5°/
 the CPU per pair of the docking and of the paint scores. ``--picture`` draws the collection's true pairs:
 A's outline, B at its true pose (green), at the geometric docking's choice (grey) and at
 :data:`~common.matching.pose.POSE_PAINT_WEIGHT`'s choice (red). Figures in docs/matching.md ("Poses that fit").
+
+``--lines`` merges the pose hypotheses from painted lines (:mod:`common.matching.lines`: every
+colour-compatible pair of boundary crossings, its grid of gap / turn / shift refined by
+:func:`~common.matching.lines.outline_contact_mm`, the best 150 hypotheses kept and scored by
+``docking_score_at`` and the paint) with the docking's 30, and chooses among all of them by
+``contact + weight × paint + line_weight × line_continuity`` (continued crossings; ``--line-weight``).
+Figures in docs/matching.md ("Pose hypotheses from painted lines"); slow (1–12 s CPU per pair).
 """
 
 from __future__ import annotations
@@ -31,11 +39,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from common.matching.alignment import pose_matrix  # noqa: E402
 from common.matching.collection import relative_pose_error  # noqa: E402
-from common.matching.docking import dock_outlines  # noqa: E402
+from common.matching.docking import DOCK_CELL_MM, Docking, dock_outlines, docking_score_at  # noqa: E402
+from common.matching.lines import line_continuity, line_ends, line_pose_hypotheses, outline_contact_mm  # noqa: E402
 from common.matching.paint import paint_continuity, paint_field_from_profile  # noqa: E402
-from common.matching.pose import POSE_PAINT_WEIGHT, choose_pose  # noqa: E402
+from common.matching.pose import POSE_PAINT_WEIGHT, choose_pose, pose_scores  # noqa: E402
 
 N_POSES, PER_ANGLE = 30, 3
+#: line hypotheses kept per pair (the best by the sampled contact), as in docs/matching.md
+N_LINE_POSES = 150
 
 
 def seeds(text: str) -> list[int]:
@@ -47,12 +58,32 @@ def seeds(text: str) -> list[int]:
     return [int(v) for v in text.split(",")]
 
 
-def wall_pairs(wall) -> tuple[list[dict], float, float]:
-    """Every true pair's candidates, paint scores and pose errors; (pairs, docking CPU s, paint CPU s)."""
+def line_candidates(ends_a, ends_b, ca, cb) -> list[Docking]:
+    """The line hypotheses of a pair as docking candidates: each compatible pair of crossings' grid
+    point with the best sampled contact, the best ``N_LINE_POSES`` of those, scored by the docking."""
+    grid, _ = line_pose_hypotheses(ends_a, ends_b)
+    if not len(grid):
+        return []
+    contact = outline_contact_mm(ca, cb, grid.reshape(-1, 3)).reshape(grid.shape[:2])
+    best = contact.argmax(1)
+    poses = grid[np.arange(len(grid)), best]
+    keep = np.argsort(-contact[np.arange(len(grid)), best], kind="stable")[:N_LINE_POSES]
+    out = []
+    for a, tx, ty in poses[keep]:
+        score = docking_score_at(ca, cb, (a, tx, ty))
+        out.append(Docking(float(a), float(tx), float(ty), score, score * DOCK_CELL_MM / 2, 0.0))
+    return out
+
+
+def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float]:
+    """Every true pair's candidates, paint scores and pose errors; (pairs, docking CPU s, paint CPU s).
+    With ``lines`` the line hypotheses are added to each pair's candidates (CPU counted as docking's)."""
     from common.matching.online import wall_cues
 
     tables, _, poses = wall_cues(wall)
     ok = {k for k, t in tables.items() if poses.get(k) is not None and len(t.contour_mm) > 3}
+    images = {f.id: f.rgbn for f in wall.fragments}
+    ends: dict = {}
     fields, out, cpu_dock, cpu_paint = {}, [], 0.0, 0.0
     for a, b, *_ in wall.adjacency:
         if a not in ok or b not in ok:
@@ -60,6 +91,13 @@ def wall_pairs(wall) -> tuple[list[dict], float, float]:
         ca, cb = tables[a].contour_mm, tables[b].contour_mm
         c0 = time.process_time()
         docks = dock_outlines(ca, cb, n_poses=N_POSES, per_angle=PER_ANGLE)
+        continuity = np.zeros(len(docks))
+        if lines:
+            for f in (a, b):
+                if f not in ends:
+                    ends[f] = line_ends(images[f].albedo, images[f].mask, 25.4 / images[f].dpi)
+            docks = docks + line_candidates(ends[a], ends[b], ca, cb)
+            continuity = line_continuity(ends[a], ends[b], [(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks])
         c1 = time.process_time()
         for f in (a, b):
             if f not in fields:
@@ -70,6 +108,7 @@ def wall_pairs(wall) -> tuple[list[dict], float, float]:
         err = np.array([relative_pose_error(poses[a], poses[b], (d.angle_deg, d.tx_mm, d.ty_mm), cb.mean(axis=0))
                         for d in docks])
         out.append({"docks": docks, "paint": paint, "err": err, "contours": (ca, cb), "names": (a, b),
+                    "continuity": continuity, "n_docked": N_POSES,
                     "truth": _relative(poses[a], poses[b])})
     return out, cpu_dock, cpu_paint
 
@@ -121,17 +160,18 @@ def picture(pairs: list[dict], path: str, weight: float) -> None:
     print(f"picture: {path}")
 
 
-def accuracy(pairs: list[dict], weight: float) -> float:
+def accuracy(pairs: list[dict], weight: float, line_weight: float = 0.0) -> float:
     hits = 0
     for p in pairs:
-        chosen = choose_pose(p["docks"], p["paint"], weight=weight)
-        e = p["err"][p["docks"].index(chosen)]
+        score = pose_scores(p["docks"], p["paint"], weight=weight) + line_weight * p["continuity"]
+        e = p["err"][int(np.argmax(score))]
         hits += bool(e[0] <= 5 and e[1] <= 5)
     return hits / len(pairs) if pairs else float("nan")
 
 
-def ceiling(pairs: list[dict]) -> float:
-    return float(np.mean([np.any((p["err"][:, 0] <= 5) & (p["err"][:, 1] <= 5)) for p in pairs]))
+def ceiling(pairs: list[dict], docked_only: bool = False) -> float:
+    return float(np.mean([np.any((p["err"][:n, 0] <= 5) & (p["err"][:n, 1] <= 5))
+                          for p in pairs for n in [p["n_docked"] if docked_only else len(p["err"])]]))
 
 
 def main(argv=None) -> int:
@@ -142,6 +182,9 @@ def main(argv=None) -> int:
     p.add_argument("--test", default="21-23", help="test wall seeds")
     p.add_argument("--weights", default="0,0.5,1,2,3,4,6,8")
     p.add_argument("--picture", default="", help="PNG of the collection's true pairs at the chosen poses")
+    p.add_argument("--lines", action="store_true", help="merge the pose hypotheses from painted lines")
+    p.add_argument("--line-weight", type=float, default=20.0,
+                   help="mm of contact one continued line crossing is worth (with --lines; 20 chosen on walls 31-36)")
     args = p.parse_args(argv)
     from common.synth.wall import generate_wall
 
@@ -152,36 +195,42 @@ def main(argv=None) -> int:
     for role, ss in (("train", seeds(args.train)), ("test", seeds(args.test))):
         for s in ss:
             wall = generate_wall(16, seed=s, dpi=40, preset="pompeii", colour_only=True)
-            pairs, cd, cp = wall_pairs(wall)
+            pairs, cd, cp = wall_pairs(wall, lines=args.lines)
             sets[f"{role} {s}"] = pairs
             costs.append((f"synthetic {s}", len(pairs), cd, cp))
     if args.collection and Path(args.collection).is_dir():
         from common.matching.collection import collection_wall
 
-        pairs, cd, cp = wall_pairs(collection_wall(args.collection, dpi=args.dpi))
+        pairs, cd, cp = wall_pairs(collection_wall(args.collection, dpi=args.dpi), lines=args.lines)
         sets["collection"] = pairs
         costs.append((args.collection, len(pairs), cd, cp))
     elif args.collection:
         print(f"{args.collection}: no such directory, skipped")
 
     names = list(sets)
-    print(f"\npose accuracy (5°, 5 mm) of the chosen candidate, {N_POSES} candidates ({PER_ANGLE} per rotation)")
+    lw = args.line_weight if args.lines else 0.0
+    print(f"\npose accuracy (5°, 5 mm) of the chosen candidate, {N_POSES} candidates ({PER_ANGLE} per rotation)"
+          + (f" + up to {N_LINE_POSES} line hypotheses, + {lw:g} × line continuity" if args.lines else ""))
     print(f"{'weight':>7s} " + " ".join(f"{n:>11s}" for n in names) + f" {'train mean':>10s} {'test mean':>9s}")
     table = {}
     for w in weights:
-        acc = {n: accuracy(sets[n], w) for n in names}
+        acc = {n: accuracy(sets[n], w, lw) for n in names}
         table[w] = acc
         tr = [acc[n] for n in names if n.startswith("train")]
         te = [acc[n] for n in names if n.startswith("test")]
         print(f"{w:7.2f} " + " ".join(f"{acc[n]:11.3f}" for n in names) +
               f" {np.mean(tr) if tr else float('nan'):10.3f} {np.mean(te) if te else float('nan'):9.3f}")
     print(f"{'ceiling':>7s} " + " ".join(f"{ceiling(sets[n]):11.3f}" for n in names))
+    if args.lines:
+        print(f"{'docked':>7s} " + " ".join(f"{ceiling(sets[n], docked_only=True):11.3f}" for n in names)
+              + "   (ceiling of the docking's own candidates)")
     train = [n for n in names if n.startswith("train")]
     if train:
         best = max(weights, key=lambda w: (round(float(np.mean([table[w][n] for n in train])), 9), -w))
         print(f"\nweight chosen on the training walls: {best:g} (pose.POSE_PAINT_WEIGHT = {POSE_PAINT_WEIGHT:g})")
-    print("\nCPU per pair: " + "; ".join(f"{n} ({k} pairs): docking {cd / max(k, 1) * 1e3:.0f} ms, "
-                                         f"paint of {N_POSES} candidates {cp / max(k, 1) * 1e3:.0f} ms"
+    docking = "docking + lines" if args.lines else "docking"
+    print("\nCPU per pair: " + "; ".join(f"{n} ({k} pairs): {docking} {cd / max(k, 1) * 1e3:.0f} ms, "
+                                         f"paint of the candidates {cp / max(k, 1) * 1e3:.0f} ms"
                                          for n, k, cd, cp in costs))
     if args.picture and sets.get("collection"):
         picture(sets["collection"], args.picture, POSE_PAINT_WEIGHT)
