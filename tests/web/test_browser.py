@@ -212,7 +212,7 @@ def test_operator_captures_a_fragment_end_to_end(browser, live):
                 if count.startswith("Step 2 ") and not shot:
                     _shot(page, "bench-step")
                     shot = True
-                page.keyboard.press("Enter")   # the operator has done the step
+                page.keyboard.press("Enter")   # the operator has done the step (once: the page must take it)
             page.wait_for_timeout(150)
         error = page.inner_text("#bench-error-text") if page.is_visible("#bench-error") else ""
         assert not error, f"capture failed: {error}\n{live.logs()}"

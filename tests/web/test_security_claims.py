@@ -85,4 +85,6 @@ def test_the_served_openseadragon_is_the_vendored_release(archive_app):
     assert r.status_code == 200 and hashlib.sha256(r.data).hexdigest() == recorded
     assert b"openseadragon 6.1.1" in r.data[:200]
     assert "Redistribution and use in source and binary forms" in (folder / "LICENSE.txt").read_text()   # BSD-3
-    assert '<script src="/static/vendor/openseadragon/openseadragon.min.js">' in c.get("/fragments/F1").get_data(as_text=True)
+    # (its URL carries the file's version: the first 12 hex digits of that same sha256)
+    assert f'<script src="/static/vendor/openseadragon/openseadragon.min.js?v={recorded[:12]}">' in \
+        c.get("/fragments/F1").get_data(as_text=True)

@@ -5,7 +5,11 @@
   const STAGES = ["scanned", "normals", "features", "matched", "rendered"];
   const MARK = { done: "✓", waiting: "…", failed: "✗", kept: "⇡" };
   const TITLE = { done: "done", waiting: "waiting", failed: "failed", kept: "kept on this machine; sent when the lab is back" };
-  let seq = null, current = null, prescanShownFor = null, busyRequest = false;
+  let seq = null, current = null, prescanShownFor = null;
+  // one request at a time, in order: an action asked for while another is on its way (Enter for the
+  // next step while the scan request is still answering) is sent after it, not dropped; the same
+  // action asked for again while it is on its way (a double click) is sent once
+  let queue = Promise.resolve(), inFlight = null;
 
   function fragmentId() { return $("fragment-id").value.trim(); }
 
@@ -85,14 +89,18 @@
     }
   }
 
-  async function act(url, body) {
-    if (busyRequest) return;
-    busyRequest = true;
-    try {
-      const r = await Tessera.api("POST", url, body);
-      if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
-      else render(r.data.bench);
-    } finally { busyRequest = false; }
+  function act(url, body) {
+    const key = url + JSON.stringify(body);
+    if (key === inFlight) return queue;
+    queue = queue.then(async () => {
+      inFlight = key;
+      try {
+        const r = await Tessera.api("POST", url, body);
+        if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
+        else render(r.data.bench);
+      } finally { inFlight = null; }
+    });
+    return queue;
   }
 
   $("fragment-form").addEventListener("submit", (ev) => {
