@@ -97,7 +97,9 @@
       try {
         const r = await Tessera.api("POST", url, body);
         if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
-        else render(r.data.bench);
+        // its answer can come after the long poll showed a newer state (the poll always renders:
+        // after a restart of the station its numbers start again)
+        else if (!current || r.data.bench.seq >= current.seq) render(r.data.bench);
       } finally { inFlight = null; }
     });
     return queue;
