@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from common.matching.paint import _lab
+from common.matching.paint import _lab, checked_face
 
 #: weight of CIELAB lightness against the chroma axes (fading and lighting change lightness most)
 LINE_L_WEIGHT = 0.5
@@ -107,18 +107,10 @@ def line_ends(albedo: np.ndarray, mask: np.ndarray, pixel_mm: float, *, cell_mm:
         order (``cv2.findContours``' order, the same for every fragment) and the colour change (ΔE).
         Empty (0, 11) for plain plaster.
     """
-    albedo = np.asarray(albedo)
-    mask = np.asarray(mask)
-    if albedo.ndim != 3 or albedo.shape[2] != 3:
-        raise ValueError(f"albedo must be (H, W, 3), got shape {albedo.shape}")
-    if mask.shape != albedo.shape[:2]:
-        raise ValueError(f"mask shape {mask.shape} does not match albedo {albedo.shape[:2]}")
-    if not (np.isfinite(pixel_mm) and pixel_mm > 0):
-        raise ValueError(f"pixel_mm must be positive, got {pixel_mm}")
+    alb, mask = checked_face(albedo, mask, pixel_mm)
     empty = np.zeros((0, len(END_COLUMNS)))
     cell = max(float(cell_mm), float(pixel_mm))
     s = pixel_mm / cell
-    alb = albedo.astype(np.float32)
     if s < 1:
         alb = cv2.resize(alb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
     m = cv2.resize(mask.astype(np.float32), (alb.shape[1], alb.shape[0]), interpolation=cv2.INTER_AREA) > 0.5

@@ -121,6 +121,20 @@ def _smooth(values: np.ndarray, weight: np.ndarray, sigma_cells: float) -> np.nd
     return num / np.maximum(den, 1e-6)[..., None]
 
 
+def checked_face(albedo, mask, pixel_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(albedo as float32 (H, W, 3), mask (H, W)) of a fragment's image, or ValueError naming what is
+    wrong: the albedo's shape, the mask's, a pixel size that is not a positive number."""
+    alb = np.asarray(albedo, np.float32)
+    m = np.asarray(mask)
+    if alb.ndim != 3 or alb.shape[2] != 3:
+        raise ValueError(f"albedo must be (H, W, 3), got shape {alb.shape}")
+    if m.shape != alb.shape[:2]:
+        raise ValueError(f"mask must be {alb.shape[:2]} like albedo, got {m.shape}")
+    if not (np.isfinite(pixel_mm) and pixel_mm > 0):
+        raise ValueError(f"pixel_mm must be a positive number, got {pixel_mm}")
+    return alb, m
+
+
 def paint_field(albedo: np.ndarray, mask: np.ndarray, pixel_mm: float, *, cell_mm: float = PAINT_CELL_MM,
                 rim_mm: float = PAINT_RIM_MM, depth_mm: float = PAINT_DEPTH_MM, reach_mm: float = PAINT_REACH_MM,
                 smooth_mm: float = PAINT_SMOOTH_MM) -> PaintField:
@@ -172,14 +186,7 @@ def paint_field(albedo: np.ndarray, mask: np.ndarray, pixel_mm: float, *, cell_m
     >>> bool(np.linalg.norm(pf.field[y, x]) > 20)       # the band carried 2.5 mm past the right edge
     True
     """
-    alb = np.asarray(albedo, np.float32)
-    m = np.asarray(mask)
-    if alb.ndim != 3 or alb.shape[2] != 3:
-        raise ValueError(f"albedo must be (H, W, 3), got shape {alb.shape}")
-    if m.shape != alb.shape[:2]:
-        raise ValueError(f"mask must be {alb.shape[:2]} like albedo, got {m.shape}")
-    if not (np.isfinite(pixel_mm) and pixel_mm > 0):
-        raise ValueError(f"pixel_mm must be a positive number, got {pixel_mm}")
+    alb, m = checked_face(albedo, mask, pixel_mm)
     for name, v in (("cell_mm", cell_mm), ("depth_mm", depth_mm), ("reach_mm", reach_mm)):
         if not v > 0:
             raise ValueError(f"{name} must be positive, got {v}")
