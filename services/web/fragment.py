@@ -23,8 +23,9 @@ log = logging.getLogger("tessera.web")
 
 bp = Blueprint("fragment", __name__)
 
-#: the viewer's shader files (``static/viewer/``), carried in the page (no request of their own)
+#: the viewer's scripts and shaders
 VIEWER_FOLDER = Path(__file__).resolve().parent / "static" / "viewer"
+#: the viewer's shader files (in :data:`VIEWER_FOLDER`), carried in the page (no request of their own)
 SHADER_FILES = ("tile.vert", "common.glsl", "albedo.frag", "lambertian.frag", "raking.frag", "specular.frag",
                 "normal_unsharp.frag", "exaggerated.frag", "mean_curvature.frag")
 

@@ -372,9 +372,9 @@ const RelightViewer = (() => {
     async init() {
       this.stats.initMs = performance.now();
       if (!RelightDrawer.isSupported()) throw new Error("This browser has no WebGL2: the relighting viewer cannot run here.");
-      // the one-tile top level is the first picture and the backdrop of every frame (the drawer's
-      // preview): its bytes are on their way while OpenSeadragon starts (the page preloads the
-      // same URL), not queued behind the level the view needs, which OpenSeadragon fetches
+      // the one-tile top level is the first picture and the backdrop until the view's tiles are all
+      // there (the drawer's preview): its bytes are on their way while OpenSeadragon starts (the page
+      // preloads the same URL), not queued behind the level the view needs, which OpenSeadragon fetches
       const top = this.levels.length - 1, [tw, th] = this.levels[top];
       const preview = fetch(`${this.base}/tiles/${top}/0_0`).then((r) => {
         if (!r.ok) throw new Error(`tile ${top}/0/0: HTTP ${r.status}`);
