@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from common.matching.docking import DOCK_GAP_MM, DOCK_NEAR_WEIGHT, DOCK_OVERLAP_WEIGHT, DOCK_TAPER_MM
 from common.matching.paint import _lab, checked_face
 
 #: weight of CIELAB lightness against the chroma axes (fading and lighting change lightness most)
@@ -60,7 +61,7 @@ _W = np.array([LINE_L_WEIGHT, 1.0, 1.0], np.float32)
 
 
 def _outline(mask: np.ndarray):
-    """The outer outline (cells, in findContours' order), its unit tangent and inward normal."""
+    """The outer outline (cells, in findContours' order), or None when there is none of 20 points."""
     cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not cs:
         return None
@@ -289,8 +290,8 @@ def line_continuity(ends_a, ends_b, poses, *, max_gap_mm: float = 14.0, max_shif
 
 
 def outline_contact_mm(contour_a_mm, contour_b_mm, poses, *, cell_mm: float = 0.75, step_mm: float = 2.5,
-                       gap_mm: float = 6.0, taper_mm: float = 2.0, near_weight: float = 3.0,
-                       overlap_weight: float = 3.0) -> np.ndarray:
+                       gap_mm: float = DOCK_GAP_MM, taper_mm: float = DOCK_TAPER_MM,
+                       near_weight: float = DOCK_NEAR_WEIGHT, overlap_weight: float = DOCK_OVERLAP_WEIGHT) -> np.ndarray:
     """The docking's contact score at many poses at once, from points sampled along the outlines.
 
     A point-sampled stand-in for :func:`common.matching.docking.docking_score_at` (same band: full

@@ -110,8 +110,7 @@ def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_P
     >>> choose_pose(d, [0.0, 4.0], weight=0.0).angle_deg                  # geometry alone
     0
     """
-    docks = list(dockings)
-    return docks[int(np.argmax(pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm)))]
+    return ranked_poses(dockings, paint_mm, weight=weight, cell_mm=cell_mm)[0]
 
 
 def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,

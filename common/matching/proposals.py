@@ -33,6 +33,12 @@ STATUSES = ("pending", "confirmed", "rejected")
 #: rankings, comparable across queries), then the probability (one query's), pairs without a mutual
 #: proximity (stored before it existed) last
 ORDER = "mutual IS NULL, mutual DESC, probability DESC, id"
+
+
+def order_key(mutual: float | None, probability: float, pid: int | None) -> tuple:
+    """Sort key of :data:`ORDER` for proposals outside the database (best first)."""
+    return (mutual is None, -(mutual or 0.0), -probability, pid if pid is not None else 0)
+
 VERDICTS = ("confirmed", "rejected")
 
 _SCHEMA = """

@@ -57,6 +57,7 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from scipy.stats import chi2 as _chi2
 
+from common.matching.proposals import order_key
 from common.web.compose import relative_pose  # noqa: F401  (B in A from both poses; used with this module)
 
 #: JSON schema name and version of :func:`reconstruction_document`
@@ -707,8 +708,7 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
         out.append({"proposal": p.id, "member": member, "newcomer": newcomer, "probability": float(p.probability),
                     "mutual": None if mutual is None else float(mutual), "newcomer_cluster": owner.get(newcomer),
                     "pose": pose})
-    out.sort(key=lambda d: (d["mutual"] is None, -(d["mutual"] or 0.0), -d["probability"],
-                            d["proposal"] if d["proposal"] is not None else 0))
+    out.sort(key=lambda d: order_key(d["mutual"], d["probability"], d["proposal"]))
     return out[:limit]
 
 

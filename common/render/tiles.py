@@ -192,8 +192,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     # each drawing reuses its freed arrays (_heap) and hands the memory back when it ends, so one
     # tile's heap does not stay beside the next one's (the output and the labels are not in it)
     with reuse_freed_memory():
-        calib = _render_whole(source.window(r0, r0 + side_h, c0, c0 + side_w), recipe, None, None,
-                              cut(r0, r0 + side_h, c0, c0 + side_w))
+        calib = _render_whole(source.window(r0, r1, c0, c1), recipe, None, None, cut(r0, r1, c0, c1))
     resolved = calib.resolved
     skipped = calib.skipped
     del calib
