@@ -51,7 +51,9 @@ a pair's standing in both fragments' rankings is one symmetric score
 (:func:`common.matching.mutual.mutual_proximity`; :meth:`MatchIndex.mutual`): a probability is
 calibrated against its own query's other candidates, so the station orders a fragment's proposals,
 which come from several queries, by it. :meth:`MatchIndex.rank_again` brings a fragment's ranking up
-to date after new fragments arrived. Measured figures of every stage: docs/matching.md.
+to date after new fragments arrived, and :meth:`MatchIndex.rank_all` every fragment's after a model
+update (with the dockings made before; the pairs new to a fragment's docked best are returned, to be
+docked as jobs of their own). Measured figures of every stage: docs/matching.md.
 """
 
 from __future__ import annotations
@@ -613,6 +615,10 @@ class MatchIndex:
         """Whether stage 3 docks this fragment's candidates (an outline and a calibrated model)."""
         return model.docking is not None and fragment in self.contours
 
+    def _dock_head(self, ranked: list[Candidate], dock_candidates: int) -> list[Candidate]:
+        """The candidates stage 3 docks: of the best ``dock_candidates`` after stage 2½, those with an outline."""
+        return [c for c in ranked[:dock_candidates] if c.other in self.contours]
+
     def _rank_by_docking(self, fragment: str, ranked: list[Candidate], model: MatchModel,
                          dock_candidates: int, docked_only: bool = False) -> list[Candidate]:
         """Stage 3 for one query fragment: its best ``dock_candidates`` are docked
@@ -621,7 +627,7 @@ class MatchIndex:
         evidence and the paint, or the model's learned combination); they come first, best first,
         each with its chosen pose (:meth:`pose`) as its alignment. The rest follow, never above them.
         ``docked_only``: of the best ``dock_candidates``, only the pairs docked before (no new docking)."""
-        head = [c for c in ranked[:dock_candidates] if c.other in self.contours]
+        head = self._dock_head(ranked, dock_candidates)
         if docked_only:
             head = [c for c in head if _pair(fragment, c.other) in self._dockings]
         if not head:
@@ -784,24 +790,57 @@ class MatchIndex:
         return mutual_of(self.rankings, fragment, others)
 
     def rank_again(self, fragments, model: MatchModel, *, knowing: str | None = None,
-                   n_candidates: int = 100) -> list[str]:
+                   n_candidates: int = 100, dock_candidates: int = DOCK_CANDIDATES,
+                   undocked: dict | None = None) -> list[str]:
         """Rank each of ``fragments`` again against its candidates now (stages 1–3, as :meth:`propose`,
         without evidence or alignment) and keep the ranking: what a partner's ranking needs once new
         fragments arrived, for :meth:`mutual`. ``knowing``: only those whose kept ranking lacks this
         fragment (it predates it). Stage 3 uses the dockings made before and docks no new pair (a new
         docking costs ~0.1–0.3 s at real sizes; a fragment proposed on arrival has its best docked
         already, and the new fragment's pair was docked by its own proposal), so a fragment costs
-        about a first answer. Returns the fragments ranked."""
+        about a first answer. ``undocked``: a dict that receives, for each ranked fragment whose best
+        ``dock_candidates`` hold pairs not docked yet, those others (what :meth:`propose` would dock).
+        Returns the fragments ranked."""
         done = []
         for f in fragments:
             if f not in self.cues or not len(self.cues[f]) or (knowing is not None and knowing in self.rankings.get(f, ())):
                 continue
             others = self._candidates_with_hubness(self.cues[f], model, n_candidates)
+            trace = {}
             self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0,
-                                                           docked_only=True)]
+                                                           dock_candidates=dock_candidates, docked_only=True,
+                                                           trace=trace)]
+            if undocked is not None and self.uses_docking(f, model) and dock_candidates > 0:
+                new = [c.other for c in self._dock_head(trace["fresco"], dock_candidates)
+                       if _pair(f, c.other) not in self._dockings]
+                if new:
+                    undocked[f] = new
             done.append(f)
         return done
 
+    def rank_all(self, model: MatchModel, *, n_candidates: int = 100,
+                 dock_candidates: int = DOCK_CANDIDATES) -> dict[str, list[str]]:
+        """The full re-rank after a model update: every fragment's hubness under ``model``, then every
+        fragment ranked again (:meth:`rank_again`, its ranking kept in :attr:`rankings`) with the
+        dockings made before, docking no new pair.
+
+        A pair that enters a fragment's best ``dock_candidates`` under the new model without having
+        been docked is left below the docked ones, as :meth:`rank_again` leaves it; docking it costs
+        0.4–0.7 s at real sizes, as much as the rest of the fragment's re-rank together (docs/matching.md,
+        "Scale"), so those dockings do not hold the new rankings: they are returned, to be docked
+        afterwards as jobs of their own — :meth:`propose` for each such fragment docks them (the other
+        pairs are cached) and gives its ranking as a full proposal would.
+
+        Returns
+        -------
+        dict fragment → the others in its best ``dock_candidates`` that have no docking yet (only the
+        fragments that have such pairs), in the index's order.
+        """
+        self.refresh_hubness(self._order, model, n_candidates=n_candidates)
+        undocked: dict[str, list[str]] = {}
+        self.rank_again(list(self._order), model, n_candidates=n_candidates, dock_candidates=dock_candidates,
+                        undocked=undocked)
+        return undocked
 
 def _pair(a: str, b: str) -> tuple[str, str]:
     """The key of an unordered pair in the index's caches."""

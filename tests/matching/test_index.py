@@ -362,3 +362,83 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
         mine = index.alternatives(q, c.other)
         assert [tuple(map(float, t)) for t in c.alignment.alternatives] == \
             [(m.angle_deg, m.tx_mm, m.ty_mm) for m in mine]
+
+
+def _after_a_model_update(small_wall, n: int = 24, dock_candidates: int = 3):
+    """(the old model, a new model — weights moved by 30 % —, the fragments, an index where every fragment
+    was proposed and its best ``dock_candidates`` docked under the old model: a station's steady state;
+    more than HUBNESS_MIN_OTHERS fragments, so each has a hubness)."""
+    from dataclasses import replace
+
+    model, ids, index = _docking_index(small_wall, n)
+    for f in ids:   # the arrivals
+        index.propose(index.cues[f], model, dock_candidates=dock_candidates)
+    rng = np.random.default_rng(4)
+    model2 = replace(model, coef=model.coef * (1 + 0.3 * rng.standard_normal(model.coef.shape)),
+                     version="0002-rank-all")
+    return model, model2, ids, index
+
+
+def test_rank_all_docks_no_pair_and_returns_each_best_heads_undocked_pairs(small_wall):
+    """The full re-rank after a model update docks nothing; what it returns is, for each fragment, exactly
+    the pairs among its best ``dock_candidates`` after stage 2½ under the new model that were never docked
+    (computed here from stages 1–2½ alone)."""
+    model, model2, ids, index = _after_a_model_update(small_wall)
+    docked = set(index._dockings)
+    undocked = index.rank_all(model2, dock_candidates=3)
+    assert set(index._dockings) == docked                       # no new docking
+    assert all(index.hubness[f][0] == model2.version for f in ids)
+    expected = {}
+    for f in ids:
+        others = index.candidates(index.cues[f], model2)
+        head = [c.other for c in index.rank(index.cues[f], others, model2, dock_candidates=0)[:3]]
+        new = [o for o in head if tuple(sorted((f, o))) not in docked]
+        if new:
+            expected[f] = new
+    assert undocked == expected
+    assert 0 < len(undocked) < len(ids)                         # the fixture has both kinds
+    assert set(index._dockings) == docked
+
+
+def test_rank_all_ranks_a_fragment_whose_best_are_docked_as_propose_does(small_wall):
+    """Each fragment's kept ranking is what :meth:`propose` would give at that point of the pass (on a copy
+    of the index, docking what it needs) wherever its best were docked before; and the pass is
+    :meth:`rank_again` of every fragment after every hubness under the new model."""
+    import copy
+
+    model, model2, ids, index = _after_a_model_update(small_wall)
+    ref = copy.deepcopy(index)
+    ref.refresh_hubness(ref._order, model2)
+    proposed = {}
+    for f in ids:
+        probe = copy.deepcopy(ref)
+        probe.propose(probe.cues[f], model2, dock_candidates=3)
+        proposed[f] = probe.rankings[f]
+        ref.rank_again([f], model2, dock_candidates=3)
+    undocked = index.rank_all(model2, dock_candidates=3)
+    assert {f: index.rankings[f] for f in ids} == {f: ref.rankings[f] for f in ids}
+    whole = [f for f in ids if f not in undocked]
+    assert whole
+    for f in whole:
+        assert index.rankings[f] == proposed[f]
+    for f, new in undocked.items():   # a pair new to the best is left below the docked ones
+        assert not set(new) & set(index.rankings[f][:3 - len(new)])
+
+
+def test_docking_the_pairs_rank_all_returns_brings_every_ranking_to_proposes(small_wall):
+    """The follow-up: :meth:`propose` for each fragment rank_all named docks exactly its returned pairs;
+    then a second full re-rank returns nothing and every fragment's ranking is what :meth:`propose`
+    gives."""
+    model, model2, ids, index = _after_a_model_update(small_wall)
+    undocked = index.rank_all(model2, dock_candidates=3)
+    for f, new in undocked.items():
+        before = set(index._dockings)
+        index.propose(index.cues[f], model2, dock_candidates=3)
+        assert set(index._dockings) - before == {tuple(sorted((f, o))) for o in new} - before
+    assert index.rank_all(model2, dock_candidates=3) == {}
+    docked = set(index._dockings)
+    for f in ids:
+        kept = index.rankings[f]
+        index.propose(index.cues[f], model2, dock_candidates=3)
+        assert index.rankings[f] == kept
+    assert set(index._dockings) == docked
