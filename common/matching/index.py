@@ -842,6 +842,7 @@ class MatchIndex:
                         undocked=undocked)
         return undocked
 
+
 def _pair(a: str, b: str) -> tuple[str, str]:
     """The key of an unordered pair in the index's caches."""
     return (a, b) if a < b else (b, a)
