@@ -69,6 +69,17 @@ def dot_light(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
     return np.asarray(normals, np.float32) @ np.asarray(light, np.float32)
 
 
+def scale_colour(colour: np.ndarray, scale: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+    """``colour * scale[..., None]``, (H, W, 3) float32, for an (H, W, 3) colour and an (H, W)
+    scale: OpenCV's product of interleaved channels (numpy's broadcast over a last axis of 3 is
+    several times slower). ``out``: a contiguous (H, W, 3) float32 array to write to."""
+    import cv2
+
+    s = np.ascontiguousarray(scale, np.float32)
+    return cv2.multiply(np.ascontiguousarray(colour, np.float32), cv2.merge([s, s, s]),
+                        dst=np.empty(s.shape + (3,), np.float32) if out is None else out)
+
+
 def smoothstep(edge0, edge1, x):
     """Hermite step 0 -> 1 between ``edge0`` and ``edge1`` (a hard step where they are equal)."""
     x = np.asarray(x, dtype=np.float32)

@@ -13,9 +13,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from common.render._util import as_light, dot_light
+from common.render._util import as_light, dot_light, scale_colour
 from common.rgbn._filters import check_mask, check_normals
-from common.rgbn.smoothing import smooth_normals
+from common.rgbn.smoothing import smooth_normals, strips
 
 #: Share of the pixels a robust stretch may clip at each end, percent (so at most 2 x this in all).
 CLIP_PERCENT = 0.5
@@ -427,13 +427,21 @@ def level_light(light, coarse, shape) -> np.ndarray:
     """The per-pixel light that lights the normals as :func:`level_normals` would: instead of
     rotating every normal n by R (which takes the coarse normal c to the view axis), the light is
     rotated back, ``n . (R^T l) = (R n) . l``. R^T l varies as slowly as c, so it is computed on
-    ``coarse`` (the coarse field: full size, or a :class:`Coarse` from :func:`coarse_normals`)
-    and interpolated to ``shape`` — much cheaper than rotating every normal.
+    ``coarse`` (the coarse field: full size, or a :class:`Coarse` from :func:`coarse_normals`;
+    :func:`levelled_light`) and interpolated to ``shape`` — much cheaper than rotating every normal.
 
     Returns
     -------
     (H, W, 3) float32 unit light directions.
     """
+    from common.rgbn.smoothing import unit_rows
+
+    return unit_rows(levelled_light(light, coarse).full(shape))
+
+
+def levelled_light(light, coarse) -> Coarse:
+    """:func:`level_light` on the coarse field's own grid, before interpolation: a :class:`Coarse`
+    whose ``full(shape, rows=...)``, made unit, is the per-pixel light of any rows."""
     l = as_light(light).astype(np.float32)
     grid = coarse if isinstance(coarse, Coarse) else Coarse(np.asarray(coarse, np.float32), 1, (0, 0))
     c = grid.values
@@ -446,9 +454,7 @@ def level_light(light, coarse, shape) -> np.ndarray:
     out[..., 0] = l[0] * cz + uy * l[2] + ux * k
     out[..., 1] = l[1] * cz - ux * l[2] + uy * k
     out[..., 2] = l[2] * cz + (ux * l[1] - uy * l[0])
-    from common.rgbn.smoothing import unit_rows
-
-    return unit_rows(Coarse(out, grid.factor, grid.offset).full(shape))
+    return Coarse(out, grid.factor, grid.offset)
 
 
 # ---- colour plus relief -------------------------------------------------------------------------
@@ -487,8 +493,6 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     ----------
     W3C Compositing and Blending Level 1, "soft-light"; CIE 15:2004 (CIELAB).
     """
-    from common.rgbn.io import linear_to_srgb
-
     if not 0 <= strength <= 1:
         raise ValueError(f"strength must be in [0, 1], got {strength}")
     albedo = np.asarray(albedo, np.float32)
@@ -497,6 +501,16 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     relief = np.asarray(relief, np.float32)
     if relief.shape != albedo.shape[:2]:
         raise ValueError(f"relief must be {albedo.shape[:2]}, got {relief.shape}")
+    # per pixel, so drawn a strip of rows at a time: the Lab copy and the temporaries are a strip's
+    # (memory already mapped and in cache), only the result has the image's size
+    out = np.empty(albedo.shape, np.float32)
+    for r0, r1, _, _ in strips(albedo.shape, 0):
+        out[r0:r1] = _lightness_relief_rows(albedo[r0:r1], relief[r0:r1], np.float32(strength), exposure)
+    return out
+
+
+def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exposure) -> np.ndarray:
+    """:func:`lightness_relief` of some rows (checked arguments)."""
     # OpenCV's float LRGB2Lab takes linear RGB in [0, 1] and gives L* in [0, 100]; Lab2RGB gives
     # sRGB-encoded values back (its own gamma tables: no per-pixel power here)
     inside = albedo.size and float(albedo.min()) >= 0.0 and float(albedo.max()) <= 1.0
@@ -517,7 +531,7 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
             del k
             L = L2
     if strength > 0:
-        r = np.clip(relief, -1.0, 1.0) * np.float32(strength)
+        r = np.clip(relief, -1.0, 1.0) * strength
         L = L + r * np.where(r > 0, 100.0 - L, L)
     lab[..., 0] = L
     # OpenCV's Lab2RGB clips each channel: the colours it clipped are mapped again, chroma only
@@ -797,25 +811,46 @@ def specular_enhancement(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np
     (specular enhancement).
     """
     normals = check_normals(normals)
+    l = as_light(light)
+    return specular_of_cosines(dot_light(normals, l), dot_light(normals, half_vector(l)), albedo=albedo,
+                               kd=kd, ks=ks, exponent=exponent, clip=clip)
+
+
+def half_vector(light: np.ndarray) -> np.ndarray:
+    """The unit half vector between a light (a 3-vector or an (H, W, 3) field of unit vectors) and
+    the view ``v = (0, 0, 1)``: ``(l + v) / |l + v|``, float32."""
+    h = np.asarray(light, np.float32) + np.array([0.0, 0.0, 1.0], np.float32)
+    if h.ndim == 1:
+        return h / np.float32(max(float(np.linalg.norm(h)), 1e-12))
+    from common.rgbn.smoothing import unit_rows
+
+    return unit_rows(h)
+
+
+def specular_of_cosines(cos_nl: np.ndarray, cos_nh: np.ndarray, *, albedo: np.ndarray | None = None,
+                        kd: float = 0.6, ks: float = 0.7, exponent: float = 40.0, clip: bool = True) -> np.ndarray:
+    """:func:`specular_enhancement` of the cosines ``n . l`` and ``n . h`` per pixel ((H, W) float
+    each; :func:`half_vector`)."""
     for name, v in (("kd", kd), ("ks", ks)):
         if v < 0:
             raise ValueError(f"{name} must be >= 0, got {v}")
     if not exponent > 0:
         raise ValueError(f"exponent must be > 0, got {exponent}")
-    l = as_light(light)
-    h = l + np.array([0.0, 0.0, 1.0], np.float32)
-    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    cos_nl = np.asarray(cos_nl, np.float32)
     base = np.float32(0.75) if albedo is None else np.asarray(albedo, np.float32)
-    if albedo is not None and base.shape != normals.shape:
-        raise ValueError(f"albedo must be {normals.shape}, got {base.shape}")
+    if albedo is not None and base.shape != cos_nl.shape + (3,):
+        raise ValueError(f"albedo must be {cos_nl.shape + (3,)}, got {base.shape}")
     # each term made in place: one colour array and two planes in all
-    diffuse = np.maximum(dot_light(normals, l), np.float32(0.0))
+    diffuse = np.maximum(cos_nl, np.float32(0.0))
     diffuse *= np.float32(kd)
-    spec = np.maximum(dot_light(normals, h), np.float32(0.0))
+    spec = np.maximum(np.asarray(cos_nh, np.float32), np.float32(0.0))
     np.power(spec, np.float32(exponent), out=spec)
     spec *= np.float32(ks)
-    out = np.multiply(base, diffuse[..., None], dtype=np.float32) if albedo is not None else \
-        np.repeat((diffuse * base)[..., None], 3, axis=-1)
+    if albedo is not None:
+        out = scale_colour(base, diffuse)
+    else:
+        diffuse *= base
+        out = cv2.merge([diffuse, diffuse, diffuse])
     del diffuse
-    out += spec[..., None]
+    cv2.add(out, cv2.merge([spec, spec, spec]), dst=out)
     return np.clip(out, 0.0, 1.0, out=out) if clip else out

@@ -48,7 +48,7 @@ from common.render import paint as _paint
 from common.render import shading as _shading
 from common.render import enhance as _enhance
 from common.render import shadows as _shadows
-from common.render._util import Layer, display_albedo, grey
+from common.render._util import Layer, as_light, display_albedo, dot_light, grey
 from common.rgbn.image import RGBNImage
 
 log = logging.getLogger(__name__)
@@ -210,13 +210,36 @@ def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
     return _cache[k]
 
 
-def _light(image: RGBNImage, light, level, resolved: dict):
-    """The light, or for a levelled surface the per-pixel light that rakes it relative to its own
-    slow undulation (:func:`common.render.enhance.level_light`)."""
+def _cosines(image: RGBNImage, sigma_px: float, light, level, resolved: dict, *, half: bool = False):
+    """``(n . l, n . h or None)``, (H, W) float32: the cosines of the normals smoothed at
+    ``sigma_px`` (:func:`_smoothed`) with the light — for a levelled surface the per-pixel light
+    that rakes it relative to its own slow undulation (:func:`common.render.enhance.level_light`) —
+    and, with ``half``, with the half vector of the light and the view
+    (:func:`common.render.enhance.half_vector`).
+
+    Computed a strip of rows at a time: the smoothed normals (unless a recipe shares them, or the
+    scale is smoothed on a coarser grid) and the per-pixel light exist a strip at a time, so the
+    lit styles' only full-size arrays are these planes."""
+    from common.rgbn._filters import blurs_directly, gaussian_reach
+    from common.rgbn.smoothing import smoothed_rows, strips, unit_rows, weight_floor
+
     sigma = _level_sigma(image, level, resolved)
-    if sigma <= 0:
-        return light
-    return _enhance.level_light(light, _coarse(image, sigma), image.shape)
+    field = _enhance.levelled_light(light, _coarse(image, sigma)) if sigma > 0 else None
+    l = as_light(light)
+    h_vec = _enhance.half_vector(l)
+    by_rows = sigma_px > 0 and not _cache.get("share_smoothed") and blurs_directly(sigma_px, image.shape)
+    normals = None if by_rows else _smoothed(image, sigma_px)
+    floor = weight_floor(image.normals, image.mask) if by_rows else None
+    cos_nl = np.empty(image.shape, np.float32)
+    cos_nh = np.empty(image.shape, np.float32) if half else None
+    for r0, r1, a0, a1 in strips(image.shape, gaussian_reach(sigma_px) if by_rows else 0):
+        n = (smoothed_rows(image.normals, image.mask, float(sigma_px), (r0, r1), (a0, a1), floor)
+             if by_rows else normals[r0:r1])
+        lr = l if field is None else unit_rows(field.full(image.shape, rows=(r0, r1)))
+        cos_nl[r0:r1] = dot_light(n, lr)
+        if half:
+            cos_nh[r0:r1] = dot_light(n, h_vec if field is None else _enhance.half_vector(lr))
+    return cos_nl, cos_nh
 
 
 def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:
@@ -236,8 +259,9 @@ def draw_albedo(image: RGBNImage, exposure="auto") -> Layer:
 
 def _lit(image, light, ambient, colour, exposure, sigma_px, level, colour_exposure) -> Layer:
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
-    shade = _shading.lambertian(n, _light(image, light, level, r), ambient=ambient)
+    cosine, _ = _cosines(image, _noise_px(image, sigma_px, r, "sigma_px"), light, level, r)
+    shade = _shading.lambertian_of_cosine(cosine, ambient=ambient)
+    del cosine
     if colour:
         # the exposed colour, lit: relief on the lightness, the shade's median = the colour as is
         lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
@@ -273,8 +297,7 @@ def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: 
 
     The normals are smoothed at 3x the noise scale first, so bands follow the shape, not noise."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=3.0))
-    light = _light(image, light, level, r)
+    cosine, _ = _cosines(image, _noise_px(image, sigma_px, r, "sigma_px", factor=3.0), light, level, r)
     colours = None
     if n_colours > 0:
         shown = _exposed_colour(image, colour_exposure, r, "colour_exposure")
@@ -284,7 +307,8 @@ def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: 
             centres = np.asarray(palette, np.float32).reshape(-1, 3)
         r["palette"] = centres.round(6).tolist()
         colours = _shading.nearest_colours(shown, centres, mask=image.mask)
-    return _cover(image, _shading.toon(n, light, levels=levels, softness=softness, dark=dark, colours=colours), r)
+    return _cover(image, _shading.toon_of_cosine(cosine, levels=levels, softness=softness, dark=dark,
+                                                 colours=colours), r)
 
 
 def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue: float = 0.15,
@@ -292,10 +316,10 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
                colour_exposure="auto", exposure="auto") -> Layer:
     """Gooch warm/cool shading (technical illustration of shape: its hues are not the object's)."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px", factor=2.0))
-    light = _light(image, light, level, r)
+    cosine, _ = _cosines(image, _noise_px(image, sigma_px, r, "sigma_px", factor=2.0), light, level, r)
     kd = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
-    out = _shading.gooch(n, light, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
+    out = _shading.gooch_of_cosine(cosine, albedo=kd, blue=blue, yellow=yellow, alpha=alpha, beta=beta)
+    del cosine, kd
     # Gooch compresses lightness into its warm-cool ramp: expose the result's lightness (hues kept)
     return _cover(image, _exposed_lightness(out, image.mask, exposure, r, "exposure", only_narrow=False), r)
 
@@ -376,11 +400,10 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
     slope; the brightest highlights roll off below white (exposure), then a picture whose lightness
     is narrow is spread over the tone range (lightness: hue kept)."""
     r = {}
-    n = _smoothed(image, _noise_px(image, sigma_px, r, "sigma_px"))
-    light = _light(image, light, level, r)
+    cos_nl, cos_nh = _cosines(image, _noise_px(image, sigma_px, r, "sigma_px"), light, level, r, half=True)
     base = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
-    out = _enhance.specular_enhancement(n, light, albedo=base, kd=kd, ks=ks, exponent=exponent,
-                                        clip=False)
+    out = _enhance.specular_of_cosines(cos_nl, cos_nh, albedo=base, kd=kd, ks=ks, exponent=exponent, clip=False)
+    del cos_nl, cos_nh, base
     lum = out @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     lo, hi = _range(lum, image.mask, exposure, r, "exposure")
     del lum

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.render._util import as_light, check_dpi, dot_light, smoothstep
+from common.render._util import as_light, check_dpi, dot_light, scale_colour, smoothstep
 from common.render.enhance import Coarse
 from common.rgbn._filters import check_mask, check_normals
 from common.rgbn.curvature import mean_curvature
@@ -48,13 +48,21 @@ def lambertian(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray |
     0.5
     """
     normals = check_normals(normals)
+    return lambertian_of_cosine(dot_light(normals, as_light(light)), albedo=albedo, ambient=ambient)
+
+
+def lambertian_of_cosine(cosine: np.ndarray, *, albedo: np.ndarray | None = None,
+                         ambient: float = 0.0) -> np.ndarray:
+    """:func:`lambertian` of the cosine ``n . l`` per pixel ((H, W) float), which a caller may have
+    computed strip by strip or under a per-pixel light."""
     if not 0.0 <= ambient <= 1.0:
         raise ValueError(f"ambient must be in [0, 1], got {ambient}")
-    shade = np.float32(ambient) + np.float32(1.0 - ambient) * np.maximum(dot_light(normals, as_light(light)), 0.0)
+    shade = np.maximum(np.asarray(cosine, np.float32), np.float32(0.0))
+    shade *= np.float32(1.0 - ambient)
+    shade += np.float32(ambient)
     if albedo is None:
-        return shade.astype(np.float32)
-    albedo = _check_colour(albedo, normals.shape[:2])
-    return (albedo * shade[..., None]).astype(np.float32)
+        return shade
+    return scale_colour(_check_colour(albedo, shade.shape), shade)
 
 
 def toon(normals: np.ndarray, light=(135.0, 45.0), *, levels: int = 3, softness: float = 0.02,
@@ -90,23 +98,37 @@ def toon(normals: np.ndarray, light=(135.0, 45.0), *, levels: int = 3, softness:
     real-time 3D animation", NPAR 2000.
     """
     normals = check_normals(normals)
+    return toon_of_cosine(dot_light(normals, as_light(light)), levels=levels, softness=softness, dark=dark,
+                          colours=colours)
+
+
+def toon_of_cosine(cosine: np.ndarray, *, levels: int = 3, softness: float = 0.02, dark: float = 0.35,
+                   colours: np.ndarray | None = None) -> np.ndarray:
+    """:func:`toon` of the cosine ``n . l`` per pixel ((H, W) float)."""
     if int(levels) != levels or levels < 2:
         raise ValueError(f"levels must be an integer >= 2, got {levels}")
     if softness < 0:
         raise ValueError(f"softness must be >= 0, got {softness}")
     if not 0.0 <= dark <= 1.0:
         raise ValueError(f"dark must be in [0, 1], got {dark}")
-    s = np.maximum(dot_light(normals, as_light(light)), 0.0)
-    tone = np.zeros_like(s)
-    for j in range(1, int(levels)):
-        t = j / levels
-        tone += smoothstep(t - softness, t + softness, s)
-    tone /= np.float32(levels - 1)
-    shade = np.float32(dark) + np.float32(1.0 - dark) * tone
-    if colours is None:
-        return shade
-    colours = _check_colour(colours, normals.shape[:2])
-    return (colours * shade[..., None]).astype(np.float32)
+    from common.rgbn.smoothing import strips
+
+    cosine = np.asarray(cosine, np.float32)
+    colours = None if colours is None else _check_colour(colours, cosine.shape)
+    shade = np.empty(cosine.shape, np.float32)
+    out = None if colours is None else np.empty(cosine.shape + (3,), np.float32)
+    for r0, r1, _, _ in strips(cosine.shape, 0):   # per pixel: a strip of rows at a time
+        s = np.maximum(cosine[r0:r1], np.float32(0.0))
+        tone = np.zeros_like(s)
+        for j in range(1, int(levels)):
+            t = j / levels
+            tone += smoothstep(t - softness, t + softness, s)
+        tone *= np.float32((1.0 - dark) / (levels - 1))
+        tone += np.float32(dark)
+        shade[r0:r1] = tone
+        if colours is not None:
+            scale_colour(colours[r0:r1], tone, out=out[r0:r1])
+    return shade if colours is None else out
 
 
 def quantize_colours(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray | None = None,
@@ -135,11 +157,11 @@ def kmeans_palette(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray 
     if int(n_colours) != n_colours or n_colours < 1:
         raise ValueError(f"n_colours must be an integer >= 1, got {n_colours}")
     mask = check_mask(mask, colours.shape[:2])
-    pix = colours[mask]
-    if pix.shape[0] == 0:
+    at = np.flatnonzero(mask)   # the mask pixels' positions; only the sample's colours are gathered
+    if at.size == 0:
         return np.zeros((0, 3), np.float32)
     rng = np.random.default_rng(seed)
-    fit = pix if pix.shape[0] <= sample else pix[rng.choice(pix.shape[0], sample, replace=False)]
+    fit = colours.reshape(-1, 3)[at if at.size <= sample else at[rng.choice(at.size, sample, replace=False)]]
     k = int(min(n_colours, len(np.unique(fit, axis=0))))
     # OpenCV's k-means (k-means++ seeding, 3 attempts): fast and single-threaded, so it behaves on
     # a loaded machine; its RNG is seeded for a deterministic palette
@@ -157,27 +179,34 @@ def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarra
     out = colours.copy()
     if centres.shape[0] == 0:
         return out
-    # blocks of ~1 Mpx rows, one centre at a time (squared distance channel by channel, the
-    # first of equally near centres kept, as argmin): no per-pixel gathers, bounded memory
-    step = max(1, (1 << 20) // max(colours.shape[1], 1))
-    for r0 in range(0, colours.shape[0], step):
-        block = colours[r0:r0 + step]
+    import cv2
+
+    from common.rgbn.smoothing import copy_where, strips
+
+    # strips of ~1 Mpx rows, the channels as contiguous planes, one centre at a time (squared
+    # distance channel by channel, the first of equally near centres kept, as argmin); the chosen
+    # centre's channels are looked up per plane: no per-pixel gathers, bounded memory
+    for r0, r1, _, _ in strips(colours.shape, 0):
+        planes = cv2.split(np.ascontiguousarray(colours[r0:r1]))
         best = idx = None
+        d, e = np.empty_like(planes[0]), np.empty_like(planes[0])
         for j, centre in enumerate(centres):
-            d = block[..., 0] - centre[0]
+            np.subtract(planes[0], centre[0], out=d)
             d *= d
             for ch in (1, 2):
-                e = block[..., ch] - centre[ch]
+                np.subtract(planes[ch], centre[ch], out=e)
                 e *= e
                 d += e
             if best is None:
-                best, idx = d, np.zeros(d.shape, np.intp)
+                best, idx, d = d, np.zeros(d.shape, np.intp), np.empty_like(d)
             else:
                 closer = d < best
                 np.copyto(best, d, where=closer)
                 idx[closer] = j
-        np.copyto(out[r0:r0 + step], centres[idx], where=mask[r0:r0 + step, :, None])
+        chosen = cv2.merge([np.take(centres[:, ch], idx) for ch in range(3)])
+        copy_where(out[r0:r1], chosen, mask[r0:r1])
     return out
+
 
 
 def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
@@ -208,18 +237,39 @@ def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None
     technical illustration", SIGGRAPH 1998, §4.2; Toler-Franklin 2011, §7.3.
     """
     normals = check_normals(normals)
-    kd = np.full(normals.shape, 0.75, np.float32) if albedo is None else _check_colour(albedo, normals.shape[:2])
-    t = (1.0 + dot_light(normals, as_light(light)))[..., None] * np.float32(0.5)
-    # t * k_warm + (1 - t) * k_cool, each factor made in place (two colour arrays in all)
-    out = np.float32(beta) * kd
-    out += np.array([yellow, yellow, 0.0], np.float32)
-    out *= t
-    cool = np.float32(alpha) * kd
-    cool += np.array([0.0, 0.0, blue], np.float32)
-    cool *= 1.0 - t
-    out += cool
-    del cool
-    return np.clip(out, 0.0, 1.0, out=out)
+    return gooch_of_cosine(dot_light(normals, as_light(light)), albedo=albedo, blue=blue, yellow=yellow,
+                           alpha=alpha, beta=beta)
+
+
+def gooch_of_cosine(cosine: np.ndarray, *, albedo: np.ndarray | None = None, blue: float = 0.4,
+                    yellow: float = 0.4, alpha: float = 0.2, beta: float = 0.6) -> np.ndarray:
+    """:func:`gooch` of the cosine ``n . l`` per pixel ((H, W) float)."""
+    import cv2
+
+    from common.rgbn.smoothing import strips
+
+    cosine = np.asarray(cosine, np.float32)
+    kd = None if albedo is None else _check_colour(albedo, cosine.shape)
+    # t k_warm + (1 - t) k_cool = kd (alpha + (beta - alpha) t) + k0 + t k1, with k0 = (0, 0, blue)
+    # and k1 = (yellow, yellow, -blue): a colour times a plane plus a plane times a colour, which
+    # OpenCV computes on interleaved channels (numpy's broadcast over a last axis of 3 is slow), a
+    # strip of rows at a time
+    k01 = np.array([[yellow, 0.0], [yellow, 0.0], [-blue, blue]], np.float32)
+    out = np.empty(cosine.shape + (3,), np.float32)
+    for r0, r1, _, _ in strips(cosine.shape, 0):
+        t = cosine[r0:r1] + np.float32(1.0)
+        t *= np.float32(0.5)
+        a = t * np.float32(beta - alpha)
+        a += np.float32(alpha)
+        o = out[r0:r1]
+        if kd is None:
+            a *= np.float32(0.75)
+            cv2.merge([a, a, a], dst=o)
+        else:
+            cv2.multiply(np.ascontiguousarray(kd[r0:r1]), cv2.merge([a, a, a]), dst=o)
+        cv2.add(o, cv2.transform(cv2.merge([t, np.ones_like(t)]), k01), dst=o)
+        np.clip(o, 0.0, 1.0, out=o)
+    return out
 
 
 def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray | None = None,
