@@ -75,6 +75,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "features.ready": ["matcher"],
         "match.ranked": ["matcher"],
         "match.verified": ["matcher"],
+        "match.refitted": ["matcher"],
     },
     "scanner": {
         "device": "simulated",           # "simulated" or "sane"

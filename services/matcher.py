@@ -14,7 +14,14 @@
 * ``match.verified``: the verdict is stored (a re-delivered message is ignored), the logistic
   regression is re-fitted on its bootstrap rows plus every verdict's evidence
   (:func:`common.matching.online.refit_with_verdicts`), saved as the next model version
-  (pickle-free), and all pending proposals are re-ranked in the store.
+  (pickle-free), all pending proposals are re-scored in the store, and a ``match.refitted`` event
+  is returned, which is routed back to a matcher:
+* ``match.refitted``: every fragment is ranked again under the new model with the dockings made
+  before (:meth:`MatchIndex.rank_all`; skipped when a newer model is current, whose own
+  ``match.refitted`` follows), the mutual proximity of every stored pair is brought up to date, and
+  each fragment whose best candidates hold pairs never docked, or whose top joins are not all stored,
+  gets a ``match.ranked`` event: its docking job docks them and proposes it again, as for a new
+  fragment, so no docking holds the re-rank.
 
 State lives in the proposal store (SQLite; ``[services.matcher] db``, default
 ``<root>/matches/proposals.sqlite`` — on an NFS root put it on the matcher host's local disk) and in
@@ -44,7 +51,8 @@ from common.matching.proposals import Proposal, ProposalStore, ordered_pair
 from common.messages import MessageError, new_message, verdict_of
 
 SERVICE = "matcher"
-VERSION = "matcher-1.2"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked)
+VERSION = "matcher-1.3"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked);
+#                          1.3: the full re-rank after a model update (match.refitted)
 
 _STATES: dict = {}
 
@@ -92,7 +100,8 @@ def _sync(st: _State, ctx) -> None:
 
 
 def handle(job: dict, ctx) -> list[dict]:
-    """Route a ``features.ready``, ``match.ranked`` or ``match.verified`` job; return the events to publish."""
+    """Route a ``features.ready``, ``match.ranked``, ``match.verified`` or ``match.refitted`` job; return the
+    events to publish."""
     kind = job.get("type")
     if kind == "features.ready":
         return _on_features(job, ctx)
@@ -100,7 +109,9 @@ def handle(job: dict, ctx) -> list[dict]:
         return _on_ranked(job, ctx)
     if kind == "match.verified":
         return _on_verified(job, ctx)
-    raise MessageError(f"matcher handles features.ready, match.ranked and match.verified, got {kind!r}")
+    if kind == "match.refitted":
+        return _on_refitted(job, ctx)
+    raise MessageError(f"matcher handles features.ready, match.ranked, match.verified and match.refitted, got {kind!r}")
 
 
 def _on_features(job: dict, ctx) -> list[dict]:
@@ -233,7 +244,7 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     ref = save_model(ctx.store, model, provenance={"stage": SERVICE, "stage_version": VERSION,
                                                    "previous": st.model.version, "verdicts": len(rows)})
     st.db.add_model(model.version, ref.to_dict(), n_train=len(base_y), note=f"{len(rows)} verdicts")
-    st.model = model
+    previous, st.model = st.model.version, model
     # re-rank every pending proposal under the new model
     pending = st.db.pending(limit=10 ** 9)
     ctx.progress(0.6, f"re-ranking {len(pending)} pending proposals")
@@ -241,4 +252,36 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     st.db.set_probabilities([(p.id, scored[(p.fragment_a, p.fragment_b)].probability) for p in pending
                              if (p.fragment_a, p.fragment_b) in scored], model.version)
     ctx.log.info("verdict %s on %s-%s: model %s, %d proposals re-ranked", verdict, a, b, model.version, len(scored))
-    return []
+    # every fragment's ranking under the new model follows as a job of its own
+    return [new_message("match.refitted", model_version=model.version, previous=previous, verdicts=len(rows),
+                        fragments=len(st.index))]
+
+
+def _on_refitted(job: dict, ctx) -> list[dict]:
+    """The full re-rank after a model update (module docstring): rankings and mutual proximity now, the
+    dockings of pairs new to a fragment's best as ``match.ranked`` jobs."""
+    st = _state(ctx)
+    if job["model_version"] != st.model.version:
+        ctx.log.info("model %s is no longer current (%s): its match.refitted re-ranks", job["model_version"],
+                     st.model.version)
+        return []
+    cfg = ctx.config or {}
+    ctx.progress(0.1, f"ranking all {len(st.index)} fragments again under model {st.model.version}")
+    undocked = st.index.rank_all(st.model, n_candidates=int(cfg.get("n_candidates", 100)))
+    ctx.progress(0.9, "mutual proximity of the stored pairs")
+    top, updates, events = int(cfg.get("top", 10)), [], []
+    for row in st.db.fragments(face="front"):
+        f = row["fragment"]
+        if f not in st.index.rankings or st.seen.get(f) != row["artifact"]["sha256"]:
+            continue
+        stored = st.db.ranked(f, limit=10 ** 6)
+        others = [p.other(f) for p in stored]
+        updates += [(f, o, m) for o, m in zip(others, st.index.mutual(f, others))]
+        if f in undocked or set(st.index.rankings[f][:top]) - set(others):
+            pending = [p.other(f) for p in stored if p.status == "pending"]
+            events.append(new_message("match.ranked", fragment=f, face="front", artifact=row["artifact"],
+                                      model_version=st.model.version, fragments=len(st.index), proposed=pending))
+    st.db.set_mutual(updates)
+    ctx.log.info("model %s: %d fragments ranked again; %d to dock again (%d pairs never docked)", st.model.version,
+                 len(st.index.rankings), len(events), sum(len(v) for v in undocked.values()))
+    return events

@@ -81,14 +81,16 @@ def test_verdict_refits_a_new_model_version_and_is_idempotent(station):
     truth = wall.is_neighbour(top.fragment_a, top.fragment_b)
     msg = new_message("match.verified", fragment=top.fragment_a, other=top.fragment_b,
                       verdict="confirmed" if truth else "rejected", by="test")
-    assert matcher.handle(msg, ctx) == []
+    (refitted,) = [validate(e) for e in matcher.handle(msg, ctx)]   # the full re-rank follows as its own job
     after = db.current_model()
+    assert refitted["type"] == "match.refitted" and refitted["model_version"] == after["version"]
+    assert refitted["previous"] == before and refitted["verdicts"] == 1
     assert after["version"] != before and int(after["version"][:4]) == int(before[:4]) + 1
     model = load_model(store, after["artifact"])
     assert model.info["verdict_rows"] > 0
     assert db.get(top.fragment_a, top.fragment_b).status == ("confirmed" if truth else "rejected")
     assert {p.model_version for p in db.pending(10 ** 6)} == {after["version"]}
-    matcher.handle(msg, ctx)   # re-delivered: no second verdict, no new model
+    assert matcher.handle(msg, ctx) == []   # re-delivered: no second verdict, no new model
     assert len(db.verdicts()) == 1 and db.current_model()["version"] == after["version"]
     # a verdict with the pose the person set (other in fragment's frame, here given from B's side)
     # keeps that pose, stored as B in A's frame, for the reconstruction
@@ -156,4 +158,50 @@ def test_a_docking_model_answers_from_the_fast_stages_then_docks_in_a_job_of_its
         assert db.get(e["fragment"], e["other"]).probability == pytest.approx(e["probability"])
     # a match.ranked for features that were replaced since is skipped (the new ones bring their own)
     stale = dict(ranked, artifact=dict(ranked["artifact"], sha256="0" * 64))
+    assert matcher.handle(stale, ctx) == []
+
+
+def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jobs_of_their_own(station):
+    """match.verified → match.refitted: that job ranks every fragment under the new model with the dockings
+    made before (none new), updates every stored pair's mutual proximity, and sends a match.ranked for each
+    fragment whose best hold a pair never docked or whose top joins are not all stored; those jobs dock
+    and propose again. A match.refitted of a model no longer current is skipped."""
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    model = load_model(store, db.current_model()["artifact"])
+    model.docking = (0.15, -4.0)
+    model.version = "0002-docking"
+    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
+    ids = [f.id for f in wall.fragments[:24]]
+    for fid in ids:   # arrivals: the first answer, then its docking job
+        for e in matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx):
+            if e["type"] == "match.ranked":
+                matcher.handle(e, ctx)
+    wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][:3]
+    events = []
+    for p in wrong:
+        events = matcher.handle(new_message("match.verified", fragment=p.fragment_a, other=p.fragment_b,
+                                            verdict="rejected"), ctx)
+    (refitted,) = events
+    st = matcher._state(ctx)
+    docked = set(st.index._dockings)
+    follow = [validate(e) for e in matcher.handle(refitted, ctx)]
+    assert set(st.index._dockings) == docked                         # the re-rank docked nothing
+    version = db.current_model()["version"]
+    assert refitted["model_version"] == version
+    assert all(v == version for v, _ in st.index.hubness.values())
+    assert follow and all(e["type"] == "match.ranked" and e["model_version"] == version for e in follow)
+    for e in follow:   # each names a fragment with pairs to dock or joins to store, and its pending ones
+        f = e["fragment"]
+        stored = {p.other(f) for p in db.ranked(f, limit=10 ** 6)}
+        head = st.index.rankings[f][:12]
+        assert set(st.index.rankings[f][:5]) - stored or any(tuple(sorted((f, o))) not in docked for o in head)
+        assert set(e["proposed"]) == {p.other(f) for p in db.ranked(f, limit=10 ** 6, status="pending")}
+    # every stored pair's mutual proximity is that of the new rankings
+    for p in db.all():
+        assert p.mutual == pytest.approx(st.index.mutual(p.fragment_a, [p.fragment_b])[0], abs=1e-9)
+    for e in follow:
+        assert all(validate(d)["type"] == "match.proposed" for d in matcher.handle(e, ctx))
+    assert len(st.index._dockings) > len(docked)
+    stale = dict(refitted, model_version=model.version)
     assert matcher.handle(stale, ctx) == []
