@@ -505,12 +505,12 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     # (memory already mapped and in cache), only the result has the image's size
     out = np.empty(albedo.shape, np.float32)
     for r0, r1, _, _ in strips(albedo.shape, 0):
-        out[r0:r1] = _lightness_relief_rows(albedo[r0:r1], relief[r0:r1], np.float32(strength), exposure)
+        _lightness_relief_rows(albedo[r0:r1], relief[r0:r1], np.float32(strength), exposure, out[r0:r1])
     return out
 
 
-def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exposure) -> np.ndarray:
-    """:func:`lightness_relief` of some rows (checked arguments)."""
+def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exposure, out: np.ndarray) -> None:
+    """:func:`lightness_relief` of some rows (checked arguments), written to ``out`` (contiguous)."""
     # OpenCV's float LRGB2Lab takes linear RGB in [0, 1] and gives L* in [0, 100]; Lab2RGB gives
     # sRGB-encoded values back (its own gamma tables: no per-pixel power here)
     inside = albedo.size and float(albedo.min()) >= 0.0 and float(albedo.max()) <= 1.0
@@ -535,7 +535,7 @@ def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exp
         L = L + r * np.where(r > 0, 100.0 - L, L)
     lab[..., 0] = L
     # OpenCV's Lab2RGB clips each channel: the colours it clipped are mapped again, chroma only
-    return _into_gamut(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB), lab)
+    _into_gamut(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB, dst=out), lab)
 
 
 #: CIE XYZ -> linear sRGB and the D65 white, with OpenCV's constants (``COLOR_Lab2RGB``), so the

@@ -985,7 +985,7 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
             params["labels"] = labels
         drawn = style.draw(image, **params)
         chosen.append(dict(drawn.resolved))
-        a = drawn.alpha * np.float32(layer.get("opacity", 1.0))
+        a = drawn.alpha * np.float32(layer["opacity"]) if layer.get("opacity", 1.0) != 1.0 else drawn.alpha
         if labels is not None and "segments" in layer:
             a = a * np.isin(labels, layer["segments"])
         if labels is not None and "exclude_segments" in layer:
@@ -1022,11 +1022,18 @@ def _adopt_as_canvas(rgb, alpha, blend: str, image: RGBNImage, background):
     held = [image.albedo, image.normals, image.mask] + [v for v in _cache.values() if isinstance(v, np.ndarray)]
     if any(x is not None and np.may_share_memory(rgb, x) for x in held):
         return None
-    on = alpha >= 1.0
+    from common.rgbn.smoothing import copy_where, strips
+
     off = alpha <= 0.0
-    if np.count_nonzero(on) + np.count_nonzero(off) != alpha.size:
+    if np.count_nonzero(alpha >= 1.0) + np.count_nonzero(off) != alpha.size:
         return None
-    rgb[off] = np.asarray(background, np.float32)
+    # the background put a strip at a time (a masked copy of one strip of it: no per-pixel gather)
+    fill = None
+    for r0, r1, _, _ in strips(image.shape, 0):
+        if fill is None:
+            fill = np.empty((r1 - r0,) + rgb.shape[1:], np.float32)
+            fill[:] = np.asarray(background, np.float32)
+        copy_where(rgb[r0:r1], fill[:r1 - r0], off[r0:r1])
     return rgb
 
 
