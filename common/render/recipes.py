@@ -221,7 +221,7 @@ def _cosines(image: RGBNImage, sigma_px: float, light, level, resolved: dict, *,
     scale is smoothed on a coarser grid) and the per-pixel light exist a strip at a time, so the
     lit styles' only full-size arrays are these planes."""
     from common.rgbn._filters import blurs_directly, gaussian_reach
-    from common.rgbn.smoothing import smoothed_rows, strips, unit_rows, weight_floor
+    from common.rgbn.smoothing import blurred_rows, strips, unit_rows, weight_floor
 
     sigma = _level_sigma(image, level, resolved)
     field = _enhance.levelled_light(light, _coarse(image, sigma)) if sigma > 0 else None
@@ -232,13 +232,32 @@ def _cosines(image: RGBNImage, sigma_px: float, light, level, resolved: dict, *,
     floor = weight_floor(image.normals, image.mask) if by_rows else None
     cos_nl = np.empty(image.shape, np.float32)
     cos_nh = np.empty(image.shape, np.float32) if half else None
+    ones = np.ones(3, np.float32)
     for r0, r1, a0, a1 in strips(image.shape, gaussian_reach(sigma_px) if by_rows else 0):
-        n = (smoothed_rows(image.normals, image.mask, float(sigma_px), (r0, r1), (a0, a1), floor)
-             if by_rows else normals[r0:r1])
         lr = l if field is None else unit_rows(field.full(image.shape, rows=(r0, r1)))
-        cos_nl[r0:r1] = dot_light(n, lr)
-        if half:
-            cos_nh[r0:r1] = dot_light(n, h_vec if field is None else _enhance.half_vector(lr))
+        hr = None if not half else h_vec if field is None else _enhance.half_vector(lr)
+        if not by_rows:
+            n = normals[r0:r1]
+            cos_nl[r0:r1] = dot_light(n, lr)
+            if half:
+                cos_nh[r0:r1] = dot_light(n, hr)
+            continue
+        # the cosine of the smoothed normal is that of the blurred stack's direction: (b . l) / |b|,
+        # without making the unit normals; 0 where no mask pixel is within reach (outside the
+        # fragment, where nothing is drawn)
+        b, empty = blurred_rows(image.normals, image.mask, float(sigma_px), (r0, r1), (a0, a1), floor)
+        b = cv2.cvtColor(b, cv2.COLOR_BGRA2BGR)   # (w n): contiguous, the weight dropped
+        inv = np.multiply(b, b) @ ones
+        np.sqrt(inv, out=inv)
+        np.maximum(inv, np.float32(1e-12), out=inv)
+        np.reciprocal(inv, out=inv)
+        for vec, cos in ((lr, cos_nl), (hr, cos_nh)):
+            if vec is None:
+                continue
+            c = cos[r0:r1]
+            np.matmul(b if vec.ndim == 1 else np.multiply(b, vec), vec if vec.ndim == 1 else ones, out=c)
+            c *= inv
+            c[empty] = 0.0
     return cos_nl, cos_nh
 
 

@@ -171,15 +171,26 @@ def smoothed_rows(normals: np.ndarray, mask: np.ndarray, sigma_px: float, rows, 
     image; ``stack``: :func:`weighted_stack` of the window's rows, when the caller smooths them at
     several sigmas; ``out``: a contiguous (r1 - r0, W, 3) float32 array to write to.
     Returns the (r1 - r0, W, 3) float32 unit normals."""
+    b, empty = blurred_rows(normals, mask, sigma_px, rows, window, floor, stack=stack,
+                            foreshortening=foreshortening, nz_min=nz_min)
+    res = unit_rows(b, out=out)
+    if empty.any():
+        copy_where(res, np.ascontiguousarray(normals[rows[0]:rows[1]]), empty)
+    return res
+
+
+def blurred_rows(normals: np.ndarray, mask: np.ndarray, sigma_px: float, rows, window, floor, *,
+                 stack: np.ndarray | None = None, foreshortening: bool = True, nz_min: float = NZ_MIN):
+    """The blurred weighted stack ``G * (w n, w)`` of rows ``r0:r1`` before normalisation, (r1 - r0,
+    W, 4) float32, and where no mask pixel is within reach ((r1 - r0, W) bool: there
+    :func:`smoothed_rows` keeps the input): for a caller that needs only a function of the
+    smoothed normal's direction, such as its cosine with a light (the arguments as
+    :func:`smoothed_rows`)."""
     (r0, r1), (a0, a1) = rows, window
     if stack is None:
         stack = weighted_stack(normals[a0:a1], mask[a0:a1], foreshortening=foreshortening, nz_min=nz_min)
     b = _blur_direct(stack, float(sigma_px))[r0 - a0:r1 - a0]
-    empty = b[..., 3] <= floor
-    res = unit_rows(b, out=out)
-    if empty.any():
-        copy_where(res, np.ascontiguousarray(normals[r0:r1]), empty)
-    return res
+    return b, b[..., 3] <= floor
 
 
 def unit_rows(blurred: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
