@@ -826,7 +826,7 @@ class MatchIndex:
 
         A pair that enters a fragment's best ``dock_candidates`` under the new model without having
         been docked is left below the docked ones, as :meth:`rank_again` leaves it; docking it costs
-        0.4–0.7 s at real sizes, as much as the rest of the fragment's re-rank together (docs/matching.md,
+        0.3–0.7 s at real sizes, several times the rest of the fragment's re-rank (~0.1 s; docs/matching.md,
         "Scale"), so those dockings do not hold the new rankings: they are returned, to be docked
         afterwards as jobs of their own — :meth:`propose` for each such fragment docks them (the other
         pairs are cached) and gives its ranking as a full proposal would.
