@@ -15,7 +15,7 @@ import numpy as np
 
 from common.render._util import as_light, dot_light, scale_colour
 from common.rgbn._filters import check_mask, check_normals
-from common.rgbn.smoothing import smooth_normals, strips
+from common.rgbn.smoothing import smooth_normals, smoothed_cosines, strips
 
 #: Share of the pixels a robust stretch may clip at each end, percent (so at most 2 x this in all).
 CLIP_PERCENT = 0.5
@@ -731,10 +731,8 @@ def detail_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.ndarray
     if not sigma_px > fine_px >= 0:
         raise ValueError(f"sigma_px must exceed fine_px >= 0, got sigma_px={sigma_px}, fine_px={fine_px}")
     l = as_light(light)
-    n_f = smooth_normals(normals, fine_px, mask=mask) if fine_px > 0 else normals
-    d = dot_light(n_f, l)
-    del n_f
-    d -= dot_light(smooth_normals(normals, sigma_px, mask=mask), l)
+    d = smoothed_cosines(normals, fine_px, [l], mask=mask)[0]
+    d -= smoothed_cosines(normals, sigma_px, [l], mask=mask)[0]
     return d
 
 

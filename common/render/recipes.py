@@ -212,53 +212,34 @@ def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
 
 def _cosines(image: RGBNImage, sigma_px: float, light, level, resolved: dict, *, half: bool = False):
     """``(n . l, n . h or None)``, (H, W) float32: the cosines of the normals smoothed at
-    ``sigma_px`` (:func:`_smoothed`) with the light — for a levelled surface the per-pixel light
-    that rakes it relative to its own slow undulation (:func:`common.render.enhance.level_light`) —
-    and, with ``half``, with the half vector of the light and the view
-    (:func:`common.render.enhance.half_vector`).
+    ``sigma_px`` with the light — for a levelled surface the per-pixel light that rakes it relative
+    to its own slow undulation (:func:`common.render.enhance.level_light`) — and, with ``half``,
+    with the half vector of the light and the view (:func:`common.render.enhance.half_vector`).
 
-    Computed a strip of rows at a time: the smoothed normals (unless a recipe shares them, or the
-    scale is smoothed on a coarser grid) and the per-pixel light exist a strip at a time, so the
-    lit styles' only full-size arrays are these planes."""
-    from common.rgbn._filters import blurs_directly, gaussian_reach
-    from common.rgbn.smoothing import blurred_rows, strips, unit_rows, weight_floor
+    :func:`common.rgbn.smoothing.smoothed_cosines` computes them a strip of rows at a time, so the
+    lit styles' only full-size arrays are these planes; in a recipe that shares its smoothed
+    normals between layers (:func:`_smoothed`) they are taken from those."""
+    from functools import lru_cache
+
+    from common.rgbn.smoothing import smoothed_cosines, unit_rows
 
     sigma = _level_sigma(image, level, resolved)
     field = _enhance.levelled_light(light, _coarse(image, sigma)) if sigma > 0 else None
     l = as_light(light)
-    h_vec = _enhance.half_vector(l)
-    by_rows = sigma_px > 0 and not _cache.get("share_smoothed") and blurs_directly(sigma_px, image.shape)
-    normals = None if by_rows else _smoothed(image, sigma_px)
-    floor = weight_floor(image.normals, image.mask) if by_rows else None
-    cos_nl = np.empty(image.shape, np.float32)
-    cos_nh = np.empty(image.shape, np.float32) if half else None
-    ones = np.ones(3, np.float32)
-    for r0, r1, a0, a1 in strips(image.shape, gaussian_reach(sigma_px) if by_rows else 0):
-        lr = l if field is None else unit_rows(field.full(image.shape, rows=(r0, r1)))
-        hr = None if not half else h_vec if field is None else _enhance.half_vector(lr)
-        if not by_rows:
-            n = normals[r0:r1]
-            cos_nl[r0:r1] = dot_light(n, lr)
-            if half:
-                cos_nh[r0:r1] = dot_light(n, hr)
-            continue
-        # the cosine of the smoothed normal is that of the blurred stack's direction: (b . l) / |b|,
-        # without making the unit normals; 0 where no mask pixel is within reach (outside the
-        # fragment, where nothing is drawn)
-        b, empty = blurred_rows(image.normals, image.mask, float(sigma_px), (r0, r1), (a0, a1), floor)
-        b = cv2.cvtColor(b, cv2.COLOR_BGRA2BGR)   # (w n): contiguous, the weight dropped
-        inv = np.multiply(b, b) @ ones
-        np.sqrt(inv, out=inv)
-        np.maximum(inv, np.float32(1e-12), out=inv)
-        np.reciprocal(inv, out=inv)
-        for vec, cos in ((lr, cos_nl), (hr, cos_nh)):
-            if vec is None:
-                continue
-            c = cos[r0:r1]
-            np.matmul(b if vec.ndim == 1 else np.multiply(b, vec), vec if vec.ndim == 1 else ones, out=c)
-            c *= inv
-            c[empty] = 0.0
-    return cos_nl, cos_nh
+    if field is None:
+        directions = [l, _enhance.half_vector(l)]
+    else:
+        @lru_cache(maxsize=1)   # the light of a strip, for its half vector too
+        def light_rows(r0, r1):
+            return unit_rows(field.full(image.shape, rows=(r0, r1)))
+
+        directions = [light_rows, lambda r0, r1: _enhance.half_vector(light_rows(r0, r1))]
+    directions = directions[:2 if half else 1]
+    if _cache.get("share_smoothed") and sigma_px > 0:
+        cosines = smoothed_cosines(_smoothed(image, sigma_px), 0.0, directions, mask=image.mask)
+    else:
+        cosines = smoothed_cosines(image.normals, float(sigma_px), directions, mask=image.mask)
+    return cosines[0], cosines[1] if half else None
 
 
 def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:

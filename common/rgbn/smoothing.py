@@ -136,6 +136,74 @@ def iter_scale_space(normals: np.ndarray, sigmas_px, *, mask: np.ndarray | None 
         yield out
 
 
+def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: np.ndarray | None = None,
+                     foreshortening: bool = True, nz_min: float = NZ_MIN) -> list[np.ndarray]:
+    """``n_s . d`` per pixel for each direction ``d``, with ``n_s`` the normals smoothed at
+    ``sigma_px`` (:func:`smooth_normals`, §7.2.1): the Lambertian cosine of the smoothed surface
+    under a light, without making the smoothed normals.
+
+    The smoothed normal is the direction of the blurred weighted stack ``b = G * (w n)``, so
+    ``n_s . d = (b . d) / |b|``. A sigma blurred at full resolution is computed in row strips
+    (:func:`strips`), so neither the stack nor its blur exists at the image's size; a larger one
+    blurs the whole stack (:func:`common.rgbn._filters.gaussian_blur`) and divides it strip by strip.
+
+    Parameters
+    ----------
+    normals : (H, W, 3) float
+        Unit normals.
+    sigma_px : float
+        Gaussian sigma in pixels, >= 0 (0: the normals as they are).
+    directions : list
+        Each a unit 3-vector, or a callable ``(r0, r1) -> (r1 - r0, W, 3)`` giving unit vectors for
+        those rows (a per-pixel light, such as a levelled one).
+    mask : (H, W) bool, optional
+
+    Returns
+    -------
+    list of (H, W) float32
+        One cosine per direction; 0 where no mask pixel is within reach (outside the mask, where
+        :func:`smooth_normals` keeps the input).
+    """
+    import cv2
+
+    normals = check_normals(normals)
+    if not np.isfinite(sigma_px) or sigma_px < 0:
+        raise ValueError(f"sigma_px must be a finite number >= 0, got {sigma_px}")
+    mask = check_mask(mask, normals.shape[:2])
+    h, w = normals.shape[:2]
+    out = [np.empty((h, w), np.float32) for _ in directions]
+    direct = sigma_px > 0 and blurs_directly(sigma_px, normals.shape)
+    floor = weight_floor(normals, mask, foreshortening=foreshortening, nz_min=nz_min)
+    whole = None
+    if sigma_px > 0 and not direct:
+        whole = gaussian_blur(weighted_stack(normals, mask, foreshortening=foreshortening, nz_min=nz_min),
+                              float(sigma_px))
+    ones = np.ones(3, np.float32)
+    for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(sigma_px) if direct else 0):
+        if sigma_px == 0:
+            b, empty, inv = np.ascontiguousarray(normals[r0:r1]), None, None
+        else:
+            if direct:
+                b, empty = blurred_rows(normals, mask, float(sigma_px), (r0, r1), (a0, a1), floor,
+                                        foreshortening=foreshortening, nz_min=nz_min)
+            else:
+                b = whole[r0:r1]
+                empty = b[..., 3] <= floor
+            b = cv2.cvtColor(b, cv2.COLOR_BGRA2BGR)   # (w n): contiguous, the weight dropped
+            inv = np.multiply(b, b) @ ones
+            np.sqrt(inv, out=inv)
+            np.maximum(inv, np.float32(1e-12), out=inv)
+            np.reciprocal(inv, out=inv)
+        for d, cos in zip(directions, out):
+            v = d(r0, r1) if callable(d) else np.asarray(d, np.float32)
+            c = cos[r0:r1]
+            np.matmul(b if v.ndim == 1 else np.multiply(b, v), v if v.ndim == 1 else ones, out=c)
+            if inv is not None:
+                c *= inv
+                c[empty] = 0.0
+    return out
+
+
 def weight_floor(normals: np.ndarray, mask: np.ndarray, *, foreshortening: bool = True,
                  nz_min: float = NZ_MIN) -> np.float32:
     """A millionth of the largest smoothing weight of the image (1 / the smallest nz on the mask):
@@ -150,11 +218,12 @@ def weight_floor(normals: np.ndarray, mask: np.ndarray, *, foreshortening: bool 
     return np.float32(1e-6 * max(wmax, 1e-12))
 
 
-def strips(shape, halo: int, pixels: int = STRIP_PIXELS):
+def strips(shape, halo: int, pixels: int | None = None):
     """Row strips of an image of ``shape`` for a filter that reads ``halo`` rows on each side:
     yields ``(r0, r1, a0, a1)``, the strip's rows and the rows to read (clipped to the image).
-    A strip holds about ``pixels`` pixels and at least 4 halos of rows."""
+    A strip holds about ``pixels`` pixels (None: :data:`STRIP_PIXELS`) and at least 4 halos of rows."""
     h, w = shape[:2]
+    pixels = STRIP_PIXELS if pixels is None else pixels
     rows = max(4 * int(halo), pixels // max(int(w), 1), 16)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)

@@ -106,3 +106,38 @@ def test_smoothing_in_row_strips_is_the_normalised_convolution_of_the_whole_imag
         reach = b[..., 3] > 1e-6 * w.max()
         assert np.abs(got - ref)[reach].max() < 1e-5
         assert np.array_equal(got[~reach], n[~reach])   # nothing within reach: the input kept
+
+
+def test_smoothed_cosines_are_the_smoothed_normals_cosines_with_each_light(monkeypatch):
+    """Independent reference: the cosine of smooth_normals' unit normals with each direction, for
+    a light vector and a per-pixel light given row by row, at a sigma blurred at full resolution
+    (strips), one blurred on a downsampled copy, and 0; 0 where no mask pixel is within reach."""
+    from common.rgbn import smoothing
+    from common.rgbn.smoothing import smoothed_cosines
+
+    rng = np.random.default_rng(7)
+    n = rng.normal(0, 0.3, (150, 97, 3)).astype(np.float32)
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    mask = np.zeros((150, 97), bool)
+    mask[20:130, 10:60] = True
+    l = np.array([0.3, -0.2, 0.9], np.float32)
+    l /= np.linalg.norm(l)
+    field = rng.normal(0, 0.2, (150, 97, 3)).astype(np.float32)
+    field[..., 2] = 1.0
+    field /= np.linalg.norm(field, axis=2, keepdims=True)
+    asked = []
+
+    def rows(r0, r1):
+        asked.append((r0, r1))
+        return field[r0:r1]
+
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", 97 * 9)
+    for sigma in (0.0, 1.5, 16.0):
+        ref = smooth_normals(n, sigma, mask=mask)
+        got_l, got_f = smoothed_cosines(n, sigma, [l, rows], mask=mask)
+        assert np.abs(got_l - ref @ l)[mask].max() < 2e-6
+        assert np.abs(got_f - np.einsum("...i,...i->...", ref, field))[mask].max() < 2e-6
+        if sigma == 1.5:
+            assert len(asked) > 5 and got_l[:, 80:].max() == 0.0   # strips; nothing within reach -> 0
+        asked.clear()
