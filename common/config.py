@@ -76,6 +76,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "match.ranked": ["matcher"],
         "match.verified": ["matcher"],
         "match.refitted": ["matcher"],
+        "match.reranked": ["matcher"],
     },
     "scanner": {
         "device": "simulated",           # "simulated" or "sane"

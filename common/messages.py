@@ -33,8 +33,11 @@ UID_PATTERN = re.compile(r"^[0-9a-f]{32}$")
 FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 #: ``face``: 1-32 lower-case letters, digits, '_' or '-' (``front``, ``back``)
 FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
-#: ``match.refitted`` ``model_version``: 1-64 letters, digits, '.', '_' or '-' (``"0003-1a2b3c4d"``)
+#: ``match.refitted`` and ``match.reranked`` ``model_version``: 1-64 letters, digits, '.', '_' or '-'
+#: (``"0003-1a2b3c4d"``)
 MODEL_VERSION_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+#: ``match.reranked`` ``redock``: at most this many fragments (the matcher sends a few per job)
+MAX_REDOCK_FRAGMENTS = 64
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 #: ``match.verified`` ``verdict``: what producers send
 VERDICTS = ("confirmed", "rejected")
@@ -65,6 +68,8 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "match.verified": ("A person confirmed or rejected a proposal.", ("fragment", "other", "verdict")),
     "match.refitted": ("The matcher re-fitted its model from the verdicts; it ranks every fragment again under the "
                        "new model next.", ("model_version",)),
+    "match.reranked": ("Every fragment was ranked again under a new model; the matcher docks the listed fragments' "
+                       "pairs that were never docked and proposes them again.", ("model_version", "redock")),
     "fragment.annotated": ("A person edited a fragment's catalogue metadata (find-spot, context, date, notes, "
                            "inventory); carries the changed fields and who.", ("fragment", "changes", "by")),
     "stage.failed": ("A job failed its last attempt and is parked; carries the error.", ("service", "error")),
@@ -179,8 +184,9 @@ def validate(msg: Any) -> dict:
     ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.verified``
     verdict is one :func:`verdict_of` reads and its optional ``pose`` one :func:`pose_of` reads, a
     ``match.proposed`` alignment's ``alternatives`` are at most :data:`MAX_ALTERNATIVE_POSES` poses
-    :func:`pose_of` reads, a ``match.refitted`` ``model_version`` matches :data:`MODEL_VERSION_PATTERN`,
-    a ``fragment.annotated`` edit changes only
+    :func:`pose_of` reads, a ``match.refitted`` or ``match.reranked`` ``model_version`` matches
+    :data:`MODEL_VERSION_PATTERN`, a ``match.reranked`` ``redock`` is a list of 1 to
+    :data:`MAX_REDOCK_FRAGMENTS` fragment ids, a ``fragment.annotated`` edit changes only
     :data:`ANNOTATION_FIELDS` (text of at most :data:`MAX_ANNOTATION_CHARS`); the whole document is
     at most :data:`MAX_DEPTH` deep, with strings, maps and lists within :data:`MAX_STRING_CHARS`
     and :data:`MAX_ITEMS` and integers within 64 bits.
@@ -236,8 +242,14 @@ def validate(msg: Any) -> dict:
                                f"{MAX_ALTERNATIVE_POSES} poses, got {_short(alts)}")
         for i, alt in enumerate(alts):
             pose_of(alt, f"{kind} message: alignment alternative {i}")
-    if kind == "match.refitted":
+    if kind in ("match.refitted", "match.reranked"):
         _check_name(msg, "model_version", MODEL_VERSION_PATTERN, "a model version (1-64 letters, digits, '.', '_', '-')")
+    if kind == "match.reranked":
+        redock = msg["redock"]
+        if not (isinstance(redock, (list, tuple)) and 1 <= len(redock) <= MAX_REDOCK_FRAGMENTS
+                and all(isinstance(f, str) and FRAGMENT_PATTERN.match(f) for f in redock)):
+            raise MessageError(f"{kind} message: redock must be a list of 1 to {MAX_REDOCK_FRAGMENTS} fragment ids, "
+                               f"got {_short(redock)}")
     if kind == "match.verified":
         verdict_of(msg["verdict"])
         if msg.get("pose") is not None:

@@ -19,9 +19,11 @@
 * ``match.refitted``: every fragment is ranked again under the new model with the dockings made
   before (:meth:`MatchIndex.rank_all`; skipped when a newer model is current, whose own
   ``match.refitted`` follows), the mutual proximity of every stored pair is brought up to date, and
-  each fragment whose best candidates hold pairs never docked, or whose top joins are not all stored,
-  gets a ``match.ranked`` event: its docking job docks them and proposes it again, as for a new
-  fragment, so no docking holds the re-rank.
+  the fragments whose best candidates hold pairs never docked, or whose top joins are not all stored,
+  are returned ``redock_batch`` at a time in ``match.reranked`` events, routed back to a matcher:
+* ``match.reranked``: each listed fragment's pairs are docked and its joins proposed again, as a new
+  fragment's ``match.ranked`` does, so no docking holds the re-rank (skipped, too, when a newer model
+  is current).
 
 State lives in the proposal store (SQLite; ``[services.matcher] db``, default
 ``<root>/matches/proposals.sqlite`` — on an NFS root put it on the matcher host's local disk) and in
@@ -31,7 +33,8 @@ workers on one host, or a restarted one, see the same fragments and the current 
 Config (``[services.matcher]``, all optional): ``db``, ``journal_mode`` ("WAL"), ``n_candidates``
 (100), ``top`` (10 proposals per new fragment), ``check`` (3 aligned), ``bootstrap_fragments`` (60),
 ``bootstrap_seed`` (0), ``verdict_weight`` (5.0), ``reciprocal`` (10: partners ranked again after a
-new fragment's docked answer; 0 leaves their rankings as they were).
+new fragment's docked answer; 0 leaves their rankings as they were), ``redock_batch`` (8: fragments
+per ``match.reranked`` job).
 """
 
 from __future__ import annotations
@@ -53,6 +56,10 @@ from common.messages import MessageError, new_message, verdict_of
 SERVICE = "matcher"
 VERSION = "matcher-1.3"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked);
 #                          1.3: the full re-rank after a model update (match.refitted)
+
+#: fragments per ``match.reranked`` job after a model update: each docks ~1 new pair and proposes again
+#: (~0.5 s CPU per fragment at real sizes), and a job's ``match.proposed`` events stay within a result frame
+REDOCK_BATCH = 8
 
 _STATES: dict = {}
 
@@ -100,8 +107,8 @@ def _sync(st: _State, ctx) -> None:
 
 
 def handle(job: dict, ctx) -> list[dict]:
-    """Route a ``features.ready``, ``match.ranked``, ``match.verified`` or ``match.refitted`` job; return the
-    events to publish."""
+    """Route a ``features.ready``, ``match.ranked``, ``match.verified``, ``match.refitted`` or ``match.reranked``
+    job; return the events to publish."""
     kind = job.get("type")
     if kind == "features.ready":
         return _on_features(job, ctx)
@@ -111,7 +118,10 @@ def handle(job: dict, ctx) -> list[dict]:
         return _on_verified(job, ctx)
     if kind == "match.refitted":
         return _on_refitted(job, ctx)
-    raise MessageError(f"matcher handles features.ready, match.ranked, match.verified and match.refitted, got {kind!r}")
+    if kind == "match.reranked":
+        return _on_reranked(job, ctx)
+    raise MessageError("matcher handles features.ready, match.ranked, match.verified, match.refitted and "
+                       f"match.reranked, got {kind!r}")
 
 
 def _on_features(job: dict, ctx) -> list[dict]:
@@ -146,9 +156,15 @@ def _on_ranked(job: dict, ctx) -> list[dict]:
         # newer features replaced the ranked ones: their own features.ready brings their match.ranked
         ctx.log.info("fragment %s: features changed since it was ranked; not docking the old ones", fragment)
         return []
-    cfg = ctx.config or {}
     proposed = [str(o) for o in job.get("proposed") or [] if o in st.index]
     ctx.progress(0.3, f"docking the best candidates of {fragment}")
+    return _docked_answer(fragment, proposed, st, ctx)
+
+
+def _docked_answer(fragment: str, proposed, st: _State, ctx) -> list[dict]:
+    """Dock the fragment's best candidates (those docked before are cached), propose its joins again with
+    their poses — its top ones and every one of ``proposed`` —, store them and return their events."""
+    cfg = ctx.config or {}
     found = st.index.propose(st.index.cues[fragment], st.model, n_candidates=int(cfg.get("n_candidates", 100)),
                              top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), also=proposed)
     _rank_partners_again(found, st, ctx)
@@ -259,7 +275,7 @@ def _on_verified(job: dict, ctx) -> list[dict]:
 
 def _on_refitted(job: dict, ctx) -> list[dict]:
     """The full re-rank after a model update (module docstring): rankings and mutual proximity now, the
-    dockings of pairs new to a fragment's best as ``match.ranked`` jobs."""
+    dockings of pairs new to a fragment's best in ``match.reranked`` jobs."""
     st = _state(ctx)
     if job["model_version"] != st.model.version:
         ctx.log.info("model %s is no longer current (%s): its match.refitted re-ranks", job["model_version"],
@@ -269,19 +285,32 @@ def _on_refitted(job: dict, ctx) -> list[dict]:
     ctx.progress(0.1, f"ranking all {len(st.index)} fragments again under model {st.model.version}")
     undocked = st.index.rank_all(st.model, n_candidates=int(cfg.get("n_candidates", 100)))
     ctx.progress(0.9, "mutual proximity of the stored pairs")
-    top, updates, events = int(cfg.get("top", 10)), [], []
-    for row in st.db.fragments(face="front"):
-        f = row["fragment"]
-        if f not in st.index.rankings or st.seen.get(f) != row["artifact"]["sha256"]:
-            continue
-        stored = st.db.ranked(f, limit=10 ** 6)
-        others = [p.other(f) for p in stored]
+    top, updates, redock = int(cfg.get("top", 10)), [], []
+    for f in st.index.rankings:
+        others = [p.other(f) for p in st.db.ranked(f, limit=10 ** 6)]
         updates += [(f, o, m) for o, m in zip(others, st.index.mutual(f, others))]
         if f in undocked or set(st.index.rankings[f][:top]) - set(others):
-            pending = [p.other(f) for p in stored if p.status == "pending"]
-            events.append(new_message("match.ranked", fragment=f, face="front", artifact=row["artifact"],
-                                      model_version=st.model.version, fragments=len(st.index), proposed=pending))
+            redock.append(f)
     st.db.set_mutual(updates)
-    ctx.log.info("model %s: %d fragments ranked again; %d to dock again (%d pairs never docked)", st.model.version,
-                 len(st.index.rankings), len(events), sum(len(v) for v in undocked.values()))
+    batch = int(cfg.get("redock_batch", REDOCK_BATCH))
+    ctx.log.info("model %s: %d fragments ranked again; %d to dock and propose again (%d pairs never docked)",
+                 st.model.version, len(st.index.rankings), len(redock), sum(len(v) for v in undocked.values()))
+    return [new_message("match.reranked", model_version=st.model.version, redock=redock[i:i + batch],
+                        fragments=len(st.index)) for i in range(0, len(redock), batch)]
+
+
+def _on_reranked(job: dict, ctx) -> list[dict]:
+    """The follow-up of a full re-rank: each listed fragment docked and proposed again (its pending joins
+    updated too), as a new fragment's ``match.ranked`` job does."""
+    st = _state(ctx)
+    if job["model_version"] != st.model.version:
+        ctx.log.info("model %s is no longer current (%s): its own re-rank docks", job["model_version"],
+                     st.model.version)
+        return []
+    fragments = [str(f) for f in job["redock"] if f in st.index]
+    events = []
+    for i, f in enumerate(fragments):
+        ctx.progress(i / len(fragments), f"docking the best candidates of {f} ({i + 1}/{len(fragments)})")
+        pending = [p.other(f) for p in st.db.ranked(f, limit=10 ** 6, status="pending") if p.other(f) in st.index]
+        events += _docked_answer(f, pending, st, ctx)
     return events

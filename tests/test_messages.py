@@ -265,6 +265,25 @@ def test_a_verdicts_pose_that_is_not_a_pose_is_refused(pose, phrase):
         validate(_doc(type="match.verified", fragment="A", other="B", verdict="confirmed", pose=pose))
 
 
+@pytest.mark.parametrize("over, phrase", [
+    ({"type": "match.reranked", "model_version": "0004-3c5d7e9f", "redock": []}, "redock"),
+    ({"type": "match.reranked", "model_version": "0004-3c5d7e9f", "redock": ["F1"] * 65}, "redock"),
+    ({"type": "match.reranked", "model_version": "0004-3c5d7e9f", "redock": ["../F1"]}, "redock"),
+    ({"type": "match.reranked", "model_version": "0004-3c5d7e9f", "redock": "F1"}, "redock"),
+    ({"type": "match.reranked", "model_version": "no spaces", "redock": ["F1"]}, "model version"),
+    ({"type": "match.refitted", "model_version": ""}, "model version"),
+    ({"type": "match.refitted", "model_version": 4}, "model version"),
+])
+def test_a_re_rank_message_without_a_model_version_or_with_a_malformed_fragment_list_is_refused(over, phrase):
+    """docs/messages.md: match.refitted and match.reranked name the model (1-64 letters, digits, '.', '_',
+    '-'); match.reranked lists 1-64 fragment ids."""
+    with pytest.raises(MessageError, match=phrase):
+        validate(_doc(**over))
+    ok = dict(over, model_version="0004-3c5d7e9f", redock=["F1", "F2"]) if over["type"] == "match.reranked" \
+        else dict(over, model_version="0004-3c5d7e9f")
+    assert validate(_doc(**ok))["type"] == over["type"]
+
+
 @pytest.mark.parametrize("changes, phrase", [
     ({"colour": "red"}, "not one of"),
     ({"notes": "x" * 2001}, "at most 2000"),

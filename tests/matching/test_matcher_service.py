@@ -163,11 +163,13 @@ def test_a_docking_model_answers_from_the_fast_stages_then_docks_in_a_job_of_its
 
 def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jobs_of_their_own(station):
     """match.verified → match.refitted: that job ranks every fragment under the new model with the dockings
-    made before (none new), updates every stored pair's mutual proximity, and sends a match.ranked for each
-    fragment whose best hold a pair never docked or whose top joins are not all stored; those jobs dock
-    and propose again. A match.refitted of a model no longer current is skipped."""
+    made before (none new), updates every stored pair's mutual proximity, and lists in match.reranked events,
+    a few per job, each fragment whose best hold a pair never docked or whose top joins are not all stored;
+    those jobs dock and propose them again. A match.refitted or match.reranked of a model no longer current
+    is skipped."""
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
+    ctx.config["redock_batch"] = 3
     model = load_model(store, db.current_model()["artifact"])
     model.docking = (0.15, -4.0)
     model.version = "0002-docking"
@@ -190,18 +192,22 @@ def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jo
     version = db.current_model()["version"]
     assert refitted["model_version"] == version
     assert all(v == version for v, _ in st.index.hubness.values())
-    assert follow and all(e["type"] == "match.ranked" and e["model_version"] == version for e in follow)
-    for e in follow:   # each names a fragment with pairs to dock or joins to store, and its pending ones
-        f = e["fragment"]
+    assert follow and all(e["type"] == "match.reranked" and e["model_version"] == version for e in follow)
+    redock = [f for e in follow for f in e["redock"]]
+    assert all(1 <= len(e["redock"]) <= 3 for e in follow) and len(set(redock)) == len(redock)
+    for f in redock:   # each has pairs to dock or joins to store
         stored = {p.other(f) for p in db.ranked(f, limit=10 ** 6)}
         head = st.index.rankings[f][:12]
         assert set(st.index.rankings[f][:5]) - stored or any(tuple(sorted((f, o))) not in docked for o in head)
-        assert set(e["proposed"]) == {p.other(f) for p in db.ranked(f, limit=10 ** 6, status="pending")}
     # every stored pair's mutual proximity is that of the new rankings
     for p in db.all():
         assert p.mutual == pytest.approx(st.index.mutual(p.fragment_a, [p.fragment_b])[0], abs=1e-9)
     for e in follow:
-        assert all(validate(d)["type"] == "match.proposed" for d in matcher.handle(e, ctx))
+        proposed = [validate(d) for d in matcher.handle(e, ctx)]
+        assert all(d["type"] == "match.proposed" and d["stage"] == "docked" for d in proposed)
     assert len(st.index._dockings) > len(docked)
-    stale = dict(refitted, model_version=model.version)
-    assert matcher.handle(stale, ctx) == []
+    for f in redock:   # every fragment's top joins are stored now, docked
+        stored = {p.other(f) for p in db.ranked(f, limit=10 ** 6)}
+        assert set(st.index.rankings[f][:5]) <= stored
+    assert matcher.handle(dict(refitted, model_version=model.version), ctx) == []
+    assert matcher.handle(dict(follow[0], model_version=model.version), ctx) == []
