@@ -161,8 +161,8 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
     Returns
     -------
     list of (H, W) float32
-        One cosine per direction; 0 where no mask pixel is within reach (outside the mask, where
-        :func:`smooth_normals` keeps the input).
+        One cosine per direction (the input normal's where no mask pixel is within reach, as
+        :func:`smooth_normals` keeps the input there).
     """
     import cv2
 
@@ -200,7 +200,9 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
             np.matmul(b if v.ndim == 1 else np.multiply(b, v), v if v.ndim == 1 else ones, out=c)
             if inv is not None:
                 c *= inv
-                c[empty] = 0.0
+                if empty.any():   # as smooth_normals, the input normal where no mask pixel is in reach
+                    raw = np.ascontiguousarray(normals[r0:r1])
+                    np.copyto(c, raw @ v if v.ndim == 1 else np.multiply(raw, v) @ ones, where=empty)
     return out
 
 
