@@ -74,15 +74,19 @@ def normal_derivatives(normals: np.ndarray, dpi: float, *, method: str = "centra
 
 
 def _fundamental_forms(normals, dx, dy):
-    nx, ny, nz = normals[..., 0], normals[..., 1], np.maximum(normals[..., 2], NZ_MIN)
+    # the channels as contiguous planes (OpenCV's split): numpy is several times slower on the
+    # strided channels of an interleaved array
+    nx, ny, nz = cv2.split(np.ascontiguousarray(normals))
+    np.maximum(nz, NZ_MIN, out=nz)
+    (dx0, dx1, dx2), (dy0, dy1, dy2) = cv2.split(dx), cv2.split(dy)
     # first fundamental form of the scaled tangents a, b (eq. 7.6)
     E = nz * nz + nx * nx
     F = nx * ny
     G = nz * nz + ny * ny
     # second fundamental form: derivative of n along x / y dotted with a / b
-    e = nz * dx[..., 0] - nx * dx[..., 2]
-    g = nz * dy[..., 1] - ny * dy[..., 2]
-    f = 0.5 * ((nz * dx[..., 1] - ny * dx[..., 2]) + (nz * dy[..., 0] - nx * dy[..., 2]))
+    e = nz * dx0 - nx * dx2
+    g = nz * dy1 - ny * dy2
+    f = 0.5 * ((nz * dx1 - ny * dx2) + (nz * dy0 - nx * dy2))
     return nz, E, F, G, e, f, g
 
 
