@@ -223,13 +223,17 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     alpha = np.empty((h, w), dtype)
     spans = [(rs, cs) for rs in _spans(h, tile) for cs in _spans(w, tile)]
     log.info("drawing %dx%d px in %d tiles (core <= %d px, halo %d px)", w, h, len(spans), tile, halo)
-    for i, ((a, b), (c, d)) in enumerate(spans):
-        if progress:
-            progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
-        ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
-        with reuse_freed_memory():
-            from common.render.enhance import coarse_window
+    from common.render.enhance import coarse_window
 
+    # the tiles, one after the other, reuse each other's freed arrays (_heap, none trimmed between
+    # them): a tile's arrays have the sizes of the one before, so the heap stays about one tile's
+    # drawing, and the next tile is not page-faulted in afresh (at 51 Mpx a quarter of the CPU time
+    # was the kernel's, mapping and zeroing each tile's memory again)
+    with reuse_freed_memory():
+        for i, ((a, b), (c, d)) in enumerate(spans):
+            if progress:
+                progress(0.05 + 0.95 * i / len(spans), f"tile {i + 1}/{len(spans)}")
+            ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
             seeds = {sigma: coarse_window(field, ra, rb, ca, cb) for sigma, field in whole.items()}
             part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb),
                                  seeds)
