@@ -127,13 +127,64 @@ def mean_curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
     mask = check_mask(mask, normals.shape[:2])
     if sigma_px > 0:
         normals = smooth_normals(normals, sigma_px, mask=mask)
+    if not np.isfinite(dpi) or dpi <= 0:
+        raise ValueError(f"dpi must be a positive number, got {dpi}")
     H = np.empty(normals.shape[:2], np.float32)
     for rows, block, inner in _blocks(normals):
+        if method == "central":
+            H[rows] = _mean_curvature_central(block, dpi)[inner]
+            continue
         dx, dy = normal_derivatives(block, dpi, method=method)
         nz, E, F, G, e, f, g = _fundamental_forms(block, dx, dy)
         H[rows] = ((G * e - 2.0 * F * f + E * g) / (2.0 * nz))[inner]
     H[~mask] = 0.0
     return H
+
+
+def _mean_curvature_central(normals: np.ndarray, dpi: float) -> np.ndarray:
+    """Eq. 7.7 with central differences (:func:`normal_derivatives`' 'central', borders reflected),
+    on the normals' channels as contiguous planes and with the products grouped as
+    ``(G e + E g - 2 F f) / (2 nz)`` in place: the same numbers as the general path (to float
+    rounding) at a third of its passes over memory."""
+    scale = np.float32(0.5 * dpi / 25.4)   # (n[c+1] - n[c-1]) / 2 per pixel, in 1/mm
+
+    def along_x(p):
+        d = np.empty_like(p)
+        np.subtract(p[:, 2:], p[:, :-2], out=d[:, 1:-1])
+        d[:, 0] = p[:, min(1, p.shape[1] - 1)] - p[:, 0]        # reflected: n[-1] = n[0]
+        d[:, -1] = p[:, -1] - p[:, max(p.shape[1] - 2, 0)]
+        d *= scale
+        return d
+
+    def along_y(p):   # y is up while rows go down
+        d = np.empty_like(p)
+        np.subtract(p[:-2], p[2:], out=d[1:-1])
+        d[0] = p[0] - p[min(1, p.shape[0] - 1)]
+        d[-1] = p[max(p.shape[0] - 2, 0)] - p[-1]
+        d *= scale
+        return d
+
+    nx, ny, nz = cv2.split(np.ascontiguousarray(normals, np.float32))
+    dx0, dx1, dx2 = along_x(nx), along_x(ny), along_x(nz)
+    dy0, dy1, dy2 = along_y(nx), along_y(ny), along_y(nz)
+    np.maximum(nz, NZ_MIN, out=nz)    # after the derivatives, as the general path
+    nz2 = nz * nz
+    out = nz * dx0                    # e
+    out -= nx * dx2
+    out *= nz2 + ny * ny              # G e
+    g = nz * dy1
+    g -= ny * dy2
+    g *= nz2 + nx * nx                # E g
+    out += g
+    f2 = nz * dx1                     # 2 f
+    f2 -= ny * dx2
+    f2 += nz * dy0
+    f2 -= nx * dy2
+    f2 *= nx * ny                     # 2 F f
+    out -= f2
+    nz *= np.float32(2.0)
+    out /= nz
+    return out
 
 
 def curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,
