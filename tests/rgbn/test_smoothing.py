@@ -86,17 +86,23 @@ def test_wrong_normal_shape_is_refused():
         smooth_normals(np.zeros((8, 8)), 1.0)
 
 
+def _rough_normals(seed: int, mask_columns):
+    """150 x 97 random unit normals around the view axis, and a rectangular mask over rows 20-130."""
+    rng = np.random.default_rng(seed)
+    n = rng.normal(0, 0.3, (150, 97, 3)).astype(np.float32)
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    mask = np.zeros((150, 97), bool)
+    mask[20:130, mask_columns[0]:mask_columns[1]] = True
+    return n, mask
+
+
 def test_smoothing_in_row_strips_is_the_normalised_convolution_of_the_whole_image(monkeypatch):
     """Independent reference: the 1/nz-weighted stack blurred whole by OpenCV, normalised."""
     import cv2
 
     from common.rgbn import smoothing
-    rng = np.random.default_rng(5)
-    n = rng.normal(0, 0.3, (150, 97, 3)).astype(np.float32)
-    n[..., 2] = 1.0
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
-    mask = np.zeros((150, 97), bool)
-    mask[20:130, 10:90] = True
+    n, mask = _rough_normals(5, mask_columns=(10, 90))
     w = np.where(mask, 1.0 / np.maximum(n[..., 2], 0.05), 0.0).astype(np.float32)
     monkeypatch.setattr(smoothing, "STRIP_PIXELS", 97 * 9)   # strips of 9-16 rows
     for sigma in (0.8, 2.5, 4.0):
@@ -115,12 +121,8 @@ def test_smoothed_cosines_are_the_smoothed_normals_cosines_with_each_light(monke
     from common.rgbn import smoothing
     from common.rgbn.smoothing import smoothed_cosines
 
-    rng = np.random.default_rng(7)
-    n = rng.normal(0, 0.3, (150, 97, 3)).astype(np.float32)
-    n[..., 2] = 1.0
-    n /= np.linalg.norm(n, axis=2, keepdims=True)
-    mask = np.zeros((150, 97), bool)
-    mask[20:130, 10:60] = True
+    n, mask = _rough_normals(7, mask_columns=(10, 60))
+    rng = np.random.default_rng(8)
     l = np.array([0.3, -0.2, 0.9], np.float32)
     l /= np.linalg.norm(l)
     field = rng.normal(0, 0.2, (150, 97, 3)).astype(np.float32)
