@@ -44,9 +44,12 @@ def srgb_to_linear(values: np.ndarray) -> np.ndarray:
 
 def _power(values: np.ndarray, exponent: float) -> np.ndarray:
     """``values ** exponent`` in place for float32 values >= 0: OpenCV's vectorised power (3x
-    numpy's on this machine; equal to 2e-7)."""
+    numpy's on this machine; equal to 2e-7) on a C-contiguous array, numpy's on any other layout
+    (where a flat view does not exist: reshaping would copy, and the power would be lost)."""
     import cv2
 
+    if not values.flags.c_contiguous:
+        return np.power(values, np.float32(exponent), out=values)
     flat = values.reshape(-1, 1)   # a view: OpenCV takes it as one column
     cv2.pow(flat, float(exponent), dst=flat)
     return values

@@ -119,3 +119,18 @@ def test_a_photograph_is_refused_as_a_normal_map_with_the_reason(tmp_path):
     cv2.imwrite(str(tmp_path / "photo.png"), photo)
     with pytest.raises(ValueError, match=r"photo\.png does not look like a normal map"):
         read_normal_map(tmp_path / "photo.png")
+
+
+def test_srgb_transfer_is_the_iec_formula_for_every_memory_layout():
+    """IEC 61966-2-1 written out, for C-ordered, channel-reversed (BGR -> RGB), transposed and
+    strided inputs: a layout without a flat view once lost the power (the values came back
+    unpowered)."""
+    from common.rgbn.io import linear_to_srgb, srgb_to_linear
+
+    x = np.random.default_rng(2).random((40, 30, 3))
+    for a in (x, x[..., ::-1] / np.float32(1.0), x.transpose(1, 0, 2), x[:, ::2], np.asfortranarray(x)):
+        a = np.asarray(a)
+        decode = np.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4)
+        encode = np.where(a <= 0.0031308, a * 12.92, 1.055 * a ** (1 / 2.4) - 0.055)
+        assert np.abs(srgb_to_linear(a) - decode).max() < 1e-6
+        assert np.abs(linear_to_srgb(a) - encode).max() < 1e-6
