@@ -15,7 +15,7 @@ import numpy as np
 
 from common.render._util import as_light, dot_light, scale_colour
 from common.rgbn._filters import check_mask, check_normals
-from common.rgbn.smoothing import smooth_normals, smoothed_cosines, strips
+from common.rgbn.smoothing import smooth_normals, smoothed_cosines, strips, unit_rows, weighted_stack
 
 #: Share of the pixels a robust stretch may clip at each end, percent (so at most 2 x this in all).
 CLIP_PERCENT = 0.5
@@ -332,8 +332,6 @@ def area_stack(normals: np.ndarray, mask: np.ndarray, f: int, offset=(0, 0), *, 
     """The 1/nz-weighted stack (w n, w) (:func:`common.rgbn.smoothing.weighted_stack`, nz >= 0.05)
     area-averaged onto the cells of ``f`` x ``f`` pixels whose first starts at ``offset`` (row,
     column): ``out`` (hh, ww, 4) float32, filled strip by strip (no full-resolution temporary)."""
-    from common.rgbn.smoothing import strips, weighted_stack
-
     hh, ww = out.shape[:2]
     cols = slice(offset[1], offset[1] + ww * f)
     for i0, i1, _, _ in strips((hh, ww * f), 0, pixels=max(1 << 20, ww * f) // f):
@@ -405,8 +403,6 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     if coarse is None:
         c = coarse_normals(normals, sigma_px, mask=mask, origin=origin)
     else:   # the field given (a tile's window of the whole image's, :func:`coarse_window`)
-        from common.rgbn.smoothing import unit_rows
-
         c = unit_rows(coarse.full(normals.shape[:2]))
     cz = np.maximum(c[..., 2], 1e-3)
     # Rodrigues for the rotation taking c to z: axis v = c x z = (cy, -cx, 0), cos = cz
@@ -434,8 +430,6 @@ def level_light(light, coarse, shape) -> np.ndarray:
     -------
     (H, W, 3) float32 unit light directions.
     """
-    from common.rgbn.smoothing import unit_rows
-
     return unit_rows(levelled_light(light, coarse).full(shape))
 
 
@@ -820,8 +814,6 @@ def half_vector(light: np.ndarray) -> np.ndarray:
     h = np.asarray(light, np.float32) + np.array([0.0, 0.0, 1.0], np.float32)
     if h.ndim == 1:
         return h / np.float32(max(float(np.linalg.norm(h)), 1e-12))
-    from common.rgbn.smoothing import unit_rows
-
     return unit_rows(h)
 
 

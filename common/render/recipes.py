@@ -1028,11 +1028,10 @@ def _adopt_as_canvas(rgb, alpha, blend: str, image: RGBNImage, background):
     if np.count_nonzero(alpha >= 1.0) + np.count_nonzero(off) != alpha.size:
         return None
     # the background put a strip at a time (a masked copy of one strip of it: no per-pixel gather)
-    fill = None
-    for r0, r1, _, _ in strips(image.shape, 0):
-        if fill is None:
-            fill = np.empty((r1 - r0,) + rgb.shape[1:], np.float32)
-            fill[:] = np.asarray(background, np.float32)
+    spans = [(r0, r1) for r0, r1, _, _ in strips(image.shape, 0)]
+    fill = np.empty((spans[0][1],) + rgb.shape[1:], np.float32)   # the first strip is the tallest
+    fill[:] = np.asarray(background, np.float32)
+    for r0, r1 in spans:
         copy_where(rgb[r0:r1], fill[:r1 - r0], off[r0:r1])
     return rgb
 

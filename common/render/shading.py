@@ -12,9 +12,9 @@ import numpy as np
 
 from common.render._util import as_light, check_dpi, dot_light, scale_colour, smoothstep
 from common.render.enhance import Coarse
-from common.rgbn._filters import check_mask, check_normals
+from common.rgbn._filters import check_mask, check_normals, gaussian_reach
 from common.rgbn.curvature import mean_curvature
-from common.rgbn.smoothing import unit_rows, weighted_stack
+from common.rgbn.smoothing import copy_where, smoothed_rows, strips, unit_rows, weight_floor, weighted_stack
 
 
 def lambertian(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
@@ -111,8 +111,6 @@ def toon_of_cosine(cosine: np.ndarray, *, levels: int = 3, softness: float = 0.0
         raise ValueError(f"softness must be >= 0, got {softness}")
     if not 0.0 <= dark <= 1.0:
         raise ValueError(f"dark must be in [0, 1], got {dark}")
-    from common.rgbn.smoothing import strips
-
     cosine = np.asarray(cosine, np.float32)
     colours = None if colours is None else _check_colour(colours, cosine.shape)
     shade = np.empty(cosine.shape, np.float32)
@@ -181,8 +179,6 @@ def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarra
         return out
     import cv2
 
-    from common.rgbn.smoothing import copy_where, strips
-
     # strips of ~1 Mpx rows, the channels as contiguous planes, one centre at a time (squared
     # distance channel by channel, the first of equally near centres kept, as argmin); the chosen
     # centre's channels are looked up per plane: no per-pixel gathers, bounded memory
@@ -206,7 +202,6 @@ def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarra
         chosen = cv2.merge([np.take(centres[:, ch], idx) for ch in range(3)])
         copy_where(out[r0:r1], chosen, mask[r0:r1])
     return out
-
 
 
 def gooch(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
@@ -245,8 +240,6 @@ def gooch_of_cosine(cosine: np.ndarray, *, albedo: np.ndarray | None = None, blu
                     yellow: float = 0.4, alpha: float = 0.2, beta: float = 0.6) -> np.ndarray:
     """:func:`gooch` of the cosine ``n . l`` per pixel ((H, W) float)."""
     import cv2
-
-    from common.rgbn.smoothing import strips
 
     cosine = np.asarray(cosine, np.float32)
     kd = None if albedo is None else _check_colour(albedo, cosine.shape)
@@ -411,9 +404,6 @@ def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, fine
     ``sigmas`` (px), then of the last with ``partner`` (the next level on its coarse grid, a
     :class:`common.render.enhance.Coarse`, brought to the strip's rows by bilinear interpolation)
     or, without one, ``base_weight`` times the base lighting of the last. (H, W) float32."""
-    from common.rgbn._filters import gaussian_reach
-    from common.rgbn.smoothing import smoothed_rows, strips, weight_floor
-
     h, w = normals.shape[:2]
     floor = weight_floor(normals, mask, foreshortening=foreshortening)
     out = np.empty((h, w), np.float32)
@@ -482,8 +472,6 @@ class _WeightedPyramid:
 
     def __init__(self, normals, mask, foreshortening, origin):
         import cv2
-
-        from common.rgbn.smoothing import strips, weighted_stack
         self._cv2 = cv2
         self.origin = (int(origin[0]), int(origin[1]))
         self.shape = normals.shape[:2]
@@ -681,9 +669,6 @@ def _curvature_full(normals, mask, dpi, levels):
     """Sum of ``k * H(sigma)`` over ``levels`` = [(k, sigma_px), ...] at full resolution, row
     strip by row strip (each strip smoothed from its rows and a halo of the widest kernel's reach
     plus the derivative's two rows, so no temporary is of the image's size). (H, W) float32."""
-    from common.rgbn._filters import gaussian_reach
-    from common.rgbn.smoothing import smoothed_rows, strips, weight_floor
-
     h, w = normals.shape[:2]
     floor = weight_floor(normals, mask)
     out = np.empty((h, w), np.float32)

@@ -189,8 +189,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     side_h, side_w = r1 - r0, c1 - c0
     if progress:
         progress(0.0, f"calibrating exposure on {side_w}x{side_h} px")
-    # each drawing reuses its freed arrays (_heap) and hands the memory back when it ends, so one
-    # tile's heap does not stay beside the next one's (the output and the labels are not in it)
+    # the calibration drawing hands its heap back when it ends (the tiles below share one heap)
     with reuse_freed_memory():
         calib = _render_whole(source.window(r0, r1, c0, c1), recipe, None, None, cut(r0, r1, c0, c1))
     resolved = calib.resolved

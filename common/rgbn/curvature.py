@@ -131,43 +131,24 @@ def mean_curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None =
         raise ValueError(f"dpi must be a positive number, got {dpi}")
     H = np.empty(normals.shape[:2], np.float32)
     for rows, block, inner in _blocks(normals):
-        if method == "central":
-            H[rows] = _mean_curvature_central(block, dpi)[inner]
-            continue
-        dx, dy = normal_derivatives(block, dpi, method=method)
-        nz, E, F, G, e, f, g = _fundamental_forms(block, dx, dy)
-        H[rows] = ((G * e - 2.0 * F * f + E * g) / (2.0 * nz))[inner]
+        H[rows] = _mean_curvature_block(block, dpi, method)[inner]
     H[~mask] = 0.0
     return H
 
 
-def _mean_curvature_central(normals: np.ndarray, dpi: float) -> np.ndarray:
-    """Eq. 7.7 with central differences (:func:`normal_derivatives`' 'central', borders reflected),
-    on the normals' channels as contiguous planes and with the products grouped as
-    ``(G e + E g - 2 F f) / (2 nz)`` in place: the same numbers as the general path (to float
-    rounding) at a third of its passes over memory."""
-    scale = np.float32(0.5 * dpi / 25.4)   # (n[c+1] - n[c-1]) / 2 per pixel, in 1/mm
-
-    def along_x(p):
-        d = np.empty_like(p)
-        np.subtract(p[:, 2:], p[:, :-2], out=d[:, 1:-1])
-        d[:, 0] = p[:, min(1, p.shape[1] - 1)] - p[:, 0]        # reflected: n[-1] = n[0]
-        d[:, -1] = p[:, -1] - p[:, max(p.shape[1] - 2, 0)]
-        d *= scale
-        return d
-
-    def along_y(p):   # y is up while rows go down
-        d = np.empty_like(p)
-        np.subtract(p[:-2], p[2:], out=d[1:-1])
-        d[0] = p[0] - p[min(1, p.shape[0] - 1)]
-        d[-1] = p[max(p.shape[0] - 2, 0)] - p[-1]
-        d *= scale
-        return d
-
+def _mean_curvature_block(normals: np.ndarray, dpi: float, method: str) -> np.ndarray:
+    """Eq. 7.7 on the normals' channels as contiguous planes, the products grouped as
+    ``(G e + E g - 2 F f) / (2 nz)`` in place (the fundamental forms of :func:`_fundamental_forms`
+    without making each): central differences on the planes themselves (:func:`normal_derivatives`'
+    'central', borders reflected; a third of its passes over memory), the Sobel operator through
+    :func:`normal_derivatives`."""
     nx, ny, nz = cv2.split(np.ascontiguousarray(normals, np.float32))
-    dx0, dx1, dx2 = along_x(nx), along_x(ny), along_x(nz)
-    dy0, dy1, dy2 = along_y(nx), along_y(ny), along_y(nz)
-    np.maximum(nz, NZ_MIN, out=nz)    # after the derivatives, as the general path
+    if method == "central":
+        (dx0, dx1, dx2), (dy0, dy1, dy2) = _central_differences((nx, ny, nz), dpi)
+    else:
+        dx, dy = normal_derivatives(normals, dpi, method=method)
+        (dx0, dx1, dx2), (dy0, dy1, dy2) = cv2.split(dx), cv2.split(dy)
+    np.maximum(nz, NZ_MIN, out=nz)    # after the derivatives, as in _fundamental_forms
     nz2 = nz * nz
     out = nz * dx0                    # e
     out -= nx * dx2
@@ -185,6 +166,30 @@ def _mean_curvature_central(normals: np.ndarray, dpi: float) -> np.ndarray:
     nz *= np.float32(2.0)
     out /= nz
     return out
+
+
+def _central_differences(planes, dpi: float):
+    """``(d/dx, d/dy)`` of each (H, W) plane in 1/mm, as :func:`normal_derivatives`' 'central'
+    (``(p[c+1] - p[c-1]) / 2``, borders reflected, y up), on contiguous planes."""
+    scale = np.float32(0.5 * dpi / 25.4)
+
+    def along_x(p):
+        d = np.empty_like(p)
+        np.subtract(p[:, 2:], p[:, :-2], out=d[:, 1:-1])
+        d[:, 0] = p[:, min(1, p.shape[1] - 1)] - p[:, 0]        # reflected: n[-1] = n[0]
+        d[:, -1] = p[:, -1] - p[:, max(p.shape[1] - 2, 0)]
+        d *= scale
+        return d
+
+    def along_y(p):   # y is up while rows go down
+        d = np.empty_like(p)
+        np.subtract(p[:-2], p[2:], out=d[1:-1])
+        d[0] = p[0] - p[min(1, p.shape[0] - 1)]
+        d[-1] = p[max(p.shape[0] - 2, 0)] - p[-1]
+        d *= scale
+        return d
+
+    return [along_x(p) for p in planes], [along_y(p) for p in planes]
 
 
 def curvature(normals: np.ndarray, dpi: float, *, mask: np.ndarray | None = None,

@@ -179,6 +179,10 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
         whole = gaussian_blur(weighted_stack(normals, mask, foreshortening=foreshortening, nz_min=nz_min),
                               float(sigma_px))
     ones = np.ones(3, np.float32)
+
+    def dot(x, v):   # x . v per pixel, v a vector or a field of the rows' vectors
+        return x @ v if v.ndim == 1 else np.multiply(x, v) @ ones
+
     for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(sigma_px) if direct else 0):
         if sigma_px == 0:
             b, empty, inv = np.ascontiguousarray(normals[r0:r1]), None, None
@@ -197,12 +201,11 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
         for d, cos in zip(directions, out):
             v = d(r0, r1) if callable(d) else np.asarray(d, np.float32)
             c = cos[r0:r1]
-            np.matmul(b if v.ndim == 1 else np.multiply(b, v), v if v.ndim == 1 else ones, out=c)
+            c[...] = dot(b, v)
             if inv is not None:
                 c *= inv
                 if empty.any():   # as smooth_normals, the input normal where no mask pixel is in reach
-                    raw = np.ascontiguousarray(normals[r0:r1])
-                    np.copyto(c, raw @ v if v.ndim == 1 else np.multiply(raw, v) @ ones, where=empty)
+                    np.copyto(c, dot(np.ascontiguousarray(normals[r0:r1]), v), where=empty)
     return out
 
 

@@ -113,10 +113,12 @@ def test_row_blocks_give_exactly_the_whole_image_result(method, monkeypatch):
     assert np.allclose(mean_curvature(n, 300.0, method=method), whole.mean, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("method", ["central", "sobel"])
 @pytest.mark.parametrize("shape", [(61, 47), (2, 9), (9, 1)])
-def test_mean_curvature_matches_eq_7_7_from_the_fundamental_forms_everywhere(shape):
-    """Independent reference: eq. 7.7 written out from OpenCV's central-difference derivatives
-    (borders reflected) on random tilted normals, including the border pixels and thin images."""
+def test_mean_curvature_matches_eq_7_7_from_the_fundamental_forms_everywhere(shape, method):
+    """Independent reference: eq. 7.7 written out from OpenCV's derivatives (central differences or
+    the Sobel operator, borders reflected) on random tilted normals, including the border pixels and
+    thin images."""
     import cv2
 
     rng = np.random.default_rng(3)
@@ -124,14 +126,14 @@ def test_mean_curvature_matches_eq_7_7_from_the_fundamental_forms_everywhere(sha
     n[..., 2] = np.abs(n[..., 2]) + 0.3
     n /= np.linalg.norm(n, axis=2, keepdims=True)
     dpi = 300.0
-    s = 0.5 * dpi / 25.4
-    dx = cv2.Sobel(n, cv2.CV_32F, 1, 0, ksize=1, scale=s, borderType=cv2.BORDER_REFLECT)
-    dy = cv2.Sobel(n, cv2.CV_32F, 0, 1, ksize=1, scale=-s, borderType=cv2.BORDER_REFLECT)
+    ksize, s = (1, 0.5 * dpi / 25.4) if method == "central" else (3, 0.125 * dpi / 25.4)
+    dx = cv2.Sobel(n, cv2.CV_32F, 1, 0, ksize=ksize, scale=s, borderType=cv2.BORDER_REFLECT)
+    dy = cv2.Sobel(n, cv2.CV_32F, 0, 1, ksize=ksize, scale=-s, borderType=cv2.BORDER_REFLECT)
     nx, ny, nz = n[..., 0], n[..., 1], np.maximum(n[..., 2], 0.05)
     E, F, G = nz ** 2 + nx ** 2, nx * ny, nz ** 2 + ny ** 2
     e = nz * dx[..., 0] - nx * dx[..., 2]
     g = nz * dy[..., 1] - ny * dy[..., 2]
     f = 0.5 * ((nz * dx[..., 1] - ny * dx[..., 2]) + (nz * dy[..., 0] - nx * dy[..., 2]))
     ref = (G * e - 2 * F * f + E * g) / (2 * nz)
-    got = mean_curvature(n, dpi)
+    got = mean_curvature(n, dpi, method=method)
     assert np.abs(got - ref).max() <= 1e-5 * max(1.0, float(np.abs(ref).max()))
