@@ -28,7 +28,10 @@
 State lives in the proposal store (SQLite; ``[services.matcher] db``, default
 ``<root>/matches/proposals.sqlite`` — on an NFS root put it on the matcher host's local disk) and in
 artifacts; the index and model in memory are caches re-synchronised at every job, so several matcher
-workers on one host, or a restarted one, see the same fragments and the current model.
+workers on one host, or a restarted one, see the same fragments and the current model. The pairs'
+dockings are kept in the proposal store too (its ``dockings`` table, keyed by both fragments' docking
+inputs and the docking's version), so a worker docks no pair that another, or its own earlier life,
+docked.
 
 Config (``[services.matcher]``, all optional): ``db``, ``journal_mode`` ("WAL"), ``n_candidates``
 (100), ``top`` (10 proposals per new fragment), ``check`` (3 aligned), ``bootstrap_fragments`` (60),
@@ -69,7 +72,8 @@ class _State:
 
     def __init__(self, db: ProposalStore):
         self.db = db
-        self.index = MatchIndex()
+        # the dockings are kept in the proposal store: a pair any matcher worker docked is docked once
+        self.index = MatchIndex(dockings=db)
         self.model = None
         self.seen: dict = {}   # fragment -> sha256 of the indexed feature artifact
 

@@ -95,6 +95,41 @@ DOCK_PAINT_POSES, DOCK_PAINT_PER_ANGLE = 30, 3
 #: docking frames (docking.DockingFrame: a fragment's maps and spectra at every rotation, which serve all
 #: its partners) are kept for the most recently docked fragments, within this many MB
 DOCK_FRAMES_MB = 512
+#: version of what a pair's docking gives (MatchIndex._dock_pair: docking.py's search, paint.py's continuity,
+#: pose.py's choice and alternatives): bump it when any of them changes its numbers, so that dockings kept in
+#: the proposal store by an earlier version are docked again (docking_version adds the settings above)
+DOCKING_VERSION = "docking-1"
+
+
+def docking_version() -> str:
+    """The version of a pair's docking as :class:`MatchIndex` makes it now: :data:`DOCKING_VERSION` with the
+    settings that change its numbers (the candidate poses kept, whether paint is used, the alternatives
+    offered), e.g. ``"docking-1/poses-30x3/paint/alternatives-9"``."""
+    from common.matching.pose import ALTERNATIVE_POSES
+
+    return (f"{DOCKING_VERSION}/poses-{DOCK_PAINT_POSES}x{DOCK_PAINT_PER_ANGLE}/{'paint' if DOCK_USES_PAINT else 'no-paint'}"
+            f"/alternatives-{ALTERNATIVE_POSES}")
+
+
+def docking_inputs(contour_mm: np.ndarray | None, boundary_profile: np.ndarray | None = None) -> str | None:
+    """Digest of what a fragment gives its dockings (:meth:`MatchIndex._dock_pair`): its outline and, where it
+    has one, its boundary profile (the paint), as stored dockings are keyed (docs/storage.md).
+
+    sha256 (hex) of ``b"contour_mm <rows> <cols>\n"`` and the outline as little-endian float64 in row order,
+    then, with a profile, ``b"profile <rows> <cols>\n"`` and the profile as little-endian float32. None
+    without an outline (such a fragment is never docked).
+    """
+    import hashlib
+
+    if contour_mm is None:
+        return None
+    h = hashlib.sha256()
+    for name, a, dtype in (("contour_mm", contour_mm, "<f8"), ("profile", boundary_profile, "<f4")):
+        if a is not None:
+            a = np.ascontiguousarray(a, dtype=dtype)
+            h.update(f"{name} {' '.join(map(str, a.shape))}\n".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()
 
 
 @dataclass
@@ -125,11 +160,25 @@ class MatchIndex:
 
     It is a cache: everything in it is rebuilt from the feature artifacts that the proposal store
     lists, so a matcher worker can be killed at any time.
+
+    Parameters
+    ----------
+    use_hubness : bool
+        Rank by the hubness-corrected probability (False: the patch probability, as before).
+    dockings : common.matching.proposals.ProposalStore, optional
+        Where pairs' dockings are kept beyond this index (its ``docking`` and ``put_docking``): a pair is
+        read from it before it is docked, and a new docking is written to it, keyed by both fragments'
+        :func:`docking_inputs` and :func:`docking_version`; so an index over the same store — another
+        worker's, or a restarted one's — docks none of the pairs this one docked. None: in memory only.
     """
 
-    def __init__(self, *, use_hubness: bool = True):
+    def __init__(self, *, use_hubness: bool = True, dockings=None):
         #: rank by the hubness-corrected probability (False: the patch probability, as before)
         self.use_hubness = bool(use_hubness)
+        #: the store of dockings shared with other indexes (the proposal store), or None
+        self.docking_store = dockings
+        #: fragment → digest of its docking inputs (docking_inputs: outline and boundary profile)
+        self._inputs: dict[str, str | None] = {}
         self.cues: dict[str, FragmentCues] = {}
         self._order: list[str] = []
         self._dirty = True
@@ -192,15 +241,19 @@ class MatchIndex:
                 self._raw_profiles[cues.fragment] = p
                 # the profile runs from the contour's first point in its order, as contour_mm does
                 self.paint[cues.fragment] = paint_from_profile(p)
+        inputs = docking_inputs(self.contours.get(cues.fragment), self._raw_profiles.get(cues.fragment))
         if cues.fragment in self.cues:
             self.cues[cues.fragment] = cues
             self.hubness.pop(cues.fragment, None)
             self.rankings.pop(cues.fragment, None)
-            self._forget_dockings(cues.fragment)
+            if inputs != self._inputs.get(cues.fragment):
+                self._forget_dockings(cues.fragment)
+            self._inputs[cues.fragment] = inputs
             self._dirty = True
             return
         self._order.append(cues.fragment)
         self.cues[cues.fragment] = cues
+        self._inputs[cues.fragment] = inputs
         if not self._dirty:
             self._append(cues)   # the KD-tree stays; the new fragment is in its tail
 
@@ -220,6 +273,7 @@ class MatchIndex:
         self.hubness.pop(fragment, None)
         self.rankings.pop(fragment, None)
         self._forget_dockings(fragment)
+        self._inputs.pop(fragment, None)
         if not in_tail:
             self._tree = None
         if last and not self._dirty:  # undo the last append without a rebuild
@@ -527,14 +581,15 @@ class MatchIndex:
         if key not in self._paint_pairs:
             if not all(f in self._raw_profiles and f in self.contours for f in key):
                 return float("nan")
-            self._dock_pair(key, paint=True)
+            if not self._recall(key, paint=True):
+                self._dock_pair(key, paint=True)
         return self._paint_pairs[key]
 
     def docking(self, fragment: str, other: str) -> Docking:
         """``other`` docked against ``fragment`` (pose of ``other`` in ``fragment``'s frame), cached."""
         key = _pair(fragment, other)
-        if key not in self._dockings:
-            self._dock_pair(key, paint=DOCK_USES_PAINT and all(f in self._raw_profiles for f in key))
+        if not self._recall(key, paint=False):
+            self._dock_pair(key, paint=self._docks_with_paint(key))
         d = self._dockings[key]
         return d if key[0] == fragment else invert_docking(d)
 
@@ -547,6 +602,50 @@ class MatchIndex:
         if d is None:
             return self.docking(fragment, other)
         return d if key[0] == fragment else invert_docking(d)
+
+    def docked(self, fragment: str, other: str) -> bool:
+        """Whether the pair was docked before: by this index, or by another over the same store (then its
+        docking is read into this one's cache)."""
+        return self._recall(_pair(fragment, other), paint=False)
+
+    def _docks_with_paint(self, key: tuple[str, str]) -> bool:
+        """Whether stage 3 docks this pair with paint (:data:`DOCK_USES_PAINT` and both have a profile)."""
+        return DOCK_USES_PAINT and all(f in self._raw_profiles for f in key)
+
+    def _recall(self, key: tuple[str, str], paint: bool) -> bool:
+        """Whether the pair's docking is in the cache — with its paint, pose and alternatives if ``paint`` —,
+        reading it from :attr:`docking_store` if it is kept there for both fragments' current inputs and
+        this docking version (anything else stored is as good as nothing: the pair is docked again)."""
+        if key in self._dockings and (not paint or key in self._paint_pairs):
+            return True
+        inputs = self._inputs.get(key[0]), self._inputs.get(key[1])
+        if self.docking_store is None or None in inputs:
+            return False
+        kept = self.docking_store.docking(*key, *inputs, docking_version())
+        if kept is None or (paint and not kept.paint):
+            return False
+        self._dockings.setdefault(key, Docking(*kept.best))
+        if kept.paint:
+            self._paint_pairs[key] = kept.paint_mm
+            self._poses[key] = Docking(*kept.pose)
+            self._alternatives[key] = [Docking(*a) for a in kept.alternatives]
+        return True
+
+    def _keep(self, key: tuple[str, str]) -> None:
+        """Write the pair's docking (as :meth:`_dock_pair` cached it) to :attr:`docking_store`."""
+        inputs = self._inputs.get(key[0]), self._inputs.get(key[1])
+        if self.docking_store is None or None in inputs:
+            return
+        from dataclasses import astuple
+
+        from common.matching.proposals import StoredDocking
+
+        paint = key in self._poses and key in self._paint_pairs
+        self.docking_store.put_docking(StoredDocking(
+            *key, *inputs, docking_version(), best=astuple(self._dockings[key]), paint=paint,
+            paint_mm=self._paint_pairs[key] if paint else float("nan"),
+            pose=astuple(self._poses[key]) if paint else None,
+            alternatives=[astuple(a) for a in self._alternatives.get(key, [])] if paint else []))
 
     def alternatives(self, fragment: str, other: str) -> list[Docking]:
         """The pair's other candidate poses, best first (of ``other`` in ``fragment``'s frame; at most
@@ -568,8 +667,7 @@ class MatchIndex:
         """Dock ``fragment`` with each of ``others`` not docked yet, in order of FFT size, so that a turned
         fragment's spectra (:class:`~common.matching.docking.DockingFrame`) are computed once per size."""
         keys = {_pair(fragment, o) for o in others if o in self.contours}
-        keys = [k for k in keys if k not in self._dockings or
-                (DOCK_USES_PAINT and k not in self._paint_pairs and all(f in self._raw_profiles for f in k))]
+        keys = [k for k in keys if not self._recall(k, paint=self._docks_with_paint(k))]
         for k in sorted(keys, key=lambda k: (self._frame(k[0]).fft_size(self._frame(k[1])), k)):
             if k not in self._dockings:
                 self.docking(*k)
@@ -603,6 +701,7 @@ class MatchIndex:
             self._dockings.setdefault(key, docks[0])
         else:
             self._dockings[key] = dock_frames(*frames, n_poses=1, **kw)[0]
+        self._keep(key)
         # the frames of the least recently docked fragments go first when over budget (never these two)
         budget = DOCK_FRAMES_MB * 2 ** 20
         held = sum(f.nbytes for f in self._frames.values())
@@ -629,7 +728,7 @@ class MatchIndex:
         ``docked_only``: of the best ``dock_candidates``, only the pairs docked before (no new docking)."""
         head = self._dock_head(ranked, dock_candidates)
         if docked_only:
-            head = [c for c in head if _pair(fragment, c.other) in self._dockings]
+            head = [c for c in head if self.docked(fragment, c.other)]
         if not head:
             return ranked
         docked = {id(c) for c in head}
@@ -812,7 +911,7 @@ class MatchIndex:
                                                            trace=trace)]
             if undocked is not None and self.uses_docking(f, model) and dock_candidates > 0:
                 new = [c.other for c in self._dock_head(trace["fresco"], dock_candidates)
-                       if _pair(f, c.other) not in self._dockings]
+                       if not self.docked(f, c.other)]
                 if new:
                     undocked[f] = new
             done.append(f)

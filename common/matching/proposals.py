@@ -17,6 +17,17 @@ is a network mount, put the database on the **matcher host's local disk** (``mat
 "/var/lib/tessera/proposals.sqlite"``) and run the matcher workers that write it on that host.
 The journal mode is WAL on local disks (readers never block the writer); on a network file system
 WAL cannot work (it needs shared memory) — pass ``journal_mode="DELETE"``.
+
+Dockings
+--------
+The matcher's stage 3 docks a pair once (~0.05–0.3 s CPU at real sizes) and reuses the result in every
+later ranking of either fragment. The ``dockings`` table keeps one row per pair (:class:`StoredDocking`),
+valid for the digests of the two fragments' docking inputs and the docking's version, so every matcher
+worker that opens this store — a second one, or one restarted — reads the pairs another docked instead
+of docking them again. They live here rather than as HDF5 artifacts because every matcher worker
+already reaches this store (the fragments, proposals and the current model are in it), and a pair's
+docking is a row of ~20 numbers read by key in microseconds: tens of thousands of tiny immutable files
+would cost a file open per lookup, more on a network share.
 """
 
 from __future__ import annotations
@@ -72,7 +83,18 @@ CREATE INDEX IF NOT EXISTS verdicts_pair ON verdicts (fragment_a, fragment_b, ti
 CREATE TABLE IF NOT EXISTS models (
     version TEXT PRIMARY KEY, artifact TEXT NOT NULL, sha256 TEXT NOT NULL, bytes INTEGER NOT NULL,
     created REAL NOT NULL, n_train INTEGER, note TEXT);
+CREATE TABLE IF NOT EXISTS dockings (
+    fragment_a TEXT NOT NULL, fragment_b TEXT NOT NULL,
+    inputs_a TEXT NOT NULL, inputs_b TEXT NOT NULL, docking_version TEXT NOT NULL,
+    angle_deg REAL, tx_mm REAL, ty_mm REAL, score REAL, contact_mm REAL, overlap_mm2 REAL,
+    paint INTEGER NOT NULL, paint_mm REAL, pose TEXT, alternatives TEXT,
+    created REAL NOT NULL,
+    PRIMARY KEY (fragment_a, fragment_b));
 """
+
+#: the numbers of one docked pose in the ``dockings`` table's columns and JSON arrays, in this order
+#: (common.matching.docking.Docking: B's pose in A's frame, degrees and mm; its score, contact mm, overlap mm²)
+DOCKING_FIELDS = ("angle_deg", "tx_mm", "ty_mm", "score", "contact_mm", "overlap_mm2")
 
 
 @dataclass
@@ -134,6 +156,34 @@ class Verdict:
     id: int | None = None
     #: the proposal's pose when the verdict was given (B in A's frame: angle_deg, tx_mm, ty_mm), or None
     pose: dict | None = None
+
+
+@dataclass
+class StoredDocking:
+    """One fragment pair's docking as the matcher keeps it (:class:`common.matching.index.MatchIndex`): what
+    the station's stage 3 found for ``fragment_b`` turned against ``fragment_a`` (``fragment_a < fragment_b``).
+
+    Valid only for the inputs it was made from: ``inputs_a``, ``inputs_b`` are digests of the two fragments'
+    docking inputs (their outline and boundary profile, :func:`common.matching.index.docking_inputs`) and
+    ``docking_version`` the version of the docking that made it (:func:`common.matching.index.docking_version`).
+    Every pose is a tuple in :data:`DOCKING_FIELDS` order, B in A's frame (``p_a = R(angle) p_b + t``, mm).
+    """
+
+    fragment_a: str
+    fragment_b: str
+    inputs_a: str
+    inputs_b: str
+    docking_version: str
+    #: the docking's best pose (its geometric evidence: the contact)
+    best: tuple
+    #: docked with paint: then ``paint_mm`` (paint continuing across the crack, best over the candidate
+    #: poses; NaN where none), ``pose`` (the proposed pose, by contact and paint) and ``alternatives``
+    #: (the next-best distinct poses) are set; without paint they are NaN, None and empty
+    paint: bool = False
+    paint_mm: float = float("nan")
+    pose: tuple | None = None
+    alternatives: list = field(default_factory=list)
+    created: float = 0.0
 
 
 def ordered_pair(a: str, b: str) -> tuple[str, str]:
@@ -359,6 +409,41 @@ class ProposalStore:
             out[(v.fragment_a, v.fragment_b)] = v.verdict
         return out
 
+    # -- dockings ------------------------------------------------------------------------
+    def docking(self, a: str, b: str, inputs_a: str, inputs_b: str, docking_version: str) -> StoredDocking | None:
+        """The stored docking of the pair (``a < b``) made from exactly these inputs by this docking version,
+        or None: none stored, one made from other inputs or by another version, or a row that does not
+        decode (a damaged row is as good as none: the pair is docked again and the row replaced)."""
+        if (a, b) != ordered_pair(a, b):
+            raise ValueError("docking fragments must be in stored order: use ordered_pair()")
+        row = self._db.execute("SELECT * FROM dockings WHERE fragment_a=? AND fragment_b=? AND inputs_a=? AND "
+                               "inputs_b=? AND docking_version=?", (a, b, inputs_a, inputs_b, docking_version)).fetchone()
+        if row is None:
+            return None
+        try:
+            return _stored_docking(row)
+        except (ValueError, TypeError, KeyError, IndexError):
+            return None
+
+    def put_docking(self, d: StoredDocking) -> None:
+        """Store a pair's docking, replacing the pair's earlier one (made from other inputs or by another
+        version, or the same: two workers that docked one pair store the same numbers, the last one stays)."""
+        a, b = ordered_pair(d.fragment_a, d.fragment_b)
+        if (a, b) != (d.fragment_a, d.fragment_b):
+            raise ValueError("docking fragments must be in stored order: use ordered_pair()")
+        best = _pose_numbers(d.best)
+        with self._tx():
+            self._db.execute(
+                "INSERT OR REPLACE INTO dockings (fragment_a, fragment_b, inputs_a, inputs_b, docking_version, "
+                + ", ".join(DOCKING_FIELDS) + ", paint, paint_mm, pose, alternatives, created) "
+                "VALUES (" + ", ".join("?" * (5 + len(DOCKING_FIELDS) + 5)) + ")",
+                (a, b, d.inputs_a, d.inputs_b, d.docking_version, *best, int(bool(d.paint)),
+                 _real(d.paint_mm), json.dumps(_pose_numbers(d.pose)) if d.pose is not None else None,
+                 json.dumps([_pose_numbers(p) for p in d.alternatives]), time.time()))
+
+    def count_dockings(self) -> int:
+        return self._db.execute("SELECT COUNT(*) FROM dockings").fetchone()[0]
+
     # -- models --------------------------------------------------------------------------
     def add_model(self, version: str, artifact: dict, *, n_train: int | None = None, note: str | None = None,
                   make_current: bool = True) -> None:
@@ -391,3 +476,40 @@ def _proposal(r: sqlite3.Row) -> Proposal:
                     evidence=json.loads(r["evidence"]) if r["evidence"] else None,
                     status=r["status"], id=r["id"], created=r["created"], updated=r["updated"],
                     mutual=r["mutual"])
+
+
+def _real(x) -> float | None:
+    """A number for a REAL column: NaN as NULL (SQLite stores no NaN)."""
+    x = float(x)
+    return x if x == x else None
+
+
+def _pose_numbers(pose) -> list:
+    """A docked pose's numbers (:data:`DOCKING_FIELDS`) with NaN as None (NULL, JSON null)."""
+    numbers = [_real(x) for x in pose]
+    if len(numbers) != len(DOCKING_FIELDS):
+        raise ValueError(f"a docked pose has {len(DOCKING_FIELDS)} numbers ({', '.join(DOCKING_FIELDS)}), got {len(numbers)}")
+    return numbers
+
+
+
+def _pose_tuple(numbers) -> tuple:
+    """The inverse of :func:`_pose_numbers`: floats, NULL as NaN; anything else fails (a damaged row)."""
+    if not isinstance(numbers, (list, tuple)) or len(numbers) != len(DOCKING_FIELDS):
+        raise ValueError(f"not a docked pose: {numbers!r}")
+    return tuple(float("nan") if x is None else float(x) for x in numbers)
+
+
+def _stored_docking(r: sqlite3.Row) -> StoredDocking:
+    paint = bool(int(r["paint"]))
+    pose = json.loads(r["pose"]) if r["pose"] is not None else None
+    if paint and pose is None:
+        raise ValueError("a docking with paint without its pose")
+    alternatives = json.loads(r["alternatives"]) if r["alternatives"] else []
+    if not isinstance(alternatives, list):
+        raise ValueError("alternatives are not a list")
+    return StoredDocking(r["fragment_a"], r["fragment_b"], r["inputs_a"], r["inputs_b"], r["docking_version"],
+                         best=_pose_tuple([r[k] for k in DOCKING_FIELDS]), paint=paint,
+                         paint_mm=float("nan") if r["paint_mm"] is None else float(r["paint_mm"]),
+                         pose=_pose_tuple(pose) if pose is not None else None,
+                         alternatives=[_pose_tuple(p) for p in alternatives], created=float(r["created"]))
