@@ -259,15 +259,16 @@ def test_model_keeps_its_docking_calibration_through_storage(tmp_path, small_wal
     assert replace(model, docking=(0.03, -3.0)).digest() != model.digest()
 
 
-def _docking_index(small_wall, n: int):
+def _docking_index(small_wall, n: int, dockings=None):
     """(a model with a docking calibration, the first ``n`` fragments with patches and a boundary
-    profile, an index of them with their outlines and profiles): stage 3 with paint."""
+    profile, an index of them with their outlines and profiles): stage 3 with paint. ``dockings``: the
+    store the index keeps its dockings in."""
     from dataclasses import replace
 
     wall, tables, cues, poses = small_wall
     model = replace(_model(small_wall), docking=(0.05, -2.0))
     ids = [f for f in cues if len(cues[f]) >= 3 and tables[f].boundary_profile is not None][:n]
-    index = MatchIndex()
+    index = MatchIndex(dockings=dockings)
     for f in ids:
         index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
     return model, ids, index
@@ -364,13 +365,13 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
             [(m.angle_deg, m.tx_mm, m.ty_mm) for m in mine]
 
 
-def _after_a_model_update(small_wall, n: int = 24, dock_candidates: int = 3):
+def _after_a_model_update(small_wall, n: int = 24, dock_candidates: int = 3, dockings=None):
     """(the old model, a new model — weights moved by 30 % —, the fragments, an index where every fragment
     was proposed and its best ``dock_candidates`` docked under the old model: a station's steady state;
-    more than HUBNESS_MIN_OTHERS fragments, so each has a hubness)."""
+    more than HUBNESS_MIN_OTHERS fragments, so each has a hubness). ``dockings``: the index's store."""
     from dataclasses import replace
 
-    model, ids, index = _docking_index(small_wall, n)
+    model, ids, index = _docking_index(small_wall, n, dockings)
     for f in ids:   # the arrivals
         index.propose(index.cues[f], model, dock_candidates=dock_candidates)
     rng = np.random.default_rng(4)
@@ -442,3 +443,142 @@ def test_docking_the_pairs_rank_all_returns_brings_every_ranking_to_proposes(sma
         index.propose(index.cues[f], model2, dock_candidates=3)
         assert index.rankings[f] == kept
     assert set(index._dockings) == docked
+
+
+# -- the dockings kept in the proposal store (MatchIndex(dockings=...)) --------------------------------------
+
+def _counted_dockings(monkeypatch) -> list:
+    """Every docking search the index makes from now on (one per docked pair), as a list that grows."""
+    import common.matching.index as index_mod
+
+    calls, dock = [], index_mod.dock_frames
+
+    def counted(*args, **kw):
+        calls.append(kw.get("n_poses"))
+        return dock(*args, **kw)
+
+    monkeypatch.setattr(index_mod, "dock_frames", counted)
+    return calls
+
+
+def _same_index(small_wall, ids, dockings):
+    """A fresh index of ``ids`` (outlines and profiles) over ``dockings``: another worker, or this one restarted."""
+    wall, tables, cues, poses = small_wall
+    index = MatchIndex(dockings=dockings)
+    for f in ids:
+        index.add(cues[f], tables[f].contour_mm, tables[f].boundary_profile)
+    return index
+
+
+def _poses_of(index, keys) -> dict:
+    return {k: (index.docking(*k), index.pose(*k), index.alternatives(*k), index.paint_pair(*k)) for k in keys}
+
+
+def test_a_second_index_over_the_same_store_docks_none_of_the_pairs_the_first_docked(tmp_path, small_wall, monkeypatch):
+    """A worker that starts afresh (or a second one) over the proposal store reads the pairs another docked:
+    after the same arrivals the full re-rank gives the same rankings and the same pairs to dock next, the
+    same poses, paint and alternatives (exactly: the numbers go through SQLite unchanged), and docks
+    nothing; nor does a worker restarted straight into the full re-rank."""
+    from common.matching.proposals import ProposalStore
+
+    calls = _counted_dockings(monkeypatch)
+    store = ProposalStore(tmp_path / "p.sqlite")
+    model, model2, ids, first = _after_a_model_update(small_wall, dockings=store)
+    undocked = first.rank_all(model2, dock_candidates=3)
+    assert calls and len(calls) == len(first._dockings) == store.count_dockings()   # each pair docked once, kept
+
+    calls.clear()
+    second = _same_index(small_wall, ids, ProposalStore(tmp_path / "p.sqlite"))
+    for f in ids:   # the same arrivals, in the same order (as _after_a_model_update)
+        second.propose(second.cues[f], model, dock_candidates=3)
+    assert second.rank_all(model2, dock_candidates=3) == undocked
+    assert calls == []                                                  # not one docking
+    assert {f: second.rankings[f] for f in ids} == {f: first.rankings[f] for f in ids}
+    assert _poses_of(second, first._dockings) == _poses_of(first, first._dockings)
+
+    # restarted straight into a full re-rank: nothing docked, the same pairs left to dock
+    third = _same_index(small_wall, ids, ProposalStore(tmp_path / "p.sqlite"))
+    assert third.rank_all(model2, dock_candidates=3) == undocked
+    assert calls == []
+    assert 0 < len(undocked) < len(ids)
+
+
+def test_a_stored_docking_of_other_inputs_or_another_docking_version_is_docked_again(tmp_path, small_wall,
+                                                                                      monkeypatch):
+    """A stored docking is served only for both fragments' current outline and profile (docking_inputs) and
+    this docking version: a re-extracted fragment's pairs, or every pair after the docking changed, are
+    docked again (and the row replaced); the other pairs are read."""
+    import common.matching.index as index_mod
+    from common.matching.index import docking_inputs, docking_version
+    from common.matching.proposals import ProposalStore
+
+    wall, tables, cues, poses = small_wall
+    calls = _counted_dockings(monkeypatch)
+    store = ProposalStore(tmp_path / "p.sqlite")
+    model, ids, first = _docking_index(small_wall, 10, store)
+    q = ids[0]
+    head = [c.other for c in first.rank(cues[q], ids[1:], model, dock_candidates=3)[:3]]
+    assert len(calls) == 3 and store.count_dockings() == 3
+
+    # the digest follows the outline and the profile, and only them
+    c, p = tables[q].contour_mm, tables[q].boundary_profile
+    assert docking_inputs(c, p) == docking_inputs(c.copy(), p.copy())
+    assert len({docking_inputs(c, p), docking_inputs(c, None), docking_inputs(c + 0.01, p),
+                docking_inputs(c, p * 1.01)}) == 4
+
+    # one partner re-extracted (its outline moved by 10 µm): its pair only is docked again
+    calls.clear()
+    moved = head[1]
+    second = _same_index(small_wall, ids, store)
+    second.add(cues[moved], tables[moved].contour_mm + 0.01, tables[moved].boundary_profile)
+    assert [c.other for c in second.rank(cues[q], ids[1:], model, dock_candidates=3)[:3]] == head
+    assert len(calls) == 1
+    a, b = sorted((q, moved))
+    assert store.docking(a, b, second._inputs[a], second._inputs[b], docking_version()) is not None
+    assert store.count_dockings() == 3                                 # replaced, not added
+
+    # another docking version: every pair docked again
+    calls.clear()
+    monkeypatch.setattr(index_mod, "DOCKING_VERSION", "docking-test")
+    third = _same_index(small_wall, ids, store)
+    third.rank(cues[q], ids[1:], model, dock_candidates=3)
+    assert len(calls) == 3 and store.count_dockings() == 3
+    assert docking_version().startswith("docking-test/")
+    # and a change of the settings a docking is made with is another version too
+    monkeypatch.setattr(index_mod, "DOCK_USES_PAINT", False)
+    assert "no-paint" in docking_version()
+
+
+def test_a_damaged_or_missing_stored_docking_is_docked_again(tmp_path, small_wall, monkeypatch):
+    """Rows that do not decode (a pose that is not JSON, a number that is text, a pose of the wrong length)
+    or are gone are docked again without an error, and written back whole; the intact row is read."""
+    import sqlite3
+
+    from common.matching.proposals import ProposalStore
+
+    wall, tables, cues, poses = small_wall
+    calls = _counted_dockings(monkeypatch)
+    store = ProposalStore(tmp_path / "p.sqlite")
+    model, ids, first = _docking_index(small_wall, 10, store)
+    q = ids[0]
+    first.rank(cues[q], ids[1:], model, dock_candidates=5)
+    keys = sorted(first._dockings)
+    assert len(keys) == 5 and store.count_dockings() == 5
+    raw = sqlite3.connect(tmp_path / "p.sqlite")
+    with raw:
+        where = "WHERE fragment_a=? AND fragment_b=?"
+        raw.execute(f"UPDATE dockings SET pose='not json' {where}", keys[0])
+        raw.execute(f"UPDATE dockings SET contact_mm='many' {where}", keys[1])
+        raw.execute(f"UPDATE dockings SET alternatives='[[1, 2]]' {where}", keys[2])
+        raw.execute(f"DELETE FROM dockings {where}", keys[3])
+    raw.close()
+    calls.clear()
+    second = _same_index(small_wall, ids, store)
+    second.rank(cues[q], ids[1:], model, dock_candidates=5)
+    assert len(calls) == 4                                            # the fifth was read
+    assert _poses_of(second, keys) == _poses_of(first, keys)
+    assert store.count_dockings() == 5
+    third = _same_index(small_wall, ids, store)
+    calls.clear()
+    third.rank(cues[q], ids[1:], model, dock_candidates=5)
+    assert calls == []                                                # all written back whole

@@ -152,3 +152,57 @@ def test_database_from_before_mutual_proximity_opens_and_gains_the_column(tmp_pa
         assert [p.other("A") for p in s.ranked("A")] == ["C", "B"]   # by probability until known
         s.set_mutual([("A", "B", 0.5)])
         assert [p.other("A") for p in s.ranked("A")] == ["B", "C"]
+
+
+def _docking(a="A", b="B", **kw):
+    from common.matching.proposals import StoredDocking
+
+    nan = float("nan")
+    d = dict(best=(12.5, 1.25, -3.0, 40.0, 22.5, 0.0), paint=True, paint_mm=nan,
+             pose=(190.0, 0.1, 0.2, 38.0, 20.0, nan), alternatives=[(10.0, 1.0, 2.0, 30.0, 15.0, 1.5)])
+    d.update(kw)
+    return StoredDocking(a, b, "in-a", "in-b", "docking-1/test", **d)
+
+
+def test_a_stored_docking_comes_back_for_its_inputs_and_version_only(tmp_path):
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.put_docking(_docking())
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        back = s.docking("A", "B", "in-a", "in-b", "docking-1/test")
+        assert back.best == (12.5, 1.25, -3.0, 40.0, 22.5, 0.0) and back.alternatives == [(10.0, 1.0, 2.0, 30.0, 15.0, 1.5)]
+        assert back.paint and back.paint_mm != back.paint_mm                  # NaN kept (as NULL)
+        assert back.pose[:5] == (190.0, 0.1, 0.2, 38.0, 20.0) and back.pose[5] != back.pose[5]
+        assert s.docking("A", "B", "in-a", "other", "docking-1/test") is None
+        assert s.docking("A", "B", "in-a", "in-b", "docking-2/test") is None
+        with pytest.raises(ValueError):
+            s.docking("B", "A", "in-b", "in-a", "docking-1/test")          # stored order only
+        s.put_docking(_docking(paint=False, pose=None, alternatives=[]))       # the pair's one row, replaced
+        assert s.count_dockings() == 1 and not s.docking("A", "B", "in-a", "in-b", "docking-1/test").paint
+
+
+def test_two_workers_storing_the_same_pairs_docking_do_not_fail(tmp_path):
+    """Two matcher workers that docked one pair at once both store it (each in its own connection, as two
+    processes would): neither fails on the other's lock or row, and the pair has one row."""
+    import threading
+
+    errors = []
+
+    def worker():
+        try:
+            with ProposalStore(tmp_path / "p.sqlite") as s:
+                for k in range(40):
+                    s.put_docking(_docking())
+                    s.put_docking(_docking("A", f"C{k}"))
+        except Exception as exc:   # noqa: BLE001 - collected for the assertion
+            errors.append(exc)
+
+    ProposalStore(tmp_path / "p.sqlite").close()
+    threads = [threading.Thread(target=worker) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        assert s.count_dockings() == 41
+        assert s.docking("A", "B", "in-a", "in-b", "docking-1/test").best[0] == 12.5
