@@ -211,3 +211,45 @@ def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jo
         assert set(st.index.rankings[f][:5]) <= stored
     assert matcher.handle(dict(refitted, model_version=model.version), ctx) == []
     assert matcher.handle(dict(follow[0], model_version=model.version), ctx) == []
+
+
+def test_a_restarted_matcher_worker_docks_no_pair_docked_before(station, monkeypatch):
+    """The dockings are kept in the proposal store: a matcher worker restarted after the arrivals (its
+    caches gone) re-ranks after a model update docking nothing, sends on to be docked again about the
+    fragments the worker before it would have, not all, and their jobs dock only pairs never docked — each
+    pair once."""
+    import common.matching.index as index_mod
+    import services.matcher as matcher
+
+    wall, store, db, arts, ctx = station
+    model = load_model(store, db.current_model()["artifact"])
+    model.docking = (0.15, -4.0)
+    model.version = "0002-docking"
+    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
+    ids = [f.id for f in wall.fragments[:20]]
+    for fid in ids:   # arrivals: the first answer, then its docking job
+        for e in matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx):
+            if e["type"] == "match.ranked":
+                matcher.handle(e, ctx)
+    wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][0]
+    (refitted,) = matcher.handle(new_message("match.verified", fragment=wrong.fragment_a, other=wrong.fragment_b,
+                                             verdict="rejected"), ctx)
+    kept = db.count_dockings()
+    assert kept == len(matcher._state(ctx).index._dockings) > 0
+    before = [f for e in matcher.handle(refitted, ctx) for f in e["redock"]]
+
+    calls, dock = [], index_mod.dock_frames
+    monkeypatch.setattr(index_mod, "dock_frames", lambda *a, **kw: calls.append(1) or dock(*a, **kw))
+    matcher._STATES.clear()                                     # the worker restarted
+    follow = [validate(e) for e in matcher.handle(refitted, ctx)]
+    assert calls == []                                          # the re-rank docked nothing
+    st = matcher._state(ctx)
+    assert st.index is not None and len(st.index) == len(ids)
+    after = [f for e in follow for f in e["redock"]]
+    # not every fragment sent to be docked again (as before the dockings were kept); not exactly the same ones
+    # either: the pass's docking hubness of the fragments not ranked yet is the arrivals' on the worker that
+    # stayed, the median of those ranked so far on the restarted one (docs/matching.md)
+    assert len(after) < len(ids) and len(set(after) ^ set(before)) < len(before)
+    for e in follow:
+        matcher.handle(e, ctx)
+    assert len(calls) == db.count_dockings() - kept             # only pairs never docked, each once
