@@ -14,6 +14,7 @@ never ``playwright install``); skipped, saying which is missing, otherwise.
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import time
@@ -21,6 +22,8 @@ from pathlib import Path
 
 import cv2
 import pytest
+
+from common.config import default_config_path, load_config
 
 from .conftest import TOKEN, free_port
 from .viewer_support import CHROMIUM, CHROMIUM_ARGS, children, require_browser, wait_for_web
@@ -87,11 +90,12 @@ class LiveStation:
     """Broker, stage workers and ``tessera web`` as separate processes on loopback."""
 
     def __init__(self, root: Path):
-        from common.config import load_config
-
         self.root = root
         self.web_port = free_port()
         self.stages = [s for s in STAGES if importlib.util.find_spec(f"services.{s}") is not None]
+        # the station's own routing table (a config file replaces it whole), and the noop failure's
+        routing = {**load_config(default_config_path())["routing"], "noop.job": ["noop"]}
+        routing_lines = "\n".join(f'"{event}" = {json.dumps(services)}' for event, services in routing.items())
         text = f"""
 [storage]
 root = "{root / 'storage'}"
@@ -107,11 +111,7 @@ max_attempts = 2
 timeout_s = 1.0
 retries = 2
 [routing]
-"fragment.ready" = ["solver"]
-"rgbn.ready" = ["features", "renderer"]
-"features.ready" = ["matcher"]
-"match.verified" = ["matcher"]
-"noop.job" = ["noop"]
+{routing_lines}
 [scanner]
 device = "simulated"
 spool_dir = "{root / 'bench'}"
@@ -145,6 +145,14 @@ long_poll_s = 2.0
 
     def logs(self) -> str:
         return "\n".join(f"--- {f.name}\n{f.read_text()[-1500:]}" for f in sorted(self.root.glob("*.log")))
+
+
+def test_the_live_station_routes_every_event_as_the_station_does(tmp_path):
+    """The test station's routing is the configured station's (configs/station.toml), plus the noop job the
+    failure test sends: a message type routed at the station (match.refitted, match.reranked) runs here too."""
+    routing = LiveStation(tmp_path).config["routing"]
+    assert routing == {**load_config(default_config_path())["routing"], "noop.job": ["noop"]}
+    assert routing["match.refitted"] == routing["match.reranked"] == ["matcher"]
 
 
 @pytest.fixture(scope="module")
