@@ -115,16 +115,18 @@ def within_object_recall(rankings: dict, neighbours: dict, ks=(1, 3)) -> dict:
     -------
     dict with ``recall`` {k: share of fragments (with ≥ 1 neighbour) that have a true neighbour in
     their top k}, ``random`` {k: the same expected for a random order}, ``incidence`` {k: share of
-    (fragment, neighbour) links found in the top k} and ``n`` (fragments counted); definitions as
-    in ../shared/data/README.md.
+    (fragment, neighbour) links found in the top k}, ``hits`` {k: per fragment counted, 1 when a
+    true neighbour is in its top k, else 0 (for :func:`~common.matching.evaluation.bootstrap_interval`)}
+    and ``n`` (fragments counted); definitions as in ../shared/data/README.md.
     """
     from math import comb
 
     frags = [f for f in rankings if neighbours.get(f)]
-    out = {"recall": {}, "random": {}, "incidence": {}, "n": len(frags)}
+    out = {"recall": {}, "random": {}, "incidence": {}, "hits": {}, "n": len(frags)}
     for k in ks:
         hit = inc = links = 0
         rnd = 0.0
+        out["hits"][int(k)] = [int(bool(set(rankings[f][:k]) & neighbours[f])) for f in frags]
         for f in frags:
             top = set(rankings[f][:k])
             nb = neighbours[f]

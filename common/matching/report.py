@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from common.features.boundary import boundary_channel_names
-from common.matching.evaluation import (confusion_rates, grouped_cross_validation, pair_precision_recall,
-                                        precision_recall, rank_all_pairs, top_k_recall)
+from common.matching.evaluation import (bootstrap_interval, confusion_rates, grouped_cross_validation,
+                                        pair_precision_recall, precision_recall, rank_all_pairs, top_k_counts,
+                                        top_k_recall)
 from common.matching.index import MatchIndex
 from common.matching import online
 from common.matching.online import (docking_calibration, ribbon_calibration, stage_combination, train_model, wall_cues,
@@ -30,6 +31,8 @@ log = logging.getLogger("tessera.matching.report")
 
 TABLE_SUBSETS = ("colour", "curvature", "normal", "erosion", "thickness", "per-match", "all")
 KS = (1, 3, 5, 10, 20)
+#: Coverage of the bootstrap intervals ``evaluate_collection`` gives beside its figures.
+INTERVAL_LEVEL = 0.9
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -358,7 +361,9 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         proposed relative pose is within 5° and 5 mm), ``pose_offered`` (the same, counting a pair
         right when its proposed pose or one of its alternatives is: what a person stepping through the
         review page's candidate poses finds), ``pose_errors``, ``n_fragments``,
-        ``n_true_pairs``, ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
+        ``n_true_pairs``, ``intervals`` (90 % bootstrap intervals of the pooled top-k, the within-object
+        recall and the two pose shares, :func:`~common.matching.evaluation.bootstrap_interval` over the
+        fragments or pairs counted), ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
     """
     from common.matching.alignment import pose_matrix
     from common.matching.collection import collection_wall, relative_pose_error, within_object_recall
@@ -430,8 +435,9 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
             best, best_right = d.score, max(error((d.angle_deg, d.tx_mm, d.ty_mm))) <= 5
         errors.append({"a": a, "b": b, "angle_deg": e[0], "shift_mm": e[1], "score_at_truth": at_truth,
                        "score_best": best, "best_right": best_right, "right_pose_offered": right[0] if right else None})
-    ok = sum(1 for e in errors if e["angle_deg"] is not None and e["angle_deg"] <= 5 and e["shift_mm"] <= 5)
-    offered_ok = sum(1 for e in errors if e.get("right_pose_offered") is not None)
+    pose_right = [int(e["angle_deg"] is not None and e["angle_deg"] <= 5 and e["shift_mm"] <= 5) for e in errors]
+    pose_offered = [int(e.get("right_pose_offered") is not None) for e in errors]
+    ok, offered_ok = sum(pose_right), sum(pose_offered)
     ppr = pair_precision_recall(pooled, wall.adjacency)
     ppr_max = pair_precision_recall(pooled_max, wall.adjacency)
     result = {
@@ -448,6 +454,16 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         "wrong_pose_scores_above_truth": sum(1 for e in errors if e.get("best_right") is False
                                              and e["score_best"] > e["score_at_truth"]),
         "pose_errors": errors, "n_fragments": len(wall.fragments), "n_true_pairs": len(wall.adjacency),
+        # how far each figure may move on another collection of this kind: resampling the fragments
+        # (pairs for the poses) it was counted on
+        "intervals": {
+            "level": INTERVAL_LEVEL,
+            "pooled_topk": {k: bootstrap_interval(h, n, level=INTERVAL_LEVEL)
+                            for k, (h, n) in top_k_counts(pooled, wall.adjacency, (1, 5, 10)).items()},
+            "within_object_recall": {k: bootstrap_interval(h, level=INTERVAL_LEVEL) for k, h in wo["hits"].items()},
+            "pose_accuracy": bootstrap_interval(pose_right, level=INTERVAL_LEVEL),
+            "pose_offered": bootstrap_interval(pose_offered, level=INTERVAL_LEVEL),
+        },
         "seconds": time.time() - t0, "cpu_seconds": time.process_time() - c0,
     }
     if out_dir is not None:

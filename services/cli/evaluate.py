@@ -131,6 +131,12 @@ def _collection(args, progress) -> int:
     print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f} "
           f"(right among the proposed pose and its alternatives: {res['pose_offered']:.3f}); "
           f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
+    iv = res["intervals"]
+    span = lambda lo_hi: f"{lo_hi[0]:.2f}-{lo_hi[1]:.2f}"  # noqa: E731
+    print(f"{iv['level']:.0%} bootstrap intervals over the fragments (pairs for the poses) counted: pooled top-k "
+          + ", ".join(f"k={k}: {span(v)}" for k, v in iv["pooled_topk"].items())
+          + "; within-object " + ", ".join(f"@{k}: {span(v)}" for k, v in iv["within_object_recall"].items())
+          + f"; pose accuracy {span(iv['pose_accuracy'])}, offered {span(iv['pose_offered'])}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(res, indent=1, default=float))

@@ -72,6 +72,13 @@ def test_collection_evaluation_ranks_a_synthetic_collection_and_beats_chance(sma
     assert all(e["best_right"] is not None for e in res["pose_errors"])
     assert res["within_object_recall"][3] >= res["within_object_recall"][1]
     assert res["within_object_random"][3] >= res["within_object_random"][1] > 0
+    # each figure lies within its bootstrap interval (resampling what it was counted on)
+    iv = res["intervals"]
+    for k in (1, 5, 10):
+        assert iv["pooled_topk"][k][0] <= res["pooled_topk"][k] <= iv["pooled_topk"][k][1]
+    for k in (1, 3):
+        assert iv["within_object_recall"][k][0] <= res["within_object_recall"][k] <= iv["within_object_recall"][k][1]
+    assert iv["pose_accuracy"][0] <= res["pose_accuracy"] <= iv["pose_accuracy"][1]
     assert (tmp_path / "out" / "collection_examples.png").stat().st_size > 1000
     json.dumps(res, default=float)
 
