@@ -188,7 +188,31 @@ def normal_noise(normals: np.ndarray, mask: np.ndarray | None = None) -> float:
             res[c].append(np.abs(r[m]))
     if not sum(a.size for a in res[0]):
         return 0.0
-    return float(max(1.4826 * float(np.median(np.concatenate(a))) / 6.0 for a in res))
+    return float(max(1.4826 * float(median(np.concatenate(a))) / 6.0 for a in res))
+
+
+def median(values: np.ndarray):
+    """``np.median`` of a 1-D array, the same value, by a partition at one rank (and, for an even
+    count, the largest value below it): numpy's median partitions at both middle ranks at once,
+    4x slower on the 5 million residuals of :func:`normal_noise`. NaN if any value is NaN.
+
+    Examples
+    --------
+    >>> float(median(np.array([3.0, 1.0, 4.0, 1.5], np.float32)))
+    2.25
+    """
+    values = np.asarray(values).ravel()
+    n = values.size
+    if n == 0:
+        return np.float64(np.nan)
+    k = n // 2
+    part = np.partition(values, k)   # NaNs are put last
+    if np.isnan(part[-1]):
+        return part[-1]
+    if n % 2:
+        return part[k]
+    # numpy's mean of the two middle values, in the array's own precision
+    return np.mean(np.array([part[:k].max(), part[k]], part.dtype))
 
 
 def _windows(shape, side: int = 1024, count: int = 5) -> list:
@@ -691,7 +715,7 @@ def lightness_noise(albedo: np.ndarray, mask: np.ndarray | None = None) -> float
         res.append(np.abs(cv2.filter2D(np.ascontiguousarray(L), cv2.CV_32F, kernel,
                                        borderType=cv2.BORDER_REFLECT)[m]))
     v = np.concatenate(res) if res else np.zeros(0, np.float32)
-    return 1.4826 * float(np.median(v)) / 6.0 if v.size else 0.0
+    return 1.4826 * float(median(v)) / 6.0 if v.size else 0.0
 
 
 def lightness_spread(albedo: np.ndarray, mask: np.ndarray | None = None) -> float:

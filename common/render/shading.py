@@ -519,6 +519,15 @@ class _WeightedPyramid:
         off = ((o_a[0] - o_b[0]) // f_to, (o_a[1] - o_b[1]) // f_to)
         return unit_rows(Coarse(values, f_from // f_to, off).full(self.grid_shape(f_to)))
 
+    def blurred(self, sigma_px: float, f: int) -> Coarse:
+        """The stack blurred to ``sigma_px`` (full-resolution pixels) on grid ``f``, to be brought
+        back to full resolution by bilinear interpolation (:meth:`Coarse.full`, a strip of rows
+        at a time): the blur on the grid makes up what the cells' box and the interpolation's tent
+        leave of the variance (:func:`common.rgbn._filters.decimated_sigma`, as
+        :func:`common.rgbn._filters.gaussian_blur`)."""
+        from common.rgbn._filters import decimated_sigma, gaussian_blur
+        return Coarse(gaussian_blur(self.stack(f), decimated_sigma(sigma_px, f)), f, self.offset(f))
+
     def level(self, sigma_px: float, f: int) -> np.ndarray:
         """Unit normals smoothed at ``sigma_px`` (full-resolution pixels) on grid ``f``."""
         from common.rgbn._filters import gaussian_blur
@@ -609,8 +618,10 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     coarse : bool
         Compute a level whose sigma is >= 8 px on a grid 2, 4, … times coarser (sigma >= 4 grid
         steps there, where central differences are within ~1 % of the derivative), and bring its
-        curvature back by bilinear interpolation (default; test: within 1/255 of the full-resolution
-        picture). False computes every level at full resolution (the reference).
+        curvature back by bilinear interpolation, and blur a level of 4-8 px on grid 2, its
+        blurred stack interpolated back and its curvature taken at full resolution (default; tests:
+        within 1/255 of the full-resolution picture, and 0.5/255 of it for the 4-8 px level). False
+        computes every level at full resolution (the reference).
 
     Returns
     -------
@@ -641,10 +652,17 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     h, wd = normals.shape[:2]
     px = [s * dpi / 25.4 for s in sigmas]
     grids = [_curvature_grid(p, h, wd, coarse) for p in px]
-    full = [(wi * s, p) for wi, s, p, f in zip(w, sigmas, px, grids) if f == 1]
-    total = _curvature_full(normals, mask, dpi, full) if full else np.zeros((h, wd), np.float32)
-    if len(full) < len(sigmas):
-        pyramid = _WeightedPyramid(normals, mask, True, origin)
+    # a full-resolution level of sigma >= 4 px is blurred on grid 2 (>= ~2 grid steps there) and
+    # its blurred stack interpolated back, its curvature taken at full resolution: a fraction of
+    # its blur's cost, within 0.5/255 of the picture (test)
+    halved = [f == 1 and _blurs_halved(p, h, wd, coarse) for p, f in zip(px, grids)]
+    pyramid = _WeightedPyramid(normals, mask, True, origin) if any(halved) or max(grids) > 1 else None
+    full = [(wi * s, p) for wi, s, p, f, half in zip(w, sigmas, px, grids, halved) if f == 1 and not half]
+    blurred = [(wi * s, pyramid.blurred(p, 2)) for wi, s, p, half in zip(w, sigmas, px, halved) if half]
+    total = (_curvature_full(normals, mask, dpi, full, blurred) if full or blurred
+             else np.zeros((h, wd), np.float32))
+    del blurred
+    if max(grids) > 1:
         acc: dict = {}
         for wi, s, p, f in zip(w, sigmas, px, grids):
             if f == 1:
@@ -665,22 +683,44 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     return (0.5 + 0.5 * np.tanh(g * total)).astype(np.float32)
 
 
-def _curvature_full(normals, mask, dpi, levels):
+def _curvature_full(normals, mask, dpi, levels, blurred=()):
     """Sum of ``k * H(sigma)`` over ``levels`` = [(k, sigma_px), ...] at full resolution, row
     strip by row strip (each strip smoothed from its rows and a halo of the widest kernel's reach
-    plus the derivative's two rows, so no temporary is of the image's size). (H, W) float32."""
+    plus the derivative's two rows, so no temporary is of the image's size), and over
+    ``blurred`` = [(k, Coarse)], levels whose weighted stack was blurred on a coarser grid
+    (:meth:`_WeightedPyramid.blurred`), interpolated to each strip's rows. (H, W) float32."""
     h, w = normals.shape[:2]
     floor = weight_floor(normals, mask)
     out = np.empty((h, w), np.float32)
-    for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(max(p for _, p in levels)) + 2):
+    reach = gaussian_reach(max(p for _, p in levels)) if levels else 0
+    for r0, r1, a0, a1 in strips(normals.shape, reach + 2):
         e0, e1 = max(0, r0 - 2), min(h, r1 + 2)   # the rows the derivatives of r0:r1 read
-        stack = weighted_stack(normals[a0:a1], mask[a0:a1])
         t = out[r0:r1]
         t[...] = 0.0
-        for k, p in levels:
-            H = mean_curvature(smoothed_rows(normals, mask, p, (e0, e1), (a0, a1), floor, stack=stack), dpi)
+        if levels:
+            stack = weighted_stack(normals[a0:a1], mask[a0:a1])
+            for k, p in levels:
+                H = mean_curvature(smoothed_rows(normals, mask, p, (e0, e1), (a0, a1), floor, stack=stack), dpi)
+                t += np.float32(k) * H[r0 - e0:r1 - e0]
+            del stack
+        for k, grid in blurred:
+            b = grid.full((h, w), rows=(e0, e1))
+            n = unit_rows(b)
+            empty = b[..., 3] <= floor   # as smoothed_rows: the input normal where no mask pixel is in reach
+            if empty.any():
+                copy_where(n, np.ascontiguousarray(normals[e0:e1]), empty)
+            del b
+            H = mean_curvature(n, dpi)
             t += np.float32(k) * H[r0 - e0:r1 - e0]
     return out
+
+
+def _blurs_halved(sigma_px: float, h: int, w: int, enabled: bool = True) -> bool:
+    """Whether a full-resolution curvature level of ``sigma_px`` is blurred on grid 2
+    (:meth:`_WeightedPyramid.blurred`): sigma >= 4 px, whose Gaussian keeps nothing above the
+    grid's Nyquist rate (its response there, exp(-pi^2 sigma^2 / 8), is < 4e-9) and is smooth
+    enough for bilinear interpolation; at least 8 cells a side."""
+    return bool(enabled and sigma_px >= 4.0 and min(h, w) // 2 >= 8)
 
 
 def _curvature_grid(sigma_px: float, h: int, w: int, enabled: bool = True) -> int:

@@ -30,12 +30,20 @@ def gaussian_blur(values: np.ndarray, sigma_px: float) -> np.ndarray:
     small = cv2.resize(values, small_shape, interpolation=cv2.INTER_AREA)
     if values.ndim == 3 and small.ndim == 2:
         small = small[..., None]
-    var = sigma_px ** 2 - (factor ** 2 - 1) / 12.0 - factor ** 2 / 6.0
-    small = _blur_direct(small, max(np.sqrt(max(var, 0.25)) / factor, 0.5))
+    small = _blur_direct(small, decimated_sigma(sigma_px, factor))
     out = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
     if values.ndim == 3 and out.ndim == 2:
         out = out[..., None]
     return out
+
+
+def decimated_sigma(sigma_px: float, factor: int) -> float:
+    """The sigma, in steps of a grid ``factor`` times coarser, of the Gaussian that, applied to the
+    grid's ``factor`` x ``factor`` area means and followed by bilinear interpolation back, makes a
+    Gaussian of ``sigma_px`` (pixels): the variances of the box, ``(f^2 - 1) / 12``, and of the
+    interpolation's tent, ``f^2 / 6``, are subtracted (at least half a grid step is kept)."""
+    var = sigma_px ** 2 - (factor ** 2 - 1) / 12.0 - factor ** 2 / 6.0
+    return max(np.sqrt(max(var, 0.25)) / factor, 0.5)
 
 
 def blurs_directly(sigma_px: float, shape) -> bool:

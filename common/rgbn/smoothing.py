@@ -28,8 +28,11 @@ def foreshortening_weights(normals: np.ndarray, mask: np.ndarray | None = None, 
     mask = check_mask(mask, normals.shape[:2])
     if not 0 < nz_min <= 1:
         raise ValueError(f"nz_min must be in (0, 1], got {nz_min}")
-    w = 1.0 / np.maximum(normals[..., 2], nz_min)
-    return np.where(mask, w, 0.0).astype(np.float32)
+    # in place on one contiguous plane: the same values as 1 / max(nz, nz_min), 0 off the mask
+    w = np.maximum(normals[..., 2], np.float32(nz_min))
+    np.reciprocal(w, out=w)
+    np.multiply(w, mask, out=w)
+    return w
 
 
 def smooth_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,

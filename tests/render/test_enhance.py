@@ -277,3 +277,18 @@ def test_a_colour_that_is_mostly_noise_is_not_stretched_into_amplified_noise():
     image = _low_contrast_fragment(1.0, 1.0)   # noise 1 L*: 10 L* of range
     lo, hi = lightness_range(image.albedo)
     assert 9.0 <= hi - lo <= 11.0
+
+
+def test_median_is_numpys_median_for_odd_and_even_counts_and_any_nan():
+    from common.render.enhance import median
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 10, 11, 1000, 1001):
+        for dtype in (np.float32, np.float64):
+            v = rng.standard_normal(n).astype(dtype)
+            v[: n // 3] = v[0]        # ties, as in quantised residuals
+            assert median(v) == np.median(v)
+            assert median(v).dtype == np.median(v).dtype
+    v = rng.standard_normal(101)
+    v[7] = np.nan
+    assert np.isnan(median(v)) and np.isnan(np.median(v))
