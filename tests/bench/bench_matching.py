@@ -40,6 +40,15 @@ this proposal as each fragment's whole re-rank).
 
     python tests/bench/bench_matching.py --pool ../shared/data/repair-dev --sizes 2000 --repeats 10 \
         --full-rerank-max 0 --rerank-sample 40 --hubness pool
+
+``--kept-dockings K`` (with ``--pool``): K sampled fragments are proposed by an index that keeps its dockings in a
+proposal store (a temporary SQLite file, as the matcher service does), then the best pairs they docked are
+asked of a fresh index over that store (a restarted worker: read, not docked) and of a fresh index without it
+(docked again, stage 3's way: each fragment's partners in one batch, its frame kept); it prints the CPU per
+pair of each, and the store's bytes per docked pair (its file, and the rows' own payload).
+
+    python tests/bench/bench_matching.py --pool ../shared/data/repair-dev --sizes 250 --repeats 3 \
+        --full-rerank-max 0 --hubness pool --kept-dockings 20
 """
 
 from __future__ import annotations
@@ -73,6 +82,69 @@ def jittered(c: FragmentCues, fid: str, rng) -> FragmentCues:
                         [s + 0.1 * rng.standard_normal(s.shape) for s in c.strips], c.patch_index)
 
 
+def measure_kept_dockings(index: MatchIndex, model, k: int, docked: int, rng) -> None:
+    """``--kept-dockings``: reading a pair's kept docking against docking it, and the store's size per pair."""
+    import os
+    import sqlite3
+    import tempfile
+
+    from common.matching.index import _pair
+    from common.matching.proposals import ProposalStore
+
+    def fresh(dockings):
+        other = MatchIndex(dockings=dockings)
+        for f in index._order:
+            other.add(index.cues[f], index.contours.get(f), index._raw_profiles.get(f))
+        return other
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "proposals.sqlite"
+        empty = ProposalStore(path)
+        base = os.path.getsize(path)
+        writer = fresh(empty)
+        sample = [str(f) for f in rng.choice(writer._order, k, replace=False)]
+        t, tc = time.perf_counter(), time.process_time()
+        for f in sample:   # the arrivals' docked answers, writing each pair's docking to the store
+            writer.propose(writer.cues[f], model, n_candidates=100, top=10, check=0, dock_candidates=docked)
+        print(f"kept dockings: {len(sample)} fragments proposed with their dockings written to the store: "
+              f"{time.perf_counter() - t:.1f} s wall, {time.process_time() - tc:.1f} s CPU; "
+              f"{empty.count_dockings()} pairs kept")
+        # the same fragments' docked pairs, asked of a restarted worker (read) and of one without the store (docked)
+        partners = {f: [o for o in writer.rankings[f][:docked] if _pair(f, o) in writer._dockings] for f in sample}
+        n_pairs = len({_pair(f, o) for f, os_ in partners.items() for o in os_})
+        timings = {}
+        for name, other in (("read", fresh(ProposalStore(path))), ("docked", fresh(None))):
+            t, tc = time.perf_counter(), time.process_time()
+            for f, os_ in partners.items():
+                other._dock_pairs(f, os_)
+            timings[name] = (time.perf_counter() - t, time.process_time() - tc, len(other._dockings))
+            for f, os_ in partners.items():   # the same numbers either way
+                assert all(other.pose(f, o) == writer.pose(f, o) for o in os_)
+        for name, (wall_s, cpu_s, n) in timings.items():
+            print(f"kept dockings: {n_pairs} pairs {name} by a fresh index: {1e3 * wall_s / n_pairs:.2f} ms wall, "
+                  f"{1e3 * cpu_s / n_pairs:.2f} ms CPU per pair")
+        # writing: each pair's row stored again (one transaction each, as _dock_pair does; synchronous=FULL)
+        from common.matching.index import docking_version
+
+        kept = [empty.docking(*key, writer._inputs[key[0]], writer._inputs[key[1]], docking_version())
+                for key in writer._dockings]
+        t, tc = time.perf_counter(), time.process_time()
+        for rec in kept:
+            empty.put_docking(rec)
+        print(f"kept dockings: {len(kept)} pairs written: {1e3 * (time.perf_counter() - t) / len(kept):.2f} ms wall, "
+              f"{1e3 * (time.process_time() - tc) / len(kept):.2f} ms CPU per pair (storage: {path.parent})")
+        empty._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        rows = empty.count_dockings()
+        db = sqlite3.connect(path)
+        payload = db.execute("SELECT SUM(length(fragment_a) + length(fragment_b) + length(inputs_a) + length(inputs_b)"
+                             " + length(docking_version) + 8 * 9 + 1 + length(pose) + length(alternatives))"
+                             " FROM dockings").fetchone()[0]
+        db.close()
+        print(f"kept dockings: store {os.path.getsize(path) - base} bytes for {rows} pairs = "
+              f"{(os.path.getsize(path) - base) / rows:.0f} bytes per pair in the file "
+              f"({payload / rows:.0f} bytes of row payload: names, digests, version, numbers, JSON poses)")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="250,500,1000,2000")
@@ -87,6 +159,9 @@ def main() -> int:
                          "copy (pool: one pass per pool fragment; for large n on a busy machine)")
     ap.add_argument("--dock-candidates", type=int, default=DOCK_CANDIDATES,
                     help=f"with --pool: candidates docked per proposal (default {DOCK_CANDIDATES})")
+    ap.add_argument("--kept-dockings", type=int, default=0,
+                    help="with --pool: fragments proposed with their dockings kept in a proposal store, then read "
+                         "by a fresh index against docked by one without the store (module docstring)")
     ap.add_argument("--rerank-sample", type=int, default=0,
                     help="with --pool, at sizes above --full-rerank-max: estimate the full re-rank from this many "
                          "fragments (each proposed and docked on arrival, then re-ranked under the new model) plus "
@@ -254,6 +329,8 @@ def main() -> int:
                   f"(a pair new to both fragments' best counted twice, docked once) at n = {n}; each job "
                   f"{1e3 * np.mean([x for x in follow if x]) if with_new else 0:.0f} ms CPU (mean), "
                   f"{n * np.mean(follow):.0f} s CPU in all ({n * np.mean(follow) / 60:.1f} min)")
+        if args.pool and args.kept_dockings:
+            measure_kept_dockings(index, model, args.kept_dockings, docked, rng)
         t = time.perf_counter()
         rerank(index, model, stored_pairs)
         rescore = time.perf_counter() - t
