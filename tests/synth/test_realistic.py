@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from common.synth import generate_wall
-from common.synth.realistic import (MaterialLoss, fragment_rgba, lose_material, paint_plaster, plaster_palette,
-                                    round_outline, write_collection)
+from common.synth.realistic import (REGION_SHARE_BOUNDS, MaterialLoss, fragment_rgba, lose_material, paint_plaster,
+                                    plaster_palette, recovered_region, round_outline, write_collection)
 from common.synth.figures import to_srgb8
 from common.synth.stats import _lab, neighbour_gaps, read_collection, wall_collection
 
@@ -77,6 +77,33 @@ def test_pompeii_wall_is_colour_only_with_big_pieces_and_gapped_neighbours():
     assert len(pairs) >= 3 and np.median(gaps_mm) > 1.0  # material lost along the cracks
     # correspondences exist for every pair, despite the gaps
     assert all(len(wall.correspondences[(a, b)][0]) > 0 for a, b, _ in wall.adjacency)
+
+
+@pytest.mark.parametrize("seed, share_before", [(10, 0.0), (17, 0.0), (63, 0.0), (2, 0.279), (69, 0.975),
+                                                 (1, 0.657), (40, 0.782)])
+def test_the_recovered_patch_keeps_a_bounded_share_of_the_wall(seed, share_before):
+    """At the fixed threshold alone these fields kept ``share_before`` of the rectangle (generate_wall
+    gives the field the rng ``[seed, 4241]``); every wall keeps 45-85 %, and one whose field kept a
+    share within those bounds keeps exactly its outline (seeds 1, 40)."""
+    W, H = 509.0, 342.0
+    ys, xs = np.mgrid[0:H:2, 0:W:2]
+    keep = recovered_region(W, H, np.random.default_rng([seed, 4241]))
+    share = keep(xs, ys).mean()
+    low, high = REGION_SHARE_BOUNDS
+    assert low - 0.01 <= share <= high + 0.01
+    if low <= share_before <= high:
+        assert share == pytest.approx(share_before, abs=5e-4)
+    # irregular: the rectangle's corners are lost, its centre kept
+    assert not keep(np.array([2.0, W - 2]), np.array([2.0, H - 2])).any()
+
+
+def test_a_small_wall_of_an_unlucky_seed_breaks_into_pieces_of_the_presets_sizes():
+    """Seed 63's field kept none of the wall: 8 fragments failed with 'broke into only 0 usable
+    pieces' (seed 65's kept 5 %: pieces of 1.7 cm median). Now both give the preset's 2-20 cm."""
+    for seed in (63, 65):
+        wall = generate_wall(8, seed=seed, dpi=15, preset="pompeii", colour_only=True)
+        sizes = np.sqrt([f.area_mm2 for f in wall.fragments])
+        assert len(wall.fragments) == 8 and np.median(sizes) > 45 and sizes.min() > 20 and sizes.max() < 200
 
 
 def test_same_palette_seed_shares_colours_across_walls():
