@@ -198,6 +198,10 @@ def segment_source(source, *, scale: float = 1.0, sigma_px: float = 0.8, min_siz
 #: A superpixel's initial internal difference, in standard deviations of its pixels' features:
 #: the largest edge of the pixel graph's spanning tree inside a region is a few deviations.
 SPREAD_FACTOR = 1.25
+#: SLIC's blocks: at least this many f x f pixel blocks make one superpixel (:func:`_decimation`).
+BLOCKS_PER_SUPERPIXEL = 16
+#: SLIC's k-means iterations.
+SLIC_ITERATIONS = 5
 
 
 def _feature_windows(read, shape, sigma_px: float, colour_weight: float, normal_weight: float):
@@ -226,82 +230,211 @@ def _feature_windows(read, shape, sigma_px: float, colour_weight: float, normal_
     return window
 
 
+def _decimation(superpixel_px: float) -> int:
+    """Side f of the pixel blocks SLIC works on: the largest with >= :data:`BLOCKS_PER_SUPERPIXEL`
+    blocks in a superpixel (64-px superpixels: 2 x 2 blocks)."""
+    return max(1, int(np.sqrt(superpixel_px / BLOCKS_PER_SUPERPIXEL)))
+
+
+def _block_sums(values: np.ndarray, f: int) -> np.ndarray:
+    """Sums of ``values`` (H, W[, C]) over f x f blocks, the last block row and column partial:
+    the rows of each block first (whole contiguous rows added), then the columns."""
+    h, w = values.shape[:2]
+    hs, ws = -(-h // f), -(-w // f)
+    rows = np.zeros((hs,) + values.shape[1:], np.float32)
+    for dy in range(f):
+        part = values[dy::f]
+        rows[:part.shape[0]] += part
+    out = np.zeros((hs, ws) + values.shape[2:], np.float32)
+    for dx in range(f):
+        part = rows[:, dx::f]
+        out[:, :part.shape[1]] += part
+    return out
+
+
 def _segment_superpixels(window, shape, *, scale: float, min_size: int, superpixel_px: float,
                          tile: int = 2048) -> np.ndarray:
-    """SLIC superpixels (in tiles of ``tile`` px, each read by ``window(r0, r1, c0, c1) ->
-    (features, mask)``) merged by Felzenszwalb-Huttenlocher's criterion on their adjacency graph;
-    labels by decreasing area, -1 outside the mask. Memory: the (H, W) int32 label map, one tile's
-    work and a few numbers per superpixel."""
-    from skimage.segmentation import slic
+    """SLIC superpixels (Achanta et al. 2012; in tiles of ``tile`` px, each read by
+    ``window(r0, r1, c0, c1) -> (features, mask)``) merged by Felzenszwalb-Huttenlocher's
+    criterion on their adjacency graph; labels by decreasing area, -1 outside the mask.
 
+    SLIC runs on the means of f x f pixel blocks (:func:`_superpixel_tile`), f^2 times fewer
+    pixels for the same superpixels, and the boundaries between unlike superpixels are then
+    placed at full resolution. Memory: the (H, W) int32 label map, one tile's work and a few
+    numbers per superpixel."""
     h, w = shape
+    f = _decimation(superpixel_px)
+    tile = max(f, tile - tile % f)   # tiles start on the block grid
+    tau = float(scale) / 255.0
     sp = np.full((h, w), -1, np.int32)
     nxt = 0
-    areas, sums, sqs = [], [], []
+    areas, sums, sqs, pairs = [], [], [], []
     for r0 in range(0, h, tile):
         for c0 in range(0, w, tile):
             r1, c1 = min(h, r0 + tile), min(w, c0 + tile)
             feats, m = window(r0, r1, c0, c1)
             if not m.any():
                 continue
-            n_seg = max(1, int(m.size / superpixel_px))
-            lab = slic(feats, n_segments=n_seg, compactness=0.05, sigma=0, channel_axis=-1, start_label=0,
-                       max_num_iter=5, enforce_connectivity=True)
-            # a superpixel that straddles the mask border is cut by it; the tile's labels that
-            # occur inside the mask are numbered densely (a bincount and a cumulative sum: linear,
-            # no sort), after the previous tiles'
-            present = np.bincount(lab[m] if not m.all() else lab.ravel(), minlength=int(lab.max()) + 1) > 0
-            dense = np.cumsum(present) - 1
-            n = int(present.sum())
-            local = np.where(m, dense[lab], -1)
-            sp[r0:r1, c0:c1] = np.where(m, local + nxt, -1)
-            # per-superpixel sums over bin local + 1 (bin 0: outside the mask, dropped)
-            flat = (local + 1).ravel()
-            areas.append(np.bincount(flat, minlength=n + 1)[1:].astype(np.float64))
-            s1, s2 = [], []
-            for c in range(feats.shape[2]):
-                v = feats[..., c].ravel().astype(np.float64)
-                s1.append(np.bincount(flat, weights=v, minlength=n + 1)[1:])
-                v *= v
-                s2.append(np.bincount(flat, weights=v, minlength=n + 1)[1:])
-            sums.append(np.stack(s1, axis=1))
-            sqs.append(np.stack(s2, axis=1))
-            nxt += n
+            local, area, s1, s2, codes = _superpixel_tile(feats, m, f, max(1, int(m.size / superpixel_px)), tau)
+            del feats
+            sp[r0:r1, c0:c1] = np.where(local >= 0, local + nxt, -1)
+            areas.append(area)
+            sums.append(s1)
+            sqs.append(s2)
+            pairs.append(codes + ((nxt << 32) | nxt))
+            nxt += area.size
     k = nxt
     if k == 0:
         return sp
-    area = np.concatenate(areas)
-    sums, sq = np.concatenate(sums), np.concatenate(sqs)
-    means = sums / np.maximum(area, 1)[:, None]
-    var = np.maximum(sq / np.maximum(area, 1)[:, None] - means ** 2, 0.0)
-    # a superpixel starts with the internal difference of its own pixels (their spread), as the
-    # pixel graph's Int(C) would have grown while building it
-    spread = SPREAD_FACTOR * np.sqrt(var.sum(axis=1))
-    # adjacency of superpixels (4-connected), in strips of rows so temporaries stay small
-    pairs = []
-    for r0 in range(0, h, tile):
-        strip = sp[r0:min(h, r0 + tile + 1)]
-        for a, b in ((strip[:tile, :-1], strip[:tile, 1:]), (strip[:-1], strip[1:])):
-            d = (a != b) & (a >= 0) & (b >= 0)
-            a, b = a[d].astype(np.int64), b[d].astype(np.int64)
-            codes = np.minimum(a, b) * k + np.maximum(a, b)
-            # a boundary is crossed by the same pair pixel after pixel: drop those repeats
-            # (linear) before the sort-based unique sees the codes
-            if codes.size > 1:
-                codes = codes[np.concatenate(([True], codes[1:] != codes[:-1]))]
-            pairs.append(np.unique(codes))
-    codes = np.unique(np.concatenate(pairs)) if pairs else np.zeros(0, np.int64)
-    ea, eb = codes // k, codes % k
+    # adjacency across the tiles' seams, on the rows and columns either side
+    seams = [(sp[r - 1], sp[r]) for r in range(tile, h, tile)] + [(sp[:, c - 1], sp[:, c]) for c in range(tile, w, tile)]
+    for a, b in seams:
+        d = (a != b) & (a >= 0) & (b >= 0)
+        pairs.append(_pair_codes(a[d], b[d]))
+    codes = np.unique(np.concatenate(pairs))
+    ea, eb = codes >> 32, codes & 0xFFFFFFFF
+    area, means, spread = _superpixel_stats(np.concatenate(areas), np.concatenate(sums), np.concatenate(sqs))
     weight = np.sqrt(((means[ea] - means[eb]) ** 2).sum(axis=1))
     order = np.argsort(weight, kind="stable")
     ea, eb = ea[order], eb[order]
-    root = _felzenszwalb_merge(ea, eb, weight[order], area, spread, float(scale) / 255.0, int(min_size))
-    # number the segments by decreasing area on the superpixels, then one gather over the image
-    seg = _relabel_by_area(root, np.ones(k, bool), weights=area)
+    root = _felzenszwalb_merge(ea, eb, weight[order], area, spread, tau, int(min_size))
+    # number the segments by decreasing area on the superpixels (a superpixel whose pixels all
+    # went to its neighbours has none left), then one gather over the image
+    seg = _relabel_by_area(root, area > 0, weights=area)
     for r0 in range(0, h, tile):   # in place, strip by strip
         strip = sp[r0:r0 + tile]
         strip[...] = np.where(strip >= 0, seg[np.maximum(strip, 0)], -1)
     return sp
+
+
+def _superpixel_stats(area, sums, sqs):
+    """(area, mean features, initial internal difference) of superpixels from their pixel count
+    and the sums of their features and squared features."""
+    n = np.maximum(area, 1)[:, None]
+    means = sums / n
+    var = np.maximum(sqs / n - means ** 2, 0.0)
+    # a superpixel starts with the internal difference of its own pixels (their spread), as the
+    # pixel graph's Int(C) would have grown while building it
+    return area, means, SPREAD_FACTOR * np.sqrt(var.sum(axis=1))
+
+
+def _superpixel_tile(feats: np.ndarray, m: np.ndarray, f: int, n_segments: int, tau: float):
+    """SLIC superpixels of one tile (features (h, w, C), mask (h, w)) found on f x f blocks and
+    refined at full resolution; returns (labels (h, w) int32, 0..n-1 inside the mask, -1 outside;
+    each superpixel's pixel count, feature sums (n, C) and squared-feature sums (n, C); the codes
+    ``a << 32 | b``, a < b, of the 4-adjacent pairs).
+
+    SLIC (Achanta et al. 2012, scikit-image's compiled implementation) clusters the block means;
+    a superpixel's statistics are those of its own pixels inside the mask (block sums of the
+    features and their squares). A block mean that straddles a step is a colour of neither side,
+    and SLIC makes superpixels of such blocks, whole blocks wide: so every pixel of a block on a
+    boundary between two superpixels that Felzenszwalb-Huttenlocher's criterion would not join
+    (weight > min(Int + tau / |C|) of the two, each on its own) takes the superpixel, among its
+    own and those f px away in the 8 directions, whose mean is nearest its features; a superpixel
+    of a ramp's blocks keeps the ramp's middle only, as at full resolution.
+    """
+    from skimage.segmentation import slic
+
+    h, w = m.shape
+    if m.all():
+        count = np.outer(np.minimum(f, h - f * np.arange(-(-h // f))),   # pixels per block (the last
+                         np.minimum(f, w - f * np.arange(-(-w // f)))).astype(np.float32)   # ones may be partial)
+        inside = _block_sums(feats, f)
+        sq = _block_sums(np.square(feats), f)
+    else:
+        mf = m.astype(np.float32)
+        count = _block_sums(mf, f)
+        masked = feats * mf[..., None]
+        inside = _block_sums(masked, f)
+        masked *= feats
+        sq = _block_sums(masked, f)
+        del masked
+    valid = count > 0
+    # the blocks' mean features inside the mask (0 in the blocks outside it)
+    lab = slic(inside / np.maximum(count, 1)[..., None], n_segments=n_segments, compactness=0.05, sigma=0,
+               channel_axis=-1, start_label=0, max_num_iter=SLIC_ITERATIONS, enforce_connectivity=True)
+    # a superpixel that straddles the mask border is cut by it; the labels that occur inside the
+    # mask are numbered densely (a bincount and a cumulative sum: linear, no sort)
+    present = np.bincount(lab[valid], minlength=int(lab.max()) + 1) > 0
+    n = int(present.sum())
+    local = np.where(valid, np.cumsum(present)[lab] - 1, -1).astype(np.int32)
+    flat = (local + 1).ravel()   # bin 0: outside the mask, dropped
+    area = np.bincount(flat, weights=count.ravel(), minlength=n + 1)[1:]
+    s1 = np.stack([np.bincount(flat, weights=inside[..., c].ravel(), minlength=n + 1)[1:]
+                   for c in range(inside.shape[2])], axis=1)
+    s2 = np.stack([np.bincount(flat, weights=sq[..., c].ravel(), minlength=n + 1)[1:]
+                   for c in range(sq.shape[2])], axis=1)
+    # the 4-adjacent block pairs of different superpixels, a code per facing pair
+    sides = []
+    for a, b in ((local[:, :-1], local[:, 1:]), (local[:-1], local[1:])):
+        d = (a != b) & (a >= 0) & (b >= 0)
+        sides.append((d, _pair_codes(a[d], b[d], repeats=True)))
+    codes = np.unique(np.concatenate([_drop_repeats(c) for _, c in sides]))
+    labels = np.where(m, local.repeat(f, axis=0)[:h].repeat(f, axis=1)[:, :w], -1) if f > 1 else local
+    if f == 1 or codes.size == 0:
+        return labels, area, s1, s2, codes
+    # the blocks on a boundary between unlike superpixels, by the criterion the merging applies
+    _, means, spread = _superpixel_stats(area, s1, s2)
+    ea, eb = codes >> 32, codes & 0xFFFFFFFF
+    limit = spread + tau / np.maximum(area, 1)
+    unlike = np.sqrt(((means[ea] - means[eb]) ** 2).sum(axis=1)) > np.minimum(limit[ea], limit[eb])
+    marked = np.zeros(local.shape, bool)
+    hits = []
+    for (d, c), (ma, mb) in zip(sides, ((marked[:, :-1], marked[:, 1:]), (marked[:-1], marked[1:]))):
+        hit = np.zeros(d.shape, bool)
+        hit[d] = unlike[np.searchsorted(codes, c)]
+        ma |= hit
+        mb |= hit
+        hits.append(hit)
+    # their pixels take the nearest superpixel among their own and those f px away
+    ys, xs = np.nonzero(marked.repeat(f, axis=0)[:h].repeat(f, axis=1)[:, :w] & (labels >= 0))
+    x = feats[ys, xs]
+    means = means.astype(np.float32)
+    own = labels[ys, xs]
+    best, best_d = own, ((means[own] - x) ** 2).sum(axis=1)
+    for dy in (-f, 0, f):
+        for dx in (-f, 0, f):
+            if dy == dx == 0:
+                continue
+            cand = labels[np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)]
+            dist = ((means[np.maximum(cand, 0)] - x) ** 2).sum(axis=1)
+            better = (dist < best_d) & (cand >= 0)
+            best = np.where(better, cand, best)
+            best_d = np.where(better, dist, best_d)
+    moved = best != own
+    x, own, best = x[moved].astype(np.float64), own[moved], best[moved]
+    labels[ys[moved], xs[moved]] = best
+    area = area - np.bincount(own, minlength=n) + np.bincount(best, minlength=n)
+    for c in range(x.shape[1]):
+        v = x[:, c]
+        s1[:, c] += np.bincount(best, weights=v, minlength=n) - np.bincount(own, weights=v, minlength=n)
+        v = v * v
+        s2[:, c] += np.bincount(best, weights=v, minlength=n) - np.bincount(own, weights=v, minlength=n)
+    # adjacency: the block pairs away from the marked blocks, and the pixel pairs at and beside them
+    pairs = []
+    for (d, c), (ma, mb) in zip(sides, ((marked[:, :-1], marked[:, 1:]), (marked[:-1], marked[1:]))):
+        pairs.append(_drop_repeats(c[~(ma | mb)[d]]))
+    for dy, dx in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        y2, x2 = ys + dy, xs + dx
+        on = (y2 >= 0) & (y2 < h) & (x2 >= 0) & (x2 < w)
+        a, b = labels[ys[on], xs[on]], labels[y2[on], x2[on]]
+        d = (a != b) & (a >= 0) & (b >= 0)
+        pairs.append(_pair_codes(a[d], b[d]))
+    return labels, area, s1, s2, np.unique(np.concatenate(pairs))
+
+
+def _pair_codes(a: np.ndarray, b: np.ndarray, repeats: bool = False) -> np.ndarray:
+    """Codes ``min << 32 | max`` of facing labels ``a``, ``b`` (1-d, int32): one per pixel pair
+    (``repeats``) or with a pair repeating the one before dropped (:func:`_drop_repeats`)."""
+    a, b = a.astype(np.int64), b.astype(np.int64)
+    codes = (np.minimum(a, b) << 32) | np.maximum(a, b)
+    return codes if repeats else _drop_repeats(codes)
+
+
+def _drop_repeats(codes: np.ndarray) -> np.ndarray:
+    """``codes`` without the elements equal to the one before: a boundary is crossed by the same
+    pair pixel after pixel, and this linear pass spares the sort-based unique most of them."""
+    return codes[np.concatenate(([True], codes[1:] != codes[:-1]))] if codes.size > 1 else codes
 
 
 def _felzenszwalb_merge(ea: np.ndarray, eb: np.ndarray, weight: np.ndarray, area: np.ndarray,
