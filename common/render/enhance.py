@@ -142,13 +142,21 @@ def tone_curve(values: np.ndarray, low: float, high: float) -> np.ndarray:
     return out
 
 
-def shoulder(values: np.ndarray, knee: float = 0.8) -> np.ndarray:
+def shoulder(values: np.ndarray, knee: float = 0.8, *, out: np.ndarray | None = None) -> np.ndarray:
     """Highlight roll-off: identity below ``knee``, then ``knee + (1 - knee) tanh((v - knee) /
-    (1 - knee))`` — values above 1 approach white instead of clipping (slope 1 at the knee)."""
-    v = np.array(values, np.float32)   # a copy, rolled off in place where it is above the knee
+    (1 - knee))`` — values above 1 approach white instead of clipping (slope 1 at the knee).
+    ``out``: the array to write to (may be ``values`` itself); None makes a copy."""
+    if out is None:
+        v = np.array(values, np.float32)
+    else:
+        v = out
+        if out is not values:
+            np.copyto(v, values)
     room, k = np.float32(1.0 - knee), np.float32(knee)
-    over = v > k
-    v[over] = k + room * np.tanh((v[over] - k) / room)   # usually a small share of the pixels
+    # usually a small share of the pixels: found by one comparison, then only they are gathered
+    flat = v.reshape(-1)
+    over = np.flatnonzero(flat > k)
+    flat[over] = k + room * np.tanh((flat[over] - k) / room)
     return v
 
 

@@ -408,7 +408,7 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
     lo, hi = _range(lum, image.mask, exposure, r, "exposure")
     del lum
     out *= np.float32(1.0 / max(hi, 1e-6))
-    out = _enhance.shoulder(out)
+    _enhance.shoulder(out, out=out)
     # diffuse times an exposed colour plus highlights scaled by the brightest: the lightness a
     # uniform material keeps can be narrow (a coin: 47 % of the tone range), so it is exposed too
     return _cover(image, _exposed_lightness(out, image.mask, lightness, r), r)

@@ -243,11 +243,10 @@ def gooch_of_cosine(cosine: np.ndarray, *, albedo: np.ndarray | None = None, blu
 
     cosine = np.asarray(cosine, np.float32)
     kd = None if albedo is None else _check_colour(albedo, cosine.shape)
-    # t k_warm + (1 - t) k_cool = kd (alpha + (beta - alpha) t) + k0 + t k1, with k0 = (0, 0, blue)
-    # and k1 = (yellow, yellow, -blue): a colour times a plane plus a plane times a colour, which
-    # OpenCV computes on interleaved channels (numpy's broadcast over a last axis of 3 is slow), a
-    # strip of rows at a time
-    k01 = np.array([[yellow, 0.0], [yellow, 0.0], [-blue, blue]], np.float32)
+    # t k_warm + (1 - t) k_cool = kd (alpha + (beta - alpha) t) + (yellow t, yellow t, blue (1 - t)):
+    # a colour times a plane plus three planes, which OpenCV computes on interleaved channels
+    # (numpy's broadcast over a last axis of 3 is slow; cv2.transform of t, 3x slower than the
+    # planes and their merge), a strip of rows at a time
     out = np.empty(cosine.shape + (3,), np.float32)
     for r0, r1, _, _ in strips(cosine.shape, 0):
         t = cosine[r0:r1] + np.float32(1.0)
@@ -260,7 +259,10 @@ def gooch_of_cosine(cosine: np.ndarray, *, albedo: np.ndarray | None = None, blu
             cv2.merge([a, a, a], dst=o)
         else:
             cv2.multiply(np.ascontiguousarray(kd[r0:r1]), cv2.merge([a, a, a]), dst=o)
-        cv2.add(o, cv2.transform(cv2.merge([t, np.ones_like(t)]), k01), dst=o)
+        warm = t * np.float32(yellow)
+        t *= np.float32(-blue)
+        t += np.float32(blue)
+        cv2.add(o, cv2.merge([warm, warm, t]), dst=o)
         np.clip(o, 0.0, 1.0, out=o)
     return out
 
@@ -414,13 +416,14 @@ def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, fine
         levels += [smoothed_rows(normals, mask, s, (r0, r1), (a0, a1), floor, stack=stack,
                                  foreshortening=foreshortening) for _, s in todo]
         del stack
-        if partner is not None:
-            levels.append(unit_rows(partner.full((h, w), rows=(r0, r1))))
+        if partner is not None:   # interpolated, not made unit: the term divides by its length
+            levels.append(partner.full((h, w), rows=(r0, r1)))
         ls = l[r0:r1] if l.ndim == 3 else l
         t = out[r0:r1]
         t[...] = 0.0
         for k in range(len(levels) - 1):
-            term = _exaggerated_term(levels[k], levels[k + 1], ls, a)
+            term = _exaggerated_term(levels[k], levels[k + 1], ls, a,
+                                     unit=partner is None or k + 1 < len(levels) - 1)
             term *= np.float32(weights[k])
             t += term
         if partner is None and base_weight > 0:
@@ -428,18 +431,30 @@ def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, fine
     return out
 
 
-def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a: np.float32) -> np.ndarray:
+def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a: np.float32, *,
+                      unit: bool = True) -> np.ndarray:
     """clamp(a n_i . l_{i+1}, -1, 1) with l_{i+1} = (l - (l.nc) nc) / |...|, |...|^2 = 1 - (l.nc)^2.
 
     (H, W) float32; computed in place on three (H, W) arrays (the per-pixel n_i . nc as a product
-    summed by one matrix-vector product, not einsum's strided loop)."""
+    summed by one matrix-vector product, not einsum's strided loop). ``unit=False``: ``n_coarse``
+    is any vector ``v`` along the coarse normal (an interpolated one), ``nc = v / |v|`` taken in
+    the products — ``(l.nc)(n_i.nc) = (l.v)(n_i.v) / |v|^2`` — instead of made."""
     lc = dot_light(n_coarse, l)
     prod = np.multiply(n_fine, n_coarse)
-    c = prod @ np.ones(3, np.float32)           # n_i . nc
+    c = prod @ np.ones(3, np.float32)           # n_i . nc  (n_i . v)
+    if not unit:
+        np.multiply(n_coarse, n_coarse, out=prod)
+        q = prod @ np.ones(3, np.float32)       # |v|^2
+        np.maximum(q, np.float32(1e-24), out=q)
+        np.reciprocal(q, out=q)
     del prod
     c *= lc
+    if not unit:
+        c *= q                                  # (l . v)(n_i . v) / |v|^2
     np.subtract(dot_light(n_fine, l), c, out=c)  # n_i . l - (l . nc)(n_i . nc)
     np.multiply(lc, lc, out=lc)
+    if not unit:
+        lc *= q                                 # (l . nc)^2
     np.subtract(np.float32(1.0), lc, out=lc)
     np.maximum(lc, np.float32(1e-8), out=lc)
     np.sqrt(lc, out=lc)

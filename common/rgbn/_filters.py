@@ -21,9 +21,7 @@ def gaussian_blur(values: np.ndarray, sigma_px: float) -> np.ndarray:
     if sigma_px <= 0:
         return values.copy()
     h, w = values.shape[:2]
-    factor = 1
-    while sigma_px / (factor * 2) >= _DIRECT_SIGMA / 2 and min(h, w) // (factor * 2) >= 8:
-        factor *= 2
+    factor = decimation_factor(sigma_px, values.shape)
     if factor == 1:
         return _blur_direct(values, sigma_px)
     small_shape = (max(1, round(w / factor)), max(1, round(h / factor)))
@@ -35,6 +33,34 @@ def gaussian_blur(values: np.ndarray, sigma_px: float) -> np.ndarray:
     if values.ndim == 3 and out.ndim == 2:
         out = out[..., None]
     return out
+
+
+def decimation_factor(sigma_px: float, shape) -> int:
+    """The power-of-two step of the downsampled copy :func:`gaussian_blur` applies ``sigma_px`` on
+    for an image of ``shape`` (1: at full resolution)."""
+    h, w = shape[:2]
+    factor = 1
+    while sigma_px / (factor * 2) >= _DIRECT_SIGMA / 2 and min(h, w) // (factor * 2) >= 8:
+        factor *= 2
+    return factor
+
+
+def upsampled_rows(small: np.ndarray, shape, rows) -> np.ndarray:
+    """Rows ``r0:r1`` of ``cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR)`` (``shape`` =
+    (H, W), a whole multiple ``f`` of ``small``'s) without making the whole: the small rows those
+    rows interpolate from, with one more on each side (so no border is replicated inside),
+    resized to ``f`` times their height, which puts every output row at the same source
+    position as the whole resize does; the same values."""
+    h, w = shape[:2]
+    hh = small.shape[0]
+    f = h // hh
+    r0, r1 = int(rows[0]), int(rows[1])
+    i0 = max(0, (r0 - f) // f)                     # a small row below the first one read ...
+    i1 = min(hh, (r1 + f) // f + 1)                # ... and one past the last
+    part = cv2.resize(np.ascontiguousarray(small[i0:i1]), (w, (i1 - i0) * f), interpolation=cv2.INTER_LINEAR)
+    if small.ndim == 3 and part.ndim == 2:
+        part = part[..., None]
+    return part[r0 - i0 * f:r1 - i0 * f]
 
 
 def decimated_sigma(sigma_px: float, factor: int) -> float:

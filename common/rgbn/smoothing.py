@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.rgbn._filters import _blur_direct, blurs_directly, check_mask, check_normals, gaussian_blur, gaussian_reach
+from common.rgbn._filters import (_blur_direct, blurs_directly, check_mask, check_normals, decimated_sigma,
+                                  decimation_factor, gaussian_blur, gaussian_reach, upsampled_rows)
 
 #: Smallest nz used in the 1/nz weight: silhouette pixels (nz -> 0) would otherwise dominate.
 NZ_MIN = 0.05
@@ -177,10 +178,28 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
     out = [np.empty((h, w), np.float32) for _ in directions]
     direct = sigma_px > 0 and blurs_directly(sigma_px, normals.shape)
     floor = weight_floor(normals, mask, foreshortening=foreshortening, nz_min=nz_min)
-    whole = None
+    blurred_of = None   # rows r0:r1 of the blurred stack, for a sigma blurred on a coarser grid
     if sigma_px > 0 and not direct:
-        whole = gaussian_blur(weighted_stack(normals, mask, foreshortening=foreshortening, nz_min=nz_min),
-                              float(sigma_px))
+        f = decimation_factor(sigma_px, normals.shape)
+        if h % f == 0 and w % f == 0:
+            # gaussian_blur's own steps, with neither the stack nor its blur at the image's size:
+            # the f x f area means (INTER_AREA at a whole factor) strip by strip, the blur on that
+            # grid, and each strip's rows of the bilinear upsampling; the same values
+            small = np.empty((h // f, w // f, 4), np.float32)
+            for i0, i1, _, _ in strips((h // f, w * f), 0):   # ~1 Mpx of the image at a time
+                st = weighted_stack(normals[i0 * f:i1 * f], mask[i0 * f:i1 * f], foreshortening=foreshortening,
+                                    nz_min=nz_min)
+                small[i0:i1] = cv2.resize(st, (w // f, i1 - i0), interpolation=cv2.INTER_AREA).reshape(i1 - i0, -1, 4)
+            small = _blur_direct(small, decimated_sigma(sigma_px, f))
+
+            def blurred_of(r0, r1):
+                return upsampled_rows(small, (h, w), (r0, r1))
+        else:
+            whole = gaussian_blur(weighted_stack(normals, mask, foreshortening=foreshortening, nz_min=nz_min),
+                                  float(sigma_px))
+
+            def blurred_of(r0, r1):
+                return whole[r0:r1]
     ones = np.ones(3, np.float32)
 
     def dot(x, v):   # x . v per pixel, v a vector or a field of the rows' vectors
@@ -194,7 +213,7 @@ def smoothed_cosines(normals: np.ndarray, sigma_px: float, directions, *, mask: 
                 b, empty = blurred_rows(normals, mask, float(sigma_px), (r0, r1), (a0, a1), floor,
                                         foreshortening=foreshortening, nz_min=nz_min)
             else:
-                b = whole[r0:r1]
+                b = blurred_of(r0, r1)
                 empty = b[..., 3] <= floor
             b = cv2.cvtColor(b, cv2.COLOR_BGRA2BGR)   # (w n): contiguous, the weight dropped
             inv = np.multiply(b, b) @ ones

@@ -144,3 +144,23 @@ def test_smoothed_cosines_are_the_smoothed_normals_cosines_with_each_light(monke
             assert len(asked) > 5   # strips
             assert np.abs(got_l[:, 80:] - n[:, 80:] @ l).max() < 1e-6   # nothing within reach: the input's
         asked.clear()
+
+
+@pytest.mark.parametrize("shape", [(148, 96), (150, 97)])
+def test_smoothed_cosines_of_a_coarse_sigma_equal_the_whole_stacks_blur_strip_by_strip(monkeypatch, shape):
+    """A sigma blurred on a downsampled copy: the stack area-averaged, blurred and upsampled a
+    strip at a time (an image a whole multiple of the grid) or as a whole (any other) gives the
+    cosines of gaussian_blur's blur of the whole stack, bit for bit."""
+    from common.rgbn import smoothing
+    from common.rgbn._filters import decimation_factor, gaussian_blur
+    from common.rgbn.smoothing import smoothed_cosines, weighted_stack
+
+    n, mask = _rough_normals(7, mask_columns=(10, 60))
+    n, mask = np.ascontiguousarray(n[:shape[0], :shape[1]]), np.ascontiguousarray(mask[:shape[0], :shape[1]])
+    l = np.array([0.3, -0.2, 0.9], np.float32) / np.float32(np.linalg.norm([0.3, -0.2, 0.9]))
+    assert decimation_factor(16.0, shape) == 4
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", 96 * 9)
+    b = gaussian_blur(weighted_stack(n, mask), 16.0)[..., :3]
+    expect = (b @ l) / np.maximum(np.sqrt(np.einsum("...i,...i->...", b, b)), 1e-12)
+    got = smoothed_cosines(n, 16.0, [l], mask=mask)[0]
+    assert np.abs(got - expect).max() < 2e-6
