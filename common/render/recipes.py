@@ -219,27 +219,42 @@ def _cosines(image: RGBNImage, sigma_px: float, light, level, resolved: dict, *,
     :func:`common.rgbn.smoothing.smoothed_cosines` computes them a strip of rows at a time, so the
     lit styles' only full-size arrays are these planes; in a recipe that shares its smoothed
     normals between layers (:func:`_smoothed`) they are taken from those."""
-    from functools import lru_cache
-
     from common.rgbn.smoothing import smoothed_cosines, unit_rows
 
     sigma = _level_sigma(image, level, resolved)
     field = _enhance.levelled_light(light, _coarse(image, sigma)) if sigma > 0 else None
     l = as_light(light)
+    lz = None   # a per-pixel light's z, kept for its half vector
     if field is None:
         directions = [l, _enhance.half_vector(l)]
     else:
-        @lru_cache(maxsize=1)   # the light of a strip, for its half vector too
-        def light_rows(r0, r1):
-            return unit_rows(field.full(image.shape, rows=(r0, r1)))
+        lz = np.empty(image.shape, np.float32) if half else None
 
-        directions = [light_rows, lambda r0, r1: _enhance.half_vector(light_rows(r0, r1))]
+        def light_rows(r0, r1):
+            rows = unit_rows(field.full(image.shape, rows=(r0, r1)))
+            if lz is not None:
+                lz[r0:r1] = rows[..., 2]
+            return rows
+
+        # with h = (l + v) / |l + v|, v the view (0, 0, 1): n . h = (n . l + n . v) / sqrt(2 + 2 l_z),
+        # so the half vector's cosine comes from the view's, not from a field of half vectors
+        directions = [light_rows, np.array([0.0, 0.0, 1.0], np.float32)]
     directions = directions[:2 if half else 1]
     if _cache.get("share_smoothed") and sigma_px > 0:
         cosines = smoothed_cosines(_smoothed(image, sigma_px), 0.0, directions, mask=image.mask)
     else:
         cosines = smoothed_cosines(image.normals, float(sigma_px), directions, mask=image.mask)
-    return cosines[0], cosines[1] if half else None
+    if not half:
+        return cosines[0], None
+    cos_nh = cosines[1]
+    if lz is not None:
+        cos_nh += cosines[0]
+        lz *= np.float32(2.0)
+        lz += np.float32(2.0)
+        np.maximum(lz, np.float32(1e-24), out=lz)   # |l + v|^2; l = -v has no half vector: 0, as half_vector
+        np.sqrt(lz, out=lz)
+        cos_nh /= lz
+    return cosines[0], cos_nh
 
 
 def _levelled(image: RGBNImage, level, resolved: dict) -> np.ndarray:

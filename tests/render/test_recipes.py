@@ -248,3 +248,25 @@ style = "discontinuity_lines"
         layer = STYLES[style].draw(fragment)                                 # alone: nothing shared
         canvas = recipes._blend(canvas, layer.rgb, layer.alpha.astype(np.float32), "normal")
     assert np.abs(both.rgb - np.clip(canvas, 0, 1)).max() < 1e-6
+
+
+def test_the_half_vector_cosine_under_a_levelled_light_is_that_of_each_pixels_half_vector(fragment):
+    """Independent reference: the smoothed normals dotted with half_vector of the per-pixel light
+    (level_light of the coarse field), against _cosines' n . h taken from n . l and n . v."""
+    from common.render import enhance, recipes
+    from common.rgbn.smoothing import smooth_normals
+
+    image = RGBNImage(albedo=fragment.albedo, mask=fragment.mask, dpi=fragment.dpi,
+                      normals=tilted_plane(72, 20.0, 30.0) * 0.5 + fragment.normals * 0.5)
+    image.normals /= np.linalg.norm(image.normals, axis=2, keepdims=True)
+    recipes._cache.clear()
+    try:
+        r = {}
+        cos_nl, cos_nh = recipes._cosines(image, 1.5, (135.0, 20.0), True, r, half=True)
+        field = enhance.level_light((135.0, 20.0), recipes._coarse(image, r["level"]), image.shape)
+    finally:
+        recipes._cache.clear()
+    n = smooth_normals(image.normals, 1.5, mask=image.mask)
+    assert np.ptp(field[..., 2]) > 0.01                     # a light that varies over the image
+    assert np.abs(cos_nl - np.einsum("...i,...i->...", n, field)).max() < 2e-6
+    assert np.abs(cos_nh - np.einsum("...i,...i->...", n, enhance.half_vector(field))).max() < 2e-6
