@@ -342,10 +342,12 @@ def draw_gooch(image: RGBNImage, light=(135.0, 45.0), colour: bool = True, blue:
 def _exaggerated_signal(image, light, scales, sigma0_px, sigma_ratio, contrast, detail, base_weight, r):
     s0 = _noise_px(image, sigma0_px, r, "sigma0_px")
     shared = _smoothed(image, s0) if _cache.get("share_smoothed") and s0 > 0 else None
-    return _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=s0,
-                                        sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
-                                        base_weight=base_weight, finest=shared,
-                                        origin=image.attrs.get("tile_origin", (0, 0))) - np.float32(0.5)
+    d = _shading.exaggerated_shading(image.normals, light, mask=image.mask, scales=scales, sigma0_px=s0,
+                                     sigma_ratio=sigma_ratio, contrast=contrast, detail=detail,
+                                     base_weight=base_weight, finest=shared,
+                                     origin=image.attrs.get("tile_origin", (0, 0)))
+    d -= np.float32(0.5)
+    return d
 
 
 def draw_exaggerated(image: RGBNImage, light=(135.0, 45.0), scales: int = 6, sigma0_px="auto",
