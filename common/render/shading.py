@@ -360,17 +360,11 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
     n_full = grids.count(1)   # the finest levels (a prefix: sigma grows), drawn in row strips
     pyramid = _WeightedPyramid(normals, mask, foreshortening, origin) if n_full < len(sigmas) else None
     acc: dict = {}
-    prev = None
-    if n_full:
-        # the first coarse level, partner of the last full-resolution one, comes first
-        partner = pyramid.level(sigmas[n_full], grids[n_full]) if pyramid is not None else None
-        acc[1] = _exaggerated_full(normals, mask, sigmas[:n_full], weights, l, a, foreshortening, finest,
-                                   None if partner is None else Coarse(partner, grids[n_full],
-                                                                        pyramid.offset(grids[n_full])),
-                                   0.0 if partner is not None else base_weight)
-        if partner is not None:
-            prev = (partner, grids[n_full])
-        del partner
+    prev = partner = None
+    if n_full and pyramid is not None:
+        # the first coarse level, partner of the last full-resolution one
+        partner = pyramid.level(sigmas[n_full], grids[n_full])
+        prev = (partner, grids[n_full])
     for k in range(n_full + 1 if n_full else 0, len(sigmas)):
         f = grids[k]
         n_k = pyramid.level(sigmas[k], f)
@@ -391,21 +385,33 @@ def exaggerated_shading(normals: np.ndarray, light=(135.0, 45.0), *, mask: np.nd
         acc[f_b] = acc[f_b] + term if f_b in acc else term
         del n_b
     del prev
-    total = acc.pop(1) if 1 in acc else np.zeros((h, w), np.float32)
-    for f, term in acc.items():
-        total += Coarse(term, f, pyramid.offset(f)).full((h, w))
-    total *= np.float32(0.5 / (1.0 + base_weight))
+    scale = np.float32(0.5 / (1.0 + base_weight))
+    terms = [Coarse(term, f, pyramid.offset(f)) for f, term in acc.items()]
+    del acc
+    if n_full:
+        # the full-resolution levels in row strips, each strip adding the coarse grids' terms
+        return _exaggerated_full(normals, mask, sigmas[:n_full], weights, l, a, foreshortening, finest,
+                                 None if partner is None else Coarse(partner, grids[n_full],
+                                                                      pyramid.offset(grids[n_full])),
+                                 0.0 if partner is not None else base_weight, terms, scale)
+    total = np.zeros((h, w), np.float32)
+    for term in terms:
+        total += term.full((h, w))
+    total *= scale
     total += np.float32(0.5)
     return total
 
 
-def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, finest, partner, base_weight):
+def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, finest, partner, base_weight,
+                      terms=(), scale=None):
     """The full-resolution part of :func:`exaggerated_shading`, row strip by row strip (each
     strip's levels, terms and their weighted sum made from the strip and a halo of the widest
     kernel's reach, so no temporary is of the image's size): the weighted terms of the pairs of
     ``sigmas`` (px), then of the last with ``partner`` (the next level on its coarse grid, a
     :class:`common.render.enhance.Coarse`, brought to the strip's rows by bilinear interpolation)
-    or, without one, ``base_weight`` times the base lighting of the last. (H, W) float32."""
+    or, without one, ``base_weight`` times the base lighting of the last; then the ``terms`` drawn
+    on coarser grids (:class:`common.render.enhance.Coarse`, interpolated to the strip's rows, in
+    their order) and, with ``scale``, the sum mapped to ``0.5 + scale * sum``. (H, W) float32."""
     h, w = normals.shape[:2]
     floor = weight_floor(normals, mask, foreshortening=foreshortening)
     out = np.empty((h, w), np.float32)
@@ -421,25 +427,36 @@ def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, fine
         ls = l[r0:r1] if l.ndim == 3 else l
         t = out[r0:r1]
         t[...] = 0.0
+        lit = [dot_light(n, ls) for n in levels]   # n . l of each level, for both of its pairs
         for k in range(len(levels) - 1):
             term = _exaggerated_term(levels[k], levels[k + 1], ls, a,
-                                     unit=partner is None or k + 1 < len(levels) - 1)
+                                     unit=partner is None or k + 1 < len(levels) - 1,
+                                     fine_l=lit[k], coarse_l=lit[k + 1].copy() if k + 2 < len(levels) else lit[k + 1])
             term *= np.float32(weights[k])
             t += term
         if partner is None and base_weight > 0:
             t += np.float32(base_weight) * np.clip(a * dot_light(levels[-1], ls), -1.0, 1.0)
+        del lit, levels
+        for term in terms:
+            t += term.full((h, w), rows=(r0, r1))
+        if scale is not None:
+            t *= scale
+            t += np.float32(0.5)
     return out
 
 
 def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a: np.float32, *,
-                      unit: bool = True) -> np.ndarray:
+                      unit: bool = True, fine_l: np.ndarray | None = None,
+                      coarse_l: np.ndarray | None = None) -> np.ndarray:
     """clamp(a n_i . l_{i+1}, -1, 1) with l_{i+1} = (l - (l.nc) nc) / |...|, |...|^2 = 1 - (l.nc)^2.
 
     (H, W) float32; computed in place on three (H, W) arrays (the per-pixel n_i . nc as a product
     summed by one matrix-vector product, not einsum's strided loop). ``unit=False``: ``n_coarse``
     is any vector ``v`` along the coarse normal (an interpolated one), ``nc = v / |v|`` taken in
-    the products — ``(l.nc)(n_i.nc) = (l.v)(n_i.v) / |v|^2`` — instead of made."""
-    lc = dot_light(n_coarse, l)
+    the products — ``(l.nc)(n_i.nc) = (l.v)(n_i.v) / |v|^2`` — instead of made. ``fine_l``,
+    ``coarse_l``: ``n_fine . l`` and ``n_coarse . l`` when the caller has them (a level is the
+    fine one of one pair and the coarse one of the next); ``coarse_l`` is overwritten."""
+    lc = dot_light(n_coarse, l) if coarse_l is None else coarse_l
     prod = np.multiply(n_fine, n_coarse)
     c = prod @ np.ones(3, np.float32)           # n_i . nc  (n_i . v)
     if not unit:
@@ -451,7 +468,7 @@ def _exaggerated_term(n_fine: np.ndarray, n_coarse: np.ndarray, l: np.ndarray, a
     c *= lc
     if not unit:
         c *= q                                  # (l . v)(n_i . v) / |v|^2
-    np.subtract(dot_light(n_fine, l), c, out=c)  # n_i . l - (l . nc)(n_i . nc)
+    np.subtract(dot_light(n_fine, l) if fine_l is None else fine_l, c, out=c)  # n_i . l - (l . nc)(n_i . nc)
     np.multiply(lc, lc, out=lc)
     if not unit:
         lc *= q                                 # (l . nc)^2
@@ -533,15 +550,6 @@ class _WeightedPyramid:
         o_a, o_b = self.offset(f_from), self.offset(f_to)
         off = ((o_a[0] - o_b[0]) // f_to, (o_a[1] - o_b[1]) // f_to)
         return unit_rows(Coarse(values, f_from // f_to, off).full(self.grid_shape(f_to)))
-
-    def blurred(self, sigma_px: float, f: int) -> Coarse:
-        """The stack blurred to ``sigma_px`` (full-resolution pixels) on grid ``f``, to be brought
-        back to full resolution by bilinear interpolation (:meth:`Coarse.full`, a strip of rows
-        at a time): the blur on the grid makes up what the cells' box and the interpolation's tent
-        leave of the variance (:func:`common.rgbn._filters.decimated_sigma`, as
-        :func:`common.rgbn._filters.gaussian_blur`)."""
-        from common.rgbn._filters import decimated_sigma, gaussian_blur
-        return Coarse(gaussian_blur(self.stack(f), decimated_sigma(sigma_px, f)), f, self.offset(f))
 
     def level(self, sigma_px: float, f: int) -> np.ndarray:
         """Unit normals smoothed at ``sigma_px`` (full-resolution pixels) on grid ``f``."""
@@ -633,10 +641,8 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     coarse : bool
         Compute a level whose sigma is >= 8 px on a grid 2, 4, … times coarser (sigma >= 4 grid
         steps there, where central differences are within ~1 % of the derivative), and bring its
-        curvature back by bilinear interpolation, and blur a level of 4-8 px on grid 2, its
-        blurred stack interpolated back and its curvature taken at full resolution (default; tests:
-        within 1/255 of the full-resolution picture, and 0.5/255 of it for the 4-8 px level). False
-        computes every level at full resolution (the reference).
+        curvature back by bilinear interpolation (default; test: within 1/255 of the full-resolution
+        picture). False computes every level at full resolution (the reference).
 
     Returns
     -------
@@ -667,17 +673,10 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     h, wd = normals.shape[:2]
     px = [s * dpi / 25.4 for s in sigmas]
     grids = [_curvature_grid(p, h, wd, coarse) for p in px]
-    # a full-resolution level of sigma >= 4 px is blurred on grid 2 (>= ~2 grid steps there) and
-    # its blurred stack interpolated back, its curvature taken at full resolution: a fraction of
-    # its blur's cost, within 0.5/255 of the picture (test)
-    halved = [f == 1 and _blurs_halved(p, h, wd, coarse) for p, f in zip(px, grids)]
-    pyramid = _WeightedPyramid(normals, mask, True, origin) if any(halved) or max(grids) > 1 else None
-    full = [(wi * s, p) for wi, s, p, f, half in zip(w, sigmas, px, grids, halved) if f == 1 and not half]
-    blurred = [(wi * s, pyramid.blurred(p, 2)) for wi, s, p, half in zip(w, sigmas, px, halved) if half]
-    total = (_curvature_full(normals, mask, dpi, full, blurred) if full or blurred
-             else np.zeros((h, wd), np.float32))
-    del blurred
-    if max(grids) > 1:
+    full = [(wi * s, p) for wi, s, p, f in zip(w, sigmas, px, grids) if f == 1]
+    total = _curvature_full(normals, mask, dpi, full) if full else np.zeros((h, wd), np.float32)
+    if len(full) < len(sigmas):
+        pyramid = _WeightedPyramid(normals, mask, True, origin)
         acc: dict = {}
         for wi, s, p, f in zip(w, sigmas, px, grids):
             if f == 1:
@@ -698,44 +697,22 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
     return (0.5 + 0.5 * np.tanh(g * total)).astype(np.float32)
 
 
-def _curvature_full(normals, mask, dpi, levels, blurred=()):
+def _curvature_full(normals, mask, dpi, levels):
     """Sum of ``k * H(sigma)`` over ``levels`` = [(k, sigma_px), ...] at full resolution, row
     strip by row strip (each strip smoothed from its rows and a halo of the widest kernel's reach
-    plus the derivative's two rows, so no temporary is of the image's size), and over
-    ``blurred`` = [(k, Coarse)], levels whose weighted stack was blurred on a coarser grid
-    (:meth:`_WeightedPyramid.blurred`), interpolated to each strip's rows. (H, W) float32."""
+    plus the derivative's two rows, so no temporary is of the image's size). (H, W) float32."""
     h, w = normals.shape[:2]
     floor = weight_floor(normals, mask)
     out = np.empty((h, w), np.float32)
-    reach = gaussian_reach(max(p for _, p in levels)) if levels else 0
-    for r0, r1, a0, a1 in strips(normals.shape, reach + 2):
+    for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(max(p for _, p in levels)) + 2):
         e0, e1 = max(0, r0 - 2), min(h, r1 + 2)   # the rows the derivatives of r0:r1 read
+        stack = weighted_stack(normals[a0:a1], mask[a0:a1])
         t = out[r0:r1]
         t[...] = 0.0
-        if levels:
-            stack = weighted_stack(normals[a0:a1], mask[a0:a1])
-            for k, p in levels:
-                H = mean_curvature(smoothed_rows(normals, mask, p, (e0, e1), (a0, a1), floor, stack=stack), dpi)
-                t += np.float32(k) * H[r0 - e0:r1 - e0]
-            del stack
-        for k, grid in blurred:
-            b = grid.full((h, w), rows=(e0, e1))
-            n = unit_rows(b)
-            empty = b[..., 3] <= floor   # as smoothed_rows: the input normal where no mask pixel is in reach
-            if empty.any():
-                copy_where(n, np.ascontiguousarray(normals[e0:e1]), empty)
-            del b
-            H = mean_curvature(n, dpi)
+        for k, p in levels:
+            H = mean_curvature(smoothed_rows(normals, mask, p, (e0, e1), (a0, a1), floor, stack=stack), dpi)
             t += np.float32(k) * H[r0 - e0:r1 - e0]
     return out
-
-
-def _blurs_halved(sigma_px: float, h: int, w: int, enabled: bool = True) -> bool:
-    """Whether a full-resolution curvature level of ``sigma_px`` is blurred on grid 2
-    (:meth:`_WeightedPyramid.blurred`): sigma >= 4 px, whose Gaussian keeps nothing above the
-    grid's Nyquist rate (its response there, exp(-pi^2 sigma^2 / 8), is < 4e-9) and is smooth
-    enough for bilinear interpolation; at least 8 cells a side."""
-    return bool(enabled and sigma_px >= 4.0 and min(h, w) // 2 >= 8)
 
 
 def _curvature_grid(sigma_px: float, h: int, w: int, enabled: bool = True) -> int:
