@@ -12,9 +12,9 @@ import numpy as np
 
 from common.render._util import as_light, check_dpi, dot_light, scale_colour, smoothstep
 from common.render.enhance import Coarse
-from common.rgbn._filters import check_mask, check_normals, gaussian_reach
+from common.rgbn._filters import _blur_direct, check_mask, check_normals, gaussian_reach
 from common.rgbn.curvature import mean_curvature
-from common.rgbn.smoothing import copy_where, smoothed_rows, strips, unit_rows, weight_floor, weighted_stack
+from common.rgbn.smoothing import copy_where, strips, unit_rows, weighted_stack
 
 
 def lambertian(normals: np.ndarray, light=(135.0, 45.0), *, albedo: np.ndarray | None = None,
@@ -411,16 +411,22 @@ def _exaggerated_full(normals, mask, sigmas, weights, l, a, foreshortening, fine
     :class:`common.render.enhance.Coarse`, brought to the strip's rows by bilinear interpolation)
     or, without one, ``base_weight`` times the base lighting of the last; then the ``terms`` drawn
     on coarser grids (:class:`common.render.enhance.Coarse`, interpolated to the strip's rows, in
-    their order) and, with ``scale``, the sum mapped to ``0.5 + scale * sum``. (H, W) float32."""
+    their order) and, with ``scale``, the sum mapped to ``0.5 + scale * sum``. (H, W) float32.
+
+    Only ``w n`` is blurred (:func:`common.rgbn.smoothing.weighted_stack` without its weight, a
+    quarter less blurring): each term is made from one pixel's levels, so a level off the mask
+    beyond its kernel's reach (where :func:`common.rgbn.smoothing.smooth_normals` keeps the input
+    normal) is read only there, outside what is drawn; it is the zero vector here."""
     h, w = normals.shape[:2]
-    floor = weight_floor(normals, mask, foreshortening=foreshortening)
     out = np.empty((h, w), np.float32)
     for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(max(sigmas))):
-        todo = [(k, s) for k, s in enumerate(sigmas) if not (k == 0 and finest is not None)]
-        stack = weighted_stack(normals[a0:a1], mask[a0:a1], foreshortening=foreshortening) if todo else None
+        todo = [s for k, s in enumerate(sigmas) if not (k == 0 and finest is not None)]
+        stack = weighted_stack(normals[a0:a1], mask[a0:a1], foreshortening=foreshortening, weight=False) \
+            if todo else None
         levels = [np.ascontiguousarray(finest[r0:r1])] if finest is not None else []
-        levels += [smoothed_rows(normals, mask, s, (r0, r1), (a0, a1), floor, stack=stack,
-                                 foreshortening=foreshortening) for _, s in todo]
+        for s in todo:
+            b = _blur_direct(stack, float(s))[r0 - a0:r1 - a0]
+            levels.append(unit_rows(b, out=b))
         del stack
         if partner is not None:   # interpolated, not made unit: the term divides by its length
             levels.append(partner.full((h, w), rows=(r0, r1)))
@@ -700,17 +706,22 @@ def multiscale_mean_curvature_shading(normals: np.ndarray, dpi: float, *, mask: 
 def _curvature_full(normals, mask, dpi, levels):
     """Sum of ``k * H(sigma)`` over ``levels`` = [(k, sigma_px), ...] at full resolution, row
     strip by row strip (each strip smoothed from its rows and a halo of the widest kernel's reach
-    plus the derivative's two rows, so no temporary is of the image's size). (H, W) float32."""
+    plus the derivative's two rows, so no temporary is of the image's size). (H, W) float32.
+
+    Only ``w n`` is blurred (:func:`common.rgbn.smoothing.weighted_stack` without its weight): a
+    mask pixel's curvature reads its neighbours one pixel away, always within reach of the mask,
+    so where no mask pixel is in reach (what the blurred weight would tell) is never read, and
+    the sum is 0 off the mask."""
     h, w = normals.shape[:2]
-    floor = weight_floor(normals, mask)
     out = np.empty((h, w), np.float32)
     for r0, r1, a0, a1 in strips(normals.shape, gaussian_reach(max(p for _, p in levels)) + 2):
         e0, e1 = max(0, r0 - 2), min(h, r1 + 2)   # the rows the derivatives of r0:r1 read
-        stack = weighted_stack(normals[a0:a1], mask[a0:a1])
+        stack = weighted_stack(normals[a0:a1], mask[a0:a1], weight=False)
         t = out[r0:r1]
         t[...] = 0.0
         for k, p in levels:
-            H = mean_curvature(smoothed_rows(normals, mask, p, (e0, e1), (a0, a1), floor, stack=stack), dpi)
+            b = _blur_direct(stack, float(p))[e0 - a0:e1 - a0]
+            H = mean_curvature(unit_rows(b, out=b), dpi)
             t += np.float32(k) * H[r0 - e0:r1 - e0]
     return out
 

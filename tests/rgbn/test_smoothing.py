@@ -164,3 +164,20 @@ def test_smoothed_cosines_of_a_coarse_sigma_equal_the_whole_stacks_blur_strip_by
     expect = (b @ l) / np.maximum(np.sqrt(np.einsum("...i,...i->...", b, b)), 1e-12)
     got = smoothed_cosines(n, 16.0, [l], mask=mask)[0]
     assert np.abs(got - expect).max() < 2e-6
+
+
+def test_the_stack_without_its_weight_blurs_to_the_same_directions():
+    """weighted_stack(weight=False) is the (w n) of the full stack, and OpenCV's Gaussian of its three
+    channels equals that of the four's first three, bit for bit (what exaggerated shading's and
+    multiscale curvature's strips rely on)."""
+    import cv2
+
+    from common.rgbn.smoothing import weighted_stack
+
+    n, mask = _rough_normals(7, mask_columns=(10, 60))
+    full, wn = weighted_stack(n, mask), weighted_stack(n, mask, weight=False)
+    assert wn.shape == n.shape and np.array_equal(wn, full[..., :3])
+    for sigma in (0.7, 2.8, 4.7):
+        blur4 = cv2.GaussianBlur(full, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        blur3 = cv2.GaussianBlur(wn, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        assert np.array_equal(blur3, blur4[..., :3])
