@@ -485,8 +485,8 @@ def levelled_light(light, coarse) -> Coarse:
 
 # ---- colour plus relief -------------------------------------------------------------------------
 
-def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float = 0.6,
-                     exposure: tuple[float, float] | None = None) -> np.ndarray:
+def lightness_relief(albedo: np.ndarray, relief: np.ndarray | None, *, strength: float = 0.6,
+                     exposure: tuple[float, float] | None = None, encoded: bool = False) -> np.ndarray:
     """Relief drawn on the lightness of the colour only (CIELAB L*), so the paint keeps its hue
     and chroma.
 
@@ -502,9 +502,10 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     Parameters
     ----------
     albedo : (H, W, 3) float
-        Linear RGB colour in [0, 1].
-    relief : (H, W) float
-        Relief signal in [-1, 1].
+        Linear RGB colour in [0, 1] (``encoded``: display, sRGB-encoded colour, decoded a strip of
+        rows at a time by :func:`common.rgbn.io.srgb_to_linear`, never as a whole).
+    relief : (H, W) float or None
+        Relief signal in [-1, 1]; None: none (exposure only).
     strength : float
         Share of the room to black/white that the strongest relief uses, in [0, 1].
     exposure : (float, float), optional
@@ -524,14 +525,21 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray, *, strength: float 
     albedo = np.asarray(albedo, np.float32)
     if albedo.ndim != 3 or albedo.shape[2] != 3:
         raise ValueError(f"albedo must be (H, W, 3), got shape {albedo.shape}")
-    relief = np.asarray(relief, np.float32)
-    if relief.shape != albedo.shape[:2]:
-        raise ValueError(f"relief must be {albedo.shape[:2]}, got {relief.shape}")
+    if relief is not None:
+        relief = np.asarray(relief, np.float32)
+        if relief.shape != albedo.shape[:2]:
+            raise ValueError(f"relief must be {albedo.shape[:2]}, got {relief.shape}")
+    if relief is None:
+        strength = 0.0
     # per pixel, so drawn a strip of rows at a time: the Lab copy and the temporaries are a strip's
     # (memory already mapped and in cache), only the result has the image's size
+    from common.rgbn.io import srgb_to_linear
+
     out = np.empty(albedo.shape, np.float32)
     for r0, r1, _, _ in strips(albedo.shape, 0):
-        _lightness_relief_rows(albedo[r0:r1], relief[r0:r1], np.float32(strength), exposure, out[r0:r1])
+        rows = srgb_to_linear(albedo[r0:r1]) if encoded else albedo[r0:r1]
+        _lightness_relief_rows(rows, None if relief is None else relief[r0:r1], np.float32(strength), exposure,
+                               out[r0:r1])
     return out
 
 
@@ -684,18 +692,24 @@ NOISE_RANGES = 10.0
 MAX_LIGHTNESS_FLOOR = 15.0
 
 
-def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:
+def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None, *,
+                    encoded: bool = False) -> tuple[float, float]:
     """The 5th and 95th percentiles of CIELAB L* (0-100) of a linear albedo: the ``exposure`` of
     :func:`lightness_relief`, which puts them at L* 20 and 80. A range already wider than 20-80
     is kept. A nearly uniform colour (one metal, one plaster: less than 15 L* between the
     percentiles) is stretched as it is when its spread is at least :data:`MIN_LIGHTNESS_RANGE`
     and :data:`NOISE_RANGES` times its pixel noise (:func:`lightness_noise`), else widened to
-    that (so a colour that is mostly noise is not turned into amplified noise)."""
+    that (so a colour that is mostly noise is not turned into amplified noise). ``encoded``: the
+    colour is display (sRGB-encoded) colour; only the pixels measured are decoded."""
+    from common.rgbn.io import srgb_to_linear
+
     albedo = np.asarray(albedo, np.float32)
     m = check_mask(mask, albedo.shape[:2])
     flat = masked_stride(albedo, m, _SAMPLE)
     if flat.shape[0] == 0:
         return 5.0, 95.0
+    if encoded:
+        flat = srgb_to_linear(flat)
     L = cv2.cvtColor(np.ascontiguousarray(np.clip(flat, 0.0, 1.0)[None]), cv2.COLOR_LRGB2Lab)[0, :, 0]
     lo, hi = robust_range(L, clip_percent=5.0)
     if lo <= 20.0 and hi >= 80.0:
@@ -703,15 +717,19 @@ def lightness_range(albedo: np.ndarray, mask: np.ndarray | None = None) -> tuple
     mid = 0.5 * (lo + hi)
     half = 0.5 * (hi - lo)
     if 2.0 * half < MAX_LIGHTNESS_FLOOR:
-        floor = min(MAX_LIGHTNESS_FLOOR, max(MIN_LIGHTNESS_RANGE, NOISE_RANGES * lightness_noise(albedo, m)))
+        floor = min(MAX_LIGHTNESS_FLOOR,
+                    max(MIN_LIGHTNESS_RANGE, NOISE_RANGES * lightness_noise(albedo, m, encoded=encoded)))
         half = max(half, 0.5 * floor)
     return float(mid - half), float(mid + half)
 
 
-def lightness_noise(albedo: np.ndarray, mask: np.ndarray | None = None) -> float:
+def lightness_noise(albedo: np.ndarray, mask: np.ndarray | None = None, *, encoded: bool = False) -> float:
     """Standard deviation of the pixel-scale noise of CIELAB L* (0-100) of a linear albedo, by
     Immerkær's Laplacian-residual estimator (as :func:`normal_noise`) on up to five 1024-px
-    windows: about 0.1 for clean 8-bit sRGB, 0.3-1 for a scan or a JPEG photograph."""
+    windows: about 0.1 for clean 8-bit sRGB, 0.3-1 for a scan or a JPEG photograph. ``encoded``: the
+    colour is display (sRGB-encoded) colour, each window decoded."""
+    from common.rgbn.io import srgb_to_linear
+
     albedo = np.asarray(albedo, np.float32)
     mask = check_mask(mask, albedo.shape[:2])
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -719,7 +737,8 @@ def lightness_noise(albedo: np.ndarray, mask: np.ndarray | None = None) -> float
     for win in _windows(albedo.shape[:2]):
         m = cv2.erode(mask[win].astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                       borderValue=0) > 0
-        L = cv2.cvtColor(np.ascontiguousarray(np.clip(albedo[win], 0.0, 1.0)), cv2.COLOR_LRGB2Lab)[..., 0]
+        colour = srgb_to_linear(albedo[win]) if encoded else albedo[win]
+        L = cv2.cvtColor(np.ascontiguousarray(np.clip(colour, 0.0, 1.0)), cv2.COLOR_LRGB2Lab)[..., 0]
         res.append(np.abs(cv2.filter2D(np.ascontiguousarray(L), cv2.CV_32F, kernel,
                                        borderType=cv2.BORDER_REFLECT)[m]))
     v = np.concatenate(res) if res else np.zeros(0, np.float32)

@@ -148,7 +148,7 @@ def _exposed_colour(image: RGBNImage, value, resolved: dict, key: str = "exposur
     rng = _lightness_exposure(image, value, resolved, key)
     if rng is None:
         return display_albedo(image.albedo)
-    return _enhance.lightness_relief(image.albedo, np.zeros(image.shape, np.float32), strength=0.0, exposure=rng)
+    return _enhance.lightness_relief(image.albedo, None, strength=0.0, exposure=rng)
 
 
 def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exposure"):
@@ -406,7 +406,7 @@ def draw_normal_unsharp(image: RGBNImage, light=(135.0, 45.0), sigma_mm: float =
     rng = (_enhance.lightness_range(lit, image.mask) if _is_auto(exposure)
            else (float(exposure[0]), float(exposure[1])))
     r["exposure"] = [float(rng[0]), float(rng[1])]
-    return _cover(image, _enhance.lightness_relief(lit, np.zeros(image.shape, np.float32), strength=0.0,
+    return _cover(image, _enhance.lightness_relief(lit, None, strength=0.0,
                                                    exposure=rng), r)
 
 
@@ -455,10 +455,11 @@ def _exposed_lightness(display: np.ndarray, mask, value, resolved: dict, key: st
     if isinstance(value, str) and value == "none":
         resolved[key] = "none"
         return display
-    lin = srgb_to_linear(display)
-    rng = _enhance.lightness_range(lin, mask) if _is_auto(value) else (float(value[0]), float(value[1]))
+    # the picture decoded only where measured and a strip at a time as it is exposed
+    rng = (_enhance.lightness_range(display, mask, encoded=True) if _is_auto(value)
+           else (float(value[0]), float(value[1])))
     resolved[key] = [float(rng[0]), float(rng[1])]
-    return _enhance.lightness_relief(lin, np.zeros(mask.shape, np.float32), strength=0.0, exposure=rng)
+    return _enhance.lightness_relief(display, None, strength=0.0, exposure=rng, encoded=True)
 
 
 def draw_mean_curvature(image: RGBNImage, sigma_mm="auto", radius_mm="auto") -> Layer:

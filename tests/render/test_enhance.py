@@ -292,3 +292,21 @@ def test_median_is_numpys_median_for_odd_and_even_counts_and_any_nan():
     v = rng.standard_normal(101)
     v[7] = np.nan
     assert np.isnan(median(v)) and np.isnan(np.median(v))
+
+
+def test_exposing_an_encoded_picture_decodes_it_strip_by_strip_to_the_same_colours(monkeypatch):
+    """lightness_relief / lightness_range of display colour with encoded=True against the same of its
+    decoded copy (srgb_to_linear of the whole), narrow enough for the noise floor to count."""
+    from common.rgbn import smoothing
+    from common.rgbn.io import srgb_to_linear
+    from common.render.enhance import lightness_range
+
+    monkeypatch.setattr(smoothing, "STRIP_PIXELS", 64 * 7)   # strips of 7 rows
+    rng = np.random.default_rng(4)
+    display = np.clip(0.55 + 0.03 * rng.standard_normal((90, 64, 3)), 0, 1).astype(np.float32)
+    mask = np.zeros((90, 64), bool)
+    mask[5:80, 3:60] = True
+    rng_lin = lightness_range(srgb_to_linear(display), mask)
+    assert lightness_range(display, mask, encoded=True) == rng_lin
+    expect = lightness_relief(srgb_to_linear(display), np.zeros((90, 64), np.float32), strength=0.0, exposure=rng_lin)
+    assert np.array_equal(lightness_relief(display, None, strength=0.0, exposure=rng_lin, encoded=True), expect)
