@@ -449,8 +449,9 @@ of it, so its 4-sigma reach is not drawn again around every tile; tiled and whol
 1/255 (`tests/render/test_tiles.py`). The
 renderer service reads a large face window by window from its HDF5 artifact. A recipe with a
 `[segmentation]` section is tiled too: the segments are found first for the whole image, window by
-window (`segment_source`: SLIC superpixels in 2048-px windows read with a blur halo, merged across the
-windows' seams on one Felzenszwalb-Huttenlocher graph; the labels are identical to the in-memory
+window (`segment_source`: SLIC superpixels in 2048-px windows read with a blur halo, found on the means
+of 2x2-pixel blocks and their boundaries between unlike superpixels then placed per pixel, merged across
+the windows' seams on one Felzenszwalb-Huttenlocher graph; the labels are identical to the in-memory
 `segment_rgbn`'s, `tests/rgbn/test_segmentation.py`), kept as 4 bytes a pixel, and every tile is drawn
 with its window of them. Output is 8 or 16 bit (`bits` / `--bits`); the computation is float32
 throughout. Full-resolution smoothing, exaggerated shading's fine levels and multiscale curvature's

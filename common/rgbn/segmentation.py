@@ -47,11 +47,15 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
         default) works at full resolution.
     superpixel_px : int, "auto" or None
         Full-resolution segmentation of a large image goes through superpixels: SLIC
-        (scikit-image's compiled implementation, on the weighted colour+normal channels, in
-        2048-px windows blurred with a halo; :func:`segment_source` reads them one at a time from
-        an image larger than memory) cuts the image into regions of about this
-        many pixels, and Felzenszwalb-Huttenlocher's merging runs on their adjacency graph with
-        the distance between region means as the edge weight and region areas in pixels.
+        (Achanta et al. 2012, scikit-image's compiled implementation, on the weighted
+        colour+normal channels, in 2048-px windows blurred with a halo; :func:`segment_source`
+        reads them one at a time from an image larger than memory) cuts the image into regions of
+        about this many pixels, and Felzenszwalb-Huttenlocher's merging runs on their adjacency
+        graph with the distance between region means as the edge weight and region areas in
+        pixels. SLIC clusters the means of f x f pixel blocks (f = 2 for 64-px superpixels:
+        at least 16 blocks a superpixel), and the pixels of the blocks on a boundary between two
+        superpixels that the merging criterion would keep apart go to the nearest superpixel mean
+        around them, so boundaries are placed per pixel (:func:`_superpixel_tile`).
         "auto": 64-pixel superpixels above 0.25 Mpx, the pixel graph below. None: always the
         pixel graph (about 5 CPU s/Mpx with six channels, and ~500 bytes a pixel).
 
@@ -63,7 +67,8 @@ def segment_rgbn(albedo: np.ndarray | None, normals: np.ndarray | None, *, mask:
     References
     ----------
     Toler-Franklin 2011, §7.2.4; P. Felzenszwalb, D. Huttenlocher, "Efficient graph-based image
-    segmentation", IJCV 59(2), 2004.
+    segmentation", IJCV 59(2), 2004; R. Achanta et al., "SLIC superpixels compared to
+    state-of-the-art superpixel methods", IEEE TPAMI 34(11), 2012.
 
     Notes
     -----
@@ -166,8 +171,9 @@ def segment_source(source, *, scale: float = 1.0, sigma_px: float = 0.8, min_siz
     ``source`` has ``shape`` and ``window(r0, r1, c0, c1) -> RGBNImage`` (as
     :class:`common.render.tiles.MemorySource` and ``H5Source``). On the superpixel path the
     colour and normals are read, blurred (with a halo, so the result is the whole-image blur's)
-    and cut into SLIC superpixels one ``tile`` x ``tile`` window at a time, and only the (H, W)
-    int32 label map (4 bytes a pixel) and a few numbers per superpixel are kept for the merging.
+    and cut into SLIC superpixels (on f x f blocks, boundaries placed per pixel: see
+    ``superpixel_px``) one ``tile`` x ``tile`` window at a time, and only the (H, W) int32 label
+    map (4 bytes a pixel) and a few numbers per superpixel are kept for the merging.
     Small images (the pixel graph), ``superpixel_px=None`` and ``max_megapixels`` read the whole
     image and call :func:`segment_rgbn`. Parameters and labels as :func:`segment_rgbn`; the SLIC
     tiles start at the image's corner (:func:`segment_rgbn` starts them at the corner of the
@@ -319,19 +325,44 @@ def _superpixel_stats(area, sums, sqs):
 
 
 def _superpixel_tile(feats: np.ndarray, m: np.ndarray, f: int, n_segments: int, tau: float):
-    """SLIC superpixels of one tile (features (h, w, C), mask (h, w)) found on f x f blocks and
-    refined at full resolution; returns (labels (h, w) int32, 0..n-1 inside the mask, -1 outside;
-    each superpixel's pixel count, feature sums (n, C) and squared-feature sums (n, C); the codes
-    ``a << 32 | b``, a < b, of the 4-adjacent pairs).
+    """SLIC superpixels of one tile, found on the means of f x f pixel blocks, with the boundaries
+    between unlike superpixels placed per pixel.
 
-    SLIC (Achanta et al. 2012, scikit-image's compiled implementation) clusters the block means;
-    a superpixel's statistics are those of its own pixels inside the mask (block sums of the
-    features and their squares). A block mean that straddles a step is a colour of neither side,
-    and SLIC makes superpixels of such blocks, whole blocks wide: so every pixel of a block on a
+    Parameters
+    ----------
+    feats : (h, w, C) float32
+        The tile's weighted colour+normal features.
+    m : (h, w) bool
+        The mask.
+    f : int
+        Block side (:func:`_decimation`).
+    n_segments : int
+        SLIC's number of superpixels (as many as at full resolution).
+    tau : float
+        Felzenszwalb-Huttenlocher's ``k`` in feature units (``scale / 255``).
+
+    Returns
+    -------
+    labels : (h, w) int32
+        Superpixels 0..n-1 inside the mask, -1 outside.
+    area, sums, sqs : (n,), (n, C), (n, C) float64
+        Each superpixel's pixel count inside the mask and the sums of its pixels' features and
+        squared features (at full resolution).
+    codes : (E,) int64
+        ``a << 32 | b`` (a < b) of the 4-adjacent superpixel pairs.
+
+    Notes
+    -----
+    SLIC (Achanta et al. 2012, scikit-image's compiled implementation) clusters the block means,
+    f^2 times fewer pixels than the tile for the same superpixels. A block that straddles a step
+    has a mean of neither side, and SLIC makes superpixels of such blocks, whole blocks wide,
+    which the merging would keep as segments of their own. So every pixel of a block on a
     boundary between two superpixels that Felzenszwalb-Huttenlocher's criterion would not join
-    (weight > min(Int + tau / |C|) of the two, each on its own) takes the superpixel, among its
-    own and those f px away in the 8 directions, whose mean is nearest its features; a superpixel
-    of a ramp's blocks keeps the ramp's middle only, as at full resolution.
+    (weight > min(Int + tau / |C|) of the two, each on its own, Int its spread) takes the
+    superpixel, among its own and those f px away in the 8 directions, whose mean is nearest its
+    features: a superpixel of a ramp's blocks keeps the ramp's middle only, as at full
+    resolution, and the merging's minimum size removes it. The statistics and adjacency are those
+    of the pixels after this step.
     """
     from skimage.segmentation import slic
 
