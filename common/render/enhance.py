@@ -872,6 +872,8 @@ def specular_of_cosines(cos_nl: np.ndarray, cos_nh: np.ndarray, *, albedo: np.nd
                         kd: float = 0.6, ks: float = 0.7, exponent: float = 40.0, clip: bool = True) -> np.ndarray:
     """:func:`specular_enhancement` of the cosines ``n . l`` and ``n . h`` per pixel ((H, W) float
     each; :func:`half_vector`)."""
+    from common.rgbn.io import _power
+
     for name, v in (("kd", kd), ("ks", ks)):
         if v < 0:
             raise ValueError(f"{name} must be >= 0, got {v}")
@@ -885,7 +887,7 @@ def specular_of_cosines(cos_nl: np.ndarray, cos_nh: np.ndarray, *, albedo: np.nd
     diffuse = np.maximum(cos_nl, np.float32(0.0))
     diffuse *= np.float32(kd)
     spec = np.maximum(np.asarray(cos_nh, np.float32), np.float32(0.0))
-    np.power(spec, np.float32(exponent), out=spec)
+    _power(spec, exponent)   # OpenCV's power, 3x numpy's (within 2e-7 of it)
     spec *= np.float32(ks)
     if albedo is not None:
         out = scale_colour(base, diffuse)
