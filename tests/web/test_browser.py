@@ -190,8 +190,28 @@ def _login(browser, live, who="Test Operator"):
     return ctx, page
 
 
+def _stalled(page, live, step: str, console: list[str]) -> None:
+    """Fail saying what the page, its console and the station each say (the page shows ``step``)."""
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(f"{live.url}/api/bench", timeout=10) as r:
+            server = json.load(r)["bench"]
+        server = {k: server.get(k) for k in ("phase", "step", "seq", "message", "busy")}
+    except Exception as exc:   # the web process itself is stuck
+        server = f"no answer: {exc}"
+    shown = page.evaluate("""() => ({active: document.activeElement && document.activeElement.id,
+                                     message: document.getElementById('bench-message').textContent,
+                                     proceedDisabled: document.getElementById('proceed-button').disabled})""")
+    pytest.fail(f"the capture stalled: the page shows {step} (page {shown}); the station says {server}; "
+                f"the page's console: {console}\n{live.logs()}")
+
+
 def test_operator_captures_a_fragment_end_to_end(browser, live):
     ctx, page = _login(browser, live)
+    console: list[str] = []
+    page.on("pageerror", lambda exc: console.append(f"uncaught: {exc}"))
+    page.on("console", lambda m: console.append(f"{m.type}: {m.text}") if m.type in ("error", "warning") else None)
     try:
         page.fill("#fragment-id", "F0001")
         page.click("#prescan-button")
@@ -209,7 +229,8 @@ def test_operator_captures_a_fragment_end_to_end(browser, live):
             const step = document.getElementById('step');
             return step.hidden ? '' : 'step:' + document.getElementById('step-count').textContent;
         }"""
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + 240   # inside pytest's own 300 s, so a stall says where it stalled
+        pressed_at = time.monotonic()
         while time.monotonic() < deadline:
             state = page.wait_for_function(state_js, timeout=120_000).json_value()
             if not state.startswith("step:"):
@@ -221,7 +242,12 @@ def test_operator_captures_a_fragment_end_to_end(browser, live):
                     _shot(page, "bench-step")
                     shot = True
                 page.keyboard.press("Enter")   # the operator has done the step (once: the page must take it)
+                pressed_at = time.monotonic()
+            elif time.monotonic() - pressed_at > 60:   # a scan at 100 dpi takes a second or two
+                _stalled(page, live, count, console)
             page.wait_for_timeout(150)
+        else:
+            _stalled(page, live, seen_steps[-1] if seen_steps else "before step 1", console)
         error = page.inner_text("#bench-error-text") if page.is_visible("#bench-error") else ""
         assert not error, f"capture failed: {error}\n{live.logs()}"
         assert seen_steps == [f"Step {i} of 8" for i in range(1, 9)], seen_steps

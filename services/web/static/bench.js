@@ -74,18 +74,26 @@
     }));
   }
 
+  // the live poll must outlive anything: a request that never answers is given up after
+  // POLL_TIMEOUT_MS (the server answers a long poll within seconds) and a failure to draw one answer
+  // is logged, so the page never freezes on a step the station has left
+  const POLL_TIMEOUT_MS = 30000;
   async function poll() {
     for (;;) {
       const url = seq === null ? "/api/bench" : `/api/bench?after=${seq}`;
-      const r = await Tessera.api("GET", url);
+      const r = await Tessera.api("GET", url, undefined, { timeoutMs: POLL_TIMEOUT_MS });
+      let drawn = false;
       if (r.ok) {
-        seq = r.data.bench.seq;
-        render(r.data.bench);
-        renderFragments(r.data.fragments || []);
+        try {
+          seq = r.data.bench.seq;
+          render(r.data.bench);
+          renderFragments(r.data.fragments || []);
+          drawn = true;
+        } catch (e) { console.error("bench: could not show the station's state", e); }
       } else {
         $("bench-message").textContent = r.data.error || "The station does not answer.";
-        await new Promise((res) => setTimeout(res, 2000));
       }
+      if (!drawn) await new Promise((res) => setTimeout(res, 2000));
     }
   }
 

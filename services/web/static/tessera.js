@@ -4,8 +4,10 @@ const Tessera = (() => {
   const csrf = () => (document.querySelector('meta[name="csrf-token"]') || {}).content || "";
   const loggedIn = () => document.body.dataset.loggedIn === "yes";
 
-  async function api(method, url, body) {
+  // ``timeoutMs``: give up a request that has not answered by then (answered as "does not answer")
+  async function api(method, url, body, { timeoutMs } = {}) {
     const opts = { method, headers: { "Accept": "application/json" }, credentials: "same-origin" };
+    if (timeoutMs) opts.signal = AbortSignal.timeout(timeoutMs);
     if (method !== "GET") {
       opts.headers["Content-Type"] = "application/json";
       opts.headers["X-CSRF-Token"] = csrf();
