@@ -263,6 +263,39 @@ def test_operator_captures_a_fragment_end_to_end(browser, live):
         ctx.close()
 
 
+def test_the_bench_page_keeps_following_the_station_after_a_bad_answer(browser, live):
+    """One live-poll answer the page cannot draw (a broken reply) and one that fails outright must
+    not stop the page: a pre-scan started from another browser still shows on it."""
+    ctx, page = _login(browser, live)
+    other_ctx, other = _login(browser, live, who="Second Operator")
+    try:
+        page.wait_for_function("() => document.getElementById('prescan-button').disabled === false", timeout=30_000)
+        answers = []
+
+        def broken(route):
+            answers.append(route.request.url)
+            if len(answers) == 1:
+                route.fulfill(status=200, content_type="application/json", body='{"bench": null}')
+            elif len(answers) == 2:
+                route.abort()
+            else:
+                route.continue_()
+
+        page.route("**/api/bench?after=*", broken)
+        page.wait_for_function("() => true")   # the route is in place before the next poll
+        deadline = time.monotonic() + 30
+        while len(answers) < 3 and time.monotonic() < deadline:
+            page.wait_for_timeout(200)
+        assert len(answers) >= 3, f"the page stopped polling after {len(answers)} answer(s)"
+        other.fill("#fragment-id", "F0002")
+        other.click("#prescan-button")
+        page.wait_for_function("() => /Fragment found/.test(document.getElementById('bench-message').textContent)",
+                               timeout=60_000)
+    finally:
+        other_ctx.close()
+        ctx.close()
+
+
 def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
     from common.bus.client import BrokerClient
     from common.messages import unpack

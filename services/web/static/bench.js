@@ -77,7 +77,7 @@
   // the live poll must outlive anything: a request that never answers is given up after
   // POLL_TIMEOUT_MS (the server answers a long poll within seconds) and a failure to draw one answer
   // is logged, so the page never freezes on a step the station has left
-  const POLL_TIMEOUT_MS = 30000;
+  const POLL_TIMEOUT_MS = 30000, ACTION_TIMEOUT_MS = 120000;
   async function poll() {
     for (;;) {
       const url = seq === null ? "/api/bench" : `/api/bench?after=${seq}`;
@@ -103,11 +103,15 @@
     queue = queue.then(async () => {
       inFlight = key;
       try {
-        const r = await Tessera.api("POST", url, body);
+        // a request that never answers must not hold the actions behind it (the scanner's own
+        // pre-scan answers within seconds; a real one well inside ACTION_TIMEOUT_MS)
+        const r = await Tessera.api("POST", url, body, { timeoutMs: ACTION_TIMEOUT_MS });
         if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
         // its answer can come after the long poll showed a newer state (the poll always renders:
         // after a restart of the station its numbers start again)
         else if (!current || r.data.bench.seq >= current.seq) render(r.data.bench);
+      } catch (e) {   // a failed action must not stop the ones queued behind it
+        console.error("bench: action failed", url, e);
       } finally { inFlight = null; }
     });
     return queue;
