@@ -161,6 +161,23 @@ def test_a_docking_model_answers_from_the_fast_stages_then_docks_in_a_job_of_its
     assert matcher.handle(stale, ctx) == []
 
 
+def _arrivals_under_a_docking_model(station, n: int):
+    """A docking model made current (version 0002-docking), then the first ``n`` fragments arrive: each
+    one's first answer and its docking job. Returns that model."""
+    import services.matcher as matcher
+
+    wall, store, db, arts, ctx = station
+    model = load_model(store, db.current_model()["artifact"])
+    model.docking = (0.15, -4.0)
+    model.version = "0002-docking"
+    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
+    for f in wall.fragments[:n]:
+        for e in matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx):
+            if e["type"] == "match.ranked":
+                matcher.handle(e, ctx)
+    return model
+
+
 def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jobs_of_their_own(station):
     """match.verified → match.refitted: that job ranks every fragment under the new model with the dockings
     made before (none new), updates every stored pair's mutual proximity, and lists in match.reranked events,
@@ -170,15 +187,7 @@ def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jo
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
     ctx.config["redock_batch"] = 3
-    model = load_model(store, db.current_model()["artifact"])
-    model.docking = (0.15, -4.0)
-    model.version = "0002-docking"
-    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
-    ids = [f.id for f in wall.fragments[:24]]
-    for fid in ids:   # arrivals: the first answer, then its docking job
-        for e in matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx):
-            if e["type"] == "match.ranked":
-                matcher.handle(e, ctx)
+    model = _arrivals_under_a_docking_model(station, 24)
     wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][:3]
     events = []
     for p in wrong:
@@ -222,15 +231,8 @@ def test_a_restarted_matcher_worker_docks_no_pair_docked_before(station, monkeyp
     import services.matcher as matcher
 
     wall, store, db, arts, ctx = station
-    model = load_model(store, db.current_model()["artifact"])
-    model.docking = (0.15, -4.0)
-    model.version = "0002-docking"
-    db.add_model(model.version, save_model(store, model).to_dict(), n_train=len(model.training[1]))
+    model = _arrivals_under_a_docking_model(station, 20)
     ids = [f.id for f in wall.fragments[:20]]
-    for fid in ids:   # arrivals: the first answer, then its docking job
-        for e in matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx):
-            if e["type"] == "match.ranked":
-                matcher.handle(e, ctx)
     wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][0]
     (refitted,) = matcher.handle(new_message("match.verified", fragment=wrong.fragment_a, other=wrong.fragment_b,
                                              verdict="rejected"), ctx)
