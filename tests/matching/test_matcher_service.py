@@ -231,7 +231,7 @@ def test_a_restarted_matcher_worker_docks_no_pair_docked_before(station, monkeyp
     import services.matcher as matcher
 
     wall, store, db, arts, ctx = station
-    model = _arrivals_under_a_docking_model(station, 20)
+    _arrivals_under_a_docking_model(station, 20)
     ids = [f.id for f in wall.fragments[:20]]
     wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][0]
     (refitted,) = matcher.handle(new_message("match.verified", fragment=wrong.fragment_a, other=wrong.fragment_b,
