@@ -197,8 +197,10 @@ class MatchIndex:
         self.hubness: dict[str, tuple[str, float]] = {}
         #: docking results by unordered pair (model-independent, so kept across model updates)
         self._dockings: dict[tuple[str, str], Docking] = {}
-        #: fragment → docking hubness (mean contact of its best dockings, mm)
+        #: fragment → docking hubness (mean contact of its best dockings, mm); kept in :attr:`docking_store`
+        #: too, so every worker corrects a pair by the same values (:meth:`_recall_dock_hubness`)
         self.dock_hubness: dict[str, float] = {}
+        self._dock_hubness_recalled = False
         #: fragment → paint along its outline as deviations from its plaster (for the docking)
         self.paint: dict[str, np.ndarray] = {}
         #: fragment → boundary profile as given (for its paint field, built when first needed)
@@ -650,6 +652,33 @@ class MatchIndex:
             pose=astuple(self._poses[key]) if paint else None,
             alternatives=[astuple(a) for a in self._alternatives.get(key, [])] if paint else []))
 
+    def _recall_dock_hubness(self, fragments=None) -> None:
+        """Read the docking hubness of ``fragments`` (None: every fragment) from :attr:`docking_store`,
+        where the last worker to rank each one left it: it replaces this index's value. The first call
+        reads every fragment's, so a restarted worker's median (the correction's centre) is the one
+        the worker before it had. Values made from other inputs or by another docking version are
+        left out."""
+        if self.docking_store is None:
+            return
+        if fragments is None or not self._dock_hubness_recalled:
+            fragments, self._dock_hubness_recalled = list(self._order), True
+        inputs = {f: self._inputs[f] for f in fragments if self._inputs.get(f) is not None}
+        if inputs:
+            self.dock_hubness.update(self.docking_store.dock_hubness(inputs, docking_version()))
+
+    def _set_dock_hubness(self, fragment: str, contact_mm, model_version: str | None) -> None:
+        """The fragment's docking hubness from the contacts of its docked best (mm): the mean of the best
+        :data:`DOCK_HUB_TOP` (unchanged with fewer), written to :attr:`docking_store` where it changed."""
+        if len(contact_mm) < DOCK_HUB_TOP:
+            return
+        value = float(np.sort(np.asarray(contact_mm, float))[-DOCK_HUB_TOP:].mean())
+        if self.dock_hubness.get(fragment) == value:
+            return
+        self.dock_hubness[fragment] = value
+        inputs = self._inputs.get(fragment)
+        if self.docking_store is not None and inputs is not None:
+            self.docking_store.put_dock_hubness(fragment, inputs, docking_version(), value, model_version)
+
     def alternatives(self, fragment: str, other: str) -> list[Docking]:
         """The pair's other candidate poses, best first (of ``other`` in ``fragment``'s frame; at most
         :data:`~common.matching.pose.ALTERNATIVE_POSES`, none where the pair was not docked with
@@ -738,8 +767,8 @@ class MatchIndex:
         tail = [c for c in ranked if id(c) not in docked]
         self._dock_pairs(fragment, [c.other for c in head])
         contact = np.array([docking_contact_mm(self.docking(fragment, c.other)) for c in head])
-        if len(head) >= DOCK_HUB_TOP:
-            self.dock_hubness[fragment] = float(np.sort(contact)[-DOCK_HUB_TOP:].mean())
+        self._recall_dock_hubness([c.other for c in head])
+        self._set_dock_hubness(fragment, contact, model.version)
         centre = float(np.median(list(self.dock_hubness.values()))) if self.dock_hubness else 0.0
         corrected = hub_corrected(contact, self.dock_hubness.get(fragment, centre),
                                   [self.dock_hubness.get(c.other, centre) for c in head], centre)
@@ -902,22 +931,32 @@ class MatchIndex:
         already, and the new fragment's pair was docked by its own proposal), so a fragment costs
         about a first answer. ``undocked``: a dict that receives, for each ranked fragment whose best
         ``dock_candidates`` hold pairs not docked yet, those others (what :meth:`propose` would dock).
+        Stage 3's docking hubness of every fragment ranked is set from its docked best before any of
+        them goes through stage 3, so the rankings do not depend on their order.
         Returns the fragments ranked."""
-        done = []
-        for f in fragments:
-            if f not in self.cues or not len(self.cues[f]) or (knowing is not None and knowing in self.rankings.get(f, ())):
-                continue
+        done = [f for f in fragments if f in self.cues and len(self.cues[f])
+                and not (knowing is not None and knowing in self.rankings.get(f, ()))]
+        docking = {f: self.uses_docking(f, model) and dock_candidates > 0 for f in done}
+        # two passes: stages 1–2½ of all, and each one's docking hubness from its docked best; then
+        # stage 3 of each. Every pair is then corrected by both fragments' hubness under this model,
+        # whatever order they are ranked in and whatever this worker held before (a restarted worker
+        # ranks as the one that stayed)
+        before_docking = {}
+        for f in done:
             others = self._candidates_with_hubness(self.cues[f], model, n_candidates)
-            trace = {}
-            self.rankings[f] = [c.other for c in self.rank(self.cues[f], others, model, evidence_for=0,
-                                                           dock_candidates=dock_candidates, docked_only=True,
-                                                           trace=trace)]
-            if undocked is not None and self.uses_docking(f, model) and dock_candidates > 0:
-                new = [c.other for c in self._dock_head(trace["fresco"], dock_candidates)
-                       if not self.docked(f, c.other)]
-                if new:
-                    undocked[f] = new
-            done.append(f)
+            before_docking[f] = self.rank(self.cues[f], others, model, evidence_for=0, dock_candidates=0)
+            if docking[f]:
+                head = [c.other for c in self._dock_head(before_docking[f], dock_candidates) if self.docked(f, c.other)]
+                self._set_dock_hubness(f, [docking_contact_mm(self.docking(f, o)) for o in head], model.version)
+        for f in done:
+            ranked = before_docking.pop(f)
+            if docking[f]:
+                if undocked is not None:
+                    new = [c.other for c in self._dock_head(ranked, dock_candidates) if not self.docked(f, c.other)]
+                    if new:
+                        undocked[f] = new
+                ranked = self._rank_by_docking(f, ranked, model, dock_candidates, docked_only=True)
+            self.rankings[f] = [c.other for c in ranked]
         return done
 
     def rank_all(self, model: MatchModel, *, n_candidates: int = 100,
@@ -937,8 +976,14 @@ class MatchIndex:
         -------
         dict fragment → the others in its best ``dock_candidates`` that have no docking yet (only the
         fragments that have such pairs), in the index's order.
+
+        The result depends only on the fragments, the model and the dockings kept: the ribbon's rarity
+        reference is made anew of every fragment, and every docking hubness is set under ``model``
+        before stage 3 (:meth:`rank_again`), so a worker restarted straight into it ranks as the one
+        that stayed.
         """
         self.refresh_hubness(self._order, model, n_candidates=n_candidates)
+        self._population = None   # the ribbon's rarity reference made anew of every fragment, as on a restarted worker
         undocked: dict[str, list[str]] = {}
         self.rank_again(list(self._order), model, n_candidates=n_candidates, dock_candidates=dock_candidates,
                         undocked=undocked)

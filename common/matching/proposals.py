@@ -33,6 +33,7 @@ would cost a file open per lookup, more on a network share.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sqlite3
 import time
@@ -90,6 +91,9 @@ CREATE TABLE IF NOT EXISTS dockings (
     paint INTEGER NOT NULL, paint_mm REAL, pose TEXT, alternatives TEXT,
     created REAL NOT NULL,
     PRIMARY KEY (fragment_a, fragment_b));
+CREATE TABLE IF NOT EXISTS dock_hubness (
+    fragment TEXT PRIMARY KEY, inputs TEXT NOT NULL, docking_version TEXT NOT NULL,
+    contact_mm REAL NOT NULL, model_version TEXT, created REAL NOT NULL);
 """
 
 #: the numbers of one docked pose in the ``dockings`` table's columns and JSON arrays, in this order
@@ -443,6 +447,31 @@ class ProposalStore:
 
     def count_dockings(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM dockings").fetchone()[0]
+
+    def dock_hubness(self, inputs: dict[str, str], docking_version: str) -> dict[str, float]:
+        """The stored docking hubness (mean contact of a fragment's best dockings, mm) of the fragments of
+        ``inputs`` (fragment → digest of its docking inputs) whose value was made from exactly those inputs
+        by this docking version; the others are left out (as good as none)."""
+        out: dict[str, float] = {}
+        ids = list(inputs)
+        for k in range(0, len(ids), 500):   # SQLite's bound-parameter limit
+            chunk = ids[k:k + 500]
+            rows = self._db.execute("SELECT fragment, inputs, docking_version, contact_mm FROM dock_hubness WHERE "
+                                    f"fragment IN ({', '.join('?' * len(chunk))})", chunk).fetchall()
+            for r in rows:
+                if r["inputs"] == inputs[r["fragment"]] and r["docking_version"] == docking_version \
+                        and r["contact_mm"] is not None and math.isfinite(r["contact_mm"]):
+                    out[r["fragment"]] = float(r["contact_mm"])
+        return out
+
+    def put_dock_hubness(self, fragment: str, inputs: str, docking_version: str, contact_mm: float,
+                         model_version: str | None = None) -> None:
+        """Store a fragment's docking hubness (mm), replacing its earlier value: the last worker to rank
+        the fragment sets it, and every worker reads it (``model_version``: the model it was ranked under)."""
+        with self._tx():
+            self._db.execute("INSERT OR REPLACE INTO dock_hubness (fragment, inputs, docking_version, contact_mm, "
+                             "model_version, created) VALUES (?, ?, ?, ?, ?, ?)",
+                             (fragment, inputs, docking_version, float(contact_mm), model_version, time.time()))
 
     # -- models --------------------------------------------------------------------------
     def add_model(self, version: str, artifact: dict, *, n_train: int | None = None, note: str | None = None,

@@ -478,7 +478,7 @@ def test_a_second_index_over_the_same_store_docks_none_of_the_pairs_the_first_do
     """A worker that starts afresh (or a second one) over the proposal store reads the pairs another docked:
     after the same arrivals the full re-rank gives the same rankings and the same pairs to dock next, the
     same poses, paint and alternatives (exactly: the numbers go through SQLite unchanged), and docks
-    nothing; nor does a worker restarted straight into the full re-rank."""
+    nothing; nor does a worker restarted straight into the full re-rank, which ranks as the first did."""
     from common.matching.proposals import ProposalStore
 
     calls = _counted_dockings(monkeypatch)
@@ -500,6 +500,8 @@ def test_a_second_index_over_the_same_store_docks_none_of_the_pairs_the_first_do
     third = _same_index(small_wall, ids, ProposalStore(tmp_path / "p.sqlite"))
     assert third.rank_all(model2, dock_candidates=3) == undocked
     assert calls == []
+    assert {f: third.rankings[f] for f in ids} == {f: first.rankings[f] for f in ids}   # in the same order
+    assert third.dock_hubness == first.dock_hubness
     assert 0 < len(undocked) < len(ids)
 
 

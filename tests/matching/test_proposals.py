@@ -180,6 +180,25 @@ def test_a_stored_docking_comes_back_for_its_inputs_and_version_only(tmp_path):
         assert s.count_dockings() == 1 and not s.docking("A", "B", "in-a", "in-b", "docking-1/test").paint
 
 
+def test_a_fragments_docking_hubness_comes_back_for_its_inputs_and_version_only(tmp_path):
+    """The last value stored for a fragment is read by any worker, for the fragment's current docking
+    inputs and this docking version only; more fragments than one SQLite statement may name come back."""
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.put_dock_hubness("A", "in-a", "docking-1/test", 31.5, "0002-x")
+        s.put_dock_hubness("B", "in-b", "docking-1/test", 12.0)
+        s.put_dock_hubness("A", "in-a", "docking-1/test", 33.25, "0003-y")          # replaced: the last stays
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        assert s.dock_hubness({"A": "in-a", "B": "in-b", "C": "in-c"}, "docking-1/test") == {"A": 33.25, "B": 12.0}
+        assert s.dock_hubness({"A": "in-a", "B": "re-extracted"}, "docking-1/test") == {"A": 33.25}
+        assert s.dock_hubness({"A": "in-a"}, "docking-2/test") == {}
+        many = {f"F{k:04d}": f"in-{k}" for k in range(1203)}
+        for k, (f, i) in enumerate(many.items()):
+            if k % 100 == 7 or k == 1202:
+                s.put_dock_hubness(f, i, "docking-1/test", float(k))
+        assert s.dock_hubness(many, "docking-1/test") == {f"F{k:04d}": float(k) for k in range(1203)
+                                                           if k % 100 == 7 or k == 1202}
+
+
 def test_two_workers_storing_the_same_pairs_docking_do_not_fail(tmp_path):
     """Two matcher workers that docked one pair at once both store it (each in its own connection, as two
     processes would): neither fails on the other's lock or row, and the pair has one row."""
