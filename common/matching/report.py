@@ -430,7 +430,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         right = [k for k, err in enumerate(offered) if max(err) <= 5]
         e = offered[0]
         best, best_right = float("nan"), None
-        if (min(a, b), max(a, b)) in index._dockings:
+        if index.docked(a, b):
             d = index.docking(a, b)    # the geometric search's best pose
             best, best_right = d.score, max(error((d.angle_deg, d.tx_mm, d.ty_mm))) <= 5
         errors.append({"a": a, "b": b, "angle_deg": e[0], "shift_mm": e[1], "score_at_truth": at_truth,
