@@ -169,3 +169,25 @@ def test_the_features_artifact_layout_in_docs_features_is_what_save_features_wri
 def table_version():
     from common.features.table import SCHEMA_VERSION
     return SCHEMA_VERSION
+
+
+@pytest.mark.parametrize("table", ["dockings", "dock_hubness"])
+def test_the_proposal_store_tables_in_the_doc_are_the_stores(tmp_path, table):
+    """The columns and SQLite types docs/storage.md tabulates for the proposal store's ``table`` are, in
+    order, those a new store creates."""
+    import sqlite3
+
+    from common.matching.proposals import ProposalStore
+
+    text = DOC.read_text()
+    section = text[text.index(f"### `{table}`"):]
+    section = section[:section.index("\n#", 1)]
+    documented = []
+    for line in section.splitlines():
+        m = re.match(r"\|\s*((?:`\w+`(?:,\s*)?)+)\s*\|\s*(\w+)\s*\|", line)
+        if m:
+            documented += [(name, m.group(2)) for name in re.findall(r"`(\w+)`", m.group(1))]
+    ProposalStore(tmp_path / "p.sqlite").close()
+    with sqlite3.connect(tmp_path / "p.sqlite") as db:
+        actual = [(r[1], r[2]) for r in db.execute(f"PRAGMA table_info({table})")]
+    assert documented == actual
