@@ -403,15 +403,16 @@ def whole_coarse_normals(source, sigma_px: float):
 
 
 def coarse_window(coarse: Coarse, r0: int, r1: int, c0: int, c1: int) -> Coarse:
-    """The cells of a whole image's :class:`Coarse` field (offset (0, 0)) that the window rows
-    ``r0:r1``, columns ``c0:c1`` interpolate from — those over the window and one more ring —
-    as a :class:`Coarse` of the window: its :meth:`Coarse.full` on the window is the whole
-    field's on those pixels."""
+    """The cells of an image's :class:`Coarse` field that the window rows ``r0:r1``, columns
+    ``c0:c1`` of that image interpolate from — those over the window and one more ring — as a
+    :class:`Coarse` of the window: its :meth:`Coarse.full` on the window is the field's on those
+    pixels. The field may itself be a window's (a tile's, any ``offset``)."""
     f = coarse.factor
     hh, ww = coarse.values.shape[:2]
-    i0, i1 = max(0, r0 // f - 1), min(hh, -(-r1 // f) + 1)
-    j0, j1 = max(0, c0 // f - 1), min(ww, -(-c1 // f) + 1)
-    return Coarse(coarse.values[i0:i1, j0:j1], f, (i0 * f - r0, j0 * f - c0))
+    (o0, o1) = coarse.offset
+    i0, i1 = max(0, (r0 - o0) // f - 1), min(hh, -(-(r1 - o0) // f) + 1)
+    j0, j1 = max(0, (c0 - o1) // f - 1), min(ww, -(-(c1 - o1) // f) + 1)
+    return Coarse(coarse.values[i0:i1, j0:j1], f, (o0 + i0 * f - r0, o1 + j0 * f - c0))
 
 
 def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,

@@ -88,6 +88,14 @@ def _is_auto(value) -> bool:
     return isinstance(value, str) and value == AUTO
 
 
+def _whole(image: RGBNImage) -> RGBNImage:
+    """The image whose statistics the "auto" values of ``image`` are taken from: ``image``
+    itself, or, for a window of the image being drawn (:func:`_draw_where_shown`), that image —
+    so a layer drawn window by window picks the values a drawing of the whole image picks."""
+    window = _cache.get("window")
+    return window[0] if window is not None and image is window[1] else image
+
+
 def _cover(image: RGBNImage, rgb, resolved=None) -> Layer:
     rgb = np.asarray(rgb, np.float32)
     return Layer(rgb if rgb.ndim == 3 else grey(rgb), image.mask.astype(np.float32), resolved or {})
@@ -110,6 +118,7 @@ def _noise_px(image: RGBNImage, value, resolved: dict, key: str, *, factor: floa
     the fragment): a statistic of the pixels, which a few megapixels of them give as well as all."""
     from common.render.tiles import calibration_window
 
+    image = _whole(image)
     if _is_auto(value) and image.normals is None:
         value = 0.0
     if _is_auto(value):
@@ -143,12 +152,15 @@ def _zero_scale(values, mask, value, resolved: dict, key: str, clip_percent: flo
     return ref
 
 
-def _exposed_colour(image: RGBNImage, value, resolved: dict, key: str = "exposure") -> np.ndarray:
-    """Display colour of the fragment with its lightness exposed (:func:`_lightness_exposure`)."""
+def _exposed_colour(image: RGBNImage, value, resolved: dict, key: str = "exposure", *,
+                    albedo: np.ndarray | None = None) -> np.ndarray:
+    """Display colour of the fragment with its lightness exposed (:func:`_lightness_exposure`);
+    ``albedo``: the colours to expose so (some pixels of the image's), None for the image's."""
     rng = _lightness_exposure(image, value, resolved, key)
+    albedo = image.albedo if albedo is None else albedo
     if rng is None:
-        return display_albedo(image.albedo)
-    return _enhance.lightness_relief(image.albedo, None, strength=0.0, exposure=rng)
+        return display_albedo(albedo)
+    return _enhance.lightness_relief(albedo, None, strength=0.0, exposure=rng)
 
 
 def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exposure"):
@@ -157,7 +169,8 @@ def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exp
     if isinstance(value, str) and value == "none":
         resolved[key] = "none"
         return None
-    rng = _enhance.lightness_range(image.albedo, image.mask) if _is_auto(value) else (float(value[0]), float(value[1]))
+    whole = _whole(image)
+    rng = _enhance.lightness_range(whole.albedo, whole.mask) if _is_auto(value) else (float(value[0]), float(value[1]))
     resolved[key] = [float(rng[0]), float(rng[1])]
     return rng
 
@@ -185,6 +198,7 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
     true/false or a number. "auto" levels a near-flat surface — its coarse normals all point
     nearly one way (length of their mean > 0.95: a painting, a relief, even when near lights
     tilted the whole solve) — and leaves a curved object (a ball: about 0.7) alone."""
+    image = _whole(image)   # a window is levelled as the whole image is
     sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
     if _is_auto(level):
         coarse = _coarse(image, sigma).values
@@ -199,7 +213,12 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
 def _coarse(image: RGBNImage, sigma: float) -> np.ndarray:
     """The coarse normal field levelling smooths at ``sigma`` (a :class:`enhance.Coarse`): a
     tile's window of the whole image's when the tiles were given it (:func:`_render_whole`'s
-    ``coarse``), else computed from this image."""
+    ``coarse``), else computed from this image; for a window of the image being drawn
+    (:func:`_draw_where_shown`), the window of the image's field."""
+    whole = _whole(image)
+    if whole is not image:
+        r0, c0 = _cache["window"][2]
+        return _enhance.coarse_window(_coarse(whole, sigma), r0, r0 + image.shape[0], c0, c0 + image.shape[1])
     seeded = _cache.get(("whole coarse", float(sigma)))
     if seeded is not None:
         return seeded
@@ -317,7 +336,13 @@ def draw_toon(image: RGBNImage, light=(135.0, 45.0), levels: int = 3, softness: 
     if n_colours > 0:
         shown = _exposed_colour(image, colour_exposure, r, "colour_exposure")
         if _is_auto(palette):
-            centres = _shading.kmeans_palette(shown, n_colours, mask=image.mask, seed=seed)
+            whole = _whole(image)
+            if whole is image:
+                centres = _shading.kmeans_palette(shown, n_colours, mask=image.mask, seed=seed)
+            else:   # a window: the whole image's palette, fitted on its pixels' colours only
+                at = _shading.palette_pixels(whole.mask, seed=seed)
+                sample = _exposed_colour(image, r["colour_exposure"], {}, albedo=whole.albedo.reshape(-1, 3)[at][None])
+                centres = _shading.kmeans_palette(sample, n_colours, seed=seed)
         else:
             centres = np.asarray(palette, np.float32).reshape(-1, 3)
         r["palette"] = centres.round(6).tolist()
@@ -959,21 +984,88 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         return _render_whole(image, recipe, progress, resolved)
 
 
-def _render_whole(image, recipe, progress, resolved, labels=None, coarse=None) -> Rendering:
+def _render_whole(image, recipe, progress, resolved, labels=None, coarse=None, core=None) -> Rendering:
     """Draw one image (or one tile) in memory; the per-image cache lives for this call only.
     ``labels``: the recipe's segments on this window (a tile gets its window of the whole
     image's), None to segment the image here. ``coarse``: {sigma: Coarse}, this window of the
-    whole image's coarse normal fields for levelling (:func:`common.render.enhance.coarse_window`)."""
+    whole image's coarse normal fields for levelling (:func:`common.render.enhance.coarse_window`).
+    ``core``: (r0, r1, c0, c1), the pixels of the drawing that are kept (a tile's core): the
+    per-segment layers are drawn only for those (None: all)."""
     _cache.clear()
     for sigma, field in (coarse or {}).items():
         _cache[("whole coarse", float(sigma))] = field
     try:
-        return _render_image(image, recipe, progress, resolved, labels)
+        return _render_image(image, recipe, progress, resolved, labels, core)
     finally:
         _cache.clear()
 
 
-def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
+#: A per-segment layer is drawn over windows around the pixels it shows (:func:`_draw_where_shown`)
+#: when they hold at most this share of the image; else over the whole image.
+WINDOW_SHARE = 0.6
+#: Styles whose drawing on a window, given the whole image's "auto" values and coarse fields,
+#: is the whole drawing's on the window's core (tests/render/test_recipes.py) ...
+_WINDOWED = frozenset({"albedo", "toon", "normals", "lambertian", "raking", "gooch", "exaggerated", "specular",
+                       "mean_curvature", "multiscale_mean_curvature", "colour_relief", "normal_unsharp"})
+#: ... and those of them whose "auto" values are all statistics of the image's inputs, taken from
+#: the whole image through :func:`_whole` (never of what they draw): they are drawn on windows
+#: even when the values are not given (the others only in tiles, which are given them).
+_INPUT_AUTO = frozenset({"albedo", "toon", "normals"})
+
+
+def _draw_where_shown(image, recipe, layer, params, shown) -> Layer | None:
+    """A shading layer drawn only over windows around the pixels ``shown`` ((H, W) bool: its
+    segments on the fragment, within the kept core), each with the style's own reach as a margin
+    (:func:`common.render.tiles.halo_px`), so the values there are those of a drawing of the whole
+    image; elsewhere nothing (alpha 0). The "auto" values are the whole image's: given (tiles),
+    or, for a style of :data:`_INPUT_AUTO`, picked from the whole image's statistics by a first
+    drawing of a small window. None when the layer must be drawn whole (a style not known to draw
+    the same on windows, "auto" values that come from its own drawing, or windows that would
+    cover more than :data:`WINDOW_SHARE` of the image)."""
+    from common.render.tiles import MemorySource, halo_px, shown_windows
+
+    style = STYLES[layer["style"]]
+    if style.name not in _WINDOWED:
+        return None
+    if any(_is_auto(v) for v in {**style.parameters(), **params}.values()) and style.name not in _INPUT_AUTO:
+        return None
+    h, w = image.shape
+    source = MemorySource(image)
+    cores = shown_windows(shown, 0)
+
+    def draw(r0, r1, c0, c1, values):
+        sub = source.window(r0, r1, c0, c1)
+        _cache["window"] = (image, sub, (r0, c0))
+        share, _cache["share_smoothed"] = _cache.get("share_smoothed"), False   # a window's are its own
+        try:
+            return style.draw(sub, **values)
+        finally:
+            _cache["window"] = None
+            _cache["share_smoothed"] = share
+
+    # the values of the "auto" parameters (and the resolved values to report) from a small window
+    r0, _, c0, _ = cores[0][0] if cores else (0, 0, 0, 0)
+    r0, c0 = min(r0, max(0, h - 32)), min(c0, max(0, w - 32))
+    chosen = dict(draw(r0, min(h, r0 + 32), c0, min(w, c0 + 32), params).resolved)
+    values = {**params, **{k: v for k, v in chosen.items() if k in style.parameters()}}
+    level = values.get("level")
+    margin = halo_px(replace(recipe, layers=[layer], preprocess={}), image.dpi, [values],
+                     whole_levels={float(level)} if isinstance(level, (int, float)) else ())
+    windows = shown_windows(shown, margin)
+    if sum((b - a) * (d - c) for _, (a, b, c, d) in windows) > WINDOW_SHARE * h * w:
+        return None
+    rgb = np.zeros((h, w, 3), np.float32)
+    alpha = np.zeros((h, w), np.float32)
+    for (a, b, c, d), (wa, wb, wc, wd) in windows:
+        drawn = draw(wa, wb, wc, wd, values)
+        core = (slice(a - wa, b - wa), slice(c - wc, d - wc))
+        rgb[a:b, c:d] = drawn.rgb[core]
+        alpha[a:b, c:d] = drawn.alpha[core]
+        del drawn
+    return Layer(rgb, alpha, chosen)
+
+
+def _render_image(image, recipe, progress, resolved, labels=None, core=None) -> Rendering:
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]
@@ -1001,13 +1093,27 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
             params.update({k: v for k, v in resolved[i].items() if k in params or k in style.parameters()})
         if "segments" in style.needs:
             params["labels"] = labels
-        drawn = style.draw(image, **params)
+        shown = None   # where a per-segment layer shows
+        if labels is not None and ("segments" in layer or "exclude_segments" in layer):
+            shown = _in_segments(labels, layer["segments"]) if "segments" in layer else np.ones(labels.shape, bool)
+            if "exclude_segments" in layer:
+                shown &= ~_in_segments(labels, layer["exclude_segments"])
+        drawn = None
+        if shown is not None and layer["style"] not in INK_STYLES:   # a shading style covers the mask
+            on = shown & image.mask
+            if core is not None:
+                kept = np.zeros(on.shape, bool)
+                kept[core[0]:core[1], core[2]:core[3]] = True
+                on &= kept
+            drawn = _draw_where_shown(image, recipe, layer, params, on)
+            del on
+        if drawn is None:
+            drawn = style.draw(image, **params)
         chosen.append(dict(drawn.resolved))
         a = drawn.alpha * np.float32(layer["opacity"]) if layer.get("opacity", 1.0) != 1.0 else drawn.alpha
-        if labels is not None and "segments" in layer:
-            a = a * np.isin(labels, layer["segments"])
-        if labels is not None and "exclude_segments" in layer:
-            a = a * ~np.isin(labels, layer["exclude_segments"])
+        if shown is not None:
+            a = a * shown
+        del shown
         a = a.astype(np.float32, copy=False)
         blend = layer.get("blend", "normal")
         if canvas is None:
@@ -1026,6 +1132,15 @@ def _render_image(image, recipe, progress, resolved, labels=None) -> Rendering:
     np.clip(canvas, 0.0, 1.0, out=canvas)
     np.maximum(cover, image.mask, out=cover)
     return Rendering(canvas, np.clip(cover, 0.0, 1.0, out=cover), recipe, skipped, chosen)
+
+
+def _in_segments(labels: np.ndarray, segments) -> np.ndarray:
+    """(H, W) bool: the pixels whose label is one of ``segments`` (``np.isin``, as one comparison
+    per segment: a recipe names a few, and numpy's isin sorts the image's labels for them)."""
+    out = np.zeros(labels.shape, bool)
+    for s in segments:
+        out |= labels == s
+    return out
 
 
 def _adopt_as_canvas(rgb, alpha, blend: str, image: RGBNImage, background):
@@ -1078,9 +1193,22 @@ def _blend(base: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, mode: str) -> n
             from common.rgbn.smoothing import copy_where
 
             return copy_where(base, np.asarray(rgb, np.float32), on)
+        del on
+        # base + (rgb - base) a in place, a strip of rows at a time, on the rows the layer touches
+        # (line and shadow ink covers a few per cent of the image): no temporaries of its size
+        from common.rgbn.smoothing import strips
+
+        touched = np.flatnonzero(alpha.any(axis=1))
+        if touched.size:
+            for r0, r1, _, _ in strips((int(touched[-1]) + 1 - int(touched[0]),) + base.shape[1:], 0):
+                rows = slice(int(touched[0]) + r0, int(touched[0]) + r1)
+                d = np.subtract(rgb[rows], base[rows], dtype=np.float32)
+                d *= alpha[rows][..., None]
+                base[rows] += d
+        return base
     a = alpha[..., None]
-    if mode == "normal":
-        top = rgb
+    if mode == "multiply":
+        top = base * rgb
     elif mode == "multiply":
         top = base * rgb
     elif mode == "screen":

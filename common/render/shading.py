@@ -155,11 +155,10 @@ def kmeans_palette(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray 
     if int(n_colours) != n_colours or n_colours < 1:
         raise ValueError(f"n_colours must be an integer >= 1, got {n_colours}")
     mask = check_mask(mask, colours.shape[:2])
-    at = np.flatnonzero(mask)   # the mask pixels' positions; only the sample's colours are gathered
+    at = palette_pixels(mask, sample=sample, seed=seed)   # only the sample's colours are gathered
     if at.size == 0:
         return np.zeros((0, 3), np.float32)
-    rng = np.random.default_rng(seed)
-    fit = colours.reshape(-1, 3)[at if at.size <= sample else at[rng.choice(at.size, sample, replace=False)]]
+    fit = colours.reshape(-1, 3)[at]
     k = int(min(n_colours, len(np.unique(fit, axis=0))))
     # OpenCV's k-means (k-means++ seeding, 3 attempts): fast and single-threaded, so it behaves on
     # a loaded machine; its RNG is seeded for a deterministic palette
@@ -167,6 +166,17 @@ def kmeans_palette(colours: np.ndarray, n_colours: int = 6, *, mask: np.ndarray 
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-5)
     _, _, centres = cv2.kmeans(np.ascontiguousarray(fit), k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
     return centres.astype(np.float32)
+
+
+def palette_pixels(mask: np.ndarray, *, sample: int = 20000, seed: int = 0) -> np.ndarray:
+    """The flat positions of the pixels :func:`kmeans_palette` fits its palette on, in the order
+    it takes them: every mask pixel, or ``sample`` of them drawn at random (deterministic for a
+    ``seed``). A caller that has the colours of only some pixels (a window of the image) gathers
+    the colours of these and fits them (``mask=None``) to the same palette."""
+    at = np.flatnonzero(np.asarray(mask, bool))
+    if at.size <= sample:
+        return at
+    return at[np.random.default_rng(seed).choice(at.size, sample, replace=False)]
 
 
 def nearest_colours(colours: np.ndarray, centres: np.ndarray, *, mask: np.ndarray | None = None) -> np.ndarray:

@@ -47,12 +47,15 @@ class MemorySource:
         self.dpi = image.dpi
 
     def window(self, r0: int, r1: int, c0: int, c1: int) -> RGBNImage:
+        """Rows ``r0:r1``, columns ``c0:c1`` (views, not copies); ``attrs["tile_origin"]`` is their
+        position in the whole image (the image's own origin added, when it is itself a window)."""
         im = self.image
         cut = lambda a: None if a is None else a[r0:r1, c0:c1]  # noqa: E731
+        o = im.attrs.get("tile_origin", (0, 0))
         return RGBNImage(albedo=im.albedo[r0:r1, c0:c1], mask=im.mask[r0:r1, c0:c1], dpi=im.dpi,
                          normals=cut(im.normals), confidence=cut(im.confidence),
                          discontinuity=cut(im.discontinuity), height_mm=cut(im.height_mm),
-                         attrs=dict(im.attrs, tile_origin=(r0, c0)))
+                         attrs=dict(im.attrs, tile_origin=(int(o[0]) + r0, int(o[1]) + c0)))
 
 
 class H5Source:
@@ -137,6 +140,36 @@ def calibration_window(shape: tuple[int, int], mpx: float = CALIBRATION_MPX) -> 
     side_w = min(w, int(mpx * 1e6 / max(side_h, 1)))
     r0, c0 = (h - side_h) // 2, (w - side_w) // 2
     return r0, r0 + side_h, c0, c0 + side_w
+
+
+def shown_windows(shown: np.ndarray, margin: int, *, block: int = 32, band: int = 256) -> list:
+    """Windows that together hold every True pixel of ``shown`` ((H, W) bool) with ``margin``
+    pixels around it: ``[(core, window)]``, each ``(r0, r1, c0, c1)``. The image is cut into
+    bands of rows (``band`` px, at least 4 margins) and each band's ``block`` x ``block`` px
+    blocks holding a True pixel into runs of columns (a gap of more than two margins splits a
+    run); a core is the bounding box of one run's blocks, its window the core grown by
+    ``margin``, both clipped to the image. None True: no windows."""
+    shown = np.asarray(shown, bool)
+    h, w = shown.shape
+    hb, wb = -(-h // block), -(-w // block)
+    padded = np.zeros((hb * block, wb * block), bool)
+    padded[:h, :w] = shown
+    blocks = padded.reshape(hb, block, wb * block).any(axis=1).reshape(hb, wb, block).any(axis=2)
+    del padded
+    rows_per_band = -(-max(band, 4 * margin) // block)
+    gap = -(-2 * margin // block) + 1   # blocks apart whose windows would not meet
+    out = []
+    for i0 in range(0, hb, rows_per_band):
+        part = blocks[i0:i0 + rows_per_band]
+        cols = np.flatnonzero(part.any(axis=0))
+        for run in np.split(cols, np.flatnonzero(np.diff(cols) > gap) + 1) if cols.size else []:
+            j0, j1 = int(run[0]), int(run[-1]) + 1
+            rows = np.flatnonzero(part[:, j0:j1].any(axis=1))
+            r0, r1 = (i0 + int(rows[0])) * block, min(h, (i0 + int(rows[-1]) + 1) * block)
+            c0, c1 = j0 * block, min(w, j1 * block)
+            out.append(((r0, r1, c0, c1), (max(0, r0 - margin), min(h, r1 + margin),
+                                           max(0, c0 - margin), min(w, c1 + margin))))
+    return out
 
 
 def _spans(length: int, core: int) -> list[tuple[int, int]]:
@@ -235,7 +268,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
             ra, rb, ca, cb = max(0, a - halo), min(h, b + halo), max(0, c - halo), min(w, d + halo)
             seeds = {sigma: coarse_window(field, ra, rb, ca, cb) for sigma, field in whole.items()}
             part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb),
-                                 seeds)
+                                 seeds, core=(a - ra, b - ra, c - ca, d - ca))
             core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
             rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
             alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)

@@ -310,3 +310,23 @@ def test_exposing_an_encoded_picture_decodes_it_strip_by_strip_to_the_same_colou
     assert lightness_range(display, mask, encoded=True) == rng_lin
     expect = lightness_relief(srgb_to_linear(display), np.zeros((90, 64), np.float32), strength=0.0, exposure=rng_lin)
     assert np.array_equal(lightness_relief(display, None, strength=0.0, exposure=rng_lin, encoded=True), expect)
+
+
+def test_a_window_of_a_tiles_coarse_field_is_the_whole_fields_on_its_pixels():
+    """:func:`coarse_window` of a field that is itself a window's (a tile's, any offset) gives the
+    whole field's values on the window's pixels, as the window taken from the whole field does."""
+    from common.render.enhance import coarse_window
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(0, 0.2, (400, 300, 3)).astype(np.float32)
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    field = coarse_normals(n, 40.0, full_size=False)
+    assert field.factor > 1
+    tile = coarse_window(field, 37, 261, 53, 290)
+    for r0, r1, c0, c1 in ((0, 40, 0, 30), (101, 180, 77, 200), (150, 224, 200, 237)):
+        direct = coarse_window(field, 37 + r0, 37 + r1, 53 + c0, 53 + c1).full((r1 - r0, c1 - c0))
+        nested = coarse_window(tile, r0, r1, c0, c1).full((r1 - r0, c1 - c0))
+        assert np.array_equal(nested, direct)
+        whole = field.full((400, 300))[37 + r0:37 + r1, 53 + c0:53 + c1]
+        assert np.abs(nested - whole).max() < 1e-5

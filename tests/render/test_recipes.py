@@ -1,3 +1,5 @@
+import functools
+
 import numpy as np
 import pytest
 
@@ -270,3 +272,141 @@ def test_the_half_vector_cosine_under_a_levelled_light_is_that_of_each_pixels_ha
     assert np.ptp(field[..., 2]) > 0.01                     # a light that varies over the image
     assert np.abs(cos_nl - np.einsum("...i,...i->...", n, field)).max() < 2e-6
     assert np.abs(cos_nh - np.einsum("...i,...i->...", n, enhance.half_vector(field))).max() < 2e-6
+
+
+@pytest.fixture(scope="module")
+def segmented():
+    """A 384 x 288 relief with hand-made segments: segment 0 the most of it, and small ones in the
+    middle, on the left and bottom edges and in a corner, for per-segment layers to draw."""
+    import cv2
+
+    from tests.rgbn.analytic import normals_from_height
+
+    h, w = 384, 288
+    rng = np.random.default_rng(3)
+    height = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 5) * 60
+    gy, gx = np.gradient(height)
+    normals = normals_from_height(gx * 0.5, -gy * 0.5).astype(np.float32)
+    albedo = np.full((h, w, 3), 0.55, np.float32)
+    albedo[:, 130:] = (0.6, 0.3, 0.2)
+    albedo += rng.normal(0.0, 0.03, albedo.shape).astype(np.float32)
+    mask = np.ones((h, w), bool)
+    mask[:12, 220:] = False                       # a notch in the outline
+    labels = np.zeros((h, w), np.int32)
+    labels[200:230, 120:160] = 1                  # inside
+    labels[20:70, :14] = 2                        # on the left edge
+    labels[370:, 30:90] = 3                       # on the bottom edge
+    labels[330:, 250:] = 4                        # in the bottom-right corner
+    labels[~mask] = -1
+    return RGBNImage(albedo=np.clip(albedo, 0.0, 1.0), mask=mask, dpi=300.0, normals=normals), labels
+
+
+def _per_segment(style, lines=False, **params):
+    """A recipe: lambertian shading, ``style`` on every segment but 0, and with ``lines``
+    discontinuity lines on segments 1 and 2 (an ink layer, drawn whole and masked)."""
+    from common.render.recipes import Recipe
+
+    return Recipe(name="per-segment", segmentation={"scale": 100.0},
+                  layers=[{"style": "lambertian"}, dict(style=style, exclude_segments=[0], **params)]
+                  + ([{"style": "discontinuity_lines", "segments": [1, 2]}] if lines else []))
+
+
+@pytest.mark.parametrize("style", ["toon", "albedo", "normals"])
+def test_a_per_segment_layer_drawn_on_windows_is_the_layer_drawn_whole_then_masked(segmented, style, monkeypatch):
+    """A per-segment layer whose "auto" values come from the image's inputs is drawn only over
+    windows around its segments (each with the style's reach as a margin), with the values a
+    drawing of the whole image picks (palette, exposure, smoothing, levelling): the picture is the
+    one drawn whole and then masked, to 1e-3/255 (the blur at a window's border is not read)."""
+    from common.render import recipes
+
+    image, labels = segmented
+    recipe = _per_segment(style, lines=True)
+    sizes = []
+    draw = recipes.STYLES[style].draw
+
+    @functools.wraps(draw)
+    def counted(im, **kw):
+        sizes.append(im.shape)
+        return draw(im, **kw)
+
+    monkeypatch.setitem(recipes.STYLES, style, recipes.Style(style, counted, recipes.STYLES[style].needs, ""))
+    windowed = recipes._render_whole(image, recipe, None, None, labels)
+    assert len(sizes) > 2 and all(s[0] * s[1] < 0.3 * labels.size for s in sizes)   # windows, not the image
+    monkeypatch.setattr(recipes, "WINDOW_SHARE", -1.0)                            # the whole image, masked
+    whole = recipes._render_whole(image, recipe, None, None, labels)
+    assert sizes[-1] == image.shape
+    assert windowed.resolved == whole.resolved
+    assert np.abs(windowed.rgb - whole.rgb).max() <= 1e-3 / 255
+    assert np.abs(windowed.alpha - whole.alpha).max() == 0.0
+
+
+@pytest.mark.parametrize("style", sorted(["toon", "lambertian", "raking", "gooch", "exaggerated", "specular",
+                                          "mean_curvature", "multiscale_mean_curvature", "colour_relief",
+                                          "normal_unsharp"]))
+def test_every_windowed_style_given_its_values_draws_on_windows_what_it_draws_whole(segmented, style, monkeypatch):
+    """Given its values (as a tile is given the calibration's), each style drawn on windows around
+    its segments is the style drawn on the whole image and masked, within the 1/255 tiles allow
+    (a coarse grid of a window can differ from the image's)."""
+    from common.render import recipes
+
+    assert style in recipes._WINDOWED
+    image, labels = segmented
+    params = {"scales": 3} if style == "exaggerated" else {}
+    first = recipes._render_whole(image, _per_segment(style, **params), None, None, labels)
+    resolved = first.resolved
+    monkeypatch.setattr(recipes, "WINDOW_SHARE", -1.0)
+    whole = recipes._render_whole(image, _per_segment(style, **params), None, resolved, labels)
+    monkeypatch.setattr(recipes, "WINDOW_SHARE", 1.0)
+    windowed = recipes._render_whole(image, _per_segment(style, **params), None, resolved, labels)
+    assert windowed.resolved == whole.resolved == resolved
+    assert np.abs(windowed.rgb - whole.rgb).max() <= 1.0 / 255
+    assert np.ptp(whole.rgb[labels > 0]) > 0.1   # something drawn there
+
+
+def test_a_per_segment_layer_in_tiles_is_drawn_on_each_tiles_core_only(segmented, monkeypatch):
+    """In tiles the per-segment layers are drawn for the tile's core only (the halo is thrown
+    away), and the tiles still draw the whole image's picture (to 8-bit rounding)."""
+    import common.rgbn.segmentation as seg
+    from common.render import recipes
+    from common.render.tiles import render_tiled
+
+    image, labels = segmented
+    recipe = _per_segment("toon")
+    whole = recipes._render_whole(image, recipe, None, None, labels)
+    monkeypatch.setattr(seg, "segment_source", lambda source, **kw: labels)
+    tiled = render_tiled(image, recipe, tile=64)
+    assert tiled.resolved == whole.resolved
+    assert np.abs(np.round(whole.rgb * 255) - tiled.rgb.astype(np.float64)).max() <= 1.0
+
+
+def test_shown_windows_hold_every_shown_pixel_with_its_margin():
+    from common.render.tiles import shown_windows
+
+    rng = np.random.default_rng(0)
+    shown = np.zeros((300, 500), bool)
+    shown[rng.integers(0, 300, 40), rng.integers(0, 500, 40)] = True
+    shown[:5, :5] = shown[-3:, 200:260] = shown[100:103, -2:] = True
+    for margin in (0, 7, 40):
+        windows = shown_windows(shown, margin, block=16, band=64)
+        covered = np.zeros(shown.shape, bool)
+        for (r0, r1, c0, c1), (a, b, c, d) in windows:
+            covered[r0:r1, c0:c1] = True
+            assert (a, b, c, d) == (max(0, r0 - margin), min(300, r1 + margin), max(0, c0 - margin),
+                                    min(500, c1 + margin))
+        assert covered[shown].all()
+        if margin < 40:
+            assert covered.sum() < 0.5 * shown.size   # cores around the pixels, not the image
+    assert shown_windows(np.zeros((10, 10), bool), 3) == []
+
+
+def test_a_normal_blend_of_partial_ink_is_base_plus_its_difference_times_alpha():
+    from common.render.recipes import _blend
+
+    rng = np.random.default_rng(1)
+    base = rng.random((50, 40, 3), dtype=np.float32)
+    rgb = rng.random((50, 40, 3), dtype=np.float32)
+    alpha = rng.random((50, 40), dtype=np.float32)
+    alpha[:10] = 0.0
+    alpha[30:] = 0.0
+    expected = base + (rgb - base) * alpha[..., None]
+    assert np.array_equal(_blend(base.copy(), rgb, alpha, "normal"), expected)
