@@ -135,10 +135,13 @@ def tone_curve(values: np.ndarray, low: float, high: float) -> np.ndarray:
         return np.full(values.shape, 0.5, np.float32)
     k = np.float32(np.arctanh(TONE_SPAN[1] * 2 - 1) / (0.5 * (high - low)))
     out = values - np.float32(0.5 * (low + high))   # the only array made: the rest is in place
-    out *= k
-    np.tanh(out, out=out)
-    out *= np.float32(0.5)
-    out += np.float32(0.5)
+    # 0.5 + 0.5 tanh(u) = 1 / (1 + exp(-2u)): OpenCV's vectorised exp, half numpy's tanh's time
+    # (within 1.2e-7 of it); exp overflowing to inf for a far dark value gives 0, as tanh's -1 does
+    out *= np.float32(-2.0) * k
+    flat = out.reshape(-1, 1)   # a view (out is contiguous): OpenCV takes it as one column
+    cv2.exp(flat, dst=flat)
+    out += np.float32(1.0)
+    np.reciprocal(out, out=out)
     return out
 
 

@@ -250,7 +250,6 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
         tile = max(256, int(np.sqrt(TILE_MPX * 1e6)) - 2 * halo)
     bits = recipe.bits
     dtype = np.uint8 if bits == 8 else np.uint16
-    full = np.float32(255.0 if bits == 8 else 65535.0)
     rgb = np.empty((h, w, 3), dtype)
     alpha = np.empty((h, w), dtype)
     spans = [(rs, cs) for rs in _spans(h, tile) for cs in _spans(w, tile)]
@@ -270,12 +269,24 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
             part = _render_whole(source.window(ra, rb, ca, cb), drawn_recipe, None, resolved, cut(ra, rb, ca, cb),
                                  seeds, core=(a - ra, b - ra, c - ca, d - ca))
             core = (slice(a - ra, b - ra), slice(c - ca, d - ca))
-            rgb[a:b, c:d] = np.round(np.clip(part.rgb[core], 0.0, 1.0) * full).astype(dtype)
-            alpha[a:b, c:d] = np.round(np.clip(part.alpha[core], 0.0, 1.0) * full).astype(dtype)
+            rgb[a:b, c:d] = _quantized(part.rgb[core], bits)
+            alpha[a:b, c:d] = _quantized(part.alpha[core], bits)
             del part
     if progress:
         progress(1.0, "done")
     return Rendering(rgb, alpha, recipe, skipped, resolved)
+
+
+def _quantized(values: np.ndarray, bits: int) -> np.ndarray:
+    """Values in [0, 1] (a drawing: :func:`common.render.recipes.render` clips its colour and
+    coverage) as ``bits``-bit integers, rounded to nearest (half to even), clipped: for 8 bits in
+    one pass of OpenCV's ``convertScaleAbs`` (7x numpy's clip, scale, round and cast; the same
+    integers), for 16 bits by numpy."""
+    if bits == 8:
+        import cv2
+
+        return cv2.convertScaleAbs(np.ascontiguousarray(values), alpha=255.0)
+    return np.round(np.clip(values, 0.0, 1.0) * np.float32(65535.0)).astype(np.uint16)
 
 
 def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = None):
