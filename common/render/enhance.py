@@ -543,17 +543,21 @@ def lightness_relief(albedo: np.ndarray, relief: np.ndarray | None, *, strength:
     for r0, r1, _, _ in strips(albedo.shape, 0):
         rows = srgb_to_linear(albedo[r0:r1]) if encoded else albedo[r0:r1]
         _lightness_relief_rows(rows, None if relief is None else relief[r0:r1], np.float32(strength), exposure,
-                               out[r0:r1])
+                               out[r0:r1], inside=encoded)
     return out
 
 
-def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exposure, out: np.ndarray) -> None:
-    """:func:`lightness_relief` of some rows (checked arguments), written to ``out`` (contiguous)."""
+def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exposure, out: np.ndarray, *,
+                           inside: bool = False) -> None:
+    """:func:`lightness_relief` of some rows (checked arguments), written to ``out`` (contiguous);
+    ``inside``: the colours are known to lie in [0, 1] (decoded ones), not looked at for that."""
     # OpenCV's float LRGB2Lab takes linear RGB in [0, 1] and gives L* in [0, 100]; Lab2RGB gives
     # sRGB-encoded values back (its own gamma tables: no per-pixel power here)
-    inside = albedo.size and float(albedo.min()) >= 0.0 and float(albedo.max()) <= 1.0
+    inside = inside or (albedo.size and float(albedo.min()) >= 0.0 and float(albedo.max()) <= 1.0)
     lab = cv2.cvtColor(np.ascontiguousarray(albedo if inside else np.clip(albedo, 0.0, 1.0)), cv2.COLOR_LRGB2Lab)
-    L = lab[..., 0]
+    # L*, a*, b* as contiguous planes (numpy is slow on every third value of an interleaved array),
+    # put back together by one merge before the conversion back
+    L, a, b = cv2.split(lab)
     if exposure is not None:
         lo, hi = float(exposure[0]), float(exposure[1])
         if hi > lo:
@@ -564,14 +568,14 @@ def _lightness_relief_rows(albedo: np.ndarray, relief: np.ndarray, strength, exp
             k = np.maximum(L, np.float32(1.0))
             np.divide(L2, k, out=k)
             np.clip(k, 0.0, 2.0, out=k)
-            lab[..., 1] *= k
-            lab[..., 2] *= k
+            a *= k
+            b *= k
             del k
             L = L2
     if strength > 0:
         r = np.clip(relief, -1.0, 1.0) * strength
         L = L + r * np.where(r > 0, 100.0 - L, L)
-    lab[..., 0] = L
+    cv2.merge([np.asarray(L, np.float32), a, b], dst=lab)
     # OpenCV's Lab2RGB clips each channel: the colours it clipped are mapped again, chroma only
     _into_gamut(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB, dst=out), lab)
 

@@ -29,16 +29,17 @@ _TIFF = (".tif", ".tiff")
 
 
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32; two arrays of the input's size
-    are made, the rest is computed in place)."""
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32; one array of the input's size
+    is made, the rest is computed in place: the linear segment's values are made for its pixels
+    only, the darkest few, and put back after the power)."""
     arr = np.asarray(values, dtype=np.float32)
-    v = np.clip(np.atleast_1d(arr), 0.0, 1.0)
-    out = v + np.float32(0.055)
+    out = np.clip(np.atleast_1d(arr), 0.0, 1.0)
+    low = np.flatnonzero(out.reshape(-1) <= 0.04045)
+    dark = out.reshape(-1)[low] / np.float32(12.92)
+    out += np.float32(0.055)
     out /= np.float32(1.055)
     _power(out, 2.4)
-    low = v <= 0.04045
-    v /= np.float32(12.92)
-    np.copyto(out, v, where=low)
+    out.reshape(-1)[low] = dark
     return out.reshape(arr.shape)
 
 
