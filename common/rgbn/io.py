@@ -33,7 +33,7 @@ def srgb_to_linear(values: np.ndarray) -> np.ndarray:
     is made, the rest is computed in place: the linear segment's values are made for its pixels
     only, the darkest few, and put back after the power)."""
     arr = np.asarray(values, dtype=np.float32)
-    out = np.clip(np.atleast_1d(arr), 0.0, 1.0)
+    out = np.clip(np.atleast_1d(arr), 0.0, 1.0, out=np.empty(np.atleast_1d(arr).shape, np.float32))  # C order
     low = np.flatnonzero(out.reshape(-1) <= 0.04045)
     dark = out.reshape(-1)[low] / np.float32(12.92)
     out += np.float32(0.055)
