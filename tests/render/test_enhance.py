@@ -330,3 +330,31 @@ def test_a_window_of_a_tiles_coarse_field_is_the_whole_fields_on_its_pixels():
         assert np.array_equal(nested, direct)
         whole = field.full((400, 300))[37 + r0:37 + r1, 53 + c0:53 + c1]
         assert np.abs(nested - whole).max() < 1e-5
+
+
+@pytest.mark.parametrize("factor", [1, 2, 3, 4, 16, 24])
+def test_a_coarse_fields_rows_are_the_bilinear_map_of_its_cells_with_edges_replicated(factor):
+    """:meth:`Coarse.full` (a resize of the cells the rows read, shifted and edge-replicated)
+    against OpenCV's warpAffine of the same map, which it replaced: equal to float rounding where
+    the map's positions fall on warpAffine's 1/32-pixel grid (factors up to 16 a power of two or
+    1), else within warpAffine's own quantisation (1/64 of a cell step); any offset, any rows,
+    windows that start before or end past the cells."""
+    from common.render.enhance import Coarse
+
+    rng = np.random.default_rng(factor)
+    for trial in range(12):
+        ch = () if trial % 2 else (3,)
+        cells = rng.random((int(rng.integers(2, 9)), int(rng.integers(2, 9))) + ch).astype(np.float32)
+        offset = (int(rng.integers(-2 * factor, 2 * factor + 1)), int(rng.integers(-2 * factor, 2 * factor + 1)))
+        h, w = int(rng.integers(1, 12 * factor)), int(rng.integers(1, 12 * factor))
+        r0 = int(rng.integers(0, h))
+        r1 = int(rng.integers(r0 + 1, h + 1))
+        got = Coarse(cells, factor, offset).full((h, w), rows=(r0, r1))
+        f = float(factor)
+        m = np.array([[1 / f, 0.0, (0.5 - offset[1]) / f - 0.5], [0.0, 1 / f, (0.5 + r0 - offset[0]) / f - 0.5]])
+        ref = cv2.warpAffine(cells, m, (w, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_REPLICATE).reshape((r1 - r0, w) + ch)
+        step = max(np.abs(np.diff(cells, axis=0)).max(), np.abs(np.diff(cells, axis=1)).max())
+        exact = factor in (1, 2, 4, 16)
+        assert got.shape == ref.shape
+        assert np.abs(got - ref).max() <= (2e-6 if exact else step / 64 + 2e-6), (trial, offset, (h, w), (r0, r1))
