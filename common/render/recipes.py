@@ -1209,8 +1209,6 @@ def _blend(base: np.ndarray, rgb: np.ndarray, alpha: np.ndarray, mode: str) -> n
     a = alpha[..., None]
     if mode == "multiply":
         top = base * rgb
-    elif mode == "multiply":
-        top = base * rgb
     elif mode == "screen":
         top = 1.0 - (1.0 - base) * (1.0 - rgb)
     elif mode == "darken":
