@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from common.imports.fragments import fragment_from_image
 from common.rgbn.io import srgb_to_linear
+from common.synth.stats import read_fragment_rgba
 from common.synth.wall import Fragment, Wall
 
 # a boundary at a random angle has max(|cos|, |sin|) contour pixels per pixel of length: mean 2 sqrt(2) / pi
@@ -87,9 +88,7 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
     frags: list[Fragment] = []
     placed: dict[str, tuple] = {}   # id -> (window x0, y0, placed mask, contour in fresco px)
     for i in indices:
-        img = cv2.imread(str(root / "fragments" / f"frag_eroded_{i}.png"), cv2.IMREAD_UNCHANGED)
-        if img is None or img.ndim != 3 or img.shape[2] != 4:
-            raise ValueError(f"fragment image frag_eroded_{i}.png in {root} is missing or not RGBA")
+        img = read_fragment_rgba(root / "fragments" / f"frag_eroded_{i}.png")
         h, w = img.shape[:2]
         mask = img[..., 3] > 127      # the fragment proper (RGBN mask, contour)
         footprint = img[..., 3] > 0   # what pasting with the alpha mask covers (neighbour test)
@@ -98,7 +97,7 @@ def import_dafne(path: str | os.PathLike, *, dpi: float = 50.0, neighbour_px: fl
         fid = f"{wall_id}-{i}"
         rgbn = None
         if load_images:  # the importers' cut-out path: mask alpha > 50 %, albedo linear from sRGB
-            rgbn = fragment_from_image(img[..., [2, 1, 0, 3]], dpi=dpi, background="alpha")
+            rgbn = fragment_from_image(img, dpi=dpi, background="alpha")
             rgbn.attrs = {"source": "DAFNE", "face": "front"}
         pose = None
         if i in placements and i not in spurious:

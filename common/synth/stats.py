@@ -61,6 +61,19 @@ class Piece:
     matrix: np.ndarray | None = None
 
 
+def read_fragment_rgba(path) -> np.ndarray:
+    """A fragment image (the piece in its alpha channel) as (H, W, 4) uint8 RGBA, read completely
+    through the import door (:func:`common.imports.door.read_image_checked`: a truncated or corrupt
+    file, one without an alpha channel or a fully transparent one is refused, naming the file and
+    the reason; OpenCV alone would return a truncated PNG's missing rows as grey). 16-bit files are
+    reduced to 8 bits."""
+    from common.imports.door import read_image_checked
+
+    img = read_image_checked(path, channels=(4,))
+    px = img.pixels
+    return px if px.dtype == np.uint8 else (px.astype(np.float32) * (255.0 / img.full_scale) + 0.5).astype(np.uint8)
+
+
 def _crop(rgba: np.ndarray, pad: int = 2):
     ys, xs = np.nonzero(rgba[..., 3] > 0)
     if not ys.size:
@@ -123,11 +136,8 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
         pngs = sorted(obj.glob("*.png"))
         truth = _read_truth(obj / "truth.csv", {p.name for p in pngs}) if (obj / "truth.csv").is_file() else {}
         for png in pngs:
-            img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
-            if img is None or img.ndim != 3 or img.shape[2] != 4:
-                raise ValueError(f"fragment image {png} is missing or not RGBA")
-            h, w = img.shape[:2]
-            rgba = np.concatenate([img[..., 2::-1], img[..., 3:]], axis=2)
+            rgba = read_fragment_rgba(png)
+            h, w = rgba.shape[:2]
             crop, c0, r0 = _crop(rgba)
             M = None
             if png.name in truth:
