@@ -149,10 +149,12 @@ def read_images(paths: Sequence[str | os.PathLike], *, srgb: bool = False, satur
 
 
 def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a mask image (non-zero = object) as (H, W) bool, checking its size."""
-    m = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-    if m is None:
-        raise ValueError(f"cannot read mask image {path}")
+    """Read a mask image (non-zero = object) as (H, W) bool, checking its size. The file is read
+    completely through the import door (:func:`common.imports.door.read_image_checked`): a truncated
+    PNG would otherwise come back with its missing rows grey, i.e. object."""
+    from common.imports.door import read_image_checked
+
+    m = read_image_checked(path, allow_blank=True).pixels
     if m.ndim == 3:
         m = m[..., :3].max(axis=2) if m.shape[2] >= 3 else m[..., 0]
     m = m > 0

@@ -475,3 +475,17 @@ def test_distant_lights_are_kept_when_no_dome_fits_better():
     images = simulate_flash_capture(surf, _lights(12), shadows=False)
     radius, _ = estimate_dome_radius(images, _lights(12), mask=surf.mask)
     assert radius is None
+
+
+def test_a_truncated_mask_file_is_refused_naming_it(tmp_path):
+    # OpenCV alone decodes it with the missing rows grey, which read as object
+    import cv2
+
+    m = np.zeros((64, 64), np.uint8)
+    m[16:48, 16:48] = 255
+    path = tmp_path / "obj.mask.png"
+    cv2.imwrite(str(path), m)
+    assert read_mask(path).sum() == 32 * 32
+    path.write_bytes(path.read_bytes()[:-30])
+    with pytest.raises(ValueError, match="obj.mask.png.*truncated"):
+        read_mask(path)
