@@ -127,16 +127,26 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
     Returns
     -------
     list of Piece
+
+    Raises
+    ------
+    ValueError
+        A bad ``truth.csv`` (naming the file and line), or damaged fragment images: every one is
+        named with its reason (:func:`read_fragment_rgba`), so one run lists all there are to fix.
     """
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"path {root} is not a directory")
-    pieces = []
+    pieces, refused = [], []
     for obj in sorted(p for p in root.iterdir() if p.is_dir()):
         pngs = sorted(obj.glob("*.png"))
         truth = _read_truth(obj / "truth.csv", {p.name for p in pngs}) if (obj / "truth.csv").is_file() else {}
         for png in pngs:
-            rgba = read_fragment_rgba(png)
+            try:
+                rgba = read_fragment_rgba(png)
+            except ValueError as exc:   # every damaged image is named at once, not one per run
+                refused.append(str(exc))
+                continue
             h, w = rgba.shape[:2]
             crop, c0, r0 = _crop(rgba)
             M = None
@@ -147,6 +157,9 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
                 M = R.copy()
                 M[:, 2] = R[:, :2] @ (c0, r0) + R[:, 2]  # crop pixel -> canvas
             pieces.append(Piece(png.stem, obj.name, crop, M))
+    if refused:
+        shown = "; ".join(refused[:10]) + (f"; and {len(refused) - 10} more" if len(refused) > 10 else "")
+        raise ValueError(f"{len(refused)} fragment image(s) refused: {shown}")
     if not pieces:
         raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png)")
     return pieces

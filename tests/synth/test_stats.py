@@ -155,3 +155,13 @@ def test_a_16_bit_fragment_image_reads_as_its_8_bit_values(tmp_path):
     cv2.imwrite(str(obj / "p1.png"), rgba16)
     sixteen = {p.id: p.rgba for p in read_collection(tmp_path)}["p1"]
     assert sixteen.dtype == np.uint8 and np.array_equal(sixteen, eight)
+
+
+def test_every_damaged_fragment_image_is_named_at_once(tmp_path):
+    obj = _collection_with_truth(tmp_path, "rpf,x,y,rot\n")
+    _spoil_truncate(obj / "p1.png")
+    _spoil_transparent(obj / "p2.png")
+    with pytest.raises(ValueError) as err:
+        read_collection(tmp_path)
+    text = str(err.value)
+    assert text.startswith("2 fragment image(s) refused") and "p1.png" in text and "p2.png" in text, text
