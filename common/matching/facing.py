@@ -66,8 +66,8 @@ def turning_curvature(points: np.ndarray, half_mm: float = FACING_CURVATURE_MM,
                       step_mm: float = FACING_STEP_MM) -> np.ndarray:
     """Signed curvature (1/mm) of an evenly resampled closed outline at the scale ``half_mm``: the turn
     from the chord ``i − k → i`` to the chord ``i → i + k`` over the arc ``k × step_mm`` between the
-    chords' midpoints (``k = half_mm / step_mm``); positive where it turns anticlockwise with x right and y up (clockwise
-    on screen, y down); the sign flips with the direction of traversal.
+    chords' midpoints (``k = half_mm / step_mm``); positive where it turns anticlockwise with x right and
+    y up (clockwise on screen, y down); the sign flips with the direction of traversal.
 
     Examples
     --------
@@ -244,7 +244,8 @@ def probe_poses(poses, directions, centres, *, along_mm: float = PROBE_ALONG_MM,
     u = np.asarray(directions, float).reshape(-1, 2)
     c = np.asarray(centres, float).reshape(-1, 2)
     if not (len(p) == len(u) == len(c)):
-        raise ValueError(f"poses, directions and centres must have one row each per pose, got {len(p)}, {len(u)}, {len(c)}")
+        raise ValueError("poses, directions and centres must have one row each per pose, got "
+                         f"{len(p)}, {len(u)}, {len(c)}")
     out = np.empty((len(p), 6, 3))
     for i, ((a, tx, ty), d, centre) in enumerate(zip(p, u, c)):
         n = np.array([-d[1], d[0]])

@@ -42,12 +42,13 @@ pair giving 30 candidate poses, the fragment's turned maps kept across its partn
 corrected for both fragments' docking hubness, is calibrated into the join probability; the earlier
 stages' evidence and the paint continuing across the crack (:mod:`common.matching.paint`, its best
 over the candidate poses) are added to its logit. The proposed pose is the candidate the learned pose
-chooser scores best (contact, paint and the outlines' facing geometry: :func:`common.matching.pose.learned_pose_scores`). A pair is docked once: its result is
-cached, and kept in the proposal store where the index is given one (``MatchIndex(dockings=store)``,
-keyed by :func:`docking_inputs` and :func:`docking_version`), so other indexes over that store — other
-matcher workers, a restarted one — read it instead of docking it again. Candidates that stage 3 does not dock
-keep their order below the docked ones; without a docking calibration the best ``check`` are
-aligned by :func:`common.matching.alignment.align_fragments` instead.
+chooser scores best (contact, paint and the outlines' facing geometry:
+:func:`common.matching.pose.learned_pose_scores`). A pair is docked once: its result is cached, and
+kept in the proposal store where the index is given one (``MatchIndex(dockings=store)``, keyed by
+:func:`docking_inputs` and :func:`docking_version`), so other indexes over that store — other matcher
+workers, a restarted one — read it instead of docking it again. Candidates that stage 3 does not dock
+keep their order below the docked ones; without a docking calibration the best ``check`` are aligned by
+:func:`common.matching.alignment.align_fragments` instead.
 
 **Mutual proximity** — every fragment's last full ranking is kept (:attr:`MatchIndex.rankings`), and
 a pair's standing in both fragments' rankings is one symmetric score

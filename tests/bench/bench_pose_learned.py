@@ -358,14 +358,21 @@ def cmd_fit(args) -> int:
         for w in test_names + ["collection"] if w in data) + f"; the model's scoring {score_ms:.2f} ms")
     if args.ablation:
         print(f"\nablation ({kind} {kw}; refit on the training walls without one group)")
-        print(f"{'dropped':14s} {'train mean':>10s} {'test mean':>9s} {'RePAIR':>8s}")
+        print(f"{'dropped':14s} {'cv held-out':>11s} {'train mean':>10s} {'test mean':>9s} {'RePAIR':>8s}")
         for g, members in [("(none)", ())] + list(GROUPS.items()):
             cols = [i for i in base_cols if names[i] not in members]
+            if len(cols) == len(base_cols) and g != "(none)":
+                continue                       # not among the features used
+            held_out = []
+            for held in folds:
+                fit_w = [w for w in train_names if w not in held]
+                r = Ranker(kind, columns=cols, **kw).fit(*block(fit_w))
+                held_out += [top1(*feats[w], r.score) for w in held]
             r = Ranker(kind, columns=cols, **kw).fit(Xtr, ytr)
             tr = np.mean([top1(*feats[w], r.score) for w in train_names])
             te = np.mean([top1(*feats[w], r.score) for w in test_names])
             col = top1(*feats["collection"], r.score) if "collection" in feats else np.nan
-            print(f"{g:14s} {tr:10.3f} {te:9.3f} {col:8.3f}", flush=True)
+            print(f"{g:14s} {np.mean(held_out):11.3f} {tr:10.3f} {te:9.3f} {col:8.3f}", flush=True)
     used = [names[i] for i in base_cols]
     if (args.emit or args.check) and kind != "trees":
         raw, z = model.weights
