@@ -1,8 +1,13 @@
 """A learned pose chooser: the docking's 30 candidate poses ranked by a model of cheap cues (issue 15, session 13).
 
-    python tests/bench/bench_pose_learned.py cache --cache DIR [--train 31-50] [--test 21-23]
+    python tests/bench/bench_pose_learned.py cache --cache DIR [--train 31-80] [--test 21-23]
                                                    [--collection ../shared/data/repair-dev] [--dpi 150]
-    python tests/bench/bench_pose_learned.py fit --cache DIR [--train 31-50] [--test 21-23] [--ablation]
+    python tests/bench/bench_pose_learned.py fit --cache DIR [--train 31-80] [--test 21-23] [--no-lines]
+                                                 [--drop GROUPS] [--trees] [--ablation] [--emit | --check]
+
+The station's model (``pose.POSE_MODEL_RAW`` / ``POSE_MODEL_Z``) is ``cache --cache DIR --train 31-80`` then
+``fit --cache DIR --train 31-80 --no-lines --drop paint_peak,band,overlap,rank,support --emit`` (``--check``:
+exit 1 unless the weights it fits are the station's).
 
 ``cache``: for every true neighbour pair of the realistic synthetic walls (``generate_wall(16, seed,
 dpi=40, preset="pompeii", colour_only=True)``, as ``bench_pose.py``) and of the placed collection
@@ -15,16 +20,19 @@ across its facing stretch and turned ±2° about it, the painted-line continuity
 stage 3, which keeps no images), and the pose error against the truth. One pickle per wall.
 
 ``fit``: per candidate a feature vector (:func:`candidate_features`: the cues above plus the facing
-geometry of the two outlines at the pose — facing length, longest facing run, gap quantiles along it,
-the gap's steadiness, length pushed inside the other piece, whether the two outlines' curvature
-profiles agree along the facing run, whether the facing runs end at the same place — and the
-candidate's rank and support among the pair's candidates), normalised within each pair; label:
+geometry of the two outlines at the pose, :func:`common.matching.facing.facing_geometry` — facing
+length, longest facing run, gap quantiles along it, the gap's roughness, length pushed inside the
+other piece, whether the two outlines' curvature profiles agree along the facing run, how far apart
+the facing runs end — and the candidate's rank and support among the pair's candidates), each as its
+raw value and its z-score within the pair (:func:`common.matching.pose.pose_design`); label:
 within 5° and 5 mm of the truth. Rankers (balanced logistic regression pointwise, a pairwise logistic
 ranker on within-pair differences, gradient-boosted trees) are fitted on the training walls ONLY,
 hyper-parameters chosen by cross-validation grouped by wall (best mean top-1 pose accuracy over the
 held-out walls); the chosen model, refitted on all training walls, is measured on the test walls and
-the collection, beside the station's ``contact + 6 × paint`` (``pose.choose_pose``). ``--ablation``
-drops one feature group at a time (refit, same hyper-parameters) and reports the test walls.
+the collection, beside the hand-weighted rule ``contact + 6 × paint`` (``pose.pose_scores``, the
+station's chooser before session 13). ``--ablation``
+drops one feature group at a time (refit, same hyper-parameters; cross-validated held-out accuracy,
+then the test walls and the collection).
 Figures in docs/matching.md ("A learned pose chooser").
 """
 
@@ -254,7 +262,8 @@ def top1(pairs_X, pairs_y, scorer) -> float:
     return float(np.mean([y[int(np.argmax(scorer(X)))] for X, y in zip(pairs_X, pairs_y)])) if pairs_X else np.nan
 
 
-def station(X: np.ndarray, names: list[str]) -> np.ndarray:
+def rule(X: np.ndarray, names: list[str]) -> np.ndarray:
+    """The hand-weighted rule, contact + POSE_PAINT_WEIGHT × paint (the station's chooser before session 13)."""
     return X[:, names.index("contact_mm")] + POSE_PAINT_WEIGHT * X[:, names.index("paint_mm")]
 
 
@@ -277,7 +286,7 @@ def cmd_fit(args) -> int:
     print(f"{len(names)} features: {', '.join(names)}")
 
     def st(X):
-        return station(X, names)
+        return rule(X, names)
 
     def block(ws):
         return [x for w in ws for x in feats[w][0]], [y for w in ws for y in feats[w][1]]
@@ -315,7 +324,7 @@ def cmd_fit(args) -> int:
     best_acc, kind, kw = max(cv, key=lambda t: t[0])
     cv_station = float(np.mean([top1(*feats[w], st) for w in train_names]))
     print(f"\nchosen by cross-validation grouped by wall ({len(folds)} folds over {len(train_names)} walls): "
-          f"{kind} {kw}, held-out mean {best_acc:.3f} (station {cv_station:.3f})")
+          f"{kind} {kw}, held-out mean {best_acc:.3f} (rule contact + 6 × paint {cv_station:.3f})")
     for k2 in ("pointwise", "pairwise", "trees"):
         sub = [t for t in cv if t[1] == k2]
         if sub:
@@ -338,7 +347,7 @@ def cmd_fit(args) -> int:
 
     print(f"\n{'pose accuracy (5°, 5 mm)':34s} {'train mean':>10s} " + " ".join(f"{w:>7s}" for w in test_names)
           + f" {'test mean':>9s} {'RePAIR':>8s}")
-    report("station: contact + 6 × paint", st)
+    report("rule: contact + 6 × paint", st)
     report("docking alone (contact)", lambda X: X[:, names.index("contact_mm")])
     report(f"learned ({kind})", model.score)
     for k2 in ("pointwise", "pairwise", "trees"):
