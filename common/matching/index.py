@@ -41,13 +41,14 @@ gap-tolerant outline complementarity searched over every pose by FFT correlation
 pair giving 30 candidate poses, the fragment's turned maps kept across its partners). The contact,
 corrected for both fragments' docking hubness, is calibrated into the join probability; the earlier
 stages' evidence and the paint continuing across the crack (:mod:`common.matching.paint`, its best
-over the candidate poses) are added to its logit. The proposed pose is the candidate with the best
-contact plus paint (:func:`common.matching.pose.choose_pose`). A pair is docked once: its result is
-cached, and kept in the proposal store where the index is given one (``MatchIndex(dockings=store)``,
-keyed by :func:`docking_inputs` and :func:`docking_version`), so other indexes over that store — other
-matcher workers, a restarted one — read it instead of docking it again. Candidates that stage 3 does not dock
-keep their order below the docked ones; without a docking calibration the best ``check`` are
-aligned by :func:`common.matching.alignment.align_fragments` instead.
+over the candidate poses) are added to its logit. The proposed pose is the candidate the learned pose
+chooser scores best (contact, paint and the outlines' facing geometry:
+:func:`common.matching.pose.learned_pose_scores`). A pair is docked once: its result is cached, and
+kept in the proposal store where the index is given one (``MatchIndex(dockings=store)``, keyed by
+:func:`docking_inputs` and :func:`docking_version`), so other indexes over that store — other matcher
+workers, a restarted one — read it instead of docking it again. Candidates that stage 3 does not dock
+keep their order below the docked ones; without a docking calibration the best ``check`` are aligned by
+:func:`common.matching.alignment.align_fragments` instead.
 
 **Mutual proximity** — every fragment's last full ranking is kept (:attr:`MatchIndex.rankings`), and
 a pair's standing in both fragments' rankings is one symmetric score
@@ -93,7 +94,7 @@ DOCK_KEEPS_EARLIER_EVIDENCE = True
 DOCK_USES_PAINT = True
 #: with paint, a pair's one docking keeps this many candidate poses (this many per rotation): its best is the
 #: pair's geometric evidence, the paint continuity is the best over all of them (paint.paint_pair_mm), and the
-#: pair's proposed pose is the one of them with the best contact + paint (pose.choose_pose)
+#: pair's proposed pose is the one of them the learned chooser scores best (pose.learned_pose_scores)
 DOCK_PAINT_POSES, DOCK_PAINT_PER_ANGLE = 30, 3
 #: docking frames (docking.DockingFrame: a fragment's maps and spectra at every rotation, which serve all
 #: its partners) are kept for the most recently docked fragments, within this many MB
@@ -101,13 +102,13 @@ DOCK_FRAMES_MB = 512
 #: version of what a pair's docking gives (MatchIndex._dock_pair: docking.py's search, paint.py's continuity,
 #: pose.py's choice and alternatives): bump it when any of them changes its numbers, so that dockings kept in
 #: the proposal store by an earlier version are docked again (docking_version adds the settings above)
-DOCKING_VERSION = "docking-1"
+DOCKING_VERSION = "docking-2"
 
 
 def docking_version() -> str:
     """The version of a pair's docking as :class:`MatchIndex` makes it now: :data:`DOCKING_VERSION` with the
     settings that change its numbers (the candidate poses kept, whether paint is used, the alternatives
-    offered), e.g. ``"docking-1/poses-30x3/paint/alternatives-9"``."""
+    offered), e.g. ``"docking-2/poses-30x3/paint/alternatives-9"``."""
     from common.matching.pose import ALTERNATIVE_POSES
 
     return (f"{DOCKING_VERSION}/poses-{DOCK_PAINT_POSES}x{DOCK_PAINT_PER_ANGLE}/{'paint' if DOCK_USES_PAINT else 'no-paint'}"
@@ -208,7 +209,8 @@ class MatchIndex:
         self._paint_fields: dict = {}
         #: paint continuity by unordered pair, mm (model-independent, like the dockings)
         self._paint_pairs: dict[tuple[str, str], float] = {}
-        #: pose by unordered pair where paint chose it among the docking's candidates (pose.choose_pose)
+        #: pose by unordered pair where the learned chooser chose it among the docking's candidates
+        #: (pose.learned_pose_scores over contact, paint and facing geometry)
         self._poses: dict[tuple[str, str], Docking] = {}
         #: the pair's next-best distinct candidates (pose.ranked_poses), offered beside its pose
         self._alternatives: dict[tuple[str, str], list[Docking]] = {}
@@ -599,9 +601,9 @@ class MatchIndex:
         return d if key[0] == fragment else invert_docking(d)
 
     def pose(self, fragment: str, other: str) -> Docking:
-        """The proposed pose of ``other`` in ``fragment``'s frame: the docking's candidate with the best
-        contact plus paint continuity (:func:`~common.matching.pose.choose_pose`) where the pair was docked
-        with paint, else the best docking."""
+        """The proposed pose of ``other`` in ``fragment``'s frame: the docking's candidate the learned chooser
+        scores best (:func:`~common.matching.pose.learned_pose_scores`: contact, paint continuity and the
+        outlines' facing geometry) where the pair was docked with paint, else the best docking."""
         key = _pair(fragment, other)
         d = self._poses.get(key)
         if d is None:
@@ -716,18 +718,20 @@ class MatchIndex:
         kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
         if paint:
             from common.matching.paint import paint_continuity, paint_field_from_profile
-            from common.matching.pose import ALTERNATIVE_POSES, ranked_poses
+            from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features, ranked_poses
 
             docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE, **kw)
             for f in key:
                 if f not in self._paint_fields:
                     self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
             # the paint continuity at every candidate: its best is the pair's paint evidence
-            # (paint.paint_pair_mm), and with the contact it chooses the pair's pose (pose.choose_pose)
+            # (paint.paint_pair_mm), and with the contact and the outlines' facing geometry it chooses the
+            # pair's pose (the learned chooser, pose.learned_pose_scores)
             paint_mm = paint_continuity(self._paint_fields[key[0]], self._paint_fields[key[1]],
                                         np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float))
             self._paint_pairs[key] = float(np.max(paint_mm))
-            ranked = ranked_poses(docks, paint_mm)     # the first is pose.choose_pose's
+            scores = learned_pose_scores(pose_features(docks, paint_mm, self.contours[key[0]], self.contours[key[1]]))
+            ranked = ranked_poses(docks, paint_mm, scores=scores)     # the first is the chosen pose
             self._poses[key] = ranked[0]
             self._alternatives[key] = ranked[1:1 + ALTERNATIVE_POSES]
             self._dockings.setdefault(key, docks[0])

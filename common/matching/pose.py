@@ -18,6 +18,17 @@ Shahar, Elkin & Ben-Shahar (2025) restricted to the docking's candidates. The we
 (:data:`POSE_PAINT_WEIGHT`) was chosen on realistic synthetic walls that the figures are not
 measured on (``tests/bench/bench_pose.py``), never on the real collections.
 
+**The station's chooser since session 13 is learned** (:func:`learned_pose_scores` of
+:func:`pose_features`): a linear ranker over the contact, the paint and the facing geometry of the two
+outlines at each candidate (:func:`common.matching.facing.facing_geometry`: facing length, the gap's
+quantiles and roughness along the facing stretch, length pushed inside the other piece, curvature
+agreement, how far apart the facing runs end), each as its raw value and its z-score among the pair's
+candidates, fitted pairwise (right − wrong candidates of one pair; :func:`fit_pose_ranker`) on 50
+realistic synthetic walls. Pose accuracy (within 5° and 5 mm) on held-out synthetic walls 0.199 → 0.278,
+on RePAIR 0.143 → 0.190, for ≈ 20 ms CPU more per pair (docs/matching.md, "A learned pose chooser").
+:func:`pose_scores` (``contact + 6 × paint``) stays as the hand-weighted rule and the default of
+:func:`choose_pose` / :func:`ranked_poses` when no ``scores`` are given.
+
 What was tried and measured not to help (docs/matching.md, "Poses that fit"): a gap-tolerant
 point-to-curve refinement of the chosen candidate (it slides the piece along the crack: geometry
 prefers wrong poses locally too), a local search of the paint alone around it, and choosing each
@@ -94,8 +105,9 @@ def pose_scores(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_P
 
 
 def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
-                cell_mm: float = DOCK_CELL_MM) -> Docking:
-    """The pair's pose: the candidate with the best :func:`pose_scores` (the first on a tie).
+                cell_mm: float = DOCK_CELL_MM, scores=None) -> Docking:
+    """The pair's pose: the candidate with the best score (the first on a tie) — ``scores`` where given
+    (the station's: :func:`learned_pose_scores` of :func:`pose_features`), else :func:`pose_scores`.
 
     The returned :class:`~common.matching.docking.Docking` is the candidate itself (its own
     geometric score, contact and overlap), so a ranking that uses the docking's best contact as a
@@ -109,15 +121,19 @@ def choose_pose(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_P
     90
     >>> choose_pose(d, [0.0, 4.0], weight=0.0).angle_deg                  # geometry alone
     0
+    >>> choose_pose(d, [0.0, 4.0], scores=[1.0, 0.5]).angle_deg           # scores given
+    0
     """
-    return ranked_poses(dockings, paint_mm, weight=weight, cell_mm=cell_mm)[0]
+    return ranked_poses(dockings, paint_mm, weight=weight, cell_mm=cell_mm, scores=scores)[0]
 
 
 def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
-                 cell_mm: float = DOCK_CELL_MM, distinct_deg: float = 3.0, distinct_mm: float = 3.0) -> list[Docking]:
-    """The pair's candidate poses best first by :func:`pose_scores`, without near repeats: a candidate
-    whose angle is within ``distinct_deg`` and translation within ``distinct_mm`` of a better one's is
-    left out (the docking keeps several maxima per rotation). The first is :func:`choose_pose`'s.
+                 cell_mm: float = DOCK_CELL_MM, distinct_deg: float = 3.0, distinct_mm: float = 3.0,
+                 scores=None) -> list[Docking]:
+    """The pair's candidate poses best first by ``scores`` (default :func:`pose_scores`), without near
+    repeats: a candidate whose angle is within ``distinct_deg`` and translation within ``distinct_mm``
+    of a better one's is left out (the docking keeps several maxima per rotation). The first is
+    :func:`choose_pose`'s.
 
     Examples
     --------
@@ -127,7 +143,16 @@ def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_
     [90, 0]
     """
     docks = list(dockings)
-    order = np.argsort(-pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm), kind="stable")
+    if not docks:
+        raise ValueError("dockings is empty: a pair needs at least one candidate pose")
+    if scores is None:
+        scores = pose_scores(docks, paint_mm, weight=weight, cell_mm=cell_mm)
+    scores = np.asarray(scores, float).reshape(-1)
+    if len(scores) != len(docks):
+        raise ValueError(f"scores has {len(scores)} values for {len(docks)} candidate poses")
+    if not np.all(np.isfinite(scores)):
+        raise ValueError("scores must be finite")
+    order = np.argsort(-scores, kind="stable")
     kept: list[Docking] = []
     for i in order:
         d = docks[int(i)]
@@ -189,3 +214,161 @@ def adjustment_between(pose, other, centre_b_mm) -> tuple[float, float, float]:
     a0, tx0, ty0, a1, tx1, ty1, cx, cy = values
     shift = _rotation(a1) @ (cx, cy) + (tx1, ty1) - _rotation(a0) @ (cx, cy) - (tx0, ty0)
     return float(-((a0 - a1 + 180.0) % 360.0 - 180.0)), float(shift[0]), float(shift[1])
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the learned chooser (issue 15, session 13)
+
+#: the per-candidate cues of the learned chooser (:func:`pose_features`), in order: the docking's contact
+#: (mm of crack), the paint continuity (mm), and the facing geometry of the two outlines at the candidate
+#: (:data:`common.matching.facing.FACING_COLUMNS`)
+POSE_FEATURES = ("contact_mm", "paint_mm", "face_mm", "run_mm", "tight_mm", "gap_q10_mm", "gap_median_mm",
+                 "gap_q90_mm", "gap_rough_mm", "inside_mm", "depth_mm", "curvature_mismatch",
+                 "curvature_correlation", "end_mismatch_mm")
+
+#: weights of the learned chooser (:func:`learned_pose_scores`): per feature of :data:`POSE_FEATURES`, the
+#: weight of its raw value and of its z-score within the pair. Fitted by ``python tests/bench/bench_pose_learned.py
+#: cache --cache DIR`` then ``... fit --cache DIR --train 31-80 --no-lines --drop paint_peak,band,overlap,rank,support
+#: --emit`` (:func:`fit_pose_ranker`, pairwise, C = 0.1 chosen by 5-fold cross-validation grouped by wall): every
+#: candidate of every true pair of 50 realistic synthetic walls, ``generate_wall(16, seed 31–80, dpi=40,
+#: preset="pompeii", colour_only=True)``, 1 224 pairs, right = within 5° and 5 mm of the truth. Never fitted on
+#: the test walls (21–23) or on a real collection (docs/matching.md, "A learned pose chooser").
+POSE_MODEL_RAW = (0.0227795, 0.116682, 0.0432271, -0.0404096, 0.0963054, 2.25611, -2.13428, -1.03198, -27.2083,
+                  -0.348418, -0.85388, 20.9498, -5.57915, -0.134783)
+POSE_MODEL_Z = (1.72791, 3.03171, 1.46365, -1.60347, 0.114307, 1.06316, -0.679993, -0.669754, -1.91142, -0.50763,
+                -1.09626, 0.894162, -1.29292, 1.75355)
+
+
+def pose_features(dockings: Sequence[Docking], paint_mm, contour_a_mm, contour_b_mm, *,
+                  cell_mm: float = DOCK_CELL_MM) -> np.ndarray:
+    """The cues of a pair's candidate poses that the learned chooser weighs (:data:`POSE_FEATURES`).
+
+    Parameters
+    ----------
+    dockings : sequence of Docking
+        The pair's candidate poses (B in A's frame), e.g. ``dock_outlines(..., n_poses=30, per_angle=3)``.
+    paint_mm : (N,) array_like
+        Paint continuity at each candidate (:func:`common.matching.paint.paint_continuity`); NaN → 0.
+    contour_a_mm, contour_b_mm : (M, 2), (K, 2) arrays
+        The two outlines the candidates were docked from (each in its fragment's frame, mm).
+    cell_mm : float
+        Cell of the docking (its score is in cells).
+
+    Returns
+    -------
+    (N, 14) float
+        Per candidate: the docking's contact (mm), the paint (mm) and
+        :func:`common.matching.facing.facing_geometry`'s 12 columns.
+    """
+    from common.matching.facing import facing_geometry
+
+    docks = list(dockings)
+    contact = pose_scores(docks, paint_mm, weight=0.0, cell_mm=cell_mm)
+    paint = np.nan_to_num(np.asarray(paint_mm, float).reshape(-1), nan=0.0, posinf=0.0, neginf=0.0)
+    geometry, _, _ = facing_geometry(contour_a_mm, contour_b_mm,
+                                     np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float))
+    return np.column_stack([contact, paint, geometry])
+
+
+def pose_design(features) -> np.ndarray:
+    """A pair's candidate features normalised within the pair: each raw value beside its z-score among the
+    pair's candidates (0 where a feature does not vary), ``(N, 2F)``. The z-score is what lets one weight
+    serve pairs of different sizes and paint (a long straight piece faces everything along more outline)."""
+    x = np.asarray(features, float)
+    if x.ndim != 2 or not np.all(np.isfinite(x)):
+        raise ValueError(f"features must be a finite (N, F) array, got shape {x.shape}")
+    sd = x.std(0, keepdims=True)
+    z = np.where(sd > 1e-9, (x - x.mean(0, keepdims=True)) / np.where(sd > 1e-9, sd, 1.0), 0.0)
+    return np.hstack([x, z])
+
+
+def fit_pose_ranker(features: Sequence[np.ndarray], right: Sequence[np.ndarray], *, C: float = 1.0,
+                    kind: str = "pairwise", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Fit the weights of a linear pose chooser on pairs whose right candidates are known.
+
+    Parameters
+    ----------
+    features : sequence of (N_i, F) arrays
+        Each pair's candidate features (:func:`pose_features`).
+    right : sequence of (N_i,) bool arrays
+        Which candidates are right (e.g. within 5° and 5 mm of the truth).
+    C : float
+        Inverse L2 regularisation of the logistic regression (on standardised :func:`pose_design` columns).
+    kind : {"pairwise", "pointwise"}
+        "pairwise": a logistic regression on the differences right − wrong within each pair (a linear
+        RankNet / RankSVM; each pair weighs about the same, pairs with no right or no wrong candidate
+        add nothing). "pointwise": a class-balanced logistic regression on the candidates themselves.
+    seed : int
+        The pairwise differences are given random signs (a balanced two-class problem); deterministic.
+
+    Returns
+    -------
+    raw, z : (F,) arrays
+        Weights of each feature's raw value and its within-pair z-score (:func:`learned_pose_scores`);
+        the standardisation is folded into them, an intercept (it does not rank) dropped.
+
+    References
+    ----------
+    R. Herbrich, T. Graepel, K. Obermayer, "Large margin rank boundaries for ordinal regression", 2000;
+    T. Joachims, "Optimizing search engines using clickthrough data", KDD 2002 (pairwise ranking as
+    classification of differences).
+    """
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.preprocessing import StandardScaler
+
+    designs = [pose_design(x) for x in features]
+    labels = [np.asarray(y, bool).reshape(-1) for y in right]
+    if len(designs) != len(labels) or any(len(d) != len(y) for d, y in zip(designs, labels)):
+        raise ValueError("features and right must give one label per candidate of each pair")
+    if kind not in ("pairwise", "pointwise"):
+        raise ValueError(f"kind must be 'pairwise' or 'pointwise', got {kind!r}")
+    scaler = StandardScaler().fit(np.vstack(designs))
+    scale = np.where(scaler.scale_ > 0, scaler.scale_, 1.0)
+    designs = [(d - scaler.mean_) / scale for d in designs]
+    if kind == "pointwise":
+        x, y = np.vstack(designs), np.concatenate(labels)
+        if y.all() or not y.any():
+            raise ValueError("the pairs need both right and wrong candidates")
+        coef = LogisticRegression(C=C, class_weight="balanced", max_iter=2000).fit(x, y).coef_[0]
+    else:
+        diffs = [((d[y][:, None] - d[~y][None]).reshape(-1, d.shape[1]) / np.sqrt(y.sum() * (~y).sum()))
+                 for d, y in zip(designs, labels) if y.any() and not y.all()]
+        if not diffs:
+            raise ValueError("no pair has both a right and a wrong candidate")
+        x = np.vstack(diffs)
+        sign = np.random.default_rng(seed).choice([-1.0, 1.0], len(x))
+        coef = LogisticRegression(C=C, fit_intercept=False, max_iter=4000).fit(x * sign[:, None],
+                                                                              (sign > 0).astype(int)).coef_[0]
+    w = coef / scale
+    f = len(w) // 2
+    return w[:f], w[f:]
+
+
+def learned_pose_scores(features, weights=None) -> np.ndarray:
+    """Score of each candidate pose of a pair by the learned chooser: ``Σ_f raw_f x_f + z_f ẑ_f``, ``ẑ`` the
+    within-pair z-score (:func:`pose_design`); higher is better, comparable within a pair only.
+
+    Parameters
+    ----------
+    features : (N, F) array
+        :func:`pose_features` of the pair's candidates.
+    weights : (raw, z) pair of (F,) arrays, optional
+        Default the station's (:data:`POSE_MODEL_RAW`, :data:`POSE_MODEL_Z`), fitted on realistic synthetic
+        walls by :func:`fit_pose_ranker`.
+
+    Returns
+    -------
+    (N,) float
+
+    Examples
+    --------
+    >>> x = np.array([[1.0, 0.0], [2.0, 5.0]])
+    >>> learned_pose_scores(x, (np.array([1.0, 0.0]), np.array([0.0, 1.0]))).tolist()   # raw 1st + z of 2nd
+    [0.0, 3.0]
+    """
+    raw, z = (POSE_MODEL_RAW, POSE_MODEL_Z) if weights is None else weights
+    d = pose_design(features)
+    w = np.concatenate([np.asarray(raw, float), np.asarray(z, float)])
+    if len(w) != d.shape[1]:
+        raise ValueError(f"{d.shape[1] // 2} features for weights of {len(w) // 2}")
+    return d @ w

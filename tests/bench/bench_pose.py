@@ -13,10 +13,13 @@ the stored outline and boundary profile (``paint_field_from_profile``, ``paint_c
 pose is chosen by :func:`common.matching.pose.choose_pose` at each ``--weights`` value. It prints the
 pose accuracy (share of true pairs whose chosen pose is within 5° and 5 mm of the truth, at B's centre)
 per weight on the training walls (the weight is chosen there: best mean, ties to the smaller
-weight), the test walls and the collection, the ceiling (a candidate within 5°/5 mm exists), and
+weight), the test walls and the collection; that of the station's chooser since session 13, the
+learned one (:func:`common.matching.pose.learned_pose_scores` of :func:`~common.matching.pose.pose_features`:
+contact, paint and the outlines' facing geometry; fitted by ``tests/bench/bench_pose_learned.py``); the
+ceiling (a candidate within 5°/5 mm exists), and
 the CPU per pair of the docking and of the paint scores. ``--picture`` draws the collection's true pairs:
-A's outline, B at its true pose (green), at the geometric docking's choice (grey) and at
-:data:`~common.matching.pose.POSE_PAINT_WEIGHT`'s choice (red). Figures in docs/matching.md ("Poses that fit").
+A's outline, B at its true pose (green), at the geometric docking's choice (grey) and at the
+station's (learned) choice (red). Figures in docs/matching.md ("Poses that fit").
 
 ``--lines`` merges the pose hypotheses from painted lines (:mod:`common.matching.lines`: every
 colour-compatible pair of boundary crossings, its grid of gap / turn / shift refined by
@@ -42,7 +45,8 @@ from common.matching.collection import relative_pose_error  # noqa: E402
 from common.matching.docking import DOCK_CELL_MM, Docking, dock_outlines, docking_score_at  # noqa: E402
 from common.matching.lines import line_continuity, line_ends, line_pose_hypotheses, outline_contact_mm  # noqa: E402
 from common.matching.paint import paint_continuity, paint_field_from_profile  # noqa: E402
-from common.matching.pose import POSE_PAINT_WEIGHT, choose_pose, pose_scores  # noqa: E402
+from common.matching.pose import (POSE_PAINT_WEIGHT, choose_pose, learned_pose_scores, pose_features,  # noqa: E402
+                                  pose_scores)
 
 N_POSES, PER_ANGLE = 30, 3
 #: line hypotheses kept per pair (the best by the sampled contact), as in docs/matching.md
@@ -75,8 +79,9 @@ def line_candidates(ends_a, ends_b, ca, cb) -> list[Docking]:
     return out
 
 
-def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float]:
-    """Every true pair's candidates, paint scores and pose errors; (pairs, docking CPU s, paint CPU s).
+def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float, float]:
+    """Every true pair's candidates, paint scores, learned scores and pose errors; (pairs, docking CPU s, paint
+    CPU s, learned chooser's CPU s: the facing geometry and the model).
     With ``lines`` the line hypotheses are added to each pair's candidates (CPU counted as docking's)."""
     from common.matching.online import wall_cues
 
@@ -84,7 +89,7 @@ def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float]:
     ok = {k for k, t in tables.items() if poses.get(k) is not None and len(t.contour_mm) > 3}
     images = {f.id: f.rgbn for f in wall.fragments}
     ends: dict = {}
-    fields, out, cpu_dock, cpu_paint = {}, [], 0.0, 0.0
+    fields, out, cpu_dock, cpu_paint, cpu_learned = {}, [], 0.0, 0.0, 0.0
     for a, b, *_ in wall.adjacency:
         if a not in ok or b not in ok:
             continue
@@ -104,13 +109,15 @@ def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float]:
                 fields[f] = paint_field_from_profile(tables[f].contour_mm, tables[f].boundary_profile)
         paint = paint_continuity(fields[a], fields[b], np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks]))
         c2 = time.process_time()
-        cpu_dock, cpu_paint = cpu_dock + c1 - c0, cpu_paint + c2 - c1
+        learned = learned_pose_scores(pose_features(docks, paint, ca, cb))
+        c3 = time.process_time()
+        cpu_dock, cpu_paint, cpu_learned = cpu_dock + c1 - c0, cpu_paint + c2 - c1, cpu_learned + c3 - c2
         err = np.array([relative_pose_error(poses[a], poses[b], (d.angle_deg, d.tx_mm, d.ty_mm), cb.mean(axis=0))
                         for d in docks])
         out.append({"docks": docks, "paint": paint, "err": err, "contours": (ca, cb), "names": (a, b),
-                    "continuity": continuity, "n_docked": N_POSES,
+                    "continuity": continuity, "n_docked": N_POSES, "learned": learned,
                     "truth": _relative(poses[a], poses[b])})
-    return out, cpu_dock, cpu_paint
+    return out, cpu_dock, cpu_paint, cpu_learned
 
 
 def _relative(pose_a, pose_b) -> tuple[float, float, float]:
@@ -118,8 +125,9 @@ def _relative(pose_a, pose_b) -> tuple[float, float, float]:
     return float(np.degrees(np.arctan2(m[1, 0], m[0, 0]))), float(m[0, 2]), float(m[1, 2])
 
 
-def picture(pairs: list[dict], path: str, weight: float) -> None:
-    """One panel per pair: A (black), B at the truth (green), the geometric choice (grey), the chosen pose (red)."""
+def picture(pairs: list[dict], path: str, weight: float | None = None) -> None:
+    """One panel per pair: A (black), B at the truth (green), the geometric choice (grey), the chosen pose (red):
+    the learned chooser's (``weight`` None) or ``contact + weight × paint``'s."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -134,7 +142,8 @@ def picture(pairs: list[dict], path: str, weight: float) -> None:
     for ax, p in zip(axes.flat, pairs):
         ca, cb = p["contours"]
         geometric = choose_pose(p["docks"], p["paint"], weight=0.0)
-        chosen = choose_pose(p["docks"], p["paint"], weight=weight)
+        chosen = choose_pose(p["docks"], p["paint"], scores=p["learned"]) if weight is None else \
+            choose_pose(p["docks"], p["paint"], weight=weight)
         e = p["err"][p["docks"].index(chosen)]
         ax.fill(*np.vstack([ca, ca[:1]]).T, color="0.85", lw=0)
         ax.plot(*np.vstack([ca, ca[:1]]).T, color="k", lw=0.8)
@@ -151,8 +160,8 @@ def picture(pairs: list[dict], path: str, weight: float) -> None:
         a, b = (n.replace("_intact_mesh", "").replace("RPf_", "")[-6:] for n in p["names"])
         ax.set_title(f"{a}–{b}: {e[0]:.0f}°, {e[1]:.0f} mm"
                      + (" ✓" if right else ""), fontsize=8)
-    fig.suptitle(f"A filled; B at the truth (green), the docking's choice (grey), contact + {weight:g} × paint (red)",
-                 fontsize=9)
+    chooser = "the learned chooser" if weight is None else f"contact + {weight:g} × paint"
+    fig.suptitle(f"A filled; B at the truth (green), the docking's choice (grey), {chooser} (red)", fontsize=9)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
@@ -167,6 +176,12 @@ def accuracy(pairs: list[dict], weight: float, line_weight: float = 0.0) -> floa
         e = p["err"][int(np.argmax(score))]
         hits += bool(e[0] <= 5 and e[1] <= 5)
     return hits / len(pairs) if pairs else float("nan")
+
+
+def learned_accuracy(pairs: list[dict]) -> float:
+    hits = [bool(p["err"][int(np.argmax(p["learned"])), 0] <= 5 and p["err"][int(np.argmax(p["learned"])), 1] <= 5)
+            for p in pairs]
+    return float(np.mean(hits)) if hits else float("nan")
 
 
 def ceiling(pairs: list[dict], docked_only: bool = False) -> float:
@@ -195,15 +210,15 @@ def main(argv=None) -> int:
     for role, ss in (("train", seeds(args.train)), ("test", seeds(args.test))):
         for s in ss:
             wall = generate_wall(16, seed=s, dpi=40, preset="pompeii", colour_only=True)
-            pairs, cd, cp = wall_pairs(wall, lines=args.lines)
+            pairs, cd, cp, cl = wall_pairs(wall, lines=args.lines)
             sets[f"{role} {s}"] = pairs
-            costs.append((f"synthetic {s}", len(pairs), cd, cp))
+            costs.append((f"synthetic {s}", len(pairs), cd, cp, cl))
     if args.collection and Path(args.collection).is_dir():
         from common.matching.collection import collection_wall
 
-        pairs, cd, cp = wall_pairs(collection_wall(args.collection, dpi=args.dpi), lines=args.lines)
+        pairs, cd, cp, cl = wall_pairs(collection_wall(args.collection, dpi=args.dpi), lines=args.lines)
         sets["collection"] = pairs
-        costs.append((args.collection, len(pairs), cd, cp))
+        costs.append((args.collection, len(pairs), cd, cp, cl))
     elif args.collection:
         print(f"{args.collection}: no such directory, skipped")
 
@@ -220,6 +235,13 @@ def main(argv=None) -> int:
         te = [acc[n] for n in names if n.startswith("test")]
         print(f"{w:7.2f} " + " ".join(f"{acc[n]:11.3f}" for n in names) +
               f" {np.mean(tr) if tr else float('nan'):10.3f} {np.mean(te) if te else float('nan'):9.3f}")
+    if not args.lines:      # the learned chooser over the docking's candidates: the station's pose
+        acc = {n: learned_accuracy(sets[n]) for n in names}
+        tr = [acc[n] for n in names if n.startswith("train")]
+        te = [acc[n] for n in names if n.startswith("test")]
+        print(f"{'learned':>7s} " + " ".join(f"{acc[n]:11.3f}" for n in names) +
+              f" {np.mean(tr) if tr else float('nan'):10.3f} {np.mean(te) if te else float('nan'):9.3f}"
+              "   (the station's chooser: pose.learned_pose_scores)")
     print(f"{'ceiling':>7s} " + " ".join(f"{ceiling(sets[n]):11.3f}" for n in names))
     if args.lines:
         print(f"{'docked':>7s} " + " ".join(f"{ceiling(sets[n], docked_only=True):11.3f}" for n in names)
@@ -230,10 +252,11 @@ def main(argv=None) -> int:
         print(f"\nweight chosen on the training walls: {best:g} (pose.POSE_PAINT_WEIGHT = {POSE_PAINT_WEIGHT:g})")
     docking = "docking + lines" if args.lines else "docking"
     print("\nCPU per pair: " + "; ".join(f"{n} ({k} pairs): {docking} {cd / max(k, 1) * 1e3:.0f} ms, "
-                                         f"paint of the candidates {cp / max(k, 1) * 1e3:.0f} ms"
-                                         for n, k, cd, cp in costs))
+                                         f"paint of the candidates {cp / max(k, 1) * 1e3:.0f} ms, "
+                                         f"learned chooser {cl / max(k, 1) * 1e3:.0f} ms"
+                                         for n, k, cd, cp, cl in costs))
     if args.picture and sets.get("collection"):
-        picture(sets["collection"], args.picture, POSE_PAINT_WEIGHT)
+        picture(sets["collection"], args.picture)
     print(f"{time.time() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
     return 0
 

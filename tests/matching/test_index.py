@@ -333,13 +333,13 @@ def test_stage_2_scores_missing_cues_as_the_model_imputes_them(small_wall):
 
 def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_wall):
     """Stage 3 with paint keeps each pair's next-best distinct candidate poses (pose.ranked_poses of
-    the same 30-pose docking): the candidate's alignment carries them as ``other`` in the query's
-    frame, and seen from the other fragment they are their inverses."""
+    the same 30-pose docking, by the learned chooser's scores): the candidate's alignment carries them as
+    ``other`` in the query's frame, and seen from the other fragment they are their inverses."""
     from common.matching.alignment import pose_matrix
     from common.matching.docking import dock_outlines
     from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
     from common.matching.paint import paint_continuity, paint_field_from_profile
-    from common.matching.pose import ALTERNATIVE_POSES, ranked_poses
+    from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features, ranked_poses
 
     wall, tables, cues, poses = small_wall
     model, ids, index = _docking_index(small_wall, 6)
@@ -352,7 +352,8 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
         paint = paint_continuity(paint_field_from_profile(tables[a].contour_mm, tables[a].boundary_profile),
                                  paint_field_from_profile(tables[b].contour_mm, tables[b].boundary_profile),
                                  np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks]))
-        want = ranked_poses(docks, paint)[1:1 + ALTERNATIVE_POSES]          # b in a's frame
+        scores = learned_pose_scores(pose_features(docks, paint, tables[a].contour_mm, tables[b].contour_mm))
+        want = ranked_poses(docks, paint, scores=scores)[1:1 + ALTERNATIVE_POSES]          # b in a's frame
         got = index.alternatives(a, b)
         assert 0 < len(got) <= ALTERNATIVE_POSES and len(got) == len(want)
         for g, w in zip(got, want):

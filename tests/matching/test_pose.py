@@ -188,3 +188,116 @@ def test_the_adjustment_between_two_poses_is_what_adjusted_pose_undoes():
         assert abs((got[0] - other[0] + 180) % 360 - 180) < 1e-9 and np.allclose(got[1:], other[1:], atol=1e-9)
     with pytest.raises(ValueError, match="finite"):
         adjustment_between((0, 0, 0), (0, float("nan"), 0), (1, 1))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the learned chooser (session 13)
+
+@pytest.fixture(scope="module")
+def banded_outlines():
+    alb_a, mask_a, alb_b, mask_b, _ = _case(band=True)
+    return _contour_mm(mask_a), _contour_mm(mask_b)
+
+
+def test_the_learned_chooser_picks_the_true_pose_of_the_banded_slab(banded, banded_outlines):
+    """On the analytic slab (3 mm lost, B fits as well turned over and against A's other side) the station's
+    learned chooser — weights fitted on synthetic walls, never on this case — puts the true pose first."""
+    from common.matching.pose import learned_pose_scores, pose_features, ranked_poses
+
+    docks, paint, errors = banded
+    scores = learned_pose_scores(pose_features(docks, paint, *banded_outlines))
+    chosen = choose_pose(docks, paint, scores=scores)
+    e = errors[docks.index(chosen)]
+    assert e[0] <= 5 and e[1] <= 5, f"learned choice off by {e[0]:.1f} deg, {e[1]:.1f} mm"
+    assert ranked_poses(docks, paint, scores=scores)[0] is chosen
+
+
+def test_pose_features_are_the_contact_the_paint_and_the_facing_geometry(banded, banded_outlines):
+    from common.matching.facing import FACING_COLUMNS, facing_geometry
+    from common.matching.pose import POSE_FEATURES, POSE_MODEL_RAW, POSE_MODEL_Z, pose_features
+
+    docks, paint, _ = banded
+    gappy = np.array(paint, float)
+    gappy[0] = np.nan
+    f = pose_features(docks, gappy, *banded_outlines)
+    assert f.shape == (len(docks), len(POSE_FEATURES)) == (len(docks), 2 + len(FACING_COLUMNS))
+    assert len(POSE_MODEL_RAW) == len(POSE_MODEL_Z) == len(POSE_FEATURES)
+    np.testing.assert_allclose(f[:, 0], [docking_contact_mm(d) for d in docks])
+    assert f[0, 1] == 0 and np.allclose(f[1:, 1], paint[1:])                      # NaN paint: no evidence
+    geometry, _, _ = facing_geometry(*banded_outlines, [(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks])
+    np.testing.assert_allclose(f[:, 2:], geometry)
+
+
+def test_learned_scores_rank_within_a_pair_only():
+    """A shift of one feature for every candidate of a pair (a bigger piece, a paler plaster) moves all
+    its scores together: the order is unchanged; the z part does not see it at all."""
+    from common.matching.pose import learned_pose_scores
+
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(30, 14))
+    s = learned_pose_scores(x)
+    shifted = x + rng.normal(size=14) * 10
+    np.testing.assert_array_equal(np.argsort(s), np.argsort(learned_pose_scores(shifted)))
+    zero = (np.zeros(14), np.ones(14))
+    np.testing.assert_allclose(learned_pose_scores(x, zero), learned_pose_scores(shifted, zero), atol=1e-9)
+
+
+def test_the_ranker_finds_a_planted_cue_and_is_deterministic():
+    """Pairs of 30 candidates with three noise features; the right candidate stands out in the second by
+    2σ. Fitted on 60 pairs, the ranker weighs that feature most and picks right on 60 new pairs far above
+    the 1/30 of chance; a second fit gives the same weights."""
+    from common.matching.pose import fit_pose_ranker, learned_pose_scores
+
+    def pairs(seed, n):
+        rng = np.random.default_rng(seed)
+        xs, ys = [], []
+        for _ in range(n):
+            x = rng.normal(size=(30, 3)) * (1.0, 1.0, 1.0) + rng.normal(size=3) * 5   # each pair its own offset
+            y = np.zeros(30, bool)
+            y[rng.integers(30)] = True
+            x[y, 1] += 2.0
+            xs.append(x)
+            ys.append(y)
+        return xs, ys
+
+    xs, ys = pairs(0, 60)
+    for kind in ("pairwise", "pointwise"):
+        raw, z = fit_pose_ranker(xs, ys, C=1.0, kind=kind)
+        assert np.argmax(np.abs(z)) == 1 and z[1] > 0
+        tx, ty = pairs(1, 60)
+        hit = np.mean([y[np.argmax(learned_pose_scores(x, (raw, z)))] for x, y in zip(tx, ty)])
+        assert hit > 0.4, f"{kind}: {hit}"
+        raw2, z2 = fit_pose_ranker(xs, ys, C=1.0, kind=kind)
+        np.testing.assert_array_equal(raw, raw2)
+        np.testing.assert_array_equal(z, z2)
+    with pytest.raises(ValueError, match="both a right and a wrong"):
+        fit_pose_ranker([np.zeros((3, 2))], [np.zeros(3, bool)])
+
+
+def test_the_fitting_script_computes_the_stations_features_on_a_tiny_wall():
+    """The weights in pose.py come from tests/bench/bench_pose_learned.py: on a tiny synthetic wall its
+    cached cues, turned into features, are those the station computes (pose.pose_features of the same
+    docking, paint and outlines), and its ranker is pose.fit_pose_ranker."""
+    import sys
+    from pathlib import Path
+
+    from common.matching.pose import POSE_FEATURES, fit_pose_ranker, pose_features
+    from common.synth.wall import generate_wall
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_pose_learned as bench
+
+    wall = generate_wall(5, seed=3, dpi=40, preset="pompeii", colour_only=True)
+    pairs, _ = bench.wall_cache(wall, with_lines=False)
+    assert pairs
+    feats, rights = [], []
+    for p in pairs:
+        x, names = bench.candidate_features(p)
+        cols = [names.index(n) for n in POSE_FEATURES]
+        docks = [Docking(*row) for row in p["docks"]]
+        want = pose_features(docks, p["paint"], *p["contours"])
+        np.testing.assert_allclose(x[:, cols], want, atol=1e-9)
+        feats.append(want)
+        rights.append(np.arange(len(want)) == 0)        # any labels: the two fits must agree
+    r = bench.Ranker("pairwise", C=0.1, columns=cols).fit([bench.candidate_features(p)[0] for p in pairs], rights)
+    np.testing.assert_allclose(np.concatenate(r.weights), np.concatenate(fit_pose_ranker(feats, rights, C=0.1)))
