@@ -245,10 +245,8 @@ def pose_features(dockings: Sequence[Docking], paint_mm, contour_a_mm, contour_b
 
     Parameters
     ----------
-    dockings : sequence of Docking
-        The pair's candidate poses (B in A's frame), e.g. ``dock_outlines(..., n_poses=30, per_angle=3)``.
-    paint_mm : (N,) array_like
-        Paint continuity at each candidate (:func:`common.matching.paint.paint_continuity`); NaN → 0.
+    dockings, paint_mm
+        As for :func:`pose_scores`: the pair's candidate poses and the paint continuity at each.
     contour_a_mm, contour_b_mm : (M, 2), (K, 2) arrays
         The two outlines the candidates were docked from (each in its fragment's frame, mm).
     cell_mm : float

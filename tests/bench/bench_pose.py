@@ -54,12 +54,15 @@ N_LINE_POSES = 150
 
 
 def seeds(text: str) -> list[int]:
-    if not text:
-        return []
-    if "-" in text:
-        lo, hi = (int(v) for v in text.split("-"))
-        return list(range(lo, hi + 1))
-    return [int(v) for v in text.split(",")]
+    """Wall seeds from ``"31-36"``, ``"21,23"`` or both (``"21-23,31"``)."""
+    out: list[int] = []
+    for part in filter(None, text.split(",")):
+        if "-" in part:
+            lo, hi = (int(v) for v in part.split("-"))
+            out += list(range(lo, hi + 1))
+        else:
+            out.append(int(part))
+    return out
 
 
 def line_candidates(ends_a, ends_b, ca, cb) -> list[Docking]:
@@ -79,20 +82,25 @@ def line_candidates(ends_a, ends_b, ca, cb) -> list[Docking]:
     return out
 
 
-def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float, float]:
-    """Every true pair's candidates, paint scores, learned scores and pose errors; (pairs, docking CPU s, paint
-    CPU s, learned chooser's CPU s: the facing geometry and the model).
-    With ``lines`` the line hypotheses are added to each pair's candidates (CPU counted as docking's)."""
+def true_pairs(wall) -> tuple[dict, dict, dict, list[tuple[str, str]]]:
+    """(cue tables, RGBN images, true poses, true neighbour pairs) of a synthetic wall, by fragment id; the pairs
+    are those whose two fragments have a true pose and an outline of more than 3 points."""
     from common.matching.online import wall_cues
 
     tables, _, poses = wall_cues(wall)
     ok = {k for k, t in tables.items() if poses.get(k) is not None and len(t.contour_mm) > 3}
     images = {f.id: f.rgbn for f in wall.fragments}
+    return tables, images, poses, [(a, b) for a, b, *_ in wall.adjacency if a in ok and b in ok]
+
+
+def wall_pairs(wall, lines: bool = False) -> tuple[list[dict], float, float, float]:
+    """Every true pair's candidates, paint scores, learned scores and pose errors; (pairs, docking CPU s, paint
+    CPU s, learned chooser's CPU s: the facing geometry and the model).
+    With ``lines`` the line hypotheses are added to each pair's candidates (CPU counted as docking's)."""
+    tables, images, poses, pairs = true_pairs(wall)
     ends: dict = {}
     fields, out, cpu_dock, cpu_paint, cpu_learned = {}, [], 0.0, 0.0, 0.0
-    for a, b, *_ in wall.adjacency:
-        if a not in ok or b not in ok:
-            continue
+    for a, b in pairs:
         ca, cb = tables[a].contour_mm, tables[b].contour_mm
         c0 = time.process_time()
         docks = dock_outlines(ca, cb, n_poses=N_POSES, per_angle=PER_ANGLE)

@@ -55,22 +55,10 @@ from common.matching.lines import line_continuity, line_ends  # noqa: E402
 from common.matching.paint import paint_continuity, paint_field_from_profile  # noqa: E402
 from common.matching.pose import (POSE_FEATURES, POSE_PAINT_WEIGHT, fit_pose_ranker, learned_pose_scores,  # noqa: E402
                                   pose_design)
+from tests.bench.bench_pose import seeds, true_pairs  # noqa: E402
 
 N_POSES, PER_ANGLE = 30, 3
 RIGHT_DEG, RIGHT_MM = 5.0, 5.0
-
-
-def seeds(text: str) -> list[int]:
-    if not text:
-        return []
-    out = []
-    for part in text.split(","):
-        if "-" in part:
-            lo, hi = (int(v) for v in part.split("-"))
-            out += list(range(lo, hi + 1))
-        else:
-            out.append(int(part))
-    return out
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -78,16 +66,10 @@ def seeds(text: str) -> list[int]:
 
 def wall_cache(wall, with_lines: bool = True) -> tuple[list[dict], dict]:
     """Every true pair's candidates and raw cues; (pairs, CPU seconds by stage)."""
-    from common.matching.online import wall_cues
-
-    tables, _, poses = wall_cues(wall)
-    ok = {k for k, t in tables.items() if poses.get(k) is not None and len(t.contour_mm) > 3}
-    images = {f.id: f.rgbn for f in wall.fragments}
+    tables, images, poses, pairs = true_pairs(wall)
     ends, fields, out = {}, {}, []
     cpu = dict(dock=0.0, paint=0.0, lines=0.0, geometry=0.0, probes=0.0)
-    for a, b, *_ in wall.adjacency:
-        if a not in ok or b not in ok:
-            continue
+    for a, b in pairs:
         ca, cb = tables[a].contour_mm, tables[b].contour_mm
         c0 = time.process_time()
         docks = dock_outlines(ca, cb, n_poses=N_POSES, per_angle=PER_ANGLE)
