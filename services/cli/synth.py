@@ -93,12 +93,14 @@ def run(args) -> int:
         return 2
     image = None
     if args.image:
-        import cv2
-        bgr = cv2.imread(args.image, cv2.IMREAD_COLOR)
-        if bgr is None:
-            print(f"tessera synth: cannot read picture {args.image}", file=sys.stderr)
+        from common.imports.door import read_image_checked
+        # read whole (OpenCV alone paints a truncated file's missing rows grey); a plain wall is allowed
+        try:
+            px = read_image_checked(args.image, channels=(1, 3, 4), allow_blank=True).pixels
+        except ValueError as exc:
+            print(f"tessera synth: --image: {exc}", file=sys.stderr)
             return 2
-        image = bgr[..., ::-1]
+        image = np.repeat(px[..., None], 3, axis=2) if px.ndim == 2 else px[..., :3]
     real = None
     if args.compare:
         from common.synth.stats import read_collection

@@ -68,7 +68,19 @@ def test_synth_paints_a_user_picture(tmp_path):
 
 def test_synth_refuses_a_missing_picture(tmp_path, capsys):
     assert main(["synth", "--fragments", "2", "--store", str(tmp_path), "--image", str(tmp_path / "none.png")]) == 2
-    assert "cannot read picture" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--image" in err and "none.png" in err and "does not exist" in err, err
+
+
+def test_synth_refuses_a_truncated_picture_naming_it(tmp_path, capsys):
+    # OpenCV alone would paint the wall with the missing rows grey
+    import cv2
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(tmp_path / "wall.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    (tmp_path / "wall.png").write_bytes((tmp_path / "wall.png").read_bytes()[:-500])
+    assert main(["synth", "--fragments", "2", "--store", str(tmp_path / "s"), "--image", str(tmp_path / "wall.png")]) == 2
+    err = capsys.readouterr().err
+    assert "wall.png" in err and "truncated" in err, err
 
 
 def test_synth_pompeii_writes_a_collection_and_compares_it(tmp_path, capsys):
