@@ -30,6 +30,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from common.matching.alignment import resample_contour
+from common.matching.docking import _rotation
+
 #: resampling step of the outlines, mm
 FACING_STEP_MM = 1.0
 #: a point of one outline faces the other where it lies between this far inside it ...
@@ -38,6 +41,8 @@ FACING_INSIDE_MM = 1.5
 FACING_OUTSIDE_MM = 8.0
 #: a point is in tight contact within this distance of the other outline, mm
 FACING_TIGHT_MM = 2.0
+#: cell of the signed distance maps the outlines are looked up in, mm
+SIGNED_CELL_MM = 0.5
 #: curvature scale: the outline's turn over ± this arc length, mm
 FACING_CURVATURE_MM = 4.0
 #: the paint is probed this far along and across the facing stretch, and turned this much about it
@@ -46,20 +51,6 @@ PROBE_ALONG_MM, PROBE_ACROSS_MM, PROBE_TURN_DEG = 3.0, 1.5, 2.0
 #: the columns of :func:`facing_geometry`'s rows
 FACING_COLUMNS = ("face_mm", "run_mm", "tight_mm", "gap_q10_mm", "gap_median_mm", "gap_q90_mm", "gap_rough_mm",
                   "inside_mm", "depth_mm", "curvature_mismatch", "curvature_correlation", "end_mismatch_mm")
-
-
-def resample_outline(contour_mm: np.ndarray, step_mm: float = FACING_STEP_MM) -> np.ndarray:
-    """A closed outline resampled at (nearly) even arc-length steps of ``step_mm``: (K, 2) mm, K >= 8."""
-    c = np.asarray(contour_mm, float)
-    if c.ndim != 2 or c.shape[1] != 2 or len(c) < 3 or not np.all(np.isfinite(c)):
-        raise ValueError(f"contour_mm must be a finite (N >= 3, 2) outline, got shape {c.shape}")
-    if not step_mm > 0:
-        raise ValueError(f"step_mm must be positive, got {step_mm}")
-    closed = np.vstack([c, c[:1]])
-    arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
-    n = max(8, int(round(arc[-1] / step_mm)))
-    t = np.linspace(0, arc[-1], n, endpoint=False)
-    return np.stack([np.interp(t, arc, closed[:, 0]), np.interp(t, arc, closed[:, 1])], 1)
 
 
 def turning_curvature(points: np.ndarray, half_mm: float = FACING_CURVATURE_MM,
@@ -84,28 +75,36 @@ def turning_curvature(points: np.ndarray, half_mm: float = FACING_CURVATURE_MM,
     return turn / (k * step_mm)
 
 
-class _SignedDistance:
-    """Signed distance (mm) to a closed outline on a grid of ``cell_mm``: positive outside, negative
-    inside; far (1000 mm) off the grid."""
+def signed_distance_map(contour_mm: np.ndarray, cell_mm: float, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance (mm) to a closed outline on a grid of ``cell_mm`` cells reaching ``margin_mm``
+    beyond it: positive outside, negative inside (the outline filled at 1/16-cell precision, OpenCV's
+    5x5 distance transform both ways).
 
-    def __init__(self, contour_mm: np.ndarray, cell_mm: float = 0.5, margin_mm: float = FACING_OUTSIDE_MM + 4.0):
-        c = np.asarray(contour_mm, float)
-        self.lo = c.min(0) - margin_mm
-        hi = c.max(0) + margin_mm
-        self.cell = cell_mm
-        shape = (int(np.ceil((hi[1] - self.lo[1]) / cell_mm)) + 1, int(np.ceil((hi[0] - self.lo[0]) / cell_mm)) + 1)
-        m = np.zeros(shape, np.uint8)
-        cv2.fillPoly(m, [np.round((c - self.lo) / cell_mm * 16).astype(np.int32)], 1, shift=4)
-        out = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
-        ins = cv2.distanceTransform(m, cv2.DIST_L2, 5)
-        self.sdf = ((out - ins) * cell_mm).astype(np.float32)
+    Returns
+    -------
+    distance_mm : (H, W) float32
+    origin_mm : (2,) float
+        ``(x, y)`` of cell ``[0, 0]``; :func:`sample_map` looks points up in it.
+    """
+    c = np.asarray(contour_mm, float)
+    origin = c.min(0) - margin_mm
+    hi = c.max(0) + margin_mm
+    shape = (int(np.ceil((hi[1] - origin[1]) / cell_mm)) + 1, int(np.ceil((hi[0] - origin[0]) / cell_mm)) + 1)
+    m = np.zeros(shape, np.uint8)
+    cv2.fillPoly(m, [np.round((c - origin) / cell_mm * 16).astype(np.int32)], 1, shift=4)
+    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
+    inside = cv2.distanceTransform(m, cv2.DIST_L2, 5)
+    return ((outside - inside) * cell_mm).astype(np.float32), origin
 
-    def __call__(self, pts: np.ndarray) -> np.ndarray:
-        ij = np.round((pts - self.lo) / self.cell).astype(int)
-        h, w = self.sdf.shape
-        ok = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
-        v = self.sdf[np.clip(ij[..., 1], 0, h - 1), np.clip(ij[..., 0], 0, w - 1)]
-        return np.where(ok, v, 1e3)
+
+def sample_map(values: np.ndarray, origin_mm: np.ndarray, cell_mm: float, points_mm: np.ndarray,
+               off_grid: float) -> np.ndarray:
+    """``values`` (a map of :func:`signed_distance_map`'s grid) at the nearest cell of each point
+    (``(..., 2)`` mm), ``off_grid`` where a point falls outside the grid."""
+    ij = np.round((points_mm - origin_mm) / cell_mm).astype(int)
+    h, w = values.shape
+    ok = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+    return np.where(ok, values[np.clip(ij[..., 1], 0, h - 1), np.clip(ij[..., 0], 0, w - 1)], off_grid)
 
 
 def _longest_run(mask: np.ndarray) -> tuple[int, int]:
@@ -121,11 +120,6 @@ def _longest_run(mask: np.ndarray) -> tuple[int, int]:
     starts, ends = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
     i = int(np.argmax(ends - starts))
     return int((starts[i] + shift) % n), int(ends[i] - starts[i])
-
-
-def _rotation(deg: float) -> np.ndarray:
-    r = np.radians(deg)
-    return np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
 
 
 def facing_geometry(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, poses, *, step_mm: float = FACING_STEP_MM,
@@ -176,10 +170,16 @@ def facing_geometry(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, poses, *
     p = np.asarray(poses, float).reshape(-1, 3)
     if not np.all(np.isfinite(p)):
         raise ValueError("poses must be finite (angle_deg, tx_mm, ty_mm)")
-    pa, pb = resample_outline(contour_a_mm, step_mm), resample_outline(contour_b_mm, step_mm)
+    for name, c in (("contour_a_mm", contour_a_mm), ("contour_b_mm", contour_b_mm)):
+        c = np.asarray(c, float)
+        if c.ndim != 2 or c.shape[1] != 2 or len(c) < 3 or not np.all(np.isfinite(c)):
+            raise ValueError(f"{name} must be a finite (N >= 3, 2) outline, got shape {c.shape}")
+    pa = resample_contour(contour_a_mm, step_mm, positive=False)
+    pb = resample_contour(contour_b_mm, step_mm, positive=False)
     ka, kb_all = turning_curvature(pa, curvature_mm, step_mm), turning_curvature(pb, curvature_mm, step_mm)
-    sa = _SignedDistance(contour_a_mm, margin_mm=outside_mm + 4.0)
-    sb = _SignedDistance(contour_b_mm, margin_mm=outside_mm + 4.0)
+    # far (1000 mm) off the grids
+    (sdf_a, lo_a), (sdf_b, lo_b) = (signed_distance_map(c, SIGNED_CELL_MM, outside_mm + 4.0)
+                                    for c in (contour_a_mm, contour_b_mm))
     tree_a = cKDTree(pa)
     rows = np.empty((len(p), len(FACING_COLUMNS)))
     directions = np.tile([1.0, 0.0], (len(p), 1))
@@ -188,7 +188,8 @@ def facing_geometry(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, poses, *
         r, t = _rotation(pose[0]), pose[1:3]
         qb = pb @ r.T + t                        # B in A's frame
         qa = (pa - t) @ r                        # A in B's frame
-        db, da = sa(qb), sb(qa)
+        db = sample_map(sdf_a, lo_a, SIGNED_CELL_MM, qb, 1e3)
+        da = sample_map(sdf_b, lo_b, SIGNED_CELL_MM, qa, 1e3)
         fb, fa = (db > -inside_mm) & (db < outside_mm), (da > -inside_mm) & (da < outside_mm)
         face = (fa.sum() + fb.sum()) / 2 * step_mm
         sb0, nb = _longest_run(fb)

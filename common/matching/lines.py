@@ -36,6 +36,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from common.matching.docking import DOCK_GAP_MM, DOCK_NEAR_WEIGHT, DOCK_OVERLAP_WEIGHT, DOCK_TAPER_MM
+from common.matching.facing import sample_map, signed_distance_map
 from common.matching.paint import _lab, checked_face
 
 #: weight of CIELAB lightness against the chroma axes (fading and lighting change lightness most)
@@ -313,16 +314,11 @@ def outline_contact_mm(contour_a_mm, contour_b_mm, poses, *, cell_mm: float = 0.
         c = np.asarray(c, float)
         if c.ndim != 2 or c.shape[1] != 2 or len(c) < 3:
             raise ValueError(f"{name} must be (N >= 3, 2) outline points, got shape {c.shape}")
-        lo = c.min(0) - (gap_mm + taper_mm + 3.0)
-        hi = c.max(0) + (gap_mm + taper_mm + 3.0)
-        shape = (int(np.ceil((hi[1] - lo[1]) / cell_mm)) + 1, int(np.ceil((hi[0] - lo[0]) / cell_mm)) + 1)
-        m = np.zeros(shape, np.uint8)
-        cv2.fillPoly(m, [np.round((c - lo) / cell_mm * 16).astype(np.int32)], 1, shift=4)
-        out = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5) * cell_mm
-        depth = cv2.distanceTransform(m, cv2.DIST_L2, 5) * cell_mm
+        signed, lo = signed_distance_map(c, cell_mm, gap_mm + taper_mm + 3.0)
+        out, depth = np.maximum(signed, 0), np.maximum(-signed, 0)
         band = (np.clip((gap_mm + taper_mm - out) / taper_mm, 0, 1)
                 * (near_weight + (1 - near_weight) * np.clip(out / gap_mm, 0, 1)))
-        band[m > 0] = 0
+        band[signed < 0] = 0
         closed = np.vstack([c, c[:1]])
         arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
         t = np.arange(0, arc[-1], step_mm)
@@ -331,10 +327,7 @@ def outline_contact_mm(contour_a_mm, contour_b_mm, poses, *, cell_mm: float = 0.
 
     def look(field, pts):
         band, depth, lo, _ = field
-        ij = np.round((pts - lo) / cell_mm).astype(int)
-        ok = (ij[..., 0] >= 0) & (ij[..., 0] < band.shape[1]) & (ij[..., 1] >= 0) & (ij[..., 1] < band.shape[0])
-        r, c = np.clip(ij[..., 1], 0, band.shape[0] - 1), np.clip(ij[..., 0], 0, band.shape[1] - 1)
-        return np.where(ok, band[r, c], 0.0), np.where(ok, depth[r, c], 0.0)
+        return sample_map(band, lo, cell_mm, pts, 0.0), sample_map(depth, lo, cell_mm, pts, 0.0)
 
     r = np.radians(poses[:, 0])
     rot = np.stack([np.stack([np.cos(r), -np.sin(r)], -1), np.stack([np.sin(r), np.cos(r)], -1)], -2)

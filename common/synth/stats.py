@@ -70,8 +70,7 @@ def read_fragment_rgba(path) -> np.ndarray:
     from common.imports.door import read_image_checked
 
     img = read_image_checked(path, channels=(4,))
-    px = img.pixels
-    return px if px.dtype == np.uint8 else (px.astype(np.float32) * (255.0 / img.full_scale) + 0.5).astype(np.uint8)
+    return img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
 
 
 def _crop(rgba: np.ndarray, pad: int = 2):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from common.matching.facing import (FACING_COLUMNS, facing_geometry, probe_poses, resample_outline,
-                                    turning_curvature)
+from common.matching.alignment import resample_contour
+from common.matching.facing import FACING_COLUMNS, facing_geometry, probe_poses, turning_curvature
 
 
 def _rect(w, h, x0=0.0, y0=0.0, step=0.25):
@@ -55,7 +55,7 @@ def test_a_piece_far_away_faces_nothing():
 
 def test_curvature_of_a_circle_and_its_sign_with_the_direction():
     t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
-    circle = resample_outline(np.c_[20 * np.cos(t), 20 * np.sin(t)], 1.0)
+    circle = resample_contour(np.c_[20 * np.cos(t), 20 * np.sin(t)], 1.0, positive=False)
     k = turning_curvature(circle, 4.0, 2 * np.pi * 20 / len(circle))
     np.testing.assert_allclose(k, 1 / 20, rtol=0.03)
     np.testing.assert_allclose(turning_curvature(circle[::-1], 4.0, 2 * np.pi * 20 / len(circle)), -1 / 20, rtol=0.03)
