@@ -315,6 +315,7 @@ class _Peak:
     sy: int
     sx: int
     mask_b: np.ndarray
+    rank: int = 0          # its place among its rotation's local maxima (0: the best)
 
 
 def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm: float = DOCK_CELL_MM,
@@ -323,7 +324,7 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
                   paint_a: np.ndarray | None = None, paint_b: np.ndarray | None = None,
                   paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3, per_angle: int = 1,
                   min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0,
-                  coarse_angles: int = None) -> list[Docking]:
+                  coarse_angles: int = None, more_poses: int = 0, more_per_angle: int = 10) -> list[Docking]:
     """Dock fragment B against fragment A over every rotation and translation, tolerating lost material.
 
     Parameters
@@ -381,10 +382,18 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
         docked again on the ``cell_mm`` grid. Default :data:`DOCK_COARSE_ANGLES` (3): 1.5–1.9× less
         CPU, the same best score for 74–84 % of pairs, the same within-object ranking and pose
         accuracy on RePAIR and on three synthetic walls (docs/matching.md).
+    more_poses, more_per_angle : int
+        With ``more_poses`` > 0 (and ``per_angle`` > 1), up to that many further distinct candidates
+        follow the ``n_poses`` ones, from up to ``more_per_angle`` local maxima per rotation, best first:
+        the wider set of poses a person can step through (a right pose is among the best 100 candidates
+        at 10 per rotation for 0.45 of synthetic and 0.38 of RePAIR's true pairs, among the best 30 at 3
+        for 0.33; docs/matching.md "More candidate poses to offer"). The first ``n_poses`` are exactly
+        those returned without them, and the further ones come only when those are all found (so
+        ``result[:n_poses]`` is always the search of ``n_poses`` and ``per_angle``). Not with ``rescore``.
 
     Returns
     -------
-    list of Docking, best first.
+    list of Docking, best first (the ``n_poses`` candidates, then the ``more_poses``, each best first).
 
     See Also
     --------
@@ -410,14 +419,16 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
               for c, name in ((contour_a_mm, "contour_a_mm"), (contour_b_mm, "contour_b_mm"))]
     return dock_frames(*frames, step_deg=step_deg, overlap_weight=overlap_weight, paint_a=paint_a, paint_b=paint_b,
                        paint_weight=paint_weight, n_poses=n_poses, per_angle=per_angle, min_shift_mm=min_shift_mm,
-                       rescore=rescore, rescore_weight=rescore_weight, coarse_angles=coarse_angles)
+                       rescore=rescore, rescore_weight=rescore_weight, coarse_angles=coarse_angles,
+                       more_poses=more_poses, more_per_angle=more_per_angle)
 
 
 def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float = DOCK_STEP_DEG,
                 overlap_weight: float = DOCK_OVERLAP_WEIGHT, paint_a: np.ndarray | None = None,
                 paint_b: np.ndarray | None = None, paint_weight: float = DOCK_PAINT_WEIGHT, n_poses: int = 3,
                 per_angle: int = 1, min_shift_mm: float = 6.0, rescore=None, rescore_weight: float = 1.0,
-                coarse_angles: int = None, coarse_poses: int = 0) -> list[Docking]:
+                coarse_angles: int = None, coarse_poses: int = 0, more_poses: int = 0,
+                more_per_angle: int = 10) -> list[Docking]:
     """:func:`dock_outlines` of two prepared outlines (:class:`DockingFrame`, same grid and band), reusing
     what they keep: A's spectra and B's turned maps and spectra are computed once per fragment (and FFT
     size) and serve every partner, so docking one fragment against many costs one inverse transform per
@@ -449,6 +460,9 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         raise ValueError(f"n_poses and per_angle must be >= 1, got {n_poses}, {per_angle}")
     if not min_shift_mm >= 0:
         raise ValueError(f"min_shift_mm must be >= 0, got {min_shift_mm}")
+    if more_poses < 0 or (more_poses and (per_angle < 2 or more_per_angle < per_angle or rescore is not None)):
+        raise ValueError(f"more_poses needs per_angle >= 2, more_per_angle >= per_angle and no rescore, got "
+                         f"more_poses={more_poses}, per_angle={per_angle}, more_per_angle={more_per_angle}")
     cell_mm = frame_a.cell_mm
     a, origin_a, inner_a, centre_b = frame_a.contour_mm, frame_a.origin, frame_a.inner, frame_b.centre
     size = frame_a.fft_size(frame_b)
@@ -483,15 +497,17 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
 
     radius = max(1, int(round(min_shift_mm / cell_mm)))
 
+    kept_per_angle = more_per_angle if more_poses else per_angle
+
     def at(angle):
         corr, origin_b, mask_b = correlate(angle)
-        if per_angle == 1:
+        if kept_per_angle == 1:
             peaks = [int(np.argmax(corr))]
         else:  # local maxima at least min_shift_mm apart, best first
             top = (corr == _window_max(corr, radius)) & (corr > 0)
             idx = np.flatnonzero(top)
-            peaks = [int(i) for i in idx[np.argsort(-corr.flat[idx])][:per_angle]] or [int(np.argmax(corr))]
-        return [peak_at(angle, corr, i, origin_b, mask_b) for i in peaks]
+            peaks = [int(i) for i in idx[np.argsort(-corr.flat[idx])][:kept_per_angle]] or [int(np.argmax(corr))]
+        return [peak_at(angle, corr, i, origin_b, mask_b, rank) for rank, i in enumerate(peaks)]
 
     def near(angle, d, radius_mm):
         """The best pose at ``angle`` whose B centre lies within ``radius_mm`` of docking ``d``'s."""
@@ -504,7 +520,7 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         iy, ix = np.unravel_index(int(np.argmax(win)), win.shape)
         return docking(peak_at(angle, corr, int(ys[iy] * shape[1] + xs[ix]), origin_b, mask_b))
 
-    def peak_at(angle, corr, i, origin_b, mask_b):
+    def peak_at(angle, corr, i, origin_b, mask_b, rank=0):
         sy, sx = np.unravel_index(i, shape)
         # the shifts where the two grids meet run from −(B's extent) to A's extent, and the FFT holds
         # both (size ≥ A's + B's): those at or past A's extent are the negative ones, wrapped around
@@ -512,7 +528,7 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         sx = int(sx - shape[1] if sx >= inner_a.shape[1] else sx)
         # A cell = B cell + shift  =>  p_a = R (p_b − c_b) + origin_a − origin_b + cell · shift
         t = origin_a - origin_b + cell_mm * np.array([sx, sy], float) - _rotation(angle) @ centre_b
-        return _Peak(float(corr.flat[i]), float(angle), t, sy, sx, mask_b)
+        return _Peak(float(corr.flat[i]), float(angle), t, sy, sx, mask_b, rank)
 
     def docking(p):
         """The peak as a Docking, with the overlap and contact at its shift (for reporting)."""
@@ -546,13 +562,23 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
     def centre(p):
         return _rotation(p.angle_deg) @ centre_b + p.t
 
+    def apart(p, taken):
+        return all(abs((p.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 or
+                   (per_angle > 1 and np.hypot(*(centre(p) - centre(e))) >= min_shift_mm) for e in taken)
+
     distinct: list[_Peak] = []
     for p in found:
-        if all(abs((p.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 or
-               (per_angle > 1 and np.hypot(*(centre(p) - centre(e))) >= min_shift_mm) for e in distinct):
+        if p.rank < per_angle and apart(p, distinct):   # the search of n_poses and per_angle, as without more
             distinct.append(p)
         if len(distinct) >= n_poses:
             break
+    if more_poses and len(distinct) == n_poses:
+        chosen = {id(p) for p in distinct}
+        for p in found:
+            if len(distinct) >= n_poses + more_poses:
+                break
+            if id(p) not in chosen and apart(p, distinct):
+                distinct.append(p)
     distinct = [docking(p) for p in distinct]
     if rescore is None:
         return distinct

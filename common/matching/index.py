@@ -38,12 +38,13 @@ crack alone, do not lift pieces of another fresco.
 
 Stage 3 — **dock** the best ``DOCK_CANDIDATES`` per fragment (:mod:`common.matching.docking`:
 gap-tolerant outline complementarity searched over every pose by FFT correlation, one search per
-pair giving 30 candidate poses, the fragment's turned maps kept across its partners). The contact,
+pair giving 30 candidate poses and 70 more to offer, the fragment's turned maps kept across its partners). The contact,
 corrected for both fragments' docking hubness, is calibrated into the join probability; the earlier
 stages' evidence and the paint continuing across the crack (:mod:`common.matching.paint`, its best
-over the candidate poses) are added to its logit. The proposed pose is the candidate the learned pose
-chooser scores best (contact, paint and the outlines' facing geometry:
-:func:`common.matching.pose.learned_pose_scores`). A pair is docked once: its result is cached, and
+over the 30 candidate poses) are added to its logit. The proposed pose is the candidate of the 30 the learned
+pose chooser scores best (contact, paint and the outlines' facing geometry:
+:func:`common.matching.pose.learned_pose_scores`), and the next 19 of all 100 are offered beside it
+(:func:`common.matching.pose.offered_poses`). A pair is docked once: its result is cached, and
 kept in the proposal store where the index is given one (``MatchIndex(dockings=store)``, keyed by
 :func:`docking_inputs` and :func:`docking_version`), so other indexes over that store — other matcher
 workers, a restarted one — read it instead of docking it again. Candidates that stage 3 does not dock
@@ -93,9 +94,14 @@ DOCK_KEEPS_EARLIER_EVIDENCE = True
 #: logit (:func:`common.matching.paint.with_paint`), where both fragments have a boundary profile
 DOCK_USES_PAINT = True
 #: with paint, a pair's one docking keeps this many candidate poses (this many per rotation): its best is the
-#: pair's geometric evidence, the paint continuity is the best over all of them (paint.paint_pair_mm), and the
-#: pair's proposed pose is the one of them the learned chooser scores best (pose.learned_pose_scores)
+#: pair's geometric evidence and the paint continuity is the best over all of them (paint.paint_pair_mm)
 DOCK_PAINT_POSES, DOCK_PAINT_PER_ANGLE = 30, 3
+#: the same search also gives this many further candidates (docking.dock_frames' more_poses, up to 10 local maxima
+#: per rotation). The pair's proposed pose is the learned chooser's best of the first DOCK_PAINT_POSES, and the
+#: next pose.ALTERNATIVE_POSES of all are offered beside it (pose.offered_poses). They widen what is offered,
+#: not the evidence or the choice: the paint's best over 100 candidates finds paint by chance for more wrong
+#: pairs, and the chooser was fitted on the 30 (docs/matching.md, "More candidate poses to offer")
+DOCK_MORE_POSES = 70
 #: docking frames (docking.DockingFrame: a fragment's maps and spectra at every rotation, which serve all
 #: its partners) are kept for the most recently docked fragments, within this many MB
 DOCK_FRAMES_MB = 512
@@ -108,11 +114,11 @@ DOCKING_VERSION = "docking-2"
 def docking_version() -> str:
     """The version of a pair's docking as :class:`MatchIndex` makes it now: :data:`DOCKING_VERSION` with the
     settings that change its numbers (the candidate poses kept, whether paint is used, the alternatives
-    offered), e.g. ``"docking-2/poses-30x3/paint/alternatives-9"``."""
+    offered), e.g. ``"docking-2/poses-30x3+70/paint/alternatives-19"``."""
     from common.matching.pose import ALTERNATIVE_POSES
 
-    return (f"{DOCKING_VERSION}/poses-{DOCK_PAINT_POSES}x{DOCK_PAINT_PER_ANGLE}/{'paint' if DOCK_USES_PAINT else 'no-paint'}"
-            f"/alternatives-{ALTERNATIVE_POSES}")
+    return (f"{DOCKING_VERSION}/poses-{DOCK_PAINT_POSES}x{DOCK_PAINT_PER_ANGLE}+{DOCK_MORE_POSES}"
+            f"/{'paint' if DOCK_USES_PAINT else 'no-paint'}/alternatives-{ALTERNATIVE_POSES}")
 
 
 def docking_inputs(contour_mm: np.ndarray | None, boundary_profile: np.ndarray | None = None) -> str | None:
@@ -212,7 +218,7 @@ class MatchIndex:
         #: pose by unordered pair where the learned chooser chose it among the docking's candidates
         #: (pose.learned_pose_scores over contact, paint and facing geometry)
         self._poses: dict[tuple[str, str], Docking] = {}
-        #: the pair's next-best distinct candidates (pose.ranked_poses), offered beside its pose
+        #: the pair's next-best distinct candidates of all 100 (pose.offered_poses), offered beside its pose
         self._alternatives: dict[tuple[str, str], list[Docking]] = {}
         #: fragment → its docking frame, least recently used first (bounded by DOCK_FRAMES_MB)
         self._frames: OrderedDict[str, DockingFrame] = OrderedDict()
@@ -718,20 +724,21 @@ class MatchIndex:
         kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
         if paint:
             from common.matching.paint import paint_continuity, paint_field_from_profile
-            from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features, ranked_poses
+            from common.matching.pose import ALTERNATIVE_POSES, offered_poses, pose_features
 
-            docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE, **kw)
+            docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE,
+                                more_poses=DOCK_MORE_POSES, **kw)
             for f in key:
                 if f not in self._paint_fields:
                     self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
-            # the paint continuity at every candidate: its best is the pair's paint evidence
-            # (paint.paint_pair_mm), and with the contact and the outlines' facing geometry it chooses the
-            # pair's pose (the learned chooser, pose.learned_pose_scores)
+            # the paint continuity at every candidate: its best over the first DOCK_PAINT_POSES is the pair's
+            # paint evidence (paint.paint_pair_mm), and with the contact and the outlines' facing geometry it
+            # chooses the pair's pose among those and orders all the others offered (pose.offered_poses)
             paint_mm = paint_continuity(self._paint_fields[key[0]], self._paint_fields[key[1]],
                                         np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks], float))
-            self._paint_pairs[key] = float(np.max(paint_mm))
-            scores = learned_pose_scores(pose_features(docks, paint_mm, self.contours[key[0]], self.contours[key[1]]))
-            ranked = ranked_poses(docks, paint_mm, scores=scores)     # the first is the chosen pose
+            self._paint_pairs[key] = float(np.max(paint_mm[:DOCK_PAINT_POSES]))
+            features = pose_features(docks, paint_mm, self.contours[key[0]], self.contours[key[1]])
+            ranked = offered_poses(docks, paint_mm, features, choose_among=DOCK_PAINT_POSES)  # the first is the pose
             self._poses[key] = ranked[0]
             self._alternatives[key] = ranked[1:1 + ALTERNATIVE_POSES]
             self._dockings.setdefault(key, docks[0])

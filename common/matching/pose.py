@@ -55,10 +55,12 @@ from common.matching.docking import inverse_pose  # noqa: F401
 #: 5° and 5 mm of their true pairs' 30 candidates: ``python tests/bench/bench_pose.py``), not on the
 #: walls or collections the figures in docs/matching.md are measured on
 POSE_PAINT_WEIGHT = 6.0
-#: candidate poses a proposal offers beside its chosen one (``alignment.alternatives``), best first:
-#: the review page steps through them when the chosen pose is not the join (the true pose is among
-#: the docking's 30 candidates for about a third of RePAIR's true pairs, chosen for a seventh)
-ALTERNATIVE_POSES = 9
+#: candidate poses a proposal offers beside its chosen one (``alignment.alternatives``), best first by the
+#: learned chooser among the docking's 100 (index.DOCK_PAINT_POSES + DOCK_MORE_POSES): the review page steps
+#: through them when the chosen pose is not the join. The chosen pose is right for about a fifth of RePAIR's
+#: true pairs; with 19 alternatives a right pose is offered for a third (docs/matching.md, "More candidate
+#: poses to offer")
+ALTERNATIVE_POSES = 19
 
 
 def pose_scores(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_PAINT_WEIGHT,
@@ -160,6 +162,44 @@ def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_
                    and np.hypot(d.tx_mm - k.tx_mm, d.ty_mm - k.ty_mm) <= distinct_mm for k in kept):
             kept.append(d)
     return kept
+
+
+def offered_poses(dockings: Sequence[Docking], paint_mm, features, *, choose_among: int, weights=None) -> list[Docking]:
+    """The pair's proposed pose, then the other candidate poses a person may step through, best first.
+
+    The proposed pose is the learned chooser's best among the first ``choose_among`` candidates, scored among
+    those (the docking's search the chooser was fitted on: ``dock_frames(n_poses=30, per_angle=3)``); the rest
+    follow in the order of its scores among all candidates (the further ones of ``more_poses`` too), without
+    near repeats (:func:`ranked_poses`). So the proposed pose is what it was without the further candidates,
+    and they only widen what is offered.
+
+    Parameters
+    ----------
+    dockings, paint_mm : as for :func:`ranked_poses`
+    features : (N, F) array
+        :func:`pose_features` of the candidates.
+    choose_among : int
+        How many of the first candidates the proposed pose is chosen from.
+    weights : optional
+        As :func:`learned_pose_scores`.
+
+    Examples
+    --------
+    >>> from common.matching.docking import Docking
+    >>> d = [Docking(0, 0, 0, 60.0, 45, 0), Docking(90, 5, 0, 50.0, 37.5, 0), Docking(45, 9, 0, 20.0, 15, 0)]
+    >>> x = np.array([[1.0], [2.0], [9.0]])                        # one feature; the third candidate is best
+    >>> [p.angle_deg for p in offered_poses(d, [0, 0, 0], x, choose_among=2, weights=([1.0], [0.0]))]
+    [90, 45, 0]
+    """
+    docks = list(dockings)
+    x = np.asarray(features, float)
+    if not 1 <= choose_among or len(x) != len(docks):
+        raise ValueError(f"need choose_among >= 1 and one feature row per candidate, got {choose_among} and "
+                         f"{len(x)} rows for {len(docks)} candidates")
+    first = int(np.argmax(learned_pose_scores(x[:choose_among], weights)))
+    scores = learned_pose_scores(x, weights)
+    scores[first] = scores.max() + 1.0          # the proposed pose leads; the rest by the scores among all
+    return ranked_poses(docks, paint_mm, scores=scores)
 
 
 def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.0)) -> tuple[float, float, float]:

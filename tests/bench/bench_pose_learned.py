@@ -4,6 +4,8 @@
                                                    [--collection ../shared/data/repair-dev] [--dpi 150]
     python tests/bench/bench_pose_learned.py fit --cache DIR [--train 31-80] [--test 21-23] [--no-lines]
                                                  [--drop GROUPS] [--trees] [--ablation] [--emit | --check]
+    python tests/bench/bench_pose_learned.py cache --cache DIR2 --more 70 --no-lines --no-probes [...]
+    python tests/bench/bench_pose_learned.py offer --cache DIR2 [--sizes 30,45,60,100]
 
 The station's model (``pose.POSE_MODEL_RAW`` / ``POSE_MODEL_Z``) is ``cache --cache DIR --train 31-80`` then
 ``fit --cache DIR --train 31-80 --no-lines --drop paint_peak,band,overlap,rank,support --emit`` (``--check``:
@@ -34,6 +36,12 @@ station's chooser before session 13). ``--ablation``
 drops one feature group at a time (refit, same hyper-parameters; cross-validated held-out accuracy,
 then the test walls and the collection).
 Figures in docs/matching.md ("A learned pose chooser").
+
+``offer`` (session 14): from a cache whose pairs hold the station's 30 candidates and 70 more
+(``cache --more 70``: ``dock_outlines(..., more_poses=70)``, up to 10 maxima per rotation), how often a right
+pose is among what the station offers a person — the pose chosen among the first 30 and the next 9 or 19 of
+the first M candidates (``pose.offered_poses``) — and how the pose would fare chosen among all 100. Figures
+in docs/matching.md ("More candidate poses to offer").
 """
 
 from __future__ import annotations
@@ -64,15 +72,18 @@ RIGHT_DEG, RIGHT_MM = 5.0, 5.0
 # ----------------------------------------------------------------------------------------------------------------
 # cache
 
-def wall_cache(wall, with_lines: bool = True) -> tuple[list[dict], dict]:
-    """Every true pair's candidates and raw cues; (pairs, CPU seconds by stage)."""
+def wall_cache(wall, with_lines: bool = True, n_poses: int = N_POSES, per_angle: int = PER_ANGLE,
+               with_probes: bool = True, more_poses: int = 0) -> tuple[list[dict], dict]:
+    """Every true pair's candidates (``dock_outlines(n_poses=, per_angle=, more_poses=)``) and raw cues; (pairs,
+    CPU seconds by stage). Without ``with_probes`` the paint probes are zeros (the station's model does not use
+    them)."""
     tables, images, poses, pairs = true_pairs(wall)
     ends, fields, out = {}, {}, []
     cpu = dict(dock=0.0, paint=0.0, lines=0.0, geometry=0.0, probes=0.0)
     for a, b in pairs:
         ca, cb = tables[a].contour_mm, tables[b].contour_mm
         c0 = time.process_time()
-        docks = dock_outlines(ca, cb, n_poses=N_POSES, per_angle=PER_ANGLE)
+        docks = dock_outlines(ca, cb, n_poses=n_poses, per_angle=per_angle, more_poses=more_poses)
         c1 = time.process_time()
         for f in (a, b):
             if f not in fields:
@@ -89,8 +100,11 @@ def wall_cache(wall, with_lines: bool = True) -> tuple[list[dict], dict]:
         c3 = time.process_time()
         rows, directions, centres = facing_geometry(ca, cb, pose_arr)
         c4 = time.process_time()
-        probes = probe_poses(pose_arr, directions, centres).reshape(-1, 3)
-        probe_paint = paint_continuity(fields[a], fields[b], probes).reshape(len(docks), -1)
+        if with_probes:
+            probes = probe_poses(pose_arr, directions, centres).reshape(-1, 3)
+            probe_paint = paint_continuity(fields[a], fields[b], probes).reshape(len(docks), -1)
+        else:
+            probe_paint = np.zeros((len(docks), 6))
         c5 = time.process_time()
         for k, v in zip(cpu, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4)):
             cpu[k] += v
@@ -126,7 +140,8 @@ def cmd_cache(args) -> int:
         else:
             wall = generate_wall(16, seed=s, dpi=40, preset="pompeii", colour_only=True)
         c1 = time.process_time()
-        pairs, cpu = wall_cache(wall, with_lines=not args.no_lines)
+        pairs, cpu = wall_cache(wall, with_lines=not args.no_lines, n_poses=args.poses, per_angle=args.per_angle,
+                               with_probes=not args.no_probes, more_poses=args.more)
         with open(path, "wb") as fh:
             pickle.dump({"pairs": pairs, "cpu": cpu, "cpu_wall": c1 - c0}, fh)
         n = max(len(pairs), 1)
@@ -385,6 +400,47 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_offer(args) -> int:
+    """What the station offers a person (the proposed pose and its alternatives) from the candidates of a cache
+    made with ``--more``: the pose chosen among the first 30 (:func:`common.matching.pose.offered_poses`), the
+    alternatives from the first M candidates, and the pose chosen among all of them instead."""
+    from common.matching.docking import Docking
+    from common.matching.pose import offered_poses
+
+    cache = Path(args.cache)
+    groups = {"training walls": [f"wall{s}" for s in seeds(args.train)],
+              "test walls": [f"wall{s}" for s in seeds(args.test)], "collection": ["collection"]}
+    sizes = sorted({int(m) for m in args.sizes.split(",")})
+    for label, names in groups.items():
+        pairs = [p for blob in load(cache, names).values() for p in blob["pairs"]]
+        if not pairs:
+            continue
+        if min(len(p["docks"]) for p in pairs) < max(sizes):
+            print(f"{label}: fewer than {max(sizes)} candidates for some pairs (make the cache with --more)")
+        offered = {(m, k): [] for m in sizes for k in (9, 19)}
+        chosen, among_all, ceiling = [], [], []
+        for p in pairs:
+            X, names_ = candidate_features(p)
+            F = X[:, [names_.index(f) for f in POSE_FEATURES]]
+            docks = [Docking(*map(float, r)) for r in p["docks"]]
+            ok = right(p["err"])
+            for m in sizes:
+                o = offered_poses(docks[:m], None, F[:m], choose_among=N_POSES)
+                for k in (9, 19):
+                    offered[(m, k)].append(any(ok[docks.index(d)] for d in o[:1 + k]))
+            chosen.append(ok[int(np.argmax(learned_pose_scores(F[:N_POSES])))])
+            among_all.append(ok[int(np.argmax(learned_pose_scores(F)))])
+            ceiling.append(ok.any())
+        chosen, among_all = np.array(chosen), np.array(among_all)
+        print(f"{label} ({len(pairs)} true pairs): pose chosen among the first {N_POSES} {chosen.mean():.3f}; among all "
+              f"{among_all.mean():.3f} (right where it was wrong {int((among_all & ~chosen).sum())}, wrong where it "
+              f"was right {int((chosen & ~among_all).sum())}); a right candidate among all {np.mean(ceiling):.3f}")
+        for m in sizes:
+            print(f"  offered from the first {m:3d}: with 9 alternatives {np.mean(offered[(m, 9)]):.3f}, "
+                  f"with 19 {np.mean(offered[(m, 19)]):.3f}")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -395,6 +451,11 @@ def main(argv=None) -> int:
     c.add_argument("--collection", default="../shared/data/repair-dev")
     c.add_argument("--dpi", type=float, default=150.0)
     c.add_argument("--no-lines", action="store_true")
+    c.add_argument("--no-probes", action="store_true", help="skip the paint probes (not in the station's model)")
+    c.add_argument("--poses", type=int, default=N_POSES, help="candidates per pair (the station: 30)")
+    c.add_argument("--per-angle", type=int, default=PER_ANGLE, help="local maxima per rotation (the station: 3)")
+    c.add_argument("--more", type=int, default=0,
+                   help="further candidates after those (dock_outlines' more_poses, 10 per rotation; the station: 70)")
     c.add_argument("--force", action="store_true")
     f = sub.add_parser("fit", help="fit rankers on the training walls, measure on the test walls and the collection")
     f.add_argument("--cache", required=True)
@@ -410,8 +471,13 @@ def main(argv=None) -> int:
     f.add_argument("--emit", action="store_true", help="print the chosen linear model's weights as code")
     f.add_argument("--check", action="store_true",
                    help="exit 1 unless the chosen model's weights equal pose.POSE_MODEL_RAW / POSE_MODEL_Z")
+    o = sub.add_parser("offer", help="the proposed pose and the alternatives offered, from a cache made with --more")
+    o.add_argument("--cache", required=True)
+    o.add_argument("--train", default="31-80")
+    o.add_argument("--test", default="21-23")
+    o.add_argument("--sizes", default="30,45,60,100", help="offer from the first M candidates, comma-separated")
     args = p.parse_args(argv)
-    return cmd_cache(args) if args.cmd == "cache" else cmd_fit(args)
+    return {"cache": cmd_cache, "fit": cmd_fit, "offer": cmd_offer}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -128,6 +128,32 @@ def test_candidate_poses_hold_the_best_pose_and_several_per_rotation():
         dock_outlines(a, moved, per_angle=0)
 
 
+def test_more_poses_follow_the_search_unchanged():
+    """``more_poses``: the first ``n_poses`` candidates are exactly the search without them; the further ones
+    follow, best first, distinct from every earlier one, with more local maxima per rotation than
+    ``per_angle`` allows (so a rotation holds more than ``per_angle`` of them)."""
+    a, b = _broken_slab(5, gap_mm=3.0)
+    moved = _move(b, 63.0, (80.0, 10.0))
+    plain = dock_outlines(a, moved, n_poses=12, per_angle=2)
+    wide = dock_outlines(a, moved, n_poses=12, per_angle=2, more_poses=20, more_per_angle=6)
+    assert wide[:12] == plain
+    more = wide[12:]
+    assert 0 < len(more) <= 20
+    assert [d.score for d in more] == sorted((d.score for d in more), reverse=True)
+    centre = moved.mean(axis=0)
+    for i, d in enumerate(more, start=12):
+        for e in wide[:i]:
+            da = abs((d.angle_deg - e.angle_deg + 180) % 360 - 180)
+            ca = _move(centre[None], d.angle_deg, (d.tx_mm, d.ty_mm))[0]
+            cb = _move(centre[None], e.angle_deg, (e.tx_mm, e.ty_mm))[0]
+            assert da >= 8.0 - 1e-6 or np.hypot(*(ca - cb)) >= 6.0 - 1e-6
+    per_rotation = np.unique([round(d.angle_deg, 6) for d in wide], return_counts=True)[1]
+    assert per_rotation.max() > 2
+    for kw in ({"per_angle": 1}, {"more_per_angle": 1}, {"rescore": lambda p: np.zeros(len(p))}):
+        with pytest.raises(ValueError, match="more_poses"):
+            dock_outlines(a, moved, n_poses=12, **{"per_angle": 2, "more_poses": 5, **kw})
+
+
 def test_rescore_reranks_candidates_and_refines_the_winner():
     """Extra evidence (e.g. paint) that marks one candidate pose makes it the docking's pose, refined
     to a finer angle than the 4° grid; a rescore of the wrong length is refused."""

@@ -332,14 +332,15 @@ def test_stage_2_scores_missing_cues_as_the_model_imputes_them(small_wall):
 
 
 def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_wall):
-    """Stage 3 with paint keeps each pair's next-best distinct candidate poses (pose.ranked_poses of
-    the same 30-pose docking, by the learned chooser's scores): the candidate's alignment carries them as
-    ``other`` in the query's frame, and seen from the other fragment they are their inverses."""
+    """Stage 3 with paint proposes the learned chooser's best of the docking's 30 candidates and keeps the next-best
+    distinct ones of its 30 + 70 (by the chooser's scores among all): the candidate's alignment carries them as
+    ``other`` in the query's frame, and seen from the other fragment they are their inverses. The pair's paint
+    evidence is the best over the first 30 only (the further candidates widen the offer, not the evidence)."""
     from common.matching.alignment import pose_matrix
     from common.matching.docking import dock_outlines
-    from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
+    from common.matching.index import DOCK_MORE_POSES, DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
     from common.matching.paint import paint_continuity, paint_field_from_profile
-    from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features, ranked_poses
+    from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features
 
     wall, tables, cues, poses = small_wall
     model, ids, index = _docking_index(small_wall, 6)
@@ -348,12 +349,25 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
     for c in head:
         a, b = sorted((q, c.other))
         docks = dock_outlines(tables[a].contour_mm, tables[b].contour_mm, n_poses=DOCK_PAINT_POSES,
-                              per_angle=DOCK_PAINT_PER_ANGLE)
+                              per_angle=DOCK_PAINT_PER_ANGLE, more_poses=DOCK_MORE_POSES)
+        assert len(docks) > DOCK_PAINT_POSES
         paint = paint_continuity(paint_field_from_profile(tables[a].contour_mm, tables[a].boundary_profile),
                                  paint_field_from_profile(tables[b].contour_mm, tables[b].boundary_profile),
                                  np.array([(d.angle_deg, d.tx_mm, d.ty_mm) for d in docks]))
-        scores = learned_pose_scores(pose_features(docks, paint, tables[a].contour_mm, tables[b].contour_mm))
-        want = ranked_poses(docks, paint, scores=scores)[1:1 + ALTERNATIVE_POSES]          # b in a's frame
+        features = pose_features(docks, paint, tables[a].contour_mm, tables[b].contour_mm)
+        # the pose: the chooser's best of the first 30, scored among them (what it was fitted on)
+        chosen = docks[int(np.argmax(learned_pose_scores(features[:DOCK_PAINT_POSES])))]
+        assert index.pose(a, b) == chosen
+        # the alternatives: all the others by the chooser's scores among all 100, no near repeat of a better one
+        scores = learned_pose_scores(features)
+        want = []
+        for i in np.argsort(-scores, kind="stable"):
+            d = docks[int(i)]
+            if d != chosen and not any(abs((d.angle_deg - k.angle_deg + 180) % 360 - 180) <= 3.0
+                                       and np.hypot(d.tx_mm - k.tx_mm, d.ty_mm - k.ty_mm) <= 3.0 for k in [chosen] + want):
+                want.append(d)
+        want = want[:ALTERNATIVE_POSES]                                                      # b in a's frame
+        assert index.paint_pair(a, b) == pytest.approx(float(np.max(paint[:DOCK_PAINT_POSES])))
         got = index.alternatives(a, b)
         assert 0 < len(got) <= ALTERNATIVE_POSES and len(got) == len(want)
         for g, w in zip(got, want):

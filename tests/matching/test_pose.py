@@ -301,3 +301,59 @@ def test_the_fitting_script_computes_the_stations_features_on_a_tiny_wall():
         rights.append(np.arange(len(want)) == 0)        # any labels: the two fits must agree
     r = bench.Ranker("pairwise", C=0.1, columns=cols).fit([bench.candidate_features(p)[0] for p in pairs], rights)
     np.testing.assert_allclose(np.concatenate(r.weights), np.concatenate(fit_pose_ranker(feats, rights, C=0.1)))
+
+
+def test_the_offer_bench_counts_what_the_station_offers(tmp_path, capsys):
+    """bench_pose_learned.py ``cache --more 70`` keeps the station's 30 candidates first (the same search) and the
+    70 more after; ``offer`` counts a pair as offered when a right pose is among pose.offered_poses' first 1 + k,
+    here checked against the pairs' own labels."""
+    import pickle
+    import sys
+    from pathlib import Path
+
+    from common.matching.pose import offered_poses, pose_features
+    from common.synth.wall import generate_wall
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_pose_learned as bench
+
+    wall = generate_wall(5, seed=3, dpi=40, preset="pompeii", colour_only=True)
+    pairs, _ = bench.wall_cache(wall, with_lines=False, with_probes=False, more_poses=70)
+    plain, _ = bench.wall_cache(wall, with_lines=False, with_probes=False)
+    assert len(pairs) == len(plain) > 0
+    for p, q in zip(pairs, plain):
+        np.testing.assert_array_equal(p["docks"][:30], q["docks"])
+        assert len(p["docks"]) > 30
+    # label a pair's fifth-best candidate by the chooser among all as right: offered with 19 alternatives from
+    # all 100, not among the first 30's proposed pose and 9 alternatives unless it is one of the first 30
+    want = []
+    for p in pairs:
+        docks = [Docking(*row) for row in p["docks"]]
+        f = pose_features(docks, p["paint"], *p["contours"])
+        target = offered_poses(docks, p["paint"], f, choose_among=30)[5]
+        i = docks.index(target)
+        p["err"] = np.where((np.arange(len(docks)) == i)[:, None], [[0.0, 0.0]], [[90.0, 90.0]])
+        want.append(i < 30 and target in offered_poses(docks[:30], p["paint"], f[:30], choose_among=30)[:10])
+    with open(tmp_path / "wall3.pkl", "wb") as fh:
+        pickle.dump({"pairs": pairs, "cpu": {}}, fh)
+    assert bench.main(["offer", "--cache", str(tmp_path), "--train", "3", "--test", "", "--sizes", "30,100"]) == 0
+    out = capsys.readouterr().out
+    assert f"offered from the first 100: with 9 alternatives 1.000, with 19 1.000" in out
+    assert f"offered from the first  30: with 9 alternatives {np.mean(want):.3f}" in out
+
+
+def test_offered_poses_keep_the_choice_among_the_first_and_order_the_rest_by_all():
+    """offered_poses: the proposed pose is the chooser's best among the first ``choose_among`` (scored among
+    them only: a candidate further on cannot take its place however good), the others follow by the scores
+    among all, and a near repeat of a better one is left out."""
+    from common.matching.pose import offered_poses
+
+    d = [Docking(0, 0, 0, 60.0, 45, 0), Docking(90, 5, 0, 50.0, 37.5, 0), Docking(45, 9, 0, 20.0, 15, 0),
+         Docking(46, 10, 0, 19.0, 14, 0), Docking(180, 0, 0, 10.0, 7.5, 0)]
+    x = np.array([[1.0], [2.0], [9.0], [8.0], [5.0]])
+    w = ([1.0], [0.0])
+    got = offered_poses(d, np.zeros(5), x, choose_among=2, weights=w)
+    assert [p.angle_deg for p in got] == [90, 45, 180, 0]        # 46° repeats 45° (1°, 1.4 mm): left out
+    assert offered_poses(d, np.zeros(5), x, choose_among=5, weights=w)[0].angle_deg == 45
+    with pytest.raises(ValueError, match="choose_among"):
+        offered_poses(d, np.zeros(5), x[:3], choose_among=2, weights=w)
