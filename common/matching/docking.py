@@ -385,9 +385,9 @@ def dock_outlines(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, *, cell_mm
     more_poses, more_per_angle : int
         With ``more_poses`` > 0 (and ``per_angle`` > 1), up to that many further distinct candidates
         follow the ``n_poses`` ones, from up to ``more_per_angle`` local maxima per rotation, best first:
-        the wider set of poses a person can step through (a right pose is among the best 100 candidates
-        at 10 per rotation for 0.45 of synthetic and 0.38 of RePAIR's true pairs, among the best 30 at 3
-        for 0.33; docs/matching.md "More candidate poses to offer"). The first ``n_poses`` are exactly
+        the wider set of poses a person can step through (a right pose is among 30 + 70 candidates for
+        0.45–0.52 of synthetic and 0.38 of RePAIR's true pairs, among the 30 alone for 0.33–0.40;
+        docs/matching.md "More candidate poses to offer"). The first ``n_poses`` are exactly
         those returned without them, and the further ones come only when those are all found (so
         ``result[:n_poses]`` is always the search of ``n_poses`` and ``per_angle``). Not with ``rescore``.
 

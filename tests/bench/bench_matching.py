@@ -184,6 +184,7 @@ def main() -> int:
     if args.pool:
         from common.matching.collection import collection_wall
         from common.matching.docking import DockingFrame, dock_frames
+        from common.matching.index import DOCK_MORE_POSES, DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
         from common.matching.online import docking_calibration
 
         real = generate_wall(16, seed=1, dpi=40.0, preset="pompeii", colour_only=True)
@@ -195,8 +196,10 @@ def main() -> int:
         pairs = [pool[i][1] for i in rng.integers(len(pool), size=12)]
         tc = time.process_time()
         for a in pairs:
-            dock_frames(DockingFrame(a), query, n_poses=30, per_angle=3)
-        print(f"docking one pair of real fragments (30 poses, the query's frame kept): "
+            dock_frames(DockingFrame(a), query, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE,
+                        more_poses=DOCK_MORE_POSES)
+        print(f"docking one pair of real fragments ({DOCK_PAINT_POSES} + {DOCK_MORE_POSES} poses, as stage 3; "
+              f"the query's frame kept): "
               f"{1e3 * (time.process_time() - tc) / len(pairs):.0f} ms CPU; {args.dock_candidates} docked per proposal")
     print(f"model trained on {wall.id} in {time.perf_counter() - t:.1f} s; pool of {len(pool)} fragments; "
           f"median {int(np.median([len(p[0]) for p in pool]))} patches, "
