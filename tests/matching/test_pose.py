@@ -357,3 +357,19 @@ def test_offered_poses_keep_the_choice_among_the_first_and_order_the_rest_by_all
     assert offered_poses(d, np.zeros(5), x, choose_among=5, weights=w)[0].angle_deg == 45
     with pytest.raises(ValueError, match="choose_among"):
         offered_poses(d, np.zeros(5), x[:3], choose_among=2, weights=w)
+
+
+def test_the_margin_bench_counts_hits_per_query():
+    """bench_pose_margin.hits: each fragment of a pair is a query; @1 / @3 over the queries with a true neighbour."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_pose_margin as bench
+
+    pairs = [dict(src="w", a="A", b="B", true=True), dict(src="w", a="A", b="C", true=False),
+             dict(src="w", a="A", b="D", true=False), dict(src="w", a="A", b="E", true=False),
+             dict(src="w", a="B", b="C", true=False)]
+    # A: B scored 3rd of 4 -> miss @1, hit @3; B: A beats C -> hit; C, D, E have no neighbour (not counted)
+    at1, at3, n = bench.hits(pairs, [1.0, 3.0, 2.0, 0.0, 0.5])
+    assert (at1, at3, n) == (0.5, 1.0, 2)
