@@ -221,7 +221,7 @@ def facing_geometry(contour_a_mm: np.ndarray, contour_b_mm: np.ndarray, poses, *
                                 (10, 50, 90), outside_mm)
     rows = np.empty((len(p), len(FACING_COLUMNS)))
     directions = np.tile([1.0, 0.0], (len(p), 1))
-    centres = qb_all.mean(1) if len(p) else np.empty((0, 2))
+    centres = qb_all.mean(1)
     for i in range(len(p)):
         qb, db, fa, fb = qb_all[i], db_all[i], fa_all[i], fb_all[i]
         sb0, nb = _longest_run(fb)

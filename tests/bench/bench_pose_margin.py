@@ -57,14 +57,21 @@ def group_pairs(wall, group_of) -> list[dict]:
 
 
 def hits(pairs: list[dict], scores) -> tuple[float, float, int]:
-    """@1 and @3 of the queries that have a true neighbour, and their number."""
-    by: dict = {}
+    """@1 and @3 of the queries that have a true neighbour (:func:`~common.matching.collection.within_object_recall`
+    of each fragment's partners in its wall or object, best score first), and their number."""
+    from common.matching.collection import within_object_recall
+
+    scored: dict = {}
+    neighbours: dict = {}
     for p, s in zip(pairs, scores):
-        for q in ("a", "b"):
-            by.setdefault((p["src"], p[q]), []).append((float(s), p["true"]))
-    ranked = [sorted(v, key=lambda x: -x[0]) for v in by.values() if any(t for _, t in v)]
-    return (float(np.mean([r[0][1] for r in ranked])), float(np.mean([any(t for _, t in r[:3]) for r in ranked])),
-            len(ranked))
+        for q, o in (("a", "b"), ("b", "a")):
+            me, other = (p["src"], p[q]), (p["src"], p[o])
+            scored.setdefault(me, []).append((-float(s), len(scored.get(me, ())), other))
+            if p["true"]:
+                neighbours.setdefault(me, set()).add(other)
+    rankings = {f: [o for *_, o in sorted(v)] for f, v in scored.items()}
+    r = within_object_recall(rankings, neighbours, ks=(1, 3))
+    return r["recall"][1], r["recall"][3], r["n"]
 
 
 def columns(pairs, names) -> np.ndarray:

@@ -324,8 +324,8 @@ def test_the_offer_bench_counts_what_the_station_offers(tmp_path, capsys):
     for p, q in zip(pairs, plain):
         np.testing.assert_array_equal(p["docks"][:30], q["docks"])
         assert len(p["docks"]) > 30
-    # label a pair's fifth-best candidate by the chooser among all as right: offered with 19 alternatives from
-    # all 100, not among the first 30's proposed pose and 9 alternatives unless it is one of the first 30
+    # label a pair's fifth alternative (of all 100, as offered) right: offered with 9 or 19 alternatives from all
+    # 100; among the first 30's proposed pose and 9 alternatives only where it is one of those
     want = []
     for p in pairs:
         docks = [Docking(*row) for row in p["docks"]]
