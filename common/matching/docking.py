@@ -506,8 +506,8 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         else:  # local maxima at least min_shift_mm apart, best first
             top = (corr == _window_max(corr, radius)) & (corr > 0)
             idx = np.flatnonzero(top)
-            peaks = [int(i) for i in idx[np.argsort(-corr.flat[idx])][:kept_per_angle]] or [int(np.argmax(corr))]
-        return [peak_at(angle, corr, i, origin_b, mask_b, rank) for rank, i in enumerate(peaks)]
+            peaks = idx[np.argsort(-corr.flat[idx])][:kept_per_angle] if len(idx) else [int(np.argmax(corr))]
+        return peaks_at(angle, corr, peaks, origin_b, mask_b)
 
     def near(angle, d, radius_mm):
         """The best pose at ``angle`` whose B centre lies within ``radius_mm`` of docking ``d``'s."""
@@ -518,27 +518,37 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         ys, xs = np.arange(sy - r, sy + r + 1) % shape[0], np.arange(sx - r, sx + r + 1) % shape[1]
         win = corr[np.ix_(ys, xs)]
         iy, ix = np.unravel_index(int(np.argmax(win)), win.shape)
-        return docking(peak_at(angle, corr, int(ys[iy] * shape[1] + xs[ix]), origin_b, mask_b))
+        return docking(peaks_at(angle, corr, [int(ys[iy] * shape[1] + xs[ix])], origin_b, mask_b)[0])
 
-    def peak_at(angle, corr, i, origin_b, mask_b, rank=0):
-        sy, sx = np.unravel_index(i, shape)
+    turned_centre = {}   # angle -> R c_b, the same for every peak of a rotation
+
+    def peaks_at(angle, corr, cells, origin_b, mask_b):
+        """The peaks at flat indices ``cells`` of one rotation's correlation, in that order (their rank)."""
+        cells = np.asarray(cells, np.int64)
+        sy, sx = np.unravel_index(cells, shape)
         # the shifts where the two grids meet run from −(B's extent) to A's extent, and the FFT holds
         # both (size ≥ A's + B's): those at or past A's extent are the negative ones, wrapped around
-        sy = int(sy - shape[0] if sy >= inner_a.shape[0] else sy)
-        sx = int(sx - shape[1] if sx >= inner_a.shape[1] else sx)
+        sy = np.where(sy >= inner_a.shape[0], sy - shape[0], sy)
+        sx = np.where(sx >= inner_a.shape[1], sx - shape[1], sx)
+        rc = turned_centre.get(angle)
+        if rc is None:
+            rc = turned_centre[angle] = _rotation(angle) @ centre_b
         # A cell = B cell + shift  =>  p_a = R (p_b − c_b) + origin_a − origin_b + cell · shift
-        t = origin_a - origin_b + cell_mm * np.array([sx, sy], float) - _rotation(angle) @ centre_b
-        return _Peak(float(corr.flat[i]), float(angle), t, sy, sx, mask_b, rank)
+        t = (origin_a - origin_b) + cell_mm * np.stack([sx, sy], axis=1).astype(float) - rc
+        scores = corr.flat[cells]
+        return [_Peak(float(scores[k]), float(angle), t[k], int(sy[k]), int(sx[k]), mask_b, k)
+                for k in range(len(cells))]
 
     def docking(p):
         """The peak as a Docking, with the overlap and contact at its shift (for reporting)."""
-        shifted = np.zeros(inner_a.shape, np.float32)
         h, w = p.mask_b.shape
-        ys = slice(max(p.sy, 0), min(p.sy + h, shifted.shape[0]))
-        xs = slice(max(p.sx, 0), min(p.sx + w, shifted.shape[1]))
+        ys = slice(max(p.sy, 0), min(p.sy + h, inner_a.shape[0]))
+        xs = slice(max(p.sx, 0), min(p.sx + w, inner_a.shape[1]))
+        overlap = 0.0   # cells of A's interior under B's mask (0/1 maps: an exact count)
         if ys.start < ys.stop and xs.start < xs.stop:
-            shifted[ys, xs] = p.mask_b[ys.start - p.sy:ys.stop - p.sy, xs.start - p.sx:xs.stop - p.sx]
-        overlap = float((inner_a * shifted).sum()) * cell_mm ** 2
+            overlap = float((inner_a[ys, xs] * p.mask_b[ys.start - p.sy:ys.stop - p.sy,
+                                                        xs.start - p.sx:xs.stop - p.sx]).sum())
+        overlap *= cell_mm ** 2
         contact = (p.score + overlap_weight * overlap / cell_mm ** 2) * cell_mm / 2
         return Docking(p.angle_deg, float(p.t[0]), float(p.t[1]), p.score, float(contact), overlap)
 
@@ -559,17 +569,28 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         if p.score > found[0].score:
             found[0] = p
 
-    def centre(p):
-        return _rotation(p.angle_deg) @ centre_b + p.t
+    # the poses taken so far: their rotations and B's centres (A's frame), to test a new one against all at once
+    taken_angle, taken_centre = np.empty(n_poses + more_poses), np.empty((n_poses + more_poses, 2))
 
-    def apart(p, taken):
-        return all(abs((p.angle_deg - e.angle_deg + 180) % 360 - 180) >= 2 * step_deg - 1e-9 or
-                   (per_angle > 1 and np.hypot(*(centre(p) - centre(e))) >= min_shift_mm) for e in taken)
+    def apart(p, n_taken):
+        """Whether ``p`` is another rotation (≥ 2 steps) or, with ``per_angle`` > 1, ≥ ``min_shift_mm`` away
+        from each of the first ``n_taken`` poses taken."""
+        turn = np.abs((p.angle_deg - taken_angle[:n_taken] + 180) % 360 - 180) >= 2 * step_deg - 1e-9
+        if per_angle > 1:
+            c = turned_centre[p.angle_deg] + p.t
+            turn |= np.hypot(c[0] - taken_centre[:n_taken, 0], c[1] - taken_centre[:n_taken, 1]) >= min_shift_mm
+        return bool(turn.all())
 
     distinct: list[_Peak] = []
+
+    def take(p):
+        taken_angle[len(distinct)] = p.angle_deg
+        taken_centre[len(distinct)] = turned_centre[p.angle_deg] + p.t
+        distinct.append(p)
+
     for p in found:
-        if p.rank < per_angle and apart(p, distinct):   # the search of n_poses and per_angle, as without more
-            distinct.append(p)
+        if p.rank < per_angle and apart(p, len(distinct)):   # the search of n_poses and per_angle, as without more
+            take(p)
         if len(distinct) >= n_poses:
             break
     if more_poses and len(distinct) == n_poses:
@@ -577,8 +598,8 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         for p in found:
             if len(distinct) >= n_poses + more_poses:
                 break
-            if id(p) not in chosen and apart(p, distinct):
-                distinct.append(p)
+            if id(p) not in chosen and apart(p, len(distinct)):
+                take(p)
     distinct = [docking(p) for p in distinct]
     if rescore is None:
         return distinct

