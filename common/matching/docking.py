@@ -569,7 +569,11 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         if p.score > found[0].score:
             found[0] = p
 
-    # the poses taken so far: their rotations and B's centres (A's frame), to test a new one against all at once
+    def centre(p):
+        """B's centre at peak ``p`` (A's frame, mm)."""
+        return turned_centre[p.angle_deg] + p.t
+
+    # the poses taken so far: their rotations and B's centres, to test a new one against all at once
     taken_angle, taken_centre = np.empty(n_poses + more_poses), np.empty((n_poses + more_poses, 2))
 
     def apart(p, n_taken):
@@ -577,15 +581,14 @@ def dock_frames(frame_a: DockingFrame, frame_b: DockingFrame, *, step_deg: float
         from each of the first ``n_taken`` poses taken."""
         turn = np.abs((p.angle_deg - taken_angle[:n_taken] + 180) % 360 - 180) >= 2 * step_deg - 1e-9
         if per_angle > 1:
-            c = turned_centre[p.angle_deg] + p.t
+            c = centre(p)
             turn |= np.hypot(c[0] - taken_centre[:n_taken, 0], c[1] - taken_centre[:n_taken, 1]) >= min_shift_mm
         return bool(turn.all())
 
     distinct: list[_Peak] = []
 
     def take(p):
-        taken_angle[len(distinct)] = p.angle_deg
-        taken_centre[len(distinct)] = turned_centre[p.angle_deg] + p.t
+        taken_angle[len(distinct)], taken_centre[len(distinct)] = p.angle_deg, centre(p)
         distinct.append(p)
 
     for p in found:
