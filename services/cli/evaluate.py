@@ -19,7 +19,8 @@ collection (``../shared/data/repair-dev`` layout: one folder per object with RGB
 ``truth.csv``; folders without one are distractors) with the station's default model — the
 bootstrap model, or the current model of the station at ``--model ROOT`` — fitting nothing on it,
 and prints and writes pooled top-k, within-object recall with its random baseline, pair AP and
-pose accuracy (docs/matching.md).
+pose accuracy (docs/matching.md); its picture of hits and misses (``collection_examples.png``) goes to
+``--out``, by default the folder of the ``--json`` file, or the current folder without one.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ log = logging.getLogger("tessera.evaluate")
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("evaluate", help="evaluate the matcher: rates, PR curves, top-k recall (§5.8)",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default="docs/matching", help="directory for CSV and PNG results (default: docs/matching)")
+    p.add_argument("--out", default=None, help="directory for CSV and PNG results (default: docs/matching; with "
+                                               "--collection the folder of the --json file, else the current one)")
     p.add_argument("--fragments", type=int, default=150, help="fragments per synthetic wall (default 150)")
     p.add_argument("--seed", type=int, default=11, help="seed of the training wall (default 11)")
     p.add_argument("--test-seed", type=int, default=12, help="seed of the test wall (default 12)")
@@ -66,6 +68,7 @@ def run(args) -> int:
     if args.collection:
         return _collection(args, progress)
     args.dpi = 100.0 if args.dpi is None else args.dpi
+    args.out = "docs/matching" if args.out is None else args.out
     if args.folds < 2:
         raise SystemExit("--folds must be at least 2")
     if args.fragments < 10:
@@ -113,8 +116,9 @@ def _collection(args, progress) -> int:
         if current is None:
             raise SystemExit(f"--model {args.model}: the station has no match model yet")
         model = load_model(Store(args.model), current["artifact"])
+    out = args.out if args.out is not None else (Path(args.json).parent if args.json else Path("."))
     try:
-        res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=args.out, progress=progress)
+        res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out, progress=progress)
     except ValueError as exc:
         raise SystemExit(f"--collection {args.collection}: {exc}")
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
@@ -141,6 +145,8 @@ def _collection(args, progress) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(res, indent=1, default=float))
         print(f"figures in {args.json}")
+    if (Path(out) / "collection_examples.png").is_file():
+        print(f"hits and misses drawn in {Path(out) / 'collection_examples.png'}")
     return 0
 
 

@@ -1,5 +1,7 @@
 """Pieces of the evaluation report: the ribbon's run on a contour, the example picture."""
 
+from pathlib import Path
+
 import numpy as np
 
 from common.matching.report import _plot_ribbon_examples, _run_points
@@ -90,3 +92,27 @@ def test_evaluate_collection_command_refuses_a_missing_directory(tmp_path, capsy
 
     with pytest.raises(SystemExit, match="no such directory"):
         main(["evaluate", "--collection", str(tmp_path / "absent")])
+
+
+def test_evaluate_collection_command_draws_beside_the_json_file_or_in_the_current_folder(tmp_path, monkeypatch):
+    """The picture of hits and misses goes where the user asked for the figures (the --json file's folder), or
+    into the current folder, never into a ``docs/matching`` made under wherever the command runs; ``--out`` wins."""
+    import pytest
+
+    import common.matching.report as report
+    from services.cli import main
+
+    (tmp_path / "coll").mkdir()
+    seen = []
+
+    def record(path, *, out_dir=None, **kw):
+        seen.append(Path(out_dir))
+        raise ValueError("stopped after the output folder")
+
+    monkeypatch.setattr(report, "evaluate_collection", record)
+    monkeypatch.chdir(tmp_path)
+    for extra in (["--json", str(tmp_path / "res" / "r.json")], [], ["--json", "r.json", "--out", "pics"]):
+        with pytest.raises(SystemExit, match="stopped after the output folder"):
+            main(["evaluate", "--collection", str(tmp_path / "coll")] + extra)
+    assert seen == [tmp_path / "res", Path("."), Path("pics")]
+    assert not (tmp_path / "docs").exists()
