@@ -41,7 +41,7 @@ MAX_REDOCK_FRAGMENTS = 64
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 #: ``match.verified`` ``verdict``: what producers send
 VERDICTS = ("confirmed", "rejected")
-#: what readers also accept for a verdict (older tools sent booleans)
+#: what readers of a journal also read as a verdict (the door, :func:`validate`, takes only VERDICTS and booleans)
 _VERDICT_WORDS = {"confirmed": "confirmed", "confirm": "confirmed", "accept": "confirmed", "accepted": "confirmed",
                   "yes": "confirmed", "rejected": "rejected", "reject": "rejected", "no": "rejected"}
 #: ``fragment.annotated`` ``changes``: the catalogue fields a person may edit, and their length
@@ -82,9 +82,9 @@ EVENT_TYPES: dict[str, tuple[str, tuple[str, ...]]] = {
 def verdict_of(value: Any) -> str:
     """The verdict (``"confirmed"`` or ``"rejected"``) a ``match.verified`` ``verdict`` field means.
 
-    Producers send one of :data:`VERDICTS`; ``True``/``False`` (sent by older tools) and a few
-    words (``confirm``, ``accept``, ``reject``, ``yes``, ``no``) are read as well. Anything else
-    raises :class:`MessageError`.
+    Producers send one of :data:`VERDICTS`; ``True``/``False`` (sent by older tools) are read as well, and
+    so are a few words (``confirm``, ``accept``, ``reject``, ``yes``, ``no``) that journals written before
+    :func:`validate` refused them at the door may hold. Anything else raises :class:`MessageError`.
     """
     if value is True or value is False:
         return "confirmed" if value else "rejected"
@@ -181,8 +181,9 @@ def validate(msg: Any) -> dict:
     Besides the required fields of its type: ``uid`` is 32 hex digits (:data:`UID_PATTERN`),
     ``time`` a finite number of seconds, ``fragment``/``other`` match :data:`FRAGMENT_PATTERN`,
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
-    ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.verified``
-    verdict is one :func:`verdict_of` reads and its optional ``pose`` one :func:`pose_of` reads, a
+    ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.proposed``
+    or ``match.verified`` names two different fragments, a ``match.verified`` verdict is one of
+    :data:`VERDICTS` or a boolean and its optional ``pose`` one :func:`pose_of` reads, a
     ``match.proposed`` alignment's ``alternatives`` are at most :data:`MAX_ALTERNATIVE_POSES` poses
     :func:`pose_of` reads, a ``match.refitted`` or ``match.reranked`` ``model_version`` matches
     :data:`MODEL_VERSION_PATTERN`, a ``match.reranked`` ``redock`` is a list of 1 to
@@ -250,8 +251,13 @@ def validate(msg: Any) -> dict:
                 and all(isinstance(f, str) and FRAGMENT_PATTERN.match(f) for f in redock)):
             raise MessageError(f"{kind} message: redock must be a list of 1 to {MAX_REDOCK_FRAGMENTS} fragment ids, "
                                f"got {_short(redock)}")
+    if kind in ("match.proposed", "match.verified") and msg["fragment"] == msg["other"]:
+        raise MessageError(f"{kind} message: fragment and other are both {msg['fragment']!r} (a join needs two)")
     if kind == "match.verified":
-        verdict_of(msg["verdict"])
+        v = msg["verdict"]
+        if not (v is True or v is False or (isinstance(v, str) and v in VERDICTS)):
+            # the words older journals may hold are read (verdict_of), never taken in anew
+            raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {_short(v)}")
         if msg.get("pose") is not None:
             pose_of(msg["pose"], f"{kind} message: pose")
     for name in ("probability", "mutual"):

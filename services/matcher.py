@@ -54,7 +54,7 @@ from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
 from common.matching.pose import inverse_pose
 from common.matching.proposals import Proposal, ProposalStore, ordered_pair
-from common.messages import MessageError, new_message, verdict_of
+from common.messages import MAX_REDOCK_FRAGMENTS, MessageError, new_message, verdict_of
 
 SERVICE = "matcher"
 VERSION = "matcher-1.3"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked);
@@ -286,6 +286,7 @@ def _on_refitted(job: dict, ctx) -> list[dict]:
                      st.model.version)
         return []
     cfg = ctx.config or {}
+    batch = redock_batch(cfg)   # before the long pass: a bad setting fails at once, named
     ctx.progress(0.1, f"ranking all {len(st.index)} fragments again under model {st.model.version}")
     undocked = st.index.rank_all(st.model, n_candidates=int(cfg.get("n_candidates", 100)))
     ctx.progress(0.9, "mutual proximity of the stored pairs")
@@ -296,11 +297,21 @@ def _on_refitted(job: dict, ctx) -> list[dict]:
         if f in undocked or set(st.index.rankings[f][:top]) - set(others):
             redock.append(f)
     st.db.set_mutual(updates)
-    batch = int(cfg.get("redock_batch", REDOCK_BATCH))
     ctx.log.info("model %s: %d fragments ranked again; %d to dock and propose again (%d pairs never docked)",
                  st.model.version, len(st.index.rankings), len(redock), sum(len(v) for v in undocked.values()))
     return [new_message("match.reranked", model_version=st.model.version, redock=redock[i:i + batch],
                         fragments=len(st.index)) for i in range(0, len(redock), batch)]
+
+
+def redock_batch(cfg) -> int:
+    """``[services.matcher] redock_batch``: fragments per ``match.reranked`` event, 1 to
+    :data:`~common.messages.MAX_REDOCK_FRAGMENTS` (a larger batch would make every event invalid, and each
+    re-rank job's events refused as if its input were bad)."""
+    batch = cfg.get("redock_batch", REDOCK_BATCH)
+    if isinstance(batch, bool) or not isinstance(batch, int) or not 1 <= batch <= MAX_REDOCK_FRAGMENTS:
+        raise ValueError(f"[services.matcher] redock_batch must be an integer from 1 to {MAX_REDOCK_FRAGMENTS}, "
+                         f"got {batch!r}")
+    return batch
 
 
 def _on_reranked(job: dict, ctx) -> list[dict]:

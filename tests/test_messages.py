@@ -238,7 +238,7 @@ def test_verdicts_are_read_as_documented(value, meaning):
     assert verdict_of(validate(_doc(type="match.verified", fragment="A", other="B", verdict=value))["verdict"]) == meaning
 
 
-@pytest.mark.parametrize("value", ["maybe", 1, None, "", ["confirmed"]])
+@pytest.mark.parametrize("value", ["maybe", 1, None, "", ["confirmed"], "yes", "accept", "no"])
 def test_a_verdict_that_is_neither_confirmed_nor_rejected_is_refused_at_the_door(value):
     """docs/messages.md: verdict is confirmed or rejected. It was journaled, published and routed
     to the matcher, which then parked the job; the review pages showed the raw value."""
@@ -369,3 +369,18 @@ def test_a_proposals_alternative_poses_are_checked():
         validate(dict(msg, alignment={"alternatives": [[1, 2, 3]]}))
     with pytest.raises(MessageError, match="at most"):
         validate(dict(msg, alignment={"alternatives": [ok] * (MAX_ALTERNATIVE_POSES + 1)}))
+
+
+@pytest.mark.parametrize("word, meaning", [("yes", "confirmed"), ("accept", "confirmed"), ("reject", "rejected")])
+def test_the_words_an_older_journal_may_hold_are_still_read_as_verdicts(word, meaning):
+    """The door takes only confirmed / rejected (and booleans); a journal written before it refused the
+    other words is still read by the review and reconstruction pages."""
+    from common.messages import verdict_of
+    assert verdict_of(word) == meaning
+
+
+@pytest.mark.parametrize("kind, extra", [("match.verified", {"verdict": "confirmed"}), ("match.proposed", {"probability": 0.5})])
+def test_a_join_of_a_fragment_with_itself_is_refused_at_the_door(kind, extra):
+    """It was journaled and routed to the matcher, which failed on it until the job was parked."""
+    with pytest.raises(MessageError, match="fragment and other are both"):
+        validate(_doc(type=kind, fragment="A", other="A", **extra))

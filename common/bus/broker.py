@@ -61,6 +61,7 @@ DONE_DELAY_S = 0.05      # completions alone are journaled at most this late (gr
 REFUSAL_LOG_INTERVAL_S = 5.0   # refused frames: one log line per this, with the count
 MAX_FRAME_BYTES = 4 * messages.MAX_MESSAGE_BYTES  # a peer sending a larger frame is disconnected by ZeroMQ
 MAX_ERROR_CHARS = 2000   # a worker's error text is cut to this before it goes into an event
+MAX_RESULT_EVENTS = 1000  # events one job's result may announce; more are refused (input.rejected)
 SERVICE_NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 
 # what a CURVE key of each role may do (docs/security.md); "admin" is the lab's own tools
@@ -671,9 +672,16 @@ class Broker:
             self._reject(f"undecodable result of job {jid}: {exc}", job=jid, service=job.service)
             return
         invalid, first_error = 0, ""
-        for ev in events[:1000]:
+        if len(events) > MAX_RESULT_EVENTS:   # counted as refused, not silently cut
+            invalid = len(events) - MAX_RESULT_EVENTS
+            first_error = f"{len(events)} events in one result (at most {MAX_RESULT_EVENTS}); the rest refused"
+        for ev in events[:MAX_RESULT_EVENTS]:
             try:
                 ev = messages.validate(ev)
+                size = len(messages.pack(ev))   # the limit of every message, as for a SUBMIT (messages.unpack)
+                if size > messages.MAX_MESSAGE_BYTES:
+                    raise messages.MessageError(f"{ev['type']} event of {size} bytes refused "
+                                                f"(at most {messages.MAX_MESSAGE_BYTES})")
             except messages.MessageError as exc:
                 invalid += 1
                 first_error = first_error or str(exc)

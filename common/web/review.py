@@ -152,10 +152,14 @@ class ReviewData:
         return self._read(lambda db: [proposal_dict(p) for p in db.ranked(fragment, limit)], [])
 
     def proposal(self, pid) -> dict | None:
-        """One proposal by id, or None."""
+        """One proposal by id, or None (also for an id that is no SQLite integer: a bool, ``1e400``, ``2**70``)."""
+        if isinstance(pid, bool):
+            return None
         try:
             pid = int(pid)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
+            return None
+        if not 0 <= pid < 2 ** 63:
             return None
         def by_id(db):
             if hasattr(db, "by_id"):

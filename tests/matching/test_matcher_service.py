@@ -253,3 +253,17 @@ def test_a_restarted_matcher_worker_docks_no_pair_docked_before(station, monkeyp
     for e in follow:
         matcher.handle(e, ctx)
     assert len(calls) == db.count_dockings() - kept             # only pairs never docked, each once
+
+
+def test_a_redock_batch_the_messages_cannot_carry_is_refused_by_name():
+    """``match.reranked`` carries at most 64 fragments (docs/messages.md): a larger ``redock_batch`` made
+    every full re-rank's events invalid, and the worker parked each job as if its input were bad."""
+    import pytest
+
+    from common.messages import MAX_REDOCK_FRAGMENTS
+    from services.matcher import REDOCK_BATCH, redock_batch
+
+    assert redock_batch({}) == REDOCK_BATCH and redock_batch({"redock_batch": MAX_REDOCK_FRAGMENTS}) == 64
+    for bad in (0, MAX_REDOCK_FRAGMENTS + 1, "8", True, 2.5):
+        with pytest.raises(ValueError, match=r"\[services.matcher\] redock_batch must be an integer from 1 to 64"):
+            redock_batch({"redock_batch": bad})

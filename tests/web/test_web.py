@@ -356,6 +356,10 @@ def test_review_queue_pictures_and_a_verdict_that_becomes_match_verified(review_
     assert hist["sent"][0]["fragment_b"] == "FB"
     assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "maybe"}, headers=BEARER).status_code == 400
     assert c.post("/api/review/verdict", json={"proposal": 999, "verdict": "rejected"}, headers=BEARER).status_code == 404
+    # ids no SQLite integer can be (they raised OverflowError: a 500) and a bool are no proposal either
+    for pid in (2 ** 70, 1e400, -1, True):
+        r = c.post("/api/review/verdict", json={"proposal": pid, "verdict": "rejected"}, headers=BEARER)
+        assert r.status_code == 404 and "no proposal" in r.json["error"], pid
 
 
 def test_status_shows_a_parked_failure_and_reruns_it(station_config, broker, noop_worker):
