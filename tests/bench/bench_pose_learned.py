@@ -6,6 +6,8 @@
                                                  [--drop GROUPS] [--trees] [--ablation] [--emit | --check]
     python tests/bench/bench_pose_learned.py cache --cache DIR2 --more 70 --no-lines --no-probes [...]
     python tests/bench/bench_pose_learned.py offer --cache DIR2 [--sizes 30,45,60,100]
+    python tests/bench/bench_pose_learned.py cache --cache DIR3 --more 70 --no-lines --no-probes --scale 1.248 \
+        --collection ""                      # the synthetic walls as a station told 150 dpi for 187.2 sees them
 
 The station's model (``pose.POSE_MODEL_RAW`` / ``POSE_MODEL_Z``) is ``cache --cache DIR --train 31-80`` then
 ``fit --cache DIR --train 31-80 --no-lines --drop paint_peak,band,overlap,rank,support --emit`` (``--check``:
@@ -42,6 +44,9 @@ Figures in docs/matching.md ("A learned pose chooser").
 pose is among what the station offers a person — the pose chosen among the first 30 and the next 9 or 19 of
 the first M candidates (``pose.offered_poses``) — and how the pose would fare chosen among all 100. Figures
 in docs/matching.md ("More candidate poses to offer").
+
+``cache --scale S`` (session 16): every length of the synthetic walls S times longer (:func:`wall_seen_at`), as RePAIR's
+187.2-dpi files evaluated at a nominal 150 dpi are; docs/matching.md, "A collection seen at the wrong scale".
 """
 
 from __future__ import annotations
@@ -117,6 +122,21 @@ def wall_cache(wall, with_lines: bool = True, n_poses: int = N_POSES, per_angle:
     return out, cpu
 
 
+def wall_seen_at(wall, scale: float):
+    """The wall as a station told a dpi ``scale`` times too low sees it: every length ``scale`` times longer
+    (the images' dpi divided by it, poses and crack lengths multiplied). RePAIR's files are sampled at
+    187 dpi and evaluated at a nominal 150 (docs/matching.md, "A collection seen at the wrong scale")."""
+    from dataclasses import replace
+
+    frags = [replace(f, rgbn=replace(f.rgbn, dpi=f.rgbn.dpi / scale),
+                     pose=None if f.pose is None else (f.pose[0], f.pose[1] * scale, f.pose[2] * scale),
+                     contour_mm=None if f.contour_mm is None else f.contour_mm * scale,
+                     area_mm2=f.area_mm2 * scale * scale) for f in wall.fragments]
+    return replace(wall, fragments=frags, adjacency=[(a, b, length * scale) for a, b, length in wall.adjacency],
+                   correspondences={k: (u * scale, v * scale) for k, (u, v) in wall.correspondences.items()},
+                   width_mm=wall.width_mm * scale, height_mm=wall.height_mm * scale, dpi=wall.dpi / scale)
+
+
 def cmd_cache(args) -> int:
     from common.synth.wall import generate_wall
 
@@ -139,6 +159,8 @@ def cmd_cache(args) -> int:
             wall = collection_wall(args.collection, dpi=args.dpi)
         else:
             wall = generate_wall(16, seed=s, dpi=40, preset="pompeii", colour_only=True)
+            if args.scale != 1.0:
+                wall = wall_seen_at(wall, args.scale)
         c1 = time.process_time()
         pairs, cpu = wall_cache(wall, with_lines=not args.no_lines, n_poses=args.poses, per_angle=args.per_angle,
                                with_probes=not args.no_probes, more_poses=args.more)
@@ -456,6 +478,8 @@ def main(argv=None) -> int:
     c.add_argument("--per-angle", type=int, default=PER_ANGLE, help="local maxima per rotation (the station: 3)")
     c.add_argument("--more", type=int, default=0,
                    help="further candidates after those (dock_outlines' more_poses, 10 per rotation; the station: 70)")
+    c.add_argument("--scale", type=float, default=1.0,
+                   help="see the synthetic walls at a dpi this many times too low (RePAIR at 150 dpi: 187.2 / 150)")
     c.add_argument("--force", action="store_true")
     f = sub.add_parser("fit", help="fit rankers on the training walls, measure on the test walls and the collection")
     f.add_argument("--cache", required=True)

@@ -373,3 +373,34 @@ def test_the_margin_bench_counts_hits_per_query():
     # A: B scored 3rd of 4 -> miss @1, hit @3; B: A beats C -> hit; C, D, E have no neighbour (not counted)
     at1, at3, n = bench.hits(pairs, [1.0, 3.0, 2.0, 0.0, 0.5])
     assert (at1, at3, n) == (0.5, 1.0, 2)
+
+
+def test_a_wall_seen_at_a_dpi_too_low_is_the_same_wall_with_every_length_longer():
+    """bench_pose_learned.py ``cache --scale S`` (a station told 150 dpi for RePAIR's 187.2): the fragments' outlines
+    come out S times longer, the true poses' translations S times, the angles unchanged, so the true relative pose of
+    every neighbour pair is the same pose with its translation scaled (each fragment's frame is its image's pixel
+    grid × the pixel size, which grows S times)."""
+    import sys
+    from pathlib import Path
+
+    from scipy.spatial import cKDTree
+
+    from common.matching.online import wall_cues
+    from common.synth.wall import generate_wall
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_pose_learned as bench
+
+    wall = generate_wall(4, seed=3, dpi=40, preset="pompeii", colour_only=True)
+    seen = bench.wall_seen_at(wall, 1.25)
+    t1, _, p1 = wall_cues(wall)
+    t2, _, p2 = wall_cues(seen)
+    for f in t1:   # the same outline, 1.25 times longer, up to the features' 0.1 mm working grid
+        longer, seen_outline = 1.25 * t1[f].contour_mm, t2[f].contour_mm
+        assert cKDTree(longer).query(seen_outline)[0].max() < 0.25
+        assert cKDTree(seen_outline).query(longer)[0].max() < 0.25
+        if p1[f] is not None:
+            assert p2[f][0] == p1[f][0] and np.allclose(p2[f][1:], 1.25 * np.asarray(p1[f][1:]))
+    assert [(a, b) for a, b, _ in seen.adjacency] == [(a, b) for a, b, _ in wall.adjacency]
+    assert np.allclose([n for *_, n in seen.adjacency], [1.25 * n for *_, n in wall.adjacency])
+    assert seen.dpi == wall.dpi / 1.25 and wall.fragments[0].rgbn.dpi == 40      # the original is left alone
