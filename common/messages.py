@@ -27,18 +27,20 @@ MAX_ITEMS = 10000                 # entries of any one map or list
 MAX_PATH_CHARS = 1024             # an artifact pointer's path
 MAX_KEY_CHARS = 256               # any map key
 INT_RANGE = (-(2 ** 63), 2 ** 63 - 1)  # integers a journal, SQLite or a JSON reader can hold
+#: The patterns end in ``\Z``, not ``$``: ``$`` also matches before a final newline, so ``"F1\n"`` would pass
+#: as a fragment id (and name a folder with a newline on storage).
 #: ``uid``: 32 lower-case hex digits (a UUID4 ``hex``)
-UID_PATTERN = re.compile(r"^[0-9a-f]{32}$")
+UID_PATTERN = re.compile(r"^[0-9a-f]{32}\Z")
 #: ``fragment`` and ``other``: 1-64 letters, digits, '.', '_' or '-', starting with a letter or digit
-FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}\Z")
 #: ``face``: 1-32 lower-case letters, digits, '_' or '-' (``front``, ``back``)
-FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}\Z")
 #: ``match.refitted`` and ``match.reranked`` ``model_version``: 1-64 letters, digits, '.', '_' or '-'
 #: (``"0003-1a2b3c4d"``)
-MODEL_VERSION_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+MODEL_VERSION_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}\Z")
 #: ``match.reranked`` ``redock``: at most this many fragments (the matcher sends a few per job)
 MAX_REDOCK_FRAGMENTS = 64
-_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+_SHA256 = re.compile(r"^[0-9a-f]{64}\Z")
 #: ``match.verified`` ``verdict``: what producers send
 VERDICTS = ("confirmed", "rejected")
 #: what readers of a journal also read as a verdict (the door, :func:`validate`, takes only VERDICTS and booleans)

@@ -384,3 +384,22 @@ def test_a_join_of_a_fragment_with_itself_is_refused_at_the_door(kind, extra):
     """It was journaled and routed to the matcher, which failed on it until the job was parked."""
     with pytest.raises(MessageError, match="fragment and other are both"):
         validate(_doc(type=kind, fragment="A", other="A", **extra))
+
+
+@pytest.mark.parametrize("field, value", [("fragment", "F1\n"), ("face", "front\n"), ("uid", "0" * 32 + "\n"),
+                                          ("other", "F2\n")])
+def test_an_id_with_a_trailing_newline_is_refused(field, value):
+    """``$`` matches before a final newline: ``"F1\\n"`` passed as a fragment id (a folder with a newline on
+    storage) and a uid with one escaped the duplicate check. docs/security.md: ids are checked against their
+    patterns, whole."""
+    kind = "match.proposed" if field == "other" else "features.ready"
+    extra = {"fragment": "F1", "other": "F2", "probability": 0.5} if kind == "match.proposed" else \
+        {"fragment": "F1", "face": "front", "artifact": {"path": "a/b.h5", "sha256": "0" * 64, "bytes": 1}}
+    with pytest.raises(MessageError, match=field):
+        validate(_doc(type=kind, **{**extra, field: value}))
+
+
+def test_an_artifact_digest_with_a_trailing_newline_is_refused():
+    art = {"path": "a/b.h5", "sha256": "0" * 64 + "\n", "bytes": 1}
+    with pytest.raises(MessageError, match="sha256"):
+        validate(_doc(type="features.ready", fragment="F1", face="front", artifact=art))

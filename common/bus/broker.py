@@ -62,7 +62,7 @@ REFUSAL_LOG_INTERVAL_S = 5.0   # refused frames: one log line per this, with the
 MAX_FRAME_BYTES = 4 * messages.MAX_MESSAGE_BYTES  # a peer sending a larger frame is disconnected by ZeroMQ
 MAX_ERROR_CHARS = 2000   # a worker's error text is cut to this before it goes into an event
 MAX_RESULT_EVENTS = 1000  # events one job's result may announce; more are refused (input.rejected)
-SERVICE_NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+SERVICE_NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}\Z")
 
 # what a CURVE key of each role may do (docs/security.md); "admin" is the lab's own tools
 # (reconcile, imports, re-runs); any role may ask STATUS, SINCE and PENDING

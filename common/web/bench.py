@@ -15,13 +15,13 @@ functions are passed in, so it is tested with any callables.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-FRAGMENT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+from common.messages import FRAGMENT_PATTERN
+
 
 #: phases of a session, in the order a capture goes through them
 PHASES = ("idle", "prescanning", "waiting", "scanning", "saving", "done", "error", "cancelled")
@@ -47,7 +47,7 @@ def check_fragment_id(fragment_id: str) -> str:
     characters, not starting with punctuation) are accepted.
     """
     fid = str(fragment_id or "").strip()
-    if not FRAGMENT_ID.match(fid):
+    if not FRAGMENT_PATTERN.match(fid):
         raise ValueError(f"fragment_id {fragment_id!r} is not valid: use 1-64 letters, digits, '.', '_' or '-'")
     return fid
 
