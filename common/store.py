@@ -1,8 +1,9 @@
 """The artifact store: immutable HDF5 files under one storage root.
 
-Every artifact is written to a temporary name in its final directory, fsynced, then renamed, so a
-reader never sees a partial file and no HDF5 file is ever open for writing by two processes
-(no SWMR). HDF5 file locking is off by default because it does not work on many NFS/SMB mounts;
+Every artifact is written to a temporary name in its final directory, fsynced, then linked to its
+final name (which fails if the name exists: two writers racing on one content key never replace
+each other's file), so a reader never sees a partial file and no HDF5 file is ever open for writing
+by two processes (no SWMR). HDF5 file locking is off by default because it does not work on many NFS/SMB mounts;
 atomic rename gives the guarantee instead. A message never carries data, only an
 :class:`ArtifactRef` (path relative to the root, sha256, size) that the reader checks.
 
@@ -177,16 +178,46 @@ def _writer_alive(pid: int, written_at: float) -> bool:
     return started <= written_at + 1.0  # create_time is rounded to clock ticks
 
 
+# link(2) errors meaning "this file system has no hard links" (FAT, SMB mounts without Unix extensions)
+_NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS}
+
+
+def _link_into_place(tmp: str, final: Path) -> None:
+    """Give the finished ``tmp`` the name ``final`` unless that name exists (:class:`FileExistsError`).
+
+    ``os.replace`` would silently replace the file of a writer that finished first, whose pointer
+    may already be announced; a hard link is atomic and refuses a name that is taken.
+    """
+    try:
+        os.link(tmp, final)
+    except FileExistsError:
+        if not os.path.samefile(tmp, final):  # else NFS lost the reply to a link that worked, and its retry saw it
+            raise
+    except OSError as exc:
+        if exc.errno not in _NO_HARD_LINKS:
+            raise
+        # no hard links here: check, then rename, as before links were used (a writer finishing
+        # between the two is still replaced; such file systems offer nothing better)
+        if final.exists():
+            raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(final)) from None
+        os.replace(tmp, final)
+        return
+    with contextlib.suppress(OSError):  # the artifact is in place; a leftover name is swept later
+        os.unlink(tmp)
+
+
 @contextlib.contextmanager
-def atomic_file(final: Path) -> Iterator[str]:
-    """Yield a temporary path beside ``final``; rename it into place if the block succeeds.
+def atomic_file(final: Path, *, replace: bool = True) -> Iterator[str]:
+    """Yield a temporary path beside ``final``; move it into place if the block succeeds.
 
     The one way the project writes a file that others may read while it is written (artifacts,
     tiles, annotations, exports). :func:`write_file` covers the common case of bytes in memory.
 
     The temporary name is ``.<final name>.<host>.<pid>.<random>.tmp`` (what
     :meth:`Store.sweep_temporary` looks for: host and pid tell whether its writer is alive); on
-    any failure it is removed, so readers only ever see finished files.
+    any failure it is removed, so readers only ever see finished files. With ``replace`` the
+    temporary is renamed over ``final``; without, it is linked (:func:`_link_into_place`) and a
+    ``final`` that appeared meanwhile is kept: :class:`FileExistsError`.
     """
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -197,7 +228,10 @@ def atomic_file(final: Path) -> Iterator[str]:
     os.close(fd)
     try:
         yield tmp
-        os.replace(tmp, final)
+        if replace:
+            os.replace(tmp, final)
+        else:
+            _link_into_place(tmp, final)
         _fsync_dir(final.parent)
     except BaseException as exc:
         with contextlib.suppress(OSError):
@@ -220,11 +254,12 @@ def _write_bytes(path: str, data: bytes) -> None:
         os.fsync(fh.fileno())
 
 
-def write_file(final: str | os.PathLike, data: bytes) -> None:
+def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True) -> None:
     """Write ``data`` to ``final`` atomically: free space checked, temporary name, fsync, rename.
 
     Raises :class:`StorageFull` / :class:`StorageReadOnly` / :class:`StorageUnavailable` like
-    :meth:`Store.write`, never leaving a partial file behind.
+    :meth:`Store.write`, never leaving a partial file behind; without ``replace``,
+    :class:`FileExistsError` if ``final`` exists (see :func:`atomic_file`).
     """
     final = Path(final)
     try:
@@ -232,8 +267,22 @@ def write_file(final: str | os.PathLike, data: bytes) -> None:
     except OSError as exc:
         raise _storage_error(exc, str(final)) from exc
     _check_free_space(final.parent, len(data), str(final))
-    with atomic_file(final) as tmp:
+    with atomic_file(final, replace=replace) as tmp:
         _write_bytes(tmp, data)
+
+
+def _copy_verified(source: str | os.PathLike, final: Path, sha256: str) -> None:
+    """Copy ``source`` to a new ``final`` if its bytes have digest ``sha256`` (else ArtifactError)."""
+    with atomic_file(final, replace=False) as tmp:
+        h = hashlib.sha256()
+        with open(source, "rb") as src, open(tmp, "wb") as dst:
+            for block in iter(lambda: src.read(_CHUNK), b""):
+                h.update(block)
+                dst.write(block)
+            dst.flush()
+            os.fsync(dst.fileno())
+        if h.hexdigest() != sha256:
+            raise ArtifactError(f"{source} has sha256 {h.hexdigest()[:12]}…, expected {sha256[:12]}…: not copied")
 
 
 class Store:
@@ -303,12 +352,15 @@ class Store:
 
         ``fill(h5file)`` writes the datasets. If ``relpath`` already exists the artifact is
         immutable: its pointer is returned unchanged (a re-delivered job is harmless), unless
-        ``overwrite`` is set (only for files that are not content-keyed, e.g. models).
+        ``overwrite`` is set (only for files that are not content-keyed, e.g. models). The same
+        holds when another writer of the same content key (a job re-dispatched while its first
+        worker still runs) finishes first: its file is kept and its pointer returned, digest and
+        size read from the disk, since our bytes differ at least in ``created``.
 
         The HDF5 file is built in memory (libhdf5 never writes to storage: on a full or
         read-only file system it can crash the process instead of failing), then the free
         space is checked and the bytes are written with ordinary file I/O to a temporary name,
-        fsynced and renamed.
+        fsynced and linked to the final name (renamed over it with ``overwrite``).
 
         Raises
         ------
@@ -330,19 +382,27 @@ class Store:
             f.attrs["provenance"] = json.dumps(dict(provenance or {}), default=str, sort_keys=True)
             fill(f)
         data = image.getbuffer()
-        write_file(final, data)
+        try:
+            write_file(final, data, replace=overwrite)
+        except FileExistsError:
+            if not final.is_file():  # not a racing writer's artifact (a file where a folder should be)
+                raise
+            return self.ref(relpath)
         digest = hashlib.sha256(data).hexdigest()
         return ArtifactRef(relpath, digest, len(data))
 
     def import_file(self, source: str | os.PathLike, relpath: str, sha256: str) -> ArtifactRef:
         """Copy a finished artifact file (e.g. from a local spool) to ``relpath``, atomically.
 
-        The copy is written to a temporary name, fsynced, checked against ``sha256`` and renamed;
-        an existing file with the same digest is kept (re-running a drain is harmless).
+        The copy is written to a temporary name, fsynced, checked against ``sha256`` and linked
+        to its final name. An existing file is never replaced (artifacts are immutable): with the
+        same digest it is kept and its pointer returned (re-running a drain is harmless); with
+        another, it is kept too and :class:`ArtifactError` names both digests, because the
+        caller's event announces ``sha256`` and would point at bytes that are not there.
         """
         final = self.path(relpath)
-        if final.is_file() and file_sha256(final) == sha256:
-            return self.ref(relpath)
+        if final.is_file():
+            return self._existing(relpath, sha256)
         self._check_root()
         size = os.stat(source).st_size
         try:
@@ -350,17 +410,21 @@ class Store:
         except OSError as exc:
             raise _storage_error(exc, relpath) from exc
         _check_free_space(final.parent, size, relpath)
-        with atomic_file(final) as tmp:
-            h = hashlib.sha256()
-            with open(source, "rb") as src, open(tmp, "wb") as dst:
-                for block in iter(lambda: src.read(_CHUNK), b""):
-                    h.update(block)
-                    dst.write(block)
-                dst.flush()
-                os.fsync(dst.fileno())
-            if h.hexdigest() != sha256:
-                raise ArtifactError(f"{source} has sha256 {h.hexdigest()[:12]}…, expected {sha256[:12]}…: not copied")
+        try:
+            _copy_verified(source, final, sha256)
+        except FileExistsError:  # another writer finished first: its file stays
+            if not final.is_file():
+                raise
+            return self._existing(relpath, sha256)
         return self.ref(relpath)
+
+    def _existing(self, relpath: str, sha256: str) -> ArtifactRef:
+        """Pointer to the artifact already at ``relpath`` if it has digest ``sha256``; else ArtifactError."""
+        ref = self.ref(relpath)
+        if ref.sha256 != sha256:
+            raise ArtifactError(f"artifact {relpath} on storage has sha256 {ref.sha256[:12]}…, the copy to "
+                                f"import has {sha256[:12]}…: the existing artifact is kept, never replaced")
+        return ref
 
     # -- reading ---------------------------------------------------------------------------
     @contextlib.contextmanager

@@ -316,3 +316,75 @@ def test_write_returns_the_digest_of_the_bytes_on_disk(tmp_path):
     ref = store.write("a.h5", "s", 1, _big_fill(50_000))
     assert ref == ArtifactRef("a.h5", hashlib.sha256((tmp_path / "a.h5").read_bytes()).hexdigest(),
                               (tmp_path / "a.h5").stat().st_size)
+
+
+# -- racing writers of one content key (a job re-dispatched while its first worker still runs) --------
+
+def _no_hard_links(monkeypatch):
+    """The file system refuses hard links (FAT, some SMB mounts): link(2) fails with EPERM."""
+    import errno
+    import os
+
+    def link(src, dst, **kw):
+        raise OSError(errno.EPERM, os.strerror(errno.EPERM), str(src))
+    monkeypatch.setattr(os, "link", link)
+
+
+def _race_into(monkeypatch, hook_name, first_writer):
+    """Run ``first_writer`` while the writer under test is past its exists() check (inside ``hook_name``)."""
+    import common.store as cs
+    real, done = getattr(cs, hook_name), {}
+
+    def racing(*args):
+        monkeypatch.setattr(cs, hook_name, real)
+        done["ref"] = first_writer()
+        return real(*args)
+    monkeypatch.setattr(cs, hook_name, racing)
+    return done
+
+
+@pytest.mark.parametrize("links", [True, False], ids=["hard-links", "no-hard-links"])
+def test_racing_writers_of_one_key_keep_the_first_artifact(tmp_path, monkeypatch, links):
+    """docs/storage.md: an existing path is never rewritten. The second writer's bytes differ
+    (``created``); the announced pointer of the first must still verify."""
+    if not links:
+        _no_hard_links(monkeypatch)
+    store = Store(tmp_path)
+    first = _race_into(monkeypatch, "_write_bytes", lambda: store.write("d/a.h5", "s", 1, _fill))
+    second = store.write("d/a.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]))
+    assert second == first["ref"], "the later writer returns the pointer of the bytes really there"
+    assert hashlib.sha256((tmp_path / "d/a.h5").read_bytes()).hexdigest() == first["ref"].sha256
+    with store.open(first["ref"]) as f:
+        assert "x" in f and "y" not in f
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["a.h5"], "no temporary file left behind"
+
+
+def test_write_without_hard_links_and_overwrite_still_work(tmp_path, monkeypatch):
+    _no_hard_links(monkeypatch)
+    store = Store(tmp_path)
+    ref = store.write("models/m.h5", "s", 1, _fill)
+    assert store.ref(ref.path) == ref
+    new = store.write("models/m.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]), overwrite=True)
+    assert new != ref and store.ref(new.path) == new, "overwrite=True (models) still replaces"
+
+
+def test_import_file_never_replaces_an_artifact_of_another_digest(tmp_path):
+    """The spool's copy disagrees with what storage holds: storage keeps its file, and the caller
+    (whose event announces the spool's digest) hears both digests instead of a silent swap."""
+    spool, lab = Store(tmp_path / "spool"), Store(tmp_path / "lab")
+    there = lab.write("fragments/F/scans/s.h5", "s", 1, _fill)
+    ref = spool.write("fragments/F/scans/s.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]))
+    with pytest.raises(ArtifactError, match=f"{there.sha256[:12]}.*{ref.sha256[:12]}"):
+        lab.import_file(spool.path(ref.path), ref.path, ref.sha256)
+    assert lab.ref(there.path) == there, "the existing artifact is kept, bytes unchanged"
+    assert [p.name for p in (tmp_path / "lab/fragments/F/scans").iterdir()] == ["s.h5"]
+
+
+def test_import_file_racing_another_writer_keeps_its_file(tmp_path, monkeypatch):
+    spool, lab = Store(tmp_path / "spool"), Store(tmp_path / "lab")
+    ref = spool.write("fragments/F/scans/s.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]))
+    other = _race_into(monkeypatch, "_check_free_space", lambda: lab.write(ref.path, "s", 1, _fill))
+    with pytest.raises(ArtifactError, match="sha256"):
+        lab.import_file(spool.path(ref.path), ref.path, ref.sha256)
+    assert lab.ref(ref.path) == other["ref"]
+    assert [p.name for p in (tmp_path / "lab/fragments/F/scans").iterdir()] == ["s.h5"]

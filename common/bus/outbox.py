@@ -5,11 +5,13 @@ The scanner writes its scans to shared storage when it is reachable, else to a l
 emits goes first into the **outbox**, an SQLite table on local disk committed with
 ``synchronous=FULL`` (fsynced), and is removed only after the broker acknowledged it. A drain
 walks the outbox in order: upload the entry's spooled artifact (copy, fsync, digest check,
-rename), submit the event, delete the entry; it stops at the first entry that cannot be done
+link), submit the event, delete the entry; it stops at the first entry that cannot be done
 yet, so order is kept and nothing is lost when the broker or the storage is down. Storage that
 refuses the upload (full, read-only) and a broker that cannot journal just now are "not yet"
-too. An event the broker refuses for good (invalid) is moved to the ``refused`` table with the
-reason — kept on the bench for a person to look at, never silently dropped.
+too. An event the broker refuses for good (invalid), or whose spooled artifact can never be
+uploaded (missing from the spool, failing its sha256, or other bytes already on storage under its
+name), is moved to the ``refused`` table with the reason — kept on the bench for a person to look
+at, never silently dropped — so the entries behind it go on.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Mapping
 
 from common import messages
 from common.bus.client import BrokerClient, BrokerRefused, BrokerUnavailable
-from common.store import ArtifactError, Store
+from common.store import ArtifactError, Store, StorageUnavailable
 
 log = logging.getLogger("tessera.outbox")
 
@@ -94,7 +96,8 @@ class Outbox:
         return out
 
     def refused(self) -> list[tuple[int, dict, str]]:
-        """Entries the broker refused for good: ``(id, event, reason)``, kept for a person to see."""
+        """Entries set aside for good: ``(id, event, reason)``, kept for a person to see (refused
+        by the broker, or their spooled artifact can never be uploaded)."""
         import msgpack
         with self._lock:
             rows = self._con.execute("SELECT id, body, error FROM refused ORDER BY id").fetchall()
@@ -109,6 +112,26 @@ class Outbox:
             self._con.execute("DELETE FROM outbox WHERE id = ?", (oid,))
             self._con.execute("COMMIT")
 
+    def _upload(self, spooled: str, sha256: str, storage: Store) -> str | None:
+        """Copy an entry's spooled artifact to ``storage``; the reason it never can, or None once there.
+
+        Raises OSError while storage cannot take it just now (unreachable, full, read-only): the
+        entry waits. A spool copy that is missing or fails its digest, or other bytes already on
+        storage under its name, cannot be fixed by retrying, and would block every entry behind.
+        """
+        try:
+            source = self.spool.path(spooled)
+            storage.import_file(source, spooled, sha256)
+        except StorageUnavailable:  # an ArtifactError too, but the share will come back
+            raise
+        except FileNotFoundError:
+            if source.is_file():  # not the spool copy that is gone: storage's trouble
+                raise
+            return f"spooled artifact {spooled} is missing from the spool ({source})"
+        except ArtifactError as exc:
+            return f"spooled artifact {spooled} cannot be uploaded: {exc}"
+        return None
+
     def __len__(self) -> int:
         with self._lock:
             return int(self._con.execute("SELECT COUNT(*) FROM outbox").fetchone()[0])
@@ -118,6 +141,8 @@ class Outbox:
 
         Stops quietly at the first entry whose artifact cannot be uploaded (storage unreachable)
         or whose event the broker does not acknowledge (broker down); the next drain resumes there.
+        An entry that can never go (its event refused for good, its spooled artifact never
+        uploadable) is set aside into the ``refused`` table and counted as drained.
         """
         done = 0
         while True:
@@ -131,10 +156,15 @@ class Outbox:
                     log.debug("storage %s unreachable; %d entries wait", storage.root, len(self))
                     return done
                 try:
-                    storage.import_file(self.spool.path(spooled), spooled, sha256)
+                    problem = self._upload(spooled, sha256, storage)
                 except OSError as exc:
                     log.info("upload of %s failed (%s); will retry", spooled, exc)
                     return done
+                if problem:
+                    log.error("outbox entry %d: %s; kept in the outbox's refused table", oid, problem)
+                    self._set_aside(oid, problem)
+                    done += 1
+                    continue  # its spooled artifact, if any, stays in the spool with it
             try:
                 client.submit(messages.unpack(body))
             except messages.MessageError as exc:  # written by an older, laxer version: not sendable
