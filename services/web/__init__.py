@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -80,6 +81,7 @@ DEFAULTS: dict[str, Any] = {
     "picture_px": 640,          # longest side of the review pictures
     "catalogue_db": "",         # the catalogue's index; default <storage root>/web/catalogue.sqlite (rebuildable)
     "feed_interval_s": 1.0,     # how often the catalogue asks the broker for new events
+    "public_origin": "",        # the pages' address behind a TLS reverse proxy, e.g. "https://tessera.lab.example"
 }
 
 
@@ -108,6 +110,10 @@ def web_settings(cfg: Mapping) -> dict:
         raise WebConfigError("services.web.long_poll_s must be positive and services.web.picture_px >= 64")
     if out["feed_interval_s"] <= 0:
         raise WebConfigError("services.web.feed_interval_s must be positive")
+    origin = out["public_origin"]
+    if origin and not re.fullmatch(r"https?://[A-Za-z0-9.-]+(:[0-9]{1,5})?", origin):
+        raise WebConfigError(f"services.web.public_origin: expected scheme://host[:port] without a path, e.g. "
+                             f"'https://tessera.lab.example', got {origin!r}")
     return out
 
 

@@ -42,8 +42,14 @@ def authorised() -> bool:
 
 
 def same_origin() -> bool:
+    """No ``Origin`` (a script, which still needs the token), this server's own address, or the address the
+    pages are published under behind a TLS reverse proxy (``[services.web] public_origin``: the proxy speaks
+    plain HTTP to this server, so the browser's ``https://…`` origin is not ``request.host_url``)."""
     origin = request.headers.get("Origin")
-    return origin is None or origin == request.host_url.rstrip("/")
+    if origin is None:
+        return True
+    public = station().settings["public_origin"]
+    return origin == request.host_url.rstrip("/") or (bool(public) and origin == public.rstrip("/"))
 
 
 def writes(view: Callable) -> Callable:

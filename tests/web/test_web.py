@@ -93,6 +93,29 @@ def test_a_logged_in_browser_needs_the_csrf_header_and_the_same_origin(counting_
     assert c.post("/api/bench/prescan", json={"fragment": "F1"}, headers={"X-CSRF-Token": csrf}).status_code == 401
 
 
+
+def test_behind_a_tls_proxy_the_published_origin_may_write_and_no_other(tmp_path):
+    """docs/web.md advises a TLS reverse proxy; it speaks plain HTTP to the pages, so the browser's https origin
+    is not the server's own address and every write (login included) was refused as cross-site. The address
+    the pages are published under, ``[services.web] public_origin``, is accepted; others still are not."""
+    counter = CountingCapture()
+    bench = BenchSession(capture=counter.capture, deliver=lambda fid, r: {"sent": True}, prescan=counter.prescan)
+    app = web.create_app(token=TOKEN, store_root=tmp_path, bench=bench,
+                         settings=web.web_settings({"services": {"web": {"public_origin": "https://tessera.lab.example"}}}))
+    c = app.test_client()
+    public = {"Origin": "https://tessera.lab.example"}
+    assert c.post("/login", data={"token": TOKEN}, headers=public).status_code == 302
+    csrf = re.search(r'name="csrf-token" content="([^"]+)"', c.get("/bench").get_data(as_text=True)).group(1)
+    for origin, status in (("https://tessera.lab.example", 200), ("https://evil.example", 403),
+                           ("http://tessera.lab.example", 403)):
+        r = c.post("/api/bench/prescan", json={"fragment": "F1"}, headers={"X-CSRF-Token": csrf, "Origin": origin})
+        assert r.status_code == status, origin
+    assert counter.calls == 1
+    for bad in ("tessera.lab.example", "https://tessera.lab.example/review", "ftp://x"):
+        with pytest.raises(web.WebConfigError, match="public_origin"):
+            web.web_settings({"services": {"web": {"public_origin": bad}}})
+
+
 def test_a_wrong_token_at_login_is_refused_and_redirects_stay_local(counting_app):
     app, _ = counting_app
     c = app.test_client()
