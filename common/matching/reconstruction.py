@@ -70,6 +70,9 @@ SIGMA_DEG = 1.0
 P_VALUE = 1e-4
 #: at most this many reweighting rounds of the robust solve
 IRLS_ROUNDS = 25
+#: a newcomer docked against its whole cluster takes that pose where it faces at least two members there,
+#: each along this much outline (mm); else the pair's own proposed pose is kept (:func:`dock_newcomer`)
+CLUSTER_FACING_MM = 10.0
 FRAME = ("p_cluster = R(angle_deg) @ p_fragment + (tx_mm, ty_mm); mm, x right, y down; a fragment's frame has "
          "x = column * pixel_mm, y = row * pixel_mm of its front RGBN image")
 
@@ -663,8 +666,73 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
 
 
 # -- open edges --------------------------------------------------------------------------------
+def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping) -> tuple[tuple, list[str]]:
+    """A newcomer's pose in the cluster frame, docked against the whole cluster instead of one member.
+
+    Where a newcomer fits into a corner of a cluster, two members' outlines hold it at once and pin
+    where it sits along either crack, which one member alone leaves open (docs/matching.md, "Docking
+    against a confirmed cluster": right within 5° and 5 mm for 0.37 of newcomers that touch two members
+    against 0.15 docked against one). The members are placed at their solved poses and merged, their
+    lost material closed (:func:`common.matching.docking.cluster_outline`); the newcomer is docked against
+    that outline as stage 3 docks a pair (its 30 candidates, :func:`~common.matching.docking.dock_outlines`)
+    and the learned chooser picks among them (:func:`~common.matching.pose.learned_pose_scores`: contact,
+    the paint continuing from ``member``, the facing geometry against the cluster).
+
+    Parameters
+    ----------
+    cluster : Cluster
+    member : str
+        The member the proposal joins the newcomer to (the paint is scored across its crack).
+    newcomer : str
+    pieces : mapping fragment -> (contour_mm, paint field or None)
+        Outlines (each in its fragment's frame, mm) of every member and the newcomer, and their paint
+        fields (:func:`~common.matching.paint.paint_field_from_profile`).
+
+    Returns
+    -------
+    pose : (angle_deg, tx_mm, ty_mm)
+        The newcomer's frame in the cluster frame.
+    faced : list of str
+        The members it faces along at least :data:`CLUSTER_FACING_MM` of outline at that pose.
+    """
+    from common.matching.docking import cluster_outline, dock_outlines
+    from common.matching.facing import facing_geometry
+    from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
+    from common.matching.paint import paint_continuity
+    from common.matching.pose import learned_pose_scores, pose_features
+
+    missing = [f for f in [*cluster.fragments, newcomer] if f not in pieces]
+    if missing or member not in cluster.poses or newcomer in cluster.poses:
+        raise ValueError(f"dock_newcomer needs the outline of every member and of a newcomer outside the cluster; "
+                         f"missing {missing[:5]}, member {member!r} in cluster: {member in cluster.poses}, "
+                         f"newcomer {newcomer!r} in cluster: {newcomer in cluster.poses}")
+    outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
+    contour_n, paint_n = pieces[newcomer]
+    docks = dock_outlines(outline, contour_n, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE)
+    in_cluster = [(math.radians(d.angle_deg), d.tx_mm, d.ty_mm) for d in docks]
+    paint = np.zeros(len(docks))
+    to_member = _inverse(_deg_to_rad(cluster.poses[member]))
+    if pieces[member][1] is not None and paint_n is not None:
+        paint = paint_continuity(pieces[member][1], paint_n, _degrees([_compose(to_member, x) for x in in_cluster]))
+    best = in_cluster[int(np.argmax(learned_pose_scores(pose_features(docks, paint, outline, contour_n))))]
+    faced = [f for f in cluster.fragments
+             if facing_geometry(pieces[f][0], contour_n,
+                                _degrees([_compose(_inverse(_deg_to_rad(cluster.poses[f])), best)]))[0][0, 0]
+             >= CLUSTER_FACING_MM]
+    return _degrees([best])[0], faced
+
+
+def _deg_to_rad(pose):
+    return (math.radians(pose[0]), float(pose[1]), float(pose[2]))
+
+
+def _degrees(poses) -> np.ndarray:
+    """(θ rad, x, y) poses as an (N, 3) array of (angle_deg, tx_mm, ty_mm), the angle wrapped."""
+    return np.array([(math.degrees(float(_wrap(p[0]))), p[1], p[2]) for p in poses], float).reshape(-1, 3)
+
+
 def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster] = (), *,
-               limit: int = 10) -> list[dict]:
+               limit: int = 10, pieces: Mapping | None = None) -> list[dict]:
     """The most probable next joins along a cluster's open edges, in the station's order of proposals
     (:data:`common.matching.proposals.ORDER`: mutual proximity, pairs without one last, then probability).
 
@@ -677,13 +745,18 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
     clusters : iterable of Cluster
         All clusters, to say which one the newcomer already belongs to (or None).
     limit : int
+    pieces : mapping fragment -> (contour_mm, paint field or None), optional
+        Outlines and paint fields of the members and newcomers: each of the best ``limit`` newcomers is
+        then also docked against the whole cluster (:func:`dock_newcomer`), and takes that pose where it
+        faces two members or more there.
 
     Returns
     -------
     list of dict, best first: ``proposal`` (id), ``member``, ``newcomer``, ``probability``, ``mutual``
     (None when the matcher has not ranked the pair in both fragments' lists), ``newcomer_cluster`` (id or None), and ``pose`` — the newcomer's frame in the cluster frame,
     ``(angle_deg, tx_mm, ty_mm)``, composed from the member's solved pose and the proposal's pose —
-    or None when the proposal has no pose.
+    or None when the proposal has no pose; ``pose_from``: ``"proposal"`` (so composed), ``"cluster"``
+    (docked against the cluster, with ``faces``: the members it faces there) or None.
     """
     if limit < 1:
         raise ValueError(f"limit must be >= 1, got {limit}")
@@ -707,9 +780,16 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
         mutual = getattr(p, "mutual", None)
         out.append({"proposal": p.id, "member": member, "newcomer": newcomer, "probability": float(p.probability),
                     "mutual": None if mutual is None else float(mutual), "newcomer_cluster": owner.get(newcomer),
-                    "pose": pose})
+                    "pose": pose, "pose_from": None if pose is None else "proposal"})
     out.sort(key=lambda d: order_key(d["mutual"], d["probability"], d["proposal"]))
-    return out[:limit]
+    out = out[:limit]
+    if pieces is not None and all(f in pieces for f in cluster.fragments):
+        for d in out:
+            if d["newcomer"] in pieces:
+                docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces)
+                if len(faced) >= 2:   # held by two members: the corner pins it (else one crack alone decides)
+                    d.update(pose=tuple(float(v) for v in docked), pose_from="cluster", faces=faced)
+    return out
 
 
 # -- composite ---------------------------------------------------------------------------------
@@ -862,9 +942,33 @@ def front_images(store, fragments: Iterable[str]) -> tuple[dict, dict]:
     return images, missing
 
 
+def front_pieces(store, proposals, fragments: Iterable[str]) -> tuple[dict, dict]:
+    """Each fragment's outline and paint field (front face) from its feature table, as :func:`dock_newcomer`
+    takes them: ``({fragment: (contour_mm, paint field or None)}, {fragment: why it has none})``."""
+    from common.features import load_features
+    from common.matching.paint import paint_field_from_profile
+    from common.store import ArtifactError
+
+    wanted = set(fragments)
+    arts = {r["fragment"]: r["artifact"] for r in proposals.fragments(face="front") if r["fragment"] in wanted}
+    pieces, missing = {}, {}
+    for f in sorted(wanted):
+        if f not in arts:
+            missing[f] = "no feature table in the proposal store"
+            continue
+        try:
+            table = load_features(store, arts[f], face="front")
+        except (ArtifactError, OSError, ValueError) as exc:   # missing, corrupt, newer: the proposal's pose stays
+            missing[f] = f"{type(exc).__name__}: {exc}"
+            continue
+        profile = table.boundary_profile
+        pieces[f] = (table.contour_mm, None if profile is None else paint_field_from_profile(table.contour_mm, profile))
+    return pieces, missing
+
+
 def reconstruct(proposals, *, centres_mm: Mapping | Callable | None = None, dpi: Mapping | None = None,
                 sigma_mm: float = SIGMA_MM, sigma_deg: float = SIGMA_DEG, p_value: float = P_VALUE,
-                next_limit: int = 10) -> dict:
+                next_limit: int = 10, pieces: Mapping | Callable | None = None) -> dict:
     """Solve a station's confirmed joins: clusters, loops, open edges, the JSON document.
 
     Parameters
@@ -877,6 +981,10 @@ def reconstruct(proposals, *, centres_mm: Mapping | Callable | None = None, dpi:
         anchored at their frame origin.
     dpi : mapping fragment -> dpi, optional
         Written into the document.
+    pieces : mapping fragment -> (contour_mm, paint field or None), or callable(list of fragment ids) -> such a
+        mapping, optional
+        Outlines (e.g. :func:`front_pieces`): each next join's newcomer is then docked against its whole cluster
+        (:func:`next_joins`); a callable is asked for the clusters' members and the newcomers only.
 
     Returns
     -------
@@ -893,7 +1001,9 @@ def reconstruct(proposals, *, centres_mm: Mapping | Callable | None = None, dpi:
     for f in fragments:
         pending += proposals.ranked(f, limit=4 * next_limit, status="pending")
     unique = list({p.id: p for p in pending}.values())
-    nxt = {c.id: next_joins(c, unique, clusters, limit=next_limit) for c in clusters}
+    if callable(pieces):
+        pieces = pieces(sorted(set(fragments) | {f for p in unique for f in (p.fragment_a, p.fragment_b)}))
+    nxt = {c.id: next_joins(c, unique, clusters, limit=next_limit, pieces=pieces) for c in clusters}
     doc = reconstruction_document(clusters, unposed=unposed, next_by_cluster=nxt, dpi=dpi,
                                   sigma_mm=sigma_mm, sigma_deg=sigma_deg, p_value=p_value)
     return {"clusters": clusters, "unposed": unposed, "next": nxt, "document": doc}
