@@ -280,6 +280,15 @@ def pack(msg: Mapping) -> bytes:
     return msgpack.packb(dict(msg), use_bin_type=True)
 
 
+def check_packed_size(msg: Mapping) -> int:
+    """The packed size of a message (bytes); :class:`MessageError` when it is over :data:`MAX_MESSAGE_BYTES`, the
+    limit of every message, which :func:`unpack` applies to what arrives and producers to what they send."""
+    size = len(pack(msg))
+    if size > MAX_MESSAGE_BYTES:
+        raise MessageError(f"{msg.get('type', 'message')} of {size} bytes refused (at most {MAX_MESSAGE_BYTES})")
+    return size
+
+
 def unpack(data: bytes) -> dict:
     """Decode and validate msgpack bytes; any defect raises :class:`MessageError`.
 

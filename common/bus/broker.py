@@ -678,10 +678,7 @@ class Broker:
         for ev in events[:MAX_RESULT_EVENTS]:
             try:
                 ev = messages.validate(ev)
-                size = len(messages.pack(ev))   # the limit of every message, as for a SUBMIT (messages.unpack)
-                if size > messages.MAX_MESSAGE_BYTES:
-                    raise messages.MessageError(f"{ev['type']} event of {size} bytes refused "
-                                                f"(at most {messages.MAX_MESSAGE_BYTES})")
+                messages.check_packed_size(ev)   # the limit of every message, as for a SUBMIT (messages.unpack)
             except messages.MessageError as exc:
                 invalid += 1
                 first_error = first_error or str(exc)

@@ -24,7 +24,9 @@ told (``FAILED``) and refuses submissions until a batch is durable again. An ope
 refuses on its own (a value it cannot hold) is logged and skipped; the others are written.
 
 Compaction deletes events beyond the history and checkpoints the WAL, so the journal's size is
-bounded by the history and the backlog, not by the station's lifetime.
+bounded by the history and the backlog, not by the station's lifetime. A compaction the disk refuses
+is logged and tried again next period; it never stops the writer. A malformed database is reported
+(``FAILED``), never retried or skipped around.
 """
 
 from __future__ import annotations
@@ -63,6 +65,19 @@ class JournalState:
     jobs: list = field(default_factory=list)        # (id, seq, service, state, failures, error, body)
     uids: list = field(default_factory=list)        # (uid, seq) of retained events, oldest first
     outputs: set = field(default_factory=set)       # keys of output events already announced
+
+
+def _disk_refused(exc: BaseException) -> bool:
+    """True if SQLite refused a write because of the disk, not the data (full, read-only, locked, I/O
+    error): the same write succeeds once the disk takes writes again, so it is kept and retried."""
+    return isinstance(exc, sqlite3.OperationalError)
+
+
+def _database_broken(exc: BaseException) -> bool:
+    """True if the database file itself is unusable (malformed, not a database: SQLite's errors Python
+    raises as a plain ``DatabaseError``): every batch would be refused again, however few its
+    operations, so skipping operations cannot help and the failure must be reported."""
+    return type(exc) is sqlite3.DatabaseError
 
 
 def _connect(path: Path) -> sqlite3.Connection:
@@ -211,7 +226,9 @@ class Journal:
         """Write ``ops`` in one transaction; never give up on the journal because of one of them.
 
         The database refusing everything (disk full, I/O error) is retried every second after
-        telling the broker (``FAILED``); an operation refused on its own is skipped, logged.
+        telling the broker (``FAILED``); an operation refused on its own is skipped, logged. A
+        malformed database is raised: the writer reports it (``FAILED``) instead of retrying a batch
+        that can never be written.
         """
         failed = False
         while True:
@@ -223,32 +240,39 @@ class Journal:
                 if failed:
                     log.warning("journal writable again: the broker acknowledges events again")
                 return
-            except sqlite3.OperationalError as exc:  # the disk, not the data: wait until it takes writes
+            except Exception as exc:
                 self._rollback(con)
+                if _database_broken(exc):
+                    raise
+                if not _disk_refused(exc):  # a value SQLite cannot hold: write the others one by one
+                    ops = self._operations_taken(con, ops, exc)
+                    continue
+                # the disk, not the data: wait until it takes writes
                 if not failed:
                     log.error("journal write failed (%s): retrying every second; the broker refuses submissions", exc)
                     signal.send(b"FAILED")
                     failed = True
                 time.sleep(1.0)
-            except Exception as exc:  # a value SQLite cannot hold: write the others one by one
-                self._rollback(con)
-                log.error("journal batch refused (%s: %s): writing its %d operations one by one",
-                          type(exc).__name__, exc, len(ops))
-                good = []
-                for op in ops:
-                    try:
-                        con.execute("SAVEPOINT one")
-                        self._apply(con, [op])
-                        con.execute("ROLLBACK TO one")
-                        good.append(op)
-                    except sqlite3.OperationalError:
-                        raise
-                    except Exception as one:
-                        con.execute("ROLLBACK TO one")
-                        log.error("journal operation %r skipped: %s", str(op)[:200], one)
-                    finally:
-                        con.execute("RELEASE one")
-                ops = good
+
+    def _operations_taken(self, con: sqlite3.Connection, ops: list, exc: Exception) -> list:
+        """The operations of a refused batch SQLite takes on their own; the others are logged and skipped."""
+        log.error("journal batch refused (%s: %s): writing its %d operations one by one",
+                  type(exc).__name__, exc, len(ops))
+        good = []
+        for op in ops:
+            try:
+                con.execute("SAVEPOINT one")
+                self._apply(con, [op])
+                con.execute("ROLLBACK TO one")
+                good.append(op)
+            except Exception as one:
+                if _disk_refused(one) or _database_broken(one):  # not this operation's fault
+                    raise
+                con.execute("ROLLBACK TO one")
+                log.error("journal operation %r skipped: %s", str(op)[:200], one)
+            finally:
+                con.execute("RELEASE one")
+        return good
 
     @staticmethod
     def _rollback(con: sqlite3.Connection) -> None:
@@ -293,8 +317,21 @@ class Journal:
             con.executemany("DELETE FROM jobs WHERE id = ?", done)
 
     def _compact(self, con: sqlite3.Connection) -> None:
+        """Drop events beyond the history that no pending job needs, and truncate the WAL.
+
+        Compaction needs the disk too: refused (full, read-only, locked), it is logged and tried
+        again next period while the writer goes on. The DELETE is one statement, so a refused one
+        drops nothing.
+        """
         keep_after = self._last_seq_written - self.history
-        cur = con.execute("DELETE FROM events WHERE seq <= ? AND seq NOT IN (SELECT seq FROM jobs)", (keep_after,))
-        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        try:
+            cur = con.execute("DELETE FROM events WHERE seq <= ? AND seq NOT IN (SELECT seq FROM jobs)", (keep_after,))
+            con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except Exception as exc:
+            if not _disk_refused(exc):
+                raise
+            self._rollback(con)  # nothing may stay open for the next batch's BEGIN
+            log.warning("journal compaction failed (%s): trying again in %g s", exc, self.compact_interval_s)
+            return
         if cur.rowcount:
             log.info("journal compacted: %d old events dropped", cur.rowcount)

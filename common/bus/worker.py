@@ -2,14 +2,14 @@
 
 After the ZeroMQ Guide's ``mdwrkapi.py`` / ``ppworker.py``: a DEALER socket announces READY for
 its service, heartbeats both ways (interval and liveness from ``[broker]``), reconnects with
-exponential back-off when the broker goes quiet, and holds one job at a time. The job runs in a
-separate thread so heartbeats continue while a long stage computes. An exception in a job is
-reported (FAIL; the broker counts attempts) and the process stays up; a job whose input is bad
-(:class:`~common.messages.MessageError`, :class:`~common.store.ArtifactError`) is reported as
-rejected, which the broker parks at once with an ``input.rejected`` event. On SIGTERM the worker
-finishes its job within ``worker.shutdown_grace_s`` or hands it back, then says DISCONNECT.
-Nothing important lives only in the worker's memory: kill -9 loses at most the job in flight,
-which the broker re-queues.
+exponential back-off when the broker goes quiet or says DISCONNECT, and holds one job at a time.
+The job runs in a separate thread so heartbeats continue while a long stage computes. An exception
+in a job, or a result over the message limits, is reported (FAIL; the broker counts attempts) and
+the process stays up; a job whose input is bad (:class:`~common.messages.MessageError`,
+:class:`~common.store.ArtifactError`) is reported as rejected, which the broker parks at once with
+an ``input.rejected`` event. On SIGTERM the worker finishes its job within
+``worker.shutdown_grace_s`` or hands it back, then says DISCONNECT. Nothing important lives only
+in the worker's memory: kill -9 loses at most the job in flight, which the broker re-queues.
 
 A stage module ``services/<name>.py`` exposes ``SERVICE``, ``VERSION`` and
 ``handle(job: dict, ctx: StageContext) -> list[dict]`` (the events to publish).
@@ -37,6 +37,7 @@ import zmq
 
 from common import messages
 from common.bus import protocol as P
+from common.bus.broker import MAX_FRAME_BYTES, MAX_RESULT_EVENTS
 from common.bus.security import secure_client_socket
 from common.config import broker_endpoint, service_config
 from common.store import ArtifactError, ArtifactMissing, StorageError, StorageUnavailable, Store
@@ -96,6 +97,28 @@ class StageContext:
     stopping: threading.Event = field(default_factory=threading.Event)
 
 
+def _result_frame(events) -> bytes:
+    """The RESULT frame of a stage's events, held to the limits the broker holds a result to.
+
+    Each event is a valid message of at most :data:`~common.messages.MAX_MESSAGE_BYTES`, at most
+    ``MAX_RESULT_EVENTS`` of them, and the frame within ``MAX_FRAME_BYTES`` (ZeroMQ drops a larger
+    one: the job would hang in flight). Raises :class:`~common.messages.MessageError` naming the
+    first limit broken.
+    """
+    events = list(events)
+    if len(events) > MAX_RESULT_EVENTS:
+        raise messages.MessageError(f"{len(events)} events in one result (at most {MAX_RESULT_EVENTS})")
+    checked = []
+    for ev in events:
+        ev = messages.validate(ev)
+        messages.check_packed_size(ev)
+        checked.append(ev)
+    frame = P.dumps(checked)
+    if len(frame) > MAX_FRAME_BYTES:
+        raise messages.MessageError(f"result of {len(frame)} bytes (at most {MAX_FRAME_BYTES} a frame)")
+    return frame
+
+
 def load_stage(name: str):
     """Import ``services.<name>`` and check it is a stage module (SERVICE, VERSION, handle)."""
     try:
@@ -140,7 +163,7 @@ class _JobRunner(threading.Thread):
                 stage_ctx = self.make_context(jid, attempt, progress)
                 result = self._handle_retrying_storage(jid, event, stage_ctx, progress)
                 try:
-                    payload = P.dumps([messages.validate(e) for e in result])
+                    payload = _result_frame(result)
                 except Exception as exc:  # the stage's fault, not its input's: an ordinary failure
                     raise RuntimeError(f"stage returned an invalid event: {exc}") from None
                 self.outcomes.put(("result", jid, payload))
@@ -251,14 +274,24 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
     last_heard = time.monotonic()
     next_heartbeat = time.monotonic() + interval
 
+    def reconnect() -> None:
+        """Connect again after the back-off, which doubles up to ``reconnect_max_s`` until the broker
+        sends a job or a heartbeat: a broker that is away, or refuses this worker, is not hammered."""
+        nonlocal backoff, last_heard
+        if not stop.wait(backoff):
+            backoff = min(backoff * 2, float(w["reconnect_max_s"]))
+            connect()
+        last_heard = time.monotonic()
+
     def from_broker(frames: list[bytes]) -> None:
         nonlocal current, last_heard, backoff
         last_heard = time.monotonic()
-        backoff = float(w["reconnect_min_s"])
         if len(frames) < 3 or frames[1] != P.WORKER:
             log.warning("malformed frame from broker ignored: %d parts", len(frames))
             return
         command = frames[2]
+        if command in (P.JOB, P.HEARTBEAT):  # the broker took this worker: the next reconnection is quick
+            backoff = float(w["reconnect_min_s"])
         if command == P.JOB:
             try:
                 jid, attempt, body = frames[3].decode(), int(frames[4]), frames[5]
@@ -278,8 +311,8 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
             current = jid
             runner.jobs.put((jid, attempt, event))
         elif command == P.DISCONNECT:
-            log.info("broker asked %s to reconnect", service)
-            connect()
+            log.info("broker asked %s to reconnect; reconnecting in %.2f s", service, backoff)
+            reconnect()
         # HEARTBEAT: only a sign of life
 
     try:
@@ -328,10 +361,7 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
             if time.monotonic() >= next_heartbeat:
                 if time.monotonic() - last_heard > interval * liveness_max:
                     log.warning("broker silent for %.1f s; reconnecting in %.2f s", interval * liveness_max, backoff)
-                    if not stop.wait(backoff):
-                        backoff = min(backoff * 2, float(w["reconnect_max_s"]))
-                        connect()
-                    last_heard = time.monotonic()
+                    reconnect()
                 else:
                     sock.send_multipart([b"", P.WORKER, P.HEARTBEAT])
                 next_heartbeat = time.monotonic() + interval

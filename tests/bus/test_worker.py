@@ -7,6 +7,8 @@ import errno
 import threading
 import time
 
+import pytest
+
 from common.bus import protocol as P
 from common.bus.worker import _JobRunner
 from common.store import StorageFull, StorageReadOnly
@@ -81,12 +83,34 @@ def test_a_stopping_worker_stops_retrying():
     assert outcomes[-1][0] == "fail" and time.monotonic() - t0 < 2.0
 
 
+def _done_event(**extra) -> dict:
+    from common.messages import new_message
+    return new_message("noop.done", job="0" * 32, received=1.0, attempt=1, **extra)
+
+
+@pytest.mark.parametrize("events, reason", [
+    # valid, but over the 256 KiB every message is held to (20 strings of 16,000 characters)
+    (lambda: [_done_event(padding=["x" * 16000] * 20)], "bytes refused (at most 262144)"),
+    # more than broker.MAX_RESULT_EVENTS (1,000)
+    (lambda: [_done_event() for _ in range(1001)], "1001 events in one result (at most 1000)"),
+    # each event within its limit, the RESULT frame over the broker's 1 MiB (ZeroMQ would drop it)
+    (lambda: [_done_event(padding=["x" * 16000] * 15) for _ in range(5)], "(at most 1048576 a frame)"),
+], ids=["oversized-event", "too-many-events", "result-over-the-frame-cap"])
+def test_a_result_over_the_message_limits_is_an_ordinary_failure(events, reason):
+    """docs/messages.md (input.rejected): Tessera's worker checks a stage's events first and counts an
+    invalid one as an ordinary failure (retried, finally stage.failed), the limits included: an event
+    over 256 KiB, more than 1,000 events, a result the broker's frame cap would drop (the job hung)."""
+    result = events()
+    outcome = _run(lambda job, ctx: result, retry=(0.1, 0.2, 5.0))[-1]
+    assert outcome[:3] == ("fail", "j1", P.FAIL_ERROR), f"sent to the broker as a {outcome[0]}"
+    error = outcome[3]
+    assert error.startswith("RuntimeError: stage returned an invalid event:") and reason in error, error
+
+
 # -- end to end, on a real read-only and a real full file system (root: a tmpfs mount) --------------
 
 import os  # noqa: E402
 import subprocess  # noqa: E402
-
-import pytest  # noqa: E402
 
 from common.messages import new_message  # noqa: E402
 
@@ -222,3 +246,70 @@ def test_sqlite_and_os_words_for_a_refusing_disk_are_storage_errors_too():
 
     outcomes = _run(handle, retry=(0.05, 0.1, 5.0))
     assert outcomes[-1][0] == "result" and len(calls) == 3
+
+
+# -- reconnecting: told DISCONNECT (a refused registration, a restarted broker), with back-off --------
+
+import zmq  # noqa: E402
+
+from common.bus.worker import run_worker  # noqa: E402
+
+
+def _serve(router, seconds: float, answer) -> list:
+    """Serve as a fake broker for ``seconds``, answering each worker frame with ``answer(identity,
+    command)``; return the times READY came."""
+    readies, end = [], time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        if router.poll(left * 1000):
+            frames = router.recv_multipart()
+            if frames[3] == P.READY:
+                readies.append(time.monotonic())
+            answer(frames[0], frames[3])
+    return readies
+
+
+def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station):
+    """docs/messages.md: the worker reconnects with exponential back-off ([worker] reconnect_min_s,
+    doubling to reconnect_max_s; reset once the broker exchanges heartbeats with it); docs/security.md:
+    a refused registration gets ERR and DISCONNECT. Told DISCONNECT, the worker reconnected at once,
+    so a key whose role is refused looped READY/ERR/DISCONNECT as fast as it could."""
+    st = make_station()  # its configuration only (reconnect 0.1 s doubling to 0.5 s): the broker is a fake
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.bind(f"tcp://127.0.0.1:{st.config['broker']['port']}")
+    stop = threading.Event()
+    worker = threading.Thread(target=run_worker, args=("noop", st.config),
+                              kwargs={"stop": stop, "context": ctx, "install_signals": False}, daemon=True)
+    worker.start()
+
+    def send(identity, header, command, *parts):
+        router.send_multipart([identity, b"", header, command, *parts])
+
+    def refuse(identity, command):  # as the broker refuses a key of the wrong role
+        if command == P.READY:
+            send(identity, P.CLIENT, P.ERR, b"", P.dumps({"error": "a key of role 'web' may not serve 'noop'"}))
+            send(identity, P.WORKER, P.DISCONNECT)
+
+    registered = []
+
+    def register(identity, command):  # READY taken, heartbeats answered
+        registered.append(identity)
+        send(identity, P.WORKER, P.HEARTBEAT)
+
+    try:
+        refused = _serve(router, 2.0, refuse)
+        gaps = [b - a for a, b in zip(refused, refused[1:])]
+        assert 4 <= len(refused) <= 8, f"{len(refused)} READYs in 2 s: {gaps[:10]}"
+        assert all(g >= 0.9 * min(0.1 * 2 ** i, 0.5) for i, g in enumerate(gaps)), f"back-off doubles: {gaps}"
+
+        # registered at last: the heartbeat exchange resets the back-off, so told DISCONNECT it is back in 0.1 s
+        assert _serve(router, 1.2, register), "the worker came back"
+        told = time.monotonic()
+        send(registered[-1], P.WORKER, P.DISCONNECT)
+        again = _serve(router, 1.0, lambda identity, command: None)
+        assert again and 0.09 <= again[0] - told < 0.3, f"READY {again[0] - told if again else None} s after DISCONNECT"
+    finally:
+        stop.set()
+        worker.join(5)
+        ctx.destroy(linger=0)
+    assert not worker.is_alive()
