@@ -74,6 +74,13 @@ ROLE_SUBMITS: dict[str, frozenset] = {
 ROLE_SERVES: dict[str, frozenset] = {r: frozenset({r}) for r in ("solver", "features", "matcher", "renderer")}
 ROLE_SERVES["admin"] = frozenset({"*"})
 ROLE_RERUNS = frozenset({"web", "admin"})
+#: what a stage key's worker may announce in its results (a renderer's key cannot slip in a verdict); admin any
+ROLE_ANNOUNCES: dict[str, frozenset] = {
+    "solver": frozenset({"rgbn.ready"}),
+    "features": frozenset({"features.ready"}),
+    "matcher": frozenset({"match.proposed", "match.ranked", "match.refitted", "match.reranked"}),
+    "renderer": frozenset({"render.ready"}),
+}
 
 
 def output_key(event: Mapping) -> str:
@@ -610,7 +617,7 @@ class Broker:
         if command == P.RESULT:
             job = self.jobs.get(jid)
             if job is None or job.worker == identity or (job.state == "parked" and job.service == worker.service):
-                self._complete(jid, rest[1])
+                self._complete(jid, rest[1], role=role)
             else:  # a job this worker claimed at READY but another worker holds (or another service's)
                 log.info("result of job %s from worker %s:%d which does not hold it: ignored", jid, worker.host,
                          worker.pid)
@@ -650,7 +657,7 @@ class Broker:
                 self._dirty.add(job.service)
         log.info("worker %s:%d (%s) %s", worker.host, worker.pid, worker.service, reason)
 
-    def _complete(self, jid: str, payload: bytes) -> None:
+    def _complete(self, jid: str, payload: bytes, role: str | None = None) -> None:
         job = self.jobs.pop(jid, None)
         if job is None:
             log.debug("duplicate or unknown result for %s ignored", jid)
@@ -675,10 +682,13 @@ class Broker:
         if len(events) > MAX_RESULT_EVENTS:   # counted as refused, not silently cut
             invalid = len(events) - MAX_RESULT_EVENTS
             first_error = f"{len(events)} events in one result (at most {MAX_RESULT_EVENTS}); the rest refused"
+        announces = ROLE_ANNOUNCES.get(role) if role else None   # None: CURVE off, or an admin key
         for ev in events[:MAX_RESULT_EVENTS]:
             try:
                 ev = messages.validate(ev)
                 messages.check_packed_size(ev)   # the limit of every message, as for a SUBMIT (messages.unpack)
+                if announces is not None and ev["type"] not in announces:
+                    raise messages.MessageError(f"a key of role {role!r} may not announce {ev['type']}")
             except messages.MessageError as exc:
                 invalid += 1
                 first_error = first_error or str(exc)

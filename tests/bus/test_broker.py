@@ -237,13 +237,15 @@ def test_stage_calling_exit_or_returning_bad_events_is_parked_and_worker_survive
 class _FakeWorker:
     """A raw DEALER speaking the worker protocol (common/bus/protocol.py), heartbeating by hand."""
 
-    def __init__(self, endpoint: str, pid: int):
-        self.sock = zmq.Context.instance().socket(zmq.DEALER)
+    def __init__(self, endpoint: str, pid: int, service: bytes = b"noop", security: dict | None = None):
+        from common.bus.security import secure_client_socket
+
+        self.sock = secure_client_socket(zmq.Context.instance().socket(zmq.DEALER), security or {})
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
         self.pid = pid
         self.jobs: list[str] = []
-        self.send(P.READY, b"noop", P.dumps({"host": "fake", "pid": pid}))
+        self.send(P.READY, service, P.dumps({"host": "fake", "pid": pid}))
 
     def send(self, command: bytes, *parts: bytes) -> None:
         self.sock.send_multipart([b"", P.WORKER, command, *parts])

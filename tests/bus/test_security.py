@@ -215,6 +215,40 @@ def test_a_key_may_only_serve_and_submit_as_its_role(make_station, keys, tmp_pat
     assert web_worker.poll() is None, "the refused worker keeps knocking, harmlessly"
 
 
+def test_a_stage_key_may_announce_only_its_stages_events(make_station, keys):
+    """docs/security.md: a stage's key may submit nothing. Its worker's results were journaled and routed whatever
+    their type, so a renderer's key could announce a verdict; now what a stage role announces is its stage's own
+    events (``broker.ROLE_ANNOUNCES``), the rest refused in the job's one input.rejected."""
+    from common.bus import protocol as P
+
+    from .test_broker import _FakeWorker
+
+    assert tessera(["keys", "add", "render1", "--role", "renderer", "--dir", str(keys)]) == 0
+    st = make_station(extra=_security_section(keys), routing={"rgbn.ready": ["renderer"]})
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    as_renderer = {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / "render1.key_secret"))}
+    art = {"path": "fragments/F1/rgbn/front-1.h5", "sha256": "1" * 64, "bytes": 10}
+    job = new_message("rgbn.ready", fragment="F1", face="front", artifact=art)
+    w = _FakeWorker(endpoint, 335, service=b"renderer", security=as_renderer)
+    try:
+        with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
+            c.submit(job)
+        wait_for(lambda: w.pump(0.1) or w.jobs, 15, "the renderer's fake worker to get the job")
+        done = new_message("render.ready", fragment="F1", face="front", artifact=dict(art, path="fragments/F1/render/x.h5"))
+        forged = new_message("match.verified", fragment="F1", other="F2", verdict="confirmed")
+        w.send(P.RESULT, w.jobs[0].encode(), P.dumps([forged, done]))
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: any(e["type"] == "input.rejected" for _, e in ev)
+                             and any(e["type"] == "render.ready" for _, e in ev), 20, "the result")
+    finally:
+        w.close()
+    kinds = [e["type"] for _, e in events]
+    assert "match.verified" not in kinds and kinds.count("render.ready") == 1
+    (rejected,) = [e for _, e in events if e["type"] == "input.rejected"]
+    assert "a key of role 'renderer' may not announce match.verified" in rejected["error"]
+
+
 def test_keys_list_shows_roles_and_role_changes_them(keys, capsys):
     assert tessera(["keys", "add", "w", "--role", "web", "--dir", str(keys)]) == 0
     assert tessera(["keys", "role", "w", "subscriber", "--dir", str(keys)]) == 0
