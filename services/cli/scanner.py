@@ -15,5 +15,9 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from common.bus.security import check
     from services.scanner import main
-    return main(config_from_arguments(args), count=args.count, wait_drained=not args.no_wait)
+
+    cfg = config_from_arguments(args)
+    check(cfg, "client")   # a bad key file stops the bench now (one line, naming it), not at its first drain
+    return main(cfg, count=args.count, wait_drained=not args.no_wait)

@@ -30,13 +30,16 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from common.bus.security import SecurityError
+    from common.bus.security import check as check_keys
     from services import web
 
     log = logging.getLogger("tessera.web")
     try:
         cfg = config_from_arguments(args)
         settings = web.web_settings(cfg)
-    except (ConfigError, web.WebConfigError) as exc:
+        check_keys(cfg, "client")   # a bad key file stops the pages now, not at their first write to the broker
+    except (ConfigError, web.WebConfigError, SecurityError) as exc:
         print(f"error: {exc}")
         return 2
     if args.print_token:

@@ -63,6 +63,18 @@ def test_missing_or_wrong_key_files_are_named(keys, tmp_path):
         check({"security": {"curve": True, "broker_secret_key": str(keys / "broker.key_secret")}}, "broker")
 
 
+@pytest.mark.parametrize("command", [["web", "--no-scanner"], ["scanner", "--count", "1"]])
+def test_the_pages_and_the_bench_stop_at_start_on_a_missing_key_file(keys, tmp_path, command, capsys):
+    """docs/security.md: a missing key file stops a client at start with one line naming the setting and the
+    file. ``tessera web`` and ``tessera scanner`` connect to the broker only when they first send, so they
+    started and logged a SecurityError at every drain or request instead."""
+    cfg = tmp_path / "station.toml"
+    cfg.write_text(_security_section(keys, host="nobody") + f'[storage]\nroot = "{tmp_path / "root"}"\n')
+    code = tessera([*command, "--config", str(cfg)])
+    out = capsys.readouterr()
+    assert code == 2 and "nobody.key_secret" in out.out + out.err
+
+
 class _Tap(threading.Thread):
     """A TCP relay that records every byte between a client and the broker."""
 
