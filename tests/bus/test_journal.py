@@ -60,17 +60,7 @@ def test_output_keys_survive_a_restart(tmp_path):
 import logging  # noqa: E402
 import time  # noqa: E402
 
-from .test_worker import _mount_tmpfs, mounts  # noqa: E402,F401  (the tmpfs of the full-disk tests)
-
-
-def _fill(directory) -> None:
-    with open(directory / "ballast", "wb") as fh:
-        try:
-            while True:
-                fh.write(b"\0" * 65536)
-                fh.flush()
-        except OSError:
-            pass
+from .test_worker import _mount_tmpfs, fill_disk, mounts  # noqa: E402,F401  (the tmpfs of the full-disk tests)
 
 
 def test_compaction_on_a_full_disk_is_retried_and_the_writer_goes_on(tmp_path, mounts, caplog):
@@ -89,7 +79,7 @@ def test_compaction_on_a_full_disk_is_retried_and_the_writer_goes_on(tmp_path, m
     try:
         journal.append(1, [("event", s, f"{s:032x}", "noop.job", 1.0, b"x" * 1000) for s in range(1, 11)])
         assert _durable(signal) == b"1"
-        _fill(journal_dir)  # before the first compaction (1 s after the start): it meets the full disk
+        fill_disk(journal_dir)  # before the first compaction (1 s after the start): it meets the full disk
         assert not signal.poll(2500), "the writer reported FAILED: a refused compaction ended it"
         assert "compaction failed" in caplog.text and "disk is full" in caplog.text
         assert [s for s, _ in journal.events_since(0, 100, 100)] == list(range(1, 11)), "nothing lost"

@@ -12,14 +12,7 @@ from common.bus.outbox import Outbox
 from common.messages import new_message
 from common.store import Store, StorageFull, StorageUnavailable
 
-
-class _Accepting:
-    def __init__(self):
-        self.sent = []
-
-    def submit(self, event):
-        self.sent.append(event["uid"])
-        return len(self.sent)
+from .test_outbox_versions import _Accepting
 
 
 def _bench(tmp_path):

@@ -126,6 +126,19 @@ def _mount_tmpfs(path, size="2m"):
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
 
 
+def fill_disk(directory):
+    """Fill the file system of ``directory`` with a ``ballast`` file until it refuses; the file's path."""
+    ballast = directory / "ballast"
+    with open(ballast, "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass
+    return ballast
+
+
 @pytest.fixture
 def mounts():
     made = []
@@ -182,14 +195,7 @@ def test_broker_journal_on_a_full_disk_refuses_with_retry_and_recovers(make_stat
     ok = new_message("noop.job", n=0)
     with st.client() as c:
         c.submit(ok)
-        ballast = journal / "ballast"
-        with open(ballast, "wb") as fh:  # fill the disk
-            try:
-                while True:
-                    fh.write(b"\0" * 65536)
-                    fh.flush()
-            except OSError:
-                pass
+        ballast = fill_disk(journal)
         refused, accepted = None, []
         for i in range(200):  # the WAL has some room left: keep submitting until the journal fails
             try:
