@@ -6,8 +6,9 @@ fragment:
 * **solver** — every face the scans artifact holds scans of (groups ``front``/``back`` with at
   least one scan) has an RGBN artifact; else the scans' ``fragment.ready`` is re-submitted (an
   unreadable scans file counts as "some face expected": its ``rgbn`` folder must not be empty);
-* **features, renderer** — every RGBN face has a feature table and an illustration; else that
-  face's ``rgbn.ready`` (newest RGBN artifact of the face);
+* **features, renderer** — every RGBN face's newest RGBN artifact has a feature table and an illustration
+  made from it (their provenance names it as an input; one that names no input counts); else that face's
+  ``rgbn.ready``;
 * **matcher** — every front face's feature table is recorded in the matcher's proposal store
   (``fragments`` table: fragment, face, sha256); else its ``features.ready``.
 
@@ -40,6 +41,22 @@ def _artifacts(folder: Path) -> list[Path]:
 
 def _face(path: Path) -> str:
     return path.stem.split("-", 1)[0]
+
+
+def _made_from(store: Store, output: Path, source_rel: str) -> bool:
+    """Whether an output artifact was made from ``source_rel``: its provenance ``inputs`` name it, or name
+    nothing (an artifact that records no inputs counts, as before provenance was read). An output of an
+    older RGBN of the face does not count: the newest one still needs its own."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(output, "r") as f:
+            inputs = json.loads(f.attrs.get("provenance", "{}")).get("inputs") or []
+    except Exception:  # noqa: BLE001 - unreadable: it does not stand for the newest input
+        return False
+    return not inputs or any(isinstance(i, dict) and i.get("path") == source_rel for i in inputs)
 
 
 def _faces_scanned(store: Store, rel: str) -> set[str] | None:
@@ -112,10 +129,10 @@ def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
                                           missing=[f"rgbn/{m}" for m in missing]))
         newest_rgbn = {_face(p): p for p in rgbn}  # sorted oldest first: the last one wins
         for face, path in sorted(newest_rgbn.items()):
+            rel = path.relative_to(store.root).as_posix()
             missing = [d for d in ("features", "renders")
-                       if not any(_face(p) == face for p in _artifacts(frag_dir / d))]
+                       if not any(_face(p) == face and _made_from(store, p, rel) for p in _artifacts(frag_dir / d))]
             if missing and not covered(frag, face, 1):
-                rel = path.relative_to(store.root).as_posix()
                 events.append(new_message("rgbn.ready", fragment=frag, face=face, artifact=store.ref(rel),
                                           reconciled=True, missing=[f"{d}/{face}" for d in missing]))
         if matched is not None:

@@ -137,3 +137,25 @@ def test_an_event_json_cannot_hold_is_printed_as_a_line_saying_so():
     line = json.loads(event_line(7, "s", {"type": "noop.job", "uid": "u", "x": deep}))
     assert line["seq"] == 7 and line["type"] == "noop.job" and "not representable" in line["error"]
     assert json.loads(event_line(8, "s", {"type": "noop.job", "x": [[1]]}))["x"] == [[1]]
+
+
+def test_a_face_solved_again_needs_outputs_of_its_newest_rgbn(tmp_path):
+    """docs/storage.md: every RGBN face needs a feature table and an illustration. Any output of the face counted,
+    so a face solved again (a new RGBN) whose stages never ran for it was never queued; an output counts when its
+    provenance names the newest RGBN (or names no input at all, as artifacts without provenance did before)."""
+    import os
+
+    store = Store(tmp_path)
+    old = _h5(store, "fragments/G/rgbn/front-old.h5")
+    made = lambda d, src: store.write(f"fragments/G/{d}/front-{src.path[-6:-3]}.h5", "tessera.test", 1,  # noqa: E731
+                                      lambda f: f.create_dataset("x", data=[1]), provenance={"inputs": [src.to_dict()]})
+    made("features", old), made("renders", old)
+    assert missing_stages(store) == []
+    new = _h5(store, "fragments/G/rgbn/front-new.h5")
+    os.utime(store.path(new.path), (os.path.getmtime(store.path(old.path)) + 10,) * 2)   # the newer capture
+    (e,) = missing_stages(store)
+    assert (e["type"], e["face"], e["artifact"]["path"], e["missing"]) == ("rgbn.ready", "front", new.path,
+                                                                           ["features/front", "renders/front"])
+    made("features", new)
+    (e,) = missing_stages(store)
+    assert e["missing"] == ["renders/front"]
