@@ -22,6 +22,7 @@ import io
 import json
 import os
 import re
+import shutil
 import socket
 import tempfile
 import time
@@ -471,20 +472,26 @@ class Store:
             f.close()
 
     def sweep_temporary(self, older_than_s: float = 3600.0) -> list[str]:
-        """Delete temporary files left by writers that died mid-write; return their paths.
+        """Delete temporary files (and export folders) left by writers that died mid-write; return their paths.
 
         A writer killed between ``mkstemp`` and the rename leaves
         ``.<name>.<host>.<pid>.<random>.tmp`` beside the artifact it never finished. A file
         written from this host whose process is gone (or whose pid now belongs to a process
         started after the file was last written: pid reuse) is removed at once. Files of other
         hosts and old-format names (``.<name>.<random>.tmp``) are removed only when older than
-        ``older_than_s``, so a write in progress on another machine of the lab is never touched.
+        ``older_than_s``, so a write in progress on another machine of the lab is never touched; so are the
+        temporary folders an interrupted export leaves (:func:`common.imports.export.export_fragment`).
         """
         cutoff = time.time() - float(older_than_s)
         host = _host_label()
         removed = []
-        for tmp in self.root.rglob(".*.tmp"):
+        for tmp in sorted(self.root.rglob(".*.tmp")):
             with contextlib.suppress(FileNotFoundError):
+                if tmp.is_dir():   # an export's folder (``.<id>.<random>.tmp``): no writer to ask, so by age
+                    if tmp.stat().st_mtime < cutoff:
+                        shutil.rmtree(tmp, ignore_errors=True)
+                        removed.append(tmp.relative_to(self.root).as_posix())
+                    continue
                 if not tmp.is_file():
                     continue
                 mtime = tmp.stat().st_mtime

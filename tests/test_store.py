@@ -388,3 +388,21 @@ def test_import_file_racing_another_writer_keeps_its_file(tmp_path, monkeypatch)
         lab.import_file(spool.path(ref.path), ref.path, ref.sha256)
     assert lab.ref(ref.path) == other["ref"]
     assert [p.name for p in (tmp_path / "lab/fragments/F/scans").iterdir()] == ["s.h5"]
+
+
+def test_sweep_removes_the_folder_an_interrupted_export_left_once_it_is_old(tmp_path):
+    """An export writes into ``.<id>.<random>.tmp`` beside its final folder; one killed midway left it for good
+    (the sweep looked at files only). A stale one goes; a fresh one, perhaps an export running now, stays."""
+    import os
+    import time
+
+    store = Store(tmp_path)
+    stale = store.root / "exports" / ".F1.ab12.tmp"
+    fresh = store.root / "exports" / ".F2.cd34.tmp"
+    for d in (stale, fresh):
+        d.mkdir(parents=True)
+        (d / "front-albedo.png").write_bytes(b"png")
+    old = time.time() - 7200
+    os.utime(stale, (old, old))
+    removed = store.sweep_temporary(older_than_s=3600)
+    assert removed == ["exports/.F1.ab12.tmp"] and not stale.exists() and (fresh / "front-albedo.png").is_file()
