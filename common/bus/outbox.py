@@ -44,7 +44,7 @@ class Outbox:
     ::
 
         box = Outbox("tessera-data/spool")
-        box.put(event, spooled=ref.path)         # after writing the artifact into box.spool
+        box.put(event, spooled=ref.path, sha256=ref.sha256)   # after writing the artifact into box.spool
         box.drain(client, storage)               # returns how many entries went out
     """
 
@@ -67,7 +67,9 @@ class Outbox:
 
     def put(self, event: Mapping, *, spooled: str | None = None, sha256: str | None = None) -> int:
         """Append an event (durable when this returns); ``spooled`` names an artifact in
-        :attr:`spool` (relative path, digest ``sha256``) to upload before the event is sent."""
+        :attr:`spool` (relative path, digest ``sha256``: both or neither) to upload before the event is sent."""
+        if (spooled is None) != (sha256 is None):
+            raise ValueError(f"a spooled artifact needs its sha256 and a sha256 its artifact, got {spooled!r}, {sha256!r}")
         body = messages.pack(messages.validate(event))
         with self._lock:
             cur = self._con.execute("INSERT INTO outbox (body, spooled, sha256) VALUES (?, ?, ?)", (body, spooled, sha256))

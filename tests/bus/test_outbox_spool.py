@@ -60,3 +60,15 @@ def test_storage_that_cannot_take_the_upload_now_only_pauses_the_drain(tmp_path,
     assert client.sent == [] and box.refused() == []
     assert box.drain(client, Store(tmp_path / "storage")) == 3 and box.refused() == []
     box.close()
+
+
+def test_a_spooled_artifact_without_its_digest_is_refused_when_queued(tmp_path):
+    """drain checks the upload against the entry's sha256; an entry with one and not the other failed there with a
+    TypeError, long after the scan; now put names it at once."""
+    box = Outbox(tmp_path / "bench")
+    ev = new_message("match.verified", fragment="A", other="B", verdict="confirmed")
+    with pytest.raises(ValueError, match="needs its sha256"):
+        box.put(ev, spooled="fragments/F0/scans/scans-0.h5")
+    with pytest.raises(ValueError, match="needs its sha256"):
+        box.put(ev, sha256="0" * 64)
+    assert len(box) == 0
