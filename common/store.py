@@ -73,7 +73,7 @@ _FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
 _READONLY_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM}
 
 
-def _storage_error(exc: OSError, what: str) -> OSError:
+def storage_error(exc: OSError, what: str) -> OSError:
     """The :class:`StorageError` an OS error of a write means, or ``exc`` unchanged."""
     if isinstance(exc, StorageError):
         return exc
@@ -225,7 +225,7 @@ def atomic_file(final: Path, *, replace: bool = True) -> Iterator[str]:
         fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.{_host_label()}.{os.getpid()}.", suffix=".tmp",
                                    dir=final.parent)
     except OSError as exc:
-        raise _storage_error(exc, str(final)) from exc
+        raise storage_error(exc, str(final)) from exc
     os.close(fd)
     try:
         yield tmp
@@ -238,7 +238,7 @@ def atomic_file(final: Path, *, replace: bool = True) -> Iterator[str]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if isinstance(exc, OSError):
-            mapped = _storage_error(exc, str(final))
+            mapped = storage_error(exc, str(final))
             if mapped is not exc:
                 raise mapped from exc
         raise
@@ -266,7 +266,7 @@ def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True) -
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _storage_error(exc, str(final)) from exc
+        raise storage_error(exc, str(final)) from exc
     _check_free_space(final.parent, len(data), str(final))
     with atomic_file(final, replace=replace) as tmp:
         _write_bytes(tmp, data)
@@ -409,7 +409,7 @@ class Store:
         try:
             final.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise _storage_error(exc, relpath) from exc
+            raise storage_error(exc, relpath) from exc
         _check_free_space(final.parent, size, relpath)
         try:
             _copy_verified(source, final, sha256)

@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 
 from common import __version__
-from common.store import ArtifactError, Store
+from common.store import ArtifactError, Store, storage_error
 
 NORMAL_MAP_CONVENTION = ("16-bit RGBA PNG, OpenGL convention: RGB = (n + 1) / 2 * 65535, x right, y up (green grows "
                          "towards the top row), z towards the viewer; alpha 65535 on the fragment, 0 (and RGB 0) "
@@ -132,7 +132,9 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, OSError):   # a full or read-only disk is said as such (StorageFull / StorageReadOnly)
+            raise storage_error(exc, str(final)) from exc
         raise
     return final

@@ -82,12 +82,13 @@ def submit_or_503(msg: dict, what: str) -> bool:
         abort(make_response(jsonify(error=f"the {what} could not be sent to the broker: {exc}"), 503))
 
 def answers_in_json(bp):
-    """Make a blueprint of JSON routes answer its 404s and unreadable artifacts as JSON.
+    """Make a blueprint of JSON routes answer its 404s, unreadable artifacts and refused writes as JSON.
 
-    ``{"error": ...}`` with 404, or 500 for a face on storage that cannot be read (truncated,
-    replaced, not HDF5): the error is said and the rest of the archive is served. Returns ``bp``.
+    ``{"error": ...}`` with 404, 500 for a face on storage that cannot be read (truncated, replaced, not
+    HDF5), or 507 when the storage refuses what a read must write (an export, tiles: full or read-only):
+    the error is said and the rest of the archive is served. Returns ``bp``.
     """
-    from common.store import ArtifactError
+    from common.store import ArtifactError, StorageError
 
     @bp.errorhandler(404)
     def not_found(exc):
@@ -96,6 +97,10 @@ def answers_in_json(bp):
     @bp.errorhandler(ArtifactError)
     def unreadable(exc):
         return jsonify(error=f"the face cannot be read: {exc}"), 500
+
+    @bp.errorhandler(StorageError)
+    def refused(exc):
+        return jsonify(error=f"the storage refuses the files this needs: {exc}"), 507
 
     return bp
 

@@ -276,3 +276,23 @@ def test_a_face_that_cannot_be_read_is_a_clear_error(tmp_path):
     for url in ("/api/tiles/B1/front/albedo", "/iiif/image/B1~front~albedo/info.json", "/dzi/B1~front~albedo.dzi"):
         r = c.get(url)
         assert r.status_code == 500 and "cannot be read" in r.json["error"], url
+
+
+def test_a_download_on_full_storage_says_so_and_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """An export writing onto a full disk raised a bare OSError (a 500 without a word) and left its temporary
+    folder; now the storage's refusal is said (507, "storage full") and the folder is gone."""
+    import errno
+
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    save_rgbn(store, "fragments/F9/rgbn/front-0000000000000099.h5", _face(60, 80))
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("common.rgbn.io.write_image", full)   # the export imports it when it runs
+    r = web.create_app(token=TOKEN, store_root=tmp_path).test_client().get("/api/downloads/F9")
+    assert r.status_code == 507 and "storage full" in r.json["error"]
+    assert not list(store.root.rglob(".F9.*.tmp"))
