@@ -69,7 +69,9 @@ class JournalState:
 
 def _disk_refused(exc: BaseException) -> bool:
     """True if SQLite refused a write because of the disk, not the data (full, read-only, locked, I/O
-    error): the same write succeeds once the disk takes writes again, so it is kept and retried."""
+    error): the same write succeeds once the disk takes writes again, so it is kept and retried. Every
+    ``OperationalError`` counts: the rarer ones retrying cannot fix (a table gone) are still reported to
+    the broker (``FAILED``) and retried once a second, never skipped op by op or spun on."""
     return isinstance(exc, sqlite3.OperationalError)
 
 
