@@ -47,13 +47,9 @@ def _made_from(store: Store, output: Path, source_rel: str) -> bool:
     """Whether an output artifact was made from ``source_rel``: its provenance ``inputs`` name it, or name
     nothing (an artifact that records no inputs counts, as before provenance was read). An output of an
     older RGBN of the face does not count: the newest one still needs its own."""
-    import json
-
-    import h5py
-
     try:
-        with h5py.File(output, "r") as f:
-            inputs = json.loads(f.attrs.get("provenance", "{}")).get("inputs") or []
+        with store.open(output.relative_to(store.root).as_posix()) as f:
+            inputs = store.provenance(f).get("inputs") or []
     except Exception:  # noqa: BLE001 - unreadable: it does not stand for the newest input
         return False
     return not inputs or any(isinstance(i, dict) and i.get("path") == source_rel for i in inputs)

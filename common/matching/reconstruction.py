@@ -666,7 +666,8 @@ def solve_pose_graph(joins: Iterable[Join], *, sigma_mm: float = SIGMA_MM, sigma
 
 
 # -- open edges --------------------------------------------------------------------------------
-def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping) -> tuple[tuple, list[str]]:
+def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping, *,
+                  outline: np.ndarray | None = None) -> tuple[tuple, list[str]]:
     """A newcomer's pose in the cluster frame, docked against the whole cluster instead of one member.
 
     Where a newcomer fits into a corner of a cluster, two members' outlines hold it at once and pin
@@ -688,6 +689,9 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping)
     pieces : mapping fragment -> (contour_mm, paint field or None)
         Outlines (each in its fragment's frame, mm) of every member and the newcomer, and their paint
         fields (:func:`~common.matching.paint.paint_field_from_profile`).
+    outline : (K, 2) array, optional
+        The cluster's merged outline in its frame, when the caller docks several newcomers against it
+        (default: made here, :func:`~common.matching.docking.cluster_outline`).
 
     Returns
     -------
@@ -707,7 +711,8 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping)
         raise ValueError(f"dock_newcomer needs the outline of every member and of a newcomer outside the cluster; "
                          f"missing {missing[:5]}, member {member!r} in cluster: {member in cluster.poses}, "
                          f"newcomer {newcomer!r} in cluster: {newcomer in cluster.poses}")
-    outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
+    if outline is None:
+        outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
     contour_n, paint_n = pieces[newcomer]
     docks = dock_outlines(outline, contour_n, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE)
     in_cluster = [(math.radians(d.angle_deg), d.tx_mm, d.ty_mm) for d in docks]
@@ -773,9 +778,8 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
         member, newcomer = (a, b) if a in members else (b, a)
         pose = None
         if p.angle_deg is not None:
-            m = cluster.poses[member]
-            xm = (math.radians(m[0]), m[1], m[2])
-            z = (math.radians(p.angle_deg), float(p.tx_mm), float(p.ty_mm))
+            xm = _deg_to_rad(cluster.poses[member])
+            z = _deg_to_rad((p.angle_deg, p.tx_mm, p.ty_mm))
             xn = _compose(xm, z if member == a else _inverse(z))
             pose = (math.degrees(float(_wrap(xn[0]))), xn[1], xn[2])
         mutual = getattr(p, "mutual", None)
@@ -784,10 +788,13 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
                     "pose": pose, "pose_from": None if pose is None else "proposal"})
     out.sort(key=lambda d: order_key(d["mutual"], d["probability"], d["proposal"]))
     out = out[:limit]
-    if pieces is not None and all(f in pieces for f in cluster.fragments):
+    if pieces is not None and all(f in pieces for f in cluster.fragments) and any(d["newcomer"] in pieces for d in out):
+        from common.matching.docking import cluster_outline
+
+        outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
         for d in out:
             if d["newcomer"] in pieces:
-                docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces)
+                docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces, outline=outline)
                 if len(faced) >= 2:   # held by two members: the corner pins it (else one crack alone decides)
                     d.update(pose=tuple(float(v) for v in docked), pose_from="cluster", faces=faced)
     return out

@@ -77,11 +77,17 @@ def run(args) -> int:
             missing.update(why)
             bar.update(i + 1, f)
         bar.close()
+        unread = {}   # fragments whose outline cannot be read: their next joins keep the proposals' poses
+
+        def pieces(wanted):
+            got, why = rc.front_pieces(store, db, wanted)
+            unread.update(why)
+            return got
+
         try:
             rec = rc.reconstruct(db, centres_mm={f: rc.mask_centre_mm(im) for f, im in images.items() if im.mask.any()},
                                  dpi={f: im.dpi for f, im in images.items()}, sigma_mm=args.sigma_mm,
-                                 sigma_deg=args.sigma_deg,
-                                 pieces=None if args.no_dock else lambda fs: rc.front_pieces(store, db, fs)[0])
+                                 sigma_deg=args.sigma_deg, pieces=None if args.no_dock else pieces)
         except ValueError as exc:
             print(f"tessera reconstruct: {exc}", file=sys.stderr)
             return 2
@@ -119,4 +125,6 @@ def run(args) -> int:
         print(f"  confirmed join {a} - {b} has no pose: not placed", file=sys.stderr)
     for f, why in missing.items():
         print(f"  {f}: {why}", file=sys.stderr)
+    for f, why in unread.items():
+        print(f"  {f}: not docked against its cluster, the proposals' poses kept ({why})", file=sys.stderr)
     return 1 if conflicts or missing else 0

@@ -30,8 +30,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from common.bus.security import SecurityError
-    from common.bus.security import check as check_keys
+    from common.bus.security import SecurityError, check as check_keys
     from services import web
 
     log = logging.getLogger("tessera.web")

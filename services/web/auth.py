@@ -49,7 +49,7 @@ def same_origin() -> bool:
     if origin is None:
         return True
     public = station().settings["public_origin"]
-    return origin == request.host_url.rstrip("/") or (bool(public) and origin == public.rstrip("/"))
+    return origin == request.host_url.rstrip("/") or (bool(public) and origin == public)   # checked: no path
 
 
 def writes(view: Callable) -> Callable:

@@ -27,6 +27,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -72,10 +73,10 @@ def cases(wall) -> tuple[list[dict], float]:
                 if (a, c) not in pairs:
                     pairs[(a, c)] = pair_pose(pieces[a], pieces[c])
                 z = pairs[(a, c)]
-                proposal = {"id": 0, "fragment_a": a, "fragment_b": c, "probability": 0.5, "mutual": 0.5,
-                            "status": "pending", "angle_deg": z[0], "tx_mm": z[1], "ty_mm": z[2]}
+                proposal = SimpleNamespace(id=0, fragment_a=a, fragment_b=c, probability=0.5, mutual=0.5,
+                                           status="pending", angle_deg=z[0], tx_mm=z[1], ty_mm=z[2])
                 c0 = time.process_time()
-                got = next_joins(cluster, [type("P", (), proposal)()], [cluster], pieces=pieces)[0]
+                got = next_joins(cluster, [proposal], [cluster], pieces=pieces)[0]
                 cpu += time.process_time() - c0
                 centre = pieces[c][0].mean(axis=0)
 
