@@ -49,7 +49,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping
+from typing import Callable, Iterable, Mapping, MutableMapping
 
 import cv2
 import numpy as np
@@ -788,15 +788,44 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
                     "pose": pose, "pose_from": None if pose is None else "proposal"})
     out.sort(key=lambda d: order_key(d["mutual"], d["probability"], d["proposal"]))
     out = out[:limit]
-    if pieces is not None and all(f in pieces for f in cluster.fragments) and any(d["newcomer"] in pieces for d in out):
-        from common.matching.docking import cluster_outline
+    return out if pieces is None else dock_next_joins(cluster, out, pieces)
 
-        outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
-        for d in out:
-            if d["newcomer"] in pieces:
-                docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces, outline=outline)
-                if len(faced) >= 2:   # held by two members: the corner pins it (else one crack alone decides)
-                    d.update(pose=tuple(float(v) for v in docked), pose_from="cluster", faces=faced)
+
+def dock_key(cluster: Cluster, member: str, newcomer: str) -> tuple:
+    """What a newcomer's docking against a cluster depends on: the member, the newcomer and every member's
+    solved pose (to 1 µm and 1 µdeg), the key of :func:`dock_next_joins`' cache."""
+    return (member, newcomer, tuple((f, *(round(float(v), 6) for v in cluster.poses[f])) for f in sorted(cluster.fragments)))
+
+
+def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
+                    cache: MutableMapping | None = None) -> list[dict]:
+    """:func:`next_joins`' entries with each newcomer docked against the whole cluster (:func:`dock_newcomer`);
+    an entry takes that pose (``pose_from="cluster"``, ``faces``) where the newcomer faces two members or more.
+
+    ``pieces`` maps fragment -> (contour_mm, paint field or None); an entry whose newcomer or any member has
+    none is left as it is. ``cache`` (keyed by :func:`dock_key`, values ``(pose, faced)``) keeps dockings made
+    before, so a caller that shows the same clusters again (the web's reconstruction page) docks each newcomer
+    once; an entry found there needs no pieces. Returns new dicts; ``nexts`` is not changed.
+    """
+    cache = {} if cache is None else cache
+    outline = None
+    out = []
+    for d in nexts:
+        d = dict(d)
+        key = dock_key(cluster, d["member"], d["newcomer"])
+        if key not in cache and d["newcomer"] in pieces and all(f in pieces for f in cluster.fragments):
+            if outline is None:        # made once per cluster, for all its newcomers
+                from common.matching.docking import cluster_outline
+
+                outline = cluster_outline([pieces[f][0] for f in cluster.fragments],
+                                          [cluster.poses[f] for f in cluster.fragments])
+            docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces, outline=outline)
+            cache[key] = (tuple(float(v) for v in docked), list(faced))
+        if key in cache:
+            docked, faced = cache[key]
+            if len(faced) >= 2:   # held by two members: the corner pins it (else one crack alone decides)
+                d.update(pose=tuple(docked), pose_from="cluster", faces=list(faced))
+        out.append(d)
     return out
 
 
@@ -950,27 +979,37 @@ def front_images(store, fragments: Iterable[str]) -> tuple[dict, dict]:
     return images, missing
 
 
-def front_pieces(store, proposals, fragments: Iterable[str]) -> tuple[dict, dict]:
+def front_pieces(store, tables: Iterable[dict], fragments: Iterable[str], *,
+                 cache: MutableMapping | None = None) -> tuple[dict, dict]:
     """Each fragment's outline and paint field (front face) from its feature table, as :func:`dock_newcomer`
-    takes them: ``({fragment: (contour_mm, paint field or None)}, {fragment: why it has none})``."""
+    takes them: ``({fragment: (contour_mm, paint field or None)}, {fragment: why it has none})``.
+
+    ``tables`` are the proposal store's rows of feature tables (``ProposalStore.fragments(face="front")``);
+    ``cache`` (keyed by the table's path and digest) keeps pieces read before.
+    """
     from common.features import load_features
     from common.matching.paint import paint_field_from_profile
     from common.store import ArtifactError
 
     wanted = set(fragments)
-    arts = {r["fragment"]: r["artifact"] for r in proposals.fragments(face="front") if r["fragment"] in wanted}
+    arts = {r["fragment"]: r["artifact"] for r in tables if r["fragment"] in wanted}
+    cache = {} if cache is None else cache
     pieces, missing = {}, {}
     for f in sorted(wanted):
         if f not in arts:
             missing[f] = "no feature table in the proposal store"
             continue
-        try:
-            table = load_features(store, arts[f], face="front")
-        except (ArtifactError, OSError, ValueError) as exc:   # missing, corrupt, newer: the proposal's pose stays
-            missing[f] = f"{type(exc).__name__}: {exc}"
-            continue
-        profile = table.boundary_profile
-        pieces[f] = (table.contour_mm, None if profile is None else paint_field_from_profile(table.contour_mm, profile))
+        key = (arts[f]["path"], arts[f].get("sha256"))
+        if key not in cache:
+            try:
+                table = load_features(store, arts[f], face="front")
+            except (ArtifactError, OSError, ValueError) as exc:   # missing, corrupt, newer: the proposal's pose stays
+                missing[f] = f"{type(exc).__name__}: {exc}"
+                continue
+            profile = table.boundary_profile
+            cache[key] = (table.contour_mm,
+                          None if profile is None else paint_field_from_profile(table.contour_mm, profile))
+        pieces[f] = cache[key]
     return pieces, missing
 
 

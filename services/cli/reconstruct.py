@@ -80,7 +80,7 @@ def run(args) -> int:
         unread = {}   # fragments whose outline cannot be read: their next joins keep the proposals' poses
 
         def pieces(wanted):
-            got, why = rc.front_pieces(store, db, wanted)
+            got, why = rc.front_pieces(store, db.fragments(face="front"), wanted)
             unread.update(why)
             return got
 

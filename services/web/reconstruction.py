@@ -5,7 +5,8 @@ The pose graph is :mod:`common.matching.reconstruction`; this blueprint feeds it
 
 * ``GET /reconstruction`` — the page: each cluster drawn at its solved poses (SVG over thumbnails),
   conflicting loops and given-up joins in red, the next joins along its open edges as ghosts at the
-  pose they would take, export links;
+  pose they would take (docked against the whole cluster where a newcomer fits one of its corners: a
+  background job, cached, whose results arrive as a change), export links;
 * ``GET /api/reconstruction`` — the reconstruction as JSON (the ``tessera.reconstruction`` document,
   plus display data: thumbnails and sizes, verdicts seen on the event feed but not yet recorded);
 * ``GET /api/reconstruction/changes?after=SIG`` — long poll: answers when the verdicts or pending
@@ -59,6 +60,12 @@ class _Live:
         self.result: tuple | None = None         # (signature, payload)
         self.arriving: collections.deque = collections.deque(maxlen=200)
         self.feed_seen = 0
+        # docking next joins against their clusters (0.1-0.3 s CPU each): made in a background thread, kept
+        self.docked: dict = {}                 # reconstruction.dock_key -> (pose, faced)
+        self.pieces: dict = {}                 # (feature table path, sha256) -> (contour_mm, paint field)
+        self.dock_round = 0                    # bumped when dockings land: part of the signature
+        self.dock_tried: frozenset = frozenset()
+        self.dock_thread: threading.Thread | None = None
 
     def on_verdict(self, event: dict, seq: int) -> None:
         """Feed subscriber: a ``match.verified`` (recorded by the matcher shortly after)."""
@@ -88,7 +95,8 @@ def _signature() -> str:
         v = db._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM verdicts").fetchone()
         p = db._db.execute("SELECT COUNT(*), COALESCE(MAX(updated), 0) FROM proposals WHERE status='pending'").fetchone()
         return f"{v[0]}.{v[1]}.{p[0]}.{p[1]:.3f}"
-    return f"{station().review._read(read, 'none')}.{_live().feed_seen}"
+    live = _live()
+    return f"{station().review._read(read, 'none')}.{live.feed_seen}.{live.dock_round}"
 
 
 def _summary(store, fid: str) -> dict | None:
@@ -128,9 +136,51 @@ def _summary(store, fid: str) -> dict | None:
     return out
 
 
+def _dock_in_background(st, live: _Live, clusters: list, nexts: dict, todo: frozenset) -> bool:
+    """Start docking the next joins in ``todo`` (keys of :func:`~common.matching.reconstruction.dock_key`) against
+    their clusters, unless a docking runs or these were tried already; True while one runs. Its dockings land in
+    ``live.docked`` and bump ``live.dock_round``, which changes the signature: the page reloads and shows them."""
+    from common.matching.reconstruction import dock_key, dock_next_joins, front_pieces
+    from common.store import Store
+
+    def dock():
+        found = {}
+        try:
+            mine = [c for c in clusters if any(dock_key(c, d["member"], d["newcomer"]) in todo for d in nexts[c.id])]
+            wanted = {f for c in mine for f in c.fragments} | {d["newcomer"] for c in mine for d in nexts[c.id]}
+            tables = st.review._read(lambda db: db.fragments(face="front"), [])
+            with live.lock:
+                found = dict(live.docked)
+            if len(live.pieces) > 4096:         # only this thread touches the pieces; a long-lived page forgets old ones
+                live.pieces.clear()
+            pieces, unread = front_pieces(Store(st.store_root, create=False), tables, wanted, cache=live.pieces)
+            for f, why in unread.items():
+                log.info("reconstruction: %s not docked against its cluster, its proposal's pose kept (%s)", f, why)
+            for c in mine:
+                dock_next_joins(c, nexts[c.id], pieces, cache=found)
+        except Exception:   # a bug or a bad table must not kill the page: the proposals' poses stay
+            log.exception("reconstruction: docking the next joins against their clusters failed")
+        finally:
+            with live.lock:
+                if len(found) > 20000:         # poses of clusters long since grown
+                    found = {}
+                live.docked.update(found)
+                live.dock_round += 1
+
+    with live.lock:
+        running = live.dock_thread is not None and live.dock_thread.is_alive()
+        if running or not todo or todo <= live.dock_tried:
+            return running
+        live.dock_tried = todo
+        live.dock_thread = threading.Thread(target=dock, name="tessera-reconstruction-dock", daemon=True)
+        live.dock_thread.start()
+        return True
+
+
 def _reconstruction() -> dict:
     """The solved reconstruction and its display data, recomputed only when the signature changes."""
-    from common.matching.reconstruction import confirmed_joins, reconstruct
+    from common.matching.reconstruction import (confirmed_joins, dock_key, dock_next_joins, reconstruct,
+                                                reconstruction_document)
     from common.store import Store
 
     st, live = station(), _live()
@@ -147,13 +197,21 @@ def _reconstruction() -> dict:
         summaries = {}
         for f in sorted({f for j in joins for f in j.pair}):
             summaries[f] = _summary(store, f)
+        dpi = {f: s["dpi"] for f, s in summaries.items() if s}
         rec = st.review._read(lambda db: reconstruct(
-            db, centres_mm={f: s["centre_mm"] for f, s in summaries.items() if s},
-            dpi={f: s["dpi"] for f, s in summaries.items() if s}), None)
+            db, centres_mm={f: s["centre_mm"] for f, s in summaries.items() if s}, dpi=dpi), None)
         if rec is None:
-            payload = {"signature": sig, "document": None, "fragments": {}, "arriving": [], "missing": []}
+            payload = {"signature": sig, "document": None, "fragments": {}, "arriving": [], "missing": [],
+                       "docking": False}
         else:
-            for nxt in rec["next"].values():
+            # newcomers docked against their clusters before are shown so; the others are docked meanwhile
+            with live.lock:
+                docked = dict(live.docked)
+            nexts = {c.id: dock_next_joins(c, rec["next"][c.id], {}, cache=docked) for c in rec["clusters"]}
+            todo = frozenset(dock_key(c, d["member"], d["newcomer"]) for c in rec["clusters"]
+                             for d in nexts[c.id]) - docked.keys()
+            docking = _dock_in_background(st, live, rec["clusters"], nexts, todo)
+            for nxt in nexts.values():
                 for d in nxt:
                     if d["newcomer"] not in summaries:
                         summaries[d["newcomer"]] = _summary(store, d["newcomer"])
@@ -164,12 +222,12 @@ def _reconstruction() -> dict:
                 "SELECT message_uid FROM verdicts WHERE message_uid IS NOT NULL AND time >= ?",
                 (min((v["time"] or 0 for v in seen), default=0) - 60,))}, set())
             arriving = [v for v in seen if v["verdict"] == "confirmed" and v["uid"] not in recorded]
-            doc = rec["document"]
+            doc = reconstruction_document(rec["clusters"], unposed=rec["unposed"], next_by_cluster=nexts, dpi=dpi)
             for c in doc["clusters"]:
                 root = c["root"]
                 c["exports"] = {"png": url_for("reconstruction.composite", root=root, ext="png"),
                                 "tiff": url_for("reconstruction.composite", root=root, ext="tif")}
-            payload = {"signature": sig, "document": doc, "arriving": arriving,
+            payload = {"signature": sig, "document": doc, "arriving": arriving, "docking": docking,
                        "missing": sorted(f for f, s in summaries.items() if s is None),
                        "fragments": {f: {k: v for k, v in s.items() if k not in ("png", "artifact")} |
                                      {"thumb": url_for("reconstruction.thumb", fid=f)}

@@ -417,7 +417,7 @@ def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_clust
     the crack, and it faces both members there."""
     from types import SimpleNamespace
 
-    from common.matching.reconstruction import Cluster, dock_newcomer
+    from common.matching.reconstruction import Cluster, dock_newcomer, dock_next_joins
 
     def labels(x, y):
         right = x > 30 + 2.0 * np.sin(y / 6.0)
@@ -443,6 +443,14 @@ def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_clust
     # the same from the function itself
     pose, faced = dock_newcomer(cluster, "0", "2", pieces)
     assert np.allclose(pose, docked["pose"]) and faced == docked["faces"]
+    # kept: shown again without the outlines (the web page docks once); a member moved is a new docking
+    cache = {}
+    assert dock_next_joins(cluster, [plain], pieces, cache=cache) == [docked] and len(cache) == 1
+    assert dock_next_joins(cluster, [plain], {}, cache=cache) == [docked]
+    assert plain["pose_from"] == "proposal"                    # the entries given are not changed
+    moved = Cluster(id="C:0", root="0", fragments=["0", "1"], poses={"0": truth["0"], "1": (35.0, 40.0, -4.0)},
+                    joins=cluster.joins)
+    assert dock_next_joins(moved, [plain], {}, cache=cache) == [plain]
 
 
 def test_a_newcomer_that_meets_one_member_keeps_its_proposed_pose():
@@ -480,21 +488,20 @@ def test_docking_a_newcomer_needs_every_outline():
         dock_newcomer(cluster, "A", "B", {"A": (sq, None), "B": (sq, None)})
 
 
-def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(tmp_path):
-    """``tessera reconstruct`` reads the members' and newcomers' feature tables and docks each next join's
-    newcomer against its cluster, saying where each pose came from; ``--no-dock`` keeps the proposals' poses;
-    a fragment whose feature table is missing keeps its proposal's pose, nothing fails."""
+def station_with_a_cluster(root):
+    """A station's storage under ``root``: six fragments of a small Pompeii-like wall with their front RGBN and
+    feature tables (the first fragment without one), proposals of every pair at the true relative pose, and one
+    pair of true neighbours confirmed (a cluster with a newcomer in its corner). Returns (wall, db path, (a, b))."""
     from common.features import extract_features, save_features
     from common.rgbn.image import save_rgbn
     from common.store import Store
     from common.synth.wall import generate_wall
-    from services.cli import main
 
     wall = generate_wall(6, seed=2, dpi=30, preset="pompeii", colour_only=True, missing_fraction=0.0,
                          spurious_fraction=0.0)
     byid = {f.id: f for f in wall.fragments}
-    store = Store(tmp_path / "store")
-    db = _proposal_store(tmp_path / "store" / "matches", wall, byid)
+    store = Store(root)
+    db = _proposal_store(root / "matches", wall, byid)
     for f in wall.fragments[1:]:                           # the first fragment has no feature table
         save_rgbn(store, f"fragments/{f.id}/rgbn/front-{f.id[-3:]}.h5", f.rgbn)
         ref = save_features(store, f"fragments/{f.id}/features/front-{f.id[-3:]}.h5",
@@ -503,6 +510,17 @@ def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(
     save_rgbn(store, f"fragments/{wall.fragments[0].id}/rgbn/front-000.h5", wall.fragments[0].rgbn)
     a, b, _ = next((a, b, n) for a, b, n in wall.adjacency if wall.fragments[0].id not in (a, b))
     db.record_verdict(a, b, "confirmed")
+    db.close()
+    return wall, root / "matches" / "proposals.sqlite", (a, b)
+
+
+def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(tmp_path):
+    """``tessera reconstruct`` reads the members' and newcomers' feature tables and docks each next join's
+    newcomer against its cluster, saying where each pose came from; ``--no-dock`` keeps the proposals' poses;
+    a fragment whose feature table is missing keeps its proposal's pose, nothing fails."""
+    from services.cli import main
+
+    wall, _, (a, b) = station_with_a_cluster(tmp_path / "store")
 
     def next_of(*extra):
         out = tmp_path / ("out" + "".join(extra))

@@ -170,6 +170,52 @@ def test_exports_composite_png_tiff_and_json(app_and_db):
     assert c.get("/api/reconstruction/thumb/..%2Fetc.png").status_code in (400, 404)
 
 
+def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_path):
+    """The page answers at once with the proposals' poses and docks the newcomers against their cluster in the
+    background; when that lands the signature changes and the page shows the poses ``tessera reconstruct`` gives
+    (the library's next_joins with the feature tables' outlines). Docked once: reloading docks nothing anew."""
+    from common.matching.proposals import ProposalStore
+    from common.matching.reconstruction import front_pieces, reconstruct
+    from common.store import Store
+    from common.web.review import ReviewData
+    from services import web
+    from services.web.reconstruction import LIVE
+    from tests.matching.test_reconstruction import station_with_a_cluster
+
+    wall, db_path, pair = station_with_a_cluster(tmp_path)
+    app = web.create_app(token=TOKEN, store_root=tmp_path, review=ReviewData(db_path, Store(tmp_path)),
+                         settings={"long_poll_s": 0.5})
+    c = app.test_client()
+    first = c.get("/api/reconstruction").get_json()
+    (cluster,) = first["document"]["clusters"]
+    assert first["docking"] is True and all(n["pose_from"] == "proposal" for n in cluster["next_joins"])
+    sig = first["signature"]
+    deadline = time.monotonic() + 60
+    while not c.get(f"/api/reconstruction/changes?after={sig}").get_json()["changed"]:
+        assert time.monotonic() < deadline, "the docking never landed"
+    data = c.get("/api/reconstruction").get_json()
+    (cluster,) = data["document"]["clusters"]
+    with ProposalStore(db_path) as db:
+        want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path), db.fragments(face="front"), fs)[0])
+    (expected,) = want["next"].values()
+    assert data["docking"] is False
+    assert [(n["newcomer"], n["pose_from"]) for n in cluster["next_joins"]] == \
+        [(n["newcomer"], n["pose_from"]) for n in expected]
+    corner = [n for n in cluster["next_joins"] if n["pose_from"] == "cluster"]
+    assert corner and all(sorted(n["faces"]) == sorted(pair) for n in corner)
+    for got, n in zip(cluster["next_joins"], expected):
+        assert [got["pose"]["angle_deg"], got["pose"]["tx_mm"], got["pose"]["ty_mm"]] == pytest.approx(list(n["pose"]))
+    # the fragment without a feature table keeps its proposal's pose; nothing is docked again
+    assert all(n["pose_from"] == "proposal" for n in cluster["next_joins"] if n["newcomer"] == wall.fragments[0].id)
+    live = app.extensions[LIVE]
+    docked, rounds = dict(live.docked), live.dock_round
+    with ProposalStore(db_path) as db:                      # a verdict elsewhere: the page is recomputed
+        db.record_verdict(*sorted(set(f.id for f in wall.fragments) - set(pair))[:2], "rejected")
+    again = c.get("/api/reconstruction").get_json()
+    assert again["signature"] != data["signature"] and again["docking"] is False
+    assert live.docked == docked and live.dock_round == rounds
+
+
 def test_without_a_proposal_store_the_api_says_so(tmp_path):
     from services import web
 
