@@ -286,6 +286,13 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
     def from_broker(frames: list[bytes]) -> None:
         nonlocal current, last_heard, backoff
         last_heard = time.monotonic()
+        if len(frames) >= 5 and frames[1:3] == [P.CLIENT, P.ERR]:   # the broker refused a frame of ours (docs/messages.md)
+            try:
+                why = P.loads(frames[4]).get("error")
+            except Exception:   # an unreadable body: still a refusal, said as such
+                why = None
+            log.warning("broker refused %s's frame: %s", service, str(why)[:500] if why else "(no reason given)")
+            return
         if len(frames) < 3 or frames[1] != P.WORKER:
             log.warning("malformed frame from broker ignored: %d parts", len(frames))
             return

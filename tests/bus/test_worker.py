@@ -274,11 +274,12 @@ def _serve(router, seconds: float, answer) -> list:
     return readies
 
 
-def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station):
+def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station, caplog):
     """docs/messages.md: the worker reconnects with exponential back-off ([worker] reconnect_min_s,
     doubling to reconnect_max_s; reset once the broker exchanges heartbeats with it); docs/security.md:
     a refused registration gets ERR and DISCONNECT. Told DISCONNECT, the worker reconnected at once,
-    so a key whose role is refused looped READY/ERR/DISCONNECT as fast as it could."""
+    so a key whose role is refused looped READY/ERR/DISCONNECT as fast as it could; and it logged the
+    ERR as a "malformed frame", not the reason the broker gave."""
     st = make_station()  # its configuration only (reconnect 0.1 s doubling to 0.5 s): the broker is a fake
     ctx = zmq.Context()
     router = ctx.socket(zmq.ROUTER)
@@ -307,6 +308,8 @@ def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station):
         gaps = [b - a for a, b in zip(refused, refused[1:])]
         assert 4 <= len(refused) <= 8, f"{len(refused)} READYs in 2 s: {gaps[:10]}"
         assert all(g >= 0.9 * min(0.1 * 2 ** i, 0.5) for i, g in enumerate(gaps)), f"back-off doubles: {gaps}"
+        assert "broker refused noop's frame: a key of role 'web' may not serve 'noop'" in caplog.text
+        assert "malformed frame" not in caplog.text
 
         # registered at last: the heartbeat exchange resets the back-off, so told DISCONNECT it is back in 0.1 s
         assert _serve(router, 1.2, register), "the worker came back"
