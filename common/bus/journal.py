@@ -190,12 +190,13 @@ class Journal:
 
     # -- the writer thread -----------------------------------------------------------------
     def _writer(self, context: zmq.Context, signal_endpoint: str) -> None:
-        con = _connect(self.path)
         signal = context.socket(zmq.PAIR)
         signal.connect(signal_endpoint)
         last_compact = time.monotonic()
         stopping = False
+        con = None
         try:
+            con = _connect(self.path)   # inside: a journal that cannot be opened is reported like any failure
             while not stopping:
                 try:
                     first = self._queue.get(timeout=0.5)
@@ -222,7 +223,8 @@ class Journal:
             signal.send(b"FAILED")
         finally:
             signal.close(linger=0)
-            con.close()
+            if con is not None:
+                con.close()
 
     def _commit(self, con: sqlite3.Connection, ops: list, signal) -> None:
         """Write ``ops`` in one transaction; never give up on the journal because of one of them.

@@ -127,3 +127,37 @@ def test_a_malformed_database_is_reported_not_spun_on(tmp_path, caplog):
     finally:
         journal.stop(timeout=1.0)
         ctx.destroy(linger=0)  # the writer's socket too, should it still run
+
+
+def test_a_journal_the_writer_cannot_open_is_reported(tmp_path, monkeypatch, caplog):
+    """The writer opened its connection before its ``try``: a journal it could not open (the file
+    replaced, its folder's permissions changed, descriptors exhausted) ended the thread silently and
+    the broker waited for acknowledgements that never came, instead of refusing submissions."""
+    import threading
+
+    from common.bus import journal as journal_module
+
+    ctx = zmq.Context()
+    signal = ctx.socket(zmq.PAIR)
+    signal.bind("inproc://journal-unopenable")
+    journal = Journal(tmp_path, history=100)
+    journal.load()
+
+    def refuse(path):
+        raise sqlite3.OperationalError("unable to open database file")
+
+    monkeypatch.setattr(journal_module, "_connect", refuse)
+    caplog.set_level(logging.INFO, logger="tessera.journal")
+    thread = None
+    try:
+        journal._thread = thread = threading.Thread(
+            target=journal._writer, args=(ctx, "inproc://journal-unopenable"), daemon=True)
+        thread.start()
+        assert _durable(signal) == b"FAILED"
+        thread.join(2.0)
+        assert not thread.is_alive() and "unable to open database file" in caplog.text
+    finally:
+        journal._queue.put(None)
+        if thread is not None:
+            thread.join(2.0)
+        ctx.destroy(linger=0)
