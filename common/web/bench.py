@@ -48,7 +48,8 @@ def check_fragment_id(fragment_id: str) -> str:
     """
     fid = str(fragment_id or "").strip()
     if not FRAGMENT_PATTERN.match(fid):
-        raise ValueError(f"fragment_id {fragment_id!r} is not valid: use 1-64 letters, digits, '.', '_' or '-'")
+        raise ValueError(f"fragment_id {fragment_id!r} is not valid: use 1-64 letters, digits, '.', '_' or '-', "
+                         "starting with a letter or digit")
     return fid
 
 

@@ -70,7 +70,16 @@ def scan():
 @bp.post("/api/bench/proceed")
 @writes
 def proceed():
-    return _act(lambda bench, b: bench.proceed(int(b.get("step", -1))))
+    return _act(lambda bench, b: bench.proceed(_step_index(b)))
+
+
+def _step_index(b: dict) -> int:
+    """The ``step`` a confirmation names; ValueError (answered 400) for anything but a whole number,
+    so ``null`` or a list is the operator's page's mistake, not a server error."""
+    try:
+        return int(b.get("step", -1))
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"step must be the index of the step done, got {b.get('step')!r}") from None
 
 
 @bp.post("/api/bench/cancel")

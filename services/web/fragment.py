@@ -14,14 +14,16 @@ from pathlib import Path
 
 from flask import Blueprint, abort, jsonify, render_template, request, send_file, url_for
 
-from common.store import ArtifactError, Store
+from common.store import ArtifactMissing, Store
 from common.web.bench import check_fragment_id
 
-from .station import station
+from .station import answers_in_json, station
 
 log = logging.getLogger("tessera.web")
 
-bp = Blueprint("fragment", __name__)
+# its JSON routes answer {"error": ...} like the rest of the archive: 404, 500 for a face that cannot
+# be read, 507 for tiles the storage refuses (answers_in_json)
+bp = answers_in_json(Blueprint("fragment", __name__))
 
 #: the viewer's scripts and shaders
 VIEWER_FOLDER = Path(__file__).resolve().parent / "static" / "viewer"
@@ -156,8 +158,9 @@ def fragment(fid):
         p["other"] = other
         p["other_url"] = url_for("fragment.page", fid=other)
         p["review_url"] = url_for("review.page", fragment=fid)
+    # the page lists confirmed joins and pending proposals; a rejected pair is neither
     return jsonify(fragment=fid, faces=out_faces,
-                   proposals=[p for p in proposals if p.get("status") != "confirmed"],
+                   proposals=[p for p in proposals if p.get("status") == "pending"],
                    joins=[p for p in proposals if p.get("status") == "confirmed"],
                    proposals_available=review is not None, **_related(fid))
 
@@ -181,7 +184,7 @@ def params(fid, stem):
     cache = _cache(fid, stem)
     try:
         params = cache.params()
-    except ArtifactError as exc:
+    except ArtifactMissing as exc:   # gone since the check; a face that cannot be read is a 500
         abort(404, str(exc))
     _cut_coarse_levels(cache)
     return jsonify(params)
@@ -202,7 +205,7 @@ def tile(fid, stem, level, tile):
         path = cache.tile_path(level, row, col)
     except ValueError as exc:
         abort(404, str(exc))
-    except ArtifactError as exc:
+    except ArtifactMissing as exc:   # gone since the check; a face that cannot be read is a 500
         abort(404, str(exc))
     resp = send_file(path, mimetype="application/octet-stream", conditional=False, etag=False)
     resp.headers["Content-Encoding"] = "gzip"

@@ -167,6 +167,15 @@ def test_fragment_ids_that_cannot_name_a_folder_are_refused(bad):
         check_fragment_id(bad)
 
 
+def test_an_id_starting_with_punctuation_is_refused_saying_why():
+    """docs/web.md, bench: IDs start with a letter or digit; the refusal said only "1-64 letters, digits,
+    '.', '_' or '-'", which "-F1" and ".F1" are."""
+    for bad in ("-F1", ".F1", "_F1"):
+        with pytest.raises(ValueError, match="starting with a letter or digit"):
+            check_fragment_id(bad)
+    assert check_fragment_id("F" * 64) == "F" * 64
+
+
 def test_fragment_id_is_stripped():
     assert check_fragment_id("  F-12.a_3 ") == "F-12.a_3"
 

@@ -168,8 +168,9 @@ def client(tmp_path):
     db = tmp_path / "storage" / "matches" / "proposals.sqlite"
     with ProposalStore(db) as s:
         s.upsert([Proposal("F-1", "F-2", 0.9, "m1", angle_deg=10.0, tx_mm=5.0, ty_mm=-2.0),
-                  Proposal("F-1", "F-3", 0.4, "m1")])
+                  Proposal("F-1", "F-3", 0.4, "m1"), Proposal("F-1", "F-4", 0.6, "m1")])
         s.record_verdict("F-1", "F-2", "confirmed", by="ana")
+        s.record_verdict("F-1", "F-4", "rejected", by="ana")
     app = web.create_app(token=TOKEN, store_root=store.root, review=ReviewData(db, store))
     return app.test_client()
 
@@ -182,8 +183,28 @@ def test_fragment_json_lists_faces_joins_and_proposals(client):
     assert d["faces"][0]["relight"] == "/api/fragments/F-1/relight/front-k1"
     assert [(j["other"], j["status"]) for j in d["joins"]] == [("F-2", "confirmed")]
     assert d["joins"][0]["other_url"] == "/fragments/F-2" and d["joins"][0]["pose"]["angle_deg"] == 10.0
-    assert [p["other"] for p in d["proposals"]] == ["F-3"]
+    # docs/web.md: "the confirmed joins and the pending proposals" (a rejected pair was listed as a proposal)
+    assert [(p["other"], p["status"]) for p in d["proposals"]] == [("F-3", "pending")]
     assert d["downloads"] == "/api/downloads/F-1"   # the archive's route for tessera export's files
+
+
+def test_the_fragment_json_routes_answer_errors_in_json_like_the_archive(tmp_path):
+    """docs/web.md, fragment page: the archive's JSON routes answer {"error": ...}, 404 for what is not there
+    and 500 for a face on storage that cannot be read. These answered Flask's HTML pages, and an
+    unreadable face was a 404 (params, tiles) or an HTML 500 (auto)."""
+    from services import web
+
+    bad = tmp_path / "fragments/B1/rgbn/front-0000000000000bad.h5"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not an HDF5 file")
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    relight = "/api/fragments/B1/relight/front-0000000000000bad"
+    for url in (f"{relight}/params.json", f"{relight}/tiles/0/0_0", f"{relight}/auto?style=albedo"):
+        r = c.get(url)
+        assert r.status_code == 500 and "cannot be read" in r.json["error"], url
+    for url in ("/api/fragments/F-9", "/api/fragments/B1/relight/front-nope/params.json"):
+        r = c.get(url)
+        assert r.status_code == 404 and r.is_json and r.json["error"], url
 
 
 def test_page_and_tile_routes(client):

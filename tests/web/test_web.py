@@ -94,6 +94,18 @@ def test_a_logged_in_browser_needs_the_csrf_header_and_the_same_origin(counting_
 
 
 
+def test_a_step_confirmation_that_names_no_step_is_a_bad_request(counting_app):
+    """POST /api/bench/proceed takes {"step": <index>}; null, a list or Infinity raised in int() and answered
+    a bare 500."""
+    app, counter = counting_app
+    c = app.test_client()
+    for body in ('{"step": null}', '{"step": [1]}', '{"step": Infinity}', '{"step": "x"}'):
+        r = c.post("/api/bench/proceed", data=body, content_type="application/json", headers=BEARER)
+        assert r.status_code == 400 and "step must be" in r.json["error"], body
+    assert c.post("/api/bench/proceed", json={"step": 1}, headers=BEARER).status_code == 200
+    assert counter.calls == 0
+
+
 def test_behind_a_tls_proxy_the_published_origin_may_write_and_no_other(tmp_path):
     """docs/web.md advises a TLS reverse proxy; it speaks plain HTTP to the pages, so the browser's https origin
     is not the server's own address and every write (login included) was refused as cross-site. The address
@@ -495,3 +507,40 @@ def test_the_conservator_steps_through_the_dockings_other_poses(review_app):
     r = c.get(f"/api/review/alternatives/{queue[1]['id']}")   # FA-FC: no pose, so nothing to step from
     assert r.status_code == 404 and "no proposed pose" in r.json["error"]
     assert c.get("/api/review/alternatives/999999").status_code == 404
+
+
+def test_the_review_queue_is_the_matchers_order_fifty_at_a_time(tmp_path):
+    """docs/web.md, review page: the queue lists the pending proposals in the matcher's order (mutual
+    proximity, then probability: not simply "most probable first", as the page said), 50 unless
+    ``?limit=`` (at most 500) asks for more; a fragment's list its 20 best of any status."""
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.web.review import ReviewData
+
+    store = Store(tmp_path / "storage")
+    db_path = tmp_path / "storage" / "matches" / "proposals.sqlite"
+    with ProposalStore(db_path) as db:
+        db.upsert([Proposal("A", f"B{i:02d}", 0.5 + i / 200, "m1", mutual=(i + 1) / 100) for i in range(60)]
+                  + [Proposal("A", "Z", 0.99, "m1", mutual=0.001)])
+    c = web.create_app(token=TOKEN, store_root=store.root, review=ReviewData(db_path, store)).test_client()
+    queue = c.get("/api/review/queue").json
+    assert queue["counts"]["pending"] == 61 and len(queue["proposals"]) == 50
+    assert [p["fragment_b"] for p in queue["proposals"][:2]] == ["B59", "B58"]   # mutual proximity first
+    everything = c.get("/api/review/queue?limit=500").json["proposals"]
+    assert len(everything) == 61 and everything[-1]["fragment_b"] == "Z"   # the most probable, last
+    assert len(c.get("/api/review/fragment/A").json["proposals"]) == 20
+
+
+def test_the_docs_name_every_blueprint_module_and_api_area():
+    """docs/web.md "How the app is built" has a row per blueprint module and "JSON endpoints" every
+    area of /api/ (downloads.py and /api/downloads were missing)."""
+    doc = (Path(web.__file__).resolve().parents[2] / "docs" / "web.md").read_text()
+    built = doc.split("## How the app is built", 1)[1].split("\n## ", 1)[0]
+    table = dict(re.findall(r"^\| `(\w+)\.py` \| `(\w+)` \|", built, re.M))
+    for bp in web.BLUEPRINTS:
+        module = bp.import_name.rsplit(".", 1)[1]
+        assert table.get(module) == bp.name, module
+    endpoints = doc.split("## JSON endpoints", 1)[1].split("\n## ", 1)[0]
+    app = web.create_app(token=TOKEN, store_root=Path("/nonexistent"))
+    areas = {"/".join(r.rule.split("/")[:3]) for r in app.url_map.iter_rules() if r.rule.startswith("/api/")}
+    for area in sorted(areas):
+        assert f"`{area}" in endpoints, area
