@@ -181,8 +181,16 @@ def _decode(path: Path, fmt: str) -> np.ndarray:
         if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[2] not in (3, 4):
             arr = np.moveaxis(arr, 0, 2)  # planar TIFF
         return arr
+    from numpy.lib import format as npy
     try:
+        with open(path, "rb") as fh:   # the declared shape first, as for the other formats
+            major, _ = npy.read_magic(fh)
+            shape = (npy.read_array_header_1_0 if major == 1 else npy.read_array_header_2_0)(fh)[0]
+        if len(shape) >= 2:
+            _check_size(path, int(shape[1]), int(shape[0]))
         arr = np.load(path, allow_pickle=False)
+    except ImportRefused:
+        raise
     except (OSError, ValueError) as exc:
         raise _refuse(path, f"could not be read as .npy ({exc})") from None
     return arr

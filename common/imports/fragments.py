@@ -134,7 +134,8 @@ def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "aut
         Where the mask comes from. ``alpha``: alpha above ``alpha_threshold`` of full scale (the
         soft edge of a cut-out split at half coverage). ``plain``: the picture's background is
         estimated from its border and removed (:func:`background_mask`). ``auto``: alpha when the
-        image has an alpha channel that is not opaque everywhere, else plain.
+        image has an alpha channel at or below ``alpha_threshold`` somewhere (it cuts something out),
+        else plain.
     alpha_threshold : float
         Fraction of full scale in (0, 1).
     srgb : bool

@@ -1,13 +1,13 @@
 """Which files to import and what a lab knows about each: paths, manifests, fragment ids.
 
-A **manifest** is a CSV file (UTF-8, Excel's BOM accepted, comma or semicolon separated) with a
-header row. Column names are matched without regard to case, spaces or hyphens:
+A **manifest** is a CSV file (UTF-8, Excel's BOM accepted, comma, semicolon or tab separated) with a
+header row. Column names are matched without regard to case, spaces, hyphens or underscores:
 
 ========================  ================================================================
 ``file``                  image path, relative to the manifest's folder (required)
-``inventory``             inventory number (also ``inventory_number``, ``inventory_no``, ``inv``);
+``inventory``             inventory number (also ``inventory number``, ``inventory no``, ``inv``, ``id``);
                           the fragment id is made from it (:func:`fragment_id`)
-``find_spot``             where it was found (also ``findspot``)
+``find_spot``             where it was found (also ``find-spot``, ``findspot``)
 ``context``               stratigraphic context / unit
 ``date``                  date of find or of the picture, as written
 ``notes``                 free text
@@ -30,9 +30,12 @@ from common.messages import FRAGMENT_PATTERN
 #: suffixes of picture files picked up from a folder
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 METADATA_COLUMNS = ("inventory", "find_spot", "context", "date", "notes")
-_ALIASES = {"inventory_number": "inventory", "inventory_no": "inventory", "inv": "inventory", "inv_no": "inventory",
-            "findspot": "find_spot", "find_place": "find_spot", "filename": "file", "path": "file", "image": "file",
-            "note": "notes", "comment": "notes", "comments": "notes", "fragment": "inventory", "id": "inventory"}
+# keyed by the name without spaces, hyphens or underscores: "Inventory number", "InventoryNumber" and
+# "inventory_number" are one column to a lab
+_ALIASES = {"inventory": "inventory", "inventorynumber": "inventory", "inventoryno": "inventory", "inv": "inventory",
+            "invno": "inventory", "fragment": "inventory", "id": "inventory", "findspot": "find_spot",
+            "findplace": "find_spot", "filename": "file", "path": "file", "image": "file", "note": "notes",
+            "comment": "notes", "comments": "notes"}
 
 
 def natural_key(path: str | os.PathLike) -> list:
@@ -70,7 +73,7 @@ def fragment_id(text: str) -> str:
 
 def _column(name: str) -> str:
     key = re.sub(r"[\s\-]+", "_", name.strip().lower())
-    return _ALIASES.get(key, key)
+    return _ALIASES.get(key.replace("_", ""), key)
 
 
 def read_manifest(path: str | os.PathLike) -> list[dict]:

@@ -58,7 +58,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--turn", choices=("cw", "ccw", "auto"), default="auto",
                    help="way the fragment was turned between scans, as seen on the image (default auto: detected)")
     p.add_argument("--crop", action="store_true", help="whole-bed scans: find the fragment and keep its region")
-    p.add_argument("--srgb", action="store_true", help="the files are sRGB-encoded (decode to linear first)")
+    p.add_argument("--srgb", action="store_true", help="the 8/16-bit files are sRGB-encoded (decode to linear first)")
     p.add_argument("--colour-only", action="store_true", help="one scan per face, albedo only (no normals)")
     add_sink_arguments(p)
     p.set_defaults(func=run)
@@ -81,11 +81,21 @@ def _items(args) -> list[ImportItem]:
             face = row.get("face", "front").lower()
             if face not in ("front", "back"):
                 raise ValueError(f"{where}: face {face!r} must be front or back")
-            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": row.get("dpi", args.dpi),
+            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None,
                                         "turn": row.get("turn", args.turn).lower(), "where": where})
-            if row.get("dpi") is not None and g["dpi"] is not None and float(row["dpi"]) != float(g["dpi"]):
-                raise ValueError(f"{where}: dpi {row['dpi']} differs from the fragment's other scans ({g['dpi']})")
+            # the dpi column counts on whichever row of the fragment gives it (an empty first cell included)
+            if row.get("dpi") is not None:
+                try:
+                    row_dpi = check_dpi(row["dpi"], where)
+                except ArtifactError as exc:
+                    raise ValueError(str(exc)) from None
+                if g["dpi"] is not None and row_dpi != g["dpi"]:
+                    raise ValueError(f"{where}: dpi {row['dpi']} differs from the fragment's other scans "
+                                     f"({g['dpi']:g})")
+                g["dpi"] = row_dpi
             g[face].append(Path(row["file"]))
+        for g in groups.values():   # --dpi for the fragments whose rows give none
+            g["dpi"] = args.dpi if g["dpi"] is None else g["dpi"]
     else:
         if not args.fragment:
             raise ValueError("--fragment ID is needed with scans given as arguments")
@@ -160,7 +170,7 @@ def _read_scan(path: Path, opts: dict) -> tuple[np.ndarray, tuple]:
         px = check_scan(img.pixels, str(path))
     except ValueError as exc:
         raise ImportRefused(str(exc)) from None
-    if opts["srgb"]:
+    if opts["srgb"] and img.bits != 32:   # a float scan is linear already, and check_scan made it 16-bit
         px = np.rint(srgb_to_linear(px.astype(np.float32) / img.full_scale) * 65535).astype(np.uint16)
     dpi = opts["dpi"]
     area = (0.0, 0.0, px.shape[1] * 25.4 / dpi, px.shape[0] * 25.4 / dpi)

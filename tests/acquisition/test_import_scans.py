@@ -158,3 +158,17 @@ def test_a_manifest_imports_each_fragment_and_refuses_only_the_bad_one(tmp_path,
     assert "normals need at least 3" in out.out + out.err
     [art] = _scans_files(tmp_path / "store")
     assert "Inv-7-1" in str(art)
+
+
+def test_srgb_does_not_decode_float_scans_which_are_linear(tmp_path):
+    # docs/flatbed.md: float scans are linear with full scale 1; --srgb (for 8/16-bit files of a
+    # whole batch) once decoded their 16-bit conversion as if it were [0, 1] and saturated them
+    from services.cli.import_scans import _read_scan
+    scan = np.full((60, 60, 3), 0.1, np.float32)
+    scan[20:40, 20:40] = 0.5
+    np.save(tmp_path / "s.npy", scan)
+    opts = {"dpi": DPI, "crop": False}
+    linear, _ = _read_scan(tmp_path / "s.npy", {**opts, "srgb": False})
+    decoded, _ = _read_scan(tmp_path / "s.npy", {**opts, "srgb": True})
+    assert linear.dtype == np.uint16 and linear.max() == 32768
+    np.testing.assert_array_equal(decoded, linear)

@@ -105,6 +105,19 @@ def test_channels_format_and_missing(tmp_path):
         read_image_checked(tmp_path / "empty.png")
 
 
+
+def test_npy_declaring_more_than_the_pixel_limit_is_refused_before_it_is_read(tmp_path):
+    # docs/import.md: "more than 300 Mpx declared" is refused for every image read, .npy included
+    # (np.load would allocate the whole declared array first)
+    from numpy.lib import format as npy
+    with open(tmp_path / "huge.npy", "wb") as fh:
+        npy.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": (20000, 20000, 3)})
+        fh.write(b"\0" * 64)
+    with pytest.raises(ImportRefused, match="huge.npy: declares 20000x20000 pixels, more than the limit"):
+        read_image_checked(tmp_path / "huge.npy")
+    np.save(tmp_path / "small.npy", np.linspace(0, 1, 40 * 30 * 3, dtype=np.float32).reshape(40, 30, 3))
+    assert read_image_checked(tmp_path / "small.npy").pixels.shape == (40, 30, 3)
+
 def test_a_list_must_agree_in_size_and_keeps_order(tmp_path):
     a = _write(tmp_path / "a.png", _photo(seed=1))
     b = _write(tmp_path / "b.png", _photo(seed=2))

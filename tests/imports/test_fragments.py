@@ -93,6 +93,18 @@ def test_opaque_alpha_falls_back_to_the_background():
         fragment_from_image(rgba * np.array([1, 1, 1, 0], np.uint8), dpi=300, background="alpha")
 
 
+
+def test_alpha_never_below_half_coverage_falls_back_to_the_background():
+    # docs/import.md: auto takes the alpha when it cuts something out (some pixel at or below half
+    # coverage), not whenever it is not opaque everywhere: alpha > 50 % would keep the whole frame
+    truth = _shape(seed=5)
+    paint, _ = _paint(truth, seed=5)
+    rgb = np.where(truth[..., None], paint, 240).astype(np.uint8)
+    alpha = np.full(truth.shape, 255, np.uint8)
+    alpha[:40, :40] = 200                     # a translucent corner, ~78 % coverage
+    frag = fragment_from_image(np.dstack([rgb, alpha]), dpi=300)
+    assert frag.attrs["mask_from"] == "plain background" and _iou(frag.mask, truth) > 0.98
+
 def test_implausible_pictures_are_refused_with_the_reason():
     rng = np.random.default_rng(0)
     plain = np.clip(200 + rng.normal(0, 3, (200, 300, 3)), 0, 255).astype(np.uint8)

@@ -51,3 +51,15 @@ def test_bad_manifests_are_refused_naming_the_file_and_line(tmp_path):
         read_manifest(tmp_path / "empty.csv")
     with pytest.raises(ValueError, match="gone.csv cannot be read"):
         read_manifest(tmp_path / "gone.csv")
+
+
+def test_column_names_match_without_case_spaces_or_hyphens(tmp_path):
+    # docs/import.md: "column names are matched ignoring case, spaces and hyphens" -- an export that
+    # wrote "InventoryNumber" or "FIND SPOT" names the same columns as "inventory number", "find_spot"
+    (tmp_path / "m.tsv").write_text("FILE\tInventoryNumber\tFindSpot\tFace\n"
+                                    "a.png\tInv. 7\tRoom 2\tBack\n", encoding="utf-8")
+    (tmp_path / "m.csv").write_text("file,INV-NO,Find Spot\na.png,Inv. 7,Room 2\n", encoding="utf-8")
+    tab, comma = read_manifest(tmp_path / "m.tsv")[0], read_manifest(tmp_path / "m.csv")[0]
+    assert tab["inventory"] == comma["inventory"] == "Inv. 7"
+    assert tab["find_spot"] == comma["find_spot"] == "Room 2"
+    assert tab["face"] == "Back"

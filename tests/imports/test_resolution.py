@@ -112,3 +112,21 @@ def test_import_scans_reads_the_dpi_from_the_files_and_warns_on_a_mismatch(tmp_p
     g["dpi"] = 150.0
     assert _dpi_of("F1", g) == 150.0
     assert "declares" not in capsys.readouterr().err
+
+
+def test_import_scans_uses_a_manifest_dpi_given_on_any_row_of_the_fragment(tmp_path, capsys):
+    # docs/flatbed.md: the files' dpi counts only "without --dpi or a dpi column"; a dpi cell left
+    # empty on the first row must not make the column's 300 dpi give way to the files' 150
+    from common.acquisition.capture import read_scans
+    from common.store import Store
+    from services.cli import main
+    paths = _scans(tmp_path, dpi_ppm=5906)          # the files declare 150 dpi
+    rows = "".join(f"{p.name},F1,{'' if k == 0 else 300}\n" for k, p in enumerate(paths))
+    (tmp_path / "scans.csv").write_text("file,fragment,dpi\n" + rows)
+    assert main(["import", "scans", "--manifest", str(tmp_path / "scans.csv"), "--device", "d",
+                 "--store", str(tmp_path / "store")]) == 0
+    assert "declares 150 dpi but 300 dpi was given" in capsys.readouterr().err
+    store = Store(tmp_path / "store")
+    [f] = (tmp_path / "store" / "fragments").rglob("scans-*.h5")
+    capture = read_scans(store, store.ref(f.relative_to(tmp_path / "store").as_posix()))
+    assert [s.dpi for s in capture.scans["front"]] == [300.0] * 4
