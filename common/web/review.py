@@ -214,15 +214,21 @@ class ReviewData:
 
     def alternatives(self, pid: int, *, max_side_px: int = 640) -> list[dict]:
         """The proposal's other candidate poses (``alignment.alternatives``, best first) as the
-        adjustments of its pose that reach them (:func:`common.matching.pose.adjustment_between`):
-        ``[{turn_deg, shift_x_mm, shift_y_mm}]``, what the review page's pose controls then show.
-        Raises LookupError when the proposal or its pose is missing."""
+        adjustments of its pose that reach them (:meth:`adjustments`), what the review page's pose
+        controls then show. Raises LookupError when the proposal or its pose is missing."""
+        alternatives = ((self.proposal(pid) or {}).get("alignment") or {}).get("alternatives") or []
+        return self.adjustments(pid, alternatives, max_side_px=max_side_px)
+
+    def adjustments(self, pid: int, poses, *, max_side_px: int = 640) -> list[dict]:
+        """Each of ``poses`` (dicts of angle_deg, tx_mm, ty_mm: B in A's frame) as the adjustment of the
+        proposal's pose that reaches it (:func:`common.matching.pose.adjustment_between`):
+        ``[{turn_deg, shift_x_mm, shift_y_mm}]``. Raises LookupError when the proposal or its pose is missing."""
         from common.matching.pose import adjustment_between
 
         prop, centre = self._posed(pid, max_side_px)
         pose = prop["pose"]
         out = []
-        for alt in (prop.get("alignment") or {}).get("alternatives") or []:
+        for alt in poses:
             turn, sx, sy = adjustment_between((pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]),
                                               (alt["angle_deg"], alt["tx_mm"], alt["ty_mm"]), centre)
             out.append({"turn_deg": turn, "shift_x_mm": sx, "shift_y_mm": sy})

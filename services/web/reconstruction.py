@@ -237,6 +237,27 @@ def _reconstruction() -> dict:
         return payload
 
 
+def cluster_fit(proposal: dict) -> tuple[dict | None, bool]:
+    """Where a pending proposal's newcomer fits into a corner of its confirmed cluster, as this page shows it:
+    ``({angle_deg, tx_mm, ty_mm, cluster, faces}, docking)`` with the pose as fragment B in fragment A's frame
+    (the proposal's convention), or ``(None, docking)``; ``docking`` says whether the background docking is still
+    running (the fit may come). The review page opens a proposal at this pose (docs/web.md)."""
+    from common.matching.reconstruction import relative_pose
+
+    data = _reconstruction()
+    for c in (data["document"] or {}).get("clusters", []):
+        for n in c["next_joins"]:
+            if n["proposal"] != proposal["id"] or n.get("pose_from") != "cluster":
+                continue
+            member = next(f for f in c["fragments"] if f["fragment"] == n["member"])
+            at = {n["member"]: (member["angle_deg"], member["tx_mm"], member["ty_mm"]),
+                  n["newcomer"]: (n["pose"]["angle_deg"], n["pose"]["tx_mm"], n["pose"]["ty_mm"])}
+            angle, tx, ty = relative_pose(at[proposal["fragment_a"]], at[proposal["fragment_b"]])
+            return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty, "cluster": c["id"], "faces": n["faces"]}, \
+                data["docking"]
+    return None, data["docking"]
+
+
 @bp.get("/reconstruction")
 def page():
     return render_template("reconstruction.html", page="reconstruction")

@@ -103,14 +103,25 @@ def picture(pid, view):
 @bp.get("/api/review/alternatives/<int:pid>")
 @needs_proposals
 def alternatives(pid):
-    """The proposal's other candidate poses as adjustments of its pose (best first), for stepping."""
+    """The proposal's other candidate poses as adjustments of its pose (best first), for stepping; and
+    ``cluster``: the adjustment that fits B into a corner of A's confirmed cluster (or A into B's), where the
+    reconstruction found one (``docking``: it is still looking)."""
+    from .reconstruction import cluster_fit
+
     st = station()
     if not 0 <= pid < 2 ** 63:
         abort(404)
+    side = int(st.settings["picture_px"])
     try:
-        return jsonify(proposal=pid, alternatives=st.review.alternatives(pid, max_side_px=int(st.settings["picture_px"])))
+        alternatives = st.review.alternatives(pid, max_side_px=side)
+        fit, docking = cluster_fit(st.review.proposal(pid))
+        cluster = None
+        if fit is not None:
+            cluster = {**st.review.adjustments(pid, [fit], max_side_px=side)[0],
+                       "cluster": fit["cluster"], "faces": fit["faces"]}
     except LookupError as exc:
         return jsonify(error=str(exc)), 404
+    return jsonify(proposal=pid, alternatives=alternatives, cluster=cluster, docking=docking)
 
 
 @bp.post("/api/review/verdict")

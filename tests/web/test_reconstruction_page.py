@@ -216,6 +216,44 @@ def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_p
     assert live.docked == docked and live.dock_round == rounds
 
 
+def test_the_review_page_opens_a_corner_newcomer_at_its_fit_in_the_cluster(tmp_path):
+    """A pending proposal whose newcomer fits a corner of a confirmed cluster is offered first at that pose on the
+    review page (``/api/review/alternatives``' ``cluster``: the adjustment of the proposal's pose that reaches it),
+    the pose tessera reconstruct gives it, as B in A's frame; once the docking has landed. A proposal whose newcomer
+    fits no corner has none."""
+    from common.matching.proposals import ProposalStore
+    from common.matching.reconstruction import front_pieces, reconstruct, relative_pose
+    from common.store import Store
+    from common.web.review import ReviewData
+    from services import web
+    from tests.matching.test_reconstruction import station_with_a_cluster
+
+    _, db_path, pair = station_with_a_cluster(tmp_path)
+    review = ReviewData(db_path, Store(tmp_path))
+    app = web.create_app(token=TOKEN, store_root=tmp_path, review=review, settings={"long_poll_s": 0.5})
+    c = app.test_client()
+    with ProposalStore(db_path) as db:
+        want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path), db.fragments(face="front"), fs)[0])
+    (cluster,) = want["clusters"]
+    (nexts,) = want["next"].values()
+    corner = next(n for n in nexts if n["pose_from"] == "cluster")
+    plain = next(n for n in nexts if n["pose_from"] == "proposal" and n["pose"] is not None)
+
+    deadline = time.monotonic() + 60
+    while (got := c.get(f"/api/review/alternatives/{corner['proposal']}").get_json())["docking"]:
+        assert time.monotonic() < deadline, "the docking never landed"
+        time.sleep(0.2)
+    fit = got["cluster"]
+    assert fit is not None and sorted(fit["faces"]) == sorted(pair)
+    prop = review.proposal(corner["proposal"])
+    at = {corner["member"]: cluster.poses[corner["member"]], corner["newcomer"]: corner["pose"]}
+    expected = relative_pose(at[prop["fragment_a"]], at[prop["fragment_b"]])
+    shown = review.adjusted_pose(prop["id"], fit["turn_deg"], (fit["shift_x_mm"], fit["shift_y_mm"]))
+    assert [shown["angle_deg"], shown["tx_mm"], shown["ty_mm"]] == pytest.approx(list(expected), abs=1e-6)
+    other = c.get(f"/api/review/alternatives/{plain['proposal']}").get_json()
+    assert other["cluster"] is None and other["docking"] is False
+
+
 def test_without_a_proposal_store_the_api_says_so(tmp_path):
     from services import web
 
@@ -305,3 +343,42 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
         raise
     finally:
         live.stop()
+
+
+@pytest.mark.slow
+def test_the_review_page_opens_at_the_corner_fit_in_the_browser(tmp_path):
+    """In Chromium, against ``tessera web``: selecting a proposal whose newcomer fits a corner of a confirmed
+    cluster shows the joined picture at that fit and says so; P steps to the proposal's own pose."""
+    from common.matching.proposals import ProposalStore
+    from common.matching.reconstruction import front_pieces, reconstruct
+    from common.store import Store
+    from tests.matching.test_reconstruction import station_with_a_cluster
+
+    from .test_browser import BENCH_CHROMIUM_ARGS
+    from .viewer_support import CHROMIUM, WebProcess, require_browser
+
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    _, db_path, pair = station_with_a_cluster(tmp_path / "storage")
+    with ProposalStore(db_path) as db:
+        want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path / "storage"),
+                                                               db.fragments(face="front"), fs)[0])
+    (nexts,) = want["next"].values()
+    corner = next(n for n in nexts if n["pose_from"] == "cluster")
+    web = WebProcess(tmp_path).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
+            page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+            page.goto(f"{web.url}/review?fragment={corner['newcomer']}")
+            page.click(f"#queue li[data-proposal='{corner['proposal']}']")
+            page.wait_for_selector(f"#pose-adjust:has-text('fitted into the corner of')", timeout=60_000)
+            assert all(f in page.inner_text("#pose-adjust") for f in pair)
+            assert "turn_deg=" in page.get_attribute("#joined-colour", "src")
+            page.keyboard.press("p")                        # the proposal's own pose: no adjustment
+            page.wait_for_function("() => !document.getElementById('joined-colour').src.includes('turn_deg=')",
+                                   timeout=10_000)
+            browser.close()
+    finally:
+        web.stop()

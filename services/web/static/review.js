@@ -8,9 +8,11 @@
   // the conservator's correction of the proposed pose: B turned about its centre (deg), moved (mm)
   const STEP_MM = 0.5, STEP_DEG = 0.5;
   let adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
-  // the docking's other candidate poses of the current proposal (adjustments of its pose), fetched
-  // when first asked for; `shown` is the one on screen (0: the proposed pose)
-  let alternatives = null, shown = 0;
+  // the candidate poses of the current proposal, as adjustments of its pose with a label, fetched when it is
+  // selected: where the pair's newcomer fits a corner of a confirmed cluster that pose comes first (the page
+  // opens at it), then the proposal's own pose, then the docking's others, best first; `shown` is the one on screen
+  const ZERO = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
+  let candidates = null, shown = 0;
 
   function adjusted() { return adjust.turn_deg !== 0 || adjust.shift_x_mm !== 0 || adjust.shift_y_mm !== 0; }
 
@@ -21,31 +23,51 @@
       img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
       img.src = `/api/review/picture/${p.id}/${v}.png${v.startsWith("joined") ? q : ""}`;
     }
-    const which = alternatives && shown > 0 ? `candidate pose ${shown + 1} of ${alternatives.length + 1}: ` : "";
+    const c = candidates && candidates[shown];
+    const same = c && ["turn_deg", "shift_x_mm", "shift_y_mm"].every((k) => c.adjust[k] === adjust[k]);
+    const which = same && candidates.length > 1
+      ? `${c.label ? c.label + ", " : ""}candidate pose ${shown + 1} of ${candidates.length}: ` : "";
     $("pose-adjust").textContent = adjusted()
       ? `${which}B turned ${adjust.turn_deg.toFixed(1)}°, moved (${adjust.shift_x_mm.toFixed(1)}, ${adjust.shift_y_mm.toFixed(1)}) mm — the verdict keeps this pose`
-      : (alternatives && !alternatives.length ? "no other candidate pose" : "");
+      : (candidates && candidates.length === 1 ? "no other candidate pose" : "");
   }
 
-  // step through the candidate poses: the proposed one, then the docking's others, best first
+  async function loadCandidates(p) {
+    const r = await Tessera.api("GET", `/api/review/alternatives/${p.id}`);
+    if (items[index] !== p) return;
+    const alts = r.ok ? r.data.alternatives : [];
+    candidates = [{ adjust: ZERO, label: "" }, ...alts.map((a) => ({ adjust: a, label: "" }))];
+    const fit = r.ok ? r.data.cluster : null;
+    if (fit) {
+      const a = { turn_deg: fit.turn_deg, shift_x_mm: fit.shift_x_mm, shift_y_mm: fit.shift_y_mm };
+      candidates.unshift({ adjust: a, label: `fitted into the corner of ${fit.faces.join(" and ")}` });
+      if (!adjusted()) { adjust = { ...a }; shown = 0; }   // not over a correction the conservator made meanwhile
+      else shown = 1;
+    } else if (r.ok && r.data.docking && !adjusted()) {    // the reconstruction is still docking: ask again
+      setTimeout(() => { if (items[index] === p && !adjusted()) loadCandidates(p); }, 3000);
+    }
+    showPictures(p);
+  }
+
+  // step through the candidate poses (P, shift+P backwards)
   async function otherPose(step) {
     const p = items[index];
     if (!p || !p.pose) return;
-    if (alternatives === null) {
-      const r = await Tessera.api("GET", `/api/review/alternatives/${p.id}`);
-      if (items[index] !== p) return;
-      alternatives = r.ok ? r.data.alternatives : [];
-    }
-    const n = alternatives.length + 1;
+    if (!candidates) await loadCandidates(p);
+    if (items[index] !== p || !candidates) return;
+    const n = candidates.length;
     shown = ((shown + step) % n + n) % n;
-    adjust = shown === 0 ? { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 } : { ...alternatives[shown - 1] };
+    adjust = { ...candidates[shown].adjust };
     showPictures(p);
   }
 
   function nudge(turn, dx, dy) {
     const p = items[index];
     if (!p || !p.pose) return;
-    if (turn === null) { adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 }; shown = 0; }
+    if (turn === null) {   // back to the proposed pose
+      adjust = { ...ZERO };
+      shown = candidates ? Math.max(0, candidates.findIndex((c) => c.adjust === ZERO)) : 0;
+    }
     else {
       adjust.turn_deg = Math.round((adjust.turn_deg + turn) * 1000) / 1000;
       adjust.shift_x_mm = Math.round((adjust.shift_x_mm + dx) * 1000) / 1000;
@@ -57,7 +79,8 @@
   function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
 
   function select(i) {
-    if (i !== index) { adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 }; alternatives = null; shown = 0; }
+    const fresh = i !== index;
+    if (fresh) { adjust = { ...ZERO }; candidates = null; shown = 0; }
     index = i;
     [...$("queue").children].forEach((li, k) => li.classList.toggle("current", k === i));
     const p = items[i];
@@ -77,6 +100,7 @@
     const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual ${p.mutual.toFixed(3)}`;
     $("proposal-meta").textContent = `probability ${pct(p.probability)}${mutual} · ${p.status} · ${pose} · model ${p.model_version}`;
     showPictures(p);
+    if (fresh && p.pose) loadCandidates(p);
     if (!Tessera.loggedIn()) $("review-message").textContent = "Log in (top right) to confirm or reject.";
   }
 
