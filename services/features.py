@@ -8,7 +8,7 @@ and returns the ``features.ready`` event.
 from __future__ import annotations
 
 from common.features import extract_features, save_features
-from common.features.table import SCHEMA_VERSION
+from common.features.table import SCHEMA_VERSION, WORK_PIXEL_MM
 from common.messages import MessageError, new_message
 from common.rgbn.image import load_rgbn
 from common.store import ArtifactRef, content_key
@@ -17,14 +17,16 @@ SERVICE = "features"
 VERSION = f"features-1.1/schema-{SCHEMA_VERSION}"  # bump when any descriptor changes
 
 
-def output_path(fragment: str, face: str, rgbn_sha256: str) -> str:
-    """Content-keyed path of the feature artifact of one face."""
-    return f"fragments/{fragment}/features/{face}-{content_key(rgbn_sha256, SERVICE, VERSION)}.h5"
+def output_path(fragment: str, face: str, rgbn_sha256: str, work_mm: float = WORK_PIXEL_MM) -> str:
+    """Content-keyed path of the feature artifact of one face; another working grid than the
+    default is part of the key (a changed setting makes a new table, not finds the old one)."""
+    grid = () if work_mm == WORK_PIXEL_MM else (f"work_pixel_mm={work_mm:g}",)
+    return f"fragments/{fragment}/features/{face}-{content_key(rgbn_sha256, SERVICE, VERSION, *grid)}.h5"
 
 
 def work_pixel_mm(config) -> float:
     """``[services.features] work_pixel_mm`` (default 0.1 mm), checked."""
-    value = (config or {}).get("work_pixel_mm", 0.1)
+    value = (config or {}).get("work_pixel_mm", WORK_PIXEL_MM)
     try:
         value = float(value)
     except (TypeError, ValueError):
@@ -41,10 +43,10 @@ def handle(job: dict, ctx) -> list[dict]:
         raise MessageError(f"features service handles rgbn.ready, got {job.get('type')!r}")
     ref = ArtifactRef.from_dict(job["artifact"])
     fragment, face = str(job["fragment"]), str(job.get("face", "front"))
-    relpath = output_path(fragment, face, ref.sha256)
+    work_mm = work_pixel_mm(ctx.config)   # a bad setting fails the job even when an output exists
+    relpath = output_path(fragment, face, ref.sha256, work_mm)
     if not ctx.store.exists(relpath):
         image = load_rgbn(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
-        work_mm = work_pixel_mm(ctx.config)
         table = extract_features(image, face=face, fragment=fragment, work_pixel_mm=work_mm,
                                  progress=lambda f, t: ctx.progress(0.05 + 0.9 * f, t))
         ctx.log.info("fragment %s %s: %d patches, missing %s", fragment, face, table.n_patches,

@@ -578,7 +578,7 @@ def _write_markdown(path: Path, rows: dict, recipes: dict, failed: dict, figures
               "**the style**, **raking light** (elevation 12°, levelled), **RTIViewer-style normal unsharp "
               "masking** (gain 3, 1 mm) — in that order. Rows: " + ", ".join(rows) + ".", ""]
     for key, recipe in recipes.items():
-        what = recipe.description if key.startswith("recipe-") else STYLES[key].doc.splitlines()[0]
+        what = recipe.description if key.startswith("recipe-") else STYLES[key].summary
         lines += [f"### {key}", "", what,
                   "", f"![{key}: {', '.join(rows)}; style, raking, unsharp masking crops](gallery/{key}.png)", "",
                   "```toml", recipe_to_toml(recipe).rstrip(), "```", ""]

@@ -68,6 +68,11 @@ class Style:
     needs: frozenset
     doc: str
 
+    @property
+    def summary(self) -> str:
+        """The first paragraph of ``doc`` on one line (its first line alone may stop mid-sentence)."""
+        return " ".join(self.doc.strip().split("\n\n")[0].split())
+
     def parameters(self) -> dict:
         """Parameter name -> default value."""
         sig = inspect.signature(self.draw)
@@ -86,6 +91,10 @@ _cache: dict = {}
 
 def _is_auto(value) -> bool:
     return isinstance(value, str) and value == AUTO
+
+
+def _is_none(value) -> bool:
+    return isinstance(value, str) and value == "none"
 
 
 def _whole(image: RGBNImage) -> RGBNImage:
@@ -166,7 +175,7 @@ def _exposed_colour(image: RGBNImage, value, resolved: dict, key: str = "exposur
 def _lightness_exposure(image: RGBNImage, value, resolved: dict, key: str = "exposure"):
     """CIELAB L* of the colour: the 5th / 95th percentiles drawn at L* 20 / 80 ("auto"), a given
     [low, high], or as captured ("none")."""
-    if isinstance(value, str) and value == "none":
+    if _is_none(value):
         resolved[key] = "none"
         return None
     whole = _whole(image)
@@ -298,11 +307,16 @@ def _lit(image, light, ambient, colour, exposure, sigma_px, level, colour_exposu
     del cosine
     if colour:
         # the exposed colour, lit: relief on the lightness, the shade's median = the colour as is
-        lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
-        relief = 2.0 * _enhance.tone_curve(shade, lo, hi) - 1.0
+        # ("none": the shade as computed, 0.5 = the colour as is)
+        if _is_none(exposure):
+            r["exposure"] = "none"
+            relief = 2.0 * shade - 1.0
+        else:
+            lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
+            relief = 2.0 * _enhance.tone_curve(shade, lo, hi) - 1.0
         rng = _lightness_exposure(image, colour_exposure, r, "colour_exposure")
         return _cover(image, _enhance.lightness_relief(image.albedo, relief, strength=0.8, exposure=rng), r)
-    if isinstance(exposure, str) and exposure == "none":
+    if _is_none(exposure):
         r["exposure"] = "none"
         return _cover(image, shade, r)
     lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
@@ -421,6 +435,9 @@ def draw_normal_unsharp(image: RGBNImage, light=(135.0, 45.0), sigma_mm: float =
     r = {}
     sigma = max(float(sigma_mm) * image.dpi / 25.4, 1.0)
     shade = _enhance.normal_unsharp_masking(image.normals, light, mask=image.mask, sigma_px=sigma, gain=gain)
+    if _is_none(exposure):   # RTIViewer's picture as computed
+        r["exposure"] = "none"
+        return _cover(image, np.clip(display_albedo(image.albedo) * shade[..., None] if colour else shade, 0.0, 1.0), r)
     if not colour:
         lo, hi = _range(shade, image.mask, exposure, r, "exposure", clip_percent=5.0)
         return _cover(image, _enhance.tone_curve(shade, lo, hi), r)
@@ -446,11 +463,15 @@ def draw_specular(image: RGBNImage, light=(135.0, 45.0), kd: float = 0.6, ks: fl
     base = _exposed_colour(image, colour_exposure, r, "colour_exposure") if colour else None
     out = _enhance.specular_of_cosines(cos_nl, cos_nh, albedo=base, kd=kd, ks=ks, exponent=exponent, clip=False)
     del cos_nl, cos_nh, base
-    lum = out @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    lo, hi = _range(lum, image.mask, exposure, r, "exposure")
-    del lum
-    out *= np.float32(1.0 / max(hi, 1e-6))
-    _enhance.shoulder(out, out=out)
+    if _is_none(exposure):   # as computed: no scaling by the brightest, no roll-off
+        r["exposure"] = "none"
+        np.clip(out, 0.0, 1.0, out=out)
+    else:
+        lum = out @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        lo, hi = _range(lum, image.mask, exposure, r, "exposure")
+        del lum
+        out *= np.float32(1.0 / max(hi, 1e-6))
+        _enhance.shoulder(out, out=out)
     # diffuse times an exposed colour plus highlights scaled by the brightest: the lightness a
     # uniform material keeps can be narrow (a coin: 47 % of the tone range), so it is exposed too
     return _cover(image, _exposed_lightness(out, image.mask, lightness, r), r)
@@ -489,7 +510,7 @@ def _exposed_lightness(display: np.ndarray, mask, value, resolved: dict, key: st
 
 def draw_mean_curvature(image: RGBNImage, sigma_mm="auto", radius_mm="auto") -> Layer:
     """Mean curvature shading: convex light, concave dark, flat 0.5; radius_mm = the radius drawn at
-    0.8 / 0.2, "auto" = the 95th percentile of |H| (§7.3.6)."""
+    0.8 / 0.2, "auto" = the 90th percentile of |H| (§7.3.6)."""
     from common.rgbn.curvature import mean_curvature
 
     r = {}
@@ -691,7 +712,8 @@ PARAM_DOCS = {
                  'percentiles gets them drawn at L* 20/80 (hue and chroma kept), a wider one is left as drawn; '
                  '"none": as drawn; or [low, high] in L* (0-100)',
     "sigma_px": 'smoothing of the normals (Gaussian sigma, pixels); "auto" = the scale that brings the map\'s '
-                'noise to 0.004 (>= 2 px with JPEG blocks; x2 for curvature and lines, x3 for toon)',
+                'noise to 0.004 (>= 2 px with JPEG blocks; x2 for gooch, suggestive_contours, '
+                'suggestive_contours_object (>= 2 px) and ridges_valleys (>= 1.5 px), x3 for toon)',
     "sigma_mm": "scale of the relief drawn, mm: detail finer than this is enhanced (unsharp masking), or the "
                 'curvature scale; "auto" = from the noise',
     "sigma0_px": 'finest scale of exaggerated shading, pixels; "auto" = from the noise',
@@ -822,13 +844,20 @@ def validate_recipe(recipe: Recipe) -> None:
             raise ValueError(f"{lw}: style {style.name!r} has no parameter(s) {sorted(bad)}; "
                              f"it takes {', '.join(defaults) or 'none'}")
         for name in sorted(params):
-            problem = _type_problem(layer[name], defaults[name])
+            problem = _type_problem(layer[name], defaults[name], name)
             if problem:
                 raise ValueError(f"{lw}: style {style.name!r} parameter {name!r} {problem}, got {layer[name]!r}")
 
 
-def _type_problem(value, default) -> str | None:
-    """Why ``value`` cannot stand for a parameter whose default is ``default`` (None if it can)."""
+#: "auto" parameters that also take true / false (levelling on or off)
+_SWITCHES = frozenset({"level"})
+#: "auto" parameters that also take "none" (drawn as computed, the colour as captured)
+_NONE_OK = frozenset({"exposure", "colour_exposure", "lightness"})
+
+
+def _type_problem(value, default, name: str = "") -> str | None:
+    """Why ``value`` cannot stand for the parameter ``name`` whose default is ``default`` (None if
+    it can)."""
     def number(v):
         return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
 
@@ -839,9 +868,11 @@ def _type_problem(value, default) -> str | None:
         if number(value) or (isinstance(value, (list, tuple)) and value and all(
                 number(x) or (isinstance(x, (list, tuple)) and all(number(y) for y in x)) for x in value)):
             return None
-        if isinstance(value, str) and value == "none":
-            return None
-        return 'must be "auto" or a number (a [low, high] pair for an exposure)'
+        if name in _SWITCHES:
+            return None if isinstance(value, bool) else 'must be "auto", true, false or a number'
+        if name in _NONE_OK:
+            return None if _is_none(value) else 'must be "auto", "none" or a [low, high] pair'
+        return 'must be "auto" or a number (or a list of numbers)'
     if isinstance(default, bool):
         return None if isinstance(value, bool) else "must be true or false"
     if isinstance(default, int):

@@ -1,11 +1,12 @@
 """``tessera features``: describe an RGBN face (§5.4) and print or store its feature table.
 
     tessera features RGBN.h5 [--out FEATURES.h5] [--debug-dir D]
-    tessera features --store ROOT --fragment ID [--face front] [--debug-dir D]
+    tessera features --store ROOT --fragment ID [--face front] [--config STATION.toml] [--debug-dir D]
 
 The first form reads an RGBN file anywhere; the second finds the fragment's newest RGBN artifact
-of that face in the store, runs the feature stage exactly as the worker would (content-keyed
-output under ``fragments/<id>/features/``) and prints the ``features.ready`` event.
+of that face in the store, runs the feature stage exactly as the worker would (with the station
+configuration's ``[services.features]`` settings; content-keyed output under
+``fragments/<id>/features/``) and prints the ``features.ready`` event.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ log = logging.getLogger("tessera.features")
 
 
 def add_parser(subparsers) -> None:
+    from common.config import add_config_arguments
+
     p = subparsers.add_parser("features", help="compute the feature table of an RGBN face (§5.4)",
                               description=__doc__.split("\n\n")[0])
     p.add_argument("rgbn", nargs="?", help="an RGBN HDF5 file (tessera.rgbn)")
@@ -31,6 +34,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", help="write the table to this HDF5 file (RGBN-file form)")
     p.add_argument("--debug-dir", help="write debug pictures (patches, orientation, erosion) here")
     p.add_argument("--json", action="store_true", help="print the fragment-level values as JSON")
+    add_config_arguments(p)   # the --store form reads [services.features] as the worker does
     p.set_defaults(func=run)
 
 
@@ -92,10 +96,13 @@ def run(args) -> int:
             rel = cands[-1].relative_to(store.root).as_posix()
             job = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=store.ref(rel))
 
+            from common.config import config_from_arguments, service_config
+
             class _Ctx:
                 config: dict = {}
 
             ctx = _Ctx()
+            ctx.config = service_config(config_from_arguments(args), "features")
             ctx.store, ctx.log = store, log
             ctx.progress = lambda f, t: log.debug("%3.0f%% %s", 100 * f, t)
             events = stage.handle(job, ctx)

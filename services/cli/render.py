@@ -68,7 +68,7 @@ def _list_styles() -> int:
     from common.render.recipes import PARAM_DOCS, RECIPE_DIR, STYLES
 
     for style in STYLES.values():
-        print(f"{style.name}: {style.doc.splitlines()[0]}")
+        print(f"{style.name}: {style.summary}")
         for k, v in style.parameters().items():
             print(f"    {k} = {v!r}    # {PARAM_DOCS.get(k, '')}")
     print("shipped recipes: " + ", ".join(sorted(q.stem for q in RECIPE_DIR.glob('*.toml'))))

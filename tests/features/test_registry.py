@@ -65,3 +65,30 @@ def test_bad_descriptor_declaration_is_refused():
         Descriptor("x", "patch", frozenset({"depth"}), "abs_diff", "normal", "1", "")
     with pytest.raises(ValueError, match="period"):
         Descriptor("x", "patch", frozenset(), "angle_diff", "normal", "deg", "")
+
+
+def _tolerance_text(d: Descriptor) -> str:
+    text = f"{d.tolerance:g}"
+    return text + (f" + {d.rel_tolerance:g}·max(\\|a\\|,\\|b\\|)" if d.rel_tolerance else "")
+
+
+def test_the_descriptor_table_of_docs_features_md_is_the_registry():
+    """Every row of the docs' table states the registry's needs, rule, unit and tolerance (the
+    tolerances had drifted from the ones the invariance tests use)."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "features.md").read_text()
+    rows = [line for line in text.splitlines() if re.match(r"\| (fragment|patch) \| `", line)]
+    seen = set()
+    for line in rows:
+        level, name, needs, rule, unit, tolerance, _ = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
+        name = name.strip("`")
+        names = [f"{name.split('_s0')[0]}_s{k}" for k in range(10)] if "…" in name else [name]
+        for n in names:
+            d = DESCRIPTORS[f"{level}.{n}"]
+            seen.add(d.key)
+            assert needs == (", ".join(x for x in ("colour", "normal", "height") if x in d.needs) or "–"), d.key
+            assert (rule, unit) == (d.rule, d.unit), d.key
+            assert _tolerance_text(d) in tolerance, (d.key, tolerance)
+    assert seen == set(DESCRIPTORS)

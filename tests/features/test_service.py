@@ -88,6 +88,23 @@ def test_cli_describes_a_store_fragment_and_writes_debug_pictures(store_with_rgb
     assert sorted(p.name for p in dbg.iterdir()) == ["front-erosion.png", "front-orientation.png", "front-patches.png"]
 
 
+def test_cli_store_form_reads_the_work_grid_setting_as_the_worker_does(store_with_rgbn, tmp_path, capsys):
+    # docs/features.md: the --store form runs the stage "as the worker does", whose
+    # [services.features] work_pixel_mm sets the grid (150 dpi: 0.4 mm -> 2 x 0.169 mm)
+    store, _ = store_with_rgbn
+    assert tessera(["features", "--store", str(store.root), "--fragment", "F7",
+                    "--set", "services.features.work_pixel_mm=0.4"]) == 0
+    assert "work grid 0.339 mm" in capsys.readouterr().out
+    config = tmp_path / "station.toml"
+    config.write_text("[services.features]\nwork_pixel_mm = 5.0\n")
+    assert tessera(["features", "--store", str(store.root), "--fragment", "F7", "--config", str(config)]) == 1
+    assert "services.features.work_pixel_mm" in capsys.readouterr().out
+    # the default grid keeps its path; another one is a table of its own
+    assert tessera(["features", "--store", str(store.root), "--fragment", "F7"]) == 0
+    assert "work grid 0.169 mm" in capsys.readouterr().out
+    assert len(list(store.path("fragments/F7/features").glob("front-*.h5"))) == 2
+
+
 def test_cli_on_an_rgbn_file_writes_the_table(store_with_rgbn, tmp_path, capsys):
     store, ref = store_with_rgbn
     out = tmp_path / "t.h5"

@@ -56,7 +56,10 @@ def test_cli_errors_are_plain_messages_with_status_2(files, capsys):
     assert main(["render", str(tmp / "img.h5"), "--style", "toon"]) == 2
     assert "-o" in capsys.readouterr().err
     assert main(["render", "--list-styles"]) == 0
-    assert "exaggerated" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "exaggerated" in out
+    # each style's description is whole, not its docstring's first line cut mid-sentence
+    assert "highlights show slope;" in out
 
 
 def test_render_normals_reads_through_the_door_checks(files, capsys):

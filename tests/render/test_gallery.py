@@ -53,3 +53,26 @@ def test_judgement_sheet_shows_each_column_at_1_to_1_in_the_windows_it_names():
     # labels: dark text above each column, nothing but white where there is none
     top = sheet[30:70]
     assert (top < 128).any() and (sheet[:, -4:] == 255).all()
+
+
+def test_the_page_describes_every_style_in_whole_sentences():
+    """docs/gallery.md (drawn by this module) gives each style its docstring's first paragraph:
+    its first line alone stopped mid-sentence ("... highlights show")."""
+    from pathlib import Path
+
+    from common.render.recipes import STYLES
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "gallery.md").read_text()
+    for name, style in STYLES.items():
+        assert style.summary.endswith((".", ")")), name
+        if f"### {name}\n" in page:
+            assert f"### {name}\n\n{style.summary}\n" in page, name
+
+
+def test_the_page_states_the_parameters_as_the_code_does():
+    from pathlib import Path
+
+    from common.render.gallery import _recipe_reference
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "gallery.md").read_text()
+    assert _recipe_reference() in page

@@ -131,10 +131,45 @@ def test_unknown_recipe_name_lists_the_shipped_ones():
     ("style='ridges_valleys'\nvalley_colour=[0, 0, 2]", r"'valley_colour' must be an RGB colour"),
     ("style='toon'\nlevels=2.5", r"'levels' must be a whole number"),
     ("style='exaggerated'\nsigma0_px='fine'", r"'sigma0_px' must be \"auto\" or a number"),
+    # "none" is a value of the exposures only: elsewhere it used to fail later, unnamed
+    ("style='raking'\nsigma_px='none'", r"'sigma_px' must be \"auto\" or a number"),
+    ("style='exaggerated'\ntones='none'", r"'tones' must be \"auto\" or a number"),
+    ("style='raking'\nlevel='yes'", r"'level' must be \"auto\", true, false or a number"),
+    ("style='lambertian'\nexposure='off'", r"'exposure' must be \"auto\", \"none\" or a \[low, high\] pair"),
 ])
 def test_a_parameter_of_the_wrong_type_is_refused_by_name(layer, message):
     with pytest.raises(ValueError, match=message):
         parse_recipe(f"name='x'\n[[layer]]\n{layer}")
+
+
+@pytest.mark.parametrize("style", ["raking", "lambertian", "suggestive_contours"])
+@pytest.mark.parametrize("level", [True, False])
+def test_level_takes_true_and_false_as_documented(style, level):
+    # docs/gallery.md: level is "auto" / true / false / sigma in pixels
+    recipe = parse_recipe(f"name='x'\n[[layer]]\nstyle='{style}'\nlevel={str(level).lower()}")
+    yy, xx = np.mgrid[:48, :48]
+    n = np.dstack([0.1 * np.sin(xx / 4.0), 0.1 * np.cos(yy / 5.0), np.ones((48, 48))]).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    image = RGBNImage(np.full((48, 48, 3), 0.4, np.float32), np.ones((48, 48), bool), normals=n, dpi=300.0)
+    drawn = render(image, recipe)
+    assert (drawn.resolved[-1]["level"] > 0) == level
+
+
+@pytest.mark.parametrize("style, params", [
+    ("lambertian", {}), ("lambertian", {"colour": False}), ("raking", {"colour": True}),
+    ("specular", {}), ("normal_unsharp", {}), ("normal_unsharp", {"colour": False}),
+    ("gooch", {}), ("albedo", {}), ("colour_relief", {}), ("exaggerated", {"colour": True}),
+])
+def test_exposure_none_draws_as_computed_for_every_style_that_takes_it(style, params):
+    # docs/gallery.md: exposure "none" (as computed) for each style listed with an exposure
+    assert "exposure" in STYLES[style].parameters()
+    yy, xx = np.mgrid[:48, :48]
+    n = np.dstack([0.2 * np.sin(xx / 4.0), np.zeros((48, 48)), np.ones((48, 48))]).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    image = RGBNImage(np.full((48, 48, 3), 0.3, np.float32), np.ones((48, 48), bool), normals=n, dpi=300.0)
+    drawn = render(image, style_recipe(style, exposure="none", **params))
+    assert drawn.resolved[-1]["exposure"] == "none"
+    assert np.all(np.isfinite(drawn.rgb)) and drawn.rgb.min() >= 0.0 and drawn.rgb.max() <= 1.0
 
 
 @pytest.fixture(scope="module")
@@ -410,3 +445,25 @@ def test_a_normal_blend_of_partial_ink_is_base_plus_its_difference_times_alpha()
     alpha[30:] = 0.0
     expected = base + (rgb - base) * alpha[..., None]
     assert np.array_equal(_blend(base.copy(), rgb, alpha, "normal"), expected)
+
+
+def test_auto_sigma_px_is_the_noise_scale_times_the_factor_the_docs_state():
+    from common.render.recipes import PARAM_DOCS
+
+    rng = np.random.default_rng(3)
+    n = np.dstack([rng.normal(0, 0.045, (64, 64)), rng.normal(0, 0.045, (64, 64)), np.ones((64, 64))])
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+    image = RGBNImage(np.full((64, 64, 3), 0.4, np.float32), np.ones((64, 64), bool), normals=n, dpi=300.0)
+    base = render(image, style_recipe("lambertian")).resolved[-1]["sigma_px"]
+    assert base > 2.0   # above every floor
+    factors = {name: render(image, style_recipe(name)).resolved[-1]["sigma_px"] / base
+               for name, s in STYLES.items() if s.parameters().get("sigma_px") == "auto"}
+    # discontinuity lines smooth at the noise scale itself (exaggerated shading's finest level)
+    assert {k for k, f in factors.items() if abs(f - 1) < 0.01} == {"specular", "lambertian", "raking",
+                                                                   "discontinuity_lines"}
+    doubled = sorted(k for k, f in factors.items() if abs(f - 2) < 0.01)
+    assert doubled == ["gooch", "ridges_valleys", "suggestive_contours", "suggestive_contours_object"]
+    assert [k for k, f in factors.items() if abs(f - 3) < 0.01] == ["toon"]
+    doc = PARAM_DOCS["sigma_px"]
+    assert all(k in doc.split("x2 for ")[1].split("x3 for")[0] for k in doubled)
+    assert "x3 for toon" in doc and "lines" not in doc
