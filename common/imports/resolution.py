@@ -14,7 +14,9 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-__all__ = ["file_dpi"]
+import numpy as np
+
+__all__ = ["file_dpi", "resolve_dpi"]
 
 _INCH_M = 0.0254
 
@@ -115,3 +117,59 @@ def file_dpi(path) -> float | None:
         raise ValueError(f"{path}: declares non-square pixels ({x:.4g} x {y:.4g} dpi); resample it to square "
                          "pixels first")
     return float(x)
+
+
+def resolve_dpi(paths, given=None, *, where: str = "files", hint: str = "give --dpi") -> tuple[float, list[str]]:
+    """The dpi of a set of scans: ``given`` if not None, else the one the files declare.
+
+    One policy for every command that reads scans (``tessera import scans``, ``tessera calibrate
+    --from-files``): a given dpi wins, with a warning for each file declaring another (by more than
+    1 %); without one, the files must declare it, and agree within 1 %.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        The scan files; files that do not exist are skipped (the door refuses them later).
+    given : float or None
+        The dpi the user gave (``--dpi``, a manifest column), or None.
+    where : str
+        Names the set of scans in messages.
+    hint : str
+        What the user can do when no dpi can be found, appended to that message.
+
+    Returns
+    -------
+    dpi : float
+        ``given``, or the median of the declared resolutions.
+    warnings : list of str
+        A file contradicting ``given``, or a file declaring nothing beside others that do.
+
+    Raises
+    ------
+    ValueError
+        No dpi given and none declared, files declaring different resolutions (no dpi given), or a
+        file declaring non-square pixels.
+    """
+    paths = [Path(p) for p in paths]
+    declared = {}
+    for p in paths:
+        try:
+            d = file_dpi(p) if p.is_file() else None
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        if d is not None:
+            declared[str(p)] = d
+    if given is not None:
+        given = float(given)
+        return given, [f"{p} declares {d:.4g} dpi but {given:g} dpi was given; using {given:g}"
+                       for p, d in declared.items() if abs(d - given) > 0.01 * given]
+    if not declared:
+        raise ValueError(f"{where}: no dpi: the files declare none (no PNG pHYs, TIFF resolution or JPEG density); "
+                         f"{hint}")
+    values = sorted(declared.values())
+    if values[-1] - values[0] > 0.01 * values[-1]:
+        raise ValueError(f"{where}: the files declare different resolutions ({values[0]:.4g} to "
+                         f"{values[-1]:.4g} dpi); give --dpi")
+    missing = [str(p) for p in paths if str(p) not in declared]
+    warnings = [f"{missing[0]} declares no dpi; using {values[0]:.4g} dpi declared by the others"] if missing else []
+    return float(np.median(values)), warnings

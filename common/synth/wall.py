@@ -357,7 +357,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Physical width of ``image`` on the wall (default: sized for the fragment count).
     median_size_mm, sigma : float
         Log-normal fragment size (square root of area): median and log-sd, clipped to 1-20 cm
-        (default 30 mm and 1.0; the 'pompeii' preset 70 mm and 0.45, clipped to 2-20 cm).
+        (default 30 mm and 1.0; the 'pompeii' preset 90 mm and 0.4, clipped to 2-20 cm).
     missing_fraction : float
         Fraction of the broken pieces that are lost (0.1-0.3 is typical of excavations).
     spurious_fraction : float
@@ -394,7 +394,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
         Fragments without normals, height or surfaces (colour and mask only, like RePAIR);
         faster.
     gap_median_mm : float, optional
-        Median gap scale of the material loss (preset 'pompeii': 3.0 mm).
+        Median gap scale of the material loss (preset 'pompeii': 4.2 mm).
     **preset_overrides
         Further preset values: ``min_size_mm``, ``max_size_mm``, ``jag_scale_mm``,
         ``chips_per_cm``, ``round_mm``, ``edge_noise_mm`` (fine outline roughness),

@@ -3,7 +3,7 @@
     tessera calibrate                         # the simulated scanner (default [scanner] device)
     tessera calibrate --device sane --sane-device epson2:libusb:001:004
     tessera calibrate --show                  # print the newest valid calibration
-    tessera calibrate --from-files targets.csv --device epson-v850 --dpi 300   # scans of a target made elsewhere
+    tessera calibrate --from-files targets.csv --device epson-v850 [--dpi 300]  # scans of a target made elsewhere
     tessera calibrate --nominal --lamp-direction-deg 170 --device old-flatbed  # no target scans at all
 
 Scans the target at tilts 0–25° and eight rotations (a real scanner asks the operator to set up
@@ -30,6 +30,8 @@ around it, or is a crop of the target alone. Scans with more than ``--max-clippe
 pixels clipped (saturated, or at 0) are dropped and listed; the report gives each file's reading,
 clipped pixels and fit residual. Every file is checked at the door (decodes fully, not blank);
 a refused file stops the calibration and nothing is stored.
+The dpi (the mm scale of the fit along the tilt) is ``--dpi``, else what the files declare, as for
+``tessera import scans``: files declaring none, or different ones, are refused (exit 2).
 
 ``--nominal --lamp-direction-deg D`` is for a scanner with no target scans: the simulator's
 first-order model turned so that its light comes from D (counter-clockwise from the image's +x
@@ -40,6 +42,7 @@ The relief it gives is right; its tilt angles are nominal (docs/flatbed.md).
 from __future__ import annotations
 
 import json
+import sys
 
 from common.config import add_config_arguments, config_from_arguments
 
@@ -66,7 +69,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--name", help="scanner name to store the calibration under (default: the device's name)")
     p.add_argument("--tilts", default="0,5,10,15,20,25", help="target tilts in degrees (comma-separated)")
     p.add_argument("--azimuths", default="0,45,90,135,180,225,270,315", help="target rotations in degrees")
-    p.add_argument("--dpi", type=float, default=150.0, help="scan resolution of the target (default 150)")
+    p.add_argument("--dpi", type=float,
+                   help="scan resolution of the target (default 150; with --from-files, what the files declare: "
+                        "PNG pHYs, TIFF XResolution, JPEG density)")
     p.add_argument("--target-albedo", type=float, default=0.8, help="diffuse reflectance of the target (default 0.8)")
     p.add_argument("--show", action="store_true", help="print the newest valid calibration and exit")
     add_config_arguments(p)
@@ -78,6 +83,11 @@ def _floats(text: str, name: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise SystemExit(f"--{name} must be comma-separated numbers, got {text!r}")
+
+
+def _scan_dpi(args) -> float:
+    """The dpi to scan at (or record) when no files say it: ``--dpi``, else 150."""
+    return 150.0 if args.dpi is None else args.dpi
 
 
 def run(args) -> int:
@@ -129,7 +139,7 @@ def run(args) -> int:
         return 0
     try:
         cal = calibrate_scanner(scanner, operator, tilts=_floats(args.tilts, "tilts"),
-                                azimuths=_floats(args.azimuths, "azimuths"), dpi=args.dpi, area_mm=area,
+                                azimuths=_floats(args.azimuths, "azimuths"), dpi=_scan_dpi(args), area_mm=area,
                                 target_albedo=args.target_albedo,
                                 progress=lambda f, t: print(f"[{f:4.0%}] {t}", flush=True))
     except CaptureError as exc:
@@ -160,7 +170,7 @@ def _nominal(args, store) -> int:
         print("--nominal needs --lamp-direction-deg D: where the scanner's light comes from on its images, "
               "counter-clockwise from the +x axis (0 right, 90 top); `tessera import scans` logs it from the shadows")
         return 2
-    cal = nominal_calibration(args.device, args.lamp_direction_deg, dpi=args.dpi)
+    cal = nominal_calibration(args.device, args.lamp_direction_deg, dpi=_scan_dpi(args))
     ref = save_calibration(store, cal)
     a = ", ".join(f"{v:+.4f}" for v in cal.a)
     print(f"scanner {cal.scanner}: NOMINAL model a = ({a}) (the simulator's lamp turned to "
@@ -215,13 +225,13 @@ def _from_files(args, store) -> int:
     from common.acquisition.errors import CalibrationError
     from common.imports import ImportRefused, ProgressBar
     from common.imports.door import BLACK_FRACTION, read_image_checked
+    from common.imports.resolution import resolve_dpi
+    from common.limits import check_dpi
+    from common.store import ArtifactError
 
     if not args.device or args.device in ("simulated", "sane"):
         print("--from-files needs --device NAME: the name of the scanner that made the target scans "
               "(the calibration is stored under it, and `tessera import scans --device NAME` uses it)")
-        return 2
-    if not args.dpi > 0:
-        print(f"--dpi must be positive, got {args.dpi}")
         return 2
     if not 0 <= args.face_depth_mm <= 5:
         print(f"--face-depth-mm must be in [0, 5], got {args.face_depth_mm}")
@@ -231,6 +241,16 @@ def _from_files(args, store) -> int:
     except ValueError as exc:
         print(f"calibration failed: {exc}")
         return 1
+    # the dpi sets the mm scale of the lamp's change along the tilt: --dpi, else what the files
+    # declare, as `tessera import scans` does; never a silent default
+    try:
+        dpi, warnings = resolve_dpi([r[0] for r in rows], args.dpi, where=str(args.from_files))
+        dpi = check_dpi(dpi, "--dpi" if args.dpi is not None else f"{args.from_files}: the files' declared")
+    except (ValueError, ArtifactError) as exc:
+        print(exc)
+        return 2
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
     readings: list[TargetReading] = []
     bar = ProgressBar(len(rows), "target scans")
     try:
@@ -241,7 +261,7 @@ def _from_files(args, store) -> int:
             if float(px.max()) < BLACK_FRACTION * img.full_scale:
                 raise ImportRefused(f"{path}: is all black: lamp off or lid open?")
             try:
-                readings.append(read_target(px, args.dpi, tilt_deg=tilt, direction_deg=direction,
+                readings.append(read_target(px, dpi, tilt_deg=tilt, direction_deg=direction,
                                             depth_mm=args.face_depth_mm))
             except CalibrationError as exc:
                 raise ImportRefused(f"{path}: {exc}") from exc
@@ -254,7 +274,7 @@ def _from_files(args, store) -> int:
     try:
         cal = fit_target_readings(args.device, readings, [r[1] for r in rows], [r[2] for r in rows],
                                   names=[str(r[0].name) for r in rows], target_albedo=args.target_albedo,
-                                  max_clipped=args.max_clipped, dpi=args.dpi,
+                                  max_clipped=args.max_clipped, dpi=dpi,
                                   depth=16)
     except (CalibrationError, ValueError) as exc:
         print(f"calibration failed, nothing stored: {exc}")

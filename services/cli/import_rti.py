@@ -119,6 +119,8 @@ def describe_capture(folder: Path) -> dict:
 def _items(args) -> list[ImportItem]:
     from common.imports.manifest import fragment_id
 
+    if args.spheres and len(args.spheres) > 2:   # as tessera ps: a third sphere would be silently ignored
+        raise ValueError(f"--spheres takes MIRROR [DIFFUSE], got {len(args.spheres)} specs")
     items, used = [], {}
     for folder in find_captures(args.paths):
         fid = fragment_id(folder.name)

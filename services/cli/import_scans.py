@@ -125,34 +125,14 @@ def _dpi_of(fid: str, g: dict) -> float:
     A given dpi the files contradict (by more than 1 %) is used, with a warning naming the file;
     files of one fragment declaring different resolutions, or no dpi given or declared, are refused.
     """
-    from common.imports.resolution import file_dpi
+    from common.imports.resolution import resolve_dpi
 
-    declared = {}
-    for p in g["front"] + g["back"]:
-        try:
-            d = file_dpi(p) if Path(p).is_file() else None
-        except (ValueError, OSError) as exc:
-            raise ValueError(f"{fid} ({g['where']}): {exc}") from None
-        if d is not None:
-            declared[str(p)] = d
+    dpi, warnings = resolve_dpi(g["front"] + g["back"], g["dpi"], where=f"{fid} ({g['where']})",
+                                hint="give --dpi or a dpi column in the manifest")
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
     if g["dpi"] is not None:
-        for p, d in declared.items():
-            if abs(d - float(g["dpi"])) > 0.01 * float(g["dpi"]):
-                print(f"warning: {p} declares {d:.4g} dpi but {float(g['dpi']):g} dpi was given; using "
-                      f"{float(g['dpi']):g}", file=sys.stderr)
-        return g["dpi"]
-    if not declared:
-        raise ValueError(f"{fid} ({g['where']}): no dpi: the files declare none (no PNG pHYs, TIFF resolution or "
-                         "JPEG density); give --dpi or a dpi column in the manifest")
-    values = sorted(declared.values())
-    if values[-1] - values[0] > 0.01 * values[-1]:
-        raise ValueError(f"{fid} ({g['where']}): the files declare different resolutions ({values[0]:.4g} to "
-                         f"{values[-1]:.4g} dpi); give --dpi")
-    if len(declared) < len(g["front"]) + len(g["back"]):
-        missing = [str(p) for p in g["front"] + g["back"] if str(p) not in declared]
-        print(f"warning: {missing[0]} declares no dpi; using {values[0]:.4g} dpi declared by the others",
-              file=sys.stderr)
-    dpi = float(np.median(values))
+        return dpi
     log.info("%s: %.4g dpi, read from the files' metadata", fid, dpi)
     return dpi
 

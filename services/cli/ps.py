@@ -219,6 +219,7 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     else:
         chrome_imgs = imgs if not chrome_paths else hh.read_images(chrome_paths, srgb=srgb, bit_depth=bit_depth)[0]
         circle = _sphere_circle(chrome, chrome_imgs, "mirror")
+        inputs += [Path(spec) for spec in (chrome, diffuse) if spec and Path(spec).is_file()]
         if not chrome_paths:
             exclude |= sphere_normals(exclude.shape, circle, shrink=1.05)[1]
         diffuse_imgs = diffuse_sat = dcircle = None
@@ -288,13 +289,27 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     return Solved(rgbn, provenance, digest, method, residual, warnings)
 
 
-def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=None, light_positions=None) -> str:
-    """Content-keyed path of a hand-held capture's RGBN artifact."""
+#: options of ``tessera ps`` that change the artifact, at their defaults (left out of the key there,
+#: so artifacts stored before they were keyed keep their paths)
+KEYED_DEFAULTS = {"srgb": False, "dpi": 96.0, "discontinuities": True, "chrome": None, "diffuse": None}
+
+
+def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=None, light_positions=None,
+              options: dict | None = None) -> str:
+    """Content-keyed path of a hand-held capture's RGBN artifact.
+
+    ``options``: settings of :data:`KEYED_DEFAULTS` (a run with other settings must not find the
+    artifact of the first run in place and announce it as its own).
+    """
     from common.acquisition.handheld import VERSION
     from common.store import content_key
 
     parts = (digest, method, "handheld", VERSION) + ((f"dome={dome_radius}",) if dome_radius not in (None, "") else ())
     parts += (f"positions={light_positions}",) if light_positions is not None else ()
+    for name, default in KEYED_DEFAULTS.items():
+        value = (options or {}).get(name, default)
+        if value != default:
+            parts += (f"{name}={value}",)
     return f"fragments/{fragment}/rgbn/{face}-{content_key(*parts)}.h5"
 
 
@@ -346,7 +361,12 @@ def _run(args) -> int:
             print(f"wrote {p}")
     if args.store:
         store = Store(args.store)
-        relpath = rgbn_path(args.fragment, args.face, done.digest, args.method, args.dome_radius, args.light_positions)
+        # a sphere given as a mask file is in the digest; a circle or 'auto' is keyed by its text
+        spec = lambda v: None if v is None or Path(v).is_file() else v  # noqa: E731
+        options = {"srgb": bool(args.srgb), "dpi": float(args.dpi), "discontinuities": not args.no_discontinuities,
+                   "chrome": spec(args.chrome), "diffuse": spec(args.diffuse)}
+        relpath = rgbn_path(args.fragment, args.face, done.digest, args.method, args.dome_radius, args.light_positions,
+                            options)
         ref = save_rgbn(store, relpath, rgbn, provenance=provenance)
         event = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=ref,
                             source="handheld", method=args.method)

@@ -47,7 +47,7 @@ def add_parser(subparsers) -> None:
                    help="painting style (default aegean; pompeii with --preset pompeii)")
     p.add_argument("--image", help="use this picture as the painting instead")
     p.add_argument("--image-width-mm", type=float, help="physical width of --image on the wall")
-    p.add_argument("--median-size-mm", type=float, help="median fragment size, sqrt of area (default 30; pompeii 80)")
+    p.add_argument("--median-size-mm", type=float, help="median fragment size, sqrt of area (default 30; pompeii 90)")
     p.add_argument("--missing", type=float, help="fraction of pieces lost (default 0.2; pompeii 0.25)")
     p.add_argument("--spurious", type=float, help="fraction of fragments from another wall (default 0.05)")
     p.add_argument("--scan-dpi", type=float, help="scan resolution with --as scans (default: --dpi)")

@@ -5,6 +5,8 @@ The target scans are written by the simulated flatbed, whose lamp lies on the im
 """
 
 import csv
+import struct
+import zlib
 
 import cv2
 import numpy as np
@@ -21,23 +23,36 @@ DPI = 150
 POSES = [(0.0, 0.0)] + [(t, a) for t in (10.0, 20.0) for a in (0.0, 90.0, 180.0, 270.0)]
 
 
-def _scan(sim, tilt, direction, crop=False):
+def _scan(sim, tilt, direction, crop=False, dpi=DPI):
     sim.place(calibration_target(tilt, direction, size_mm=4.0, dpi=300), angle_deg=0.0, centre_mm=(60, 60))
-    img = sim.scan(AREA, DPI)
+    img = sim.scan(AREA, dpi)
     if crop:      # the target alone, no ring of bed
         n = img.shape[0]
         img = img[n // 2 - 5:n // 2 + 5, n // 2 - 5:n // 2 + 5]
     return img
 
 
-def _write_targets(folder, sim, poses=POSES, grey=False, clip=(), crop=False):
+def _declare_dpi(path, dpi):
+    """Splice a PNG pHYs chunk (pixels per metre) before the image data, as a scanner writes it."""
+    data = path.read_bytes()
+    i = data.index(b"IDAT") - 4
+    ppm = round(dpi / 0.0254)
+    body = struct.pack(">IIB", ppm, ppm, 1)
+    chunk = struct.pack(">I", len(body)) + b"pHYs" + body + struct.pack(">I", zlib.crc32(b"pHYs" + body))
+    path.write_bytes(data[:i] + chunk + data[i:])
+
+
+def _write_targets(folder, sim, poses=POSES, grey=False, clip=(), crop=False, dpi=DPI, declare=None):
+    """Target scans at ``dpi`` and their manifest; ``declare`` (one dpi, or one per pose) goes into the files."""
     rows = []
     for k, (t, a) in enumerate(poses):
-        img = _scan(sim, t, a, crop=crop)
+        img = _scan(sim, t, a, crop=crop, dpi=dpi)
         if k in clip:
             img = np.clip(img.astype(np.float64) * 3.0, 0, 65535).astype(np.uint16)
         name = f"t{t:g}_d{a:g}.png"
         cv2.imwrite(str(folder / name), img.mean(axis=2).astype(np.uint16) if grey else img[..., ::-1])
+        if declare is not None:
+            _declare_dpi(folder / name, declare[k] if isinstance(declare, list) else declare)
         rows.append((name, t, a))
     manifest = folder / "targets.csv"
     with open(manifest, "w", newline="") as fh:
@@ -152,3 +167,43 @@ def test_bad_manifest_or_files_are_refused_and_nothing_is_stored(tmp_path, capsy
 def test_from_files_needs_a_device_name(tmp_path, capsys):
     assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--from-files", "x.csv"]) == 2
     assert "--device NAME" in capsys.readouterr().out
+
+
+def test_from_files_takes_the_dpi_the_files_declare(tmp_path):
+    # docs/flatbed.md: without --dpi the scale is what the files declare; the lamp's change per mm
+    # along the tilt is then measured in real millimetres (a silent 150 dpi halved them at 300 dpi)
+    sim = SimulatedFlatbed("sim-declared", bed_mm=(120, 120), seed=3, dust=0)
+    check = np.array([target_normal(t, a) for t in (0.0, 10.0, 20.0) for a in range(0, 360, 30)])
+    slope_true = sim.exposure * (lamp_irradiance(check, 1.5, sim.lamp) - lamp_irradiance(check, 0.0, sim.lamp)) / 1.5
+    manifest = _write_targets(tmp_path, sim, dpi=300, declare=300)
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-300"]) == 0
+    cal, _ = newest_calibration(Store(store), "bench-300")
+    assert cal.dpi == pytest.approx(300, abs=0.01)
+    slope = np.c_[check, np.ones(len(check))] @ cal.a_per_mm
+    assert np.abs(slope - slope_true).max() < 0.3 * np.abs(slope_true).max()
+
+
+@pytest.mark.parametrize("declare", [None, [150.0] * 4 + [300.0] * 5])
+def test_from_files_without_dpi_is_refused_when_the_files_declare_none_or_disagree(tmp_path, capsys, declare):
+    sim = SimulatedFlatbed("sim-nodpi", bed_mm=(120, 120), seed=3, dust=0)
+    manifest = _write_targets(tmp_path, sim, declare=declare)
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-e"]) == 2
+    out = capsys.readouterr().out
+    assert ("no dpi: the files declare none" if declare is None else "declare different resolutions") in out
+    assert "give --dpi" in out
+    assert not (store / "calibration").exists() or not any((store / "calibration").rglob("*.h5"))
+
+
+def test_from_files_given_dpi_wins_over_the_files_with_a_warning(tmp_path, capsys):
+    sim = SimulatedFlatbed("sim-given", bed_mm=(120, 120), seed=3, dust=0)
+    manifest = _write_targets(tmp_path, sim, declare=72)      # an image editor's "don't know"
+    store = tmp_path / "store"
+    assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
+                 "--device", "bench-f", "--dpi", str(DPI)]) == 0
+    assert "declares 72.01 dpi but 150 dpi was given; using 150" in capsys.readouterr().err   # 2835 px/m
+    cal, _ = newest_calibration(Store(store), "bench-f")
+    assert cal.dpi == DPI

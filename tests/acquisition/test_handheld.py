@@ -178,6 +178,27 @@ def test_ps_command_writes_a_content_keyed_artifact_and_the_event(tmp_path, caps
     assert json.loads(again[again.index("{"):again.rindex("}") + 1])["artifact"] == event["artifact"]
 
 
+def test_ps_rerun_with_other_settings_writes_a_new_artifact(tmp_path, capsys):
+    # docs/handheld.md: re-running is harmless -- so a run with another --dpi or --srgb must not
+    # find the first run's artifact in place and announce it as its own
+    _, shots = _write_capture(tmp_path)
+    base = ["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+            "--store", str(tmp_path / "store"), "--fragment", "F1", "--method", "least_squares",
+            "--no-discontinuities"]
+
+    def artifact(*extra):
+        assert tessera(base + list(extra)) == 0
+        out = capsys.readouterr().out
+        return json.loads(out[out.index("{"):out.rindex("}") + 1])["artifact"]
+
+    first = artifact()
+    assert artifact() == first                       # same inputs and settings: the same artifact
+    at_300 = artifact("--dpi", "300")
+    assert at_300["path"] != first["path"]
+    assert load_rgbn(Store(tmp_path / "store"), at_300).dpi == 300
+    assert artifact("--srgb")["path"] not in (first["path"], at_300["path"])
+
+
 def test_ps_command_refuses_ambiguous_lights(tmp_path, capsys):
     _, shots = _write_capture(tmp_path, n=4)
     code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--chrome", "auto", "-o",

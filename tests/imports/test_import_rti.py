@@ -149,3 +149,12 @@ def test_a_capture_of_another_bit_depth_than_declared_is_refused(tmp_path, capsy
     err = capsys.readouterr().err
     assert "img0.png" in err and "8-bit was declared" in err
     assert _artifacts(store) == []
+
+
+def test_more_than_two_spheres_are_refused(tmp_path, capsys):
+    # docs/handheld.md: --spheres MIRROR [DIFFUSE]; a third spec must not be dropped silently
+    _capture(tmp_path / "cap", lp=False)
+    assert tessera(["import", "rti", str(tmp_path / "cap"), "--spheres", "auto", "auto", "auto",
+                    "--store", str(tmp_path / "store")]) == 2
+    assert "--spheres takes MIRROR [DIFFUSE]" in capsys.readouterr().err
+    assert _artifacts(tmp_path / "store") == []

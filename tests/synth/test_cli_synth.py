@@ -103,3 +103,15 @@ def test_synth_compare_with_a_missing_collection_fails_before_generating(tmp_pat
     assert main(["synth", "--preset", "pompeii", "--fragments", "5", "--compare", str(tmp_path / "nope"),
                  "--store", str(tmp_path / "s")]) == 2
     assert "nope" in capsys.readouterr().err and not (tmp_path / "s").exists()
+
+
+def test_synth_help_gives_the_pompeii_presets_own_defaults(capsys):
+    # the help's "pompeii" defaults are the preset's values (docs/synth.md: median 90 mm, 25 % missing)
+    import pytest
+
+    from common.synth.realistic import PRESETS
+    with pytest.raises(SystemExit):
+        main(["synth", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"pompeii {PRESETS['pompeii']['median_size_mm']:g})" in text
+    assert f"pompeii {PRESETS['pompeii']['missing_fraction']:g})" in text
