@@ -55,12 +55,13 @@ def station() -> Station:
 
 
 def requires(part: str, message: str) -> Callable:
-    """Decorator: answer 503 with ``message`` when the station has no ``part`` (e.g. ``"review"``)."""
+    """Decorator of a JSON route: answer 503 with ``{"error": message}`` when the station has no ``part``
+    (e.g. ``"review"``), so the page can say why (an HTML error page would leave it a generic message)."""
     def wrap(view: Callable) -> Callable:
         @functools.wraps(view)
         def checked(*args, **kwargs):
             if getattr(station(), part) is None:
-                abort(503, message)
+                abort(make_response(jsonify(error=message), 503))
             return view(*args, **kwargs)
         return checked
     return wrap

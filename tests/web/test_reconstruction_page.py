@@ -258,8 +258,10 @@ def test_without_a_proposal_store_the_api_says_so(tmp_path):
     from services import web
 
     app = web.create_app(token=TOKEN, store_root=tmp_path)
-    r = app.test_client().get("/api/reconstruction")
-    assert r.status_code == 503
+    c = app.test_client()
+    for url in ("/api/reconstruction", "/api/review/queue", "/api/catalogue"):
+        r = c.get(url)   # said in JSON, so the page shows the reason and not a generic failure
+        assert r.status_code == 503 and "not available on this station" in r.get_json()["error"], url
 
 
 # -- in Chromium, against a real station ------------------------------------------------------
