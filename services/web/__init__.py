@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import re
 import threading
@@ -37,6 +38,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from flask import Flask, jsonify, redirect, request, session, url_for
+from flask.json.provider import DefaultJSONProvider
 
 from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, save_token, session_secret
 
@@ -83,6 +85,27 @@ DEFAULTS: dict[str, Any] = {
     "feed_interval_s": 1.0,     # how often the catalogue asks the broker for new events
     "public_origin": "",        # the pages' address behind a TLS reverse proxy, e.g. "https://tessera.lab.example"
 }
+
+
+def _finite(value):
+    """``value`` with every float that is not finite (NaN, ±inf) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+class StrictJSONProvider(DefaultJSONProvider):
+    """Flask's JSON writer, but NaN and ±inf are written as ``null``: a browser's ``JSON.parse``
+    refuses a bare ``NaN`` (a docked proposal's ``alignment.gap_mm`` is NaN), and the review page
+    then showed an empty queue."""
+
+    def dumps(self, obj, **kwargs):
+        kwargs.setdefault("allow_nan", False)
+        return super().dumps(_finite(obj), **kwargs)
 
 
 class WebConfigError(ValueError):
@@ -208,6 +231,7 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     settings = dict(DEFAULTS, **(settings or {}))
     app = Flask("tessera.web", static_folder=str(HERE / "static"), template_folder=str(HERE / "templates"),
                 static_url_path="/static")
+    app.json = StrictJSONProvider(app)
     app.secret_key = session_secret(token)
     app.config.update(SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
                       SESSION_COOKIE_NAME="tessera_session", MAX_CONTENT_LENGTH=64 * 1024,
