@@ -321,6 +321,30 @@ class Catalogue:
             db.executemany("UPDATE fragments SET pending = ?, confirmed = ? WHERE id = ?",
                            [(p, c, f) for f, (p, c) in counts.items()])
             db.execute("COMMIT")
+        self._mark_matched()
+
+    def _mark_matched(self) -> None:
+        """Set the ``matched`` stage of fragments the matcher has taken in since their row was written.
+
+        A fragment's row is written on its artifact events; when the matcher records it only after the
+        last of them (it was busy, e.g. training its first model), only match events follow, and the row
+        would keep ``matched: waiting`` (state ``features``) until a rebuild."""
+        matched = self._matched()
+        if not matched:
+            return
+        with self._db() as db:
+            rows = db.execute("SELECT id, stages FROM fragments WHERE state != 'failed'").fetchall()
+        updates = []
+        for r in rows:
+            stages = json.loads(r["stages"])
+            if r["id"] in matched and stages.get("matched") == "waiting":
+                stages["matched"] = "done"
+                updates.append((json.dumps(stages), pipeline_state(stages), r["id"]))
+        if updates:
+            with self._write, self._db() as db:
+                db.execute("BEGIN")
+                db.executemany("UPDATE fragments SET stages = ?, state = ? WHERE id = ?", updates)
+                db.execute("COMMIT")
 
     def _matched(self) -> set[str]:
         if self.proposals is None or not self.proposals.is_file():
