@@ -20,7 +20,8 @@
   before (:meth:`MatchIndex.rank_all`; skipped when a newer model is current, whose own
   ``match.refitted`` follows), the mutual proximity of every stored pair is brought up to date, and
   the fragments whose best candidates hold pairs never docked, or whose top joins are not all stored,
-  are returned ``redock_batch`` at a time in ``match.reranked`` events, routed back to a matcher:
+  or whose best hold a pending join stored without a pose, are returned ``redock_batch`` at a time in
+  ``match.reranked`` events, routed back to a matcher:
 * ``match.reranked``: each listed fragment's pairs are docked and its joins proposed again, as a new
   fragment's ``match.ranked`` does, so no docking holds the re-rank (skipped, too, when a newer model
   is current).
@@ -292,9 +293,15 @@ def _on_refitted(job: dict, ctx) -> list[dict]:
     ctx.progress(0.9, "mutual proximity of the stored pairs")
     top, updates, redock = int(cfg.get("top", 10)), [], []
     for f in st.index.rankings:
-        others = [p.other(f) for p in st.db.ranked(f, limit=10 ** 6)]
+        stored = st.db.ranked(f, limit=10 ** 6)
+        others = [p.other(f) for p in stored]
         updates += [(f, o, m) for o, m in zip(others, st.index.mutual(f, others))]
-        if f in undocked or set(st.index.rankings[f][:top]) - set(others):
+        best = set(st.index.rankings[f][:top])
+        # a join the new model lifts into a fragment's best may have been stored without a pose (it was below
+        # the docked best when proposed): proposing the fragment again gives it one, for its review
+        unposed = st.model.docking is not None and any(
+            p.status == "pending" and p.angle_deg is None and p.other(f) in best for p in stored)
+        if f in undocked or best - set(others) or unposed:
             redock.append(f)
     st.db.set_mutual(updates)
     ctx.log.info("model %s: %d fragments ranked again; %d to dock and propose again (%d pairs never docked)",

@@ -795,15 +795,20 @@ class MatchIndex:
         for c, k, p, m in zip(head, corrected, prob, paint):
             d = self.docking(fragment, c.other)
             c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
-            q = self.pose(fragment, c.other)   # the proposed pose: chosen by contact and paint
-            c.alignment = Alignment(q.angle_deg, q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2,
-                                    float(k), tuple((a.angle_deg, a.tx_mm, a.ty_mm)
-                                                    for a in self.alternatives(fragment, c.other)))
+            c.alignment = self._docked_alignment(fragment, c.other, float(k))
         head.sort(key=lambda c: -c.probability)
         floor = head[-1].probability
         for c in tail:
             c.probability = min(c.probability, floor) if np.isfinite(c.probability) else c.probability
         return head + tail
+
+    def _docked_alignment(self, fragment: str, other: str, score: float) -> Alignment:
+        """The proposed pose of a docked pair as a candidate's alignment (:meth:`pose`, chosen by contact and
+        paint, with its :meth:`alternatives`); ``score``: the contact corrected for hubness (NaN where the pair
+        was docked before but is not among the best this ranking docked)."""
+        q = self.pose(fragment, other)
+        return Alignment(q.angle_deg, q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2, score,
+                         tuple((a.angle_deg, a.tx_mm, a.ty_mm) for a in self.alternatives(fragment, other)))
 
     def _fresco_signature(self, fragment: str):
         """The fragment's :class:`~common.matching.fresco.FrescoSignature` (from its boundary profile and
@@ -901,6 +906,13 @@ class MatchIndex:
             for c in ranked:
                 if c.patch_a >= 0 and c.evidence is None:
                     c.evidence = self._evidence(cues, c)
+        if dock:
+            # a kept join below the docked best whose pair was docked with paint before (from the other side,
+            # by an earlier ranking or another worker) still carries that pose: a refit can lift such a join
+            # to the top, and its review must show it joined
+            for c in ranked:
+                if c.alignment is None and self._recall(_pair(cues.fragment, c.other), paint=True):
+                    c.alignment = self._docked_alignment(cues.fragment, c.other, float("nan"))
         contour_a = contour_mm if contour_mm is not None else self.contours.get(cues.fragment)
         if contour_a is not None and dock:
             for c in ranked[:check]:

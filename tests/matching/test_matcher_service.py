@@ -222,6 +222,54 @@ def test_a_model_update_ranks_every_fragment_again_and_leaves_new_dockings_to_jo
     assert matcher.handle(dict(follow[0], model_version=model.version), ctx) == []
 
 
+def test_a_join_stored_without_a_pose_gets_one_when_a_model_update_lifts_it(station):
+    """Seen on 16 real RePAIR fragments: a join stored below a fragment's docked best has no pose; a verdict's
+    refit lifted it to the top of the queue (99 %), but the re-rank found nothing to dock (the pair had been
+    docked from its other side) and nothing missing, so it stayed without a pose and the review page could not
+    show it joined. A fragment whose best hold such a join is proposed again, and the join takes the pair's
+    docked pose (here: the pose it had, which the store had lost)."""
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    _arrivals_under_a_docking_model(station, 24)
+    wrong = next(p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b))
+    (refitted,) = matcher.handle(new_message("match.verified", fragment=wrong.fragment_a, other=wrong.fragment_b,
+                                             verdict="rejected"), ctx)
+    for e in matcher.handle(refitted, ctx):                   # the update's re-rank, done
+        matcher.handle(e, ctx)
+    st = matcher._state(ctx)
+    target = next(p for p in db.pending(10 ** 6) if p.angle_deg is not None
+                  and p.fragment_b in st.index.rankings.get(p.fragment_a, [])[:5])
+    pose = (target.angle_deg, target.tx_mm, target.ty_mm)
+    db._db.execute("UPDATE proposals SET angle_deg = NULL, tx_mm = NULL, ty_mm = NULL, alignment = NULL "
+                   "WHERE id = ?", (target.id,))              # stored without a pose
+    follow = matcher.handle(refitted, ctx)                    # the same model ranks alike: nothing else to do
+    redock = {f for e in follow for f in e["redock"]}
+    assert target.fragment_a in redock
+    for e in follow:
+        matcher.handle(e, ctx)
+    again = db.get(target.fragment_a, target.fragment_b)
+    assert again.alignment is not None
+    assert (again.angle_deg, again.tx_mm, again.ty_mm) == pytest.approx(pose, abs=1e-6)
+
+
+def test_a_join_below_the_docked_best_carries_the_pose_of_a_docking_made_before(station):
+    """Stage 3 docks a fragment's best few; a kept join below them whose pair was docked before (from the other
+    side, or by an earlier ranking) now carries that docking's pose and alternatives instead of none."""
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    model = _arrivals_under_a_docking_model(station, 24)
+    st = matcher._state(ctx)
+    f = wall.fragments[0].id
+    found = st.index.propose(st.index.cues[f], model, top=8, check=0, dock_candidates=1)
+    below = [c for c in found[1:] if st.index.docked(f, c.other)]
+    assert below, "some pairs below the best were docked before"
+    for c in below:
+        q = st.index.pose(f, c.other)
+        assert c.alignment is not None and (c.alignment.angle_deg, c.alignment.tx_mm) == (q.angle_deg, q.tx_mm)
+        assert np.isnan(c.alignment.score) and len(c.alignment.alternatives) == len(st.index.alternatives(f, c.other))
+    assert all(c.alignment is None for c in found[1:] if not st.index.docked(f, c.other))
+
+
 def test_a_restarted_matcher_worker_docks_no_pair_docked_before(station, monkeypatch):
     """The dockings are kept in the proposal store: a matcher worker restarted after the arrivals (its
     caches gone) re-ranks after a model update docking nothing, sends on to be docked again the fragments
