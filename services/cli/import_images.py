@@ -21,7 +21,7 @@ from pathlib import Path
 from common.imports import ImportItem, ImportRefused, Output
 
 #: algorithm version of this importer: part of every content key
-VERSION = "images-1"
+VERSION = "images-2"   # 2: the face cut to the fragment and 2 mm round it (attrs crop_px)
 
 
 def add_parser(subparsers) -> None:
@@ -80,7 +80,7 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
     """One picture -> one colour-only RGBN face (door checks, mask, metadata); ``pictures``: a
     folder for the mask drawn over the picture."""
     from common.imports.door import read_image_checked
-    from common.imports.fragments import fragment_from_image
+    from common.imports.fragments import crop_to_fragment, fragment_from_image
     from common.rgbn.image import save_rgbn
 
     import numpy as np
@@ -95,17 +95,21 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
         raise ImportRefused(f"{src}: {exc}") from None
     except ValueError as exc:  # e.g. --background alpha on a picture without alpha
         raise ImportRefused(f"{src}: {exc}") from None
+    rgbn, (x0, y0) = crop_to_fragment(rgbn)   # the piece, not the picture's background round it
     rgbn.attrs.update({"source": "tessera import images", "face": item.face,
                        "metadata": json.dumps(opts["metadata"], sort_keys=True, ensure_ascii=False)})
     prov = {"importer": "tessera import images", "version": VERSION, "source_file": str(src),
-            "source_sha256": item.digests[0], "dpi": opts["dpi"], "mask_from": rgbn.attrs["mask_from"]}
+            "source_sha256": item.digests[0], "dpi": opts["dpi"], "mask_from": rgbn.attrs["mask_from"],
+            "crop_px": [x0, y0]}
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", rgbn, provenance=prov)
     if pictures:
         from common.imports.fragments import mask_picture
         from common.synth.figures import save_png
         colour = image.pixels if image.pixels.ndim == 3 else image.pixels[..., None]
         colour = colour[..., :3] if colour.shape[2] >= 3 else np.repeat(colour[..., :1], 3, axis=2)
-        save_png(Path(pictures) / f"{item.fragment}-{item.face}.png", mask_picture(colour, rgbn.mask))
+        h, w = rgbn.mask.shape
+        save_png(Path(pictures) / f"{item.fragment}-{item.face}.png",
+                 mask_picture(colour[y0:y0 + h, x0:x0 + w], rgbn.mask))
     return [Output("rgbn.ready", ref, {"face": item.face, "colour_only": True, "metadata": opts["metadata"]})]
 
 

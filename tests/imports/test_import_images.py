@@ -66,7 +66,15 @@ def test_alpha_and_plain_pictures_become_rgbn_faces_with_the_true_mask(tmp_path)
     for f in files:
         img = load_rgbn(store, f.relative_to(tmp_path / "st").as_posix())
         truth = truths[f.parts[-3]]
-        iou = (img.mask & truth).sum() / (img.mask | truth).sum()
+        # the face is the piece and 2 mm round it (24 px at 300 dpi), cut where the picture allows
+        (x0, y0), (h, w) = img.attrs["crop_px"], img.mask.shape
+        rows, cols = np.flatnonzero(truth.any(axis=1)), np.flatnonzero(truth.any(axis=0))
+        corners = (y0, x0, y0 + h, x0 + w)
+        want = (max(rows[0] - 24, 0), max(cols[0] - 24, 0), min(rows[-1] + 25, truth.shape[0]),
+                min(cols[-1] + 25, truth.shape[1]))
+        assert np.abs(np.subtract(corners, want)).max() <= 2, (corners, want)   # the mask's edge within 2 px
+        window = truth[y0:y0 + h, x0:x0 + w]
+        iou = (img.mask & window).sum() / (img.mask | window).sum()
         assert iou > 0.98, (f, iou)
         assert img.dpi == 300 and img.normals is None
 
@@ -203,7 +211,10 @@ def test_pictures_show_each_mask_and_a_file_in_their_place_is_refused(tmp_path, 
     assert main(["import", "images", str(tmp_path / "M1.png"), "--dpi", "300", "--store", str(tmp_path / "st"),
                  "--pictures", str(pics)]) == 0
     pic = cv2.imread(str(pics / "M1-front.png"))[..., ::-1]
-    assert pic.shape[:2] == truth.shape
+    (rgbn,) = _rgbn_files(tmp_path / "st")
+    x0, y0 = load_rgbn(Store(tmp_path / "st"), rgbn.relative_to(tmp_path / "st").as_posix()).attrs["crop_px"]
+    truth = truth[y0:y0 + pic.shape[0], x0:x0 + pic.shape[1]]   # the picture shows the face: the piece, cut out
+    assert pic.shape[:2] == truth.shape and truth.any()
     outline = (pic[..., 0] == 255) & (pic[..., 1] == 0) & (pic[..., 2] == 255)
     edge = truth ^ cv2.erode(truth.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     near = cv2.dilate(outline.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
