@@ -70,8 +70,8 @@ SIGMA_DEG = 1.0
 P_VALUE = 1e-4
 #: at most this many reweighting rounds of the robust solve
 IRLS_ROUNDS = 25
-#: a newcomer docked against its whole cluster takes that pose where it faces at least two members there,
-#: each along this much outline (mm); else the pair's own proposed pose is kept (:func:`dock_newcomer`)
+#: a newcomer docked against its whole cluster fits a corner where it faces at least two members there, each
+#: along this much outline (mm): that pose is then offered beside the pair's own (:func:`dock_next_joins`)
 CLUSTER_FACING_MM = 10.0
 FRAME = ("p_cluster = R(angle_deg) @ p_fragment + (tx_mm, ty_mm); mm, x right, y down; a fragment's frame has "
          "x = column * pixel_mm, y = row * pixel_mm of its front RGBN image")
@@ -753,16 +753,17 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
     limit : int
     pieces : mapping fragment -> (contour_mm, paint field or None), optional
         Outlines and paint fields of the members and newcomers: each of the best ``limit`` newcomers is
-        then also docked against the whole cluster (:func:`dock_newcomer`), and takes that pose where it
-        faces two members or more there.
+        then also docked against the whole cluster (:func:`dock_next_joins`), its fit offered where it
+        fits a corner.
 
     Returns
     -------
     list of dict, best first: ``proposal`` (id), ``member``, ``newcomer``, ``probability``, ``mutual``
-    (None when the matcher has not ranked the pair in both fragments' lists), ``newcomer_cluster`` (id or None), and ``pose`` — the newcomer's frame in the cluster frame,
-    ``(angle_deg, tx_mm, ty_mm)``, composed from the member's solved pose and the proposal's pose —
-    or None when the proposal has no pose; ``pose_from``: ``"proposal"`` (so composed), ``"cluster"``
-    (docked against the cluster, with ``faces``: the members it faces there) or None.
+    (None when the matcher has not ranked the pair in both fragments' lists), ``newcomer_cluster`` (id or
+    None), ``pose`` — the newcomer's frame in the cluster frame, ``(angle_deg, tx_mm, ty_mm)``, composed
+    from the member's solved pose and the proposal's pose — or None when the proposal has no pose; with
+    ``pieces``, also ``fit`` (the pose docked against the whole cluster, or None) and ``faces`` (the members it
+    faces there).
     """
     if limit < 1:
         raise ValueError(f"limit must be >= 1, got {limit}")
@@ -785,7 +786,7 @@ def next_joins(cluster: Cluster, proposals: Iterable, clusters: Iterable[Cluster
         mutual = getattr(p, "mutual", None)
         out.append({"proposal": p.id, "member": member, "newcomer": newcomer, "probability": float(p.probability),
                     "mutual": None if mutual is None else float(mutual), "newcomer_cluster": owner.get(newcomer),
-                    "pose": pose, "pose_from": None if pose is None else "proposal"})
+                    "pose": pose, "fit": None, "faces": []})
     out.sort(key=lambda d: order_key(d["mutual"], d["probability"], d["proposal"]))
     out = out[:limit]
     return out if pieces is None else dock_next_joins(cluster, out, pieces)
@@ -799,11 +800,16 @@ def dock_key(cluster: Cluster, member: str, newcomer: str) -> tuple:
 
 def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
                     cache: MutableMapping | None = None) -> list[dict]:
-    """:func:`next_joins`' entries with each newcomer docked against the whole cluster (:func:`dock_newcomer`);
-    an entry takes that pose (``pose_from="cluster"``, ``faces``) where the newcomer faces two members or more.
+    """:func:`next_joins`' entries with each newcomer docked against the whole cluster (:func:`dock_newcomer`): an
+    entry gets ``fit`` — that pose, the newcomer's frame in the cluster frame — and ``faces`` where the newcomer
+    faces two members or more there, the proposal's member among them (else ``fit`` None).
+
+    The fit is offered beside the proposal's pose, not in its place: in simulated review sessions
+    (``tests/bench/bench_review_session.py``, docs/matching.md "Docking against a confirmed cluster") it was
+    the right pose less often than the pair's own on RePAIR and about as often on synthetic walls.
 
     ``pieces`` maps fragment -> (contour_mm, paint field or None); an entry whose newcomer or any member has
-    none is left as it is. ``cache`` (keyed by :func:`dock_key`, values ``(pose, faced)``) keeps dockings made
+    none gets no fit. ``cache`` (keyed by :func:`dock_key`, values ``(pose, faced)``) keeps dockings made
     before, so a caller that shows the same clusters again (the web's reconstruction page) docks each newcomer
     once; an entry found there needs no pieces. Returns new dicts; ``nexts`` is not changed.
     """
@@ -811,7 +817,7 @@ def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
     outline = None
     out = []
     for d in nexts:
-        d = dict(d)
+        d = dict(d, fit=None, faces=[])
         key = dock_key(cluster, d["member"], d["newcomer"])
         if key not in cache and d["newcomer"] in pieces and all(f in pieces for f in cluster.fragments):
             if outline is None:        # made once per cluster, for all its newcomers
@@ -823,8 +829,11 @@ def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
             cache[key] = (tuple(float(v) for v in docked), list(faced))
         if key in cache:
             docked, faced = cache[key]
-            if len(faced) >= 2:   # held by two members: the corner pins it (else one crack alone decides)
-                d.update(pose=tuple(docked), pose_from="cluster", faces=list(faced))
+            # held by two members, one of them the proposal's: the corner pins it (one crack alone does not;
+            # a fit away from the member the proposal joins it to is a nest in another corner, never right in
+            # the simulated review sessions)
+            if len(faced) >= 2 and d["member"] in faced:
+                d.update(fit=tuple(docked), faces=list(faced))
         out.append(d)
     return out
 
@@ -945,7 +954,8 @@ def reconstruction_document(clusters: list[Cluster], *, unposed: Iterable = (), 
             "n_conflicting_loops": len(c.conflicting_loops),
             "blamed": [list(p) for p in c.blamed],
             "solve": {"cost": c.cost, "evaluations": c.iterations, "cpu_s": c.solve_s},
-            "next_joins": [{**d, "pose": (dict(zip(("angle_deg", "tx_mm", "ty_mm"), d["pose"])) if d["pose"] else None)}
+            "next_joins": [{**d, **{k: dict(zip(("angle_deg", "tx_mm", "ty_mm"), d[k])) if d.get(k) else None
+                                    for k in ("pose", "fit")}}
                            for d in next_by_cluster.get(c.id, [])],
             "composite": composites.get(c.id)})
     return out

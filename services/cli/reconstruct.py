@@ -6,11 +6,11 @@
 Solves the pose graph of the station's confirmed joins (``common/matching/reconstruction.py``) and
 writes ``OUT/reconstruction.json`` (schema ``tessera.reconstruction`` v1, ``docs/storage.md``) and,
 per cluster, ``OUT/cluster-<root>.png`` (8-bit sRGB, alpha = coverage) and ``cluster-<root>.tif``
-(16-bit). Each cluster's next joins carry the pose the newcomer would take; one that fits a corner of the
-cluster (it faces two members there) is docked against the whole cluster (docs/matching.md, "Docking
-against a confirmed cluster"; ``--no-dock``: the proposals' poses only). Conflicting loops are printed and
-listed in the JSON. Exit 0, 1 when a loop conflicts or
-a fragment's image is missing, 2 on bad arguments.
+(16-bit). Each cluster's next joins carry the pose the newcomer would take (its proposal's) and, where
+docked against the whole cluster it fits a corner (it faces two members there), that fit too
+(docs/matching.md, "Docking against a confirmed cluster"; ``--no-dock``: no fits). Conflicting loops are
+printed and listed in the JSON. Exit 0, 1 when a loop conflicts or a fragment's image is missing, 2 on bad
+arguments.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--sigma-deg", type=float, default=1.0, help="a join's angle uncertainty, degrees (default 1)")
     p.add_argument("--json-only", action="store_true", help="write the JSON poses, no composites")
     p.add_argument("--no-dock", action="store_true",
-                   help="give each next join the pose its proposal has, without docking the newcomer against the "
-                        "whole cluster (which reads the feature tables, ~0.1-0.3 s CPU a newcomer)")
+                   help="do not dock the next joins' newcomers against their whole cluster for a fit in a corner "
+                        "(which reads the feature tables, ~0.1-0.3 s CPU a newcomer)")
     from common.config import add_config_arguments
     add_config_arguments(p)
     p.set_defaults(func=run)
@@ -77,7 +77,7 @@ def run(args) -> int:
             missing.update(why)
             bar.update(i + 1, f)
         bar.close()
-        unread = {}   # fragments whose outline cannot be read: their next joins keep the proposals' poses
+        unread = {}   # fragments whose outline cannot be read: their next joins get no fit
 
         def pieces(wanted):
             got, why = rc.front_pieces(store, db.fragments(face="front"), wanted)
@@ -126,5 +126,5 @@ def run(args) -> int:
     for f, why in missing.items():
         print(f"  {f}: {why}", file=sys.stderr)
     for f, why in unread.items():
-        print(f"  {f}: not docked against its cluster, the proposals' poses kept ({why})", file=sys.stderr)
+        print(f"  {f}: not docked against its cluster, no fit offered ({why})", file=sys.stderr)
     return 1 if conflicts or missing else 0

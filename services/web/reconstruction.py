@@ -5,8 +5,8 @@ The pose graph is :mod:`common.matching.reconstruction`; this blueprint feeds it
 
 * ``GET /reconstruction`` — the page: each cluster drawn at its solved poses (SVG over thumbnails),
   conflicting loops and given-up joins in red, the next joins along its open edges as ghosts at the
-  pose they would take (docked against the whole cluster where a newcomer fits one of its corners: a
-  background job, cached, whose results arrive as a change), export links;
+  pose they would take, and where a newcomer fits one of the cluster's corners that fit too (docked against
+  the whole cluster: a background job, cached, whose results arrive as a change), export links;
 * ``GET /api/reconstruction`` — the reconstruction as JSON (the ``tessera.reconstruction`` document,
   plus display data: thumbnails and sizes, verdicts seen on the event feed but not yet recorded);
 * ``GET /api/reconstruction/changes?after=SIG`` — long poll: answers when the verdicts or pending
@@ -155,7 +155,7 @@ def _dock_in_background(st, live: _Live, clusters: list, nexts: dict, todo: froz
                 live.pieces.clear()
             pieces, unread = front_pieces(Store(st.store_root, create=False), tables, wanted, cache=live.pieces)
             for f, why in unread.items():
-                log.info("reconstruction: %s not docked against its cluster, its proposal's pose kept (%s)", f, why)
+                log.info("reconstruction: %s not docked against its cluster, no fit offered (%s)", f, why)
             for c in mine:
                 dock_next_joins(c, nexts[c.id], pieces, cache=found)
         except Exception:   # a bug or a bad table must not kill the page: the proposals' poses stay
@@ -204,7 +204,7 @@ def _reconstruction() -> dict:
             payload = {"signature": sig, "document": None, "fragments": {}, "arriving": [], "missing": [],
                        "docking": False}
         else:
-            # newcomers docked against their clusters before are shown so; the others are docked meanwhile
+            # newcomers docked against their clusters before carry their fit; the others are docked meanwhile
             with live.lock:
                 docked = dict(live.docked)
             nexts = {c.id: dock_next_joins(c, rec["next"][c.id], {}, cache=docked) for c in rec["clusters"]}
@@ -241,17 +241,17 @@ def cluster_fit(proposal: dict) -> tuple[dict | None, bool]:
     """Where a pending proposal's newcomer fits into a corner of its confirmed cluster, as this page shows it:
     ``({angle_deg, tx_mm, ty_mm, cluster, faces}, docking)`` with the pose as fragment B in fragment A's frame
     (the proposal's convention), or ``(None, docking)``; ``docking`` says whether the background docking is still
-    running (the fit may come). The review page opens a proposal at this pose (docs/web.md)."""
+    running (the fit may come). The review page offers a proposal this pose (docs/web.md)."""
     from common.matching.reconstruction import relative_pose
 
     data = _reconstruction()
     for c in (data["document"] or {}).get("clusters", []):
         for n in c["next_joins"]:
-            if n["proposal"] != proposal["id"] or n.get("pose_from") != "cluster":
+            if n["proposal"] != proposal["id"] or not n.get("fit"):
                 continue
             member = next(f for f in c["fragments"] if f["fragment"] == n["member"])
             at = {n["member"]: (member["angle_deg"], member["tx_mm"], member["ty_mm"]),
-                  n["newcomer"]: (n["pose"]["angle_deg"], n["pose"]["tx_mm"], n["pose"]["ty_mm"])}
+                  n["newcomer"]: (n["fit"]["angle_deg"], n["fit"]["tx_mm"], n["fit"]["ty_mm"])}
             angle, tx, ty = relative_pose(at[proposal["fragment_a"]], at[proposal["fragment_b"]])
             return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty, "cluster": c["id"], "faces": n["faces"]}, \
                 data["docking"]

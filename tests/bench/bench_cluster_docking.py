@@ -12,8 +12,8 @@ cluster frame
   (:func:`~common.matching.docking.dock_outlines`, paint continuity, the learned chooser), composed with A's pose
   (what :func:`~common.matching.reconstruction.next_joins` gives without outlines);
 * docked against the whole cluster (:func:`~common.matching.reconstruction.dock_newcomer`);
-* by ``next_joins`` with the outlines: the cluster's pose where C faces two members or more there, else the
-  pair's.
+* by ``next_joins`` with the outlines: the fit it offers where C faces two members or more there (A among
+  them), else the pair's.
 
 Right: within 5° and 5 mm of the truth at C's centre (as ``tessera evaluate`` counts a pose). The cases are
 split by whether C is a true neighbour of B too (it fits a corner of the cluster). Prints a table per source and
@@ -83,8 +83,10 @@ def cases(wall) -> tuple[list[dict], float]:
                 def right(pose):
                     return max(relative_pose_error(poses[a], poses[c], pose, centre)) <= 5.0
 
+                fit = got["fit"] is not None   # the fit where next_joins offers one, else the pair's pose
                 out.append({"a": a, "b": b, "c": c, "corner": c in neighbours[b], "pair": right(z),
-                            "station": right(got["pose"]), "from": got["pose_from"]})
+                            "station": right(got["fit"] if fit else got["pose"]),
+                            "from": "cluster" if fit else "proposal"})
     return out, cpu
 
 

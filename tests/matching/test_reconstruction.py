@@ -414,7 +414,7 @@ def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_clust
     1.5 mm lost on each side. With A and B confirmed, C fits the corner they make: docked against the cluster
     it lands within 3 degrees and 3 mm of the truth (the docking's grid: 4 degree steps refined to 1, 1.5 mm
     cells; right, as tessera evaluate counts it, is 5 and 5), though the A-C proposal had it slid 15 mm down
-    the crack, and it faces both members there."""
+    the crack, and it faces both members there: that fit is offered beside the proposal's pose."""
     from types import SimpleNamespace
 
     from common.matching.reconstruction import Cluster, dock_newcomer, dock_next_joins
@@ -434,28 +434,28 @@ def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_clust
                            angle_deg=slid[0], tx_mm=slid[1], ty_mm=slid[2])
     plain = next_joins(cluster, [prop], [cluster])[0]
     docked = next_joins(cluster, [prop], [cluster], pieces=pieces)[0]
-    assert plain["pose_from"] == "proposal" and plain["pose"][2] == pytest.approx(truth["2"][2] + 15.0, abs=1e-6)
-    assert docked["pose_from"] == "cluster" and sorted(docked["faces"]) == ["0", "1"]
-    angle = (docked["pose"][0] - truth["2"][0] + 180) % 360 - 180
+    assert plain["fit"] is None and plain["pose"][2] == pytest.approx(truth["2"][2] + 15.0, abs=1e-6)
+    assert docked["pose"] == plain["pose"] and sorted(docked["faces"]) == ["0", "1"]   # the proposal's pose kept
+    angle = (docked["fit"][0] - truth["2"][0] + 180) % 360 - 180
     centre = outlines["2"].mean(axis=0)                         # the error where the newcomer is, as evaluate measures it
-    shift = np.hypot(*(_apply(docked["pose"], centre) - _apply(truth["2"], centre)))
+    shift = np.hypot(*(_apply(docked["fit"], centre) - _apply(truth["2"], centre)))
     assert abs(angle) <= 3 and shift <= 3, (angle, shift)
     # the same from the function itself
     pose, faced = dock_newcomer(cluster, "0", "2", pieces)
-    assert np.allclose(pose, docked["pose"]) and faced == docked["faces"]
+    assert np.allclose(pose, docked["fit"]) and faced == docked["faces"]
     # kept: shown again without the outlines (the web page docks once); a member moved is a new docking
     cache = {}
     assert dock_next_joins(cluster, [plain], pieces, cache=cache) == [docked] and len(cache) == 1
     assert dock_next_joins(cluster, [plain], {}, cache=cache) == [docked]
-    assert plain["pose_from"] == "proposal"                    # the entries given are not changed
+    assert plain["fit"] is None                                # the entries given are not changed
     moved = Cluster(id="C:0", root="0", fragments=["0", "1"], poses={"0": truth["0"], "1": (35.0, 40.0, -4.0)},
                     joins=cluster.joins)
     assert dock_next_joins(moved, [plain], {}, cache=cache) == [plain]
 
 
-def test_a_newcomer_that_meets_one_member_keeps_its_proposed_pose():
+def test_a_newcomer_that_meets_one_member_is_offered_no_fit():
     """Three strips side by side: C touches B only, so docking against the cluster {A, B} has nothing a single
-    crack would not have; the proposal's pose stays."""
+    crack would not have: no fit is offered, the proposal's pose stays."""
     from types import SimpleNamespace
 
     from common.matching.reconstruction import Cluster
@@ -471,7 +471,7 @@ def test_a_newcomer_that_meets_one_member_keeps_its_proposed_pose():
     prop = SimpleNamespace(id=1, fragment_a="1", fragment_b="2", probability=0.9, mutual=0.9, status="pending",
                            angle_deg=z[0], tx_mm=z[1], ty_mm=z[2])
     got = next_joins(cluster, [prop], [cluster], pieces={k: (c, None) for k, c in outlines.items()})[0]
-    assert got["pose_from"] == "proposal" and "faces" not in got
+    assert got["fit"] is None and got["faces"] == []
     assert (got["pose"][0] - truth["2"][0] + 180) % 360 - 180 == pytest.approx(0, abs=1e-6)
     assert got["pose"][1:] == pytest.approx(truth["2"][1:], abs=1e-6)
 
@@ -516,8 +516,8 @@ def station_with_a_cluster(root):
 
 def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(tmp_path):
     """``tessera reconstruct`` reads the members' and newcomers' feature tables and docks each next join's
-    newcomer against its cluster, saying where each pose came from; ``--no-dock`` keeps the proposals' poses;
-    a fragment whose feature table is missing keeps its proposal's pose, nothing fails."""
+    newcomer against its cluster, offering its fit where it fits a corner beside the proposal's pose;
+    ``--no-dock`` offers none; a fragment whose feature table is missing gets none, nothing fails."""
     from services.cli import main
 
     wall, _, (a, b) = station_with_a_cluster(tmp_path / "store")
@@ -530,11 +530,11 @@ def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(
 
     docked, plain = next_of(), next_of("--no-dock")
     assert docked and {d["newcomer"] for d in docked} == {d["newcomer"] for d in plain}
-    assert all(d["pose_from"] == "proposal" for d in plain)
-    assert {d["pose_from"] for d in docked} <= {"cluster", "proposal"}
-    assert any(d["pose_from"] == "cluster" for d in docked)   # this wall has a newcomer in the cluster's corner
+    assert all(d["fit"] is None for d in plain)
+    assert [d["pose"] for d in docked] == [d["pose"] for d in plain]   # the proposals' poses either way
+    assert any(d["fit"] is not None for d in docked)   # this wall has a newcomer in the cluster's corner
     for d in docked:
-        if d["pose_from"] == "cluster":
+        if d["fit"] is not None:
             assert set(d["faces"]) == {a, b}               # it fits between both members
         if d["newcomer"] == wall.fragments[0].id:
-            assert d["pose_from"] == "proposal"            # no outline to dock: the proposal's pose
+            assert d["fit"] is None                        # no outline to dock

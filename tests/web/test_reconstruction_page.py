@@ -170,10 +170,11 @@ def test_exports_composite_png_tiff_and_json(app_and_db):
     assert c.get("/api/reconstruction/thumb/..%2Fetc.png").status_code in (400, 404)
 
 
-def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_path):
+def test_next_joins_are_tried_in_the_clusters_corners_in_the_background(tmp_path):
     """The page answers at once with the proposals' poses and docks the newcomers against their cluster in the
-    background; when that lands the signature changes and the page shows the poses ``tessera reconstruct`` gives
-    (the library's next_joins with the feature tables' outlines). Docked once: reloading docks nothing anew."""
+    background; when that lands the signature changes and the page shows the fits ``tessera reconstruct`` gives
+    (the library's next_joins with the feature tables' outlines) beside the proposals' poses. Docked once:
+    reloading docks nothing anew."""
     from common.matching.proposals import ProposalStore
     from common.matching.reconstruction import front_pieces, reconstruct
     from common.store import Store
@@ -188,7 +189,7 @@ def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_p
     c = app.test_client()
     first = c.get("/api/reconstruction").get_json()
     (cluster,) = first["document"]["clusters"]
-    assert first["docking"] is True and all(n["pose_from"] == "proposal" for n in cluster["next_joins"])
+    assert first["docking"] is True and all(n["fit"] is None for n in cluster["next_joins"])
     sig = first["signature"]
     deadline = time.monotonic() + 60
     while not c.get(f"/api/reconstruction/changes?after={sig}").get_json()["changed"]:
@@ -199,14 +200,16 @@ def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_p
         want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path), db.fragments(face="front"), fs)[0])
     (expected,) = want["next"].values()
     assert data["docking"] is False
-    assert [(n["newcomer"], n["pose_from"]) for n in cluster["next_joins"]] == \
-        [(n["newcomer"], n["pose_from"]) for n in expected]
-    corner = [n for n in cluster["next_joins"] if n["pose_from"] == "cluster"]
+    assert [(n["newcomer"], n["fit"] is None) for n in cluster["next_joins"]] == \
+        [(n["newcomer"], n["fit"] is None) for n in expected]
+    corner = [n for n in cluster["next_joins"] if n["fit"] is not None]
     assert corner and all(sorted(n["faces"]) == sorted(pair) for n in corner)
     for got, n in zip(cluster["next_joins"], expected):
-        assert [got["pose"]["angle_deg"], got["pose"]["tx_mm"], got["pose"]["ty_mm"]] == pytest.approx(list(n["pose"]))
-    # the fragment without a feature table keeps its proposal's pose; nothing is docked again
-    assert all(n["pose_from"] == "proposal" for n in cluster["next_joins"] if n["newcomer"] == wall.fragments[0].id)
+        for k in ("pose", "fit"):
+            if n[k] is not None:
+                assert [got[k]["angle_deg"], got[k]["tx_mm"], got[k]["ty_mm"]] == pytest.approx(list(n[k]))
+    # the fragment without a feature table gets no fit; nothing is docked again
+    assert all(n["fit"] is None for n in cluster["next_joins"] if n["newcomer"] == wall.fragments[0].id)
     live = app.extensions[LIVE]
     docked, rounds = dict(live.docked), live.dock_round
     with ProposalStore(db_path) as db:                      # a verdict elsewhere: the page is recomputed
@@ -216,9 +219,9 @@ def test_next_joins_are_fitted_into_the_clusters_corners_in_the_background(tmp_p
     assert live.docked == docked and live.dock_round == rounds
 
 
-def test_the_review_page_opens_a_corner_newcomer_at_its_fit_in_the_cluster(tmp_path):
-    """A pending proposal whose newcomer fits a corner of a confirmed cluster is offered first at that pose on the
-    review page (``/api/review/alternatives``' ``cluster``: the adjustment of the proposal's pose that reaches it),
+def test_the_review_page_offers_a_corner_newcomer_its_fit_in_the_cluster(tmp_path):
+    """A pending proposal whose newcomer fits a corner of a confirmed cluster is offered that pose on the review
+    page (``/api/review/alternatives``' ``cluster``: the adjustment of the proposal's pose that reaches it),
     the pose tessera reconstruct gives it, as B in A's frame; once the docking has landed. A proposal whose newcomer
     fits no corner has none."""
     from common.matching.proposals import ProposalStore
@@ -236,8 +239,8 @@ def test_the_review_page_opens_a_corner_newcomer_at_its_fit_in_the_cluster(tmp_p
         want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path), db.fragments(face="front"), fs)[0])
     (cluster,) = want["clusters"]
     (nexts,) = want["next"].values()
-    corner = next(n for n in nexts if n["pose_from"] == "cluster")
-    plain = next(n for n in nexts if n["pose_from"] == "proposal" and n["pose"] is not None)
+    corner = next(n for n in nexts if n["fit"] is not None)
+    plain = next(n for n in nexts if n["fit"] is None and n["pose"] is not None)
 
     deadline = time.monotonic() + 60
     while (got := c.get(f"/api/review/alternatives/{corner['proposal']}").get_json())["docking"]:
@@ -246,7 +249,7 @@ def test_the_review_page_opens_a_corner_newcomer_at_its_fit_in_the_cluster(tmp_p
     fit = got["cluster"]
     assert fit is not None and sorted(fit["faces"]) == sorted(pair)
     prop = review.proposal(corner["proposal"])
-    at = {corner["member"]: cluster.poses[corner["member"]], corner["newcomer"]: corner["pose"]}
+    at = {corner["member"]: cluster.poses[corner["member"]], corner["newcomer"]: corner["fit"]}
     expected = relative_pose(at[prop["fragment_a"]], at[prop["fragment_b"]])
     shown = review.adjusted_pose(prop["id"], fit["turn_deg"], (fit["shift_x_mm"], fit["shift_y_mm"]))
     assert [shown["angle_deg"], shown["tx_mm"], shown["ty_mm"]] == pytest.approx(list(expected), abs=1e-6)
@@ -348,9 +351,9 @@ def test_confirming_joins_grows_the_cluster_live_in_the_browser(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_review_page_opens_at_the_corner_fit_in_the_browser(tmp_path):
-    """In Chromium, against ``tessera web``: selecting a proposal whose newcomer fits a corner of a confirmed
-    cluster shows the joined picture at that fit and says so; P steps to the proposal's own pose."""
+def test_the_review_page_offers_the_corner_fit_in_the_browser(tmp_path):
+    """In Chromium, against ``tessera web``: a proposal whose newcomer fits a corner of a confirmed cluster opens
+    at its own pose, and P steps to the fit, saying so (the joined picture at it); P again goes on."""
     from common.matching.proposals import ProposalStore
     from common.matching.reconstruction import front_pieces, reconstruct
     from common.store import Store
@@ -367,19 +370,30 @@ def test_the_review_page_opens_at_the_corner_fit_in_the_browser(tmp_path):
         want = reconstruct(db, pieces=lambda fs: front_pieces(Store(tmp_path / "storage"),
                                                                db.fragments(face="front"), fs)[0])
     (nexts,) = want["next"].values()
-    corner = next(n for n in nexts if n["pose_from"] == "cluster")
+    corner = next(n for n in nexts if n["fit"] is not None)
     web = WebProcess(tmp_path).start()
     try:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
             page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+            deadline = time.monotonic() + 60                 # the web app docks in the background first
+            while True:
+                with urllib.request.urlopen(f"{web.url}/api/review/alternatives/{corner['proposal']}") as r:
+                    if json.load(r)["cluster"] is not None:
+                        break
+                assert time.monotonic() < deadline, "the docking never landed"
+                time.sleep(0.5)
             page.goto(f"{web.url}/review?fragment={corner['newcomer']}")
             page.click(f"#queue li[data-proposal='{corner['proposal']}']")
-            page.wait_for_selector(f"#pose-adjust:has-text('fitted into the corner of')", timeout=60_000)
+            page.wait_for_function("() => document.getElementById('joined-colour').src.includes('/joined-colour.png')")
+            assert "turn_deg=" not in page.get_attribute("#joined-colour", "src")    # its own pose first
+            page.keyboard.press("p")
+            page.wait_for_selector("#pose-adjust:has-text('fitted into the corner of')", timeout=10_000)
             assert all(f in page.inner_text("#pose-adjust") for f in pair)
+            assert "candidate pose 2 of" in page.inner_text("#pose-adjust")
             assert "turn_deg=" in page.get_attribute("#joined-colour", "src")
-            page.keyboard.press("p")                        # the proposal's own pose: no adjustment
-            page.wait_for_function("() => !document.getElementById('joined-colour').src.includes('turn_deg=')",
+            page.keyboard.press("p")                        # on to the docking's next candidate
+            page.wait_for_function("() => !document.getElementById('pose-adjust').textContent.includes('corner')",
                                    timeout=10_000)
             browser.close()
     finally:

@@ -27,9 +27,9 @@
     return [[x0, y0], [x1, y0], [x1, y1], [x0, y1]];
   }
 
-  function piece(fid, pose, info, cls, docked) {
+  function piece(fid, pose, info, cls) {
     const g = svg("g", { class: `piece ${cls}`, "data-fragment": fid, transform: matrix(pose) });
-    g.append(svg("title", {}, `${fid}${cls === "ghost" ? (docked ? " (proposed, fitted into the cluster's corner)" : " (proposed)") : ""}`));
+    g.append(svg("title", {}, `${fid}${cls === "ghost" ? " (proposed)" : ""}`));
     g.append(svg("image", { href: info.thumb, x: info.x_mm, y: info.y_mm, width: info.width_mm, height: info.height_mm,
                             preserveAspectRatio: "none" }));
     if (cls === "ghost") g.append(svg("rect", { x: info.x_mm, y: info.y_mm, width: info.width_mm, height: info.height_mm,
@@ -58,7 +58,7 @@
     const pic = svg("svg", { viewBox: `${lo[0] - pad} ${lo[1] - pad} ${w} ${h}`, class: "cluster-svg",
                              role: "img", "aria-label": `cluster ${c.id}` });
     const pieces = svg("g", { class: "pieces" }), lines = svg("g", { class: "joins" });
-    for (const n of ghosts) pieces.append(piece(n.newcomer, n.pose, frags[n.newcomer], "ghost", n.pose_from === "cluster"));
+    for (const n of ghosts) pieces.append(piece(n.newcomer, n.pose, frags[n.newcomer], "ghost"));
     for (const f of c.fragments) if (frags[f.fragment]) pieces.append(piece(f.fragment, f, frags[f.fragment], "placed"));
     for (const j of c.joins) {
       const [a, b] = [centre(j.fragment_a), centre(j.fragment_b)];
@@ -93,9 +93,9 @@
       ...c.blamed.map(([a, b]) => Tessera.el("li", { class: "bad-text blamed",
       text: `set aside: ${a} ↔ ${b} (on the most conflicting loops, or confirmed last) — check it on the review page` })));
     const next = Tessera.el("ol", { class: "next-joins" }, ...c.next_joins.map((n) => Tessera.el("li", { "data-newcomer": n.newcomer,
-                                                                                               "data-pose-from": n.pose_from || "" },
+                                                                                               "data-fit": n.fit ? "yes" : "" },
       Tessera.el("a", { href: `/review?fragment=${encodeURIComponent(n.newcomer)}`, text: `${n.member} ↔ ${n.newcomer}` }),
-      Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.mutual === null || n.mutual === undefined ? "" : " · mutual " + n.mutual.toFixed(2)}${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}${n.pose_from === "cluster" ? " · fits between " + n.faces.join(" and ") : ""}` }))));
+      Tessera.el("span", { class: "muted", text: ` ${(100 * n.probability).toFixed(0)}%${n.mutual === null || n.mutual === undefined ? "" : " · mutual " + n.mutual.toFixed(2)}${n.newcomer_cluster ? " · joins " + n.newcomer_cluster : ""}${n.fit ? " · also fits between " + n.faces.join(" and ") + " (P on its review)" : ""}` }))));
     return Tessera.el("section", { class: "card cluster", "data-cluster": c.id, "data-size": c.fragments.length,
                                    "data-joins": c.joins.length, "data-conflicts": conflicting.length },
       head, drawCluster(c, data), loops,
@@ -114,7 +114,7 @@
     const msgs = [];
     if (doc && doc.unposed_joins.length) msgs.push(`${doc.unposed_joins.length} confirmed join(s) without a pose are not placed`);
     if (data.missing.length) msgs.push(`no front image yet for ${data.missing.join(", ")}`);
-    if (data.docking) msgs.push("fitting the next joins into their clusters' corners…");
+    if (data.docking) msgs.push("trying the next joins in their clusters' corners…");
     $("recon-message").textContent = msgs.join("; ");
     $("arriving").hidden = !data.arriving.length;
     $("arriving").replaceChildren(...data.arriving.map((v) => Tessera.el("li", { class: "muted",

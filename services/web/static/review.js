@@ -9,8 +9,8 @@
   const STEP_MM = 0.5, STEP_DEG = 0.5;
   let adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
   // the candidate poses of the current proposal, as adjustments of its pose with a label, fetched when it is
-  // selected: where the pair's newcomer fits a corner of a confirmed cluster that pose comes first (the page
-  // opens at it), then the proposal's own pose, then the docking's others, best first; `shown` is the one on screen
+  // selected: its own pose first, then — where the pair's newcomer fits a corner of a confirmed cluster — that
+  // fit, then the docking's others, best first; `shown` is the one on screen
   const ZERO = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
   let candidates = null, shown = 0;
 
@@ -38,14 +38,13 @@
     const alts = r.ok ? r.data.alternatives : [];
     candidates = [{ adjust: ZERO, label: "" }, ...alts.map((a) => ({ adjust: a, label: "" }))];
     const fit = r.ok ? r.data.cluster : null;
-    if (fit) {
+    if (fit) {   // offered, not shown first: in review sessions it was the right pose less often than the pair's
       const a = { turn_deg: fit.turn_deg, shift_x_mm: fit.shift_x_mm, shift_y_mm: fit.shift_y_mm };
-      candidates.unshift({ adjust: a, label: `fitted into the corner of ${fit.faces.join(" and ")}` });
-      if (!adjusted()) { adjust = { ...a }; shown = 0; }   // not over a correction the conservator made meanwhile
-      else shown = 1;
-    } else if (r.ok && r.data.docking && !adjusted()) {    // the reconstruction is still docking: ask again
-      setTimeout(() => { if (items[index] === p && !adjusted()) loadCandidates(p); }, 3000);
+      candidates.splice(1, 0, { adjust: a, label: `fitted into the corner of ${fit.faces.join(" and ")}` });
+    } else if (r.ok && r.data.docking) {    // the reconstruction is still docking: ask again
+      setTimeout(() => { if (items[index] === p && shown === 0) loadCandidates(p); }, 3000);
     }
+    if (!adjusted()) shown = 0;
     showPictures(p);
   }
 
