@@ -3,7 +3,8 @@
 Children are separate processes (as on a real station, where they may live on other hosts):
 the broker, one worker for each stage listed in ``[station] stages`` whose module exists (a
 missing one is skipped with a log line), and the scanner on the simulated flatbed. Logs go to
-``<storage>/logs/``. ``--demo N`` captures N synthetic fragments, waits until the station is
+``<storage>/logs/``. ``--no-scanner`` leaves the scanner out (fragments then come by ``tessera import``, or
+from ``tessera scanner`` at the bench); the pages are ``tessera web``. ``--demo N`` captures N synthetic fragments, waits until the station is
 idle (every stage's output exists or the failure is parked), prints a per-fragment summary and
 exits 0 if every fragment went through every stage, else 1. Without ``--demo`` it runs until
 Ctrl-C and then stops every child cleanly (SIGTERM, then SIGKILL after a grace period).
@@ -46,9 +47,13 @@ CRASH_LOOP_DEATHS = 5
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("station", help="run broker, scanner and one worker per stage on this machine")
+    p = sub.add_parser("station", help="run broker, scanner and one worker per stage on this machine",
+                       description=__doc__.split("\n\n")[0] + " The pages are `tessera web`.")
     p.add_argument("--demo", type=int, metavar="N", default=None,
                    help="capture N synthetic fragments, wait for every stage, print a summary, exit 0/1")
+    p.add_argument("--no-scanner", action="store_true",
+                   help="broker and stage workers only: no capture (for fragments that come by `tessera import`, "
+                        "or a scanner run at the bench with `tessera scanner`)")
     add_config_arguments(p)
     p.set_defaults(func=run)
 
@@ -196,9 +201,14 @@ def run(args) -> int:
                         return 1
             for name in stages:
                 kids.start(name, "worker", name)
-            if config["scanner"]["device"] != "simulated" and args.demo is None:
+            if args.no_scanner and args.demo is None:
+                log.info("no scanner: fragments come by `tessera import` or `tessera scanner` at the bench")
+            elif config["scanner"]["device"] != "simulated" and args.demo is None:
                 log.info("scanner device is %s: run `tessera scanner` at the bench", config["scanner"]["device"])
             else:
+                if args.demo is None:   # said before it happens: these fragments join whatever the storage holds
+                    print(f"the simulated scanner captures {config['scanner']['fragments']} synthetic fragment(s) "
+                          f"into {root.resolve()} ([scanner] fragments; --no-scanner for none)", flush=True)
                 count = args.demo if args.demo is not None else config["scanner"]["fragments"]
                 kids.start("scanner", "scanner", "--count", str(count), to_terminal=True)
             if args.demo is None:

@@ -66,6 +66,22 @@ def test_station_runs_until_interrupted_and_stops_its_children(make_station, sta
     assert not [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
 
 
+def test_station_without_a_scanner_captures_nothing(make_station, stations):
+    """A lab importing its own pictures runs the stages alone: with the simulated scanner, `tessera station`
+    captured [scanner] fragments synthetic fragments into the lab's storage, beside the real ones."""
+    st = make_station(routing={"fragment.ready": ["noop"]})
+    p = _station(st, "--no-scanner", "--set", "scanner.fragments=1")
+    stations.append(p)
+    wait_for(lambda: _answers(st), 60, "the station's broker")
+    children = [" ".join(c.cmdline()) for c in psutil.Process(p.pid).children(recursive=True)]
+    assert children and not [c for c in children if " scanner " in f"{c} "], children   # broker and worker only
+    p.send_signal(signal.SIGTERM)
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 130, out
+    fragments = st.root / "storage" / "fragments"
+    assert not fragments.exists() or not any(fragments.iterdir())
+
+
 def _answers(st) -> bool:
     try:
         return any(w["service"] == "noop" for ws in st.status()["workers"].values() for w in ws)
