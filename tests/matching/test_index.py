@@ -228,10 +228,13 @@ def test_docking_stage_reorders_the_best_candidates_by_hub_corrected_contact(sma
     mu_q = np.sort(list(contact.values()))[-3:].mean()
     assert index.dock_hubness[q] == __import__("pytest").approx(mu_q)
     # the others have no hubness yet: they take the median (the query's own), so the contact is
-    # uncorrected; the earlier stages' logit, relative to the four's mean, is added (naive Bayes)
+    # uncorrected; the earlier stages' logit, relative to the four's mean, is added (naive Bayes), and that logit
+    # is recalibrated (index.JOIN_CALIBRATION: Platt scaling, slope a and intercept b)
+    from common.matching.index import JOIN_CALIBRATION
+    a, b = JOIN_CALIBRATION["slope"], JOIN_CALIBRATION["intercept"]
     logit = {o: np.log(p_before[o] / (1 - p_before[o])) for o in contact}
     mean_logit = np.mean(list(logit.values()))
-    expect = {o: 1 / (1 + np.exp(-(0.05 * contact[o] - 2.0 + logit[o] - mean_logit))) for o in contact}
+    expect = {o: 1 / (1 + np.exp(-(a * (0.05 * contact[o] - 2.0 + logit[o] - mean_logit) + b))) for o in contact}
     assert [c.other for c in head] == sorted(expect, key=lambda o: -expect[o])
     for c in head:
         assert c.alignment is not None and c.docking is not None
@@ -297,7 +300,12 @@ def test_docking_stage_adds_the_pairs_paint_continuity(small_wall, monkeypatch):
         ca, cb = (tables[q].contour_mm, tables[c.other].contour_mm)[:: 1 if q < c.other else -1]
         mm, _ = paint_pair_mm(a, b, ca, cb)
         assert np.isfinite(c.paint_mm) and c.paint_mm == __import__("pytest").approx(mm)
-        assert c.probability == __import__("pytest").approx(float(with_paint(geometric[c.other], mm, 0.05)), rel=1e-6)
+        # the paint is added to stage 3's logit before its recalibration (index.JOIN_CALIBRATION): undo it, add, redo
+        a_, b_ = index_mod.JOIN_CALIBRATION["slope"], index_mod.JOIN_CALIBRATION["intercept"]
+        lg = np.log(geometric[c.other] / (1 - geometric[c.other]))
+        raw = 1 / (1 + np.exp(-(lg - b_) / a_))
+        lp = np.log(float(with_paint(raw, mm, 0.05)) / (1 - float(with_paint(raw, mm, 0.05))))
+        assert c.probability == __import__("pytest").approx(1 / (1 + np.exp(-(a_ * lp + b_))), rel=1e-5)
     assert [c.probability for c in head] == sorted((c.probability for c in head), reverse=True)
     assert len(index._paint_pairs) == 3                      # cached per pair
     assert index.paint_pair(head[0].other, q) == head[0].paint_mm
