@@ -212,18 +212,18 @@ def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "aut
     return RGBNImage(albedo=albedo, mask=mask, dpi=float(dpi), attrs={"mask_from": how})
 
 
-def crop_to_fragment(image: RGBNImage, *, margin_mm: float = 2.0) -> tuple[RGBNImage, tuple[int, int]]:
+def crop_to_mask(image: RGBNImage, *, margin_mm: float = 2.0) -> tuple[RGBNImage, tuple[int, int]]:
     """``image`` cut to its mask's bounding box and ``margin_mm`` of background round it (inside the picture).
 
     A picture of a fragment is often mostly background (RePAIR's pieces fill 10–25 % of their 2000 px
     canvas): every later stage would carry it, and the review page's pictures, shrunk to a few hundred
-    pixels, would show the piece at ~1 mm per pixel. Returns the cropped image (``attrs['crop_px']`` =
-    ``[x0, y0]``, the crop's top-left corner in the picture's pixels, added to what the image had) and
-    ``(x0, y0)``.
+    pixels, would show the piece at ~1 mm per pixel. Returns the cropped image (a window of ``image``,
+    :meth:`~common.rgbn.image.RGBNImage.window`; ``attrs['crop_px']`` = ``[x0, y0]``, the crop's top-left
+    corner in the picture's pixels) and ``(x0, y0)``.
 
     >>> m = np.zeros((100, 200), bool); m[40:50, 60:90] = True
     >>> img = RGBNImage(albedo=np.zeros((100, 200, 3), np.float32), mask=m, dpi=254.0)   # 0.1 mm per pixel
-    >>> out, (x0, y0) = crop_to_fragment(img, margin_mm=1.0)
+    >>> out, (x0, y0) = crop_to_mask(img, margin_mm=1.0)
     >>> out.mask.shape, (x0, y0), int(out.mask.sum())
     ((30, 50), (50, 30), 300)
     """
@@ -234,14 +234,10 @@ def crop_to_fragment(image: RGBNImage, *, margin_mm: float = 2.0) -> tuple[RGBNI
         raise ImportRefused("no fragment found (the mask is empty)")
     pad = int(np.ceil(margin_mm / image.pixel_mm))
     h, w = image.mask.shape
-    y0, y1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, h)
-    x0, x1 = max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, w)
-    window = (slice(y0, y1), slice(x0, x1))
-    fields = {name: getattr(image, name)[window] for name in ("normals", "confidence", "discontinuity", "height_mm")
-              if getattr(image, name) is not None}
-    attrs = dict(image.attrs, crop_px=[x0, y0])
-    return RGBNImage(albedo=image.albedo[window].copy(), mask=image.mask[window].copy(), dpi=image.dpi,
-                     attrs=attrs, **{k: v.copy() for k, v in fields.items()}), (x0, y0)
+    y0, x0 = max(int(rows[0]) - pad, 0), max(int(cols[0]) - pad, 0)
+    out = image.window(y0, min(int(rows[-1]) + pad + 1, h), x0, min(int(cols[-1]) + pad + 1, w))
+    out.attrs["crop_px"] = [x0, y0]
+    return out, (x0, y0)
 
 
 def _check_plausible(mask, area, max_cover, max_border_touch) -> None:

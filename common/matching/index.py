@@ -790,8 +790,10 @@ class MatchIndex:
             # every stage's evidence weighed as learned on synthetic pairs (online.stage_combination)
             prob = model.combined_probability([c.patch_logit for c in head], [c.ribbon_score for c in head],
                                               corrected, paint)
+            rescale = float   # a logistic fit already
         else:
             prob = join_probability(_dock_by_rules(head, ribbon_probability(corrected, model.docking), paint, model))
+            rescale = join_probability
         for c, k, p, m in zip(head, corrected, prob, paint):
             d = self.docking(fragment, c.other)
             c.docking, c.docking_contact_mm, c.probability, c.paint_mm = d, float(k), float(p), float(m)
@@ -800,8 +802,7 @@ class MatchIndex:
         floor = head[-1].probability
         for c in tail:   # on the head's scale (the same monotone map), never above it
             if np.isfinite(c.probability):
-                c.probability = min(float(join_probability(c.probability)) if model.combination is None
-                                    else c.probability, floor)
+                c.probability = min(float(rescale(c.probability)), floor)
         return head + tail
 
     def _docked_alignment(self, fragment: str, other: str, score: float) -> Alignment:

@@ -58,7 +58,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2 as _chi2
 
 from common.matching.proposals import order_key
-from common.web.compose import relative_pose  # noqa: F401  (B in A from both poses; used with this module)
+from common.web.compose import relative_pose  # B in A from both poses (its users take it from here too)
 
 #: JSON schema name and version of :func:`reconstruction_document`
 SCHEMA = "tessera.reconstruction"
@@ -700,7 +700,7 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping,
     faced : list of str
         The members it faces along at least :data:`CLUSTER_FACING_MM` of outline at that pose.
     """
-    from common.matching.docking import cluster_outline, dock_outlines
+    from common.matching.docking import dock_outlines
     from common.matching.facing import facing_geometry
     from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
     from common.matching.paint import paint_continuity
@@ -712,7 +712,7 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping,
                          f"missing {missing[:5]}, member {member!r} in cluster: {member in cluster.poses}, "
                          f"newcomer {newcomer!r} in cluster: {newcomer in cluster.poses}")
     if outline is None:
-        outline = cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
+        outline = _cluster_outline(cluster, pieces)
     contour_n, paint_n = pieces[newcomer]
     docks = dock_outlines(outline, contour_n, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE)
     in_cluster = [(math.radians(d.angle_deg), d.tx_mm, d.ty_mm) for d in docks]
@@ -726,6 +726,19 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping,
                                 _degrees([_compose(_inverse(_deg_to_rad(cluster.poses[f])), best)]))[0][0, 0]
              >= CLUSTER_FACING_MM]
     return _degrees([best])[0], faced
+
+
+def _cluster_outline(cluster: Cluster, pieces: Mapping) -> np.ndarray:
+    """The cluster's members at their solved poses, merged (:func:`~common.matching.docking.cluster_outline`)."""
+    from common.matching.docking import cluster_outline
+
+    return cluster_outline([pieces[f][0] for f in cluster.fragments], [cluster.poses[f] for f in cluster.fragments])
+
+
+def fit_as_proposal_pose(member_pose, fit, member: str, fragment_a: str) -> tuple[float, float, float]:
+    """A next join's ``fit`` (the newcomer's frame in the cluster frame, beside ``member_pose``, the member's) as
+    its proposal states a pose: fragment_b in ``fragment_a``'s frame, ``(angle_deg, tx_mm, ty_mm)``."""
+    return relative_pose(member_pose, fit) if member == fragment_a else relative_pose(fit, member_pose)
 
 
 def _deg_to_rad(pose):
@@ -821,10 +834,7 @@ def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
         key = dock_key(cluster, d["member"], d["newcomer"])
         if key not in cache and d["newcomer"] in pieces and all(f in pieces for f in cluster.fragments):
             if outline is None:        # made once per cluster, for all its newcomers
-                from common.matching.docking import cluster_outline
-
-                outline = cluster_outline([pieces[f][0] for f in cluster.fragments],
-                                          [cluster.poses[f] for f in cluster.fragments])
+                outline = _cluster_outline(cluster, pieces)
             docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces, outline=outline)
             cache[key] = (tuple(float(v) for v in docked), list(faced))
         if key in cache:
@@ -1013,7 +1023,7 @@ def front_pieces(store, tables: Iterable[dict], fragments: Iterable[str], *,
         if key not in cache:
             try:
                 table = load_features(store, arts[f], face="front")
-            except (ArtifactError, OSError, ValueError) as exc:   # missing, corrupt, newer: the proposal's pose stays
+            except (ArtifactError, OSError, ValueError) as exc:   # missing, corrupt, newer: no fit for it
                 missing[f] = f"{type(exc).__name__}: {exc}"
                 continue
             profile = table.boundary_profile

@@ -49,13 +49,10 @@ class MemorySource:
     def window(self, r0: int, r1: int, c0: int, c1: int) -> RGBNImage:
         """Rows ``r0:r1``, columns ``c0:c1`` (views, not copies); ``attrs["tile_origin"]`` is their
         position in the whole image (the image's own origin added, when it is itself a window)."""
-        im = self.image
-        cut = lambda a: None if a is None else a[r0:r1, c0:c1]  # noqa: E731
-        o = im.attrs.get("tile_origin", (0, 0))
-        return RGBNImage(albedo=im.albedo[r0:r1, c0:c1], mask=im.mask[r0:r1, c0:c1], dpi=im.dpi,
-                         normals=cut(im.normals), confidence=cut(im.confidence),
-                         discontinuity=cut(im.discontinuity), height_mm=cut(im.height_mm),
-                         attrs=dict(im.attrs, tile_origin=(int(o[0]) + r0, int(o[1]) + c0)))
+        out = self.image.window(r0, r1, c0, c1)
+        o = out.attrs.get("tile_origin", (0, 0))
+        out.attrs["tile_origin"] = (int(o[0]) + r0, int(o[1]) + c0)
+        return out
 
 
 class H5Source:

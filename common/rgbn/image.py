@@ -93,6 +93,12 @@ class RGBNImage:
     def has_normals(self) -> bool:
         return self.normals is not None
 
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> "RGBNImage":
+        """Rows ``r0:r1``, columns ``c0:c1`` of every field (views, not copies); ``attrs`` copied."""
+        cut = {name: getattr(self, name)[r0:r1, c0:c1] for name in _OPTIONAL if getattr(self, name) is not None}
+        return RGBNImage(albedo=self.albedo[r0:r1, c0:c1], mask=self.mask[r0:r1, c0:c1], dpi=self.dpi,
+                         attrs=dict(self.attrs), **cut)
+
 
 _OPTIONAL = ("normals", "confidence", "discontinuity", "height_mm")
 

@@ -80,7 +80,7 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
     """One picture -> one colour-only RGBN face (door checks, mask, metadata); ``pictures``: a
     folder for the mask drawn over the picture."""
     from common.imports.door import read_image_checked
-    from common.imports.fragments import crop_to_fragment, fragment_from_image
+    from common.imports.fragments import crop_to_mask, fragment_from_image
     from common.rgbn.image import save_rgbn
 
     import numpy as np
@@ -95,7 +95,7 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
         raise ImportRefused(f"{src}: {exc}") from None
     except ValueError as exc:  # e.g. --background alpha on a picture without alpha
         raise ImportRefused(f"{src}: {exc}") from None
-    rgbn, (x0, y0) = crop_to_fragment(rgbn)   # the piece, not the picture's background round it
+    rgbn, (x0, y0) = crop_to_mask(rgbn)   # the piece, not the picture's background round it
     rgbn.attrs.update({"source": "tessera import images", "face": item.face,
                        "metadata": json.dumps(opts["metadata"], sort_keys=True, ensure_ascii=False)})
     prov = {"importer": "tessera import images", "version": VERSION, "source_file": str(src),

@@ -242,7 +242,10 @@ def cluster_fit(proposal: dict) -> tuple[dict | None, bool]:
     ``({angle_deg, tx_mm, ty_mm, cluster, faces}, docking)`` with the pose as fragment B in fragment A's frame
     (the proposal's convention), or ``(None, docking)``; ``docking`` says whether the background docking is still
     running (the fit may come). The review page offers a proposal this pose (docs/web.md)."""
-    from common.matching.reconstruction import relative_pose
+    from common.matching.reconstruction import fit_as_proposal_pose
+
+    def triple(pose):
+        return (pose["angle_deg"], pose["tx_mm"], pose["ty_mm"])
 
     data = _reconstruction()
     for c in (data["document"] or {}).get("clusters", []):
@@ -250,9 +253,7 @@ def cluster_fit(proposal: dict) -> tuple[dict | None, bool]:
             if n["proposal"] != proposal["id"] or not n.get("fit"):
                 continue
             member = next(f for f in c["fragments"] if f["fragment"] == n["member"])
-            at = {n["member"]: (member["angle_deg"], member["tx_mm"], member["ty_mm"]),
-                  n["newcomer"]: (n["fit"]["angle_deg"], n["fit"]["tx_mm"], n["fit"]["ty_mm"])}
-            angle, tx, ty = relative_pose(at[proposal["fragment_a"]], at[proposal["fragment_b"]])
+            angle, tx, ty = fit_as_proposal_pose(triple(member), triple(n["fit"]), n["member"], proposal["fragment_a"])
             return {"angle_deg": angle, "tx_mm": tx, "ty_mm": ty, "cluster": c["id"], "faces": n["faces"]}, \
                 data["docking"]
     return None, data["docking"]

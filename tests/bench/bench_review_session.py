@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from common.matching.collection import relative_pose_error  # noqa: E402
 from common.matching.online import wall_cues  # noqa: E402
 from common.matching.paint import paint_field_from_profile  # noqa: E402
-from common.matching.reconstruction import Join, next_joins, relative_pose, solve_pose_graph  # noqa: E402
+from common.matching.reconstruction import (Join, fit_as_proposal_pose, next_joins, relative_pose,  # noqa: E402
+                                            solve_pose_graph)
 from tests.bench.bench_cluster_docking import pair_pose  # noqa: E402
 from tests.bench.bench_pose import seeds  # noqa: E402
 
@@ -56,9 +57,9 @@ def session(order: list, truth: dict, pieces: dict, proposed: dict, *, corrected
             proposal = SimpleNamespace(id=0, fragment_a=a, fragment_b=b, probability=0.5, mutual=0.5,
                                        status="pending", angle_deg=z[0], tx_mm=z[1], ty_mm=z[2])
             got = next_joins(home[member], [proposal], clusters, pieces=pieces)[0]
-            if got["fit"] is not None:   # the newcomer's frame in the cluster's: back to B in A
-                at = {member: home[member].poses[member], got["newcomer"]: got["fit"]}
-                shown, source = relative_pose(at[a], at[b]), "cluster"
+            if got["fit"] is not None:
+                shown = fit_as_proposal_pose(home[member].poses[member], got["fit"], member, a)
+                source = "cluster"
         centre = pieces[b][0].mean(axis=0)
         out.append({"pair": (a, b), "source": source,
                     "right": max(relative_pose_error(truth[a], truth[b], shown, centre)) <= 5.0,
