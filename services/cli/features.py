@@ -7,6 +7,10 @@ The first form reads an RGBN file anywhere; the second finds the fragment's newe
 of that face in the store, runs the feature stage exactly as the worker would (with the station
 configuration's ``[services.features]`` settings; content-keyed output under
 ``fragments/<id>/features/``) and prints the ``features.ready`` event.
+
+With ``--json`` the standard output is the JSON object of the fragment-level values and nothing
+else (``tessera features ... --json | python3 -m json.tool`` works): the event, the "wrote" lines
+and the errors go to the standard error.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 from pathlib import Path
 
 import h5py
@@ -33,7 +38,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--face", default="front", help="face to describe (default: front)")
     p.add_argument("--out", help="write the table to this HDF5 file (RGBN-file form)")
     p.add_argument("--debug-dir", help="write debug pictures (patches, orientation, erosion) here")
-    p.add_argument("--json", action="store_true", help="print the fragment-level values as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the fragment-level values as JSON: stdout is then only the JSON "
+                        "(the features.ready event and the 'wrote' lines go to stderr)")
     add_config_arguments(p)   # the --store form reads [services.features] as the worker does
     p.set_defaults(func=run)
 
@@ -69,8 +76,17 @@ def run(args) -> int:
     from common.features import extract_features, load_features, save_features
     from common.store import ArtifactError, Store
 
+    # with --json, stdout carries the JSON alone: every other line goes to stderr
+    status = sys.stderr if args.json else sys.stdout
+
+    def say(line: str) -> None:
+        print(line, file=status)
+
+    def fail(line: str) -> None:
+        print(f"tessera features: {line}", file=sys.stderr)
+
     if bool(args.rgbn) == bool(args.store):
-        print("tessera features: give either an RGBN file or --store ROOT --fragment ID")
+        fail("give either an RGBN file or --store ROOT --fragment ID")
         return 2
     try:
         if args.rgbn:
@@ -80,10 +96,10 @@ def run(args) -> int:
                 out = Path(args.out).resolve()
                 ref = save_features(Store(out.parent), out.name, table,
                                     provenance={"stage": "features", "input": str(args.rgbn)})
-                print(f"wrote {out} ({ref.bytes} bytes)")
+                say(f"wrote {out} ({ref.bytes} bytes)")
         else:
             if not args.fragment:
-                print("tessera features: --store needs --fragment ID")
+                fail("--store needs --fragment ID")
                 return 2
             import services.features as stage
             from common.messages import new_message
@@ -91,7 +107,7 @@ def run(args) -> int:
             rdir = store.path(f"fragments/{args.fragment}/rgbn")
             cands = sorted(rdir.glob(f"{args.face}-*.h5"), key=lambda p: p.stat().st_mtime) if rdir.is_dir() else []
             if not cands:
-                print(f"tessera features: no RGBN artifact {args.face}-*.h5 under {rdir}")
+                fail(f"no RGBN artifact {args.face}-*.h5 under {rdir}")
                 return 1
             rel = cands[-1].relative_to(store.root).as_posix()
             job = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=store.ref(rel))
@@ -106,18 +122,18 @@ def run(args) -> int:
             ctx.store, ctx.log = store, log
             ctx.progress = lambda f, t: log.debug("%3.0f%% %s", 100 * f, t)
             events = stage.handle(job, ctx)
-            print(json.dumps(events[0], indent=1, default=str))
+            say(json.dumps(events[0], indent=1, default=str))
             table = load_features(store, events[0]["artifact"], face=args.face)
             image = None
             if args.debug_dir:
                 from common.rgbn.image import load_rgbn
                 image = load_rgbn(store, rel)
     except (ArtifactError, ValueError) as exc:
-        print(f"tessera features: {exc}")
+        fail(str(exc))
         return 1
     _print_table(table, args.json)
     if args.debug_dir:
         from common.features.debug import save_debug_pictures
         for p in save_debug_pictures(image, table, args.debug_dir, prefix=f"{args.face}-"):
-            print(f"wrote {p}")
+            say(f"wrote {p}")
     return 0

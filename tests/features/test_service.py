@@ -1,6 +1,7 @@
 """The feature stage service (services/features.py) and the ``tessera features`` command
 (services/cli/features.py)."""
 
+import json
 import logging
 
 import numpy as np
@@ -98,7 +99,7 @@ def test_cli_store_form_reads_the_work_grid_setting_as_the_worker_does(store_wit
     config = tmp_path / "station.toml"
     config.write_text("[services.features]\nwork_pixel_mm = 5.0\n")
     assert tessera(["features", "--store", str(store.root), "--fragment", "F7", "--config", str(config)]) == 1
-    assert "services.features.work_pixel_mm" in capsys.readouterr().out
+    assert "services.features.work_pixel_mm" in capsys.readouterr().err
     # the default grid keeps its path; another one is a table of its own
     assert tessera(["features", "--store", str(store.root), "--fragment", "F7"]) == 0
     assert "work grid 0.169 mm" in capsys.readouterr().out
@@ -113,7 +114,20 @@ def test_cli_on_an_rgbn_file_writes_the_table(store_with_rgbn, tmp_path, capsys)
     assert load_features(Store(tmp_path), "t.h5").values["colour_mean_r"] == pytest.approx(0.4, rel=1e-5)
 
 
+def test_cli_json_stdout_is_only_the_json(store_with_rgbn, tmp_path, capsys):
+    # `tessera features ... --json | python3 -m json.tool`: the event and the "wrote" lines go to stderr
+    store, ref = store_with_rgbn
+    assert tessera(["features", "--store", str(store.root), "--fragment", "F7", "--json",
+                    "--debug-dir", str(tmp_path / "dbg")]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["colour_mean_r"] == pytest.approx(0.4, rel=1e-5)
+    assert "features.ready" in cap.err and "wrote" in cap.err
+    assert tessera(["features", str(store.path(ref.path)), "--out", str(tmp_path / "t.h5"), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert "colour_mean_r" in json.loads(cap.out) and "wrote" in cap.err
+
+
 def test_cli_reports_a_missing_fragment_plainly(tmp_path, capsys):
     assert tessera(["features", "--store", str(tmp_path), "--fragment", "NOPE"]) == 1
-    assert "no RGBN artifact" in capsys.readouterr().out
+    assert "no RGBN artifact" in capsys.readouterr().err
     assert tessera(["features"]) == 2
