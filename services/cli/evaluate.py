@@ -4,7 +4,7 @@
                      [--dpi 100] [--folds 10] [--classifiers logistic,tree,forest,svm]
                      [--subsets colour,curvature,normal,erosion,thickness,per-match,all]
                      [--dafne ../shared/data/dafne-adam]
-    tessera evaluate --train-model ROOT [--db PATH] [--fragments 60] [--seed 0]
+    tessera evaluate --train-model ROOT [--db PATH] [--fragments 150] [--seed 11] [--dpi 100]
     tessera evaluate --collection DIR [--dpi 150] [--json FILE] [--model ROOT] [--out DIR]
 
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
@@ -13,8 +13,10 @@ feature subset, 10-fold cross-validation grouped by fragment pair), precision–
 (share of each fragment's true neighbours among its k best proposals, for the station's staged
 ranking and, for comparison, stage 3 by the learned combination of the stage scores fitted on the
 training wall, no docking, stage 2 alone and the ribbon alone) and, with ``--dafne``, the
-same for the colour-only DAFNE set. The second trains a model on a synthetic wall and installs it
-as the current model of a station's matcher (storage root ``ROOT``). The third ranks a real, placed
+same for the colour-only DAFNE set. The second trains a model on a synthetic wall (the defaults
+above: 150 fragments, seed 11, 100 dpi — not those of the matcher's own bootstrap, 60 fragments of
+seed 0, which ``--fragments 60 --seed 0`` reproduces) and installs it as the current model of a
+station's matcher (storage root ``ROOT``). The third ranks a real, placed
 collection (``../shared/data/repair-dev`` layout: one folder per object with RGBA fragment images and
 ``truth.csv``; folders without one are distractors) with the station's default model — the
 bootstrap model, or the current model of the station at ``--model ROOT`` — fitting nothing on it,
@@ -49,8 +51,10 @@ def add_parser(subparsers) -> None:
                    help="feature subsets for the logistic regression")
     p.add_argument("--negatives", type=float, default=10.0, help="sampled non-matches per match (default 10)")
     p.add_argument("--dafne", help="a DAFNE set (e.g. ../shared/data/dafne-adam): colour-only evaluation")
-    p.add_argument("--train-model", metavar="ROOT", help="train a model on a synthetic wall and install it in the "
-                                                         "matcher's proposal store under storage root ROOT")
+    p.add_argument("--train-model", metavar="ROOT", help="train a model on a synthetic wall (--fragments, default "
+                                                         "150; --seed, default 11; --dpi, default 100) and install it "
+                                                         "in the matcher's proposal store under storage root ROOT "
+                                                         "(the matcher's own bootstrap: --fragments 60 --seed 0)")
     p.add_argument("--db", help="proposal database (default ROOT/matches/proposals.sqlite)")
     p.add_argument("--collection", metavar="DIR", help="evaluate on a real placed collection (repair-dev layout)")
     p.add_argument("--json", metavar="FILE", help="with --collection: write the figures as JSON")
