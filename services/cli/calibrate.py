@@ -3,6 +3,7 @@
     tessera calibrate                         # the simulated scanner (default [scanner] device)
     tessera calibrate --device sane --sane-device epson2:libusb:001:004
     tessera calibrate --show                  # print the newest valid calibration
+    tessera calibrate --show --device epson-v850   # ... of a scanner calibrated --from-files or --nominal
     tessera calibrate --from-files targets.csv --device epson-v850 [--dpi 300]  # scans of a target made elsewhere
     tessera calibrate --nominal --lamp-direction-deg 170 --device old-flatbed  # no target scans at all
 
@@ -37,6 +38,10 @@ The dpi (the mm scale of the fit along the tilt) is ``--dpi``, else what the fil
 first-order model turned so that its light comes from D (counter-clockwise from the image's +x
 axis, 0 = right, 90 = top; ``tessera import scans`` logs D from the shadows beside the fragment).
 The relief it gives is right; its tilt angles are nominal (docs/flatbed.md).
+
+``--show`` prints the newest valid calibration of one scanner: ``--name NAME``, else ``--device
+NAME`` for a scanner calibrated ``--from-files`` or ``--nominal`` (stored under that name), else
+the simulated scanner (``sim``) or, with ``--device sane``, the SANE device's name.
 """
 
 from __future__ import annotations
@@ -51,7 +56,8 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("calibrate", help="calibrate the scanner's lamp model (§3.3.5)",
                               description=__doc__.split("\n\n")[0])
     p.add_argument("--device", help="scanner backend, simulated | sane (default: [scanner] device); with "
-                                    "--from-files the device's name, under which the calibration is stored")
+                                    "--from-files or --nominal the device's name, under which the calibration is "
+                                    "stored; with --show that name finds it")
     p.add_argument("--from-files", metavar="MANIFEST",
                    help="fit from target scans on disk listed in a CSV manifest (file,tilt_deg,tilt_direction_deg)")
     p.add_argument("--nominal", action="store_true",
@@ -73,7 +79,9 @@ def add_parser(subparsers) -> None:
                    help="scan resolution of the target (default 150; with --from-files, what the files declare: "
                         "PNG pHYs, TIFF XResolution, JPEG density)")
     p.add_argument("--target-albedo", type=float, default=0.8, help="diffuse reflectance of the target (default 0.8)")
-    p.add_argument("--show", action="store_true", help="print the newest valid calibration and exit")
+    p.add_argument("--show", action="store_true",
+                   help="print the newest valid calibration of --name NAME, else of --device (simulated, sane, or "
+                        "the name given to --from-files / --nominal), and exit")
     add_config_arguments(p)
     p.set_defaults(func=run)
 
@@ -91,52 +99,41 @@ def _scan_dpi(args) -> float:
 
 
 def run(args) -> int:
-    from common.acquisition.calibration import (calibrate_scanner, newest_calibration, save_calibration,
-                                                simulated_target_operator)
+    from common.acquisition.calibration import calibrate_scanner, save_calibration, simulated_target_operator
     from common.acquisition.errors import CalibrationError, CaptureError
     from common.store import Store
 
     cfg = config_from_arguments(args)
     store = Store(cfg["storage"]["root"])
+    if args.show:
+        return _show(args, store, cfg)
     if args.from_files:
         return _from_files(args, store)
     if args.nominal:
         return _nominal(args, store)
     device = args.device or cfg["scanner"]["device"]
     if device not in ("simulated", "sane"):
-        print(f"--device must be simulated or sane (or a device name with --from-files), got {device!r}")
+        print(f"--device must be simulated or sane (or a device name with --from-files, --nominal or --show), "
+              f"got {device!r}")
         return 2
     if device == "simulated":
         from common.acquisition.flatbed_sim import SimulatedFlatbed
         scanner = SimulatedFlatbed(args.name or "sim", seed=int(cfg["scanner"]["seed"]))
         operator, area = simulated_target_operator(scanner), (50.0, 50.0, 70.0, 70.0)
     else:
-        if args.show:
-            scanner = None
-        else:
-            from common.acquisition.scanners import SaneScanner
-            try:
-                scanner = SaneScanner(args.sane_device or cfg["scanner"]["sane_device"])
-            except CaptureError as exc:
-                print(exc.operator_message)
-                return 1
-            if args.name:
-                scanner.name = args.name
-
-            def operator(tilt, azimuth):
-                input(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
-                      "and press Enter ")
-        area = None
-    name = args.name or (scanner.name if scanner is not None else args.sane_device or cfg["scanner"]["sane_device"])
-    if args.show:
+        from common.acquisition.scanners import SaneScanner
         try:
-            cal, ref = newest_calibration(store, name)
-        except CalibrationError as exc:
-            print(exc)
+            scanner = SaneScanner(args.sane_device or cfg["scanner"]["sane_device"])
+        except CaptureError as exc:
+            print(exc.operator_message)
             return 1
-        print(json.dumps({"scanner": cal.scanner, "date": cal.date, "a": [float(v) for v in cal.a],
-                          "cv_rmse": cal.cv_rmse, "order": cal.order, "path": ref.path}, indent=2))
-        return 0
+        if args.name:
+            scanner.name = args.name
+
+        def operator(tilt, azimuth):
+            input(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
+                  "and press Enter ")
+        area = None
     try:
         cal = calibrate_scanner(scanner, operator, tilts=_floats(args.tilts, "tilts"),
                                 azimuths=_floats(args.azimuths, "azimuths"), dpi=_scan_dpi(args), area_mm=area,
@@ -155,6 +152,37 @@ def run(args) -> int:
           f"(full scale 1) -> {'first' if cal.order == 1 else 'second'}-order model recommended"
           + ("" if cal.order == 1 else "; the solver still uses the first-order model of eq. 3.4"))
     print(f"stored {ref.path}")
+    return 0
+
+
+def _show(args, store, cfg) -> int:
+    """``--show``: the newest valid calibration of ``--name``, else of ``--device`` (see the module doc)."""
+    from common.acquisition.calibration import newest_calibration
+    from common.acquisition.errors import CalibrationError
+
+    if args.from_files or args.nominal:
+        print("--show prints a stored calibration; it does not go with --from-files or --nominal "
+              "(calibrate first, then --show --device NAME)")
+        return 2
+    device = args.device or cfg["scanner"]["device"]
+    if args.name:
+        name = args.name
+    elif device == "simulated":
+        name = "sim"                                   # the simulated scanner's name (SimulatedFlatbed)
+    elif device == "sane":
+        name = args.sane_device or cfg["scanner"]["sane_device"]
+    else:
+        name = device                                  # a scanner calibrated --from-files or --nominal
+    try:
+        cal, ref = newest_calibration(store, name)
+    except CalibrationError as exc:
+        hint = "" if device in ("simulated", "sane") and not args.name else (
+            f" (a scanner without a station device is calibrated by `tessera calibrate --from-files MANIFEST "
+            f"--device {name}` or `--nominal --lamp-direction-deg D --device {name}`)")
+        print(f"{exc}{hint}")
+        return 1
+    print(json.dumps({"scanner": cal.scanner, "date": cal.date, "a": [float(v) for v in cal.a],
+                      "cv_rmse": cal.cv_rmse, "order": cal.order, "path": ref.path}, indent=2))
     return 0
 
 

@@ -5,6 +5,7 @@ The target scans are written by the simulated flatbed, whose lamp lies on the im
 """
 
 import csv
+import json
 import struct
 import zlib
 
@@ -167,6 +168,28 @@ def test_bad_manifest_or_files_are_refused_and_nothing_is_stored(tmp_path, capsy
 def test_from_files_needs_a_device_name(tmp_path, capsys):
     assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--from-files", "x.csv"]) == 2
     assert "--device NAME" in capsys.readouterr().out
+
+
+def test_show_finds_a_from_files_calibration_by_its_device_name(tmp_path, capsys):
+    # `tessera import scans --device NAME` uses the calibration stored under NAME; `--show --device
+    # NAME` shows that one, as `--show --name NAME` does (it was refused: "--device must be simulated or sane")
+    sim = SimulatedFlatbed("sim-show", bed_mm=(120, 120), seed=2, dust=0)
+    manifest = _write_targets(tmp_path, sim)
+    root = f'storage.root="{tmp_path / "store"}"'
+    assert main(["calibrate", "--set", root, "--from-files", str(manifest), "--device", "epson-v850",
+                 "--dpi", str(DPI)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "--set", root, "--show", "--device", "epson-v850"]) == 0
+    by_device = json.loads(capsys.readouterr().out)
+    assert by_device["scanner"] == "epson-v850" and by_device["path"].startswith("calibration/epson-v850/")
+    assert main(["calibrate", "--set", root, "--show", "--name", "epson-v850"]) == 0
+    assert json.loads(capsys.readouterr().out) == by_device
+    # a name with no calibration says which and how to make one
+    assert main(["calibrate", "--set", root, "--show", "--device", "other-flatbed"]) == 1
+    out = capsys.readouterr().out
+    assert "'other-flatbed'" in out and "--from-files MANIFEST --device other-flatbed" in out
+    # --show prints; it does not also calibrate
+    assert main(["calibrate", "--set", root, "--show", "--from-files", str(manifest), "--device", "x"]) == 2
 
 
 def test_from_files_takes_the_dpi_the_files_declare(tmp_path):
