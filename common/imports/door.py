@@ -95,6 +95,30 @@ def _sniff(path: Path, head: bytes) -> str:
     raise _refuse(path, "is not a PNG, JPEG, TIFF or .npy image (unknown file signature)")
 
 
+def image_format(path: str | os.PathLike) -> str | None:
+    """The format a file's signature names, ``png``, ``jpeg``, ``tiff`` or ``npy``, without decoding it.
+
+    None for a file that is missing, unreadable or of another format: :func:`read_image_checked`
+    refuses those with the reason. For warnings before an import (``tessera import scans`` warns
+    that JPEG, 8-bit and lossy, adds noise to the normals).
+
+    Examples
+    --------
+    >>> import tempfile, cv2, numpy as np
+    >>> p = tempfile.mktemp(suffix=".jpg")
+    >>> _ = cv2.imwrite(p, np.zeros((8, 8), np.uint8))
+    >>> image_format(p)
+    'jpeg'
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+        return _sniff(path, head)
+    except (OSError, ImportRefused):
+        return None
+
+
 def _check_png(path: Path) -> tuple[int, int]:
     """Walk the chunks: each must fit in the file with a correct CRC, ending with IEND. (width, height)."""
     size = path.stat().st_size

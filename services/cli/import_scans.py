@@ -15,9 +15,11 @@ image, or ``auto`` (default): both are tried in registration and the one that re
 (and recorded). A given direction the scans contradict is refused with the direction to give.
 ``--crop`` is for whole-bed scans: the fragment's region is where the scans of a face differ
 (the fragment turns, the bed, a frame or jig and rulers do not), cut with a margin from each.
-Files: PNG or TIFF, 8 or 16-bit (float TIFF: linear, full scale 1), RGB, RGBA (alpha dropped)
-or grey (three equal channels: grey albedo). Values are taken as linear (what a scanner gives
-with its gamma set to 1.0); ``--srgb`` decodes sRGB-encoded files first. Without ``--crop`` the
+Files: PNG or TIFF, 8 or 16-bit (float TIFF: linear, full scale 1), or JPEG, RGB, RGBA (alpha
+dropped) or grey (three equal channels: grey albedo). JPEG is accepted with a one-line warning per
+fragment: it is 8-bit and lossy, and its 8x8 compression blocks add noise to the photometric-stereo
+normals (scan to 16-bit PNG or TIFF where you can). Values are taken as linear (what a scanner gives
+with its gamma set to 1.0); ``--srgb`` decodes sRGB-encoded files first (a JPEG usually is). Without ``--crop`` the
 scans must show the fragment with a ring of bed around it. Normals need at least 3 scans per face; one scan per
 face is imported colour-only with ``--colour-only``.
 
@@ -47,7 +49,8 @@ def add_parser(subparsers) -> None:
     from services.cli.imports import add_sink_arguments
     p = subparsers.add_parser("scans", help="flatbed scans of fragments from files (4 turned scans per face)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("paths", nargs="*", metavar="SCAN", help="scans of the front face, in the order taken")
+    p.add_argument("paths", nargs="*", metavar="SCAN",
+                   help="scans of the front face, in the order taken (PNG/TIFF 8/16-bit; JPEG with a warning)")
     p.add_argument("--back", nargs="+", default=[], metavar="SCAN", help="scans of the back face, in the order taken")
     p.add_argument("--fragment", help="fragment (inventory) id of the scans given as arguments")
     p.add_argument("--manifest", metavar="CSV", help="file, fragment[, face, dpi, turn] columns, one row per scan")
@@ -105,6 +108,7 @@ def _items(args) -> list[ImportItem]:
     items = []
     for fid, g in groups.items():
         g["dpi"] = _dpi_of(fid, g)
+        _warn_if_jpeg(fid, g["front"] + g["back"], srgb=bool(args.srgb))
         try:
             dpi = check_dpi(g["dpi"], f"{fid} dpi")
         except ArtifactError as exc:
@@ -135,6 +139,19 @@ def _dpi_of(fid: str, g: dict) -> float:
         return dpi
     log.info("%s: %.4g dpi, read from the files' metadata", fid, dpi)
     return dpi
+
+
+def _warn_if_jpeg(fid: str, paths: list, *, srgb: bool) -> None:
+    """One line on stderr when scans of a fragment are JPEG files (accepted, but they cost normals' accuracy)."""
+    from common.imports.door import image_format
+
+    jpegs = [Path(p).name for p in paths if image_format(p) == "jpeg"]
+    if jpegs:
+        shown = ", ".join(jpegs[:4]) + (f" and {len(jpegs) - 4} more" if len(jpegs) > 4 else "")
+        print(f"warning: {fid}: {len(jpegs)} JPEG scan(s) ({shown}): JPEG is 8-bit and lossy, its 8x8 compression "
+              f"blocks add noise to the photometric-stereo normals; scan to 16-bit PNG or TIFF where you can"
+              + ("" if srgb else " (and pass --srgb unless the scanner wrote them with gamma 1.0)"),
+              file=sys.stderr)
 
 
 def _read_scan(path: Path, opts: dict) -> tuple[np.ndarray, tuple]:

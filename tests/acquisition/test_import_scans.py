@@ -113,6 +113,30 @@ def test_grey_eight_bit_files_are_imported_with_three_equal_channels(tmp_path, t
         assert d.dtype == np.uint8 and d.shape[2] == 3 and (d[..., 0] == d[..., 2]).all()
 
 
+def test_jpeg_scans_are_imported_with_a_one_line_warning(tmp_path, turned_scans, capsys):
+    # docs/flatbed.md: JPEG is accepted (8-bit, lossy: its blocks add noise to the normals), saying so once
+    _, scans = turned_scans
+    paths = []
+    for k, s in enumerate(scans):
+        p = tmp_path / f"scan_{k}.jpg"
+        cv2.imwrite(str(p), (s // 257).astype(np.uint8)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+        paths.append(str(p))
+    assert main(["import", "scans", *paths, "--fragment", "F-jpg", "--device", "files", "--dpi", str(DPI),
+                 "--turn", "ccw", "--store", str(tmp_path / "store")]) == 0
+    err = capsys.readouterr().err
+    warnings = [line for line in err.splitlines() if "JPEG" in line]
+    assert len(warnings) == 1 and warnings[0].startswith("warning: F-jpg: 4 JPEG scan(s)")
+    assert "scan_0.jpg" in warnings[0] and "lossy" in warnings[0] and "normals" in warnings[0]
+    [art] = _scans_files(tmp_path / "store")
+    with h5py.File(art) as f:
+        assert f["front/scan_0"].dtype == np.uint8 and len([k for k in f["front"] if k.startswith("scan_")]) == 4
+    # PNG scans: no such warning
+    png = _write(tmp_path, scans, eight=True)
+    assert main(["import", "scans", *png, "--fragment", "F-png", "--device", "files", "--dpi", str(DPI),
+                 "--turn", "ccw", "--store", str(tmp_path / "store")]) == 0
+    assert "JPEG" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("problem, expected", [
     ("truncated", "scan_2.png"),
     ("two scans", "normals need at least 3"),
