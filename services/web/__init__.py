@@ -284,6 +284,14 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     def bad_request(exc):
         return jsonify(error=getattr(exc, "description", "bad request")), 400
 
+    @app.errorhandler(413)
+    def too_large(exc):
+        # the JSON API answers in JSON, as its other errors; a page's form keeps Flask's page
+        if not request.path.startswith("/api/"):
+            return exc
+        limit = app.config["MAX_CONTENT_LENGTH"]
+        return jsonify(error=f"the request body is larger than {limit // 1024} KiB, the most the pages accept"), 413
+
     return app
 
 # --------------------------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """Log in / log out, and the access checks every write goes through (:func:`writes`).
 
 Reading is open to whoever can reach the port. A write needs the station's access token: a
-script sends ``Authorization: Bearer <token>``; a browser logs in once (``/login``, token + name),
-then carries a session cookie signed with a key derived from the token and echoes the session's
-CSRF value in the ``X-CSRF-Token`` header. Writes also refuse other origins and non-JSON bodies.
+script sends ``Authorization: Bearer <token>`` (and the name to record in ``X-Tessera-Who``, :func:`who`);
+a browser logs in once (``/login``, token + name), then carries a session cookie signed with a key
+derived from the token and echoes the session's CSRF value in the ``X-CSRF-Token`` header. Writes also refuse other origins and non-JSON bodies.
 """
 
 from __future__ import annotations
@@ -26,9 +26,27 @@ def logged_in() -> bool:
     return bool(session.get("auth"))
 
 
+#: the header a script names its person or program in, as the login form's name (``Authorization: Bearer``)
+WHO_HEADER = "X-Tessera-Who"
+
+
 def who() -> str:
-    """The name a write is recorded under: the login's, else ``[services.web] operator``, else ``web``."""
-    return (session.get("who") or station().settings["operator"] or "web")[:64]
+    """The name a write is recorded under (``by`` of a verdict or an edit), at most 64 characters.
+
+    The token is the station's one shared secret and names nobody, so the name is the one its holder
+    gave: a script sending ``Authorization: Bearer`` gives it in the :data:`WHO_HEADER` header, a browser
+    at login. Without one: ``[services.web] operator``, else ``web``. Like the login's, the name is
+    what the token holder says, not checked.
+    """
+    if auth.bearer_token(request.headers.get("Authorization")) is not None:
+        given = request.headers.get(WHO_HEADER, "")
+        try:   # a header arrives as ISO-8859-1 text; a name sent in UTF-8 (curl, most clients) is read as such
+            given = given.encode("latin-1").decode("utf-8")
+        except UnicodeError:
+            pass
+    else:
+        given = session.get("who") or ""
+    return (given.strip()[:64] or station().settings["operator"] or "web")[:64]
 
 
 def authorised() -> bool:

@@ -138,6 +138,68 @@ def test_a_wrong_token_at_login_is_refused_and_redirects_stay_local(counting_app
         assert r.headers["Location"] in ("/", "http://localhost/")
 
 
+class _OneProposal:
+    """Stands in for the proposal store: proposal 7, FA-FB, without a pose."""
+
+    def proposal(self, pid):
+        return ({"id": 7, "fragment_a": "FA", "fragment_b": "FB", "probability": 0.9, "model_version": "m1"}
+                if pid == 7 else None)
+
+
+class _Outbox:
+    """Stands in for the station's bus link: keeps what is submitted."""
+
+    def __init__(self):
+        self.sent = []
+
+    def submit(self, msg):
+        self.sent.append(msg)
+        return True
+
+
+def test_a_verdict_sent_with_the_token_is_recorded_under_the_name_its_sender_gives(tmp_path):
+    """Verdicts sent with ``Authorization: Bearer`` were all recorded as by "web": the token is the station's one
+    secret and names nobody, so a script names its sender in ``X-Tessera-Who``, as a person does at login."""
+    def send(app, headers, **extra):
+        r = app.test_client().post("/api/review/verdict", json={"proposal": 7, "verdict": "confirmed"},
+                                   headers=headers, **extra)
+        assert r.status_code == 200, r.json
+        return r.json["sent"]["by"]
+
+    outbox = _Outbox()
+    app = web.create_app(token=TOKEN, store_root=tmp_path, review=_OneProposal(), link=outbox)
+    assert send(app, {**BEARER, "X-Tessera-Who": "  M. Rossi "}) == "M. Rossi"
+    assert outbox.sent[-1]["type"] == "match.verified" and outbox.sent[-1]["by"] == "M. Rossi"   # the event too
+    # sent in UTF-8, as curl and most clients do (a header arrives as ISO-8859-1 text)
+    assert send(app, {**BEARER, "X-Tessera-Who": "Niccolò Rossi".encode().decode("latin-1")}) == "Niccolò Rossi"
+    assert send(app, {**BEARER, "X-Tessera-Who": "x" * 100}) == "x" * 64
+    # no name given: [services.web] operator, else "web", as for a login without a name
+    assert send(app, BEARER) == "web"
+    named = web.create_app(token=TOKEN, store_root=tmp_path, review=_OneProposal(), link=outbox,
+                           settings={"operator": "bench-pc"})
+    assert send(named, {**BEARER, "X-Tessera-Who": " "}) == "bench-pc"
+    # a logged-in browser is recorded under its login's name; the header does not rename it
+    c = app.test_client()
+    c.post("/login", data={"token": TOKEN, "who": "A. Conservator"})
+    csrf = re.search(r'name="csrf-token" content="([^"]+)"', c.get("/review").get_data(as_text=True)).group(1)
+    r = c.post("/api/review/verdict", json={"proposal": 7, "verdict": "rejected"},
+               headers={"X-CSRF-Token": csrf, "X-Tessera-Who": "someone else"})
+    assert r.status_code == 200 and r.json["sent"]["by"] == "A. Conservator"
+
+
+def test_an_api_request_over_the_size_limit_is_answered_413_in_json(tmp_path):
+    """Request bodies over 64 KiB (MAX_CONTENT_LENGTH) got Flask's HTML page; the JSON API answers in JSON, as its
+    other errors, and nothing is sent. A page's form keeps Flask's page."""
+    outbox = _Outbox()
+    c = web.create_app(token=TOKEN, store_root=tmp_path, review=_OneProposal(), link=outbox).test_client()
+    big = {"proposal": 7, "verdict": "confirmed", "note": "x" * (64 * 1024)}
+    r = c.post("/api/review/verdict", json=big, headers=BEARER)
+    assert r.status_code == 413 and r.is_json and "larger than 64 KiB" in r.json["error"]
+    assert r.headers["Cache-Control"] == "no-store" and outbox.sent == []
+    r = c.post("/login", data={"token": TOKEN, "who": "x" * (64 * 1024)})
+    assert r.status_code == 413 and not r.is_json
+
+
 def test_pages_use_only_assets_served_by_the_station(counting_app):
     app, _ = counting_app
     c = app.test_client()
