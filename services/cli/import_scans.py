@@ -25,7 +25,9 @@ face is imported colour-only with ``--colour-only``.
 
 The manifest is a CSV file with the columns ``file`` and ``fragment`` (or ``inventory``), and
 optionally ``face`` (front/back, default front), ``dpi`` and ``turn``; rows of one face in scan
-order. Every file is checked at the door (decodes fully, bit depth, not black or blank) and a
+order. A fragment's ``dpi`` and ``turn`` count from whichever of its rows gives them (else ``--dpi``,
+``--turn``); two of its rows giving different values are refused, naming the fragment, the values
+and the lines, before anything is imported (exit 2). Every file is checked at the door (decodes fully, bit depth, not black or blank) and a
 refused fragment names the file and the reason; nothing of it is written. See docs/flatbed.md.
 """
 
@@ -84,8 +86,16 @@ def _items(args) -> list[ImportItem]:
             face = row.get("face", "front").lower()
             if face not in ("front", "back"):
                 raise ValueError(f"{where}: face {face!r} must be front or back")
-            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None,
-                                        "turn": row.get("turn", args.turn).lower(), "where": where})
+            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None, "turn": None, "turn_line": None,
+                                        "where": where})
+            # one turn per fragment: whichever of its rows gives it; two rows that disagree are refused
+            if row.get("turn") is not None:
+                turn = row["turn"].lower()
+                if g["turn"] is not None and turn != g["turn"]:
+                    raise ValueError(f"fragment {fid}: turn {g['turn']!r} ({args.manifest} line {g['turn_line']}) "
+                                     f"differs from turn {turn!r} (line {row['line']}); a fragment's scans are "
+                                     f"turned one way: give the same turn in all its rows")
+                g["turn"], g["turn_line"] = turn, row["line"]
             # the dpi column counts on whichever row of the fragment gives it (an empty first cell included)
             if row.get("dpi") is not None:
                 try:
@@ -97,8 +107,9 @@ def _items(args) -> list[ImportItem]:
                                      f"({g['dpi']:g})")
                 g["dpi"] = row_dpi
             g[face].append(Path(row["file"]))
-        for g in groups.values():   # --dpi for the fragments whose rows give none
+        for g in groups.values():   # --dpi and --turn for the fragments whose rows give none
             g["dpi"] = args.dpi if g["dpi"] is None else g["dpi"]
+            g["turn"] = args.turn if g["turn"] is None else g["turn"]
     else:
         if not args.fragment:
             raise ValueError("--fragment ID is needed with scans given as arguments")

@@ -184,6 +184,25 @@ def test_a_manifest_imports_each_fragment_and_refuses_only_the_bad_one(tmp_path,
     assert "Inv-7-1" in str(art)
 
 
+def test_a_manifest_whose_rows_give_one_fragment_two_turns_is_refused_before_anything_is_written(
+        tmp_path, turned_scans, capsys):
+    # the turn was taken from the fragment's first row, silently: now the conflict is named
+    _, scans = turned_scans
+    good = _write(tmp_path, scans)
+    manifest = tmp_path / "scans.csv"
+    # line 2: another fragment, listed first (nothing of it is written either); Inv 7/1 on lines 3-6:
+    # ccw, no value (empty cells do not count), cw, ccw
+    lines = ["file,fragment,dpi,turn", f"{good[0]},Inv 7/0,{DPI},auto"] + \
+            [f"{p},Inv 7/1,{DPI},{t}" for p, t in zip(good, ["ccw", "", "cw", "ccw"])]
+    manifest.write_text("\n".join(lines) + "\n")
+    assert main(["import", "scans", "--manifest", str(manifest), "--device", "files",
+                 "--store", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err
+    assert "fragment Inv-7-1" in err and "'ccw'" in err and "'cw'" in err
+    assert "line 3" in err and "line 5" in err
+    assert not _scans_files(tmp_path / "store") and not (tmp_path / "store" / "imports").exists()
+
+
 def test_srgb_does_not_decode_float_scans_which_are_linear(tmp_path):
     # docs/flatbed.md: float scans are linear with full scale 1; --srgb (for 8/16-bit files of a
     # whole batch) once decoded their 16-bit conversion as if it were [0, 1] and saturated them
