@@ -86,8 +86,8 @@ def _items(args) -> list[ImportItem]:
             face = row.get("face", "front").lower()
             if face not in ("front", "back"):
                 raise ValueError(f"{where}: face {face!r} must be front or back")
-            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None, "turn": None, "turn_line": None,
-                                        "where": where})
+            g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None, "dpi_line": None, "turn": None,
+                                        "turn_line": None, "where": where})
             # one turn per fragment: whichever of its rows gives it; two rows that disagree are refused
             if row.get("turn") is not None:
                 turn = row["turn"].lower()
@@ -103,9 +103,10 @@ def _items(args) -> list[ImportItem]:
                 except ArtifactError as exc:
                     raise ValueError(str(exc)) from None
                 if g["dpi"] is not None and row_dpi != g["dpi"]:
-                    raise ValueError(f"{where}: dpi {row['dpi']} differs from the fragment's other scans "
-                                     f"({g['dpi']:g})")
-                g["dpi"] = row_dpi
+                    raise ValueError(f"fragment {fid}: dpi {g['dpi']:g} ({args.manifest} line {g['dpi_line']}) "
+                                     f"differs from dpi {row['dpi']} (line {row['line']}); give the same dpi in "
+                                     f"all its rows")
+                g["dpi"], g["dpi_line"] = row_dpi, row["line"]
             g[face].append(Path(row["file"]))
         for g in groups.values():   # --dpi and --turn for the fragments whose rows give none
             g["dpi"] = args.dpi if g["dpi"] is None else g["dpi"]

@@ -201,6 +201,14 @@ def test_a_manifest_whose_rows_give_one_fragment_two_turns_is_refused_before_any
     assert "fragment Inv-7-1" in err and "'ccw'" in err and "'cw'" in err
     assert "line 3" in err and "line 5" in err
     assert not _scans_files(tmp_path / "store") and not (tmp_path / "store" / "imports").exists()
+    # the dpi column likewise
+    lines = ["file,fragment,dpi"] + [f"{p},Inv 7/1,{d}" for p, d in zip(good, [DPI, "", DPI, 300])]
+    manifest.write_text("\n".join(lines) + "\n")
+    assert main(["import", "scans", "--manifest", str(manifest), "--device", "files",
+                 "--store", str(tmp_path / "store")]) == 2
+    err = capsys.readouterr().err
+    assert f"fragment Inv-7-1: dpi {DPI} (" in err and "line 4" in err and "dpi 300 (line 5)" in err
+    assert not _scans_files(tmp_path / "store")
 
 
 def test_srgb_does_not_decode_float_scans_which_are_linear(tmp_path):
