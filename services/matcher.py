@@ -146,7 +146,7 @@ def _on_features(job: dict, ctx) -> list[dict]:
                              top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), dock=not dock_later)
     if not dock_later:
         _rank_partners_again(found, st, ctx)
-    events = _proposed(found, st, ctx, "ranked" if dock_later else "docked")
+    events = _proposed(fragment, found, st, ctx, "ranked" if dock_later else "docked")
     if dock_later:
         events.append(new_message("match.ranked", fragment=fragment, face=face, artifact=job["artifact"],
                                   model_version=st.model.version, fragments=len(st.index),
@@ -173,7 +173,7 @@ def _docked_answer(fragment: str, proposed, st: _State, ctx) -> list[dict]:
     found = st.index.propose(st.index.cues[fragment], st.model, n_candidates=int(cfg.get("n_candidates", 100)),
                              top=int(cfg.get("top", 10)), check=int(cfg.get("check", 3)), also=proposed)
     _rank_partners_again(found, st, ctx)
-    return _proposed(found, st, ctx, "docked")
+    return _proposed(fragment, found, st, ctx, "docked")
 
 
 def _rank_partners_again(found, st: _State, ctx) -> None:
@@ -197,12 +197,13 @@ def _rank_partners_again(found, st: _State, ctx) -> None:
     st.db.set_mutual(updates)
 
 
-def _proposed(found, st: _State, ctx, stage: str) -> list[dict]:
-    """Store a fragment's proposals and return their ``match.proposed`` events."""
+def _proposed(fragment: str, found, st: _State, ctx, stage: str) -> list[dict]:
+    """Store ``fragment``'s proposals and return their ``match.proposed`` events (the log names the fragment,
+    which ``found`` cannot when it is empty)."""
     columns = correspondence_columns()
     props = [_proposal(c, st, columns) for c in found]
     stored = st.db.upsert(props) if props else []
-    ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", found[0].fragment if found else "-", len(stored),
+    ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", fragment, len(stored),
                  stage, stored[0].probability if stored else float("nan"))
     return [new_message("match.proposed", stage=stage, **p.to_event_fields()) for p in stored]
 

@@ -315,3 +315,18 @@ def test_a_redock_batch_the_messages_cannot_carry_is_refused_by_name():
     for bad in (0, MAX_REDOCK_FRAGMENTS + 1, "8", True, 2.5):
         with pytest.raises(ValueError, match=r"\[services.matcher\] redock_batch must be an integer from 1 to 64"):
             redock_batch({"redock_batch": bad})
+
+
+def test_a_job_that_proposes_nothing_names_its_fragment_in_the_log(station, caplog):
+    """A fragment with no partner to propose (the first one in the index) was logged as ``fragment -: 0
+    proposals``: the log names it, for its features.ready and for a re-rank's match.reranked job alike."""
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    fid = wall.fragments[0].id
+    with caplog.at_level(logging.INFO, logger="test.matcher"):
+        assert matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx) == []
+        version = matcher._state(ctx).model.version
+        assert matcher.handle(new_message("match.reranked", model_version=version, redock=[fid]), ctx) == []
+    lines = [r.getMessage() for r in caplog.records if "proposals" in r.getMessage()]
+    assert len(lines) == 2 and all(line.startswith(f"fragment {fid}: 0 proposals") for line in lines), lines
+    assert "fragment -" not in caplog.text
