@@ -62,15 +62,26 @@ class Piece:
 
 
 def read_fragment_rgba(path) -> np.ndarray:
-    """A fragment image (the piece in its alpha channel) as (H, W, 4) uint8 RGBA, read completely
+    """A fragment image as (H, W, 4) uint8 RGBA, the piece in its alpha channel, read completely
     through the import door (:func:`common.imports.door.read_image_checked`: a truncated or corrupt
-    file, one without an alpha channel or a fully transparent one is refused, naming the file and
-    the reason; OpenCV alone would return a truncated PNG's missing rows as grey). 16-bit files are
-    reduced to 8 bits."""
-    from common.imports.door import read_image_checked
+    file or a fully transparent one is refused, naming the file and the reason; OpenCV alone would
+    return a truncated PNG's missing rows as grey). 16-bit files are reduced to 8 bits.
 
-    img = read_image_checked(path, channels=(4,))
-    return img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
+    An RGB image without alpha (the piece photographed or scanned on a plain background, black or
+    any other) gets its alpha from :func:`common.imports.fragments.background_mask`, as
+    ``tessera import images --background auto`` does; one where no piece stands out from the
+    background is refused."""
+    from common.imports.door import read_image_checked
+    from common.imports.fragments import background_mask
+
+    img = read_image_checked(path, channels=(3, 4))
+    px = img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
+    if px.shape[2] == 4:
+        return px
+    mask, _ = background_mask(px.astype(np.float32) / 255.0)
+    if not mask.any():
+        raise ValueError(f"{path}: RGB image without alpha, and no piece stands out from its plain background")
+    return np.dstack([px, np.where(mask, 255, 0).astype(np.uint8)])
 
 
 def _crop(rgba: np.ndarray, pad: int = 2):
@@ -113,8 +124,8 @@ def _read_truth(path: Path, images: set) -> dict:
 
 
 def read_collection(path: str | os.PathLike) -> list[Piece]:
-    """Read a collection laid out as ``repair-dev``: one folder per object with RGBA PNG fragments
-    and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
+    """Read a collection laid out as ``repair-dev``: one folder per object with PNG fragments (RGBA, or
+    RGB on a plain background: :func:`read_fragment_rgba`) and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
     counter-clockwise by ``rot`` degrees about its centre, canvas kept, then put its top-left
     corner at ``(x, y)``). Folders without ``truth.csv`` give distractors (``matrix`` None).
 

@@ -131,7 +131,7 @@ def _spoil_transparent(png):
 
 @pytest.mark.parametrize("spoil, words", [
     (_spoil_truncate, ["p2.png", "truncated"]),
-    (_spoil_no_alpha, ["p2.png", "3 channels", "expected 4"]),
+    (_spoil_no_alpha, ["p2.png", "blank"]),   # RGB without alpha and nothing on its background
     (_spoil_transparent, ["p2.png", "fully transparent"]),
 ])
 def test_a_damaged_fragment_image_is_refused_naming_the_file_and_problem(tmp_path, spoil, words):
@@ -143,6 +143,21 @@ def test_a_damaged_fragment_image_is_refused_naming_the_file_and_problem(tmp_pat
         read_collection(tmp_path)
     for w in words:
         assert w in str(err.value), (w, str(err.value))
+
+
+def test_an_rgb_fragment_image_on_a_plain_background_reads_as_the_same_piece_and_placement(tmp_path):
+    # a piece photographed on black: its alpha comes from the background, so the crop and the placed
+    # matrix are those of the RGBA file it was made from
+    import cv2
+
+    obj = _collection_with_truth(tmp_path, "rpf,x,y,rot\np1.png,10,20,30\n")
+    rgba = {p.id: p for p in read_collection(tmp_path)}["p1"]
+    canvas = np.zeros((20, 30, 3), np.uint8)
+    canvas[4:16, 5:25] = (160, 150, 140)
+    cv2.imwrite(str(obj / "p1.png"), canvas)
+    rgb = {p.id: p for p in read_collection(tmp_path)}["p1"]
+    assert rgb.rgba.shape == rgba.rgba.shape and np.array_equal(rgb.rgba, rgba.rgba)
+    assert np.allclose(rgb.matrix, rgba.matrix)
 
 
 def test_a_16_bit_fragment_image_reads_as_its_8_bit_values(tmp_path):
