@@ -982,11 +982,13 @@ class Rendering:
 
 
 def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float, str], None] | None = None,
-           resolved: list | None = None, tile: int | None = None) -> Rendering:
+           resolved: list | None = None, tile: int | None = None, warn_skipped: bool = True) -> Rendering:
     """Draw ``image`` with a recipe (or a recipe name / file / style name).
 
     Layers whose style needs normals are skipped (and listed in ``Rendering.skipped``) for a
-    colour-only image; if none remains the albedo is drawn. Images larger than one tile are drawn
+    colour-only image; if none remains the albedo is drawn. One warning names the skipped styles,
+    unless ``warn_skipped`` is False: a caller that reports them itself (the renderer service names
+    the fragment and face) gets them in ``Rendering.skipped`` only. Images larger than one tile are drawn
     tile by tile in bounded memory (:func:`common.render.tiles.render_tiled`); ``tile`` sets the
     tile side (None: :data:`common.render.tiles.TILE_MPX` decides).
 
@@ -1006,13 +1008,18 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
     if not isinstance(image, RGBNImage):
         raise ValueError(f"image must be an RGBNImage, got {type(image).__name__}")
+    drawn = None
     if resolved is None:
         from common.render.tiles import needs_tiles, render_tiled
 
         if needs_tiles(image, recipe, tile):   # each tile reuses its own freed arrays
-            return render_tiled(image, recipe, tile=tile, progress=progress)
-    with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
-        return _render_whole(image, recipe, progress, resolved)
+            drawn = render_tiled(image, recipe, tile=tile, progress=progress)
+    if drawn is None:
+        with reuse_freed_memory():   # freed arrays are reused, not page-faulted in again (_heap)
+            drawn = _render_whole(image, recipe, progress, resolved)
+    if drawn.skipped and warn_skipped:   # once per drawing, not per tile (the drawing of a tile says nothing)
+        log.warning("image has no normals: skipped %s", ", ".join(drawn.skipped))
+    return drawn
 
 
 def _render_whole(image, recipe, progress, resolved, labels=None, coarse=None, core=None) -> Rendering:
@@ -1100,8 +1107,7 @@ def _render_image(image, recipe, progress, resolved, labels=None, core=None) -> 
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]
-    if skipped:
-        log.warning("image has no normals: skipping %s", ", ".join(skipped))
+    if skipped:   # reported by the caller (render, or the renderer service), once per image, not per tile
         layers = [layer for layer in layers if layer["style"] not in skipped] or [{"style": "albedo"}]
     if labels is None and any("segments" in layer or "exclude_segments" in layer
                               or "segments" in STYLES[layer["style"]].needs for layer in layers):

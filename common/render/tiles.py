@@ -193,7 +193,8 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     Returns
     -------
     Rendering
-        ``rgb`` (H, W, 3) and ``alpha`` (H, W) as uint8 / uint16 (the recipe's ``bits``).
+        ``rgb`` (H, W, 3) and ``alpha`` (H, W) as uint8 / uint16 (the recipe's ``bits``); ``skipped``, the
+        styles left out for want of normals, is not logged here (the caller says it once, for the image).
     """
     from common.render._heap import reuse_freed_memory
     from common.render.recipes import STYLES, Rendering, _render_whole, load_recipe, style_recipe
@@ -290,7 +291,8 @@ def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = 
     """Draw an RGBN image stored in an open HDF5 group (an artifact): read whole when it is small,
     else window by window (:class:`H5Source`), so a face larger than memory draws within the tile
     budget (a recipe that segments keeps 4 bytes a pixel of labels besides).
-    Returns ``(Rendering, dpi)``."""
+    Returns ``(Rendering, dpi)``. Styles skipped for want of normals are listed in ``Rendering.skipped``,
+    not logged: the caller reports them, naming the face (the renderer service)."""
     from common.render.recipes import STYLES, load_recipe, render, style_recipe
     from common.rgbn.image import read_rgbn
 
@@ -305,4 +307,4 @@ def render_h5(group, recipe, *, progress: Callable[[float, str], None] | None = 
         source = H5Source(group)
         return render_tiled(source, recipe, progress=progress), source.dpi
     image = read_rgbn(group)
-    return render(image, recipe, progress=progress), image.dpi
+    return render(image, recipe, progress=progress, warn_skipped=False), image.dpi

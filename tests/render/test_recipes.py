@@ -467,3 +467,19 @@ def test_auto_sigma_px_is_the_noise_scale_times_the_factor_the_docs_state():
     doc = PARAM_DOCS["sigma_px"]
     assert all(k in doc.split("x2 for ")[1].split("x3 for")[0] for k in doubled)
     assert "x3 for toon" in doc and "lines" not in doc
+
+
+@pytest.mark.parametrize("tile", [None, 16])
+def test_a_colour_only_drawing_warns_once_unless_its_caller_reports_it(caplog, tile):
+    """render() says once which styles a colour-only image cannot have (``tessera render`` relies on it), also
+    when it draws in tiles (each tile warned before); a caller that reports them itself (the renderer service,
+    naming the face) asks for none and finds them in ``skipped``."""
+    img = RGBNImage(albedo=np.full((40, 40, 3), 0.5), mask=np.ones((40, 40), bool), dpi=300)
+    with caplog.at_level("WARNING", logger="common.render"):
+        out = render(img, "relief", tile=tile)
+    assert [r.getMessage() for r in caplog.records if "no normals" in r.getMessage()] == [
+        "image has no normals: skipped exaggerated, ridges_valleys"]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="common.render"):
+        quiet = render(img, "relief", tile=tile, warn_skipped=False)
+    assert quiet.skipped == out.skipped == ["exaggerated", "ridges_valleys"] and "no normals" not in caplog.text

@@ -85,3 +85,21 @@ def test_archive_tiles_can_be_left_to_the_first_view(rgbn_job):
     renderer.handle(job, Ctx(store, {"archive_tiles": False}))
     assert not (store.root / "fragments" / "F1" / "tiles").exists()
     assert not (store.root / "fragments" / "F1" / "viewer").exists()
+
+
+@pytest.mark.parametrize("side", [48, 260])   # read whole, and drawn tile by tile (render_h5's H5Source)
+def test_a_colour_only_face_is_reported_once_naming_the_fragment_and_face(tmp_path, caplog, monkeypatch, side):
+    """The styles a colour-only face cannot have were warned about twice (the service, then the library per
+    image or per tile, without saying which face): the service says it once, naming the fragment and face."""
+    import common.render.tiles as tiles
+
+    monkeypatch.setattr(tiles, "TILE_MPX", 0.02)   # 260 x 260 px is then drawn in tiles
+    store = Store(tmp_path / "store")
+    img = RGBNImage(albedo=np.full((side, side, 3), 0.6), mask=np.ones((side, side), bool), dpi=254.0)
+    ref = save_rgbn(store, "fragments/F2/rgbn/back-abc.h5", img)
+    job = new_message("rgbn.ready", fragment="F2", face="back", artifact=ref)
+    with caplog.at_level(logging.INFO):
+        (event,) = renderer.handle(job, Ctx(store, {"recipe": "relief", "archive_tiles": False}))
+    said = [r.getMessage() for r in caplog.records if "no normals" in r.getMessage()]
+    assert said == ["fragment F2 back has no normals: skipped exaggerated, ridges_valleys"]
+    assert load_rendering(store, event["artifact"])[2]["skipped_styles"] == "exaggerated,ridges_valleys"
