@@ -84,13 +84,36 @@ def storage_error(exc: OSError, what: str) -> OSError:
     return exc
 
 
-def _check_free_space(directory: Path, nbytes: int, what: str) -> None:
-    """Raise :class:`StorageFull` if ``directory``'s file system lacks ``nbytes`` + the margin."""
+def check_free_space(directory: str | os.PathLike, nbytes: int, what: str) -> None:
+    """Raise :class:`StorageFull` if ``directory``'s file system lacks ``nbytes`` + the margin.
+
+    The one free-space check of the project: artifacts (:func:`write_file`, :meth:`Store.import_file`),
+    ``tessera export`` and the archive's downloads call it before writing anything.
+
+    Parameters
+    ----------
+    directory : path
+        Where the bytes will go. It need not exist yet: the file system of its nearest existing
+        parent (where it will be made) is asked.
+    nbytes : int
+        Bytes to be written; :data:`FREE_SPACE_MARGIN_BYTES` more must be free.
+    what : str
+        What is written, for the message.
+
+    Raises
+    ------
+    StorageFull
+        Naming ``what``, the bytes needed and the bytes available (``shutil.disk_usage(...).free``:
+        what an unprivileged writer may use). A file system that does not answer is not checked:
+        the write itself will tell.
+    """
+    probe = Path(directory)
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
     try:
-        st = os.statvfs(directory)
+        free = shutil.disk_usage(probe).free
     except OSError:  # some network file systems do not answer: the write itself will tell
         return
-    free = st.f_bavail * st.f_frsize
     if free < nbytes + FREE_SPACE_MARGIN_BYTES:
         raise StorageFull(errno.ENOSPC, f"storage full: {what} needs {nbytes} bytes, "
                                         f"{free} free on {directory} (keeping {FREE_SPACE_MARGIN_BYTES} in reserve)")
@@ -267,7 +290,7 @@ def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True) -
         final.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise storage_error(exc, str(final)) from exc
-    _check_free_space(final.parent, len(data), str(final))
+    check_free_space(final.parent, len(data), str(final))
     with atomic_file(final, replace=replace) as tmp:
         _write_bytes(tmp, data)
 
@@ -410,7 +433,7 @@ class Store:
             final.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise storage_error(exc, relpath) from exc
-        _check_free_space(final.parent, size, relpath)
+        check_free_space(final.parent, size, relpath)
         try:
             _copy_verified(source, final, sha256)
         except FileExistsError:  # another writer finished first: its file stays

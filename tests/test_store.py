@@ -255,7 +255,7 @@ sys.path.insert(0, {repo!r})
 import numpy as np
 import common.store as cs
 if {skip_check}:
-    cs._check_free_space = lambda *a: None   # reach the write itself: ENOSPC from the kernel
+    cs.check_free_space = lambda *a: None   # reach the write itself: ENOSPC from the kernel
 store = cs.Store({root!r})
 data = np.random.default_rng(0).integers(0, 255, 3_000_000, dtype=np.uint8)
 try:
@@ -383,7 +383,7 @@ def test_import_file_never_replaces_an_artifact_of_another_digest(tmp_path):
 def test_import_file_racing_another_writer_keeps_its_file(tmp_path, monkeypatch):
     spool, lab = Store(tmp_path / "spool"), Store(tmp_path / "lab")
     ref = spool.write("fragments/F/scans/s.h5", "s", 1, lambda f: f.create_dataset("y", data=[1]))
-    other = _race_into(monkeypatch, "_check_free_space", lambda: lab.write(ref.path, "s", 1, _fill))
+    other = _race_into(monkeypatch, "check_free_space", lambda: lab.write(ref.path, "s", 1, _fill))
     with pytest.raises(ArtifactError, match="sha256"):
         lab.import_file(spool.path(ref.path), ref.path, ref.sha256)
     assert lab.ref(ref.path) == other["ref"]

@@ -12,7 +12,11 @@ folder ``<out>/<fragment id>/`` receives
 * ``metadata.json`` -- id, per face: dpi, pixel size, size, mask area, source artifact (path,
   sha256), the importer's metadata (inventory, find-spot, ...), provenance; the conventions.
 
-The folder is written under a temporary name and renamed into place, so it is complete or absent.
+Every file is encoded in memory first and the free space of ``<out>``'s file system is checked
+against their sizes (:func:`common.store.check_free_space`: the sum plus a margin) before anything
+is written: a disk too small refuses the export with :class:`~common.store.StorageFull`, naming the
+bytes needed and available, and ``<out>`` is left as it was. The folder is then written under a
+temporary name and renamed into place, so it is complete or absent.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import h5py
 import numpy as np
 
 from common import __version__
-from common.store import ArtifactError, Store, storage_error
+from common.store import ArtifactError, Store, check_free_space, storage_error
 
 NORMAL_MAP_CONVENTION = ("16-bit RGBA PNG, OpenGL convention: RGB = (n + 1) / 2 * 65535, x right, y up (green grows "
                          "towards the top row), z towards the viewer; alpha 65535 on the fragment, 0 (and RGB 0) "
@@ -73,11 +77,13 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     """Write ``<out_dir>/<fragment>/`` (see the module docstring); return its path.
 
     Raises ValueError naming the fragment when it has no RGBN face on storage, or when the folder
-    exists and ``overwrite`` is False.
+    exists and ``overwrite`` is False; :class:`~common.store.StorageFull` (nothing written) when
+    ``out_dir``'s file system has not the room for the files, or fills up while they are written;
+    :class:`~common.store.StorageReadOnly` when it refuses writes.
     """
     from common.render.artifact import load_rendering
     from common.rgbn.image import load_rgbn
-    from common.rgbn.io import encode_normal_map, linear_to_srgb, write_image
+    from common.rgbn.io import encode_normal_map, encode_png, linear_to_srgb
 
     if albedo_bits not in (8, 16):
         raise ValueError(f"albedo_bits must be 8 or 16, got {albedo_bits}")
@@ -88,47 +94,52 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     final = out_dir / fragment
     if final.exists() and not overwrite:
         raise ValueError(f"{final} exists; remove it or pass overwrite (--force)")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{fragment}.", suffix=".tmp", dir=out_dir))
+    # every file in memory first: their sizes are checked against the free space before anything is written
+    meta = {"fragment": fragment, "exported": _dt.datetime.now(_dt.timezone.utc).isoformat(),
+            "software_version": __version__, "normal_map": NORMAL_MAP_CONVENTION,
+            "albedo": f"{albedo_bits}-bit RGBA PNG, sRGB-encoded reflectance, alpha = mask", "faces": {}}
+    out: dict[str, bytes] = {}
+    for face, rel in faces.items():
+        ref = store.ref(rel)
+        img = load_rgbn(store, ref)
+        with store.open(ref) as f:
+            prov = store.provenance(f)
+        mask = img.mask
+        files = []
+        if img.normals is not None:
+            out[f"{face}-normals.png"] = encode_png(encode_normal_map(img.normals, mask, "opengl"), bits=16,
+                                                    alpha=mask.astype(np.float32))
+            files.append(f"{face}-normals.png")
+        out[f"{face}-albedo.png"] = encode_png(linear_to_srgb(img.albedo) * mask[..., None], bits=albedo_bits,
+                                               alpha=mask.astype(np.float32))
+        files.append(f"{face}-albedo.png")
+        renders = store.path(f"fragments/{fragment}/renders")
+        for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
+            try:
+                image, alpha, attrs = load_rendering(store, rp.relative_to(store.root).as_posix())
+            except ArtifactError:
+                continue
+            name = f"{face}-render-{attrs.get('recipe', 'render')}-{rp.stem.split('-', 1)[-1][:8]}.png"
+            out[name] = encode_png(image, bits=int(attrs.get("bits", 8)), alpha=alpha)
+            files.append(name)
+        user = img.attrs.get("metadata")
+        user = json.loads(user) if isinstance(user, (str, bytes)) and user else {}
+        meta["faces"][face] = {
+            "artifact": ref.to_dict(), "dpi": img.dpi, "pixel_mm": img.pixel_mm,
+            "size_px": [int(mask.shape[1]), int(mask.shape[0])], "mask_px": int(mask.sum()),
+            "area_mm2": float(mask.sum() * img.pixel_mm ** 2), "has_normals": img.normals is not None,
+            "metadata": user, "provenance": prov, "files": files}
+        del img
+    out["metadata.json"] = (json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
+                            + "\n").encode("utf-8")
+    check_free_space(out_dir, sum(len(b) for b in out.values()), f"the export of {fragment} ({len(out)} files)")
     try:
-        meta = {"fragment": fragment, "exported": _dt.datetime.now(_dt.timezone.utc).isoformat(),
-                "software_version": __version__, "normal_map": NORMAL_MAP_CONVENTION,
-                "albedo": f"{albedo_bits}-bit RGBA PNG, sRGB-encoded reflectance, alpha = mask", "faces": {}}
-        for face, rel in faces.items():
-            ref = store.ref(rel)
-            img = load_rgbn(store, ref)
-            with store.open(ref) as f:
-                prov = store.provenance(f)
-            mask = img.mask
-            files = []
-            if img.normals is not None:
-                write_image(tmp / f"{face}-normals.png", encode_normal_map(img.normals, mask, "opengl"), bits=16,
-                            alpha=mask.astype(np.float32))
-                files.append(f"{face}-normals.png")
-            write_image(tmp / f"{face}-albedo.png", linear_to_srgb(img.albedo) * mask[..., None], bits=albedo_bits,
-                        alpha=mask.astype(np.float32))
-            files.append(f"{face}-albedo.png")
-            renders = store.path(f"fragments/{fragment}/renders")
-            for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
-                try:
-                    image, alpha, attrs = load_rendering(store, rp.relative_to(store.root).as_posix())
-                except ArtifactError:
-                    continue
-                name = f"{face}-render-{attrs.get('recipe', 'render')}-{rp.stem.split('-', 1)[-1][:8]}.png"
-                write_image(tmp / name, image, bits=int(attrs.get("bits", 8)), alpha=alpha)
-                files.append(name)
-            user = img.attrs.get("metadata")
-            user = json.loads(user) if isinstance(user, (str, bytes)) and user else {}
-            meta["faces"][face] = {
-                "artifact": ref.to_dict(), "dpi": img.dpi, "pixel_mm": img.pixel_mm,
-                "size_px": [int(mask.shape[1]), int(mask.shape[0])], "mask_px": int(mask.sum()),
-                "area_mm2": float(mask.sum() * img.pixel_mm ** 2), "has_normals": img.normals is not None,
-                "metadata": user, "provenance": prov, "files": files}
-        (tmp / "metadata.json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
-                                           + "\n", encoding="utf-8")
-        for p in tmp.iterdir():
-            with open(p, "rb") as fh:
-                os.fsync(fh.fileno())
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{fragment}.", suffix=".tmp", dir=out_dir))
+    except OSError as exc:
+        raise storage_error(exc, str(final)) from exc
+    try:
+        _write_folder(tmp, out)
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -138,3 +149,12 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
             raise storage_error(exc, str(final)) from exc
         raise
     return final
+
+
+def _write_folder(folder: Path, files: dict[str, bytes]) -> None:
+    """Write each ``name: bytes`` of ``files`` into ``folder`` and fsync it (errors surface as OSError)."""
+    for name, data in files.items():
+        with open(folder / name, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())

@@ -270,6 +270,44 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
     The format follows the suffix: ``.png``, ``.tif``/``.tiff``.
     """
     path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in _TIFF and suffix != ".png":
+        raise ValueError(f"output {path} must end in .png, .tif or .tiff")
+    data = _image_samples(image, bits, alpha)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix in _TIFF:
+        import tifffile
+
+        tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack",
+                         compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
+    else:
+        if data.ndim == 3:
+            data = cv2.cvtColor(data, cv2.COLOR_RGBA2BGRA if data.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(path), data):
+            raise OSError(f"could not write {path}")
+    return path
+
+
+def encode_png(image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None) -> bytes:
+    """The bytes :func:`write_image` writes to a ``.png`` file, in memory (to size a write before making it).
+
+    Examples
+    --------
+    >>> png = encode_png(np.zeros((4, 6, 3)), bits=16, alpha=np.ones((4, 6)))
+    >>> png[:8] == b"\\x89PNG\\r\\n\\x1a\\n", cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED).shape
+    (True, (4, 6, 4))
+    """
+    data = _image_samples(image, bits, alpha)
+    if data.ndim == 3:
+        data = cv2.cvtColor(data, cv2.COLOR_RGBA2BGRA if data.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", data)
+    if not ok:
+        raise ValueError(f"could not encode a {data.shape} image as PNG")
+    return buf.tobytes()
+
+
+def _image_samples(image: np.ndarray, bits: int, alpha: np.ndarray | None) -> np.ndarray:
+    """(H, W) or (H, W, 3|4) uint8/uint16 samples of an image in [0, 1] (and its alpha) at ``bits``."""
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits}")
     img = np.asarray(image)
@@ -287,21 +325,7 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
         if data.ndim == 2:
             data = np.repeat(data[..., None], 3, axis=2)
         data = np.concatenate([data, alpha[..., None]], axis=2)
-    suffix = path.suffix.lower()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if suffix in _TIFF:
-        import tifffile
-
-        tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack",
-                         compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
-    elif suffix == ".png":
-        if data.ndim == 3:
-            data = cv2.cvtColor(data, cv2.COLOR_RGBA2BGRA if data.shape[2] == 4 else cv2.COLOR_RGB2BGR)
-        if not cv2.imwrite(str(path), data):
-            raise OSError(f"could not write {path}")
-    else:
-        raise ValueError(f"output {path} must end in .png, .tif or .tiff")
-    return path
+    return data
 
 
 def to_bits(values: np.ndarray, bits: int) -> np.ndarray:

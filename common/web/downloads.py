@@ -5,7 +5,10 @@
 key is a content key of the artifacts the files come from (the newest RGBN face of each side and
 every render on storage, by path — their names carry their own content keys) and of the export
 format, so a new solve or render gives a new folder and an old one is never stale.
-:func:`export_zip` adds a zip of the folder beside it (written once, atomically).
+:func:`export_zip` adds a zip of the folder beside it (written once, atomically). Both check the
+free space of the storage before writing anything (:func:`common.store.check_free_space`: the
+files' sizes plus a margin) and raise :class:`~common.store.StorageFull`, naming the bytes needed
+and available, when it lacks (the pages answer 507 with that message).
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from __future__ import annotations
 import zipfile
 from pathlib import Path
 
-from common.store import Store, content_key
+from common.store import Store, check_free_space, content_key
 
 #: version of the download layout (part of the key)
 DOWNLOADS_VERSION = 1
@@ -46,15 +49,40 @@ def export_folder(store: Store, fragment: str) -> tuple[Path, str]:
 
 
 def export_zip(folder: Path, fragment: str) -> Path:
-    """A zip (stored, not recompressed: PNGs are compressed already) of an export folder, beside it."""
+    """A zip (stored, not recompressed: PNGs are compressed already) of an export folder, beside it.
+
+    Raises :class:`~common.store.StorageFull` before writing when the storage has not the room
+    for it (:func:`zip_size`).
+    """
     from common.store import atomic_file  # the project's one atomic write
 
     path = folder.parent / f"{fragment}.zip"
     if path.is_file():
         return path
+    members = [(p, f"{fragment}/{p.name}") for p in sorted(folder.iterdir())
+               if p.is_file() and not p.name.startswith(".")]
+    check_free_space(path.parent, zip_size([(p.stat().st_size, arc) for p, arc in members]), f"the zip {path}")
     with atomic_file(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
-            for p in sorted(folder.iterdir()):
-                if p.is_file() and not p.name.startswith("."):
-                    z.write(p, f"{fragment}/{p.name}")
+            for p, arc in members:
+                z.write(p, arc)
     return path
+
+
+def zip_size(members: list[tuple[int, str]]) -> int:
+    """Upper bound of the bytes of a stored (uncompressed) zip of ``(size, name in the archive)`` members.
+
+    Each member's bytes, its local header (30 bytes + name + a ZIP64 extra field of up to 20 and
+    a data descriptor of up to 24) and its central-directory entry (46 + name + up to 28 of ZIP64
+    extra), and the end records (22, plus 76 for ZIP64): PKWARE APPNOTE 6.3.10 §4.3.
+
+    Examples
+    --------
+    >>> import io, zipfile
+    >>> buf = io.BytesIO()
+    >>> with zipfile.ZipFile(buf, "w") as z:
+    ...     z.writestr("F1/a.png", b"x" * 1000)
+    >>> len(buf.getvalue()) <= zip_size([(1000, "F1/a.png")])
+    True
+    """
+    return 98 + sum(size + 2 * len(name.encode("utf-8")) + 30 + 20 + 24 + 46 + 28 for size, name in members)

@@ -6,6 +6,11 @@
 Writes ``OUT/<id>/<face>-normals.png`` (16-bit RGBA, OpenGL convention: green = y up),
 ``<face>-albedo.png`` (sRGB), ``<face>-render-<recipe>-<key>.png`` and ``metadata.json``; with
 several fragments also ``OUT/collection.json`` listing them. See ``docs/import.md``.
+
+Free space: each fragment's files are encoded in memory and their total size (plus a margin) is
+checked against the free space of OUT's file system before any of them is written. A fragment
+that does not fit stops the export (exit 1) with the bytes needed and available; the fragments
+exported before it are complete, the ones after it are not tried. Nothing is written for it.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from common.imports import ProgressBar
     from common.imports.export import export_fragment, fragment_ids
-    from common.store import Store
+    from common.store import Store, StorageFull, write_file
 
     if args.store:
         root = args.store
@@ -54,12 +59,15 @@ def run(args) -> int:
         print(f"tessera export: {out} exists and is not a folder", file=sys.stderr)
         return 2
     bar = ProgressBar(len(ids), "export")
-    done, failed = [], []
+    done, failed, full = [], [], None
     try:
         for i, fid in enumerate(ids):
             try:
                 export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force)
                 done.append(fid)
+            except StorageFull as exc:      # checked before writing: the next ones would not fit either
+                full = (fid, str(exc))
+                break
             except (ValueError, OSError) as exc:
                 failed.append((fid, str(exc)))
             bar.update(i + 1, fid)
@@ -68,15 +76,23 @@ def run(args) -> int:
         print(f"interrupted after {len(done)} fragment(s); each folder written is complete", file=sys.stderr)
         return 130
     bar.close()
+    index_written = True
     if len(ids) > 1 and done:
         index = out / "collection.json"
         listed = json.loads(index.read_text()) if index.is_file() else {"fragments": []}
         listed["fragments"] = sorted(set(listed.get("fragments", [])) | set(done))
         listed["storage_root"] = str(Path(root).resolve())
-        tmp = index.with_name(".collection.json.tmp")
-        tmp.write_text(json.dumps(listed, indent=2) + "\n")
-        tmp.replace(index)
+        try:    # the project's atomic write, free space checked
+            write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"))
+        except OSError as exc:
+            print(f"tessera export: {index} not updated: {exc}", file=sys.stderr)
+            index_written = False
     print(f"exported {len(done)} fragment(s) to {out}" + (f"; {len(failed)} failed" if failed else ""))
     for fid, why in failed:
         print(f"  not exported {fid}: {why}", file=sys.stderr)
-    return 1 if failed else 0
+    if full:
+        left = len(ids) - len(done) - len(failed)
+        print(f"tessera export: not enough free space, stopped at {full[0]}: {full[1]}; nothing of it was written"
+              + (f", {left - 1} more fragment(s) not tried" if left > 1 else "")
+              + (f"; the {len(done)} exported before it are complete" if done else ""), file=sys.stderr)
+    return 1 if failed or full or not index_written else 0

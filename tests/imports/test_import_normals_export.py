@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -126,6 +127,49 @@ def test_export_refuses_unknown_fragment_and_existing_folder(tmp_path, capsys):
     assert "not exported A:" in err and "exists" in err
     assert "not exported NOPE: fragment NOPE has no RGBN face" in err
     assert not [p for p in (tmp_path / "out").iterdir() if p.name.startswith(".")]   # no temporary left
+
+
+def _free_space(monkeypatch, free):
+    """shutil.disk_usage answering ``free`` bytes for every path; returns the paths it was asked about."""
+    import collections
+    import shutil
+    asked = []
+    usage = collections.namedtuple("usage", "total used free")
+
+    def disk_usage(path):
+        asked.append(Path(path))
+        return usage(10 ** 12, 10 ** 12 - free, free)
+    monkeypatch.setattr(shutil, "disk_usage", disk_usage)
+    return asked
+
+
+def test_export_checks_the_free_space_of_its_destination_before_writing_anything(tmp_path, monkeypatch, capsys):
+    import re
+
+    from common.store import FREE_SPACE_MARGIN_BYTES
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    for fid in ("A", "B"):
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-1.h5",
+                  RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0, normals=n))
+    assert main(["export", "A", "-o", str(tmp_path / "probe"), "--store", str(tmp_path / "st")]) == 0
+    size = sum(p.stat().st_size for p in (tmp_path / "probe" / "A").iterdir())   # what an export of A writes
+    capsys.readouterr()
+    # a disk with less than the files + the margin: refused before anything is written, sizes named
+    free = size + FREE_SPACE_MARGIN_BYTES - 2000
+    asked = _free_space(monkeypatch, free)
+    out = tmp_path / "usb" / "out"
+    assert main(["export", "A", "B", "-o", str(out), "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "not enough free space, stopped at A" in err and f"{free} free" in err and "1 more fragment(s) not tried" in err
+    need = int(re.search(r"needs (\d+) bytes", err).group(1))
+    assert abs(need - size) < 100       # the sum of the files (metadata.json's time stamp aside)
+    assert not (tmp_path / "usb").exists()
+    assert asked and asked[-1] == tmp_path   # the destination's file system: its nearest existing folder
+    # with the room, the same export goes through
+    _free_space(monkeypatch, size + FREE_SPACE_MARGIN_BYTES + 2000)
+    assert main(["export", "A", "-o", str(out), "--store", str(tmp_path / "st")]) == 0
+    assert sorted(p.name for p in (out / "A").iterdir()) == ["front-albedo.png", "front-normals.png", "metadata.json"]
 
 
 def test_renders_on_storage_are_exported_as_pngs(tmp_path):

@@ -292,7 +292,38 @@ def test_a_download_on_full_storage_says_so_and_leaves_nothing_half_written(tmp_
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("common.rgbn.io.write_image", full)   # the export imports it when it runs
+    monkeypatch.setattr("common.imports.export._write_folder", full)   # the disk fills up while the files are written
     r = web.create_app(token=TOKEN, store_root=tmp_path).test_client().get("/api/downloads/F9")
     assert r.status_code == 507 and "storage full" in r.json["error"]
     assert not list(store.root.rglob(".F9.*.tmp"))
+
+
+def test_a_download_is_refused_before_writing_when_the_storage_lacks_the_room(tmp_path, monkeypatch):
+    """The export of a download and its zip check the storage's free space against the files' sizes plus a
+    margin before writing anything (507 naming the bytes needed and free); with the room they are written."""
+    import collections
+    import shutil
+
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    save_rgbn(store, "fragments/F9/rgbn/front-0000000000000099.h5", _face(60, 80))
+    usage = collections.namedtuple("usage", "total used free")
+    free = {"bytes": 1000}
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 ** 12, 10 ** 12 - free["bytes"], free["bytes"]))
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    r = c.get("/api/downloads/F9")
+    assert r.status_code == 507 and "storage full" in r.json["error"]
+    assert "the export of F9" in r.json["error"] and "1000 free" in r.json["error"]
+    assert not store.path("fragments/F9/downloads").exists() or not any(store.path("fragments/F9/downloads").rglob("*.*"))
+    free["bytes"] = 10 ** 9
+    d = c.get("/api/downloads/F9").json
+    folder = store.path(f"fragments/F9/downloads/{d['key']}/F9")
+    files = sum(p.stat().st_size for p in folder.iterdir())
+    free["bytes"] = files        # the files fit once, but not with the zip's headers and the margin
+    r = c.get(d["zip"])
+    assert r.status_code == 507 and "needs " in r.json["error"] and f"{files} free" in r.json["error"]
+    assert not (folder.parent / "F9.zip").exists() and not list(folder.parent.glob(".F9.zip.*"))
+    free["bytes"] = 10 ** 9
+    assert c.get(d["zip"]).status_code == 200
