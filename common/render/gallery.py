@@ -469,6 +469,13 @@ reading whose curl (`dp/dy - dq/dx` of the gradient field) is smaller, logging b
 ratio (undecided below 1.2: OpenGL assumed and said so); a file that does not decode to unit vectors
 facing the viewer (a photograph, an albedo) is refused with the share that failed.
 
+A colour-only image (no normals) is drawn without the styles that need normals (listed in
+`Rendering.skipped` and the artifact's `skipped_styles`; the albedo if none is left), and said once:
+`render()` (`tessera render`) warns `image has no normals: skipped ...` once per drawing, tiled or
+not; the renderer service draws through `render_h5`, which leaves it to its caller, and logs
+`fragment F face has no normals: skipped ...` once per face (`render(..., warn_skipped=False)` for a caller that
+says it itself; `tests/render/test_renderer_service.py`, `tests/render/test_recipes.py`).
+
 The figures measured now follow (the first section of `docs/gallery/measured.md`, copied here by the
 gallery); that file keeps how each earlier figure was measured: [gallery/measured.md](gallery/measured.md).
 """
