@@ -607,3 +607,19 @@ def test_a_damaged_or_missing_stored_docking_is_docked_again(tmp_path, small_wal
     calls.clear()
     third.rank(cues[q], ids[1:], model, dock_candidates=5)
     assert calls == []                                                # all written back whole
+
+
+def test_docking_calibration_does_not_follow_string_hashing(tmp_path):
+    # the bootstrap model's digest names its version on every worker: the fit must be the same numbers
+    # whatever order Python's hash gives a set of fragment pairs
+    import subprocess
+    import sys
+
+    code = ("from common.synth.wall import generate_wall\n"
+            "from common.matching.online import docking_calibration\n"
+            "w = generate_wall(10, seed=3, dpi=40)\n"
+            "print(repr(docking_calibration(w, negatives_per_positive=1.0)))\n")
+    runs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                           env={**__import__("os").environ, "PYTHONHASHSEED": seed}).stdout
+            for seed in ("1", "2", "3")}
+    assert len(runs) == 1 and "None" not in runs.pop()
