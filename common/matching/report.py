@@ -299,11 +299,12 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
     all_scores, other_scores, undocked_scores, plain_scores, alone_scores = {}, {}, {}, {}, {}
     other_name = ""
     for h in range(2):
-        train_ids, test_ids = halves[h], halves[1 - h] | spurious
-        adj_tr = [p for p in wall.adjacency if p[0] in train_ids and p[1] in train_ids]
+        # sorted: the rarity reference and the fits follow the fragments' order, which must not follow string hashing
+        train_ids, test_ids = sorted(halves[h]), sorted(halves[1 - h] | spurious)
+        adj_tr = [p for p in wall.adjacency if p[0] in halves[h] and p[1] in halves[h]]
         ts_h = training_set({f: cues[f] for f in train_ids}, placed, adj_tr,
                             negatives_per_positive=negatives_per_positive, seed=h)
-        half = Wall(f"{wall.id}-half{h}", [f for f in wall.fragments if f.id in train_ids], adj_tr, {}, 0.0, 0.0,
+        half = Wall(f"{wall.id}-half{h}", [f for f in wall.fragments if f.id in halves[h]], adj_tr, {}, 0.0, 0.0,
                     wall.dpi)
         model, _ = train_model(ts_h, ribbon=ribbon_calibration({f: tables[f] for f in train_ids}, adj_tr),
                                docking=_docking_of(half, {f: tables[f] for f in train_ids}, h))
