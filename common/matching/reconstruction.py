@@ -679,6 +679,7 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping,
     that outline as stage 3 docks a pair (its 30 candidates, :func:`~common.matching.docking.dock_outlines`)
     and the learned chooser picks among them (:func:`~common.matching.pose.learned_pose_scores`: contact,
     the paint continuing from ``member``, the facing geometry against the cluster).
+    :func:`dock_newcomer_members` does it for several members at once, docking once.
 
     Parameters
     ----------
@@ -700,32 +701,65 @@ def dock_newcomer(cluster: Cluster, member: str, newcomer: str, pieces: Mapping,
     faced : list of str
         The members it faces along at least :data:`CLUSTER_FACING_MM` of outline at that pose.
     """
+    return dock_newcomer_members(cluster, [member], newcomer, pieces, outline=outline)[member]
+
+
+def dock_newcomer_members(cluster: Cluster, members: Iterable[str], newcomer: str, pieces: Mapping, *,
+                          outline: np.ndarray | None = None) -> dict[str, tuple[tuple, list[str]]]:
+    """:func:`dock_newcomer` for a newcomer proposed to several members of one cluster, docked once.
+
+    The docking against the cluster's outline (its candidates and their contact and facing geometry) is
+    the same whichever member a proposal names; the choice among the candidates is not, since the paint
+    scored is the paint continuing from that member across its crack. So the newcomer is docked once and
+    the chooser picks for each member: each answer is :func:`dock_newcomer`'s for that member (the same
+    pose for all where no paint is scored, as without paint fields).
+
+    Parameters
+    ----------
+    cluster, newcomer, pieces, outline
+        As for :func:`dock_newcomer`.
+    members : iterable of str
+        Members the newcomer is proposed to.
+
+    Returns
+    -------
+    dict member -> (pose, faced)
+        :func:`dock_newcomer`'s answer for each member.
+    """
     from common.matching.docking import dock_outlines
     from common.matching.facing import facing_geometry
     from common.matching.index import DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
     from common.matching.paint import paint_continuity
     from common.matching.pose import learned_pose_scores, pose_features
 
+    members = list(dict.fromkeys(members))
     missing = [f for f in [*cluster.fragments, newcomer] if f not in pieces]
-    if missing or member not in cluster.poses or newcomer in cluster.poses:
+    outside = [m for m in members if m not in cluster.poses]
+    if missing or not members or outside or newcomer in cluster.poses:
         raise ValueError(f"dock_newcomer needs the outline of every member and of a newcomer outside the cluster; "
-                         f"missing {missing[:5]}, member {member!r} in cluster: {member in cluster.poses}, "
-                         f"newcomer {newcomer!r} in cluster: {newcomer in cluster.poses}")
+                         f"missing {missing[:5]}, member {(outside or members or [None])[0]!r} in cluster: "
+                         f"{bool(members) and not outside}, newcomer {newcomer!r} in cluster: {newcomer in cluster.poses}")
     if outline is None:
         outline = _cluster_outline(cluster, pieces)
     contour_n, paint_n = pieces[newcomer]
     docks = dock_outlines(outline, contour_n, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE)
     in_cluster = [(math.radians(d.angle_deg), d.tx_mm, d.ty_mm) for d in docks]
-    paint = np.zeros(len(docks))
-    to_member = _inverse(_deg_to_rad(cluster.poses[member]))
-    if pieces[member][1] is not None and paint_n is not None:
-        paint = paint_continuity(pieces[member][1], paint_n, _degrees([_compose(to_member, x) for x in in_cluster]))
-    best = in_cluster[int(np.argmax(learned_pose_scores(pose_features(docks, paint, outline, contour_n))))]
-    faced = [f for f in cluster.fragments
-             if facing_geometry(pieces[f][0], contour_n,
-                                _degrees([_compose(_inverse(_deg_to_rad(cluster.poses[f])), best)]))[0][0, 0]
-             >= CLUSTER_FACING_MM]
-    return _degrees([best])[0], faced
+    faced_at: dict[int, list[str]] = {}
+    out = {}
+    for member in members:
+        paint = np.zeros(len(docks))
+        to_member = _inverse(_deg_to_rad(cluster.poses[member]))
+        if pieces[member][1] is not None and paint_n is not None:
+            paint = paint_continuity(pieces[member][1], paint_n,
+                                     _degrees([_compose(to_member, x) for x in in_cluster]))
+        i = int(np.argmax(learned_pose_scores(pose_features(docks, paint, outline, contour_n))))
+        if i not in faced_at:
+            faced_at[i] = [f for f in cluster.fragments
+                           if facing_geometry(pieces[f][0], contour_n,
+                                              _degrees([_compose(_inverse(_deg_to_rad(cluster.poses[f])),
+                                                                 in_cluster[i])]))[0][0, 0] >= CLUSTER_FACING_MM]
+        out[member] = (_degrees([in_cluster[i]])[0], list(faced_at[i]))
+    return out
 
 
 def _cluster_outline(cluster: Cluster, pieces: Mapping) -> np.ndarray:
@@ -824,19 +858,25 @@ def dock_next_joins(cluster: Cluster, nexts: list[dict], pieces: Mapping, *,
     ``pieces`` maps fragment -> (contour_mm, paint field or None); an entry whose newcomer or any member has
     none gets no fit. ``cache`` (keyed by :func:`dock_key`, values ``(pose, faced)``) keeps dockings made
     before, so a caller that shows the same clusters again (the web's reconstruction page) docks each newcomer
-    once; an entry found there needs no pieces. Returns new dicts; ``nexts`` is not changed.
+    once; an entry found there needs no pieces. A newcomer proposed to several members of the cluster is docked
+    against it once (:func:`dock_newcomer_members`), each entry's fit chosen with its own member's paint.
+    Returns new dicts; ``nexts`` is not changed.
     """
     cache = {} if cache is None else cache
-    outline = None
+    todo: dict[str, list[str]] = {}    # newcomer -> the members it is proposed to, not docked before
+    if all(f in pieces for f in cluster.fragments):
+        for d in nexts:
+            if d["newcomer"] in pieces and dock_key(cluster, d["member"], d["newcomer"]) not in cache:
+                todo.setdefault(d["newcomer"], []).append(d["member"])
+    outline = _cluster_outline(cluster, pieces) if todo else None   # made once per cluster, for all its newcomers
+    for newcomer, members in todo.items():    # docked once, whichever members it is proposed to
+        for member, (docked, faced) in dock_newcomer_members(cluster, members, newcomer, pieces,
+                                                             outline=outline).items():
+            cache[dock_key(cluster, member, newcomer)] = (tuple(float(v) for v in docked), list(faced))
     out = []
     for d in nexts:
         d = dict(d, fit=None, faces=[])
         key = dock_key(cluster, d["member"], d["newcomer"])
-        if key not in cache and d["newcomer"] in pieces and all(f in pieces for f in cluster.fragments):
-            if outline is None:        # made once per cluster, for all its newcomers
-                outline = _cluster_outline(cluster, pieces)
-            docked, faced = dock_newcomer(cluster, d["member"], d["newcomer"], pieces, outline=outline)
-            cache[key] = (tuple(float(v) for v in docked), list(faced))
         if key in cache:
             docked, faced = cache[key]
             # held by two members, one of them the proposal's: the corner pins it (one crack alone does not;

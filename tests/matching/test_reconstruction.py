@@ -409,6 +409,13 @@ def _framed(outlines, poses):
     return out
 
 
+def _corner(x, y):
+    """A square's labels: 0 the left half, 1 and 2 the right half's top and bottom, wiggly cracks."""
+    right = x > 30 + 2.0 * np.sin(y / 6.0)
+    low = y > 30 + 2.0 * np.sin(x / 5.0 + 1.0)
+    return np.where(~right, 0, np.where(low, 2, 1))
+
+
 def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_cluster():
     """Three pieces of a square: A the left half, B and C the right half's top and bottom, wiggly cracks with
     1.5 mm lost on each side. With A and B confirmed, C fits the corner they make: docked against the cluster
@@ -419,13 +426,8 @@ def test_a_newcomer_in_a_corner_of_the_cluster_is_docked_against_the_whole_clust
 
     from common.matching.reconstruction import Cluster, dock_newcomer, dock_next_joins
 
-    def labels(x, y):
-        right = x > 30 + 2.0 * np.sin(y / 6.0)
-        low = y > 30 + 2.0 * np.sin(x / 5.0 + 1.0)
-        return np.where(~right, 0, np.where(low, 2, 1))
-
     truth = {"0": (0.0, 0.0, 0.0), "1": (35.0, 40.0, -5.0), "2": (-110.0, 50.0, 55.0)}   # each frame in the square's
-    outlines = _framed(_broken_square(labels), truth)
+    outlines = _framed(_broken_square(_corner), truth)
     cluster = Cluster(id="C:0", root="0", fragments=["0", "1"], poses={"0": truth["0"], "1": truth["1"]},
                       joins=[Join("0", "1", *relative_pose(truth["0"], truth["1"]))])
     pieces = {k: (c, None) for k, c in outlines.items()}
@@ -474,6 +476,58 @@ def test_a_newcomer_that_meets_one_member_is_offered_no_fit():
     assert got["fit"] is None and got["faces"] == []
     assert (got["pose"][0] - truth["2"][0] + 180) % 360 - 180 == pytest.approx(0, abs=1e-6)
     assert got["pose"][1:] == pytest.approx(truth["2"][1:], abs=1e-6)
+
+
+def test_a_newcomer_proposed_to_two_members_is_docked_against_their_cluster_once(monkeypatch):
+    """The reconstruction page docked a newcomer against a cluster once per proposal, so one proposed to two of its
+    members was docked twice. The docking (the cluster's outline, the candidates and their geometry) is the same
+    for both; the chooser's paint, scored across the proposal's own member's crack, is not. So it is docked once
+    and each next join gets :func:`dock_newcomer`'s answer for its member: the same corner without paint, and
+    another candidate where that member's paint says so."""
+    from types import SimpleNamespace
+
+    import common.matching.docking as docking
+    import common.matching.paint as paint
+    from common.matching.reconstruction import Cluster, dock_key, dock_newcomer, dock_next_joins
+
+    truth = {"0": (0.0, 0.0, 0.0), "1": (35.0, 40.0, -5.0), "2": (-110.0, 50.0, 55.0)}
+    outlines = _framed(_broken_square(_corner), truth)
+    cluster = Cluster(id="C:0", root="0", fragments=["0", "1"], poses={"0": truth["0"], "1": truth["1"]},
+                      joins=[Join("0", "1", *relative_pose(truth["0"], truth["1"]))])
+    props = [SimpleNamespace(id=i, fragment_a=m, fragment_b="2", probability=0.9, mutual=0.9, status="pending",
+                             angle_deg=z[0], tx_mm=z[1], ty_mm=z[2])
+             for i, m in ((1, "0"), (2, "1")) for z in [relative_pose(truth[m], truth["2"])]]
+    plain = next_joins(cluster, props, [cluster])
+    assert sorted(d["member"] for d in plain) == ["0", "1"] and {d["newcomer"] for d in plain} == {"2"}
+    calls = []
+    real = docking.dock_outlines
+    monkeypatch.setattr(docking, "dock_outlines", lambda *a, **k: calls.append(a) or real(*a, **k))
+
+    def alone(member, pieces):   # dock_newcomer for one member, as the page did per proposal
+        before = len(calls)
+        pose, faced = dock_newcomer(cluster, member, "2", pieces)
+        assert len(calls) == before + 1
+        return tuple(float(v) for v in pose), faced
+
+    pieces = {k: (c, None) for k, c in outlines.items()}
+    cache = {}
+    got = dock_next_joins(cluster, plain, pieces, cache=cache)
+    assert len(calls) == 1 and len(cache) == 2                      # docked once, an answer per member
+    for d in got:
+        assert cache[dock_key(cluster, d["member"], "2")] == alone(d["member"], pieces)
+        assert sorted(d["faces"]) == ["0", "1"] and d["fit"] == cache[dock_key(cluster, d["member"], "2")][0]
+    assert got[0]["fit"] == got[1]["fit"]                           # no paint: the same corner for both
+    # with paint, the member decides among the candidates: member 1's paint continues only at the last one
+    monkeypatch.setattr(paint, "paint_continuity",
+                        lambda field_m, field_n, poses: np.where(np.arange(len(poses)) == len(poses) - 1,
+                                                                 1000.0 * (field_m == "paint of 1"), 0.0))
+    painted = {k: (c, f"paint of {k}") for k, c in outlines.items()}
+    calls.clear()
+    cache = {}
+    dock_next_joins(cluster, plain, painted, cache=cache)
+    assert len(calls) == 1
+    mine = {m: cache[dock_key(cluster, m, "2")] for m in ("0", "1")}
+    assert mine == {m: alone(m, painted) for m in ("0", "1")} and mine["0"][0] != mine["1"][0]
 
 
 def test_docking_a_newcomer_needs_every_outline():
