@@ -986,7 +986,8 @@ def render(image: RGBNImage, recipe: Recipe | str, *, progress: Callable[[float,
     """Draw ``image`` with a recipe (or a recipe name / file / style name).
 
     Layers whose style needs normals are skipped (and listed in ``Rendering.skipped``) for a
-    colour-only image; if none remains the albedo is drawn. One warning names the skipped styles,
+    colour-only image; where no colour layer remains the albedo is drawn, under the lines left
+    (:func:`layers_without`). One warning names the skipped styles,
     unless ``warn_skipped`` is False: a caller that reports them itself (the renderer service names
     the fragment and face) gets them in ``Rendering.skipped`` only. Images larger than one tile are drawn
     tile by tile in bounded memory (:func:`common.render.tiles.render_tiled`); ``tile`` sets the
@@ -1103,12 +1104,27 @@ def _draw_where_shown(image, recipe, layer, params, shown) -> Layer | None:
     return Layer(rgb, alpha, chosen)
 
 
+def layers_without(layers: list[dict], skipped) -> list[dict]:
+    """The layers a colour-only image is drawn with: those of a ``skipped`` style left out, and the albedo
+    first where no colour layer is left (lines alone would be drawn on the blank background: the default
+    recipe made a white silhouette of every imported picture), or alone where nothing is left.
+
+    >>> [layer["style"] for layer in layers_without([{"style": "colour_relief"}, {"style": "discontinuity_lines"}],
+    ...                                             ["colour_relief"])]
+    ['albedo', 'discontinuity_lines']
+    """
+    kept = [layer for layer in layers if layer["style"] not in skipped]
+    if not any(layer["style"] not in INK_STYLES for layer in kept):
+        kept = [{"style": "albedo"}, *kept]
+    return kept
+
+
 def _render_image(image, recipe, progress, resolved, labels=None, core=None) -> Rendering:
     image = _preprocess(image, recipe.preprocess)
     layers = recipe.layers
     skipped = [layer["style"] for layer in layers if "normal" in STYLES[layer["style"]].needs and image.normals is None]
     if skipped:   # reported by the caller (render, or the renderer service), once per image, not per tile
-        layers = [layer for layer in layers if layer["style"] not in skipped] or [{"style": "albedo"}]
+        layers = layers_without(layers, skipped)
     if labels is None and any("segments" in layer or "exclude_segments" in layer
                               or "segments" in STYLES[layer["style"]].needs for layer in layers):
         from common.rgbn.segmentation import segment_rgbn

@@ -197,7 +197,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
         styles left out for want of normals, is not logged here (the caller says it once, for the image).
     """
     from common.render._heap import reuse_freed_memory
-    from common.render.recipes import STYLES, Rendering, _render_whole, load_recipe, style_recipe
+    from common.render.recipes import STYLES, Rendering, _render_whole, layers_without, load_recipe, style_recipe
 
     if isinstance(recipe, str):
         recipe = style_recipe(recipe) if recipe in STYLES else load_recipe(recipe)
@@ -226,7 +226,7 @@ def render_tiled(source, recipe, *, tile: int | None = None, progress: Callable[
     resolved = calib.resolved
     skipped = calib.skipped
     del calib
-    layers_drawn = [layer for layer in recipe.layers if layer["style"] not in skipped] or [{"style": "albedo"}]
+    layers_drawn = layers_without(recipe.layers, skipped)
     drawn_recipe = replace(recipe, layers=layers_drawn) if skipped else recipe
     log.info("exposure and scales from the %dx%d calibration window: %s", side_w, side_h, resolved)
     # 2. the coarse normal fields that levelling lights the surface by, for the whole image at
