@@ -152,8 +152,9 @@ class ReviewData:
         return self._read(lambda db: [proposal_dict(p) for p in db.ranked(fragment, limit)], [])
 
     def proposal(self, pid) -> dict | None:
-        """One proposal by id, or None (also for an id that is no SQLite integer: a bool, ``1e400``, ``2**70``)."""
-        if isinstance(pid, bool):
+        """One proposal by id, or None (also for an id that is no SQLite integer: a bool, ``1e400``, ``2**70``, or
+        no whole number: ``1.9`` is not proposal 1)."""
+        if isinstance(pid, bool) or (isinstance(pid, float) and not pid.is_integer()):
             return None
         try:
             pid = int(pid)

@@ -44,6 +44,16 @@ def test_reads_see_the_matchers_later_writes_and_verdicts(review):
     assert data.counts() == {"pending": 1, "confirmed": 1, "rejected": 1}
 
 
+def test_a_proposal_id_that_is_not_a_whole_number_names_no_proposal(review):
+    """A verdict's ``"proposal": 1.9`` (a script's arithmetic slip) was taken as proposal 1 and the verdict sent
+    for a pair nobody looked at; ids given as whole numbers, in any JSON form, still name their proposal."""
+    data, _ = review
+    pid = data.pending()[0]["id"]
+    assert data.proposal(pid)["id"] == data.proposal(float(pid))["id"] == data.proposal(str(pid))["id"] == pid
+    for wrong in (pid + 0.9, pid - 0.5, float("nan"), float("inf"), f"{pid}.9"):
+        assert data.proposal(wrong) is None, wrong
+
+
 def test_many_request_threads_share_one_read_only_connection(review):
     data, _ = review
     errors = []
