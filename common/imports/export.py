@@ -25,8 +25,8 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import secrets
 import shutil
-import tempfile
 from pathlib import Path
 
 import h5py
@@ -135,7 +135,7 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     check_free_space(out_dir, sum(len(b) for b in out.values()), f"the export of {fragment} ({len(out)} files)")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{fragment}.", suffix=".tmp", dir=out_dir))
+        tmp = _temporary_folder(out_dir, fragment)
     except OSError as exc:
         raise storage_error(exc, str(final)) from exc
     try:
@@ -149,6 +149,18 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
             raise storage_error(exc, str(final)) from exc
         raise
     return final
+
+
+def _temporary_folder(out_dir: Path, fragment: str) -> Path:
+    """A new folder ``.<fragment>.<random>.tmp`` in ``out_dir``, made with the mode the umask gives (an export is
+    for other people and tools: ``tempfile.mkdtemp``'s 0700 kept everyone else out of the folder renamed from it)."""
+    while True:
+        tmp = out_dir / f".{fragment}.{secrets.token_hex(6)}.tmp"
+        try:
+            tmp.mkdir()
+            return tmp
+        except FileExistsError:
+            continue
 
 
 def _write_folder(folder: Path, files: dict[str, bytes]) -> None:

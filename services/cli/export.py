@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -84,6 +85,9 @@ def run(args) -> int:
         listed["storage_root"] = str(Path(root).resolve())
         try:    # the project's atomic write, free space checked
             write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"))
+            umask = os.umask(0)   # the store's files are made 0600; an export's index is for everyone the umask allows
+            os.umask(umask)
+            os.chmod(index, 0o666 & ~umask)
         except OSError as exc:
             print(f"tessera export: {index} not updated: {exc}", file=sys.stderr)
             index_written = False

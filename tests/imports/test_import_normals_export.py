@@ -129,6 +129,32 @@ def test_export_refuses_unknown_fragment_and_existing_folder(tmp_path, capsys):
     assert not [p for p in (tmp_path / "out").iterdir() if p.name.startswith(".")]   # no temporary left
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_an_export_is_readable_as_the_umask_allows(tmp_path, umask):
+    """An export is for other people and tools, but its fragment folders were made by mkdtemp (mode 0700) and
+    collection.json by the store's temporary file (0600): a colleague could open neither. They follow the umask,
+    as the files in the folders always did."""
+    import os
+    import stat
+
+    _, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    for fid in ("A", "B"):
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0))
+    old = os.umask(umask)
+    try:
+        assert main(["export", "A", "B", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    finally:
+        os.umask(old)
+    out = tmp_path / "out"
+    mode = lambda p: stat.S_IMODE(p.stat().st_mode)  # noqa: E731
+    for fid in ("A", "B"):
+        assert mode(out / fid) == 0o777 & ~umask, fid
+        assert {f.name: mode(f) for f in (out / fid).iterdir()} == {
+            f.name: 0o666 & ~umask for f in (out / fid).iterdir()}
+    assert mode(out / "collection.json") == 0o666 & ~umask
+
+
 def _free_space(monkeypatch, free):
     """shutil.disk_usage answering ``free`` bytes for every path; returns the paths it was asked about."""
     import collections
