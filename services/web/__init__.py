@@ -365,8 +365,9 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
         except Exception as exc:  # the review and status pages are still worth serving
             log.error("no scanner for the bench page (%s: %s); serving review and status only",
                       type(exc).__name__, exc)
-    if bench is not None:
-        link.start_drain()
+    # verdicts and metadata edits go through the outbox too: one kept while the broker was away is sent when it is
+    # back, with or without a scanner (the review host runs --no-scanner)
+    link.start_drain()
     catalogue, feed = open_catalogue(cfg, settings, link, review)
     app = create_app(token=token, settings=settings, store_root=cfg["storage"]["root"], bench=bench, link=link,
                      review=review, catalogue=catalogue, feed=feed)

@@ -606,3 +606,42 @@ def test_the_docs_name_every_blueprint_module_and_api_area():
     areas = {"/".join(r.rule.split("/")[:3]) for r in app.url_map.iter_rules() if r.rule.startswith("/api/")}
     for area in sorted(areas):
         assert f"`{area}" in endpoints, area
+
+
+def test_a_verdict_kept_while_the_broker_was_down_is_sent_by_the_review_host_without_a_scanner(
+        station_config, broker, tmp_path, monkeypatch):
+    """``tessera web --no-scanner`` (the review host) retried its outbox only when another verdict was given:
+    a verdict kept while the broker was down, the session's last, waited there (shown *sent*, never
+    recorded) however long the lab was back. The outbox is retried in the background with or without a
+    scanner."""
+    import threading
+
+    from common.bus.client import BrokerClient
+    from common.bus.outbox import Outbox
+    from common.messages import new_message
+
+    monkeypatch.setenv("STATE_DIRECTORY", str(tmp_path / "state"))
+    verdict = new_message("match.verified", fragment="FA", other="FB", verdict="confirmed", proposal=1,
+                          probability=0.5, by="M. Rossi", model_version="m1")
+    outbox = Outbox(station_config["scanner"]["spool_dir"])   # given while the broker was away
+    outbox.put(verdict)
+    outbox.close()
+    stop, urls = threading.Event(), []
+    t = threading.Thread(target=web.serve, args=(station_config,),
+                         kwargs={"port": 0, "with_scanner": False, "ready": urls.append, "stop": stop}, daemon=True)
+    t.start()
+    try:
+        wait_for(lambda: urls, 30, "the pages to start")
+
+        def delivered():
+            with BrokerClient.from_config(station_config) as bus:
+                return [e for _, b in bus.since(0)["events"] if (e := unpack(bytes(b)))["uid"] == verdict["uid"]]
+        wait_for(delivered, 15, "the kept verdict to reach the broker")
+    finally:
+        stop.set()
+        t.join(15)
+    outbox = Outbox(station_config["scanner"]["spool_dir"])
+    try:
+        assert len(outbox) == 0
+    finally:
+        outbox.close()
