@@ -56,6 +56,7 @@ from common.matching.pairs import correspondence_columns, fragment_cues
 from common.matching.pose import inverse_pose
 from common.matching.proposals import Proposal, ProposalStore, ordered_pair
 from common.messages import MAX_REDOCK_FRAGMENTS, MessageError, new_message, verdict_of
+from common.store import content_key
 
 SERVICE = "matcher"
 VERSION = "matcher-1.3"  # 1.1: colour-ribbon stage; 1.2: docking after a first answer (match.ranked);
@@ -247,13 +248,24 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     # the pose the person set on the review page (other in fragment's frame), when they moved it
     recorded = st.db.record_verdict(job["fragment"], job["other"], verdict, by=job.get("by"), note=job.get("note"),
                                     message_uid=job.get("uid"), when=job.get("time"), pose=job.get("pose"))
+    latest = st.db.latest_verdicts()
+    learned = verdicts_key(latest)
     if recorded is None:
-        ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
-        return []
+        # re-delivered: done, unless the job that recorded it was stopped before its model or re-score was made
+        if st.model.info.get("verdicts_key") != learned:
+            ctx.log.info("verdict %s on %s-%s re-delivered; model %s has not learned it (the job that recorded it "
+                         "was stopped): learning now", job.get("uid"), a, b, st.model.version)
+        elif any(p.model_version != st.model.version for p in st.db.pending(limit=10 ** 9)):
+            ctx.log.info("verdict %s on %s-%s re-delivered; model %s learned it but the pending proposals were not "
+                         "all re-scored (the job was stopped): re-scoring now", job.get("uid"), a, b, st.model.version)
+            return _rescore(st, ctx, previous=str(st.model.info.get("previous", "")), verdicts=len(latest))
+        else:
+            ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
+            return []
     # online learning: re-fit on the bootstrap rows + every pair's latest verdict
     columns = list(st.model.columns)
     rows = []
-    for (fa, fb), v in st.db.latest_verdicts().items():
+    for (fa, fb), v in latest.items():
         p = st.db.get(fa, fb)
         if p is not None and p.evidence:
             rows.append(verdict_rows(p.evidence, v, columns))
@@ -263,19 +275,30 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     ctx.progress(0.3, f"re-fitting on {len(base_y)} bootstrap rows and {len(rows)} verdicts")
     model = refit_with_verdicts(base_x, base_y, rows, previous=st.model,
                                 verdict_weight=float((ctx.config or {}).get("verdict_weight", VERDICT_WEIGHT)))
+    model.info["verdicts_key"] = learned   # what it learned from: a re-delivered verdict checks it
     ref = save_model(ctx.store, model, provenance={"stage": SERVICE, "stage_version": VERSION,
                                                    "previous": st.model.version, "verdicts": len(rows)})
     st.db.add_model(model.version, ref.to_dict(), n_train=len(base_y), note=f"{len(rows)} verdicts")
     previous, st.model = st.model.version, model
-    # re-rank every pending proposal under the new model
+    ctx.log.info("verdict %s on %s-%s: model %s", verdict, a, b, model.version)
+    return _rescore(st, ctx, previous=previous, verdicts=len(rows))
+
+
+def verdicts_key(latest: dict) -> str:
+    """The verdicts a model learned from (every pair's latest, :meth:`ProposalStore.latest_verdicts`) as a short
+    key, stored in the model's ``info``: a re-delivered verdict finds whether its job got as far as the model."""
+    return content_key("verdicts", *(f"{a} {b} {v}" for (a, b), v in sorted(latest.items())))
+
+
+def _rescore(st, ctx, *, previous: str, verdicts: int) -> list[dict]:
+    """Every pending proposal re-scored under the current model; the full re-rank follows as a job of its own."""
     pending = st.db.pending(limit=10 ** 9)
     ctx.progress(0.6, f"re-ranking {len(pending)} pending proposals")
-    scored = rerank(st.index, model, [(p.fragment_a, p.fragment_b) for p in pending])
+    scored = rerank(st.index, st.model, [(p.fragment_a, p.fragment_b) for p in pending])
     st.db.set_probabilities([(p.id, scored[(p.fragment_a, p.fragment_b)].probability) for p in pending
-                             if (p.fragment_a, p.fragment_b) in scored], model.version)
-    ctx.log.info("verdict %s on %s-%s: model %s, %d proposals re-ranked", verdict, a, b, model.version, len(scored))
-    # every fragment's ranking under the new model follows as a job of its own
-    return [new_message("match.refitted", model_version=model.version, previous=previous, verdicts=len(rows),
+                             if (p.fragment_a, p.fragment_b) in scored], st.model.version)
+    ctx.log.info("model %s: %d pending proposals re-ranked", st.model.version, len(scored))
+    return [new_message("match.refitted", model_version=st.model.version, previous=previous, verdicts=verdicts,
                         fragments=len(st.index))]
 
 

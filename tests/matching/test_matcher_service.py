@@ -103,6 +103,35 @@ def test_verdict_refits_a_new_model_version_and_is_idempotent(station):
     assert tuple(stored.values()) == pytest.approx(inverse_pose(33.0, 20.0, -7.5))
 
 
+def test_a_verdict_whose_job_was_stopped_is_learned_when_it_is_delivered_again(station):
+    # the verdict job records the verdict first; a worker killed after that but before the model is saved (or
+    # before the pending proposals are re-scored) left the verdict unlearned: the re-delivery said "already
+    # recorded" and did nothing, until the next verdict
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    for f in wall.fragments[:12]:
+        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    before = db.current_model()["version"]
+    top = db.pending(1)[0]
+    msg = new_message("match.verified", fragment=top.fragment_a, other=top.fragment_b, verdict="rejected", by="test")
+    # the stopped job got as far as recording it
+    assert db.record_verdict(top.fragment_a, top.fragment_b, "rejected", by="test", message_uid=msg["uid"]) is not None
+    (refitted,) = [validate(e) for e in matcher.handle(msg, ctx)]
+    after = db.current_model()["version"]
+    assert refitted["type"] == "match.refitted" and after != before and refitted["model_version"] == after
+    assert len(db.verdicts()) == 1 and {p.model_version for p in db.pending(10 ** 6)} == {after}
+    assert load_model(store, db.current_model()["artifact"]).info["verdicts_key"] == matcher.verdicts_key(
+        db.latest_verdicts())
+    # stopped after the model was made current, before every pending proposal was re-scored under it
+    stale = db.pending(1)[0]
+    db.set_probabilities([(stale.id, stale.probability)], before)
+    (again,) = [validate(e) for e in matcher.handle(msg, ctx)]
+    assert again["type"] == "match.refitted" and again["model_version"] == after
+    assert db.current_model()["version"] == after and {p.model_version for p in db.pending(10 ** 6)} == {after}
+    # and once it is all done, a re-delivery does nothing
+    assert matcher.handle(msg, ctx) == [] and db.current_model()["version"] == after
+
+
 def test_rejections_lower_the_probability_of_similar_pairs(station):
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
