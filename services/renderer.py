@@ -47,7 +47,8 @@ def handle(job: dict, ctx) -> list[dict]:
             # a large face is read and drawn tile by tile (bounded memory)
             drawn, dpi = render_h5(f, recipe, progress=lambda p, t: ctx.progress(0.05 + 0.9 * p, t))
         if drawn.skipped:
-            ctx.log.warning("fragment %s %s has no normals: skipped %s", fragment, face, ", ".join(drawn.skipped))
+            # a colour-only face (an imported picture) is normal, not a fault: said once, at INFO
+            ctx.log.info("fragment %s %s has no normals: skipped %s", fragment, face, ", ".join(drawn.skipped))
         out = save_rendering(ctx.store, relpath, drawn, dpi=dpi, provenance={
             "stage": SERVICE, "stage_version": VERSION, "fragment": fragment, "face": face,
             "recipe": recipe.name, "inputs": [ref.to_dict()]})
