@@ -408,8 +408,9 @@ class TileCache:
 
 
 def face_sources(store: Store, fragment: str) -> dict[str, dict]:
-    """``{face: {"rgbn": relpath, "renders": {recipe: relpath}}}`` — the newest RGBN artifact of each
-    face (:func:`common.imports.export.latest_faces`) and the renders made from it."""
+    """``{face: {"rgbn": relpath, "normals": bool, "renders": {recipe: relpath}}}`` — the newest RGBN
+    artifact of each face (:func:`common.imports.export.latest_faces`), whether it has normals (a
+    colour-only face, an imported picture, has none: no ``normals`` layer), and the renders made from it."""
     import h5py
 
     from common.imports.export import latest_faces
@@ -417,7 +418,12 @@ def face_sources(store: Store, fragment: str) -> dict[str, dict]:
     out: dict[str, dict] = {}
     renders = store.path(f"fragments/{fragment}/renders")
     for face, rel in latest_faces(store, fragment).items():
-        entry = {"rgbn": rel, "renders": {}}
+        try:
+            with h5py.File(store.path(rel), "r", locking=False) as f:
+                normals = "normals" in f
+        except OSError:   # unreadable: listed as it is, its pyramid request says what is wrong
+            normals = False
+        entry = {"rgbn": rel, "normals": normals, "renders": {}}
         for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
             try:
                 with h5py.File(rp, "r", locking=False) as f:

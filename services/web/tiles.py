@@ -2,10 +2,11 @@
 
 URLs (``common.web.tiles`` cuts and caches the pyramids; see ``docs/web.md``):
 
-* ``GET /api/tiles/<fid>`` — the fragment's faces and the pyramid URL of each layer (cuts nothing);
+* ``GET /api/tiles/<fid>`` — the fragment's faces and the pyramid URL of each layer the face has (cuts
+  nothing; a colour-only face lists no ``normals``);
 * ``GET /api/tiles/<fid>/<face>/<layer>`` — ``pyramid.json`` of the face's newest source (cut on
   the first request) plus ``tiles``, the URL template of its tiles; ``layer`` is ``albedo``,
-  ``normals`` or ``render-<recipe>``;
+  ``normals`` (faces with normals) or ``render-<recipe>``;
 * ``GET /api/tiles/<fid>/<pyramid>/<layer>/<level>/<col>_<row>.png`` — one tile. ``<pyramid>`` names
   the source artifact (``rgbn-front-<key>``), so a tile URL never changes content: cached for a year;
 * ``GET /dzi/<fid>~<face>~<layer>.dzi`` and ``/dzi/<fid>~<face>~<layer>_files/<level>/<col>_<row>.png`` —
@@ -38,17 +39,24 @@ def fragment_or_404(fid: str) -> dict:
     return faces
 
 
+def face_layers(source: dict) -> list[str]:
+    """The layers a face has (what the tile list offers): ``albedo``, ``normals`` unless it is colour-only,
+    ``render-<recipe>`` per illustration."""
+    return ["albedo"] + (["normals"] if source["normals"] else []) + [f"render-{r}" for r in source["renders"]]
+
+
 def layer_source(faces: dict, face: str, layer: str) -> str:
     """The artifact a layer of a face is cut from (404 naming what exists otherwise)."""
     if face not in faces:
         abort(404, f"no face {face!r} (faces: {', '.join(faces)})")
-    if layer in ("albedo", "normals"):
+    known = face_layers(faces[face])
+    if layer in known and layer in ("albedo", "normals"):
         return faces[face]["rgbn"]
     recipe = layer.removeprefix("render-")
-    if layer.startswith("render-") and recipe in faces[face]["renders"]:
+    if layer in known and layer.startswith("render-"):
         return faces[face]["renders"][recipe]
-    known = ["albedo", "normals"] + [f"render-{r}" for r in faces[face]["renders"]]
-    abort(404, f"no layer {layer!r} for face {face} (layers: {', '.join(known)})")
+    why = " (a colour-only face has no normals)" if layer == "normals" else ""
+    abort(404, f"no layer {layer!r} for face {face}{why} (layers: {', '.join(known)})")
 
 
 def pyramid_info(fid: str, face: str, layer: str) -> dict:
@@ -68,10 +76,10 @@ def pyramid_info(fid: str, face: str, layer: str) -> dict:
 @bp.get("/api/tiles/<fid>")
 def faces(fid):
     out = {}
-    for face, src in fragment_or_404(fid).items():
-        layers = ["albedo", "normals"] + [f"render-{r}" for r in src["renders"]]
+    for face, src in fragment_or_404(fid).items():   # only the layers the face has: no normals for colour-only
         out[face] = {"source": src["rgbn"],
-                     "layers": {name: url_for("tiles.pyramid", fid=fid, face=face, layer=name) for name in layers}}
+                     "layers": {name: url_for("tiles.pyramid", fid=fid, face=face, layer=name)
+                                for name in face_layers(src)}}
     return jsonify(fragment=fid, faces=out, version=TILES_VERSION)
 
 

@@ -160,7 +160,30 @@ def test_a_colour_only_face_has_no_normals_layer_and_a_render_its_own_pyramid(tm
     got = tiles.TileCache(store).region(rrel, "render", 0, 0, 100, 0, 120)
     assert np.array_equal(got[..., :3][img.mask], drawn[img.mask]) and np.array_equal(got[..., 3], alpha)
     assert tiles.face_sources(store, "F3") == {"front": {"rgbn": "fragments/F3/rgbn/front-1111111111111111.h5",
-                                                         "renders": {"toon": rrel}}}
+                                                         "normals": False, "renders": {"toon": rrel}}}
+
+
+def test_the_tile_list_offers_only_the_layers_a_colour_only_face_has(tmp_path):
+    """The tile list offered a ``normals`` layer for every face, and a colour-only face (an imported picture)
+    then answered 404 on it: the list names only the layers a face has, and the 404 says why."""
+    from services import web
+    from tests.web.conftest import TOKEN
+
+    store = Store(tmp_path)
+    img = _face(60, 80)
+    save_rgbn(store, "fragments/C1/rgbn/front-00000000000000dd.h5", RGBNImage(img.albedo, img.mask, img.dpi))
+    save_rgbn(store, "fragments/C1/rgbn/back-00000000000000ee.h5", img)   # this face has normals
+    c = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    faces = c.get("/api/tiles/C1").json["faces"]
+    assert list(faces["front"]["layers"]) == ["albedo"]
+    assert list(faces["back"]["layers"]) == ["albedo", "normals"]
+    for face in faces.values():   # every layer listed is there
+        for url in face["layers"].values():
+            assert c.get(url).status_code == 200, url
+    r = c.get("/api/tiles/C1/front/normals")
+    assert r.status_code == 404 and "colour-only" in r.json["error"] and "layers: albedo" in r.json["error"]
+    assert c.get("/dzi/C1~front~normals.dzi").status_code == 404
+    assert c.get("/iiif/image/C1~front~normals/info.json").status_code == 404
 
 
 def test_cut_pyramid_checks_its_bands():
