@@ -232,8 +232,8 @@ def join_at_pose(rgb_a: np.ndarray, mask_a: np.ndarray, rgb_b: np.ndarray, mask_
 
 
 def side_by_side(images, *, gap_px: int = 12, background: tuple[int, int, int] = (40, 40, 40),
-                 height_px: int | None = None) -> np.ndarray:
-    """Pictures next to each other on one row, each scaled to a common height.
+                 height_px: int | None = None, pixel_mm=None) -> np.ndarray:
+    """Pictures next to each other on one row: at one common scale, or each scaled to a common height.
 
     Parameters
     ----------
@@ -241,25 +241,52 @@ def side_by_side(images, *, gap_px: int = 12, background: tuple[int, int, int] =
     gap_px : int
     background : RGB triple
     height_px : int, optional
-        Common height; default the smallest input height.
+        Height of the row. Without ``pixel_mm`` every picture is scaled to it (default: the smallest
+        input height). With ``pixel_mm`` the physically tallest picture is drawn this tall (default: its
+        own height in pixels) and the others at the same mm a pixel, centred vertically.
+    pixel_mm : sequence of float, optional
+        Size of a pixel of each picture, mm (25.4 / dpi). Given, all pictures are drawn at one scale,
+        so their sizes compare truthfully: a 105 mm fragment is drawn 105/149 as tall as a 149 mm one,
+        whatever the dpi of each.
+
+    Examples
+    --------
+    >>> a, b = np.zeros((20, 10, 3), np.uint8), np.zeros((40, 40, 3), np.uint8)
+    >>> side_by_side([a, b], gap_px=0).shape                       # one height
+    (20, 30, 3)
+    >>> side_by_side([a, b], gap_px=0, pixel_mm=[0.1, 0.1]).shape  # one scale: a 2 mm tall, b 4 mm
+    (40, 50, 3)
     """
     imgs = [to_rgb8(im) for im in images]
     if not imgs:
         raise ValueError("images must hold at least one picture")
-    h = int(height_px or min(im.shape[0] for im in imgs))
-    if h < 1:
-        raise ValueError(f"height_px must be >= 1, got {height_px}")
+    if pixel_mm is None:
+        h = int(height_px or min(im.shape[0] for im in imgs))
+        if h < 1:
+            raise ValueError(f"height_px must be >= 1, got {height_px}")
+        sizes = [(max(1, int(round(im.shape[1] * h / im.shape[0]))), h) for im in imgs]
+    else:
+        pmm = [float(p) for p in pixel_mm]
+        if len(pmm) != len(imgs) or not all(np.isfinite(p) and p > 0 for p in pmm):
+            raise ValueError(f"pixel_mm must hold one positive size (mm) per picture ({len(imgs)}), got {pixel_mm!r}")
+        tall = max(range(len(imgs)), key=lambda i: imgs[i].shape[0] * pmm[i])
+        h = int(height_px or imgs[tall].shape[0])
+        if h < 1:
+            raise ValueError(f"height_px must be >= 1, got {height_px}")
+        out_mm = imgs[tall].shape[0] * pmm[tall] / h   # the common size of a pixel, mm
+        sizes = [(max(1, int(round(im.shape[1] * p / out_mm))), max(1, min(h, int(round(im.shape[0] * p / out_mm)))))
+                 for im, p in zip(imgs, pmm)]
     scaled = []
-    for im in imgs:
-        w = max(1, int(round(im.shape[1] * h / im.shape[0])))
-        interp = cv2.INTER_AREA if h < im.shape[0] else cv2.INTER_LINEAR
-        scaled.append(cv2.resize(im, (w, h), interpolation=interp))
+    for im, (w, hi) in zip(imgs, sizes):
+        interp = cv2.INTER_AREA if hi < im.shape[0] else cv2.INTER_LINEAR
+        scaled.append(cv2.resize(im, (w, hi), interpolation=interp))
     width = sum(im.shape[1] for im in scaled) + gap_px * (len(scaled) - 1)
     out = np.empty((h, width, 3), dtype=np.uint8)
     out[:] = background
     x = 0
     for im in scaled:
-        out[:, x:x + im.shape[1]] = im
+        y = (h - im.shape[0]) // 2
+        out[y:y + im.shape[0], x:x + im.shape[1]] = im
         x += im.shape[1] + gap_px
     return out
 

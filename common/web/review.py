@@ -2,8 +2,8 @@
 
 Reads the matcher's proposal store (:class:`common.matching.proposals.ProposalStore`, SQLite)
 and the fragments' RGBN artifacts; writes nothing (verdicts travel as ``match.verified`` events
-and the matcher records them). Pictures: both fragments side by side and joined at the proposed
-pose (:func:`common.web.compose.join_at_pose`), in colour (albedo, sRGB) and in relief
+and the matcher records them). Pictures: both fragments side by side (at one mm a pixel, so their
+sizes compare) and joined at the proposed pose (:func:`common.web.compose.join_at_pose`), in colour (albedo, sRGB) and in relief
 (exaggerated shading of the normals, §7.3.5, or a raking light when the renderer is absent).
 """
 
@@ -271,8 +271,10 @@ class ReviewData:
         each = max(128, max_side_px // 2)   # two fragments share every picture
         (a, pa), (b, pb) = (self._fragment_picture(prop["fragment_a"], kind, each),
                             self._fragment_picture(prop["fragment_b"], kind, each))
-        if view.startswith("pair"):
-            img = side_by_side([pa, pb], height_px=min(max_side_px // 2, max(pa.shape[0], pb.shape[0])))
+        if view.startswith("pair"):   # at one mm a pixel: the sizes compare truthfully, whatever each dpi
+            tallest = max((pa, a), (pb, b), key=lambda t: t[0].shape[0] * t[1].pixel_mm)[0]
+            img = side_by_side([pa, pb], pixel_mm=[a.pixel_mm, b.pixel_mm],
+                               height_px=min(max_side_px // 2, tallest.shape[0]))
             img = fit_within(img, max_side_px)
         else:
             if prop["pose"] is None:

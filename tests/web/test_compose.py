@@ -163,6 +163,26 @@ def test_side_by_side_and_png_round_trip():
     np.testing.assert_array_equal(back, out)
 
 
+def test_side_by_side_at_one_scale_draws_each_picture_at_its_physical_size():
+    """Given each picture's pixel size the row is at one mm a pixel: a 105 mm piece at 100 dpi next to a 149 mm
+    piece at 50 dpi is drawn 105/149 as tall (both were scaled to one height), centred on the row."""
+    a = np.full((int(round(105 / 25.4 * 100)), 80, 3), 200, np.uint8)    # 105 mm at 100 dpi: 413 px
+    b = np.full((int(round(149 / 25.4 * 50)), 60, 3), 90, np.uint8)      # 149 mm at 50 dpi: 293 px
+    out = side_by_side([a, b], gap_px=4, pixel_mm=[25.4 / 100, 25.4 / 50])
+    assert out.shape[0] == b.shape[0]   # the tallest piece keeps its pixels
+    rows_a = np.flatnonzero((out == 200).all(axis=2).any(axis=1))
+    rows_b = np.flatnonzero((out == 90).all(axis=2).any(axis=1))
+    assert len(rows_b) == b.shape[0]
+    assert len(rows_a) / len(rows_b) == pytest.approx(105 / 149, abs=0.01)
+    assert abs((rows_a[0] + rows_a[-1]) / 2 - (out.shape[0] - 1) / 2) <= 1   # centred
+    cols_a = np.flatnonzero((out == 200).all(axis=2).any(axis=0))
+    assert len(cols_a) == 40   # its width at the same scale: 80 px at 100 dpi are 40 px at 50 dpi
+    with pytest.raises(ValueError, match="pixel_mm"):
+        side_by_side([a, b], pixel_mm=[0.1])
+    with pytest.raises(ValueError, match="pixel_mm"):
+        side_by_side([a, b], pixel_mm=[0.1, 0.0])
+
+
 def test_join_at_pose_rescales_a_fragment_scanned_at_another_dpi():
     pixel_mm = 25.4 / 300
     pose = _pose_putting_piece_in_frame(33.0, pixel_mm)

@@ -97,6 +97,31 @@ def test_pictures_of_a_proposal(review):
         data.picture(9999, "pair-colour")
 
 
+def test_the_pair_picture_draws_both_fragments_at_one_scale(tmp_path):
+    """The side-by-side picture scaled both fragments to one height: a 105 mm piece was drawn as tall as a
+    149 mm one. It is at one mm a pixel now, whatever the dpi of each (here 100 and 50 dpi)."""
+    store = Store(tmp_path)
+    for fid, height_mm, dpi in (("P1", 105.0, 100.0), ("P2", 149.0, 50.0)):
+        h, w = int(round(height_mm / 25.4 * dpi)), int(round(40 / 25.4 * dpi))
+        mask = np.zeros((h, w), bool)
+        mask[2:-2, 2:-2] = True
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-0.h5", RGBNImage(np.full((h, w, 3), 0.5), mask, dpi))
+    db_path = tmp_path / "matches" / "proposals.sqlite"
+    with ProposalStore(db_path) as db:
+        (p,) = db.upsert([Proposal("P1", "P2", 0.8, "m1", angle_deg=0.0, tx_mm=42.0, ty_mm=0.0)])
+    data = ReviewData(db_path, store)
+    for view in ("pair-colour", "pair-relief"):
+        img = cv2.imdecode(np.frombuffer(data.picture(p.id, view, max_side_px=640), np.uint8), cv2.IMREAD_GRAYSCALE)
+        piece = img > 100   # the fragments (grey 188) on the dark background
+        cols = np.flatnonzero(piece.any(axis=0))
+        split = cols[np.argmax(np.diff(cols))] + 1   # the gap between the two
+        tall_a = np.count_nonzero(piece[:, :split].any(axis=1))
+        tall_b = np.count_nonzero(piece[:, split:].any(axis=1))
+        assert tall_a / tall_b == pytest.approx(105 / 149, abs=0.02), view
+        wide_a, wide_b = np.count_nonzero(piece[:, :split].any(axis=0)), np.count_nonzero(piece[:, split:].any(axis=0))
+        assert wide_a == pytest.approx(wide_b, abs=2), view   # both 40 mm wide
+
+
 def test_relief_of_a_flat_fragment_is_uniform_and_colour_only_falls_back_to_grey():
     h, w = 30, 30
     n = np.dstack([np.zeros((h, w)), np.zeros((h, w)), np.ones((h, w))])
