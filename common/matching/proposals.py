@@ -406,6 +406,17 @@ class ProposalStore:
                         r["proposal_id"], r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
                 for r in rows]
 
+    def latest_verdict(self, a: str, b: str) -> Verdict | None:
+        """The latest verdict on the pair (either order), or None: the one that set its status, with the pose
+        kept with it (``b`` in ``a``'s stored order: :func:`ordered_pair`)."""
+        a, b = ordered_pair(a, b)
+        r = self._db.execute("SELECT * FROM verdicts WHERE fragment_a=? AND fragment_b=? ORDER BY time DESC, id DESC "
+                             "LIMIT 1", (a, b)).fetchone()
+        if r is None:
+            return None
+        return Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"], r["proposal_id"],
+                       r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
+
     def latest_verdicts(self) -> dict[tuple[str, str], str]:
         """The latest verdict per pair (a person may change their mind)."""
         out = {}

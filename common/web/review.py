@@ -29,15 +29,32 @@ log = logging.getLogger("tessera.web.review")
 VIEWS = ("pair-colour", "pair-relief", "joined-colour", "joined-relief")
 
 
-def proposal_dict(p) -> dict:
-    """A :class:`~common.matching.proposals.Proposal` as JSON for the page (evidence left out)."""
-    pose = None
-    if p.angle_deg is not None and p.tx_mm is not None and p.ty_mm is not None:
-        pose = {"angle_deg": float(p.angle_deg), "tx_mm": float(p.tx_mm), "ty_mm": float(p.ty_mm)}
+#: the numbers of a pose (fragment B in fragment A's frame: degrees, mm)
+POSE_KEYS = ("angle_deg", "tx_mm", "ty_mm")
+
+
+def _pose(values) -> dict | None:
+    """``{angle_deg, tx_mm, ty_mm}`` as floats, or None when one is missing."""
+    if not values or any(values.get(k) is None for k in POSE_KEYS):
+        return None
+    return {k: float(values[k]) for k in POSE_KEYS}
+
+
+def proposal_dict(p, latest: Mapping | None = None) -> dict:
+    """A :class:`~common.matching.proposals.Proposal` as JSON for the page (evidence left out).
+
+    ``latest``: the pair's latest verdict (``verdict``, ``pose``, ``time``), recorded or sent and not yet
+    recorded. A decided proposal stands at the pose kept with that verdict (the pose the person saw or set:
+    a confirmation's corrected pose), so ``pose`` — what the pictures show and what a verdict without a new
+    correction keeps — is that one; ``proposed_pose`` is the matcher's, ``verdict_pose`` the verdict's (or None).
+    """
+    proposed = _pose({"angle_deg": p.angle_deg, "tx_mm": p.tx_mm, "ty_mm": p.ty_mm})
+    kept = _pose((latest or {}).get("pose"))
     return {"id": int(p.id), "fragment_a": p.fragment_a, "fragment_b": p.fragment_b,
             "probability": float(p.probability), "mutual": None if p.mutual is None else float(p.mutual),
             "status": p.status, "model_version": p.model_version,
-            "pose": pose, "alignment": p.alignment, "updated": p.updated}
+            "pose": kept or proposed, "proposed_pose": proposed, "verdict_pose": kept,
+            "verdict": (latest or {}).get("verdict"), "alignment": p.alignment, "updated": p.updated}
 
 
 def relief_picture(image: RGBNImage) -> np.ndarray:
@@ -104,6 +121,8 @@ class ReviewData:
         self._cache: collections.OrderedDict = collections.OrderedDict()
         self._cache_lock = threading.Lock()
         self._cache_size = int(cache_pictures)
+        # verdicts this process sent that the matcher has not recorded yet: proposal id -> verdict, pose, time
+        self._sent: collections.OrderedDict = collections.OrderedDict()
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "ReviewData":
@@ -143,13 +162,37 @@ class ReviewData:
             db = self._db()
             return fn(db) if db is not None else default
 
+    def sent(self, pid: int, verdict: str, pose: Mapping | None, when: float) -> None:
+        """Note a verdict this process sent (its ``match.verified``: ``time`` = ``when``) until the matcher
+        records it: meanwhile the proposal stands at its pose as if recorded, so a second verdict without a
+        new correction keeps it, even while the broker is down."""
+        with self._cache_lock:
+            self._sent[int(pid)] = {"verdict": verdict, "pose": dict(pose) if pose else None, "time": float(when)}
+            self._sent.move_to_end(int(pid))
+            while len(self._sent) > 1000:
+                self._sent.popitem(last=False)
+
+    def _latest(self, db, p) -> dict | None:
+        """The pair's latest verdict: the recorded one, or one sent since that the matcher has not recorded."""
+        v = db.latest_verdict(p.fragment_a, p.fragment_b)
+        recorded = {"verdict": v.verdict, "pose": v.pose, "time": v.time} if v is not None else None
+        with self._cache_lock:
+            sent = self._sent.get(int(p.id))
+            if sent is not None and recorded is not None and recorded["time"] >= sent["time"]:
+                del self._sent[int(p.id)]   # recorded (it carries the message's time), or overtaken
+                sent = None
+        return sent or recorded
+
+    def _dicts(self, db, proposals) -> list[dict]:
+        return [proposal_dict(p, self._latest(db, p)) for p in proposals]
+
     def pending(self, limit: int = 50) -> list[dict]:
         """Pending proposals, most probable first."""
-        return self._read(lambda db: [proposal_dict(p) for p in db.pending(limit)], [])
+        return self._read(lambda db: self._dicts(db, db.pending(limit)), [])
 
     def ranked(self, fragment: str, limit: int = 20) -> list[dict]:
         """Proposals involving ``fragment`` (any status), most probable first."""
-        return self._read(lambda db: [proposal_dict(p) for p in db.ranked(fragment, limit)], [])
+        return self._read(lambda db: self._dicts(db, db.ranked(fragment, limit)), [])
 
     def proposal(self, pid) -> dict | None:
         """One proposal by id, or None (also for an id that is no SQLite integer: a bool, ``1e400``, ``2**70``, or
@@ -169,8 +212,11 @@ class ReviewData:
             row = db._db.execute("SELECT * FROM proposals WHERE id=?", (pid,)).fetchone()
             return _proposal(row) if row else None
 
-        found = self._read(by_id, None)
-        return proposal_dict(found) if found else None
+        def one(db):
+            found = by_id(db)
+            return self._dicts(db, [found])[0] if found else None
+
+        return self._read(one, None)
 
     def history(self, limit: int = 100) -> list[dict]:
         """Recorded verdicts, newest first."""
@@ -201,8 +247,8 @@ class ReviewData:
         return rel, load_rgbn(self.store, rel)
 
     def adjusted_pose(self, pid: int, turn_deg: float = 0.0, shift_mm=(0.0, 0.0), *, max_side_px: int = 640) -> dict:
-        """The proposal's pose with fragment B turned by ``turn_deg`` about its centre and moved by
-        ``shift_mm`` in A's frame (:func:`common.matching.pose.adjusted_pose`): what the review page's
+        """The proposal's pose (``pose``: its latest verdict's when decided, else the proposed one) with
+        fragment B turned by ``turn_deg`` about its centre and moved by ``shift_mm`` in A's frame (:func:`common.matching.pose.adjusted_pose`): what the review page's
         pose controls show and a verdict then keeps. Raises LookupError when the proposal or its pose
         is missing."""
         from common.matching.pose import adjusted_pose
@@ -251,7 +297,7 @@ class ReviewData:
     def picture(self, pid: int, view: str, *, max_side_px: int = 640, pose: dict | None = None) -> bytes:
         """PNG of a proposal: ``pair-colour``, ``pair-relief``, ``joined-colour`` or ``joined-relief``;
         the joined views at ``pose`` (angle_deg, tx_mm, ty_mm: B in A's frame) when given, else at the
-        proposal's.
+        proposal's ``pose`` (a decided proposal's: the pose kept with its latest verdict).
 
         Raises LookupError when the proposal, an image or the pose is missing.
         """

@@ -103,9 +103,10 @@ def picture(pid, view):
 @bp.get("/api/review/alternatives/<int:pid>")
 @needs_proposals
 def alternatives(pid):
-    """The proposal's other candidate poses as adjustments of its pose (best first), for stepping; and
+    """The proposal's other candidate poses as adjustments of its pose (best first), for stepping;
     ``cluster``: the adjustment that fits B into a corner of A's confirmed cluster (or A into B's), where the
-    reconstruction found one (``docking``: it is still looking)."""
+    reconstruction found one (``docking``: it is still looking); and ``proposed``: for a proposal that stands at
+    its verdict's pose, the adjustment back to the matcher's proposed pose (else null)."""
     from .reconstruction import cluster_fit
 
     st = station()
@@ -114,14 +115,17 @@ def alternatives(pid):
     side = int(st.settings["picture_px"])
     try:
         alternatives = st.review.alternatives(pid, max_side_px=side)
-        fit, docking = cluster_fit(st.review.proposal(pid))
-        cluster = None
+        prop = st.review.proposal(pid)
+        fit, docking = cluster_fit(prop)
+        cluster = proposed = None
         if fit is not None:
             cluster = {**st.review.adjustments(pid, [fit], max_side_px=side)[0],
                        "cluster": fit["cluster"], "faces": fit["faces"]}
+        if prop["proposed_pose"] is not None and prop["proposed_pose"] != prop["pose"]:
+            proposed = st.review.adjustments(pid, [prop["proposed_pose"]], max_side_px=side)[0]
     except LookupError as exc:
         return jsonify(error=str(exc)), 404
-    return jsonify(proposal=pid, alternatives=alternatives, cluster=cluster, docking=docking)
+    return jsonify(proposal=pid, alternatives=alternatives, cluster=cluster, docking=docking, proposed=proposed)
 
 
 @bp.post("/api/review/verdict")
@@ -140,7 +144,9 @@ def verdict():
     if b.get("adjust") is not None and not isinstance(b.get("adjust"), dict):
         return jsonify(error="adjust must be an object of turn_deg, shift_x_mm, shift_y_mm"), 400
     adjust = _adjustment(b.get("adjust"))
-    try:   # the pose the conservator set (or saw) is the one the verdict keeps
+    # the pose the conservator set (or saw) is the one the verdict keeps: a decided proposal's stands at its
+    # latest verdict's pose (a confirmation's correction), so confirming it again without a new one keeps that
+    try:
         pose = _adjusted(st, prop["id"], adjust) or prop.get("pose")
     except LookupError as exc:
         return jsonify(error=str(exc)), 409
@@ -149,7 +155,8 @@ def verdict():
                       proposal=prop["id"], probability=prop["probability"], by=by,
                       model_version=prop.get("model_version"), **extra)
     delivered = submit_or_503(msg, "verdict")
+    st.review.sent(prop["id"], verdict, pose, msg["time"])   # the proposal stands at it until the matcher records it
     entry = {"fragment_a": prop["fragment_a"], "fragment_b": prop["fragment_b"], "verdict": verdict, "by": by,
-             "time": msg["time"], "uid": msg["uid"], "proposal": prop["id"], "delivered": delivered}
+             "time": msg["time"], "uid": msg["uid"], "proposal": prop["id"], "delivered": delivered, "pose": pose}
     st.sent_verdicts.appendleft(entry)
     return jsonify(sent=entry)

@@ -40,6 +40,20 @@ def test_verdict_sets_status_keeps_history_and_ignores_redelivery(tmp_path):
         assert s.get("A", "B").status == "confirmed" and s.get("A", "B").model_version == "0002-y"
 
 
+def test_the_latest_verdict_of_a_pair_carries_the_pose_kept_with_it(tmp_path):
+    """What the review page shows a decided proposal at: its latest verdict and the pose stored with it (given in
+    either order, stored as the second fragment in the first's frame)."""
+    with ProposalStore(tmp_path / "p.sqlite") as s:
+        s.upsert([make("A", "B", 0.8)])
+        assert s.latest_verdict("A", "B") is None
+        s.record_verdict("A", "B", "confirmed", pose={"angle_deg": 12.0, "tx_mm": 7.0, "ty_mm": -6.0}, when=1.0)
+        s.record_verdict("A", "B", "confirmed", when=1.0)   # same time: the later row is the latest
+        assert s.latest_verdict("B", "A").pose == {"angle_deg": 10.0, "tx_mm": 1.0, "ty_mm": -2.0}   # the proposal's
+        s.record_verdict("B", "A", "rejected", pose={"angle_deg": 0.0, "tx_mm": 5.0, "ty_mm": 0.0}, when=2.0)
+        latest = s.latest_verdict("A", "B")
+        assert latest.verdict == "rejected" and latest.pose == pytest.approx({"angle_deg": 0.0, "tx_mm": -5.0, "ty_mm": 0.0})
+
+
 def test_rerank_updates_probabilities_in_one_transaction(tmp_path):
     with ProposalStore(tmp_path / "p.sqlite") as s:
         ps = s.upsert([make("A", "B", 0.8), make("A", "C", 0.7)])

@@ -460,3 +460,65 @@ def test_archivist_finds_a_fragment_and_edits_its_metadata_through_the_bus(brows
         assert code == 401
     finally:
         ctx.close()
+
+
+def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(tmp_path):
+    """The RePAIR trial, in Chromium against ``tessera web`` (no broker: verdicts wait in the outbox): a confirmed
+    proposal opens at the corrected pose kept with its verdict, C keeps that pose; a new correction confirmed is
+    then the pose it stands at, the pose controls start again from zero, and C once more keeps it (the correction
+    not applied a second time)."""
+    import urllib.parse
+
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.store import Store
+
+    from .test_web import _two_fragments
+    from .viewer_support import WebProcess
+
+    require_browser()
+    from playwright.sync_api import sync_playwright
+
+    pixel_mm = 25.4 / 200
+    proposed = _two_fragments(Store(tmp_path / "storage"), pixel_mm)
+    corrected = {"angle_deg": 3.0, "tx_mm": proposed[1] + 6.0, "ty_mm": -5.0}   # the conservator moved B ~8 mm
+    with ProposalStore(tmp_path / "storage" / "matches" / "proposals.sqlite") as db:
+        (prop,) = db.upsert([Proposal("FA", "FB", 0.9, "m1", angle_deg=proposed[0], tx_mm=proposed[1], ty_mm=proposed[2])])
+        db.record_verdict("FA", "FB", "confirmed", by="A. Conservator", pose=corrected, when=time.time() - 60)
+    web = WebProcess(tmp_path).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
+            page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+            page.goto(f"{web.url}/login?next=/review%3Ffragment%3DFB")
+            page.fill("#token", TOKEN)
+            page.fill("#who", "A. Conservator")
+            page.click("#login-submit")
+            page.wait_for_selector(f"#queue li.current[data-proposal='{prop.id}']", timeout=30_000)
+            assert "kept with the confirmed verdict" in page.inner_text("#proposal-meta")
+            def joined_src() -> str:
+                return urllib.parse.unquote(page.get_attribute("#joined-colour", "src"))
+
+            assert f"at={corrected['angle_deg']:.4f},{corrected['tx_mm']:.4f}" in joined_src()
+
+            def confirm() -> dict:
+                """C; the pose the verdict kept, once the page shows the proposal again (at that pose, afresh)."""
+                page.wait_for_function("() => !document.getElementById('confirm-button').disabled", timeout=15_000)
+                with page.expect_response("**/api/review/verdict") as answer:
+                    page.keyboard.press("c")
+                page.wait_for_selector("#proposal[aria-busy='false']", timeout=15_000)
+                pose = answer.value.json()["sent"]["pose"]
+                assert f"at={pose['angle_deg']:.4f},{pose['tx_mm']:.4f},{pose['ty_mm']:.4f}" in joined_src()
+                return pose
+
+            assert confirm() == pytest.approx(corrected)   # was the proposed pose: the correction undone
+            page.keyboard.press("]")                        # a new correction: B turned 1° more
+            page.keyboard.press("]")
+            page.wait_for_selector("#pose-adjust:has-text('turned 1.0°')", timeout=5_000)
+            again = confirm()
+            assert again["angle_deg"] == pytest.approx(corrected["angle_deg"] + 1.0, abs=1e-6)
+            page.wait_for_function("() => document.getElementById('pose-adjust').textContent === ''", timeout=5_000)
+            assert f"at={again['angle_deg']:.4f}" in joined_src() and "turn_deg=" not in joined_src()
+            assert confirm() == pytest.approx(again)       # not turned a second time
+            browser.close()
+    finally:
+        web.stop()

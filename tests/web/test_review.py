@@ -97,6 +97,40 @@ def test_pictures_of_a_proposal(review):
         data.picture(9999, "pair-colour")
 
 
+def test_a_decided_proposal_stands_at_the_pose_kept_with_its_verdict(review):
+    """A confirmed proposal was shown (and confirmed again) at the matcher's proposed pose, not at the corrected
+    pose stored with the confirmation: it stands at its latest verdict's pose now, recorded or only sent."""
+    data, db_path = review
+    pid = data.pending()[0]["id"]
+    proposed = {"angle_deg": 10.0, "tx_mm": 6.0, "ty_mm": 0.5}
+    corrected = {"angle_deg": 12.0, "tx_mm": 6.8, "ty_mm": -7.5}   # the conservator moved B by ~8 mm
+    undecided = data.proposal(pid)
+    assert undecided["pose"] == undecided["proposed_pose"] == proposed and undecided["verdict_pose"] is None
+    plain = data.picture(pid, "joined-colour", max_side_px=200)
+    with ProposalStore(db_path) as db:   # the matcher records the confirmation with its corrected pose
+        db.record_verdict("A", "B", "confirmed", pose=corrected, when=100.0)
+    got = data.proposal(pid)
+    assert got["pose"] == got["verdict_pose"] == pytest.approx(corrected) and got["proposed_pose"] == proposed
+    assert got["verdict"] == "confirmed"
+    assert data.ranked("B")[0]["pose"] == pytest.approx(corrected)   # the fragment's list (fragment page) too
+    # the joined pictures show it; the adjustments (pose controls, "other pose") start from it
+    shown = data.picture(pid, "joined-colour", max_side_px=200)
+    assert shown == data.picture(pid, "joined-colour", max_side_px=200, pose=corrected) and shown != plain
+    assert data.adjusted_pose(pid) == pytest.approx(corrected)
+    # a verdict sent and not yet recorded stands in for it; once the matcher records it (same time), the store's
+    again = {"angle_deg": 12.0, "tx_mm": 7.3, "ty_mm": -7.5}
+    data.sent(pid, "confirmed", again, 200.0)
+    assert data.proposal(pid)["pose"] == pytest.approx(again)
+    with ProposalStore(db_path) as db:
+        db.record_verdict("A", "B", "confirmed", pose=again, when=200.0)
+    assert data.proposal(pid)["pose"] == pytest.approx(again) and not data._sent
+    # a verdict given elsewhere later than one sent here wins
+    data.sent(pid, "confirmed", corrected, 300.0)
+    with ProposalStore(db_path) as db:
+        db.record_verdict("A", "B", "rejected", when=400.0)   # no pose given: the proposal's is kept with it
+    assert data.proposal(pid)["pose"] == proposed and data.proposal(pid)["verdict"] == "rejected"
+
+
 def test_the_pair_picture_draws_both_fragments_at_one_scale(tmp_path):
     """The side-by-side picture scaled both fragments to one height: a 105 mm piece was drawn as tall as a
     149 mm one. It is at one mm a pixel now, whatever the dpi of each (here 100 and 50 dpi)."""

@@ -145,6 +145,9 @@ class _OneProposal:
         return ({"id": 7, "fragment_a": "FA", "fragment_b": "FB", "probability": 0.9, "model_version": "m1"}
                 if pid == 7 else None)
 
+    def sent(self, pid, verdict, pose, when):
+        """A verdict sent (ReviewData notes it until the matcher records it)."""
+
 
 class _Outbox:
     """Stands in for the station's bus link: keeps what is submitted."""
@@ -540,15 +543,72 @@ def test_the_conservator_corrects_the_pose_and_the_verdict_keeps_it(review_app, 
     centre = ((60 - 1) / 2 * pixel_mm, (90 - 1) / 2 * pixel_mm)
     expected = adjusted_pose((0.0, 60 * pixel_mm, 0.0), centre, turn_deg=10.0, shift_mm=(2.0, -1.0))
     assert (pose["angle_deg"], pose["tx_mm"], pose["ty_mm"]) == pytest.approx(expected, abs=0.02)
-    # without an adjustment the verdict keeps the proposed pose; a malformed adjustment is refused
-    r = c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed"}, headers=BEARER)
-    assert r.status_code == 200
-    with BrokerClient.from_config(station_config) as bus:
-        events = [unpack(bytes(b)) for _, b in bus.since(0)["events"]]
-    assert [e for e in events if e["type"] == "match.verified"][-1]["pose"] == pytest.approx(
-        {"angle_deg": 0.0, "tx_mm": 60 * pixel_mm, "ty_mm": 0.0})
+    # a malformed adjustment is refused
     assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed", "adjust": [1, 2]},
                   headers=BEARER).status_code == 400
+
+
+def _verified(station_config) -> list[dict]:
+    from common.bus.client import BrokerClient
+
+    with BrokerClient.from_config(station_config) as bus:
+        return [e for _, b in bus.since(0)["events"] if (e := unpack(bytes(b)))["type"] == "match.verified"]
+
+
+def test_confirming_a_confirmed_proposal_again_keeps_its_corrected_pose(review_app, station_config):
+    """The RePAIR trial: a confirmed proposal was shown at the matcher's proposed pose, not at the corrected pose
+    kept with the confirmation, and pressing C again sent the uncorrected pose (the reconstruction moved a piece
+    by ~8 mm). A decided proposal stands at its verdict's pose — shown there, and kept by a verdict without a new
+    correction — before the matcher records it (sent) and after (recorded), in this process or another."""
+    from common.matching.proposals import ProposalStore
+    from common.web.review import ReviewData
+
+    app, review = review_app
+    c = app.test_client()
+    pid = c.get("/api/review/queue").json["proposals"][0]["id"]
+    proposed = {"angle_deg": 0.0, "tx_mm": 60 * 25.4 / 200, "ty_mm": 0.0}
+    adjust = {"turn_deg": 2.0, "shift_x_mm": 6.0, "shift_y_mm": -5.0}   # ~8 mm
+    assert c.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed", "adjust": adjust},
+                  headers=BEARER).status_code == 200
+    corrected = _verified(station_config)[-1]["pose"]
+    assert corrected != pytest.approx(proposed)
+
+    def shown(client):
+        (p,) = [p for p in client.get("/api/review/fragment/FB").json["proposals"] if p["id"] == pid]
+        return p
+
+    def confirm_again(client):
+        assert client.post("/api/review/verdict", json={"proposal": pid, "verdict": "confirmed"},
+                           headers=BEARER).status_code == 200
+        return _verified(station_config)[-1]["pose"]
+
+    # sent, not yet recorded by the matcher: shown at the corrected pose, and C again keeps it
+    assert shown(c)["pose"] == pytest.approx(corrected) and shown(c)["proposed_pose"] == pytest.approx(proposed)
+    assert confirm_again(c) == pytest.approx(corrected)
+    # the matcher records the verdicts (as services/matcher.py does: the message's time, uid and pose)
+    with ProposalStore(review.db_path) as db:
+        for e in _verified(station_config):
+            db.record_verdict(e["fragment"], e["other"], e["verdict"], by=e["by"], message_uid=e["uid"],
+                              when=e["time"], pose=e.get("pose"))
+    p = shown(c)
+    assert p["status"] == "confirmed" and p["pose"] == p["verdict_pose"] == pytest.approx(corrected)
+    assert confirm_again(c) == pytest.approx(corrected)
+    # the joined picture without a correction is the one at the corrected pose
+    assert c.get(f"/api/review/picture/{pid}/joined-colour.png").data == review.picture(
+        pid, "joined-colour", max_side_px=640, pose=corrected)
+    # "other pose" offers the way back to the matcher's proposed pose; taking it, the verdict keeps that
+    back = c.get(f"/api/review/alternatives/{pid}").json["proposed"]
+    assert review.adjusted_pose(pid, back["turn_deg"], (back["shift_x_mm"], back["shift_y_mm"])) == pytest.approx(
+        proposed, abs=1e-6)
+    # another web process (the review host), which sent none of it, shows and keeps the recorded pose too
+    link = web.StationLink(station_config)
+    try:
+        other = web.create_app(token=TOKEN, store_root=review.store.root, link=link,
+                               review=ReviewData(review.db_path, review.store)).test_client()
+        assert shown(other)["pose"] == pytest.approx(corrected)
+        assert confirm_again(other) == pytest.approx(corrected)
+    finally:
+        link.close()
 
 
 def test_the_conservator_steps_through_the_dockings_other_poses(review_app):

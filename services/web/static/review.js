@@ -17,7 +17,11 @@
   function adjusted() { return adjust.turn_deg !== 0 || adjust.shift_x_mm !== 0 || adjust.shift_y_mm !== 0; }
 
   function showPictures(p) {
-    const q = adjusted() ? "?" + new URLSearchParams(Object.entries(adjust).map(([k, v]) => [k, v.toFixed(3)])) : "";
+    // the pose the proposal stands at is in the URL: a decided proposal's moves to its verdict's pose once the
+    // matcher records it, and the browser must not show the picture it cached of the one before
+    const at = p.pose ? [["at", [p.pose.angle_deg, p.pose.tx_mm, p.pose.ty_mm].map((v) => v.toFixed(4)).join(",")]] : [];
+    const args = [...at, ...(adjusted() ? Object.entries(adjust).map(([k, v]) => [k, v.toFixed(3)]) : [])];
+    const q = args.length ? "?" + new URLSearchParams(args) : "";
     for (const v of VIEWS) {
       const img = $(v);
       img.alt = `${v} of ${p.fragment_a} and ${p.fragment_b}`;
@@ -36,7 +40,12 @@
     const r = await Tessera.api("GET", `/api/review/alternatives/${p.id}`);
     if (items[index] !== p) return;
     const alts = r.ok ? r.data.alternatives : [];
-    candidates = [{ adjust: ZERO, label: "" }, ...alts.map((a) => ({ adjust: a, label: "" }))];
+    candidates = [{ adjust: ZERO, label: p.verdict_pose ? `the pose kept with the ${p.verdict} verdict` : "" },
+      ...alts.map((a) => ({ adjust: a, label: "" }))];
+    if (r.ok && r.data.proposed) {   // a decided proposal stands at its verdict's pose: the matcher's is one step away
+      const a = { turn_deg: r.data.proposed.turn_deg, shift_x_mm: r.data.proposed.shift_x_mm, shift_y_mm: r.data.proposed.shift_y_mm };
+      candidates.splice(1, 0, { adjust: a, label: "the matcher's proposed pose" });
+    }
     const fit = r.ok ? r.data.cluster : null;
     if (fit) {   // offered, not shown first: in review sessions it was the right pose less often than the pair's
       const a = { turn_deg: fit.turn_deg, shift_x_mm: fit.shift_x_mm, shift_y_mm: fit.shift_y_mm };
@@ -95,7 +104,9 @@
       return;
     }
     $("proposal-title").textContent = `${p.fragment_a} ↔ ${p.fragment_b}`;
-    const pose = p.pose ? `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm` : "no pose yet";
+    const pose = !p.pose ? "no pose yet"
+      : `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm`
+        + (p.verdict_pose ? ` (kept with the ${p.verdict} verdict: confirming again keeps it)` : "");
     const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual ${p.mutual.toFixed(3)}`;
     $("proposal-meta").textContent = `probability ${pct(p.probability)}${mutual} · ${p.status} · ${pose} · model ${p.model_version}`;
     showPictures(p);
@@ -148,6 +159,11 @@
     }
     if ($("confirm-button").disabled) return;
     $("confirm-button").disabled = $("reject-button").disabled = true;
+    $("proposal").setAttribute("aria-busy", "true");   // until the proposal is shown again at the pose kept
+    try { await sendVerdict(p, kind); } finally { $("proposal").setAttribute("aria-busy", "false"); }
+  }
+
+  async function sendVerdict(p, kind) {
     const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind, adjust });
     if (!r.ok) {
       $("review-message").textContent = r.data.error || `refused (${r.status})`;
@@ -157,6 +173,9 @@
     $("review-message").textContent = `${kind === "confirmed" ? "Confirmed" : "Rejected"} ${p.fragment_a} ↔ ${p.fragment_b}.`;
     if (!filter) skipped.add(p.id);   // the queue moves on; a fragment's list keeps every proposal
     await loadHistory();
+    // the proposal now stands at the pose the verdict kept: the correction is in it, so it is selected afresh
+    // (adjustment back to zero: kept, it would be applied twice; candidate poses fetched relative to the new pose)
+    index = -1;
     await loadQueue(filter ? p.id : undefined);
     if (filter) {   // on to the next undecided proposal of this fragment, if any
       const next = items.findIndex((q, k) => k > index && q.status === "pending");
