@@ -54,6 +54,8 @@ FRAGMENT_EVENTS = ("fragment.ready", "rgbn.ready", "features.ready", "render.rea
                    "input.rejected", "fragment.annotated")
 #: event types that change join counts
 JOIN_EVENTS = ("match.proposed", "match.verified")
+#: what the rows hold: an index whose rows another version made is rebuilt from storage at the next start
+ROWS_VERSION = "2"   # 2: an imported fragment's stages say ``imported`` (not ``scanned: waiting``), and when / from what
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -135,18 +137,33 @@ def _hue_deg(px: np.ndarray, mx: np.ndarray, mn: np.ndarray) -> np.ndarray:
 
 def pipeline_state(stages: Mapping[str, str]) -> str:
     """One word for how far a fragment got: ``failed`` if a stage failed, else the last stage of
-    :data:`STAGE_ORDER` reached without a gap (``scanned`` … ``rendered``), ``waiting`` if none."""
+    :data:`STAGE_ORDER` reached without a gap (``scanned`` … ``rendered``), ``waiting`` if none.
+    An imported fragment (stage ``imported`` in place of ``scanned``: :func:`imported_stages`) has no
+    scans: its first stage is ``normals``."""
     if any(v == "failed" for v in stages.values()):
         return "failed"
     state = "waiting"
     for stage in STAGE_ORDER:
         if stages.get(stage) != "done":
-            # an imported face has no scans: its first stage is normals
-            if stage == "scanned" and stages.get("normals") == "done":
+            if stage == "scanned" and (stages.get("imported") == "done" or stages.get("normals") == "done"):
                 continue
             break
         state = stage
     return state
+
+
+def imported_stages(stages: Mapping[str, str], has_faces: bool) -> dict[str, str]:
+    """The stages of a fragment as they apply to it: one with faces and no scans was imported (``tessera
+    import``), not scanned, so its first stage is ``imported: done`` in place of ``scanned: waiting``.
+
+    >>> imported_stages({"scanned": "waiting", "normals": "done"}, True)
+    {'imported': 'done', 'normals': 'done'}
+    >>> imported_stages({"scanned": "done", "normals": "done"}, True)
+    {'scanned': 'done', 'normals': 'done'}
+    """
+    if stages.get("scanned") == "done" or not has_faces:
+        return dict(stages)
+    return {"imported": "done", **{k: v for k, v in stages.items() if k != "scanned"}}
 
 
 def check_changes(changes) -> dict[str, str]:
@@ -192,6 +209,11 @@ class Catalogue:
         self._joins_stale = False
         with self._db() as db:
             db.executescript(_SCHEMA)
+            made_by = db.execute("SELECT value FROM meta WHERE key = 'rows'").fetchone()
+            if made_by is None or made_by[0] != ROWS_VERSION:
+                # rows of another version: forget the feed position, so the first round rebuilds them
+                db.execute("DELETE FROM meta WHERE key IN ('stream', 'seq')")
+                db.execute("INSERT OR REPLACE INTO meta VALUES ('rows', ?)", (ROWS_VERSION,))
 
     @contextlib.contextmanager
     def _db(self):
@@ -239,6 +261,7 @@ class Catalogue:
             imported = imported or meta   # the first face that has the importer's metadata
             faces[face] = info
         st = fragment_state(self.store.root, fid, matched=matched, failed=failed)
+        st["stages"] = imported_stages(st["stages"], bool(faces))
         edits = self._annotations_on_storage(fid)
         values = {k: str(imported.get(k, "") or "") for k in FIELDS}
         for e in edits:
@@ -501,12 +524,41 @@ def _row(r: sqlite3.Row) -> dict:
                              "pending", "confirmed", "updated")}
     out.update(extra=json.loads(r["extra"]), stages=json.loads(r["stages"]), failed=bool(r["failed"]),
                faces=json.loads(r["faces"]), has_thumb=bool(r["has_thumb"]))
+    out["imported"] = _imported(out["stages"], out["faces"])
     return out
+
+
+def _imported(stages: Mapping, faces: Mapping) -> dict | None:
+    """How an imported fragment came (``{"time", "by", "file", "face"}`` of its front face, else its first:
+    the artifact's creation time, the importer, the source file's name; ``""`` where the face does not say),
+    or None for a scanned one."""
+    if stages.get("imported") != "done" or not faces:
+        return None
+    face = "front" if "front" in faces else next(iter(faces))
+    how = faces[face].get("imported") or {}
+    return {"face": face, "time": faces[face].get("created", ""), "by": how.get("by", ""), "file": how.get("file", "")}
 
 
 def _search_text(fid: str, values: Mapping[str, str], extra: Mapping) -> str:
     parts = [fid] + [str(v) for v in values.values() if v] + [str(v) for v in extra.values() if v]
     return "\n".join(parts).lower()
+
+
+def _import_record(attrs) -> dict:
+    """By what and from which file a face was imported, from its artifact's attributes: ``by`` (the provenance's
+    ``importer``, or the ``source`` every importer sets: ``tessera import images``, ``DAFNE``, …) and ``file``
+    (the source file's or folder's name); ``""`` where they do not say (``by`` is ``""`` for a solved scan)."""
+    def text(v):
+        return v.decode() if isinstance(v, bytes) else str(v)
+
+    try:
+        prov = json.loads(text(attrs.get("provenance", "{}")))
+    except ValueError:
+        prov = {}
+    prov = prov if isinstance(prov, dict) else {}
+    files = prov.get("source_file") or prov.get("source_files") or prov.get("capture") or ""
+    files = files[0] if isinstance(files, list) and files else files
+    return {"by": str(prov.get("importer") or text(attrs.get("source", ""))), "file": Path(str(files)).name if files else ""}
 
 
 def _face_info(store: Store, rel: str) -> dict:
@@ -518,6 +570,11 @@ def _face_info(store: Store, rel: str) -> dict:
         with h5py.File(store.path(rel), "r", locking=False) as f:
             h, w = f["mask"].shape
             info.update(dpi=float(f.attrs["dpi"]), width=int(w), height=int(h), has_normals="normals" in f)
+            created = f.attrs.get("created", "")
+            info["created"] = created.decode() if isinstance(created, bytes) else str(created)
+            how = _import_record(f.attrs)
+            if how["by"]:
+                info["imported"] = how
             meta = f.attrs.get("metadata", "")
             if isinstance(meta, bytes):
                 meta = meta.decode()

@@ -48,6 +48,7 @@ def test_colour_family_is_the_most_frequent_and_ignores_pixels_off_the_fragment(
 def test_pipeline_state_is_the_last_stage_reached_without_a_gap():
     assert cat.pipeline_state({"scanned": "done", "normals": "done", "features": "waiting"}) == "normals"
     assert cat.pipeline_state({"scanned": "waiting", "normals": "done", "features": "done"}) == "features"  # imported
+    assert cat.pipeline_state({"imported": "done", "normals": "done", "features": "waiting"}) == "normals"
     assert cat.pipeline_state({"scanned": "done", "normals": "failed"}) == "failed"
     assert cat.pipeline_state({"scanned": "waiting"}) == "waiting"
 
@@ -179,6 +180,47 @@ def test_catalogue_api_lists_filters_and_serves_thumbnails(collection):
     r = client.post("/api/catalogue/F001/metadata", json={"changes": {"colour": "x"}}, headers=BEARER)
     assert r.status_code == 400 and "unknown field" in r.json["error"]
     assert web.create_app(token=TOKEN, store_root=store.root).test_client().get("/api/catalogue").status_code == 503
+
+
+def test_an_imported_fragment_says_imported_with_when_and_from_what_not_scanned_waiting(tmp_path):
+    """The RePAIR trial: fragments brought in by ``tessera import images`` were listed ``scanned: waiting`` (never
+    scanned: imported). Their first stage is ``imported`` and the row says when, by what and from which file;
+    a scanned fragment is as before."""
+    import datetime as dt
+
+    from services import web
+    from services.cli import main
+    from tests.imports.test_import_images import _picture
+
+    _picture(tmp_path / "RPf_00123.png", 3, alpha=True)
+    store = Store(tmp_path / "storage")
+    assert main(["import", "images", str(tmp_path / "RPf_00123.png"), "--dpi", "187.2", "--store", str(store.root)]) == 0
+    (store.root / "fragments/S1/scans").mkdir(parents=True)   # scanned here, not solved yet
+    (store.root / "fragments/S1/scans/scans-1.h5").write_bytes(b"x")
+    c = Catalogue(tmp_path / "catalogue.sqlite", store)
+    assert c.rebuild() == 2
+    row = c.get("RPf_00123")
+    assert "scanned" not in row["stages"] and list(row["stages"])[:2] == ["imported", "normals"]
+    assert row["stages"]["imported"] == "done" and row["state"] == "normals"
+    assert {k: row["imported"][k] for k in ("face", "by", "file")} == {
+        "face": "front", "by": "tessera import images", "file": "RPf_00123.png"}
+    assert abs(dt.datetime.fromisoformat(row["imported"]["time"]).timestamp() - dt.datetime.now().timestamp()) < 600
+    scanned = c.get("S1")
+    assert scanned["stages"]["scanned"] == "done" and "imported" not in scanned["stages"] and scanned["imported"] is None
+    assert [r["id"] for r in c.query(state="normals")["fragments"]] == ["RPf_00123"]
+    got = web.create_app(token=TOKEN, store_root=store.root, catalogue=c).test_client().get("/api/catalogue/RPf_00123")
+    assert got.json["imported"]["by"] == "tessera import images" and "scanned" not in got.json["stages"]
+
+
+def test_an_index_made_by_another_version_is_rebuilt_at_the_next_start(collection, tmp_path):
+    """Rows indexed before imported fragments said so would keep ``scanned: waiting``: an index whose rows
+    another version made forgets its feed position, so the first round of the feed rebuilds it."""
+    store, c, db = collection
+    c.set_position("stream-1", 42)
+    assert Catalogue(c.path, store).position() == ("stream-1", 42)   # same version: followed on
+    with c._db() as con:
+        con.execute("UPDATE meta SET value = '1' WHERE key = 'rows'")
+    assert Catalogue(c.path, store).position() == ("", 0)
 
 
 def test_an_edit_goes_through_the_bus_and_comes_back_from_the_feed(station_config, broker, tmp_path):

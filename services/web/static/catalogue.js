@@ -48,7 +48,8 @@
     const faces = Object.entries(row.faces).map(([face, f]) => `${face} ${f.width}×${f.height} px at ${Math.round(f.dpi)} dpi`);
     const links = [Tessera.el("a", { href: `/fragments/${encodeURIComponent(fid)}`, text: "open the fragment" })];
     if (faces.length) links.push(" · ", Tessera.el("a", { href: `/iiif/presentation/${encodeURIComponent(fid)}/manifest`, text: "IIIF manifest" }));
-    $("detail-links").replaceChildren(...links, ` · ${faces.join(" · ") || "no face yet"} · ${row.state}`);
+    const origin = row.imported ? ` · ${Tessera.imported(row.imported)}` : "";   // not scanned here: when and from what
+    $("detail-links").replaceChildren(...links, ` · ${faces.join(" · ") || "no face yet"}${origin} · ${row.state}`);
     $("metadata").hidden = false;
     for (const input of $("metadata").querySelectorAll("[data-field]")) {
       input.value = row[input.dataset.field] || "";

@@ -48,10 +48,18 @@ const Tessera = (() => {
     return d.toDateString() === today.toDateString() ? clock(t) : d.toLocaleString();
   }
 
+  // how an imported fragment came (a catalogue row's `imported`: time ISO, by, file): "imported <when> from <file> (<by>)"
+  function imported(imp) {
+    if (!imp) return "";
+    const t = Date.parse(imp.time || "");
+    return ["imported", isNaN(t) ? "" : when(t / 1000), imp.file ? `from ${imp.file}` : "", imp.by ? `(${imp.by})` : ""]
+      .filter(Boolean).join(" ");
+  }
+
   function typingInField(ev) {
     const t = ev.target;
     return t && (t.tagName === "INPUT" || t.tagName === "TEXTAREA" || t.isContentEditable);
   }
 
-  return { api, el, clock, when, loggedIn, typingInField };
+  return { api, el, clock, when, imported, loggedIn, typingInField };
 })();

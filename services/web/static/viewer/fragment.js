@@ -57,7 +57,8 @@
     const r = await Tessera.api("GET", url);
     if (!r.ok) { dl.replaceChildren(el("dd", { class: "muted", text: r.data.error || "Not in the catalogue." })); return; }
     const rows = [["Inventory", r.data.inventory], ["Find-spot", r.data.find_spot], ["Context", r.data.context],
-                  ["Date", r.data.date], ["Notes", r.data.notes], ["State", r.data.state]];
+                  ["Date", r.data.date], ["Notes", r.data.notes], ["State", r.data.state],
+                  ["Origin", Tessera.imported(r.data.imported)]];
     dl.replaceChildren(...rows.filter(([, v]) => v).flatMap(([k, v]) => [el("dt", { text: k }), el("dd", { text: String(v) })]));
     $("catalogue-link").href = `/fragments?q=${encodeURIComponent(root.dataset.fragment)}`;
   }
