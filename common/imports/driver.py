@@ -18,7 +18,11 @@ does the rest, the same way for every kind:
   when it is unreachable, to the bench's spool, and puts each event into the durable outbox the
   scanner service uses (:class:`common.bus.outbox.Outbox`), so nothing is lost while the lab is down;
 * **summary** -- :class:`ImportSummary` counts imported / already imported / refused, with each
-  refusal's reason naming the file.
+  refusal's reason naming the file;
+* **the same file twice** -- with ``sources=True`` an item whose file (its sha256) was already imported
+  as another fragment, or for the same fragment at another dpi, is refused naming what it became
+  (:class:`common.imports.sources.SourceIndex`, from the ledger and the artifacts' provenance), unless
+  ``allow_duplicates`` / ``replace`` say otherwise.
 
 Interface for a kind (see ``services/cli/import_images.py`` for a complete one)::
 
@@ -213,7 +217,8 @@ def item_key(item: ImportItem, kind: str, version: str) -> str:
 
 
 def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], sink: Sink, *,
-               kind: str, version: str, progress=None, ledger: Ledger | None = None) -> ImportSummary:
+               kind: str, version: str, progress=None, ledger: Ledger | None = None, sources: bool = False,
+               allow_duplicates: bool = False, replace: bool = False) -> ImportSummary:
     """Import ``items`` through ``convert`` into ``sink``; resumable, never stops on a bad item.
 
     Parameters
@@ -231,6 +236,15 @@ def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store
         Updated after every item (``update(done, name)``).
     ledger : Ledger, optional
         Default: ``<sink.ledger_dir>/ledger.jsonl``.
+    sources : bool
+        Refuse an item whose source file (sha256) was already imported as another fragment id (or the
+        other face), or for the same fragment and face at another ``options["dpi"]``
+        (:meth:`common.imports.sources.SourceIndex.conflict`; what was imported is read from the ledger and
+        the stores' artifacts, cached in ``<sink.ledger_dir>/sources.jsonl``).
+    allow_duplicates, replace : bool
+        With ``sources``: import a file already imported as another fragment anyway; let a file imported
+        for this fragment and face at another dpi be imported again at this one (the newest face is the one
+        every stage and page uses).
 
     Returns
     -------
@@ -240,9 +254,15 @@ def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store
     items = list(items)
     ledger = ledger if ledger is not None else Ledger(Path(sink.ledger_dir) / "ledger.jsonl")
     summary = ImportSummary()
+    check = None
+    if sources:
+        from common.imports.sources import SourceIndex
+
+        index = SourceIndex.load(sink.stores(), list(ledger.done.values()), Path(sink.ledger_dir) / "sources.jsonl")
+        check = (index, {"allow_duplicates": allow_duplicates, "replace": replace})
     try:
         for i, item in enumerate(items):
-            _one(item, convert, sink, kind, version, ledger, summary)
+            _one(item, convert, sink, kind, version, ledger, summary, check)
             if progress is not None:
                 progress.update(i + 1, item.name)
     except KeyboardInterrupt:
@@ -253,7 +273,7 @@ def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store
     return summary
 
 
-def _one(item, convert, sink, kind, version, ledger, summary) -> None:
+def _one(item, convert, sink, kind, version, ledger, summary, check=None) -> None:
     try:
         item.key = item_key(item, kind, version)
     except OSError as exc:
@@ -262,6 +282,12 @@ def _one(item, convert, sink, kind, version, ledger, summary) -> None:
     if item.key in ledger:
         summary.skipped.append(item.name)
         return
+    if check is not None:   # the same file already imported as another fragment, or at another dpi
+        index, policy = check
+        reason = index.conflict(item.digests, item.fragment, item.face, item.options.get("dpi"), item.key, **policy)
+        if reason:
+            summary.refused.append((item.name, reason))
+            return
     stores = sink.stores()
     outputs, used = None, None
     for k, store in enumerate(stores):
@@ -289,8 +315,11 @@ def _one(item, convert, sink, kind, version, ledger, summary) -> None:
         return
     events = [event["uid"] for event, out in zip(announced, outputs or []) if sink.emit(event, out.ref, used)]
     summary.events += len(events)
-    ledger.add({"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
-                "face": item.face, "sources": [os.fspath(p) for p in item.sources],
-                "artifacts": [o.ref.path for o in outputs or []], "events": events,
-                "time": _dt.datetime.now(_dt.timezone.utc).isoformat()})
+    record = {"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
+              "face": item.face, "sources": [os.fspath(p) for p in item.sources], "digests": list(item.digests),
+              "dpi": item.options.get("dpi"), "artifacts": [o.ref.path for o in outputs or []], "events": events,
+              "time": _dt.datetime.now(_dt.timezone.utc).isoformat()}
+    ledger.add(record)
+    if check is not None:   # a second copy later in the same run is found too
+        check[0].add_record(record)
     summary.imported.append(item.name)

@@ -80,6 +80,17 @@ def add_sink_arguments(p: argparse.ArgumentParser) -> None:
     add_config_arguments(p)
 
 
+def add_source_arguments(p: argparse.ArgumentParser) -> None:
+    """``--allow-duplicates`` and ``--replace``: what a kind that checks its files against earlier imports
+    (``run_items(..., sources=True)``) lets through."""
+    g = p.add_argument_group("the same file imported before")
+    g.add_argument("--allow-duplicates", action="store_true",
+                   help="import a file whose content is already imported as another fragment (refused by default)")
+    g.add_argument("--replace", action="store_true",
+                   help="import a file already imported for the same fragment and face at another dpi, the new face "
+                        "replacing the old (refused by default)")
+
+
 class BusSink:
     """Shared storage (or the bench's spool when it is unreachable) + the scanner's durable outbox."""
 
@@ -136,10 +147,12 @@ def open_sink(args):
 
 
 def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], *,
-              kind: str, version: str, out=None) -> int:
+              kind: str, version: str, out=None, sources: bool = False) -> int:
     """Run the shared driver over ``items`` into the sink of ``args``; print the summary; exit status.
 
-    0 = everything imported (or already), 1 = something refused, 130 = interrupted.
+    0 = everything imported (or already), 1 = something refused, 130 = interrupted. ``sources``: refuse a
+    file already imported as another fragment or at another dpi (:func:`run_import`), as
+    :func:`add_source_arguments`' ``--allow-duplicates`` / ``--replace`` let through.
     """
     if not items:
         print(f"tessera import {kind}: nothing to import", file=sys.stderr)
@@ -152,7 +165,9 @@ def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Stor
         return 2
     bar = ProgressBar(len(items), f"import {kind}")
     try:
-        summary = run_import(items, convert, sink, kind=kind, version=version, progress=bar)
+        summary = run_import(items, convert, sink, kind=kind, version=version, progress=bar, sources=sources,
+                             allow_duplicates=bool(getattr(args, "allow_duplicates", False)),
+                             replace=bool(getattr(args, "replace", False)))
     finally:
         if isinstance(sink, BusSink):
             sink.close(args.wait)

@@ -133,6 +133,87 @@ def test_missing_dpi_and_duplicate_ids_stop_before_anything_is_imported(tmp_path
     assert not (tmp_path / "st" / "fragments").exists()
 
 
+def test_the_same_picture_under_a_second_id_is_refused_naming_the_first(tmp_path, capsys):
+    """The RePAIR trial: a picture imported once with a manifest's inventory number and once by its file name
+    became two fragments, which the matcher proposed as a join near the top of its queue. The second import (or a
+    copy of the file under another name, in the same run or a later one) is refused naming the fragment it already
+    is; ``--allow-duplicates`` imports it anyway."""
+    store = tmp_path / "st"
+    _picture(tmp_path / "RPf_00123.png", 4, alpha=True)
+    (tmp_path / "finds.csv").write_text("file,inventory,dpi\nRPf_00123.png,Inv. 1998/12,187.2\n", encoding="utf-8")
+    assert main(["import", "images", "--manifest", str(tmp_path / "finds.csv"), "--store", str(store)]) == 0
+    capsys.readouterr()
+    (tmp_path / "copies").mkdir()
+    (tmp_path / "copies" / "copy_of_123.png").write_bytes((tmp_path / "RPf_00123.png").read_bytes())
+    assert main(["import", "images", str(tmp_path / "RPf_00123.png"), str(tmp_path / "copies"), "--dpi", "187.2",
+                 "--store", str(store)]) == 1
+    out = capsys.readouterr()
+    assert "imported 0, already imported 0, refused 2" in out.out
+    for name, fid in (("RPf_00123.png", "RPf_00123"), ("copy_of_123.png", "copy_of_123")):
+        assert (f"refused {name}: the same file (sha256 " in out.err and
+                f"is already imported as fragment Inv.-1998-12 (front, 187.2 dpi: fragments/Inv.-1998-12/rgbn/front-"
+                in out.err and f"not imported again as {fid} (front): give --allow-duplicates" in out.err), out.err
+    assert sorted(f.parts[-3] for f in _rgbn_files(store)) == ["Inv.-1998-12"]
+    # the same picture, twice in one run: the second copy is refused
+    (tmp_path / "two").mkdir()
+    _picture(tmp_path / "two" / "A.png", 5)
+    (tmp_path / "two" / "B.png").write_bytes((tmp_path / "two" / "A.png").read_bytes())
+    assert main(["import", "images", str(tmp_path / "two"), "--dpi", "300", "--store", str(store)]) == 1
+    err = capsys.readouterr().err
+    assert "refused B.png: the same file" in err and "already imported as fragment A (front, 300 dpi" in err
+    # asked for, it goes in; the first import run again is already imported, not refused
+    assert main(["import", "images", str(tmp_path / "RPf_00123.png"), "--dpi", "187.2", "--allow-duplicates",
+                 "--store", str(store)]) == 0
+    assert sorted(f.parts[-3] for f in _rgbn_files(store)) == ["A", "Inv.-1998-12", "RPf_00123"]
+    assert main(["import", "images", "--manifest", str(tmp_path / "finds.csv"), "--store", str(store)]) == 0
+    assert "imported 0, already imported 1, refused 0" in capsys.readouterr().out
+
+
+def test_the_same_picture_at_another_dpi_is_refused_naming_both_unless_replace(tmp_path, capsys):
+    """Re-importing a picture for the same fragment at another dpi silently added a second, rescaled face: it is
+    refused naming both dpi values; ``--replace`` imports it, the new face the one every stage and page uses."""
+    from common.imports.export import latest_faces
+
+    store = tmp_path / "st"
+    _picture(tmp_path / "F7.png", 6)
+    assert main(["import", "images", str(tmp_path / "F7.png"), "--dpi", "300", "--store", str(store)]) == 0
+    capsys.readouterr()
+    assert main(["import", "images", str(tmp_path / "F7.png"), "--dpi", "150", "--store", str(store)]) == 1
+    err = capsys.readouterr().err
+    assert ("refused F7.png: the same file is already imported for fragment F7 (front) at 300 dpi; this import gives "
+            "150 dpi: give --replace") in err
+    assert len(_rgbn_files(store)) == 1
+    # the same dpi with other metadata is no rescaled copy: imported as before (the newest face is used)
+    (tmp_path / "m.csv").write_text("file,inventory,notes\nF7.png,F7,burnt edge\n", encoding="utf-8")
+    assert main(["import", "images", "--manifest", str(tmp_path / "m.csv"), "--dpi", "300", "--store", str(store)]) == 0
+    assert main(["import", "images", str(tmp_path / "F7.png"), "--dpi", "150", "--replace", "--store", str(store)]) == 0
+    assert len(_rgbn_files(store)) == 3
+    newest = latest_faces(Store(store), "F7")["front"]
+    assert load_rgbn(Store(store), newest).dpi == 150
+    # replaced, its metadata corrected at the dpi it has now: no rescale, not refused
+    assert main(["import", "images", "--manifest", str(tmp_path / "m.csv"), "--dpi", "150", "--store", str(store)]) == 0
+
+
+def test_a_picture_imported_from_another_ledger_is_found_on_storage(tmp_path, capsys, monkeypatch):
+    """What another bench (another ledger) or an older ledger imported is read from the artifacts' provenance
+    (source_sha256, dpi), once: the next run reads it from ``sources.jsonl`` beside the ledger."""
+    import common.imports.sources as sources
+
+    store = tmp_path / "st"
+    _picture(tmp_path / "G1.png", 7)
+    assert main(["import", "images", str(tmp_path / "G1.png"), "--dpi", "300", "--store", str(store)]) == 0
+    (store / "imports" / "ledger.jsonl").unlink()   # as if imported by another bench
+    (tmp_path / "renamed.png").write_bytes((tmp_path / "G1.png").read_bytes())
+    opened = []
+    real = sources._provenance_sources
+    monkeypatch.setattr(sources, "_provenance_sources", lambda path, rel: opened.append(rel) or real(path, rel))
+    for _ in range(2):
+        assert main(["import", "images", str(tmp_path / "renamed.png"), "--dpi", "300", "--store", str(store)]) == 1
+        assert "is already imported as fragment G1 (front, 300 dpi" in capsys.readouterr().err
+    assert len(opened) == 1 and opened[0].startswith("fragments/G1/rgbn/front-")   # read once, then from the cache
+    assert json.loads((store / "imports" / "sources.jsonl").read_text())["dpi"] == 300
+
+
 def test_import_killed_half_way_resumes_and_imports_nothing_twice(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
