@@ -462,7 +462,7 @@ def test_archivist_finds_a_fragment_and_edits_its_metadata_through_the_bus(brows
         ctx.close()
 
 
-def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(tmp_path):
+def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(browser, tmp_path):
     """The RePAIR trial, in Chromium against ``tessera web`` (no broker: verdicts wait in the outbox): a confirmed
     proposal opens at the corrected pose kept with its verdict, C keeps that pose; a new correction confirmed is
     then the pose it stands at, the pose controls start again from zero, and C once more keeps it (the correction
@@ -475,9 +475,6 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(tmp
     from .test_web import _two_fragments
     from .viewer_support import WebProcess
 
-    require_browser()
-    from playwright.sync_api import sync_playwright
-
     pixel_mm = 25.4 / 200
     proposed = _two_fragments(Store(tmp_path / "storage"), pixel_mm)
     corrected = {"angle_deg": 3.0, "tx_mm": proposed[1] + 6.0, "ty_mm": -5.0}   # the conservator moved B ~8 mm
@@ -486,15 +483,16 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(tmp
         db.record_verdict("FA", "FB", "confirmed", by="A. Conservator", pose=corrected, when=time.time() - 60)
     web = WebProcess(tmp_path).start()
     try:
-        with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCH_CHROMIUM_ARGS)
-            page = browser.new_context(viewport={"width": 1280, "height": 900}).new_page()
+        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        try:
+            page = ctx.new_page()
             page.goto(f"{web.url}/login?next=/review%3Ffragment%3DFB")
             page.fill("#token", TOKEN)
             page.fill("#who", "A. Conservator")
             page.click("#login-submit")
             page.wait_for_selector(f"#queue li.current[data-proposal='{prop.id}']", timeout=30_000)
             assert "kept with the confirmed verdict" in page.inner_text("#proposal-meta")
+
             def joined_src() -> str:
                 return urllib.parse.unquote(page.get_attribute("#joined-colour", "src"))
 
@@ -519,6 +517,7 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(tmp
             page.wait_for_function("() => document.getElementById('pose-adjust').textContent === ''", timeout=5_000)
             assert f"at={again['angle_deg']:.4f}" in joined_src() and "turn_deg=" not in joined_src()
             assert confirm() == pytest.approx(again)       # not turned a second time
-            browser.close()
+        finally:
+            ctx.close()
     finally:
         web.stop()
