@@ -55,7 +55,11 @@ FRAGMENT_EVENTS = ("fragment.ready", "rgbn.ready", "features.ready", "render.rea
 #: event types that change join counts
 JOIN_EVENTS = ("match.proposed", "match.verified")
 #: what the rows hold: an index whose rows another version made is rebuilt from storage at the next start
-ROWS_VERSION = "2"   # 2: an imported fragment's stages say ``imported`` (not ``scanned: waiting``), and when / from what
+ROWS_VERSION = "3"   # 2: an imported fragment's stages say ``imported`` (not ``scanned: waiting``), and when / from what;
+#                     3: a colour-only fragment's ``normals`` stage is ``n/a`` (was ``done``)
+#: the status of a stage that does not apply to a fragment (the ``normals`` of a colour-only one), besides
+#: ``done``, ``waiting`` and ``failed``: passed, like ``done``, by :func:`pipeline_state`
+NOT_APPLICABLE = "n/a"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -139,12 +143,13 @@ def pipeline_state(stages: Mapping[str, str]) -> str:
     """One word for how far a fragment got: ``failed`` if a stage failed, else the last stage of
     :data:`STAGE_ORDER` reached without a gap (``scanned`` … ``rendered``), ``waiting`` if none.
     An imported fragment (stage ``imported`` in place of ``scanned``: :func:`imported_stages`) has no
-    scans: its first stage is ``normals``."""
+    scans: its first stage is ``normals``. A stage that does not apply (:data:`NOT_APPLICABLE`: the
+    ``normals`` of a colour-only fragment, :func:`colour_only_stages`) is passed as if done."""
     if any(v == "failed" for v in stages.values()):
         return "failed"
     state = "waiting"
     for stage in STAGE_ORDER:
-        if stages.get(stage) != "done":
+        if stages.get(stage) not in ("done", NOT_APPLICABLE):
             if stage == "scanned" and (stages.get("imported") == "done" or stages.get("normals") == "done"):
                 continue
             break
@@ -164,6 +169,24 @@ def imported_stages(stages: Mapping[str, str], has_faces: bool) -> dict[str, str
     if stages.get("scanned") == "done" or not has_faces:
         return dict(stages)
     return {"imported": "done", **{k: v for k, v in stages.items() if k != "scanned"}}
+
+
+def colour_only_stages(stages: Mapping[str, str], faces: Mapping[str, Mapping]) -> dict[str, str]:
+    """The stages of a fragment whose every face is colour-only (``has_normals`` false: an imported picture,
+    a ``--colour-only`` scan): its ``normals`` stage is :data:`NOT_APPLICABLE`, not ``done`` (the face is
+    stored, but it has no normals). A failed stage stays failed; a face that could not be read, or one
+    with normals, leaves the stages as they are.
+
+    >>> colour_only_stages({"imported": "done", "normals": "done"}, {"front": {"has_normals": False}})
+    {'imported': 'done', 'normals': 'n/a'}
+    >>> colour_only_stages({"scanned": "done", "normals": "done"},
+    ...                    {"front": {"has_normals": True}, "back": {"has_normals": False}})
+    {'scanned': 'done', 'normals': 'done'}
+    """
+    out = dict(stages)
+    if faces and out.get("normals") == "done" and all(f.get("has_normals") is False for f in faces.values()):
+        out["normals"] = NOT_APPLICABLE
+    return out
 
 
 def check_changes(changes) -> dict[str, str]:
@@ -261,7 +284,7 @@ class Catalogue:
             imported = imported or meta   # the first face that has the importer's metadata
             faces[face] = info
         st = fragment_state(self.store.root, fid, matched=matched, failed=failed)
-        st["stages"] = imported_stages(st["stages"], bool(faces))
+        st["stages"] = colour_only_stages(imported_stages(st["stages"], bool(faces)), faces)
         edits = self._annotations_on_storage(fid)
         values = {k: str(imported.get(k, "") or "") for k in FIELDS}
         for e in edits:

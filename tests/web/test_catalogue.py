@@ -212,6 +212,40 @@ def test_an_imported_fragment_says_imported_with_when_and_from_what_not_scanned_
     assert got.json["imported"]["by"] == "tessera import images" and "scanned" not in got.json["stages"]
 
 
+def test_a_colour_only_fragment_says_normals_not_applicable_not_done(tmp_path):
+    """An imported picture (or a ``--colour-only`` scan) has no normals, yet its ``normals`` stage said ``done``:
+    it says ``n/a``, in the index and the API; a fragment with normals on a face says ``done`` as before. The
+    state still counts the stage passed (``normals`` until features come), and a failed solve stays failed."""
+    from services import web
+
+    store = Store(tmp_path / "storage")
+    _fragment(store, "C1", (200, 30, 30))                                  # colour-only
+    n = np.zeros((40, 50, 3), np.float32)
+    n[..., 2] = 1.0
+    save_rgbn(store, "fragments/N1/rgbn/front-0000000000000001.h5",
+              RGBNImage(np.full((40, 50, 3), 0.5, np.float32), np.ones((40, 50), bool), 100.0, normals=n))
+    _fragment(store, "M1", (40, 70, 200), face="back")                   # colour-only back, normals on the front
+    save_rgbn(store, "fragments/M1/rgbn/front-0000000000000002.h5",
+              RGBNImage(np.full((40, 50, 3), 0.5, np.float32), np.ones((40, 50), bool), 100.0, normals=n))
+    _fragment(store, "C2", (40, 70, 200))                                  # colour-only, features computed
+    (store.root / "fragments/C2/features").mkdir(parents=True)
+    (store.root / "fragments/C2/features/front-1.h5").write_bytes(b"x")
+    c = Catalogue(tmp_path / "catalogue.sqlite", store)
+    assert c.rebuild() == 4
+    rows = {r["id"]: r for r in c.query()["fragments"]}
+    assert rows["C1"]["stages"] == {"imported": "done", "normals": "n/a", "features": "waiting",
+                                    "matched": "waiting", "rendered": "waiting"}
+    assert rows["C1"]["state"] == "normals" and rows["C2"]["state"] == "features"
+    assert rows["C2"]["stages"]["normals"] == cat.NOT_APPLICABLE
+    assert rows["N1"]["stages"]["normals"] == "done" and rows["M1"]["stages"]["normals"] == "done"
+    got = web.create_app(token=TOKEN, store_root=store.root, catalogue=c).test_client().get("/api/catalogue/C1")
+    assert got.json["stages"]["normals"] == "n/a"
+    # a parked failure of the solver is not hidden behind n/a
+    c.index_fragment("C1", failed={"solver": "boom"})
+    assert c.get("C1")["stages"]["normals"] == "failed" and c.get("C1")["state"] == "failed"
+    assert cat.pipeline_state({"imported": "done", "normals": "n/a", "features": "done"}) == "features"
+
+
 def test_an_index_made_by_another_version_is_rebuilt_at_the_next_start(collection, tmp_path):
     """Rows indexed before imported fragments said so would keep ``scanned: waiting``: an index whose rows
     another version made forgets its feed position, so the first round of the feed rebuilds it."""
