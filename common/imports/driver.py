@@ -19,10 +19,11 @@ does the rest, the same way for every kind:
   scanner service uses (:class:`common.bus.outbox.Outbox`), so nothing is lost while the lab is down;
 * **summary** -- :class:`ImportSummary` counts imported / already imported / refused, with each
   refusal's reason naming the file;
-* **the same file twice** -- with ``sources=True`` an item whose file (its sha256) was already imported
-  as another fragment, or for the same fragment at another dpi, is refused naming what it became
+* **the same file twice** -- with ``sources=True`` an item any of whose files (its sha256) was already
+  imported as another fragment, or for the same fragment at another dpi, is refused naming what it became
   (:class:`common.imports.sources.SourceIndex`, from the ledger and the artifacts' provenance), unless
-  ``allow_duplicates`` / ``replace`` say otherwise.
+  ``allow_duplicates`` / ``replace`` say otherwise; an item's ``shared`` files (an RTI rig's light file)
+  are left out of the check.
 
 Interface for a kind (see ``services/cli/import_images.py`` for a complete one)::
 
@@ -84,6 +85,10 @@ class ImportItem:
         Filled in by :func:`run_import` (:func:`item_key`); name artifacts with it.
     digests : list of str
         Filled in by :func:`run_import`: the sha256 of each source, in order (for provenance).
+    shared : sequence of path
+        Those of ``sources`` that are no picture of this fragment and may be the same file for many items
+        (a dome's light file, a mask): part of the key, left out of the check for files imported before
+        (:meth:`own_digests`).
     """
 
     name: str
@@ -93,6 +98,13 @@ class ImportItem:
     options: dict = field(default_factory=dict)
     key: str = ""
     digests: list = field(default_factory=list)
+    shared: Sequence[str | os.PathLike] = ()
+
+    def own_digests(self) -> list[tuple[str, str]]:
+        """``(file name, sha256)`` of the sources that are this fragment's own (all but ``shared``), in order;
+        after :func:`item_key` filled ``digests``."""
+        shared = {os.fspath(p) for p in self.shared}
+        return [(Path(p).name, d) for p, d in zip(self.sources, self.digests) if os.fspath(p) not in shared]
 
 
 @dataclass
@@ -237,8 +249,9 @@ def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store
     ledger : Ledger, optional
         Default: ``<sink.ledger_dir>/ledger.jsonl``.
     sources : bool
-        Refuse an item whose source file (sha256) was already imported as another fragment id (or the
-        other face), or for the same fragment and face at another ``options["dpi"]``
+        Refuse an item any of whose own source files (sha256; not its ``shared`` ones) was already imported
+        as another fragment id (or the other face), or for the same fragment and face at another
+        ``options["dpi"]``
         (:meth:`common.imports.sources.SourceIndex.conflict`; what was imported is read from the ledger and
         the stores' artifacts, cached in ``<sink.ledger_dir>/sources.jsonl``).
     allow_duplicates, replace : bool
@@ -284,7 +297,10 @@ def _one(item, convert, sink, kind, version, ledger, summary, check=None) -> Non
         return
     if check is not None:   # the same file already imported as another fragment, or at another dpi
         index, policy = check
-        reason = index.conflict(item.digests, item.fragment, item.face, item.options.get("dpi"), item.key, **policy)
+        own = item.own_digests()
+        names = [n for n, _ in own] if len(item.sources) > 1 else None   # which file of a scan set or capture
+        reason = index.conflict([d for _, d in own], item.fragment, item.face, item.options.get("dpi"), item.key,
+                                names=names, **policy)
         if reason:
             summary.refused.append((item.name, reason))
             return
@@ -317,6 +333,7 @@ def _one(item, convert, sink, kind, version, ledger, summary, check=None) -> Non
     summary.events += len(events)
     record = {"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
               "face": item.face, "sources": [os.fspath(p) for p in item.sources], "digests": list(item.digests),
+              "shared": sorted(set(item.digests) - {d for _, d in item.own_digests()}),
               "dpi": item.options.get("dpi"), "artifacts": [o.ref.path for o in outputs or []], "events": events,
               "time": _dt.datetime.now(_dt.timezone.utc).isoformat()}
     ledger.add(record)

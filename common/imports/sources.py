@@ -1,4 +1,5 @@
-"""What was imported before, by the content of its source files: the same picture is not imported twice.
+"""What was imported before, by the content of its source files: the same picture, scan or capture is not
+imported twice.
 
 An import names its artifacts by a content key that includes the fragment id and the options (dpi, …), so
 the same file imported under a second id (once with a manifest's inventory number, once by its file name),
@@ -8,14 +9,21 @@ a source file, which fragment face it became and at what dpi, from what is alrea
 
 * the **ledger** of the destination (:class:`common.imports.driver.Ledger`): every item imported since the
   ledger kept its files' ``digests`` and ``dpi`` (a record whose artifacts are no longer on storage is
-  ignored);
-* the **artifacts on storage** (shared storage and the bench's spool): the provenance of every RGBN face
-  (``source_sha256``, one digest or a list, and ``dpi``, as ``tessera import images`` and ``normals`` write
-  them), for faces imported elsewhere (another bench, an older ledger). Artifacts are immutable, so what one
-  says is read once and kept in ``sources.jsonl`` beside the ledger; later runs open only new ones.
+  ignored), less its ``shared`` ones;
+* the **artifacts on storage** (shared storage and the bench's spool): the provenance of every RGBN face and
+  every scan set (``fragments/<id>/scans/``): ``source_sha256`` (one digest or a list) less ``shared_sha256``,
+  and ``dpi``, as every ``tessera import`` writes them, for what was imported elsewhere (another bench, an
+  older ledger). Artifacts are immutable, so what one says is read once and kept in ``sources.jsonl`` beside
+  the ledger; later runs open only new ones.
+
+A *shared* file is one of an item's files that is no picture of the fragment and may be the same file for
+many (an RTI rig's light file, its intensities, a mask): it keys the item but says nothing about which
+fragment it is. Every other file does: a scan set or a capture any of whose pictures was imported as
+another fragment is that fragment again (``docs/import.md``).
 
 :meth:`SourceIndex.conflict` is the check :func:`common.imports.driver.run_import` makes before converting an
-item (``docs/import.md``, "Importing the same picture twice").
+item, for every ``tessera import`` kind (``docs/import.md``, "The same files twice" and "Importing the same picture
+twice").
 """
 
 from __future__ import annotations
@@ -38,7 +46,8 @@ class ImportedSource:
     fragment: str
     face: str
     dpi: float | None
-    key: str         # the item's content key (the artifact is ``fragments/<fragment>/rgbn/<face>-<key>.h5``)
+    key: str         # the item's content key (the artifact is ``fragments/<fragment>/rgbn/<face>-<key>.h5``,
+    #                  or ``fragments/<fragment>/scans/scans-<key>.h5`` for a scan set, whose face is front)
     artifact: str    # relative path of the artifact
 
 
@@ -56,6 +65,26 @@ def _digests(value) -> list[str]:
     return [str(v) for v in value] if isinstance(value, (list, tuple)) else []
 
 
+def _own(digests, shared) -> list[str]:
+    """``digests`` less the ``shared`` ones (see the module docstring)."""
+    shared = set(_digests(shared))
+    return [d for d in _digests(digests) if d not in shared]
+
+
+def _record_shared(rec: dict) -> list[str]:
+    """The shared digests of a ledger record. Records written before the ledger said (``shared`` missing) are
+    taken as the importers made them then: only ``tessera import rti`` had shared files, which are those that
+    are no image or are named mask (its light file, intensities and mask; the images are the capture)."""
+    if "shared" in rec:
+        return _digests(rec["shared"])
+    if rec.get("kind") != "rti":
+        return []
+    from common.imports.manifest import IMAGE_SUFFIXES
+
+    return [d for p, d in zip(rec.get("sources") or [], _digests(rec.get("digests")))
+            if Path(str(p)).suffix.lower() not in IMAGE_SUFFIXES or "mask" in Path(str(p)).name.lower()]
+
+
 class SourceIndex:
     """Imported source files by sha256 (see the module docstring)."""
 
@@ -70,9 +99,9 @@ class SourceIndex:
             known.append(entry)
 
     def add_record(self, rec: dict) -> bool:
-        """Add what a ledger record imported (its ``digests``, ``fragment``, ``face``, ``dpi``, ``key`` and first
-        artifact); False for a record without them (written before the ledger kept digests)."""
-        digests = _digests(rec.get("digests"))
+        """Add what a ledger record imported (its ``digests`` less its ``shared``, ``fragment``, ``face``, ``dpi``,
+        ``key`` and first artifact); False for a record without them (written before the ledger kept digests)."""
+        digests = _own(rec.get("digests"), _record_shared(rec))
         arts = [str(a) for a in rec.get("artifacts") or [] if str(a).endswith(".h5")]
         if not digests or not arts:
             return False
@@ -120,7 +149,9 @@ class SourceIndex:
                     cached[str(rec["artifact"])] = rec
         fresh = []
         for store in stores:
-            for path in sorted(store.root.glob("fragments/*/rgbn/*.h5")):
+            faces_and_scan_sets = sorted(store.root.glob("fragments/*/rgbn/*.h5")) + \
+                sorted(store.root.glob("fragments/*/scans/*.h5"))
+            for path in faces_and_scan_sets:
                 rel = path.relative_to(store.root).as_posix()
                 if rel in seen:
                     continue
@@ -133,6 +164,7 @@ class SourceIndex:
                     fresh.append(rec)
                 fragment, name = rel.split("/")[1], path.stem
                 face, _, key = name.partition("-")
+                face = "front" if rel.split("/")[2] == "scans" else face   # a scan set: both faces, one item (front)
                 for sha in _digests(rec.get("digests")):
                     index.add(ImportedSource(sha, fragment, face, _dpi(rec.get("dpi")), key, rel))
         if cache is not None and fresh:
@@ -143,11 +175,12 @@ class SourceIndex:
         return index
 
     def conflict(self, sha256s: Iterable[str], fragment: str, face: str, dpi, key: str, *,
-                 allow_duplicates: bool = False, replace: bool = False) -> str | None:
+                 allow_duplicates: bool = False, replace: bool = False, names=None) -> str | None:
         """Why an item whose files have these digests must not be imported as ``fragment``'s ``face`` at
-        ``dpi`` (content key ``key``), or None.
+        ``dpi`` (content key ``key``), or None. ``names``: the files' names, in the order of ``sha256s``, to
+        say which file of several (a scan set, a capture) is the one already imported.
 
-        * a file already imported as another fragment (or the other face of this one): refused unless
+        * any file already imported as another fragment (or the other face of this one): refused unless
           ``allow_duplicates``, naming the fragment, its face and dpi;
         * a file imported for this fragment and face only at other dpi values: refused unless ``replace``,
           naming both dpi values (a second, rescaled copy of the face otherwise);
@@ -159,32 +192,38 @@ class SourceIndex:
         def same(a, b):
             return abs(a - b) <= 1e-6 * max(a, b)
 
-        for sha in sha256s:
+        sha256s = list(sha256s)
+        names = list(names) if names is not None else [None] * len(sha256s)
+        for sha, name in zip(sha256s, names):
             found = [e for e in self.find(sha) if e.key != key]
+            which = f"{name}: " if name else ""
             for e in found:
                 if (e.fragment, e.face) != (fragment, face) and not allow_duplicates:
                     at = f", {e.dpi:g} dpi" if e.dpi else ""
-                    return (f"the same file (sha256 {sha[:12]}…) is already imported as fragment {e.fragment} "
-                            f"({e.face}{at}: {e.artifact}); not imported again as {fragment} ({face}): give "
-                            "--allow-duplicates to import it anyway")
+                    return (f"{which}the same file (sha256 {sha[:12]}…) is already imported as fragment "
+                            f"{e.fragment} ({e.face}{at}: {e.artifact}); not imported again as {fragment} ({face}): "
+                            "give --allow-duplicates to import it anyway")
             here = [e.dpi for e in found if (e.fragment, e.face) == (fragment, face) and e.dpi]
             # at a dpi this face already has (from this file) it is no rescaled copy: other metadata, as before
             if dpi and here and not any(same(dpi, d) for d in here) and not replace:
-                return (f"the same file is already imported for fragment {fragment} ({face}) at {here[-1]:g} dpi; "
-                        f"this import gives {dpi:g} dpi: give --replace to make the {dpi:g} dpi face replace "
-                        f"the {here[-1]:g} dpi one")
+                return (f"{which}the same file is already imported for fragment {fragment} ({face}) at "
+                        f"{here[-1]:g} dpi; this import gives {dpi:g} dpi: give --replace to make the {dpi:g} dpi "
+                        f"face replace the {here[-1]:g} dpi one")
         return None
 
 
 def _provenance_sources(path: Path, rel: str) -> dict | None:
-    """``{"artifact", "digests", "dpi"}`` from an RGBN artifact's provenance (no digests: not an import of
-    files), or None when it cannot be read."""
+    """``{"artifact", "digests", "dpi"}`` from an RGBN or scans artifact's provenance (digests: ``source_sha256``
+    less ``shared_sha256``; none: not an import of files), or None when it cannot be read. The dpi is the
+    provenance's, else the face's (a scan set's: its first scan's)."""
     import h5py
 
     try:
         with h5py.File(path, "r", locking=False) as f:
             raw = f.attrs.get("provenance", "{}")
             dpi = f.attrs.get("dpi")
+            if dpi is None and "front/scan_0" in f:
+                dpi = f["front/scan_0"].attrs.get("dpi")
     except OSError:
         return None
     try:
@@ -192,4 +231,5 @@ def _provenance_sources(path: Path, rel: str) -> dict | None:
     except ValueError:
         prov = {}
     prov = prov if isinstance(prov, dict) else {}
-    return {"artifact": rel, "digests": _digests(prov.get("source_sha256")), "dpi": _dpi(prov.get("dpi", dpi))}
+    return {"artifact": rel, "digests": _own(prov.get("source_sha256"), prov.get("shared_sha256")),
+            "dpi": _dpi(prov.get("dpi", dpi))}

@@ -18,7 +18,10 @@ fragment id is the capture folder's name. Each capture goes through the same cod
 ``tessera ps`` (:func:`services.cli.ps.solve_capture`: door checks, mask, near lights, solve,
 re-render residual) and becomes ``fragments/<id>/rgbn/<face>-<key>.h5`` + ``rgbn.ready`` (extra
 fields ``source: rti``, ``method``) through the import driver (progress, resume, summary,
-``--store`` or the bus). See ``docs/handheld.md``.
+``--store`` or the bus). A capture any of whose images was already imported as another fragment is
+refused naming it (``--allow-duplicates`` imports it anyway), and one imported for the same fragment at
+another ``--dpi`` naming both (``--replace``); the light file, intensities and mask are a rig's, often the
+same file for every capture, and are not compared. See ``docs/handheld.md`` and ``docs/import.md``.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ INTENSITY_FILES = ("light_intensities.txt", "intensities.txt")
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments
+    from services.cli.imports import add_sink_arguments, add_source_arguments
     p = subparsers.add_parser("rti", help="flash / RTI captures (.lp or direction files, or spheres in the frame)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", metavar="DIR", help="capture folders, or folders of capture folders")
@@ -60,6 +63,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--min-mask-share", type=float, default=None, metavar="F",
                    help="refuse an automatic mask keeping less than this share of the frame (default 0.05)")
     p.add_argument("--no-discontinuities", action="store_true", help="skip the depth-discontinuity map")
+    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -136,11 +140,13 @@ def _items(args) -> list[ImportItem]:
             items.append(ImportItem(name=folder.name, sources=_images_in(folder), fragment=fid, face=args.face,
                                     options={"refused": str(exc)}))
             continue
-        sources = files["images"] + [f for f in (files["lights"], files["intensities"], files["mask"]) if f]
+        rig = [f for f in (files["lights"], files["intensities"], files["mask"]) if f]
+        sources = files["images"] + rig
         srgb = {"yes": True, "no": False}.get(args.srgb)
         if srgb is None:
             srgb = all(p.suffix.lower() in (".jpg", ".jpeg") for p in files["images"])
-        items.append(ImportItem(name=folder.name, sources=sources, fragment=fid, face=args.face, options={
+        # the rig's files (one light file for every capture of a dome) do not say which fragment it is
+        items.append(ImportItem(name=folder.name, sources=sources, fragment=fid, face=args.face, shared=rig, options={
             "n_images": len(files["images"]), "lights": files["lights"].name if files["lights"] else None,
             "intensities": files["intensities"].name if files["intensities"] else None,
             "mask": files["mask"].name if files["mask"] else None, "spheres": args.spheres,
@@ -180,7 +186,9 @@ def convert(item: ImportItem, store) -> list[Output]:
     for w in done.warnings:
         log.warning("%s: %s", folder, w)
     done.rgbn.attrs.update({"source": "tessera import rti", "face": item.face})
-    prov = dict(done.provenance, importer="tessera import rti", importer_version=VERSION, capture=str(folder))
+    own = {d for _, d in item.own_digests()}   # the images: what says which fragment this is (common.imports.sources)
+    prov = dict(done.provenance, importer="tessera import rti", importer_version=VERSION, capture=str(folder),
+                source_sha256=list(item.digests), shared_sha256=[d for d in item.digests if d not in own], dpi=o["dpi"])
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", done.rgbn, provenance=prov)
     log.info("%s: re-render residual per image median %.3f, max %.3f", folder.name,
              float(sorted(done.residual)[len(done.residual) // 2]), float(max(done.residual)))
@@ -194,4 +202,6 @@ def run(args) -> int:
     except (ValueError, ImportRefused) as exc:
         print(f"tessera import rti: {exc}", file=sys.stderr)
         return 2
-    return run_items(args, items, convert, kind="rti", version=VERSION, out=sys.stdout)  # the stdout of now (tests swap it)
+    # a capture whose images were imported as another fragment, or at another dpi, is refused (docs/import.md)
+    return run_items(args, items, convert, kind="rti", version=VERSION, out=sys.stdout,   # the stdout of now
+                     sources=True)                                                         # (tests swap it)

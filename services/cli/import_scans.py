@@ -28,7 +28,10 @@ optionally ``face`` (front/back, default front), ``dpi`` and ``turn``; rows of o
 order. A fragment's ``dpi`` and ``turn`` count from whichever of its rows gives them (else ``--dpi``,
 ``--turn``); two of its rows giving different values are refused, naming the fragment, the values
 and the lines, before anything is imported (exit 2). Every file is checked at the door (decodes fully, bit depth, not black or blank) and a
-refused fragment names the file and the reason; nothing of it is written. See docs/flatbed.md.
+refused fragment names the file and the reason; nothing of it is written. A scan set any of whose files was already
+imported as another fragment is refused naming that fragment and the file (``--allow-duplicates`` imports it anyway),
+and one imported for the same fragment at another dpi naming both dpi values (``--replace``). See docs/flatbed.md
+and docs/import.md.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ log = logging.getLogger("tessera.import.scans")
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments
+    from services.cli.imports import add_sink_arguments, add_source_arguments
     p = subparsers.add_parser("scans", help="flatbed scans of fragments from files (4 turned scans per face)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="*", metavar="SCAN",
@@ -65,6 +68,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--crop", action="store_true", help="whole-bed scans: find the fragment and keep its region")
     p.add_argument("--srgb", action="store_true", help="the 8/16-bit files are sRGB-encoded (decode to linear first)")
     p.add_argument("--colour-only", action="store_true", help="one scan per face, albedo only (no normals)")
+    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -263,7 +267,7 @@ def convert(item: ImportItem, store) -> list[Output]:
                  "%s deg (counter-clockwise from the image's +x)", item.fragment, face, t["turn"], t["angles_deg"],
                  t["correlation_min"], t["mask"], t.get("lamp_direction_deg", "?"))
     prov = {"importer": "tessera import scans", "version": VERSION,
-            "source_files": [str(p) for p in item.sources], "source_sha256": list(item.digests),
+            "source_files": [str(p) for p in item.sources], "source_sha256": list(item.digests), "dpi": opts["dpi"],
             "turn": {f: t["turn"] for f, t in turns.items()}, "registration_check": turns}
     ref = write_scans(store, item.fragment, result, key=item.key, provenance=prov)
     return [Output("fragment.ready", ref, {"device": opts["device"], "colour_only": bool(opts["colour_only"])})]
@@ -302,4 +306,5 @@ def run(args) -> int:
         print(f"tessera import scans: {exc}", file=sys.stderr)
         return 2
     _warn_if_uncalibrated(args)
-    return run_items(args, items, convert, kind="scans", version=VERSION)
+    # a scan set any of whose files was imported as another fragment, or at another dpi, is refused (docs/import.md)
+    return run_items(args, items, convert, kind="scans", version=VERSION, sources=True)

@@ -171,7 +171,7 @@ def test_a_manifest_imports_each_fragment_and_refuses_only_the_bad_one(tmp_path,
     _, scans = turned_scans
     good = _write(tmp_path, scans)
     (tmp_path / "bad").mkdir()
-    bad = _write(tmp_path / "bad", [scans[0], scans[1]])
+    bad = _write(tmp_path / "bad", [scans[0], scans[1]], eight=True)   # not copies of good's: another fragment
     manifest = tmp_path / "scans.csv"
     lines = ["file,fragment,face,dpi,turn"] + [f"{p},Inv 7/1,front,{DPI},ccw" for p in good] + \
             [f"{p},Inv 7/2,front,{DPI},auto" for p in bad]
@@ -223,3 +223,60 @@ def test_srgb_does_not_decode_float_scans_which_are_linear(tmp_path):
     decoded, _ = _read_scan(tmp_path / "s.npy", {**opts, "srgb": True})
     assert linear.dtype == np.uint16 and linear.max() == 32768
     np.testing.assert_array_equal(decoded, linear)
+
+
+def test_the_same_scans_under_a_second_id_are_refused_naming_the_first(tmp_path, turned_scans, capsys):
+    """The same scan set imported again under another id (a manifest's inventory number, then --fragment) made a
+    second fragment, which the matcher proposed as a join to the first. Any scan of a set that was imported as
+    another fragment makes the set that fragment again: refused naming it and the file, unless
+    ``--allow-duplicates``; found from the ledger, or from the scans artifact's provenance when another bench
+    imported it."""
+    _, scans = turned_scans
+    store = tmp_path / "store"
+    paths = _write(tmp_path, scans)
+    rows = "".join(f"{p},Inv 7/1,{DPI},ccw\n" for p in paths)
+    (tmp_path / "scans.csv").write_text("file,inventory,dpi,turn\n" + rows)
+    assert main(["import", "scans", "--manifest", str(tmp_path / "scans.csv"), "--device", "files",
+                 "--store", str(store)]) == 0
+    capsys.readouterr()
+    base = ["--device", "files", "--dpi", str(DPI), "--turn", "ccw", "--store", str(store)]
+    assert main(["import", "scans", *paths, "--fragment", "F-again", *base]) == 1
+    out = capsys.readouterr()
+    assert "imported 0, already imported 0, refused 1" in out.out
+    assert ("refused F-again: scan_0.png: the same file (sha256 " in out.err
+            and f"is already imported as fragment Inv-7-1 (front, {DPI} dpi: fragments/Inv-7-1/scans/scans-" in out.err
+            and "not imported again as F-again (front): give --allow-duplicates" in out.err), out.err
+    # one scan of the set taken again is still the same fragment: the other three are its
+    (tmp_path / "retaken").mkdir()
+    retaken = _write(tmp_path / "retaken", scans[:1], eight=True) + paths[1:]
+    assert main(["import", "scans", *retaken, "--fragment", "F-retaken", *base]) == 1
+    assert "refused F-retaken: scan_1.png: the same file" in capsys.readouterr().err
+    assert [f.parts[-3] for f in _scans_files(store)] == ["Inv-7-1"]
+    # imported by another bench (no ledger here): found from the artifact's provenance (source_sha256, dpi)
+    (store / "imports" / "ledger.jsonl").unlink()
+    assert main(["import", "scans", *paths, "--fragment", "F-again", *base]) == 1
+    err = capsys.readouterr().err
+    assert f"already imported as fragment Inv-7-1 (front, {DPI} dpi: fragments/Inv-7-1/scans/" in err
+    # asked for, it goes in
+    assert main(["import", "scans", *paths, "--fragment", "F-again", "--allow-duplicates", *base]) == 0
+    assert sorted(f.parts[-3] for f in _scans_files(store)) == ["F-again", "Inv-7-1"]
+
+
+def test_the_same_scans_at_another_dpi_are_refused_naming_both_unless_replace(tmp_path, turned_scans, capsys):
+    """The same scans imported again for the same fragment at another dpi made a second, rescaled scan set (and
+    face): refused naming both dpi values; ``--replace`` imports it, and the same dpi with other options (here
+    --turn given instead of detected) replaces the set as before."""
+    _, scans = turned_scans
+    store = tmp_path / "store"
+    paths = _write(tmp_path, scans)
+    base = [*paths, "--fragment", "F-dpi", "--device", "files", "--store", str(store)]
+    assert main(["import", "scans", *base, "--dpi", str(DPI)]) == 0
+    assert main(["import", "scans", *base, "--dpi", str(DPI), "--turn", "ccw"]) == 0   # same dpi: not refused
+    capsys.readouterr()
+    assert main(["import", "scans", *base, "--dpi", "160"]) == 1
+    err = capsys.readouterr().err
+    assert (f"refused F-dpi: scan_0.png: the same file is already imported for fragment F-dpi (front) at {DPI} dpi; "
+            f"this import gives 160 dpi: give --replace to make the 160 dpi face replace the {DPI} dpi one") in err
+    assert len(_scans_files(store)) == 2
+    assert main(["import", "scans", *base, "--dpi", "160", "--replace"]) == 0
+    assert len(_scans_files(store)) == 3

@@ -82,6 +82,58 @@ def test_albedo_of_another_size_is_refused(tmp_path, capsys):
     assert "must share a pixel grid" in capsys.readouterr().err
 
 
+def test_the_same_map_under_a_second_id_is_refused_naming_the_first(tmp_path, capsys):
+    """A normal map (or its albedo) imported once as a folder's fragment and again under another id made a second
+    fragment, proposed as a join to the first: refused naming the fragment it is and the file, unless
+    ``--allow-duplicates``; the other face of the same fragment likewise."""
+    _write_capture(tmp_path / "in" / "T-0042")
+    st = ["--store", str(tmp_path / "st")]
+    assert main(["import", "normals", str(tmp_path / "in" / "T-0042"), "--dpi", "600", *st]) == 0
+    capsys.readouterr()
+    again = ["import", "normals", str(tmp_path / "in" / "T-0042" / "normals.png"), "--albedo",
+             str(tmp_path / "in" / "T-0042" / "albedo.png"), "--fragment", "Inv. 42", "--dpi", "600", *st]
+    assert main(again) == 1
+    out = capsys.readouterr()
+    assert "imported 0, already imported 0, refused 1" in out.out
+    assert ("refused T-0042/normals.png: normals.png: the same file (sha256 " in out.err
+            and "is already imported as fragment T-0042 (front, 600 dpi: fragments/T-0042/rgbn/front-" in out.err
+            and "not imported again as Inv.-42 (front): give --allow-duplicates" in out.err), out.err
+    # only the albedo is the same file (the map re-encoded at 8 bits): the same fragment still
+    (tmp_path / "b").mkdir()
+    n, mask = _surface_normals()
+    write_image(tmp_path / "b" / "X_normals.png", encode_normal_map(n, mask, "opengl"), bits=8,
+                alpha=mask.astype(float))
+    assert main(["import", "normals", str(tmp_path / "b" / "X_normals.png"), "--albedo",
+                 str(tmp_path / "in" / "T-0042" / "albedo.png"), "--dpi", "600", *st]) == 1
+    assert "refused X_normals.png: albedo.png: the same file" in capsys.readouterr().err
+    # the other face of the same fragment is refused too
+    assert main(["import", "normals", str(tmp_path / "in" / "T-0042"), "--dpi", "600", "--face", "back", *st]) == 1
+    assert "already imported as fragment T-0042 (front, 600 dpi" in capsys.readouterr().err
+    assert [f.parts[-3] for f in _faces(tmp_path / "st")] == ["T-0042"]
+    assert main(again + ["--allow-duplicates"]) == 0
+    assert sorted(f.parts[-3] for f in _faces(tmp_path / "st")) == ["Inv.-42", "T-0042"]
+
+
+def test_the_same_map_at_another_dpi_is_refused_naming_both_unless_replace(tmp_path, capsys):
+    """Re-importing a normal map for the same fragment at another dpi added a second, rescaled face: refused
+    naming both dpi values; ``--replace`` imports it, the new face the one every stage and page uses."""
+    from common.imports.export import latest_faces
+
+    _write_capture(tmp_path / "in" / "T-7")
+    args = ["import", "normals", str(tmp_path / "in" / "T-7"), "--store", str(tmp_path / "st")]
+    assert main(args + ["--dpi", "600"]) == 0
+    assert main(args + ["--dpi", "600", "--convention", "auto"]) == 0   # the same dpi, other options: as before
+    capsys.readouterr()
+    assert main(args + ["--dpi", "300"]) == 1
+    assert ("refused T-7/normals.png: normals.png: the same file is already imported for fragment T-7 (front) at "
+            "600 dpi; this import gives 300 dpi: give --replace to make the 300 dpi face replace the 600 dpi one"
+            ) in capsys.readouterr().err
+    assert len(_faces(tmp_path / "st")) == 2
+    assert main(args + ["--dpi", "300", "--replace"]) == 0
+    newest = latest_faces(Store(tmp_path / "st"), "T-7")["front"]
+    assert load_rgbn(Store(tmp_path / "st"), newest).dpi == 300
+
+
 def test_export_then_import_gives_the_same_face(tmp_path):
     """Round trip: the 16-bit OpenGL normal map and the albedo of an export read back within quantisation."""
     n, mask = _surface_normals()

@@ -67,10 +67,10 @@ def test_a_collection_of_captures_becomes_one_fragment_each(tmp_path, capsys):
 
 def test_bad_captures_are_refused_by_name_and_the_good_one_imported(tmp_path, capsys):
     _capture(tmp_path / "coll" / "good")
-    _capture(tmp_path / "coll" / "cut")
+    _capture(tmp_path / "coll" / "cut", tilt=-0.2)   # three fragments (the same pictures would be one: refused)
     shot = tmp_path / "coll" / "cut" / "img4.png"
     shot.write_bytes(shot.read_bytes()[:600])
-    _capture(tmp_path / "coll" / "nolights", lp=False)
+    _capture(tmp_path / "coll" / "nolights", lp=False, tilt=0.1)
     store = tmp_path / "store"
     assert tessera(["import", "rti", str(tmp_path / "coll"), "--store", str(store), "--no-discontinuities"]) == 1
     captured = capsys.readouterr()
@@ -158,3 +158,47 @@ def test_more_than_two_spheres_are_refused(tmp_path, capsys):
                     "--store", str(tmp_path / "store")]) == 2
     assert "--spheres takes MIRROR [DIFFUSE]" in capsys.readouterr().err
     assert _artifacts(tmp_path / "store") == []
+
+
+def test_the_same_capture_under_a_second_id_is_refused_naming_the_first(tmp_path, capsys):
+    """A capture folder copied under another name (or imported again from another collection) made a second
+    fragment, proposed as a join to the first: any of its images already imported as another fragment makes it
+    that fragment again, refused naming it unless ``--allow-duplicates``. The light file is the dome's, the same
+    file for every capture made with it: another capture with the same ``.lp`` is imported."""
+    import shutil
+
+    _capture(tmp_path / "a" / "F-A")
+    store = tmp_path / "store"
+    base = ["--store", str(store), "--no-discontinuities"]
+    assert tessera(["import", "rti", str(tmp_path / "a" / "F-A"), *base]) == 0
+    shutil.copytree(tmp_path / "a" / "F-A", tmp_path / "b" / "F-A-copy")
+    _capture(tmp_path / "b" / "F-C", tilt=-0.2)   # another fragment under the same lights: the same capture.lp
+    assert (tmp_path / "b" / "F-C" / "capture.lp").read_bytes() == (tmp_path / "a" / "F-A" / "capture.lp").read_bytes()
+    capsys.readouterr()
+    assert tessera(["import", "rti", str(tmp_path / "b"), *base]) == 1
+    out = capsys.readouterr()
+    assert "imported 1, already imported 0, refused 1" in out.out
+    assert ("refused F-A-copy: img0.png: the same file (sha256 " in out.err
+            and "is already imported as fragment F-A (front, 96 dpi: fragments/F-A/rgbn/front-" in out.err
+            and "not imported again as F-A-copy (front): give --allow-duplicates" in out.err), out.err
+    assert [p.split("/")[1] for p in _artifacts(store)] == ["F-A", "F-C"]
+    assert tessera(["import", "rti", str(tmp_path / "b" / "F-A-copy"), "--allow-duplicates", *base]) == 0
+    assert sorted(p.split("/")[1] for p in _artifacts(store)) == ["F-A", "F-A-copy", "F-C"]
+
+
+def test_the_same_capture_at_another_dpi_is_refused_naming_both_unless_replace(tmp_path, capsys):
+    """The same capture imported again for its fragment at another --dpi added a second, rescaled face: refused
+    naming both dpi values; ``--replace`` imports it. Found from the face's provenance too (another bench)."""
+    _capture(tmp_path / "F-D")
+    store = tmp_path / "store"
+    base = [str(tmp_path / "F-D"), "--store", str(store), "--no-discontinuities"]
+    assert tessera(["import", "rti", *base]) == 0
+    (store / "imports" / "ledger.jsonl").unlink()   # as if another bench imported it
+    capsys.readouterr()
+    assert tessera(["import", "rti", *base, "--dpi", "300"]) == 1
+    assert ("refused F-D: img0.png: the same file is already imported for fragment F-D (front) at 96 dpi; this "
+            "import gives 300 dpi: give --replace to make the 300 dpi face replace the 96 dpi one"
+            ) in capsys.readouterr().err
+    assert len(_artifacts(store)) == 1
+    assert tessera(["import", "rti", *base, "--dpi", "300", "--replace"]) == 0
+    assert len(_artifacts(store)) == 2

@@ -52,3 +52,39 @@ def test_the_index_is_read_from_the_ledger_and_from_the_artifacts_of_every_store
     assert index.find("55" * 32) == [] and len(index) == 4
     again = SourceIndex.load([shared, spool], ledger, tmp_path / "sources.jsonl")   # from the cache
     assert len(again) == 4 and len((tmp_path / "sources.jsonl").read_text().splitlines()) == 3
+
+
+def test_shared_files_say_nothing_and_scan_sets_are_read_from_storage(tmp_path):
+    """An item's shared files (an RTI rig's light file, the same for every capture) are no sign of a fragment:
+    left out of the ledger's and the provenance's digests, and out of a ledger line written before ``shared``
+    was (an ``rti`` item's non-image and mask files). Scan sets on storage are read as the front face of their
+    fragment, at their first scan's dpi; several files name the one already imported."""
+    import json
+
+    import h5py
+
+    shared, img = Store(tmp_path / "shared"), RGBNImage(np.full((8, 8, 3), 0.5), np.ones((8, 8), bool), 96.0)
+    save_rgbn(shared, "fragments/A/rgbn/front-aaaa.h5", img,
+              provenance={"source_sha256": ["11" * 32, "1f" * 32], "shared_sha256": ["1f" * 32], "dpi": 96.0})
+    scans = shared.path("fragments/S/scans/scans-ssss.h5")
+    scans.parent.mkdir(parents=True)
+    with h5py.File(scans, "w") as f:   # as an import before scan sets' provenance had dpi
+        f.attrs["provenance"] = json.dumps({"importer": "tessera import scans", "source_sha256": ["66" * 32]})
+        f.create_group("front").create_dataset("scan_0", data=np.zeros((2, 2, 3), np.uint8)).attrs["dpi"] = 600.0
+    ledger = [{"key": "dddd", "kind": "rti", "fragment": "D", "face": "front", "dpi": 96,
+               "sources": ["c/img0.png", "c/capture.lp", "c/mask.png"], "digests": ["44" * 32, "4f" * 32, "4e" * 32],
+               "artifacts": ["fragments/A/rgbn/front-aaaa.h5"]},          # written before "shared"
+              {"key": "eeee", "kind": "rti", "fragment": "E", "face": "front", "dpi": 96, "shared": ["5f" * 32],
+               "sources": ["e/img0.png", "e/dirs.txt"], "digests": ["55" * 32, "5f" * 32],
+               "artifacts": ["fragments/A/rgbn/front-aaaa.h5"]}]
+    index = SourceIndex.load([shared], ledger, tmp_path / "sources.jsonl")
+    assert [e.fragment for e in index.find("44" * 32)] == ["D"] and [e.fragment for e in index.find("55" * 32)] == ["E"]
+    for sha in ("1f", "4f", "4e", "5f"):
+        assert index.find(sha * 32) == [], sha
+    assert index.find("66" * 32) == [ImportedSource("66" * 32, "S", "front", 600.0, "ssss",
+                                                    "fragments/S/scans/scans-ssss.h5")]
+    reason = index.conflict(["77" * 32, "66" * 32], "T", "front", 600, "tttt", names=["scan_0.png", "scan_1.png"])
+    assert reason.startswith("scan_1.png: the same file (sha256 666666666666…) is already imported as fragment S "
+                             "(front, 600 dpi: fragments/S/scans/scans-ssss.h5)")
+    assert "scan_0.png: the same file is already imported for fragment S (front) at 600 dpi" in index.conflict(
+        ["66" * 32], "S", "front", 300, "tttt", names=["scan_0.png"])
