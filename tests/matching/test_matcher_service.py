@@ -71,11 +71,18 @@ def test_features_ready_proposes_ranked_joins_and_stores_them(station):
     assert {(p.fragment_a, p.fragment_b): p.probability for p in db.all()} == before
 
 
+def _arrive(station, n: int) -> None:
+    """The wall's first ``n`` fragments' features arrive at the matcher, one job each."""
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    for f in wall.fragments[:n]:
+        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+
+
 def test_verdict_refits_a_new_model_version_and_is_idempotent(station):
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
-    for f in wall.fragments[:15]:
-        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    _arrive(station, 15)
     before = db.current_model()["version"]
     top = db.pending(1)[0]
     truth = wall.is_neighbour(top.fragment_a, top.fragment_b)
@@ -109,8 +116,7 @@ def test_a_verdict_whose_job_was_stopped_is_learned_when_it_is_delivered_again(s
     # recorded" and did nothing, until the next verdict
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
-    for f in wall.fragments[:12]:
-        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    _arrive(station, 12)
     before = db.current_model()["version"]
     top = db.pending(1)[0]
     msg = new_message("match.verified", fragment=top.fragment_a, other=top.fragment_b, verdict="rejected", by="test")
@@ -135,8 +141,7 @@ def test_a_verdict_whose_job_was_stopped_is_learned_when_it_is_delivered_again(s
 def test_rejections_lower_the_probability_of_similar_pairs(station):
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
-    for f in wall.fragments[:12]:
-        matcher.handle(new_message("features.ready", fragment=f.id, face="front", artifact=arts[f.id]), ctx)
+    _arrive(station, 12)
     wrong = [p for p in db.pending(50) if not wall.is_neighbour(p.fragment_a, p.fragment_b)][:4]
     assert wrong
     before = {(p.fragment_a, p.fragment_b): p.probability for p in wrong}
