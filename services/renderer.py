@@ -24,7 +24,7 @@ from common.store import ArtifactRef, content_key
 from common.web.relight import cut_archive_tiles
 
 SERVICE = "renderer"
-VERSION = f"render-2.0/schema-{SCHEMA_VERSION}"  # 2.0: readable defaults, colour relief, tiles
+VERSION = f"render-2.1/schema-{SCHEMA_VERSION}"  # 2.0: readable defaults, colour relief, tiles; 2.1: colour-only faces keep their albedo under the lines (they were white)
 
 
 def output_path(fragment: str, face: str, rgbn_sha256: str, recipe_text: str) -> str:
