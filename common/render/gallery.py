@@ -470,8 +470,9 @@ ratio (undecided below 1.2: OpenGL assumed and said so); a file that does not de
 facing the viewer (a photograph, an albedo) is refused with the share that failed.
 
 A colour-only image (no normals) is drawn without the styles that need normals (listed in
-`Rendering.skipped` and the artifact's `skipped_styles`; where no colour layer is left, the albedo under the lines
-that are, so the default recipe draws an imported picture's colour and outline, not a white silhouette), and said once:
+`Rendering.skipped` and the artifact's `skipped_styles`; where no colour layer is left, the albedo as captured
+(`exposure = "none"`) under the lines that are, so the default recipe draws an imported picture's own colour and
+outline, not a white silhouette, nor its pale plaster stretched until a pink band turns near black), and said once:
 `render()` (`tessera render`) warns `image has no normals: skipped ...` once per drawing, tiled or
 not; the renderer service draws through `render_h5`, which leaves it to its caller, and logs
 `fragment F face has no normals: skipped ...` once per face (`render(..., warn_skipped=False)` for a caller that

@@ -1106,8 +1106,10 @@ def _draw_where_shown(image, recipe, layer, params, shown) -> Layer | None:
 
 def layers_without(layers: list[dict], skipped) -> list[dict]:
     """The layers a colour-only image is drawn with: those of a ``skipped`` style left out, and the albedo
-    first where no colour layer is left (lines alone would be drawn on the blank background: the default
-    recipe made a white silhouette of every imported picture), or alone where nothing is left.
+    as captured first where no colour layer is left (lines alone would be drawn on the blank background: the
+    default recipe made a white silhouette of every imported picture), or alone where nothing is left. As
+    captured, not exposed: the automatic exposure draws the 5th lightness percentile at L* 20, which turns a
+    pale plaster's pink band near black (RePAIR), and an imported picture is already what its maker saw.
 
     >>> [layer["style"] for layer in layers_without([{"style": "colour_relief"}, {"style": "discontinuity_lines"}],
     ...                                             ["colour_relief"])]
@@ -1115,7 +1117,7 @@ def layers_without(layers: list[dict], skipped) -> list[dict]:
     """
     kept = [layer for layer in layers if layer["style"] not in skipped]
     if not any(layer["style"] not in INK_STYLES for layer in kept):
-        kept = [{"style": "albedo"}, *kept]
+        kept = [{"style": "albedo", "exposure": "none"}, *kept]
     return kept
 
 
