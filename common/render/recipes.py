@@ -969,7 +969,9 @@ DEFAULT_SEGMENTATION = {"scale": 400.0, "sigma_px": 1.0, "min_size": 400}
 
 @dataclass
 class Rendering:
-    """A drawn illustration: display RGB in [0, 1] and coverage, on the input's pixel grid.
+    """A drawn illustration: display RGB and coverage, on the input's pixel grid — floats in [0, 1] when drawn
+    whole, or integers at the recipe's ``bits`` (uint8 / uint16, full scale = 1) when an image too large for one
+    tile was drawn tile by tile in bounded memory (:func:`common.render.tiles.render_tiled`).
 
     ``resolved`` holds, per drawn layer, the values its "auto" parameters took (see
     :class:`Layer`)."""
