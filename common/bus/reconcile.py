@@ -7,8 +7,8 @@ fragment:
   least one scan) has an RGBN artifact; else the scans' ``fragment.ready`` is re-submitted (an
   unreadable scans file counts as "some face expected": its ``rgbn`` folder must not be empty);
 * **features, renderer** — every RGBN face's newest RGBN artifact has a feature table and an illustration
-  made from it (their provenance names it as an input; one that names no input counts); else that face's
-  ``rgbn.ready``;
+  made from it (their provenance names it as an input; one that names no input counts) by the stage's current
+  version when ``versions`` gives it (``tessera reconcile`` does); else that face's ``rgbn.ready``;
 * **matcher** — every front face's feature table is recorded in the matcher's proposal store
   (``fragments`` table: fragment, face, sha256); else its ``features.ready``.
 
@@ -23,7 +23,7 @@ from __future__ import annotations
 import contextlib
 import sqlite3
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Mapping
 
 from common.messages import new_message
 from common.store import Store
@@ -43,14 +43,19 @@ def _face(path: Path) -> str:
     return path.stem.split("-", 1)[0]
 
 
-def _made_from(store: Store, output: Path, source_rel: str) -> bool:
+def _made_from(store: Store, output: Path, source_rel: str, version: str | None = None) -> bool:
     """Whether an output artifact was made from ``source_rel``: its provenance ``inputs`` name it, or name
     nothing (an artifact that records no inputs counts, as before provenance was read). An output of an
-    older RGBN of the face does not count: the newest one still needs its own."""
+    older RGBN of the face does not count: the newest one still needs its own. With ``version`` (the stage's
+    current ``VERSION``), an output whose provenance names another ``stage_version`` does not count either:
+    it was made by an older stage (one that records none counts)."""
     try:
         with store.open(output.relative_to(store.root).as_posix()) as f:
-            inputs = store.provenance(f).get("inputs") or []
+            prov = store.provenance(f)
     except Exception:  # noqa: BLE001 - unreadable: it does not stand for the newest input
+        return False
+    inputs = prov.get("inputs") or []
+    if version is not None and prov.get("stage_version") not in (None, version):
         return False
     return not inputs or any(isinstance(i, dict) and i.get("path") == source_rel for i in inputs)
 
@@ -77,7 +82,7 @@ def matched_faces(db_path: str | Path | None) -> set[tuple[str, str, str]] | Non
 
 
 def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
-                   matcher_db: str | Path | None = None) -> list[dict]:
+                   matcher_db: str | Path | None = None, versions: Mapping[str, str] | None = None) -> list[dict]:
     """Events to submit so that every fragment's later stages get computed.
 
     Parameters
@@ -89,6 +94,10 @@ def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
         proposed for a fragment face that has a job pending at the same or an earlier stage.
     matcher_db : path, optional
         The matcher's proposal store; without it the matcher step is not checked.
+    versions : mapping, optional
+        Folder (``"features"``, ``"renders"``) → the ``VERSION`` its stage writes now: an output made by another
+        version of the stage is missing too (a face drawn before a fix of the renderer is drawn again). Without
+        it any version counts.
 
     Returns
     -------
@@ -127,7 +136,8 @@ def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
         for face, path in sorted(newest_rgbn.items()):
             rel = path.relative_to(store.root).as_posix()
             missing = [d for d in ("features", "renders")
-                       if not any(_face(p) == face and _made_from(store, p, rel) for p in _artifacts(frag_dir / d))]
+                       if not any(_face(p) == face and _made_from(store, p, rel, (versions or {}).get(d))
+                                  for p in _artifacts(frag_dir / d))]
             if missing and not covered(frag, face, 1):
                 events.append(new_message("rgbn.ready", fragment=frag, face=face, artifact=store.ref(rel),
                                           reconciled=True, missing=[f"{d}/{face}" for d in missing]))

@@ -159,3 +159,27 @@ def test_a_face_solved_again_needs_outputs_of_its_newest_rgbn(tmp_path):
     made("features", new)
     (e,) = missing_stages(store)
     assert e["missing"] == ["renders/front"]
+
+
+def test_an_output_made_by_an_older_version_of_its_stage_is_made_again(tmp_path):
+    """A fix of the renderer (render-2.1: an imported picture was drawn as a white silhouette) reached only faces
+    drawn after it: reconcile counted any illustration of the face. Given the stages' current versions, an output
+    whose provenance names another stage_version counts as missing; one that names none counts as made."""
+    store = Store(tmp_path)
+    rgbn = _h5(store, "fragments/H/rgbn/front-rrr.h5")
+
+    def made(d, version, key):
+        prov = {"inputs": [rgbn.to_dict()], **({"stage_version": version} if version else {})}
+        return store.write(f"fragments/H/{d}/front-{key}.h5", "tessera.test", 1,
+                           lambda f: f.create_dataset("x", data=[1]), provenance=prov)
+
+    made("features", "features-9", "f1"), made("renders", "render-1", "r1")
+    now = {"features": "features-9", "renders": "render-2"}
+    assert missing_stages(store) == []                      # any version counts without versions
+    (e,) = missing_stages(store, versions=now)
+    assert (e["type"], e["face"], e["artifact"]["path"], e["missing"]) == ("rgbn.ready", "front", rgbn.path,
+                                                                           ["renders/front"])
+    made("renders", "render-2", "r2")
+    assert missing_stages(store, versions=now) == []
+    made("features", None, "f0")                            # an output recording no version still counts
+    assert missing_stages(store, versions={**now, "features": "features-10"}) == []
