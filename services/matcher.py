@@ -255,13 +255,14 @@ def _on_verified(job: dict, ctx) -> list[dict]:
         if st.model.info.get("verdicts_key") != learned:
             ctx.log.info("verdict %s on %s-%s re-delivered; model %s has not learned it (the job that recorded it "
                          "was stopped): learning now", job.get("uid"), a, b, st.model.version)
-        elif any(p.model_version != st.model.version for p in st.db.pending(limit=10 ** 9)):
+        else:
+            pending = st.db.pending(limit=10 ** 9)
+            if all(p.model_version == st.model.version for p in pending):
+                ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
+                return []
             ctx.log.info("verdict %s on %s-%s re-delivered; model %s learned it but the pending proposals were not "
                          "all re-scored (the job was stopped): re-scoring now", job.get("uid"), a, b, st.model.version)
-            return _rescore(st, ctx, previous=str(st.model.info.get("previous", "")), verdicts=len(latest))
-        else:
-            ctx.log.info("verdict %s on %s-%s already recorded (re-delivered)", job.get("uid"), a, b)
-            return []
+            return _rescore(st, ctx, pending, previous=str(st.model.info.get("previous", "")), verdicts=len(latest))
     # online learning: re-fit on the bootstrap rows + every pair's latest verdict
     columns = list(st.model.columns)
     rows = []
@@ -281,7 +282,7 @@ def _on_verified(job: dict, ctx) -> list[dict]:
     st.db.add_model(model.version, ref.to_dict(), n_train=len(base_y), note=f"{len(rows)} verdicts")
     previous, st.model = st.model.version, model
     ctx.log.info("verdict %s on %s-%s: model %s", verdict, a, b, model.version)
-    return _rescore(st, ctx, previous=previous, verdicts=len(rows))
+    return _rescore(st, ctx, st.db.pending(limit=10 ** 9), previous=previous, verdicts=len(rows))
 
 
 def verdicts_key(latest: dict) -> str:
@@ -290,9 +291,9 @@ def verdicts_key(latest: dict) -> str:
     return content_key("verdicts", *(f"{a} {b} {v}" for (a, b), v in sorted(latest.items())))
 
 
-def _rescore(st, ctx, *, previous: str, verdicts: int) -> list[dict]:
-    """Every pending proposal re-scored under the current model; the full re-rank follows as a job of its own."""
-    pending = st.db.pending(limit=10 ** 9)
+def _rescore(st, ctx, pending: list[Proposal], *, previous: str, verdicts: int) -> list[dict]:
+    """The ``pending`` proposals (all of them) re-scored under the current model; the full re-rank follows as a
+    job of its own."""
     ctx.progress(0.6, f"re-ranking {len(pending)} pending proposals")
     scored = rerank(st.index, st.model, [(p.fragment_a, p.fragment_b) for p in pending])
     st.db.set_probabilities([(p.id, scored[(p.fragment_a, p.fragment_b)].probability) for p in pending

@@ -106,6 +106,11 @@ class ImportItem:
         shared = {os.fspath(p) for p in self.shared}
         return [(Path(p).name, d) for p, d in zip(self.sources, self.digests) if os.fspath(p) not in shared]
 
+    def shared_digests(self) -> list[str]:
+        """The sha256 of the ``shared`` sources (what :meth:`own_digests` leaves out), for the ledger and provenance."""
+        own = {d for _, d in self.own_digests()}
+        return sorted({d for d in self.digests if d not in own})
+
 
 @dataclass
 class Output:
@@ -333,7 +338,7 @@ def _one(item, convert, sink, kind, version, ledger, summary, check=None) -> Non
     summary.events += len(events)
     record = {"key": item.key, "kind": kind, "version": version, "name": item.name, "fragment": item.fragment,
               "face": item.face, "sources": [os.fspath(p) for p in item.sources], "digests": list(item.digests),
-              "shared": sorted(set(item.digests) - {d for _, d in item.own_digests()}),
+              "shared": item.shared_digests(),
               "dpi": item.options.get("dpi"), "artifacts": [o.ref.path for o in outputs or []], "events": events,
               "time": _dt.datetime.now(_dt.timezone.utc).isoformat()}
     ledger.add(record)

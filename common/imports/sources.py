@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-from common.store import Store
+from common.store import ArtifactError, Store
 
 
 @dataclass(frozen=True)
@@ -158,7 +158,7 @@ class SourceIndex:
                 seen.add(rel)
                 rec = cached.get(rel)
                 if rec is None:
-                    rec = _provenance_sources(path, rel)
+                    rec = _provenance_sources(store, rel)
                     if rec is None:
                         continue   # unreadable now (being written, damaged): looked at again next time
                     fresh.append(rec)
@@ -212,24 +212,21 @@ class SourceIndex:
         return None
 
 
-def _provenance_sources(path: Path, rel: str) -> dict | None:
+def _provenance_sources(store: Store, rel: str) -> dict | None:
     """``{"artifact", "digests", "dpi"}`` from an RGBN or scans artifact's provenance (digests: ``source_sha256``
     less ``shared_sha256``; none: not an import of files), or None when it cannot be read. The dpi is the
     provenance's, else the face's (a scan set's: its first scan's)."""
-    import h5py
-
     try:
-        with h5py.File(path, "r", locking=False) as f:
-            raw = f.attrs.get("provenance", "{}")
+        with store.open(rel) as f:
             dpi = f.attrs.get("dpi")
             if dpi is None and "front/scan_0" in f:
                 dpi = f["front/scan_0"].attrs.get("dpi")
-    except OSError:
+            try:
+                prov = store.provenance(f)
+            except ValueError:
+                prov = {}
+    except (ArtifactError, OSError):
         return None
-    try:
-        prov = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
-    except ValueError:
-        prov = {}
     prov = prov if isinstance(prov, dict) else {}
     return {"artifact": rel, "digests": _own(prov.get("source_sha256"), prov.get("shared_sha256")),
             "dpi": _dpi(prov.get("dpi", dpi))}

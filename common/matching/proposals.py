@@ -402,9 +402,7 @@ class ProposalStore:
         """Verdict history in time order (optionally only those involving ``fragment``)."""
         q = "SELECT * FROM verdicts" + (" WHERE fragment_a=? OR fragment_b=?" if fragment else "") + " ORDER BY time, id"
         rows = self._db.execute(q, (fragment, fragment) if fragment else ()).fetchall()
-        return [Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"],
-                        r["proposal_id"], r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
-                for r in rows]
+        return [_verdict(r) for r in rows]
 
     def latest_verdict(self, a: str, b: str) -> Verdict | None:
         """The latest verdict on the pair (either order), or None: the one that set its status, with the pose
@@ -412,10 +410,7 @@ class ProposalStore:
         a, b = ordered_pair(a, b)
         r = self._db.execute("SELECT * FROM verdicts WHERE fragment_a=? AND fragment_b=? ORDER BY time DESC, id DESC "
                              "LIMIT 1", (a, b)).fetchone()
-        if r is None:
-            return None
-        return Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"], r["proposal_id"],
-                       r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
+        return _verdict(r) if r is not None else None
 
     def latest_verdicts(self) -> dict[tuple[str, str], str]:
         """The latest verdict per pair (a person may change their mind)."""
@@ -516,6 +511,11 @@ def _proposal(r: sqlite3.Row) -> Proposal:
                     evidence=json.loads(r["evidence"]) if r["evidence"] else None,
                     status=r["status"], id=r["id"], created=r["created"], updated=r["updated"],
                     mutual=r["mutual"])
+
+
+def _verdict(r: sqlite3.Row) -> Verdict:
+    return Verdict(r["fragment_a"], r["fragment_b"], r["verdict"], r["time"], r["by"], r["note"], r["proposal_id"],
+                   r["model_version"], r["id"], json.loads(r["pose"]) if r["pose"] else None)
 
 
 def _real(x) -> float | None:

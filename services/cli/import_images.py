@@ -27,7 +27,7 @@ VERSION = "images-2"   # 2: the face cut to the fragment and 2 mm round it (attr
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments, add_source_arguments
+    from services.cli.imports import add_sink_arguments
     p = subparsers.add_parser("images", help="colour-only fragment pictures (alpha cut-outs or plain background)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="*", metavar="PATH", help="picture files or folders of them")
@@ -39,7 +39,6 @@ def add_parser(subparsers) -> None:
                    help="mask from the alpha channel, from a plain background, or auto (default)")
     p.add_argument("--linear", action="store_true", help="the pictures hold linear values (no sRGB decoding)")
     p.add_argument("--pictures", metavar="DIR", help="also write each imported mask over its picture, <id>-<face>.png")
-    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -129,6 +128,5 @@ def run(args) -> int:
     if args.pictures and Path(args.pictures).exists() and not Path(args.pictures).is_dir():
         print(f"tessera import images: --pictures {args.pictures} is a file, not a folder", file=sys.stderr)
         return 2
-    # a picture already imported as another fragment, or at another dpi, is refused (docs/import.md)
     return run_items(args, items, functools.partial(convert, pictures=args.pictures), kind="images",
-                     version=VERSION, sources=True)
+                     version=VERSION)

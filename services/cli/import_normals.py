@@ -35,7 +35,7 @@ _NORMAL = re.compile(r"normals?", re.IGNORECASE)
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments, add_source_arguments
+    from services.cli.imports import add_sink_arguments
     p = subparsers.add_parser("normals", help="normal maps + albedo made by other tools (OpenGL or DirectX)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="*", metavar="PATH", help="normal-map files, or folders holding normals + albedo")
@@ -47,7 +47,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--convention", choices=("opengl", "directx", "auto"), default="opengl",
                    help="green = y up (opengl, default), y down (directx), or told from the data (auto)")
     p.add_argument("--linear", action="store_true", help="albedo holds linear values (no sRGB decoding)")
-    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -222,5 +221,4 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"tessera import normals: {exc}", file=sys.stderr)
         return 2
-    # a map or albedo already imported as another fragment, or at another dpi, is refused (docs/import.md)
-    return run_items(args, items, convert, kind="normals", version=VERSION, sources=True)
+    return run_items(args, items, convert, kind="normals", version=VERSION)

@@ -44,7 +44,7 @@ INTENSITY_FILES = ("light_intensities.txt", "intensities.txt")
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments, add_source_arguments
+    from services.cli.imports import add_sink_arguments
     p = subparsers.add_parser("rti", help="flash / RTI captures (.lp or direction files, or spheres in the frame)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", metavar="DIR", help="capture folders, or folders of capture folders")
@@ -63,7 +63,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--min-mask-share", type=float, default=None, metavar="F",
                    help="refuse an automatic mask keeping less than this share of the frame (default 0.05)")
     p.add_argument("--no-discontinuities", action="store_true", help="skip the depth-discontinuity map")
-    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -186,9 +185,9 @@ def convert(item: ImportItem, store) -> list[Output]:
     for w in done.warnings:
         log.warning("%s: %s", folder, w)
     done.rgbn.attrs.update({"source": "tessera import rti", "face": item.face})
-    own = {d for _, d in item.own_digests()}   # the images: what says which fragment this is (common.imports.sources)
+    # the images say which fragment this is, the rig's files do not (common.imports.sources)
     prov = dict(done.provenance, importer="tessera import rti", importer_version=VERSION, capture=str(folder),
-                source_sha256=list(item.digests), shared_sha256=[d for d in item.digests if d not in own], dpi=o["dpi"])
+                source_sha256=list(item.digests), shared_sha256=item.shared_digests(), dpi=o["dpi"])
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", done.rgbn, provenance=prov)
     log.info("%s: re-render residual per image median %.3f, max %.3f", folder.name,
              float(sorted(done.residual)[len(done.residual) // 2]), float(max(done.residual)))
@@ -202,6 +201,4 @@ def run(args) -> int:
     except (ValueError, ImportRefused) as exc:
         print(f"tessera import rti: {exc}", file=sys.stderr)
         return 2
-    # a capture whose images were imported as another fragment, or at another dpi, is refused (docs/import.md)
-    return run_items(args, items, convert, kind="rti", version=VERSION, out=sys.stdout,   # the stdout of now
-                     sources=True)                                                         # (tests swap it)
+    return run_items(args, items, convert, kind="rti", version=VERSION, out=sys.stdout)  # the stdout of now (tests swap it)

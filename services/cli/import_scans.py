@@ -51,7 +51,7 @@ log = logging.getLogger("tessera.import.scans")
 
 
 def add_parser(subparsers) -> None:
-    from services.cli.imports import add_sink_arguments, add_source_arguments
+    from services.cli.imports import add_sink_arguments
     p = subparsers.add_parser("scans", help="flatbed scans of fragments from files (4 turned scans per face)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="*", metavar="SCAN",
@@ -68,7 +68,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--crop", action="store_true", help="whole-bed scans: find the fragment and keep its region")
     p.add_argument("--srgb", action="store_true", help="the 8/16-bit files are sRGB-encoded (decode to linear first)")
     p.add_argument("--colour-only", action="store_true", help="one scan per face, albedo only (no normals)")
-    add_source_arguments(p)
     add_sink_arguments(p)
     p.set_defaults(func=run)
 
@@ -92,25 +91,16 @@ def _items(args) -> list[ImportItem]:
                 raise ValueError(f"{where}: face {face!r} must be front or back")
             g = groups.setdefault(fid, {"front": [], "back": [], "dpi": None, "dpi_line": None, "turn": None,
                                         "turn_line": None, "where": where})
-            # one turn per fragment: whichever of its rows gives it; two rows that disagree are refused
             if row.get("turn") is not None:
-                turn = row["turn"].lower()
-                if g["turn"] is not None and turn != g["turn"]:
-                    raise ValueError(f"fragment {fid}: turn {g['turn']!r} ({args.manifest} line {g['turn_line']}) "
-                                     f"differs from turn {turn!r} (line {row['line']}); a fragment's scans are "
-                                     f"turned one way: give the same turn in all its rows")
-                g["turn"], g["turn_line"] = turn, row["line"]
+                _fragment_value(g, "turn", row["turn"].lower(), repr, fid, args.manifest, row["line"],
+                                why="a fragment's scans are turned one way: ")
             # the dpi column counts on whichever row of the fragment gives it (an empty first cell included)
             if row.get("dpi") is not None:
                 try:
                     row_dpi = check_dpi(row["dpi"], where)
                 except ArtifactError as exc:
                     raise ValueError(str(exc)) from None
-                if g["dpi"] is not None and row_dpi != g["dpi"]:
-                    raise ValueError(f"fragment {fid}: dpi {g['dpi']:g} ({args.manifest} line {g['dpi_line']}) "
-                                     f"differs from dpi {row['dpi']} (line {row['line']}); give the same dpi in "
-                                     f"all its rows")
-                g["dpi"], g["dpi_line"] = row_dpi, row["line"]
+                _fragment_value(g, "dpi", row_dpi, "{:g}".format, fid, args.manifest, row["line"])
             g[face].append(Path(row["file"]))
         for g in groups.values():   # --dpi and --turn for the fragments whose rows give none
             g["dpi"] = args.dpi if g["dpi"] is None else g["dpi"]
@@ -137,6 +127,16 @@ def _items(args) -> list[ImportItem]:
                                          "crop": bool(args.crop), "srgb": bool(args.srgb),
                                          "colour_only": bool(args.colour_only)}))
     return items
+
+
+def _fragment_value(g: dict, key: str, value, show, fid: str, manifest: str, line: int, *, why: str = "") -> None:
+    """A fragment's ``key`` (its turn, its dpi) from whichever of its manifest rows gives it: ``g[key]`` and
+    ``g[key + "_line"]``. Two rows that give different values are refused, naming the fragment, both values
+    (``show``) and both lines."""
+    if g[key] is not None and value != g[key]:
+        raise ValueError(f"fragment {fid}: {key} {show(g[key])} ({manifest} line {g[key + '_line']}) differs from "
+                         f"{key} {show(value)} (line {line}); {why}give the same {key} in all its rows")
+    g[key], g[key + "_line"] = value, line
 
 
 def _dpi_of(fid: str, g: dict) -> float:
@@ -306,5 +306,4 @@ def run(args) -> int:
         print(f"tessera import scans: {exc}", file=sys.stderr)
         return 2
     _warn_if_uncalibrated(args)
-    # a scan set any of whose files was imported as another fragment, or at another dpi, is refused (docs/import.md)
-    return run_items(args, items, convert, kind="scans", version=VERSION, sources=True)
+    return run_items(args, items, convert, kind="scans", version=VERSION)

@@ -68,7 +68,9 @@ def add_parser(subparsers) -> None:
 
 
 def add_sink_arguments(p: argparse.ArgumentParser) -> None:
-    """``--store DIR``, ``--wait S``, ``--config``/``--set``: the options every kind shares."""
+    """``--store DIR``, ``--wait S``, ``--config``/``--set``, and ``--allow-duplicates`` / ``--replace`` (what the
+    check of every import against the files imported before lets through, :func:`run_items`): the options every
+    kind shares."""
     g = p.add_argument_group("destination")
     g.add_argument("--store", metavar="DIR",
                    help="write into this storage root, no events "
@@ -76,19 +78,14 @@ def add_sink_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--wait", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the outbox to drain at the end "
                         "(default 30; the rest waits for the next run)")
-    from common.config import add_config_arguments
-    add_config_arguments(p)
-
-
-def add_source_arguments(p: argparse.ArgumentParser) -> None:
-    """``--allow-duplicates`` and ``--replace``: what a kind that checks its files against earlier imports
-    (``run_items(..., sources=True)``) lets through."""
     g = p.add_argument_group("the same file imported before")
     g.add_argument("--allow-duplicates", action="store_true",
                    help="import a file whose content is already imported as another fragment (refused by default)")
     g.add_argument("--replace", action="store_true",
                    help="import a file already imported for the same fragment and face at another dpi, the new face "
                         "replacing the old (refused by default)")
+    from common.config import add_config_arguments
+    add_config_arguments(p)
 
 
 class BusSink:
@@ -147,12 +144,12 @@ def open_sink(args):
 
 
 def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], *,
-              kind: str, version: str, out=None, sources: bool = False) -> int:
+              kind: str, version: str, out=None) -> int:
     """Run the shared driver over ``items`` into the sink of ``args``; print the summary; exit status.
 
-    0 = everything imported (or already), 1 = something refused, 130 = interrupted. ``sources``: refuse a
-    file already imported as another fragment or at another dpi (:func:`run_import`), as
-    :func:`add_source_arguments`' ``--allow-duplicates`` / ``--replace`` let through.
+    0 = everything imported (or already), 1 = something refused, 130 = interrupted. A file already imported
+    as another fragment or at another dpi is refused (:func:`run_import` with ``sources``), unless
+    ``--allow-duplicates`` / ``--replace`` (:func:`add_sink_arguments`) let it through.
     """
     if not items:
         print(f"tessera import {kind}: nothing to import", file=sys.stderr)
@@ -165,7 +162,7 @@ def run_items(args, items: list[ImportItem], convert: Callable[[ImportItem, Stor
         return 2
     bar = ProgressBar(len(items), f"import {kind}")
     try:
-        summary = run_import(items, convert, sink, kind=kind, version=version, progress=bar, sources=sources,
+        summary = run_import(items, convert, sink, kind=kind, version=version, progress=bar, sources=True,
                              allow_duplicates=bool(getattr(args, "allow_duplicates", False)),
                              replace=bool(getattr(args, "replace", False)))
     finally:
