@@ -10,6 +10,8 @@ bumps ``v``. ``docs/messages.md`` documents each type with an example and is che
 
 from __future__ import annotations
 
+import json
+import math
 import re
 import time as _time
 import uuid
@@ -287,6 +289,29 @@ def check_packed_size(msg: Mapping) -> int:
     if size > MAX_MESSAGE_BYTES:
         raise MessageError(f"{msg.get('type', 'message')} of {size} bytes refused (at most {MAX_MESSAGE_BYTES})")
     return size
+
+
+def finite(value: Any) -> Any:
+    """``value`` with every float that is not finite (NaN, ±inf) replaced by None, recursively through maps,
+    lists and tuples. A message may carry NaN ("not measured", e.g. a docked proposal's ``gap_mm``)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(v) for v in value]
+    return value
+
+
+def to_json(value: Any, *, default: Any = str, **kwargs: Any) -> str:
+    """Strict JSON text of a message or any document: NaN and ±inf written as ``null``.
+
+    Python's ``json.dumps`` writes them as bare ``NaN`` / ``Infinity``, which no JSON reader but
+    Python's accepts (``jq``, a browser's ``JSON.parse``). ``default`` turns what JSON cannot hold into
+    something it can (``str`` unless given); what it returns is made finite too (``default=float`` of a
+    numpy NaN). Other keyword arguments go to ``json.dumps`` (``indent``, ``sort_keys``).
+    """
+    return json.dumps(finite(value), default=lambda obj: finite(default(obj)), allow_nan=False, **kwargs)
 
 
 def unpack(data: bytes) -> dict:

@@ -403,3 +403,22 @@ def test_an_artifact_digest_with_a_trailing_newline_is_refused():
     art = {"path": "a/b.h5", "sha256": "0" * 64 + "\n", "bytes": 1}
     with pytest.raises(MessageError, match="sha256"):
         validate(_doc(type="features.ready", fragment="F1", face="front", artifact=art))
+
+
+def test_to_json_writes_nan_and_infinity_as_null_at_any_depth():
+    import json
+
+    import numpy as np
+
+    from common.messages import to_json
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+
+    doc = {"a": [1.5, float("-inf"), {"b": float("nan"), "c": (2, 3)}], "d": "NaN", "e": True,
+           "f": np.float32("nan"), "g": np.float64("inf"), "h": b"\x01"}
+    # numpy float32 goes through ``default`` (float): its NaN is made null too
+    got = json.loads(to_json(doc, default=lambda o: float(o) if isinstance(o, np.floating) else o.hex()),
+                     parse_constant=refuse)
+    assert got == {"a": [1.5, None, {"b": None, "c": [2, 3]}], "d": "NaN", "e": True, "f": None, "g": None,
+                   "h": "01"}

@@ -46,10 +46,10 @@ the simulated scanner (``sim``) or, with ``--device sane``, the SANE device's na
 
 from __future__ import annotations
 
-import json
 import sys
 
 from common.config import add_config_arguments, config_from_arguments
+from common.messages import to_json
 
 
 def add_parser(subparsers) -> None:
@@ -181,7 +181,7 @@ def _show(args, store, cfg) -> int:
             f"--device {name}` or `--nominal --lamp-direction-deg D --device {name}`)")
         print(f"{exc}{hint}")
         return 1
-    print(json.dumps({"scanner": cal.scanner, "date": cal.date, "a": [float(v) for v in cal.a],
+    print(to_json({"scanner": cal.scanner, "date": cal.date, "a": [float(v) for v in cal.a],
                       "cv_rmse": cal.cv_rmse, "order": cal.order, "path": ref.path}, indent=2))
     return 0
 

@@ -11,6 +11,7 @@ import json
 import sys
 
 from common.config import add_config_arguments, config_from_arguments
+from common.messages import to_json
 
 
 def add_parser(sub) -> None:
@@ -33,7 +34,7 @@ def event_line(seq: int, stream: str | None, event: dict) -> str:
     """One JSON line for an event; an event JSON cannot hold (e.g. nested deeper than the encoder
     goes, from a journal older than the broker's depth check) gives a line saying so, never a crash."""
     try:
-        return json.dumps({"seq": seq, "stream": stream, **event}, default=_plain)
+        return to_json({"seq": seq, "stream": stream, **event}, default=_plain)   # a NaN ("not measured") as null
     except (RecursionError, ValueError, TypeError) as exc:
         return json.dumps({"seq": seq, "stream": stream, "type": str(event.get("type", "?"))[:64],
                            "uid": str(event.get("uid", ""))[:64], "error": f"event not representable as JSON: "

@@ -15,14 +15,14 @@ and the errors go to the standard error.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from common.messages import to_json
 
 log = logging.getLogger("tessera.features")
 
@@ -62,7 +62,7 @@ def _read_rgbn_file(path: Path, face: str):
 
 def _print_table(table, as_json: bool) -> None:
     if as_json:
-        print(json.dumps({k: (None if math.isnan(v) else v) for k, v in table.values.items()}, indent=1))
+        print(to_json(table.values, indent=1))   # NaN and ±inf as null: stdout is for JSON readers
         return
     print(f"face {table.face}: {table.n_patches} patches "
           f"({int(np.sum(table.patch_coverage >= 0.6))} with coverage >= 0.6), "
@@ -122,7 +122,7 @@ def run(args) -> int:
             ctx.store, ctx.log = store, log
             ctx.progress = lambda f, t: log.debug("%3.0f%% %s", 100 * f, t)
             events = stage.handle(job, ctx)
-            say(json.dumps(events[0], indent=1, default=str))
+            say(to_json(events[0], indent=1))
             table = load_features(store, events[0]["artifact"], face=args.face)
             image = None
             if args.debug_dir:

@@ -18,7 +18,6 @@ for every run, so no run finds another's content-keyed outputs.
 from __future__ import annotations
 
 import collections
-import json
 import os
 import platform
 import shutil
@@ -33,6 +32,7 @@ from pathlib import Path
 import psutil
 
 from common.config import add_config_arguments, config_from_arguments
+from common.messages import to_json
 
 REPO = Path(__file__).resolve().parents[2]
 #: heading of the soak's section of docs/performance.md, kept when the report is rewritten
@@ -357,7 +357,7 @@ def run(args) -> int:
             text = text.rstrip("\n") + "\n\n" + old[old.index(SOAK_SECTION):]
         out.write_text(text)
         print(text)
-        print(json.dumps({"per_hour_1": one["per_hour"], "per_hour_2": two["per_hour"],
+        print(to_json({"per_hour_1": one["per_hour"], "per_hour_2": two["per_hour"],
                           "parked": [single["parked"], one["parked"], two["parked"]]}), flush=True)
         return 0
     finally:

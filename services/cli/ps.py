@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import logging
 import os
 import sys
@@ -315,7 +314,7 @@ def rgbn_path(fragment: str, face: str, digest: str, method: str, dome_radius=No
 
 def _run(args) -> int:
     from common.acquisition import handheld as hh
-    from common.messages import new_message
+    from common.messages import new_message, to_json
     from common.rgbn.image import SCHEMA, SCHEMA_VERSION, save_rgbn, write_rgbn
     from common.store import Store
 
@@ -370,7 +369,7 @@ def _run(args) -> int:
         ref = save_rgbn(store, relpath, rgbn, provenance=provenance)
         event = new_message("rgbn.ready", fragment=args.fragment, face=args.face, artifact=ref,
                             source="handheld", method=args.method)
-        print(json.dumps(event, indent=2))
+        print(to_json(event, indent=2))
         if args.submit:
             from common.bus.client import BrokerRefused, BrokerUnavailable, submit
 

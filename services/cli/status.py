@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import json
-
 from common.config import add_config_arguments, config_from_arguments
+from common.messages import to_json
 
 
 def add_parser(sub) -> None:
@@ -54,7 +53,7 @@ def run(args) -> int:
         print(f"error: {exc}")
         return 1
     try:
-        print(json.dumps(s, indent=2, default=str) if args.json else format_status(s), flush=True)
+        print(to_json(s, indent=2) if args.json else format_status(s), flush=True)
     except BrokenPipeError:  # `tessera status | head`: the reader left; that is not an error
         import os
         import sys

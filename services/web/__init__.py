@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import os
 import re
 import threading
@@ -42,6 +41,7 @@ from flask.json.provider import DefaultJSONProvider
 
 from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, save_token, session_secret
 
+from common.messages import finite
 from common.store import Store
 from common.web.bench import BenchSession
 from common.web.tiles import TileCache
@@ -87,17 +87,6 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def _finite(value):
-    """``value`` with every float that is not finite (NaN, ±inf) replaced by None, recursively."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
-
-
 class StrictJSONProvider(DefaultJSONProvider):
     """Flask's JSON writer, but NaN and ±inf are written as ``null``: a browser's ``JSON.parse``
     refuses a bare ``NaN`` (a docked proposal's ``alignment.gap_mm`` is NaN), and the review page
@@ -105,7 +94,7 @@ class StrictJSONProvider(DefaultJSONProvider):
 
     def dumps(self, obj, **kwargs):
         kwargs.setdefault("allow_nan", False)
-        return super().dumps(_finite(obj), **kwargs)
+        return super().dumps(finite(obj), **kwargs)
 
 
 class WebConfigError(ValueError):

@@ -87,3 +87,19 @@ def test_tessera_calibrate_stores_and_shows_the_simulated_scanners_model(tmp_pat
     assert main(["calibrate", "--set", root, "--show"]) == 0
     shown = capsys.readouterr().out
     assert '"scanner": "sim"' in shown and '"a"' in shown
+
+
+def test_show_of_a_nominal_calibration_is_strict_json(tmp_path, capsys):
+    # a nominal calibration has no cross-validation: its cv_rmse is NaN, which --show printed as a bare NaN
+    import json
+
+    from services.cli import main
+    root = f'storage.root="{tmp_path}"'
+    assert main(["calibrate", "--set", root, "--nominal", "--lamp-direction-deg", "90", "--device", "flat-n"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "--set", root, "--show", "--device", "flat-n"]) == 0
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+    shown = json.loads(capsys.readouterr().out, parse_constant=refuse)
+    assert shown["scanner"] == "flat-n" and shown["cv_rmse"] == {"first": None, "second": None}

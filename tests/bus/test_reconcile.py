@@ -139,6 +139,20 @@ def test_an_event_json_cannot_hold_is_printed_as_a_line_saying_so():
     assert json.loads(event_line(8, "s", {"type": "noop.job", "x": [[1]]}))["x"] == [[1]]
 
 
+def test_an_event_carrying_nan_is_printed_as_strict_json():
+    # a docked proposal's alignment gap_mm is NaN ("not measured"); a bare NaN breaks `tessera events | jq`
+    import json
+
+    from services.cli.events import event_line
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+    line = json.loads(event_line(9, "s", {"type": "match.proposed", "alignment": {"gap_mm": float("nan"),
+                                                                                  "contact_mm": 30.0}}),
+                      parse_constant=refuse)
+    assert line["alignment"] == {"gap_mm": None, "contact_mm": 30.0} and line["seq"] == 9
+
+
 def test_a_face_solved_again_needs_outputs_of_its_newest_rgbn(tmp_path):
     """docs/storage.md: every RGBN face needs a feature table and an illustration. Any output of the face counted,
     so a face solved again (a new RGBN) whose stages never ran for it was never queued; an output counts when its

@@ -131,3 +131,28 @@ def test_cli_reports_a_missing_fragment_plainly(tmp_path, capsys):
     assert tessera(["features", "--store", str(tmp_path), "--fragment", "NOPE"]) == 1
     assert "no RGBN artifact" in capsys.readouterr().err
     assert tessera(["features"]) == 2
+
+
+def _strict_json(text: str):
+    """Parse as ``jq`` or a browser does: a bare NaN / Infinity is an error, not a number."""
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_cli_json_writes_every_value_that_is_not_finite_as_null(store_with_rgbn, monkeypatch, capsys):
+    # a ratio over an empty region can come out infinite: Python wrote it as `Infinity`, which is not JSON
+    import common.features as features
+    real = features.extract_features
+
+    def with_undefined_values(image, face):
+        table = real(image, face=face)
+        table.values.update(colour_mean_g=float("inf"), colour_mean_b=float("-inf"), normal_z_mean=float("nan"))
+        return table
+
+    monkeypatch.setattr(features, "extract_features", with_undefined_values)
+    store, ref = store_with_rgbn
+    assert tessera(["features", str(store.path(ref.path)), "--json"]) == 0
+    values = _strict_json(capsys.readouterr().out)
+    assert values["colour_mean_g"] is None and values["colour_mean_b"] is None and values["normal_z_mean"] is None
+    assert values["colour_mean_r"] == pytest.approx(0.4, rel=1e-5)   # the finite ones are kept
