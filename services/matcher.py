@@ -204,8 +204,15 @@ def _proposed(fragment: str, found, st: _State, ctx, stage: str) -> list[dict]:
     columns = correspondence_columns()
     props = [_proposal(c, st, columns) for c in found]
     stored = st.db.upsert(props) if props else []
-    ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", fragment, len(stored),
-                 stage, stored[0].probability if stored else float("nan"))
+    if stored:
+        ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", fragment, len(stored), stage, stored[0].probability)
+    else:
+        # say why there is no best: the index holds no other fragment yet, or none could be scored with this one
+        # (stage 2 scores a pair only when both fragments have a valid patch: a crumb has none)
+        others = len(st.index) - (fragment in st.index)
+        ctx.log.info("fragment %s: 0 proposals, %s (%s)", fragment, stage,
+                     f"none of the {others} other fragments could be scored with it" if others
+                     else "no other fragment indexed yet")
     return [new_message("match.proposed", stage=stage, **p.to_event_fields()) for p in stored]
 
 
