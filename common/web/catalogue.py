@@ -519,6 +519,20 @@ class Catalogue:
                            "seq": e["seq"]} for e in edits]
         return out
 
+    def faces(self, fids: Iterable[str]) -> dict[str, dict]:
+        """The indexed faces (``{face: {rgbn, dpi, width, height, has_normals}}``) of each of ``fids`` the index
+        holds: what the bench page reads to tell a colour-only fragment (:func:`colour_only_stages`) without
+        opening its faces again."""
+        fids = list(dict.fromkeys(fids))
+        out = {}
+        with self._db() as db:
+            for i in range(0, len(fids), 500):   # SQLite's limit on the ? of one statement
+                chunk = fids[i:i + 500]
+                for r in db.execute(f"SELECT id, faces FROM fragments WHERE id IN ({', '.join('?' * len(chunk))})",
+                                    chunk):
+                    out[r["id"]] = json.loads(r["faces"])
+        return out
+
     def thumbnail(self, fid: str) -> bytes | None:
         with self._db() as db:
             r = db.execute("SELECT thumb FROM fragments WHERE id = ?", (fid,)).fetchone()

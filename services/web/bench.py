@@ -14,6 +14,7 @@ from typing import Callable
 from flask import Blueprint, abort, jsonify, render_template, request
 
 from common.web.bench import BenchBusy
+from common.web.catalogue import colour_only_stages
 from common.web.pipeline import fragment_state, fragments_since, start_of_today
 
 from .auth import body, writes
@@ -101,13 +102,20 @@ def _act(fn: Callable):
 
 
 def today_fragments() -> list[dict]:
-    """Fragments scanned today with their pipeline state, plus captures kept on this machine."""
+    """Fragments scanned today with their pipeline state, plus captures kept on this machine.
+
+    A colour-only fragment (a ``--colour-only`` scan: its faces have no normals) has ``normals: n/a``, as in the
+    catalogue: told from the catalogue's index of its faces (``has_normals``), not by opening them again; until
+    the catalogue has indexed the face (or on a station without a catalogue) the stage shows as the tree says."""
     st = station()
     matched = st.review.matched_fragments() if st.review is not None else set()
     failed = failures_by_fragment(st.link)
+    today = fragments_since(st.store_root, start_of_today())
+    faces = st.catalogue.faces(fid for fid, _ in today) if st.catalogue is not None else {}
     rows = []
-    for fid, t in fragments_since(st.store_root, start_of_today()):
+    for fid, t in today:
         row = fragment_state(st.store_root, fid, matched=matched, failed=failed.get(fid))
+        row["stages"] = colour_only_stages(row["stages"], faces.get(fid, {}))
         row["scanned_at"] = t
         rows.append(row)
     if st.bench is not None:   # captures kept locally (lab unreachable) are not on storage yet

@@ -380,6 +380,31 @@ def test_capture_with_the_lab_unreachable_keeps_the_scans_and_sends_them_later(t
     link.close()
 
 
+def test_the_bench_shows_normals_not_applicable_for_a_colour_only_scan(tmp_path):
+    """A ``--colour-only`` scan's face has no normals: the bench ticked its ``normals`` stage; it says ``n/a``,
+    as the catalogue does, and a fragment with normals still says ``done``."""
+    from common.web.catalogue import Catalogue
+
+    store = Store(tmp_path / "storage")
+    albedo, mask = np.full((40, 50, 3), 0.5, np.float32), np.ones((40, 50), bool)
+    normals = np.zeros((40, 50, 3), np.float32)
+    normals[..., 2] = 1.0
+    for fid, n in (("COL1", None), ("NRM1", normals)):
+        store.write(f"fragments/{fid}/scans/scans-1.h5", "tessera.test", 1,
+                    lambda f: f.create_dataset("x", data=np.zeros(2)))
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-0000000000000001.h5", RGBNImage(albedo, mask, 100.0, normals=n))
+    catalogue = Catalogue(tmp_path / "catalogue.sqlite", store)
+    assert catalogue.rebuild() == 2
+    c = web.create_app(token=TOKEN, store_root=store.root, catalogue=catalogue).test_client()
+    rows = {r["fragment"]: r["stages"] for r in c.get("/api/bench", headers=BEARER).json["fragments"]}
+    assert rows["COL1"] == {"scanned": "done", "normals": "n/a", "features": "waiting", "matched": "waiting",
+                            "rendered": "waiting"}
+    assert rows["NRM1"]["normals"] == "done"
+    # the page draws n/a with its own mark (not the tick of done, not the ellipsis of waiting)
+    js = (web.HERE / "static" / "bench.js").read_text()
+    assert '"n/a": "–"' in js
+
+
 # -- review and status with a real broker ---------------------------------------------------------
 def _two_fragments(store: Store, pixel_mm: float):
     """Two RGBN fragments cut from one picture, and the true pose of B in A's frame."""

@@ -3,8 +3,10 @@
 (() => {
   const $ = (id) => document.getElementById(id);
   const STAGES = ["scanned", "normals", "features", "matched", "rendered"];
-  const MARK = { done: "✓", waiting: "…", failed: "✗", kept: "⇡" };
-  const TITLE = { done: "done", waiting: "waiting", failed: "failed", kept: "kept on this machine; sent when the lab is back" };
+  const MARK = { done: "✓", waiting: "…", failed: "✗", kept: "⇡", "n/a": "–" };
+  const TITLE = { done: "done", waiting: "waiting", failed: "failed", kept: "kept on this machine; sent when the lab is back",
+                  "n/a": "n/a: colour only, no normals" };
+  const CLASS = { "n/a": "na" };   // a state as a CSS class name (no "/")
   let seq = null, current = null, prescanShownFor = null;
   // one request at a time, in order: an action asked for while another is on its way (Enter for the
   // next step while the scan request is still answering) is sent after it, not dropped; the same
@@ -67,7 +69,7 @@
         const state = (r.stages || {})[s] || "waiting";
         const cell = Tessera.el("td", { "data-stage": s, "data-state": state });
         const title = (r.errors || {})[s] ? `${TITLE[state]}: ${r.errors[s]}` : (s === "scanned" && r.scanned_at ? `scanned ${Tessera.clock(r.scanned_at)}` : TITLE[state]);
-        cell.append(Tessera.el("span", { class: `st ${state}`, text: MARK[state] || "?", title }));
+        cell.append(Tessera.el("span", { class: `st ${CLASS[state] || state}`, text: MARK[state] || "?", title }));
         tr.append(cell);
       }
       return tr;
