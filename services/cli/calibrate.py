@@ -93,6 +93,11 @@ def _floats(text: str, name: str) -> list[float]:
         raise SystemExit(f"--{name} must be comma-separated numbers, got {text!r}")
 
 
+def _error(text) -> None:
+    """An error on the standard error (the standard output is for results: a report, --show's JSON)."""
+    print(f"tessera calibrate: {text}", file=sys.stderr)
+
+
 def _scan_dpi(args) -> float:
     """The dpi to scan at (or record) when no files say it: ``--dpi``, else 150."""
     return 150.0 if args.dpi is None else args.dpi
@@ -113,8 +118,8 @@ def run(args) -> int:
         return _nominal(args, store)
     device = args.device or cfg["scanner"]["device"]
     if device not in ("simulated", "sane"):
-        print(f"--device must be simulated or sane (or a device name with --from-files, --nominal or --show), "
-              f"got {device!r}")
+        _error(f"--device must be simulated or sane (or a device name with --from-files, --nominal or --show), "
+               f"got {device!r}")
         return 2
     if device == "simulated":
         from common.acquisition.flatbed_sim import SimulatedFlatbed
@@ -125,7 +130,7 @@ def run(args) -> int:
         try:
             scanner = SaneScanner(args.sane_device or cfg["scanner"]["sane_device"])
         except CaptureError as exc:
-            print(exc.operator_message)
+            _error(exc.operator_message)
             return 1
         if args.name:
             scanner.name = args.name
@@ -140,10 +145,10 @@ def run(args) -> int:
                                 target_albedo=args.target_albedo,
                                 progress=lambda f, t: print(f"[{f:4.0%}] {t}", flush=True))
     except CaptureError as exc:
-        print(exc.operator_message)
+        _error(exc.operator_message)
         return 1
     except CalibrationError as exc:
-        print(f"calibration failed: {exc}")
+        _error(f"calibration failed: {exc}")
         return 1
     ref = save_calibration(store, cal)
     a = ", ".join(f"{v:+.4f}" for v in cal.a)
@@ -161,8 +166,8 @@ def _show(args, store, cfg) -> int:
     from common.acquisition.errors import CalibrationError
 
     if args.from_files or args.nominal:
-        print("--show prints a stored calibration; it does not go with --from-files or --nominal "
-              "(calibrate first, then --show --device NAME)")
+        _error("--show prints a stored calibration; it does not go with --from-files or --nominal "
+               "(calibrate first, then --show --device NAME)")
         return 2
     device = args.device or cfg["scanner"]["device"]
     if args.name:
@@ -179,7 +184,7 @@ def _show(args, store, cfg) -> int:
         hint = "" if device in ("simulated", "sane") and not args.name else (
             f" (a scanner without a station device is calibrated by `tessera calibrate --from-files MANIFEST "
             f"--device {name}` or `--nominal --lamp-direction-deg D --device {name}`)")
-        print(f"{exc}{hint}")
+        _error(f"{exc}{hint}")
         return 1
     print(to_json({"scanner": cal.scanner, "date": cal.date, "a": [float(v) for v in cal.a],
                       "cv_rmse": cal.cv_rmse, "order": cal.order, "path": ref.path}, indent=2))
@@ -192,11 +197,11 @@ def _nominal(args, store) -> int:
     from common.acquisition.calibration import nominal_calibration, save_calibration
 
     if not args.device or args.device in ("simulated", "sane"):
-        print("--nominal needs --device NAME: the name of the scanner that made the scans")
+        _error("--nominal needs --device NAME: the name of the scanner that made the scans")
         return 2
     if args.lamp_direction_deg is None or not math.isfinite(args.lamp_direction_deg):
-        print("--nominal needs --lamp-direction-deg D: where the scanner's light comes from on its images, "
-              "counter-clockwise from the +x axis (0 right, 90 top); `tessera import scans` logs it from the shadows")
+        _error("--nominal needs --lamp-direction-deg D: where the scanner's light comes from on its images, "
+               "counter-clockwise from the +x axis (0 right, 90 top); `tessera import scans` logs it from the shadows")
         return 2
     cal = nominal_calibration(args.device, args.lamp_direction_deg, dpi=_scan_dpi(args))
     ref = save_calibration(store, cal)
@@ -258,16 +263,16 @@ def _from_files(args, store) -> int:
     from common.store import ArtifactError
 
     if not args.device or args.device in ("simulated", "sane"):
-        print("--from-files needs --device NAME: the name of the scanner that made the target scans "
-              "(the calibration is stored under it, and `tessera import scans --device NAME` uses it)")
+        _error("--from-files needs --device NAME: the name of the scanner that made the target scans "
+               "(the calibration is stored under it, and `tessera import scans --device NAME` uses it)")
         return 2
     if not 0 <= args.face_depth_mm <= 5:
-        print(f"--face-depth-mm must be in [0, 5], got {args.face_depth_mm}")
+        _error(f"--face-depth-mm must be in [0, 5], got {args.face_depth_mm}")
         return 2
     try:
         rows = read_manifest(args.from_files)
     except ValueError as exc:
-        print(f"calibration failed: {exc}")
+        _error(f"calibration failed: {exc}")
         return 1
     # the dpi sets the mm scale of the lamp's change along the tilt: --dpi, else what the files
     # declare, as `tessera import scans` does; never a silent default
@@ -275,7 +280,7 @@ def _from_files(args, store) -> int:
         dpi, warnings = resolve_dpi([r[0] for r in rows], args.dpi, where=str(args.from_files))
         dpi = check_dpi(dpi, "--dpi" if args.dpi is not None else f"{args.from_files}: the files' declared")
     except (ValueError, ArtifactError) as exc:
-        print(exc)
+        _error(exc)
         return 2
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -296,7 +301,7 @@ def _from_files(args, store) -> int:
             bar.update(i + 1)
     except ImportRefused as exc:
         bar.close()
-        print(f"calibration failed, nothing stored: {exc}")
+        _error(f"calibration failed, nothing stored: {exc}")
         return 1
     bar.close()
     try:
@@ -305,7 +310,7 @@ def _from_files(args, store) -> int:
                                   max_clipped=args.max_clipped, dpi=dpi,
                                   depth=16)
     except (CalibrationError, ValueError) as exc:
-        print(f"calibration failed, nothing stored: {exc}")
+        _error(f"calibration failed, nothing stored: {exc}")
         return 1
     print(format_report(cal))
     ref = save_calibration(store, cal)

@@ -158,16 +158,19 @@ def test_bad_manifest_or_files_are_refused_and_nothing_is_stored(tmp_path, capsy
     store = tmp_path / "store"
     assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
                  "--device", "bench-d", "--dpi", str(DPI)]) == 1
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
     expected = {"missing column": "tilt_direction_deg", "missing file": "t10_d90.png",
                 "truncated file": "t10_d90.png", "too few": "at least 6"}[problem]
-    assert "calibration failed" in out and expected in out
+    # the error is on the standard error, the standard output (for results) says nothing of it
+    assert "calibration failed" in cap.err and expected in cap.err
+    assert "calibration failed" not in cap.out
     assert not (store / "calibration").exists() or not any((store / "calibration").rglob("*.h5"))
 
 
 def test_from_files_needs_a_device_name(tmp_path, capsys):
     assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--from-files", "x.csv"]) == 2
-    assert "--device NAME" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert cap.err.startswith("tessera calibrate: --from-files needs --device NAME") and cap.out == ""
 
 
 def test_show_finds_a_from_files_calibration_by_its_device_name(tmp_path, capsys):
@@ -186,10 +189,13 @@ def test_show_finds_a_from_files_calibration_by_its_device_name(tmp_path, capsys
     assert json.loads(capsys.readouterr().out) == by_device
     # a name with no calibration says which and how to make one
     assert main(["calibrate", "--set", root, "--show", "--device", "other-flatbed"]) == 1
-    out = capsys.readouterr().out
-    assert "'other-flatbed'" in out and "--from-files MANIFEST --device other-flatbed" in out
+    cap = capsys.readouterr()
+    assert "'other-flatbed'" in cap.err and "--from-files MANIFEST --device other-flatbed" in cap.err
+    assert cap.out == ""   # nothing a script reading --show's JSON could take for it
     # --show prints; it does not also calibrate
     assert main(["calibrate", "--set", root, "--show", "--from-files", str(manifest), "--device", "x"]) == 2
+    cap = capsys.readouterr()
+    assert "does not go with --from-files" in cap.err and cap.out == ""
 
 
 def test_from_files_takes_the_dpi_the_files_declare(tmp_path):
@@ -215,9 +221,9 @@ def test_from_files_without_dpi_is_refused_when_the_files_declare_none_or_disagr
     store = tmp_path / "store"
     assert main(["calibrate", "--set", f'storage.root="{store}"', "--from-files", str(manifest),
                  "--device", "bench-e"]) == 2
-    out = capsys.readouterr().out
-    assert ("no dpi: the files declare none" if declare is None else "declare different resolutions") in out
-    assert "give --dpi" in out
+    cap = capsys.readouterr()
+    assert ("no dpi: the files declare none" if declare is None else "declare different resolutions") in cap.err
+    assert "give --dpi" in cap.err and "give --dpi" not in cap.out
     assert not (store / "calibration").exists() or not any((store / "calibration").rglob("*.h5"))
 
 

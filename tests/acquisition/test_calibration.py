@@ -103,3 +103,16 @@ def test_show_of_a_nominal_calibration_is_strict_json(tmp_path, capsys):
         raise ValueError(f"not JSON: {name}")
     shown = json.loads(capsys.readouterr().out, parse_constant=refuse)
     assert shown["scanner"] == "flat-n" and shown["cv_rmse"] == {"first": None, "second": None}
+
+
+@pytest.mark.parametrize("argv, words, code", [
+    (["--device", "epson-v850"], "--device must be simulated or sane", 2),
+    (["--nominal", "--device", "flat-x"], "--nominal needs --lamp-direction-deg D", 2),
+    (["--nominal", "--lamp-direction-deg", "0"], "--nominal needs --device NAME", 2),
+])
+def test_calibrate_errors_go_to_the_standard_error_with_a_failing_exit(tmp_path, capsys, argv, words, code):
+    # the standard output is for results (the report, --show's JSON): an error printed there read as one
+    from services.cli import main
+    assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', *argv]) == code
+    cap = capsys.readouterr()
+    assert cap.err.startswith(f"tessera calibrate: {words}") and cap.out == ""
