@@ -100,9 +100,15 @@ class ImportItem:
     digests: list = field(default_factory=list)
     shared: Sequence[str | os.PathLike] = ()
 
+    def fill_digests(self) -> list:
+        """``digests``, read from the files unless they are already (``OSError`` for a file that cannot be read)."""
+        if len(self.digests) != len(self.sources):
+            self.digests = [file_sha256(p) for p in self.sources]
+        return self.digests
+
     def own_digests(self) -> list[tuple[str, str]]:
         """``(file name, sha256)`` of the sources that are this fragment's own (all but ``shared``), in order;
-        after :func:`item_key` filled ``digests``."""
+        after :func:`item_key` (or :meth:`fill_digests`) filled ``digests``."""
         shared = {os.fspath(p) for p in self.shared}
         return [(Path(p).name, d) for p, d in zip(self.sources, self.digests) if os.fspath(p) not in shared]
 
@@ -226,11 +232,36 @@ def item_key(item: ImportItem, kind: str, version: str) -> str:
 
     Fills ``item.digests`` (the files' sha256) when it is empty.
     """
-    if len(item.digests) != len(item.sources):
-        item.digests = [file_sha256(p) for p in item.sources]
-    digests = item.digests
+    digests = item.fill_digests()
     opts = json.dumps(item.options, sort_keys=True, default=str)
     return content_key(kind, version, item.fragment, item.face, opts, *digests)
+
+
+def sink_ledger(sink: Sink) -> Ledger:
+    """The ledger of ``sink``'s destination: ``<sink.ledger_dir>/ledger.jsonl``."""
+    return Ledger(Path(sink.ledger_dir) / "ledger.jsonl")
+
+
+def load_sources(sink: Sink, ledger: Ledger | None = None):
+    """What was imported into ``sink``'s destination before: a :class:`common.imports.sources.SourceIndex` of
+    its ledger (default :func:`sink_ledger`) and its stores' artifacts (cached in ``<sink.ledger_dir>/sources.jsonl``)."""
+    from common.imports.sources import SourceIndex
+
+    ledger = ledger if ledger is not None else sink_ledger(sink)
+
+    return SourceIndex.load(sink.stores(), list(ledger.done.values()), Path(sink.ledger_dir) / "sources.jsonl")
+
+
+def source_conflict(item: ImportItem, index, *, allow_duplicates: bool = False, replace: bool = False) -> str | None:
+    """Why ``item`` must not be imported because its own files (not its ``shared`` ones) were imported before
+    as another fragment or face, or for this face at another ``options["dpi"]``, or None: the check of every
+    import (:meth:`common.imports.sources.SourceIndex.conflict` against ``index``, :func:`load_sources`), which
+    ``tessera ps --store`` makes too. Reads the files' digests unless :func:`item_key` did."""
+    item.fill_digests()
+    own = item.own_digests()
+    names = [n for n, _ in own] if len(item.sources) > 1 else None   # which file of a scan set or capture
+    return index.conflict([d for _, d in own], item.fragment, item.face, item.options.get("dpi"), item.key,
+                          names=names, allow_duplicates=allow_duplicates, replace=replace)
 
 
 def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store], list[Output]], sink: Sink, *,
@@ -270,14 +301,11 @@ def run_import(items: Iterable[ImportItem], convert: Callable[[ImportItem, Store
         ``interrupted`` is set on KeyboardInterrupt (the ledger then holds every item finished).
     """
     items = list(items)
-    ledger = ledger if ledger is not None else Ledger(Path(sink.ledger_dir) / "ledger.jsonl")
+    ledger = ledger if ledger is not None else sink_ledger(sink)
     summary = ImportSummary()
     check = None
     if sources:
-        from common.imports.sources import SourceIndex
-
-        index = SourceIndex.load(sink.stores(), list(ledger.done.values()), Path(sink.ledger_dir) / "sources.jsonl")
-        check = (index, {"allow_duplicates": allow_duplicates, "replace": replace})
+        check = (load_sources(sink, ledger), {"allow_duplicates": allow_duplicates, "replace": replace})
     try:
         for i, item in enumerate(items):
             _one(item, convert, sink, kind, version, ledger, summary, check)
@@ -302,10 +330,7 @@ def _one(item, convert, sink, kind, version, ledger, summary, check=None) -> Non
         return
     if check is not None:   # the same file already imported as another fragment, or at another dpi
         index, policy = check
-        own = item.own_digests()
-        names = [n for n, _ in own] if len(item.sources) > 1 else None   # which file of a scan set or capture
-        reason = index.conflict([d for _, d in own], item.fragment, item.face, item.options.get("dpi"), item.key,
-                                names=names, **policy)
+        reason = source_conflict(item, index, **policy)
         if reason:
             summary.refused.append((item.name, reason))
             return

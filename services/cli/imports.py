@@ -78,14 +78,20 @@ def add_sink_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--wait", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the outbox to drain at the end "
                         "(default 30; the rest waits for the next run)")
+    add_duplicate_arguments(p)
+    from common.config import add_config_arguments
+    add_config_arguments(p)
+
+
+def add_duplicate_arguments(p: argparse.ArgumentParser) -> None:
+    """``--allow-duplicates`` / ``--replace``: what the check against the files imported before lets through
+    (:func:`common.imports.source_conflict`), for every import and for ``tessera ps --store``."""
     g = p.add_argument_group("the same file imported before")
     g.add_argument("--allow-duplicates", action="store_true",
                    help="import a file whose content is already imported as another fragment (refused by default)")
     g.add_argument("--replace", action="store_true",
                    help="import a file already imported for the same fragment and face at another dpi, the new face "
                         "replacing the old (refused by default)")
-    from common.config import add_config_arguments
-    add_config_arguments(p)
 
 
 class BusSink:

@@ -25,6 +25,9 @@ matched to lights by position in shell order (1, 10, 11, 2, ...) are put in natu
 a warning; an automatic mask keeping less than ``--min-mask-share`` asks for ``--mask``;
 ``--pictures`` / ``-o`` are checked before any work; a result with no solved pixel is never
 written or announced. :func:`solve_capture` is also the code path of ``tessera import rti``.
+With ``--store`` (or ``--submit``) the capture is checked, before the solve, against what was imported
+before, as every import is: images already stored as another fragment, or for this face at another dpi,
+are refused naming it (``--allow-duplicates`` / ``--replace``; ``common.imports.source_conflict``).
 
 ``--spheres MIRROR [DIFFUSE]`` is short for ``--chrome MIRROR --diffuse DIFFUSE`` (put the
 images first). A sphere is given as ``cx,cy,r`` (pixels: column, row, radius), as a mask
@@ -50,6 +53,8 @@ log = logging.getLogger("tessera.ps")
 
 
 def add_parser(subparsers) -> None:
+    from services.cli.imports import add_duplicate_arguments
+
     p = subparsers.add_parser("ps", help="hand-held flash photometric stereo → RGBN image",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("images", nargs="+", help="flash images of one view (8/16-bit PNG, TIFF, JPEG)")
@@ -87,7 +92,38 @@ def add_parser(subparsers) -> None:
     out.add_argument("--config", metavar="FILE", help="station config (broker address for --submit)")
     out.add_argument("-o", "--output", metavar="OUT.h5", help="also write the RGBN image to this HDF5 file")
     out.add_argument("--pictures", metavar="DIR", help="write normals/albedo/confidence/discontinuity PNGs")
+    # with --store (and --submit): the capture is checked against what was imported before, as every import is
+    add_duplicate_arguments(p)
     p.set_defaults(func=run)
+
+
+def _capture_item(args):
+    """The capture as an import item (:class:`common.imports.ImportItem`) for the check against the files
+    imported before: the images are the fragment's own files; the rig's — light file, intensities, mask, sphere
+    masks and sphere images — say nothing of which fragment it is (shared, as ``tessera import rti`` has them)."""
+    from common.imports import ImportItem
+
+    rig = [v for v in (args.lights, args.intensities, args.mask) if v]
+    rig += [v for v in (args.chrome, args.diffuse) if v and Path(v).is_file()]   # a sphere given as a mask file
+    rig += list(args.chrome_images or []) + list(args.diffuse_images or [])
+    return ImportItem(name=Path(args.images[0]).parent.name or args.images[0], sources=[*args.images, *rig],
+                      fragment=args.fragment, face=args.face, options={"dpi": float(args.dpi)}, shared=rig)
+
+
+def _refuse_a_second_copy(item, store, args) -> None:
+    """Refuse (ValueError) a capture whose images are already stored as another fragment, or for this face at
+    another dpi: the check every import makes (:func:`common.imports.source_conflict`; ``--allow-duplicates`` /
+    ``--replace``). Made before the solve, so a refused capture costs nothing."""
+    from common.imports import ImportRefused, StoreSink, load_sources, source_conflict
+
+    try:
+        item.fill_digests()
+    except OSError:
+        return   # a file that cannot be read is refused at the door by the solve, which names it
+    reason = source_conflict(item, load_sources(StoreSink(store)), allow_duplicates=args.allow_duplicates,
+                             replace=args.replace)
+    if reason:
+        raise ImportRefused(f"{reason}; nothing written")
 
 
 def _sphere_circle(spec: str, images: np.ndarray, kind: str) -> np.ndarray:
@@ -336,6 +372,10 @@ def _run(args) -> int:
     if not (args.store or args.output or args.pictures):
         raise ValueError("nothing to write: give --store, -o OUT.h5 or --pictures DIR")
     _check_outputs(args.output, args.pictures, args.write_lp)
+    capture = None
+    if args.store:
+        capture = _capture_item(args)
+        _refuse_a_second_copy(capture, Store(args.store), args)
 
     def progress(fraction, text):
         log.debug("%3.0f%% %s", 100 * fraction, text)
@@ -349,6 +389,10 @@ def _run(args) -> int:
     for w in done.warnings:
         print(f"tessera ps: warning: {w}", file=sys.stderr)
     rgbn, provenance = done.rgbn, done.provenance
+    if capture is not None and capture.digests:
+        # what the check of the next import or ps reads from the artifact: its images, the rig's files, the dpi
+        provenance = dict(provenance, source_sha256=list(capture.digests), shared_sha256=capture.shared_digests(),
+                          dpi=float(args.dpi))
 
     if args.output:
         out = Path(args.output)

@@ -1,5 +1,6 @@
 """Tests of common/acquisition/handheld.py and the ``tessera ps`` command."""
 
+import contextlib
 import json
 
 import cv2
@@ -193,7 +194,12 @@ def test_ps_rerun_with_other_settings_writes_a_new_artifact(tmp_path, capsys):
 
     first = artifact()
     assert artifact() == first                       # same inputs and settings: the same artifact
-    at_300 = artifact("--dpi", "300")
+    # the same images for the same face at another dpi would be a second, rescaled copy: refused as by every
+    # import, naming both dpi values, unless --replace
+    assert tessera(base + ["--dpi", "300"]) == 2
+    assert ("the same file is already imported for fragment F1 (front) at 96 dpi; this import gives 300 dpi: give "
+            "--replace") in capsys.readouterr().err
+    at_300 = artifact("--dpi", "300", "--replace")
     assert at_300["path"] != first["path"]
     assert load_rgbn(Store(tmp_path / "store"), at_300).dpi == 300
     assert artifact("--srgb")["path"] not in (first["path"], at_300["path"])
@@ -258,15 +264,14 @@ def test_ps_command_calibrates_from_a_mirror_sphere_in_the_frame(tmp_path, capsy
     assert np.degrees(np.arccos(np.clip((rgbn.normals * truth).sum(-1), -1, 1)))[inner].mean() < 1.0
 
 
-def test_ps_command_submits_rgbn_ready_to_the_broker(tmp_path, capsys):
+@contextlib.contextmanager
+def _station(tmp_path):
+    """A broker on loopback and the station config naming it and a storage root: ``(config path, config)``."""
     import socket
     import threading
-    import time
 
     from common.bus.broker import Broker
-    from common.bus.client import BrokerClient
     from common.config import load_config
-    from common.messages import unpack
 
     ports = []
     for _ in range(2):
@@ -282,25 +287,65 @@ def test_ps_command_submits_rgbn_ready_to_the_broker(tmp_path, capsys):
     broker = threading.Thread(target=Broker(config).run, args=(stop,), daemon=True)
     broker.start()
     try:
+        yield cfg_path, config
+    finally:
+        stop.set()
+        broker.join(10)
+
+
+def _events(config, min_count=1):
+    """The events the broker journaled (waits up to 10 s for ``min_count``)."""
+    import time
+
+    from common.bus.client import BrokerClient
+    from common.messages import unpack
+
+    with BrokerClient.from_config(config) as bus:
+        deadline = time.monotonic() + 10
+        events = []
+        while time.monotonic() < deadline and len(events) < min_count:
+            events = [unpack(e) for _, e in bus.since(0)["events"]]
+            time.sleep(0.05)
+    return events
+
+
+def test_ps_command_submits_rgbn_ready_to_the_broker(tmp_path, capsys):
+    with _station(tmp_path) as (cfg_path, config):
         _, shots = _write_capture(tmp_path, n=6)
         code = tessera(["ps", *shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
                         "--fragment", "F0009", "--submit", "--config", str(cfg_path), "--no-discontinuities"])
         assert code == 0, capsys.readouterr().err
         assert "submitted rgbn.ready" in capsys.readouterr().out
-        with BrokerClient.from_config(config) as bus:
-            deadline = time.monotonic() + 10
-            events = []
-            while time.monotonic() < deadline and not events:
-                events = [unpack(e) for _, e in bus.since(0)["events"]]
-                time.sleep(0.05)
-        ready = [e for e in events if e["type"] == "rgbn.ready"]
+        ready = [e for e in _events(config) if e["type"] == "rgbn.ready"]
         assert len(ready) == 1 and ready[0]["fragment"] == "F0009"
         # the artifact is in the station's storage root, where the workers will look
         rgbn = load_rgbn(Store(tmp_path / "storage"), ready[0]["artifact"])
         assert rgbn.normals is not None and rgbn.discontinuity is None
-    finally:
-        stop.set()
-        broker.join(10)
+
+
+def test_ps_submit_of_the_same_capture_under_a_second_id_is_refused_naming_the_first(tmp_path, capsys):
+    """``tessera ps --submit`` wrote a face without the check every import makes: the same capture submitted
+    again under another fragment id became a second fragment, proposed as a join to the first. It is refused,
+    naming the first, before anything is written or announced; ``--allow-duplicates`` submits it anyway. The
+    light file and mask are the rig's (not compared); the images are checked."""
+    with _station(tmp_path) as (cfg_path, config):
+        _, shots = _write_capture(tmp_path, n=6)
+        base = [*shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+                "--submit", "--config", str(cfg_path), "--no-discontinuities"]
+        assert tessera(["ps", *base, "--fragment", "F-FIRST"]) == 0, capsys.readouterr().err
+        capsys.readouterr()
+        assert tessera(["ps", *base, "--fragment", "F-AGAIN"]) == 2
+        err = capsys.readouterr().err
+        assert ("shot_00.png: the same file (sha256 " in err
+                and "is already imported as fragment F-FIRST (front, 96 dpi: fragments/F-FIRST/rgbn/front-" in err
+                and "not imported again as F-AGAIN (front): give --allow-duplicates" in err), err
+        assert not (tmp_path / "storage" / "fragments" / "F-AGAIN").exists()
+        assert [e["fragment"] for e in _events(config) if e["type"] == "rgbn.ready"] == ["F-FIRST"]
+        # the same capture for its own fragment again is no duplicate (a re-run is harmless)
+        assert tessera(["ps", *base, "--fragment", "F-FIRST"]) == 0
+        assert tessera(["ps", *base, "--fragment", "F-AGAIN", "--allow-duplicates"]) == 0
+        ready = [e["fragment"] for e in _events(config, min_count=3) if e["type"] == "rgbn.ready"]
+        assert ready == ["F-FIRST", "F-FIRST", "F-AGAIN"]
 
 
 def test_ps_command_keeps_the_artifact_when_the_broker_is_away(tmp_path, capsys):
