@@ -14,7 +14,7 @@ from common.rgbn.image import load_rgbn
 from common.store import ArtifactRef, content_key
 
 SERVICE = "features"
-VERSION = f"features-1.1/schema-{SCHEMA_VERSION}"  # bump when any descriptor changes
+VERSION = f"features-1.2/schema-{SCHEMA_VERSION}"  # bump when any descriptor changes
 
 
 def output_path(fragment: str, face: str, rgbn_sha256: str, work_mm: float = WORK_PIXEL_MM) -> str:
