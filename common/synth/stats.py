@@ -68,20 +68,23 @@ def read_fragment_rgba(path) -> np.ndarray:
     return a truncated PNG's missing rows as grey). 16-bit files are reduced to 8 bits.
 
     An RGB image without alpha (the piece photographed or scanned on a plain background, black or
-    any other) gets its alpha from :func:`common.imports.fragments.background_mask`, as
-    ``tessera import images --background auto`` does; one where no piece stands out from the
-    background is refused."""
+    any other) gets its alpha from :func:`common.imports.fragments.background_mask` (the edge where the
+    piece covers half a pixel) and its edge pixels the background's share taken out
+    (:func:`~common.imports.fragments.unmix_edge`), as ``tessera import images --background auto`` does;
+    one where no piece stands out from the background is refused."""
     from common.imports.door import read_image_checked
-    from common.imports.fragments import background_mask
+    from common.imports.fragments import background_mask, unmix_edge
 
     img = read_image_checked(path, channels=(3, 4))
     px = img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
     if px.shape[2] == 4:
         return px
-    mask, _ = background_mask(px.astype(np.float32) / 255.0)
+    rgb = px.astype(np.float32) / 255.0
+    mask, info = background_mask(rgb)
     if not mask.any():
         raise ValueError(f"{path}: RGB image without alpha, and no piece stands out from its plain background")
-    return np.dstack([px, np.where(mask, 255, 0).astype(np.uint8)])
+    rgb = unmix_edge(rgb, info["coverage"], info["background_rgb"])   # no background fringe at the edge
+    return np.dstack([(rgb * 255.0 + 0.5).astype(np.uint8), np.where(mask, 255, 0).astype(np.uint8)])
 
 
 def _crop(rgba: np.ndarray, pad: int = 2):
@@ -107,8 +110,12 @@ def _read_truth(path: Path, images: set) -> dict:
         for row in reader:
             line = reader.line_num
             name = (row["rpf"] or "").strip()
-            if name not in images and f"{name}.png" in images:
-                name = f"{name}.png"
+            if name not in images:
+                by_stem = [n for n in images if Path(n).stem == name]
+                if len(by_stem) > 1:
+                    raise ValueError(f"{path}, line {line}: {name!r} could be any of {', '.join(sorted(by_stem))}: "
+                                     "name the file")
+                name = by_stem[0] if by_stem else name
             if name not in images:
                 raise ValueError(f"{path}, line {line}: {row['rpf']!r} names no fragment image in {path.parent}")
             if name in truth:
@@ -124,7 +131,8 @@ def _read_truth(path: Path, images: set) -> dict:
 
 
 def read_collection(path: str | os.PathLike) -> list[Piece]:
-    """Read a collection laid out as ``repair-dev``: one folder per object with PNG fragments (RGBA, or
+    """Read a collection laid out as ``repair-dev``: one folder per object with fragment pictures (PNG, TIFF or
+    JPEG as ``tessera import images`` reads them; RGBA, or
     RGB on a plain background: :func:`read_fragment_rgba`) and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
     counter-clockwise by ``rot`` degrees about its centre, canvas kept, then put its top-left
     corner at ``(x, y)``). Folders without ``truth.csv`` give distractors (``matrix`` None).
@@ -144,12 +152,14 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
         A bad ``truth.csv`` (naming the file and line), or damaged fragment images: every one is
         named with its reason (:func:`read_fragment_rgba`), so one run lists all there are to fix.
     """
+    from common.imports.manifest import IMAGE_SUFFIXES
+
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"path {root} is not a directory")
     pieces, refused = [], []
     for obj in sorted(p for p in root.iterdir() if p.is_dir()):
-        pngs = sorted(obj.glob("*.png"))
+        pngs = sorted(p for p in obj.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
         truth = _read_truth(obj / "truth.csv", {p.name for p in pngs}) if (obj / "truth.csv").is_file() else {}
         for png in pngs:
             try:
@@ -171,7 +181,8 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
         shown = "; ".join(refused[:10]) + (f"; and {len(refused) - 10} more" if len(refused) > 10 else "")
         raise ValueError(f"{len(refused)} fragment image(s) refused: {shown}")
     if not pieces:
-        raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png)")
+        raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png; "
+                         f"{', '.join(IMAGE_SUFFIXES)} are read)")
     return pieces
 
 

@@ -17,7 +17,7 @@ same for the colour-only DAFNE set. The second trains a model on a synthetic wal
 above: 150 fragments, seed 11, 100 dpi — not those of the matcher's own bootstrap, 60 fragments of
 seed 0, which ``--fragments 60 --seed 0`` reproduces) and installs it as the current model of a
 station's matcher (storage root ``ROOT``). The third ranks a real, placed
-collection (``../shared/data/repair-dev`` layout: one folder per object with fragment images (RGBA, or RGB on a plain background) and
+collection (``../shared/data/repair-dev`` layout: one folder per object with fragment pictures (PNG, TIFF or JPEG; RGBA, or RGB on a plain background) and
 ``truth.csv``; folders without one are distractors) with the station's default model — the
 bootstrap model, or the current model of the station at ``--model ROOT`` — fitting nothing on it,
 and prints and writes pooled top-k, within-object recall with its random baseline, pair AP and

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.imports import ImportRefused
-from common.imports.fragments import background_mask, fragment_from_image
+from common.imports.fragments import background_mask, edge_coverage, fragment_from_image
 from common.rgbn.io import srgb_to_linear
 
 
@@ -147,3 +147,64 @@ def test_repair_dev_alpha_mask_is_alpha_over_half(shared_data):
     # the same piece without its alpha, on its black background: the plain-background path
     plain = fragment_from_image(rgba[..., :3], dpi=187.2, background="plain")
     assert _iou(plain.mask, frag.mask) > 0.95
+
+
+def _scanned(truth, paint_srgb, background_srgb, *, blur_px=1.0, noise=1.5, seed=0):
+    """The piece as a scanner records it on a plain background: coverage mixed in linear light along
+    a 1-px-antialiased outline, the optics' blur, sensor noise; uint8 sRGB."""
+    from common.rgbn.io import linear_to_srgb
+    cover = cv2.GaussianBlur(truth.astype(np.float32), (0, 0), 0.5)   # partial pixels on the outline
+    lin = (srgb_to_linear(paint_srgb / 255.0) * cover[..., None]
+           + srgb_to_linear(np.asarray(background_srgb, np.float32) / 255.0) * (1 - cover[..., None]))
+    lin = cv2.GaussianBlur(lin.astype(np.float32), (0, 0), blur_px)
+    noisy = linear_to_srgb(lin) * 255 + np.random.default_rng(seed).normal(0, noise, lin.shape)
+    return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("bg", [(0, 0, 0), (240, 238, 232), (40, 90, 160)])
+def test_a_scanned_edge_is_placed_at_half_coverage_whatever_the_background(bg):
+    # a low threshold finds the piece but puts its edge where it covers a few per cent of a pixel:
+    # on black that was ~2.4 px outside the true outline. The edge is placed again by coverage,
+    # so the outline does not depend on the background (mean offset = area difference / perimeter)
+    truth = _shape(seed=6)
+    paint, _ = _paint(truth, seed=6)
+    img = _scanned(truth, paint, bg)
+    mask, info = background_mask(img.astype(np.float32) / 255)
+    perimeter = cv2.arcLength(cv2.findContours(truth.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                               cv2.CHAIN_APPROX_NONE)[0][0], True)
+    offset_px = (int(mask.sum()) - int(truth.sum())) / perimeter
+    assert abs(offset_px) < 0.35, offset_px
+    assert info["edge_placed"] > 0.9 and _iou(mask, truth) > 0.99
+
+
+def test_edge_coverage_of_a_blurred_step_is_the_blur_profile():
+    # analytic case: a straight edge blurred by a Gaussian of sigma 1.2 px has coverage Phi(x / sigma)
+    from scipy.stats import norm
+    h, w, edge, sigma = 40, 60, 30.0, 1.2
+    x = np.arange(w) + 0.5
+    cover = norm.cdf((edge - x) / sigma)                     # the piece on the left
+    f, b = np.array([0.8, 0.5, 0.3]), np.array([0.02, 0.02, 0.03])      # linear
+    from common.rgbn.io import linear_to_srgb
+    rgb = linear_to_srgb(np.broadcast_to(cover[None, :, None] * f + (1 - cover[None, :, None]) * b, (h, w, 3)))
+    first = np.broadcast_to(x[None, :] < edge + 2.5, (h, w))      # a low threshold's edge, 2.5 px outside
+    back = np.broadcast_to(linear_to_srgb(b), (h, w, 3))
+    alpha = edge_coverage(rgb, first, back, edge_px=3)
+    row = alpha[h // 2]
+    band = np.isfinite(row) & (row > 0) & (row < 1)
+    np.testing.assert_allclose(row[band], cover[band], atol=0.01)
+    # the mixed pixels unmixed carry the piece's own colour, not a dark fringe
+    from common.imports.fragments import unmix_edge
+    own = unmix_edge(rgb, alpha, back)
+    keep = (alpha[h // 2] >= 0.5) & (alpha[h // 2] < 1)
+    assert keep.any()
+    np.testing.assert_allclose(srgb_to_linear(own[h // 2, keep]), np.broadcast_to(f, (int(keep.sum()), 3)), atol=0.01)
+
+
+def test_edge_of_too_little_contrast_keeps_the_threshold():
+    # pale plaster on white paper: half coverage cannot be told from noise, so the edge is left where
+    # the threshold found it (NaN coverage), not moved by noise
+    truth = _shape(seed=7)
+    img = _scanned(truth, np.full(truth.shape + (3,), (226.0, 224.0, 218.0)), (240, 238, 232), noise=1.0)
+    mask, info = background_mask(img.astype(np.float32) / 255)
+    assert info["edge_placed"] < 0.5
+    assert np.isnan(info["coverage"]).any()

@@ -180,3 +180,25 @@ def test_every_damaged_fragment_image_is_named_at_once(tmp_path):
         read_collection(tmp_path)
     text = str(err.value)
     assert text.startswith("2 fragment image(s) refused") and "p1.png" in text and "p2.png" in text, text
+
+
+def test_a_collection_of_jpeg_and_tiff_pictures_reads_like_png(tmp_path):
+    # a lab's photographs are often JPEG or TIFF: the collection reads what `tessera import images` reads,
+    # truth rows naming a picture by its stem whatever its suffix
+    import cv2
+
+    obj = tmp_path / "objA"
+    obj.mkdir()
+    canvas = np.zeros((40, 60, 3), np.uint8)
+    canvas[8:32, 10:50] = (160, 150, 140)
+    cv2.imwrite(str(obj / "p1.jpg"), canvas, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    cv2.imwrite(str(obj / "p2.TIF"), canvas)
+    (obj / "notes.txt").write_text("not a picture")
+    (obj / "truth.csv").write_text("rpf,x,y,rot\np1,10,20,0\np2.TIF,40,20,90\n")
+    pieces = {p.id: p for p in read_collection(tmp_path)}
+    assert set(pieces) == {"p1", "p2"} and all(p.matrix is not None for p in pieces.values())
+    for p in pieces.values():      # the piece, 24 x 40 px, found on its black background
+        assert abs(int((p.rgba[..., 3] > 0).sum()) - 24 * 40) < 40
+    cv2.imwrite(str(obj / "p1.png"), canvas)    # p1.jpg and p1.png: "p1" names neither alone
+    with pytest.raises(ValueError, match="'p1' could be any of p1.jpg, p1.png"):
+        read_collection(tmp_path)
