@@ -521,3 +521,82 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(bro
             ctx.close()
     finally:
         web.stop()
+
+
+def test_keys_pressed_while_a_verdict_is_sent_apply_in_order_to_the_proposal_then_on_screen(browser, tmp_path):
+    """Against ``tessera web`` (no broker: verdicts wait in the outbox), the first verdict's POST held back: the
+    conservator turns B 0.5°, presses Y, then S and N before the answer. Once it comes, S skips the proposal the
+    queue moved on to, and N rejects the proposal that was on screen when it was pressed (the first, at the pose
+    shown: its correction not applied a second time), never the one the page shows by then."""
+    from common.matching.proposals import Proposal, ProposalStore
+    from common.rgbn.image import load_rgbn, save_rgbn
+    from common.store import Store
+
+    from .test_web import _two_fragments
+    from .viewer_support import WebProcess
+
+    store = Store(tmp_path / "storage")
+    proposed = _two_fragments(store, 25.4 / 200)
+    for fid, src in (("FC", "FA"), ("FD", "FB")):   # two more pieces: copies are enough to be reviewed
+        rgbn = load_rgbn(store, f"fragments/{src}/rgbn/front-{src[1].lower() * 4}.h5")
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-{fid[1].lower() * 4}.h5", rgbn)
+    with ProposalStore(tmp_path / "storage" / "matches" / "proposals.sqlite") as db:
+        db.upsert([Proposal("FA", "FB", 0.9, "m1", angle_deg=proposed[0], tx_mm=proposed[1], ty_mm=proposed[2]),
+                   Proposal("FA", "FC", 0.8, "m1", angle_deg=10.0, tx_mm=5.0, ty_mm=1.0),
+                   Proposal("FB", "FD", 0.7, "m1", angle_deg=-10.0, tx_mm=4.0, ty_mm=-1.0)])
+    web = WebProcess(tmp_path).start()
+    try:
+        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        try:
+            page = ctx.new_page()
+            page.goto(f"{web.url}/login?next=/review")
+            page.fill("#token", TOKEN)
+            page.fill("#who", "A. Conservator")
+            page.click("#login-submit")
+            page.wait_for_selector("#queue li.current", timeout=30_000)
+            order = [(li.get_attribute("data-proposal"), li.inner_text().split("\n")[0])
+                     for li in page.locator("#queue li").all()]
+            assert len(order) == 3 and page.inner_text("#proposal-title") == order[0][1]
+            first, third = int(order[0][0]), order[2][1]
+
+            held, sent, answers = [], [], []
+
+            def hold_first(route):
+                sent.append(route.request.post_data_json)
+                if len(sent) == 1:
+                    held.append(route)   # answered below, after the keys
+                else:
+                    route.continue_()
+
+            page.route("**/api/review/verdict", hold_first)
+            page.on("response", lambda r: answers.append(r.json()) if r.url.endswith("/api/review/verdict") else None)
+
+            def until(cond, what: str, timeout_s: float = 15.0) -> None:
+                deadline = time.monotonic() + timeout_s
+                while not cond():
+                    assert time.monotonic() < deadline, f"timed out waiting for {what}: sent {sent}"
+                    page.wait_for_timeout(50)
+
+            page.keyboard.press("]")
+            page.wait_for_selector("#pose-adjust:has-text('turned 0.5°')", timeout=5_000)
+            page.wait_for_function("() => !document.getElementById('confirm-button').disabled", timeout=15_000)
+            page.keyboard.press("y")
+            until(lambda: held, "the first verdict's request")
+            page.keyboard.press("s")
+            page.keyboard.press("n")
+            page.wait_for_timeout(500)               # time for the page to act on them, were it to act at once
+            assert len(sent) == 1
+            held[0].continue_()
+            until(lambda: len(answers) == 2, "both verdicts' answers")
+            page.wait_for_selector("#proposal[aria-busy='false']", timeout=15_000)
+            page.wait_for_timeout(500)               # nothing more is sent
+            assert [(s["proposal"], s["verdict"]) for s in sent] == [(first, "confirmed"), (first, "rejected")]
+            poses = [a["sent"]["pose"] for a in answers]
+            assert poses[0]["angle_deg"] == pytest.approx(proposed[0] + 0.5, abs=1e-6)   # the correction shown
+            assert poses[1] == pytest.approx(poses[0])   # N kept the pose on screen: not turned a second time
+            page.wait_for_function(f"() => document.getElementById('proposal-title').textContent === {json.dumps(third)}",
+                                   timeout=15_000)   # Y moved on to the second, S skipped it; N's verdict left it there
+        finally:
+            ctx.close()
+    finally:
+        web.stop()

@@ -13,6 +13,12 @@
   // fit, then the docking's others, best first; `shown` is the one on screen
   const ZERO = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
   let candidates = null, shown = 0;
+  // keys pressed while a verdict is being sent wait here and are played in order once it has returned (they were
+  // dropped): each with the proposal on screen when it was pressed and the correction then shown, so a verdict key
+  // goes to that proposal, at that pose, never to the one the page has moved on to, which the conservator has not seen
+  const MAX_WAITING_KEYS = 16;
+  let sending = false;
+  const waiting = [];
 
   function adjusted() { return adjust.turn_deg !== 0 || adjust.shift_x_mm !== 0 || adjust.shift_y_mm !== 0; }
 
@@ -147,8 +153,8 @@
       Tessera.el("td", { text: state }))));
   }
 
-  async function verdict(kind) {
-    const p = items[index];
+  // ``p``, ``adj``: the proposal and correction of a key that waited (by default those on screen)
+  async function verdict(kind, p = items[index], adj = adjust) {
     if (!p) return;
     if (kind === "skip") {
       skipped.add(p.id);
@@ -157,29 +163,73 @@
       select(next >= 0 ? next : index);
       return;
     }
-    if ($("confirm-button").disabled) return;
+    // not the buttons' state: a waiting key's proposal may no longer be on screen (the page then may show none)
+    if (sending || !Tessera.loggedIn()) return;
+    sending = true;
     $("confirm-button").disabled = $("reject-button").disabled = true;
     $("proposal").setAttribute("aria-busy", "true");   // until the proposal is shown again at the pose kept
-    try { await sendVerdict(p, kind); } finally { $("proposal").setAttribute("aria-busy", "false"); }
+    try { await sendVerdict(p, kind, adj); } finally {
+      sending = false;
+      $("proposal").setAttribute("aria-busy", "false");
+      playWaiting();
+    }
   }
 
-  async function sendVerdict(p, kind) {
-    const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind, adjust });
+  async function sendVerdict(p, kind, adj) {
+    const r = await Tessera.api("POST", "/api/review/verdict", { proposal: p.id, verdict: kind, adjust: adj });
     if (!r.ok) {
       $("review-message").textContent = r.data.error || `refused (${r.status})`;
       select(index);
       return;
     }
     $("review-message").textContent = `${kind === "confirmed" ? "Confirmed" : "Rejected"} ${p.fragment_a} ↔ ${p.fragment_b}.`;
+    // keys waiting for this proposal were pressed with the pose this verdict kept on screen, where it now stands
+    // (below): their correction is in that pose
+    for (const w of waiting) if (w.proposal && w.proposal.id === p.id) w.adjust = { ...ZERO };
     if (!filter) skipped.add(p.id);   // the queue moves on; a fragment's list keeps every proposal
     await loadHistory();
     // the proposal now stands at the pose the verdict kept: the correction is in it, so it is selected afresh
     // (adjustment back to zero: kept, it would be applied twice; candidate poses fetched relative to the new pose)
+    const onScreen = items[index];
     index = -1;
+    if (onScreen && onScreen.id !== p.id) {   // a waiting key's verdict for a proposal the page has left: it stays put
+      await loadQueue(onScreen.id);
+      return;
+    }
     await loadQueue(filter ? p.id : undefined);
     if (filter) {   // on to the next undecided proposal of this fragment, if any
       const next = items.findIndex((q, k) => k > index && q.status === "pending");
       if (next >= 0) select(next);
+    }
+  }
+
+  // what a key does: a verdict (for a proposal), a change of the pose shown, or a move in the queue; null: not ours
+  function keyAction(k, shift) {
+    const arrow = { arrowleft: [-1, 0], arrowright: [1, 0], arrowup: [0, -1], arrowdown: [0, 1] }[k];
+    if (shift && arrow) return { pose: () => nudge(0, arrow[0] * STEP_MM, arrow[1] * STEP_MM) };   // move B
+    if (k === "[" || k === "]") return { pose: () => nudge(k === "]" ? STEP_DEG : -STEP_DEG, 0, 0) };   // turn B
+    if (k === "0") return { pose: () => nudge(null) };
+    if (k === "p") return { pose: () => otherPose(shift ? -1 : 1) };
+    if (k === "c" || k === "y") return { verdict: "confirmed" };
+    if (k === "r" || k === "n") return { verdict: "rejected" };
+    if (k === "s" || k === "arrowright") return { move: () => verdict("skip") };
+    if (k === "arrowdown" || k === "j") return { move: () => { if (index + 1 < items.length) select(index + 1); } };
+    if (k === "arrowup" || k === "k") return { move: () => { if (index > 0) select(index - 1); } };
+    return null;
+  }
+
+  // a key's action for the proposal ``p`` on screen when it was pressed: a change of pose only while it is still
+  // shown (another proposal's pose was never seen); moves from wherever the page is, as had they come after the answer
+  function play(action, p, adj) {
+    if (action.verdict) verdict(action.verdict, p, adj);
+    else if (action.pose) { if (p && items[index] && items[index].id === p.id) action.pose(); }
+    else action.move();
+  }
+
+  function playWaiting() {
+    while (waiting.length && !sending) {   // a verdict played sends, and the rest wait for its answer in turn
+      const w = waiting.shift();
+      play(w.action, w.proposal, w.adjust);
     }
   }
 
@@ -202,20 +252,15 @@
   });
   document.addEventListener("keydown", (ev) => {
     if (Tessera.typingInField(ev) || ev.ctrlKey || ev.metaKey || ev.altKey) return;
-    const k = ev.key.toLowerCase();
-    if (ev.shiftKey && k.startsWith("arrow")) {   // move B: shift + arrows
-      const d = { arrowleft: [-1, 0], arrowright: [1, 0], arrowup: [0, -1], arrowdown: [0, 1] }[k];
-      nudge(0, d[0] * STEP_MM, d[1] * STEP_MM);
-    } else if (k === "[" || k === "]") nudge(k === "]" ? STEP_DEG : -STEP_DEG, 0, 0);   // turn B
-    else if (k === "0") nudge(null);
-    else if (k === "p") otherPose(ev.shiftKey ? -1 : 1);
-    else if (k === "c" || k === "y") verdict("confirmed");
-    else if (k === "r" || k === "n") verdict("rejected");
-    else if (k === "s" || k === "arrowright") verdict("skip");
-    else if (k === "arrowdown" || k === "j") { if (index + 1 < items.length) select(index + 1); }
-    else if (k === "arrowup" || k === "k") { if (index > 0) select(index - 1); }
-    else return;
+    const action = keyAction(ev.key.toLowerCase(), ev.shiftKey);
+    if (!action) return;
     ev.preventDefault();
+    if (!sending) { play(action, items[index], adjust); return; }
+    if (waiting.length >= MAX_WAITING_KEYS) {
+      $("review-message").textContent = "Still sending the verdict: that key was not kept (too many keys waiting).";
+      return;
+    }
+    waiting.push({ action, proposal: items[index], adjust: { ...adjust } });
   });
   loadQueue();
   loadHistory();
