@@ -17,6 +17,11 @@ against their sizes (:func:`common.store.check_free_space`: the sum plus a margi
 is written: a disk too small refuses the export with :class:`~common.store.StorageFull`, naming the
 bytes needed and available, and ``<out>`` is left as it was. The folder is then written under a
 temporary name and renamed into place, so it is complete or absent.
+
+An export of many fragments (``tessera export --all``) is sized whole first (:func:`size_export`: every
+fragment's files encoded, the sum checked the same way) so that a disk too small refuses it before any
+fragment is written, instead of part way; the files encoded then are kept in memory up to
+:data:`KEEP_ENCODED_BYTES` and written as they are, the others are encoded again when their turn comes.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import json
 import os
 import secrets
 import shutil
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
@@ -34,6 +40,10 @@ import numpy as np
 
 from common import __version__
 from common.store import ArtifactError, Store, check_free_space, storage_error
+
+#: encoded files :func:`size_export` keeps for the writing, so that an export this small is encoded once (larger: the
+#: rest twice, to keep the memory an export takes bounded)
+KEEP_ENCODED_BYTES = 128 << 20
 
 NORMAL_MAP_CONVENTION = ("16-bit RGBA PNG, OpenGL convention: RGB = (n + 1) / 2 * 65535, x right, y up (green grows "
                          "towards the top row), z towards the viewer; alpha 65535 on the fragment, 0 (and RGB 0) "
@@ -81,6 +91,22 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     ``out_dir``'s file system has not the room for the files, or fills up while they are written;
     :class:`~common.store.StorageReadOnly` when it refuses writes.
     """
+    _check_destination(Path(out_dir) / fragment, overwrite)   # before the encoding, which is the long part
+    return write_fragment(out_dir, fragment, encode_fragment(store, fragment, albedo_bits=albedo_bits),
+                          overwrite=overwrite)
+
+
+def _check_destination(final: Path, overwrite: bool) -> None:
+    if final.exists() and not overwrite:
+        raise ValueError(f"{final} exists; remove it or pass overwrite (--force)")
+
+
+def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> dict[str, bytes]:
+    """Every file of a fragment's export folder (see the module docstring), encoded in memory: ``{name: bytes}``.
+
+    Raises ValueError naming the fragment when it has no RGBN face on storage, or for ``albedo_bits`` other
+    than 8 or 16.
+    """
     from common.render.artifact import load_rendering
     from common.rgbn.image import load_rgbn
     from common.rgbn.io import encode_normal_map, encode_png, linear_to_srgb
@@ -90,11 +116,6 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     faces = latest_faces(store, fragment)
     if not faces:
         raise ValueError(f"fragment {fragment} has no RGBN face under {store.root}/fragments/{fragment}/rgbn")
-    out_dir = Path(out_dir)
-    final = out_dir / fragment
-    if final.exists() and not overwrite:
-        raise ValueError(f"{final} exists; remove it or pass overwrite (--force)")
-    # every file in memory first: their sizes are checked against the free space before anything is written
     meta = {"fragment": fragment, "exported": _dt.datetime.now(_dt.timezone.utc).isoformat(),
             "software_version": __version__, "normal_map": NORMAL_MAP_CONVENTION,
             "albedo": f"{albedo_bits}-bit RGBA PNG, sRGB-encoded reflectance, alpha = mask", "faces": {}}
@@ -132,14 +153,27 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
         del img
     out["metadata.json"] = (json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
                             + "\n").encode("utf-8")
-    check_free_space(out_dir, sum(len(b) for b in out.values()), f"the export of {fragment} ({len(out)} files)")
+    return out
+
+
+def write_fragment(out_dir: str | os.PathLike, fragment: str, files: dict[str, bytes], *,
+                   overwrite: bool = False) -> Path:
+    """Write ``files`` (:func:`encode_fragment`'s) as ``<out_dir>/<fragment>/``, complete or absent; return its path.
+
+    The free space is checked against their sizes first (:func:`common.store.check_free_space`); raises like
+    :func:`export_fragment`.
+    """
+    out_dir = Path(out_dir)
+    final = out_dir / fragment
+    _check_destination(final, overwrite)
+    check_free_space(out_dir, sum(len(b) for b in files.values()), f"the export of {fragment} ({len(files)} files)")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         tmp = _temporary_folder(out_dir, fragment)
     except OSError as exc:
         raise storage_error(exc, str(final)) from exc
     try:
-        _write_folder(tmp, out)
+        _write_folder(tmp, files)
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -149,6 +183,48 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
             raise storage_error(exc, str(final)) from exc
         raise
     return final
+
+
+@dataclass
+class ExportSize:
+    """What :func:`size_export` found: the bytes of each fragment's files, those files for the fragments kept
+    (``kept``: name -> bytes per fragment), and the fragments that cannot be exported, with why."""
+    sizes: dict[str, int] = field(default_factory=dict)
+    kept: dict[str, dict[str, bytes]] = field(default_factory=dict)
+    failed: list[tuple[str, str]] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return sum(self.sizes.values())
+
+
+def size_export(store: Store, fragments, out_dir: str | os.PathLike, *, albedo_bits: int = 16,
+                overwrite: bool = False, keep_bytes: int | None = None, progress=None) -> ExportSize:
+    """Size the export of ``fragments`` into ``out_dir`` by encoding every file (:func:`encode_fragment`), writing
+    nothing: the whole export's bytes, to check the free space for all of it before the first fragment is written.
+
+    Files are kept for the writing while the kept ones stay under ``keep_bytes`` (default
+    :data:`KEEP_ENCODED_BYTES`). A fragment that
+    :func:`export_fragment` would refuse (no RGBN face, its folder there without ``overwrite``, unreadable)
+    is listed in ``failed`` and not sized. ``progress(i, fragment)`` is called after each.
+    """
+    keep_bytes = KEEP_ENCODED_BYTES if keep_bytes is None else keep_bytes
+    out = ExportSize()
+    kept_bytes = 0
+    for i, fid in enumerate(fragments):
+        try:
+            _check_destination(Path(out_dir) / fid, overwrite)
+            files = encode_fragment(store, fid, albedo_bits=albedo_bits)
+        except (ValueError, OSError) as exc:
+            out.failed.append((fid, str(exc)))
+        else:
+            out.sizes[fid] = sum(len(b) for b in files.values())
+            if kept_bytes + out.sizes[fid] <= keep_bytes:
+                out.kept[fid] = files
+                kept_bytes += out.sizes[fid]
+        if progress is not None:
+            progress(i + 1, fid)
+    return out
 
 
 def _temporary_folder(out_dir: Path, fragment: str) -> Path:

@@ -11,6 +11,9 @@ Free space: each fragment's files are encoded in memory and their total size (pl
 checked against the free space of OUT's file system before any of them is written. A fragment
 that does not fit stops the export (exit 1) with the bytes needed and available; the fragments
 exported before it are complete, the ones after it are not tried. Nothing is written for it.
+With --all the whole export is sized first (every fragment's files encoded; up to 128 MiB of them
+kept in memory for the writing, the rest encoded again) and refused (exit 1) before any fragment is
+written when it does not fit; the check per fragment stays, for a disk another writer fills meanwhile.
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from common.imports import ProgressBar
-    from common.imports.export import export_fragment, fragment_ids
-    from common.store import Store, StorageFull, write_file
+    from common.imports.export import export_fragment, fragment_ids, size_export, write_fragment
+    from common.store import Store, StorageFull, check_free_space, write_file
 
     if args.store:
         root = args.store
@@ -59,12 +62,36 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         print(f"tessera export: {out} exists and is not a folder", file=sys.stderr)
         return 2
+    done, failed, full, kept = [], [], None, {}
+    several = len(ids) > 1
+    if args.all:   # the whole collection sized first: a disk too small refuses it before any fragment is written
+        bar = ProgressBar(len(ids), "export: sizing")
+        try:
+            sized = size_export(store, ids, out, albedo_bits=args.albedo_bits, overwrite=args.force,
+                                progress=bar.update)
+        except KeyboardInterrupt:
+            bar.close()
+            print("interrupted while sizing the export; nothing was written", file=sys.stderr)
+            return 130
+        bar.close()
+        failed, kept = sized.failed, sized.kept
+        ids = [fid for fid in ids if fid in sized.sizes]
+        try:
+            if ids:
+                check_free_space(out, sized.total, f"the export of {len(ids)} fragment(s)")
+        except StorageFull as exc:
+            print(f"tessera export: not enough free space for --all: {exc}; nothing was written", file=sys.stderr)
+            for fid, why in failed:
+                print(f"  not exported {fid}: {why}", file=sys.stderr)
+            return 1
     bar = ProgressBar(len(ids), "export")
-    done, failed, full = [], [], None
     try:
         for i, fid in enumerate(ids):
             try:
-                export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force)
+                if fid in kept:   # encoded while sizing: written as they are (the free space checked again)
+                    write_fragment(out, fid, kept.pop(fid), overwrite=args.force)
+                else:
+                    export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force)
                 done.append(fid)
             except StorageFull as exc:      # checked before writing: the next ones would not fit either
                 full = (fid, str(exc))
@@ -78,7 +105,7 @@ def run(args) -> int:
         return 130
     bar.close()
     index_written = True
-    if len(ids) > 1 and done:
+    if several and done:
         index = out / "collection.json"
         listed = json.loads(index.read_text()) if index.is_file() else {"fragments": []}
         listed["fragments"] = sorted(set(listed.get("fragments", [])) | set(done))
@@ -95,7 +122,7 @@ def run(args) -> int:
     for fid, why in failed:
         print(f"  not exported {fid}: {why}", file=sys.stderr)
     if full:
-        left = len(ids) - len(done) - len(failed)
+        left = len(ids) - ids.index(full[0])   # the one that did not fit and those after it
         print(f"tessera export: not enough free space, stopped at {full[0]}: {full[1]}; nothing of it was written"
               + (f", {left - 1} more fragment(s) not tried" if left > 1 else "")
               + (f"; the {len(done)} exported before it are complete" if done else ""), file=sys.stderr)

@@ -270,3 +270,61 @@ def test_renders_on_storage_are_exported_as_pngs(tmp_path):
     np.testing.assert_array_equal(raw[..., 3] > 0, mask)
     meta = json.loads((tmp_path / "out" / "R1" / "metadata.json").read_text())
     assert png.name in meta["faces"]["front"]["files"]
+
+
+def _three_fragments(tmp_path, monkeypatch, capsys) -> int:
+    """Fragments A, B, C with the same face on storage; the bytes the export of one writes (A's, exported alone)."""
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    for fid in ("A", "B", "C"):
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-1.h5",
+                  RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0, normals=n))
+    assert main(["export", "A", "-o", str(tmp_path / "probe"), "--store", str(tmp_path / "st")]) == 0
+    capsys.readouterr()
+    return sum(p.stat().st_size for p in (tmp_path / "probe" / "A").iterdir())
+
+
+@pytest.mark.parametrize("keep", [None, 0], ids=["kept-from-sizing", "encoded-again"])
+def test_export_all_that_does_not_fit_is_refused_before_any_fragment_is_written(tmp_path, monkeypatch, capsys, keep):
+    import re
+
+    from common.imports import export
+    from common.store import FREE_SPACE_MARGIN_BYTES
+    size = _three_fragments(tmp_path, monkeypatch, capsys)
+    out = tmp_path / "usb" / "out"
+    # room for two fragments, not three: the per-fragment check alone wrote A and B, then stopped at C
+    free = 2 * size + FREE_SPACE_MARGIN_BYTES + 5000
+    _free_space(monkeypatch, free)
+    assert main(["export", "--all", "-o", str(out), "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "not enough free space for --all" in err and "nothing was written" in err and f"{free} free" in err
+    assert abs(int(re.search(r"needs (\d+) bytes", err).group(1)) - 3 * size) < 300   # the three fragments' files
+    assert not (tmp_path / "usb").exists()
+    # with room for the three: all written, the same files as each exported alone (encoded once or twice)
+    if keep is not None:
+        real = export.size_export
+        monkeypatch.setattr(export, "size_export", lambda *a, **k: real(*a, **{**k, "keep_bytes": keep}))
+    _free_space(monkeypatch, 3 * size + FREE_SPACE_MARGIN_BYTES + 5000)
+    assert main(["export", "--all", "-o", str(out), "--store", str(tmp_path / "st")]) == 0
+    assert json.loads((out / "collection.json").read_text())["fragments"] == ["A", "B", "C"]
+    for fid in ("A", "B", "C"):
+        for png in ("front-albedo.png", "front-normals.png"):
+            assert (out / fid / png).read_bytes() == (tmp_path / "probe" / "A" / png).read_bytes(), (fid, png)
+
+
+def test_export_all_still_checks_each_fragment_for_a_disk_filled_meanwhile(tmp_path, monkeypatch, capsys):
+    import collections
+    import shutil
+
+    from common.store import FREE_SPACE_MARGIN_BYTES
+    size = _three_fragments(tmp_path, monkeypatch, capsys)
+    # the whole export fits when sized; then another writer leaves room for A only
+    answers = iter([3 * size + FREE_SPACE_MARGIN_BYTES + 5000, size + FREE_SPACE_MARGIN_BYTES + 5000])
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 ** 12, 0, next(answers, 1000)))
+    out = tmp_path / "out"
+    assert main(["export", "--all", "-o", str(out), "--store", str(tmp_path / "st")]) == 1
+    err = capsys.readouterr().err
+    assert "not enough free space, stopped at B" in err and "1 more fragment(s) not tried" in err
+    assert sorted(p.name for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")) == ["A"]
+    assert sorted(p.name for p in (out / "A").iterdir()) == ["front-albedo.png", "front-normals.png", "metadata.json"]
