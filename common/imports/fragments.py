@@ -282,7 +282,9 @@ def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "aut
     -------
     RGBNImage
         ``albedo`` linear RGB (0 outside the mask), ``mask``, ``dpi``; no normals.
-        ``attrs['mask_from']`` is ``"alpha"`` or ``"plain background"``.
+        ``attrs['mask_from']`` is ``"alpha"`` or ``"plain background"``; from a plain background,
+        ``attrs['edge_placed']`` is the share of the edge placed at half coverage
+        (:func:`background_mask`; low: the background is too close to the piece's colour).
 
     Raises
     ------
@@ -338,7 +340,10 @@ def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "aut
         _check_plausible(mask, area, max_cover, max_border_touch)
     albedo = srgb_to_linear(rgb) if srgb else np.clip(rgb, 0.0, 1.0)
     albedo[~mask] = 0.0
-    return RGBNImage(albedo=albedo, mask=mask, dpi=float(dpi), attrs={"mask_from": how})
+    attrs = {"mask_from": how}
+    if not use_alpha:
+        attrs["edge_placed"] = round(info["edge_placed"], 3)
+    return RGBNImage(albedo=albedo, mask=mask, dpi=float(dpi), attrs=attrs)
 
 
 def crop_to_mask(image: RGBNImage, *, margin_mm: float = 2.0) -> tuple[RGBNImage, tuple[int, int]]:

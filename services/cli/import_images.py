@@ -23,7 +23,10 @@ from pathlib import Path
 from common.imports import ImportItem, ImportRefused, Output
 
 #: algorithm version of this importer: part of every content key
-VERSION = "images-2"   # 2: the face cut to the fragment and 2 mm round it (attrs crop_px)
+VERSION = "images-3"   # 2: the face cut to the fragment and 2 mm round it (attrs crop_px); 3: plain-background
+                       # edges at half coverage, unmixed (common.imports.fragments.edge_coverage)
+#: below this share of a plain-background piece's edge placed at half coverage, the import warns
+EDGE_PLACED_WARN = 0.5
 
 
 def add_parser(subparsers) -> None:
@@ -97,12 +100,20 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
         raise ImportRefused(f"{src}: {exc}") from None
     except ValueError as exc:  # e.g. --background alpha on a picture without alpha
         raise ImportRefused(f"{src}: {exc}") from None
+    placed = rgbn.attrs.get("edge_placed")
+    if placed is not None and placed < EDGE_PLACED_WARN:
+        print(f"warning: {item.fragment} ({src.name}): the piece's edge could be placed at half coverage along only "
+              f"{placed * 100:.0f} % of it: the background is too close to the piece's colour, so the outline may be "
+              "off by a pixel or two and parts as pale or dark as the background lost; scan or photograph it on a "
+              "background that differs from the plaster (docs/import.md)", file=sys.stderr)
     rgbn, (x0, y0) = crop_to_mask(rgbn)   # the piece, not the picture's background round it
     rgbn.attrs.update({"source": "tessera import images", "face": item.face,
                        "metadata": json.dumps(opts["metadata"], sort_keys=True, ensure_ascii=False)})
     prov = {"importer": "tessera import images", "version": VERSION, "source_file": str(src),
             "source_sha256": item.digests[0], "dpi": opts["dpi"], "mask_from": rgbn.attrs["mask_from"],
             "crop_px": [x0, y0]}
+    if placed is not None:
+        prov["edge_placed"] = placed
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", rgbn, provenance=prov)
     if pictures:
         from common.imports.fragments import mask_picture

@@ -306,3 +306,22 @@ def test_pictures_show_each_mask_and_a_file_in_their_place_is_refused(tmp_path, 
                  "--pictures", str(tmp_path / "afile")]) == 2
     assert "is a file, not a folder" in capsys.readouterr().err
     assert not (tmp_path / "st2").exists()
+
+
+def test_a_piece_too_close_to_its_background_is_imported_with_a_warning(tmp_path, capsys):
+    # pale plaster photographed on white paper: the edge cannot be placed at half coverage, so the
+    # import says so, naming the fragment and the share, and still imports it
+    src = tmp_path / "in"
+    src.mkdir()
+    truth = _blob(240, 320, 4)
+    rng = np.random.default_rng(4)
+    pale = np.where(truth[..., None], np.array([226, 224, 218]), np.array([240, 238, 232])) + rng.normal(0, 1, (240, 320, 3))
+    assert cv2.imwrite(str(src / "pale.png"), np.clip(pale, 0, 255).astype(np.uint8)[..., ::-1])
+    _picture(src / "painted.png", 5)      # ochre on off-white: its edge is placed
+    assert main(["import", "images", str(src), "--dpi", "300", "--store", str(tmp_path / "st")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: pale (pale.png): the piece's edge could be placed at half coverage along only" in err
+    assert "warning: painted" not in err
+    store = Store(tmp_path / "st")
+    faces = {f.parts[-3]: load_rgbn(store, f.relative_to(tmp_path / "st").as_posix()) for f in _rgbn_files(tmp_path / "st")}
+    assert faces["pale"].attrs["edge_placed"] < 0.5 <= faces["painted"].attrs["edge_placed"]
