@@ -210,9 +210,10 @@ def _proposed(fragment: str, found, st: _State, ctx, stage: str) -> list[dict]:
         # say why there is no best: the index holds no other fragment yet, or none could be scored with this one
         # (stage 2 scores a pair only when both fragments have a valid patch: a crumb has none)
         others = len(st.index) - (fragment in st.index)
-        ctx.log.info("fragment %s: 0 proposals, %s (%s)", fragment, stage,
-                     f"none of the {others} other fragments could be scored with it" if others
-                     else "no other fragment indexed yet")
+        why = ("no other fragment indexed yet" if others == 0
+               else "the 1 other fragment could not be scored with it" if others == 1
+               else f"none of the {others} other fragments could be scored with it")
+        ctx.log.info("fragment %s: 0 proposals, %s (%s)", fragment, stage, why)
     return [new_message("match.proposed", stage=stage, **p.to_event_fields()) for p in stored]
 
 

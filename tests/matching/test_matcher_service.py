@@ -368,21 +368,25 @@ def test_a_job_that_proposes_nothing_names_its_fragment_in_the_log(station, capl
     assert all(line.endswith("(no other fragment indexed yet)") and "nan" not in line for line in lines), lines
 
 
-def test_a_fragment_no_pair_could_be_scored_for_says_so_in_the_log(station, caplog):
-    """A crumb (no valid patch) among indexed fragments gets no proposal; its log line said "(best nan)"."""
+@pytest.mark.parametrize("indexed, why", [(3, "none of the 3 other fragments could be scored with it"),
+                                           (1, "the 1 other fragment could not be scored with it")])
+def test_a_fragment_no_pair_could_be_scored_for_says_so_in_the_log(station, caplog, indexed, why):
+    """A crumb (no valid patch) among indexed fragments gets no proposal; its log line said "(best nan)", and
+    "1 other fragments" with one."""
     import dataclasses
 
     import services.matcher as matcher
     wall, store, db, arts, ctx = station
     from common.features import load_features
-    ids = [f.id for f in wall.fragments[:4]]
-    for fid in ids[:3]:
+    ids = [f.id for f in wall.fragments[:indexed + 1]]
+    for fid in ids[:indexed]:
         matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=arts[fid]), ctx)
-    table = load_features(store, arts[ids[3]])
+    table = load_features(store, arts[ids[indexed]])
     crumb = dataclasses.replace(table, patch_coverage=np.zeros_like(table.patch_coverage))   # no patch is valid
-    art = save_features(store, f"fragments/{ids[3]}/features/front-crumb.h5", crumb)
+    art = save_features(store, f"fragments/{ids[indexed]}/features/front-crumb.h5", crumb)
     with caplog.at_level(logging.INFO, logger="test.matcher"):
-        assert matcher.handle(new_message("features.ready", fragment=ids[3], face="front", artifact=art), ctx) == []
+        assert matcher.handle(new_message("features.ready", fragment=ids[indexed], face="front", artifact=art),
+                              ctx) == []
     (line,) = [r.getMessage() for r in caplog.records if "proposals" in r.getMessage()]
-    assert line.startswith(f"fragment {ids[3]}: 0 proposals, ") and "nan" not in line
-    assert line.endswith("(none of the 3 other fragments could be scored with it)"), line
+    assert line.startswith(f"fragment {ids[indexed]}: 0 proposals, ") and "nan" not in line
+    assert line.endswith(f"({why})"), line
