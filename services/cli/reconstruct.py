@@ -16,7 +16,6 @@ arguments.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -45,6 +44,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from common.imports import ProgressBar
     from common.matching import reconstruction as rc
+    from common.messages import to_json
     from common.matching.proposals import ProposalStore
     from common.store import Store
 
@@ -112,7 +112,9 @@ def run(args) -> int:
         c["composite"] = composites.get(c["id"])
     doc["missing_images"] = missing
     tmp = out / ".reconstruction.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    # strict JSON (NaN and ±inf as null) for every reader, as the web serves the same document; default=float: a
+    # numpy scalar is written as its number (json.dumps refused all but float64), anything else is still refused
+    tmp.write_text(to_json(doc, indent=2, default=float) + "\n", encoding="utf-8")
     os.replace(tmp, out / "reconstruction.json")
     conflicts = [(c.id, lp) for c in rec["clusters"] for lp in c.conflicting_loops]
     print(f"{len(rec['clusters'])} cluster(s), {sum(len(c.fragments) for c in rec['clusters'])} fragments, "

@@ -351,6 +351,43 @@ def test_cli_writes_composites_and_poses_and_names_a_conflict(tmp_path, capsys):
     assert json.loads((out / "reconstruction.json").read_text())["clusters"][0]["n_conflicting_loops"] >= 1
 
 
+def test_cli_writes_strict_json_an_undefined_figure_as_null(tmp_path, monkeypatch):
+    """reconstruction.json was written by json.dumps: a NaN or infinite figure came out as bare ``NaN`` /
+    ``Infinity``, which jq and a browser's JSON.parse refuse; it is null, as the web's copy of the document."""
+    from common.matching import reconstruction as rc
+    from common.rgbn.image import save_rgbn
+    from common.store import Store
+    from common.synth.wall import generate_wall
+    from services.cli import main
+
+    wall = generate_wall(6, seed=2, dpi=30, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
+    byid = {f.id: f for f in wall.fragments}
+    store = Store(tmp_path / "store")
+    for f in wall.fragments:
+        save_rgbn(store, f"fragments/{f.id}/rgbn/front-{f.id[-3:]}.h5", f.rgbn)
+    db = _proposal_store(tmp_path / "store" / "matches", wall, byid)
+    for a, b, _ in wall.adjacency:
+        db.record_verdict(a, b, "confirmed")
+    real = rc.reconstruct
+
+    def undefined(*args, **kwargs):   # figures the document may hold undefined (no path gives one today)
+        rec = real(*args, **kwargs)
+        c = rec["document"]["clusters"][0]
+        c["solve"]["cost"], c["joins"][0]["residual_mm"] = float("inf"), float("nan")
+        c["fragments"][0]["dpi"] = float("nan")
+        return rec
+    monkeypatch.setattr(rc, "reconstruct", undefined)
+    out = tmp_path / "out"
+    assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out), "--json-only"]) == 0
+
+    def refuse(name):
+        raise AssertionError(f"{name} is not JSON")
+    (c,) = json.loads((out / "reconstruction.json").read_text(), parse_constant=refuse)["clusters"]
+    assert c["solve"]["cost"] is None and c["joins"][0]["residual_mm"] is None and c["fragments"][0]["dpi"] is None
+    assert {d["fragment"] for d in c["fragments"]} == set(byid)    # the rest as it was
+    assert all(isinstance(d["tx_mm"], float) for d in c["fragments"])
+
+
 def test_cli_without_a_database_says_so(tmp_path, capsys):
     from services.cli import main
 
