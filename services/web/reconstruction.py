@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import collections
 import io
-import json
 import logging
 import tempfile
 import threading
@@ -31,7 +30,7 @@ import cv2
 import numpy as np
 from flask import Blueprint, abort, current_app, jsonify, render_template, request, send_file, url_for
 
-from common.messages import verdict_of
+from common.messages import to_json, verdict_of
 from common.web.bench import check_fragment_id
 
 from .station import EXTENSION, requires, station
@@ -302,7 +301,7 @@ def poses():
     doc = _reconstruction()["document"]
     if doc is None:
         return jsonify(error="no proposal store yet: nothing is confirmed"), 404
-    body = json.dumps(doc, indent=2) + "\n"
+    body = to_json(doc, indent=2, default=float) + "\n"   # strict, as tessera reconstruct writes it: NaN/±inf as null
     return body, 200, {"Content-Type": "application/json",
                        "Content-Disposition": 'attachment; filename="reconstruction.json"'}
 

@@ -170,6 +170,33 @@ def test_exports_composite_png_tiff_and_json(app_and_db):
     assert c.get("/api/reconstruction/thumb/..%2Fetc.png").status_code in (400, 404)
 
 
+def test_the_json_export_is_strict_an_undefined_figure_as_null(app_and_db, monkeypatch):
+    """poses.json was written by json.dumps: a NaN or infinite figure came out as bare ``NaN`` / ``Infinity``,
+    which a browser's JSON.parse refuses; it is null, as in ``tessera reconstruct``'s reconstruction.json."""
+    from common.matching import reconstruction as rc
+    from common.matching.proposals import ProposalStore
+
+    app, db_path, wall, true = app_and_db
+    with ProposalStore(db_path) as db:
+        for pair in true:
+            db.record_verdict(*pair, "confirmed")
+    real = rc.reconstruction_document
+
+    def undefined(*args, **kwargs):   # figures the document may hold undefined (no path gives one today)
+        doc = real(*args, **kwargs)
+        if doc["clusters"]:
+            c = doc["clusters"][0]
+            c["solve"]["cost"], c["joins"][0]["residual_mm"] = float("inf"), float("nan")
+        return doc
+    monkeypatch.setattr(rc, "reconstruction_document", undefined)
+
+    def refuse(name):
+        raise AssertionError(f"{name} is not JSON")
+    (c,) = json.loads(app.test_client().get("/api/reconstruction/poses.json").data, parse_constant=refuse)["clusters"]
+    assert c["solve"]["cost"] is None and c["joins"][0]["residual_mm"] is None
+    assert {d["fragment"] for d in c["fragments"]} == {f for pair in true for f in pair}   # the rest as it was
+
+
 def test_next_joins_are_tried_in_the_clusters_corners_in_the_background(tmp_path):
     """The page answers at once with the proposals' poses and docks the newcomers against their cluster in the
     background; when that lands the signature changes and the page shows the fits ``tessera reconstruct`` gives
