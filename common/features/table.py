@@ -41,10 +41,6 @@ SCHEMA = "tessera.features"
 SCHEMA_VERSION = 2  # 2: boundary profile (colour and thickness along the contour)
 #: target pixel size of the working grid, mm (the actual one is an integer multiple of the scan's)
 WORK_PIXEL_MM = 0.1
-#: the colour on the working grid is smoothed at this scale (Gaussian sigma, mm) before any statistic:
-#: paint is structured at 0.5 mm and more, a scanner's noise per pixel. Without it, noise of 2 grey levels
-#: (a flatbed's) moved RePAIR's within-object recall @1 0.625 -> 0.500 (docs/features.md, "Colour at paint scale")
-COLOUR_SIGMA_MM = 0.15
 # fragment-level FFT runs on at most this many pixels per side, a patch's on at most that many
 _FFT_MAX_PX = 512
 _PATCH_FFT_PX = 128
@@ -151,38 +147,6 @@ def _area_downsample(a, factor: int, shape) -> np.ndarray:
     return cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def smooth_colour(albedo: np.ndarray, coverage: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Colour smoothed by a Gaussian of ``sigma_px`` over the fragment only (normalised convolution).
-
-    ``G * (albedo · coverage) / G * coverage`` where the coverage is positive: the edge keeps the
-    fragment's colour instead of mixing in the background's zeros (Knutsson & Westin 1993,
-    "Normalized and differential convolution"). Pixel noise is averaged away before per-pixel
-    quantities (saturation, variance, the boundary samples) are taken: those are biased by noise,
-    not only scattered (the mean saturation of near-grey plaster rose 10 % under noise of 2 grey
-    levels). Outside the coverage the result is 0.
-
-    Parameters
-    ----------
-    albedo : (H, W, 3) float32, linear; coverage : (H, W) float32 in [0, 1]; sigma_px : float (0: unchanged)
-
-    Returns
-    -------
-    (H, W, 3) float32
-
-    >>> a = np.zeros((9, 9, 3), np.float32); a[:, :5] = 0.5; m = np.zeros((9, 9), np.float32); m[:, :5] = 1
-    >>> float(smooth_colour(a, m, 1.5)[4, 4, 0])   # the edge keeps the fragment's colour
-    0.5
-    """
-    if not sigma_px > 0:
-        return albedo
-    m = np.asarray(coverage, np.float32)
-    num = cv2.GaussianBlur(cv2.multiply(albedo, cv2.merge([m, m, m])), (0, 0), sigma_px)
-    den = cv2.GaussianBlur(m, (0, 0), sigma_px)
-    out = num / np.maximum(den, np.float32(1e-6))[..., None]
-    out[m <= 0] = 0.0
-    return out
-
-
 def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "",
                      work_pixel_mm: float = WORK_PIXEL_MM,
                      contour_start_mm=None,
@@ -247,7 +211,6 @@ def extract_features(image: RGBNImage, *, face: str = "front", fragment: str = "
     if not np.isfinite(albedo).all():  # NaN pixels (e.g. saturated) count as black, not as NaN
         albedo = _area_downsample(cv2.multiply(np.nan_to_num(image.albedo, nan=0.0, posinf=1.0, neginf=0.0), m3),
                                   factor, shape) / safe
-    albedo = smooth_colour(albedo, M, COLOUR_SIGMA_MM / wp)
     # moment channels on the working grid, weighted by coverage M: every patch statistic is a
     # weighted sum over the patch disc (one einsum), equal to the statistic of the grid pixels
     # channels centred on the fragment means so float32 sums of squares do not cancel

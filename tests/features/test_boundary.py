@@ -136,3 +136,39 @@ def test_a_table_written_before_boundary_profiles_reads_with_an_empty_profile(tm
     index = MatchIndex()
     index.add(fragment_cues(old, "old"), old.contour_mm, old.boundary_profile)
     assert "old" in index and "old" not in index.profiles
+
+
+def test_a_sample_is_the_paint_there_not_one_pixels_noise():
+    # RePAIR-like plaster scanned at 150 dpi (0.17 mm a pixel: one sample is one pixel) with a scanner's
+    # noise of 2 grey levels (sRGB): the samples scatter along a crack whose paint is uniform, and the
+    # matcher reads the scatter as paint that does not continue. Smoothed at paint scale first
+    # (sigma 0.15 mm), the scatter falls by the averaging's factor, ~1 / (2 sqrt(pi) sigma_px) ~ 1/3.
+    from common.rgbn.io import linear_to_srgb, srgb_to_linear
+    px = 25.4 / 150
+    yy, xx = np.mgrid[:300, :300]
+    mask = (yy - 150) ** 2 + (xx - 150) ** 2 < 130 ** 2
+    clean = np.broadcast_to(srgb_to_linear(np.float32([0.80, 0.79, 0.77])), (300, 300, 3)).copy()
+    noisy = srgb_to_linear(np.clip(linear_to_srgb(clean) + np.random.default_rng(0).normal(0, 2 / 255, clean.shape), 0, 1))
+    contour = fragment_contour(mask, px)
+    names = boundary_channel_names()
+
+    def scatter(albedo, **kw):
+        prof, _ = boundary_profile(contour, albedo.astype(np.float32), px, weight=mask.astype(np.float32), **kw)
+        return float(prof[:, _cols(names, "sqrt_")].std(axis=0).mean())
+
+    assert scatter(clean) == pytest.approx(0.0, abs=1e-6)
+    raw, smoothed = scatter(noisy, sigma_mm=0.0), scatter(noisy)
+    assert raw > 0.004 and smoothed < 0.45 * raw, (raw, smoothed)
+
+
+def test_smoothing_keeps_the_edge_colour_and_a_band_in_place():
+    # the normalised convolution does not mix the background's zeros into the edge, and a painted rim
+    # sampled 0.4 mm from its inner border (2.7 sigma) keeps its colour: the first test's disc again
+    x, y, mask = _disc()
+    albedo = np.where((np.hypot(x, y) > 15.0 - 1.2)[..., None], (0.1, 0.2, 0.8), (0.8, 0.2, 0.1)).astype(np.float32)
+    albedo[~mask] = 0
+    contour = fragment_contour(mask, PX)
+    sharp, _ = boundary_profile(contour, albedo, PX, weight=mask.astype(float), sigma_mm=0.0)
+    smooth, _ = boundary_profile(contour, albedo, PX, weight=mask.astype(float))
+    cols = _cols(boundary_channel_names(), "sqrt_")
+    np.testing.assert_allclose(smooth[:, cols], sharp[:, cols], atol=0.01)

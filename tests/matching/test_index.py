@@ -98,9 +98,7 @@ def test_hubness_ranking_finds_more_true_neighbours_than_the_patch_probability(s
     assert set(old) == set(new)
     ks = (3, 5, 10)
     r_new, r_old = top_k_recall(new, wall.adjacency, ks), top_k_recall(old, wall.adjacency, ks)
-    # margin: summed recall@3/5/10 on walls 5 / 6 / 7 gains 0.040 / 0.026 / 0.043 since the colour is smoothed at
-    # paint scale (features-1.2; 0.056 / 0.026 / 0.064 before), both rankings having risen (plain 1.079 -> 1.127 on wall 5)
-    assert sum(r_new.values()) > sum(r_old.values()) + 0.03, (r_new, r_old)
+    assert sum(r_new.values()) > sum(r_old.values()) + 0.05, (r_new, r_old)
     # every fragment with patches got its hubness under this model
     assert {f for f, c in cues.items() if len(c)} == {f for f, (v, _) in index.hubness.items() if v == model.version}
 
