@@ -315,13 +315,11 @@ def test_document_lists_loops_and_flags(wall150):
     assert doc["noise"]["chi2_bound"] == pytest.approx(21.108, abs=1e-3)
 
 
-def test_cli_writes_composites_and_poses_and_names_a_conflict(tmp_path, capsys):
-    import tifffile
-
+def _confirmed_station(tmp_path):
+    """A six-fragment wall stored as a station's RGBN faces, every true join proposed and confirmed."""
     from common.rgbn.image import save_rgbn
     from common.store import Store
     from common.synth.wall import generate_wall
-    from services.cli import main
 
     wall = generate_wall(6, seed=2, dpi=30, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
     byid = {f.id: f for f in wall.fragments}
@@ -331,6 +329,15 @@ def test_cli_writes_composites_and_poses_and_names_a_conflict(tmp_path, capsys):
     db = _proposal_store(tmp_path / "store" / "matches", wall, byid)
     for a, b, _ in wall.adjacency:
         db.record_verdict(a, b, "confirmed")
+    return wall, byid, db
+
+
+def test_cli_writes_composites_and_poses_and_names_a_conflict(tmp_path, capsys):
+    import tifffile
+
+    from services.cli import main
+
+    wall, byid, db = _confirmed_station(tmp_path)
     out = tmp_path / "out"
     assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out)]) == 0
     doc = json.loads((out / "reconstruction.json").read_text())
@@ -355,19 +362,9 @@ def test_cli_writes_strict_json_an_undefined_figure_as_null(tmp_path, monkeypatc
     """reconstruction.json was written by json.dumps: a NaN or infinite figure came out as bare ``NaN`` /
     ``Infinity``, which jq and a browser's JSON.parse refuse; it is null, as the web's copy of the document."""
     from common.matching import reconstruction as rc
-    from common.rgbn.image import save_rgbn
-    from common.store import Store
-    from common.synth.wall import generate_wall
     from services.cli import main
 
-    wall = generate_wall(6, seed=2, dpi=30, surfaces=False, missing_fraction=0.0, spurious_fraction=0.0)
-    byid = {f.id: f for f in wall.fragments}
-    store = Store(tmp_path / "store")
-    for f in wall.fragments:
-        save_rgbn(store, f"fragments/{f.id}/rgbn/front-{f.id[-3:]}.h5", f.rgbn)
-    db = _proposal_store(tmp_path / "store" / "matches", wall, byid)
-    for a, b, _ in wall.adjacency:
-        db.record_verdict(a, b, "confirmed")
+    wall, byid, db = _confirmed_station(tmp_path)
     real = rc.reconstruct
 
     def undefined(*args, **kwargs):   # figures the document may hold undefined (no path gives one today)

@@ -179,14 +179,17 @@ def browser():
         b.close()
 
 
-def _login(browser, live, who="Test Operator"):
+def _login(browser, live, who="Test Operator", next_path="/bench"):
+    """A new browser context signed in as ``who``, its page on ``next_path`` (path and query)."""
+    import urllib.parse
+
     ctx = browser.new_context(viewport={"width": 1280, "height": 860})
     page = ctx.new_page()
-    page.goto(f"{live.url}/login?next=/bench")
+    page.goto(f"{live.url}/login?next={urllib.parse.quote(next_path, safe='/')}")
     page.fill("#token", TOKEN)
     page.fill("#who", who)
     page.click("#login-submit")
-    page.wait_for_url(f"{live.url}/bench")
+    page.wait_for_url(f"{live.url}{next_path}")
     return ctx, page
 
 
@@ -483,13 +486,8 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(bro
         db.record_verdict("FA", "FB", "confirmed", by="A. Conservator", pose=corrected, when=time.time() - 60)
     web = WebProcess(tmp_path).start()
     try:
-        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        ctx, page = _login(browser, web, "A. Conservator", "/review?fragment=FB")
         try:
-            page = ctx.new_page()
-            page.goto(f"{web.url}/login?next=/review%3Ffragment%3DFB")
-            page.fill("#token", TOKEN)
-            page.fill("#who", "A. Conservator")
-            page.click("#login-submit")
             page.wait_for_selector(f"#queue li.current[data-proposal='{prop.id}']", timeout=30_000)
             assert "kept with the confirmed verdict" in page.inner_text("#proposal-meta")
 
@@ -546,13 +544,8 @@ def test_keys_pressed_while_a_verdict_is_sent_apply_in_order_to_the_proposal_the
                    Proposal("FB", "FD", 0.7, "m1", angle_deg=-10.0, tx_mm=4.0, ty_mm=-1.0)])
     web = WebProcess(tmp_path).start()
     try:
-        ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+        ctx, page = _login(browser, web, "A. Conservator", "/review")
         try:
-            page = ctx.new_page()
-            page.goto(f"{web.url}/login?next=/review")
-            page.fill("#token", TOKEN)
-            page.fill("#who", "A. Conservator")
-            page.click("#login-submit")
             page.wait_for_selector("#queue li.current", timeout=30_000)
             order = [(li.get_attribute("data-proposal"), li.inner_text().split("\n")[0])
                      for li in page.locator("#queue li").all()]
