@@ -336,7 +336,7 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
 
 
 def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, near_px: float = 48.0,
-                        min_run_px: float = 100.0, progress=None) -> dict:
+                        min_run_px: float = 100.0, adjacency=None, progress=None) -> dict:
     """Evaluate the matcher on a real, placed collection (``repair-dev`` layout) with a given model.
 
     Nothing is fitted on the collection: the fragments are imported as colour-only fragments
@@ -345,7 +345,10 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     (:meth:`~common.matching.index.MatchIndex.rank`, stages 2, 2½ and 3) — once against every other
     fragment of the collection (pooled) and once against the other fragments of its own object.
     Neighbours: placed outlines within ``near_px`` along ``min_run_px`` image pixels
-    (:func:`~common.matching.collection.collection_wall`; the defaults are RePAIR's).
+    (:func:`~common.matching.collection.collection_wall`; the defaults are RePAIR's), or the pairs
+    ``adjacency`` gives (``[(a, b, shared length), ...]`` as ``Wall.adjacency``: a variant of a collection
+    — the same pieces scanned otherwise, their masks a pixel different — counted against the original's
+    pairs, so that only the matcher's inputs differ; ``tests/bench/bench_scan_variants.py``).
 
     A fragment's list is in the station's order: its pairs by mutual proximity of the two
     fragments' rankings (:mod:`common.matching.mutual`; the station's proposal store orders them so).
@@ -376,6 +379,12 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     t0, c0 = time.time(), time.process_time()
     say(0.0, f"importing {path}")
     wall = collection_wall(path, dpi=dpi, near_px=near_px, min_run_px=min_run_px)
+    if adjacency is not None:
+        known = {f.id for f in wall.fragments}
+        unknown = sorted({x for a, b, *_ in adjacency for x in (a, b)} - known)
+        if unknown:
+            raise ValueError(f"adjacency names fragments not in {path}: {', '.join(unknown[:5])}")
+        wall = replace(wall, adjacency=list(adjacency))
     if model is None:
         say(0.05, "training the default bootstrap model (synthetic walls only)")
         model = bootstrap_model()

@@ -116,3 +116,28 @@ def test_evaluate_collection_command_draws_beside_the_json_file_or_in_the_curren
             main(["evaluate", "--collection", str(tmp_path / "coll")] + extra)
     assert seen == [tmp_path / "res", Path("."), Path("pics")]
     assert not (tmp_path / "docs").exists()
+
+
+def test_a_variant_of_a_collection_is_counted_against_the_pairs_given(tmp_path, small_wall):
+    # tests/bench/bench_scan_variants.py counts a collection scanned otherwise against the published one's
+    # neighbour pairs (adjacency=): the pairs given are the ones counted, and a pair naming a fragment the
+    # collection does not hold is refused before any work
+    import pytest
+
+    from common.matching.collection import collection_wall
+    from common.matching.online import train_model
+    from common.matching.pairs import training_set
+    from common.matching.report import evaluate_collection
+    from common.synth.realistic import write_collection
+    from common.synth.wall import generate_wall
+
+    wall, tables, cues, poses = small_wall
+    model, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1))
+    write_collection(generate_wall(8, seed=9, dpi=30, preset="pompeii", colour_only=True), tmp_path / "c")
+    rule = {"near_px": 48 * 30 / 187, "min_run_px": 100 * 30 / 187}
+    pairs = collection_wall(tmp_path / "c", dpi=30, **rule).adjacency
+    assert len(pairs) >= 3
+    res = evaluate_collection(tmp_path / "c", dpi=30, model=model, adjacency=pairs[:2], **rule)
+    assert res["n_true_pairs"] == 2 and len(res["pose_errors"]) == 2
+    with pytest.raises(ValueError, match="adjacency names fragments not in .*: nowhere"):
+        evaluate_collection(tmp_path / "c", dpi=30, model=model, adjacency=[(pairs[0][0], "nowhere", 10.0)], **rule)
