@@ -205,7 +205,8 @@ def _proposed(fragment: str, found, st: _State, ctx, stage: str) -> list[dict]:
     props = [_proposal(c, st, columns) for c in found]
     stored = st.db.upsert(props) if props else []
     if stored:
-        ctx.log.info("fragment %s: %d proposals, %s (best %.3f)", fragment, len(stored), stage, stored[0].probability)
+        ctx.log.info("fragment %s: %d proposal%s, %s (best %.3f)", fragment, len(stored), "" if len(stored) == 1 else "s",
+                     stage, stored[0].probability)
     else:
         # say why there is no best: the index holds no other fragment yet, or none could be scored with this one
         # (stage 2 scores a pair only when both fragments have a valid patch: a crumb has none)

@@ -90,7 +90,7 @@ def _floats(text: str, name: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise SystemExit(f"--{name} must be comma-separated numbers, got {text!r}")
+        raise SystemExit(f"tessera calibrate: --{name} must be comma-separated numbers, got {text!r}")
 
 
 def _error(text) -> None:

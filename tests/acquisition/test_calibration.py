@@ -116,3 +116,12 @@ def test_calibrate_errors_go_to_the_standard_error_with_a_failing_exit(tmp_path,
     assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', *argv]) == code
     cap = capsys.readouterr()
     assert cap.err.startswith(f"tessera calibrate: {words}") and cap.out == ""
+
+
+def test_a_bad_tilt_list_is_named_on_stderr_as_the_command_names_its_errors(tmp_path, capsys):
+    import pytest
+
+    from services.cli import main
+
+    with pytest.raises(SystemExit, match="^tessera calibrate: --tilts must be comma-separated numbers, got '0,ten'"):
+        main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--tilts", "0,ten"])

@@ -390,3 +390,14 @@ def test_a_fragment_no_pair_could_be_scored_for_says_so_in_the_log(station, capl
     (line,) = [r.getMessage() for r in caplog.records if "proposals" in r.getMessage()]
     assert line.startswith(f"fragment {ids[indexed]}: 0 proposals, ") and "nan" not in line
     assert line.endswith(f"({why})"), line
+
+
+def test_one_proposal_is_logged_in_the_singular(station, caplog):
+    import services.matcher as matcher
+    wall, store, db, arts, ctx = station
+    first, second = (f.id for f in wall.fragments[:2])
+    matcher.handle(new_message("features.ready", fragment=first, face="front", artifact=arts[first]), ctx)
+    with caplog.at_level(logging.INFO, logger="test.matcher"):
+        matcher.handle(new_message("features.ready", fragment=second, face="front", artifact=arts[second]), ctx)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith(f"fragment {second}: ")]
+    assert lines and all(line.startswith(f"fragment {second}: 1 proposal, ") for line in lines), lines
