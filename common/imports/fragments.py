@@ -74,7 +74,7 @@ def background_mask(rgb: np.ndarray, *, margin: float = 6.0, min_contrast: float
         is modelled in linear light. False for linear data.
     edge_px : int
         Depth of the piece's soft edge in pixels (partial coverage, the optics' blur): the colour
-        of the piece is taken from this far inside (:func:`edge_coverage`).
+        of the piece is taken from twice this far inside the first edge (:func:`edge_coverage`).
 
     Returns
     -------
