@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from common.features.contour import Contour
+from common.rgbn._filters import normalized_blur
 
 #: arc-length step of the profile samples, mm
 BOUNDARY_STEP_MM = 1.0
@@ -38,36 +39,6 @@ STD_FLOOR, STD_SCALE = 0.02, 0.15
 #: and more, a scanner's noise per pixel, and at 150 dpi a sample is one pixel. Without it, noise of 2 grey levels
 #: moved RePAIR's within-object recall @1 0.625 -> 0.500 (docs/features.md, "The boundary's colour at paint scale")
 BOUNDARY_SIGMA_MM = 0.15
-
-
-def smooth_colour(albedo: np.ndarray, coverage: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Colour smoothed by a Gaussian of ``sigma_px`` over the fragment only (normalised convolution).
-
-    ``G * (albedo · coverage) / G * coverage`` where the coverage is positive: the edge keeps the
-    fragment's colour instead of mixing in the background's zeros (Knutsson & Westin 1993,
-    "Normalized and differential convolution"). A boundary sample is then the paint at that point,
-    not one pixel's noise. Outside the coverage the result is 0.
-
-    Parameters
-    ----------
-    albedo : (H, W, 3) float32, linear; coverage : (H, W) float32 in [0, 1]; sigma_px : float (0: unchanged)
-
-    Returns
-    -------
-    (H, W, 3) float32
-
-    >>> a = np.zeros((9, 9, 3), np.float32); a[:, :5] = 0.5; m = np.zeros((9, 9), np.float32); m[:, :5] = 1
-    >>> float(smooth_colour(a, m, 1.5)[4, 4, 0])   # the edge keeps the fragment's colour
-    0.5
-    """
-    if not sigma_px > 0:
-        return albedo
-    m = np.asarray(coverage, np.float32)
-    num = cv2.GaussianBlur(cv2.multiply(albedo, cv2.merge([m, m, m])), (0, 0), sigma_px)
-    den = cv2.GaussianBlur(m, (0, 0), sigma_px)
-    out = num / np.maximum(den, np.float32(1e-6))[..., None]
-    out[m <= 0] = 0.0
-    return out
 
 
 def boundary_channel_names(depths_mm=BOUNDARY_DEPTHS_MM) -> list[str]:
@@ -105,8 +76,9 @@ def boundary_profile(contour: Contour, albedo: np.ndarray, pixel_mm: float, *, w
     depths_mm : sequence of float
         Depths inside the contour, mm.
     sigma_mm : float
-        The colour is smoothed over the fragment at this scale first (:func:`smooth_colour`), so a
-        sample is the paint there, not one pixel's noise (0: sampled as it is).
+        The colour is smoothed over the fragment at this scale first (a normalised convolution,
+        :func:`common.rgbn._filters.normalized_blur`), so a sample is the paint there, not one pixel's
+        noise (0: sampled as it is).
 
     Returns
     -------
@@ -137,9 +109,10 @@ def boundary_profile(contour: Contour, albedo: np.ndarray, pixel_mm: float, *, w
     if not inside.any():
         raise ValueError("the fragment has no pixels: cannot sample its boundary")
     a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0)
-    if sigma_mm > 0:
-        a = smooth_colour(a, np.asarray(weight, np.float32) if weight is not None else inside.astype(np.float32),
-                          sigma_mm / pixel_mm)
+    if sigma_mm > 0:   # over the fragment only: the edge keeps the fragment's colour
+        cover = np.asarray(weight, np.float32) if weight is not None else inside.astype(np.float32)
+        a, _ = normalized_blur(a, cover, sigma_mm / pixel_mm)
+        a[cover <= 0] = 0.0
     mean, std = a[inside].mean(axis=0), a[inside].std(axis=0)
     kinds = [np.sqrt(np.clip(a, 0.0, None)), (a - mean) / (std + STD_FLOOR) * STD_SCALE]
     # NaN thickness (off the height map) stays NaN: the matcher skips those samples

@@ -117,6 +117,16 @@ class ImportItem:
         own = {d for _, d in self.own_digests()}
         return sorted({d for d in self.digests if d not in own})
 
+    def source_provenance(self) -> dict:
+        """What an artifact's provenance records of the files it was made from, read back by the check of every
+        import (:mod:`common.imports.sources`): ``source_sha256`` (every source, in order), ``shared_sha256``
+        (when there are shared sources) and ``dpi`` (``options["dpi"]``). After :meth:`fill_digests`."""
+        prov = {"source_sha256": list(self.digests)}
+        if self.shared:
+            prov["shared_sha256"] = self.shared_digests()
+        prov["dpi"] = self.options.get("dpi")
+        return prov
+
 
 @dataclass
 class Output:

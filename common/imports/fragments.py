@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from common.imports.driver import ImportRefused
+from common.rgbn._filters import normalized_blur
 from common.rgbn.image import RGBNImage
 from common.rgbn.io import linear_to_srgb, srgb_to_linear
 
@@ -137,14 +138,13 @@ def background_mask(rgb: np.ndarray, *, margin: float = 6.0, min_contrast: float
     back = rgb - diff     # the background model at every pixel
     # half coverage is decidable where piece and background differ by twice the threshold
     coverage = edge_coverage(rgb, found, back, srgb=srgb, edge_px=edge_px, min_contrast=2.0 * threshold)
-    edge = np.isfinite(coverage) & (coverage > 0.0) & (coverage < 1.0)
     band = found & ~cv2.erode(found.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     mask = np.where(np.isnan(coverage), found, coverage >= 0.5)
     if mask.any():
         mask = _fill_holes(_largest_component(mask))
     placed = float((band & np.isfinite(coverage)).sum() / max(int(band.sum()), 1))
     return mask, {"background": [float(v) for v in coef[0]], "threshold": float(threshold), "spread": float(spread),
-                  "coverage": coverage, "background_rgb": back, "edge_placed": placed, "edge_pixels": int(edge.sum())}
+                  "coverage": coverage, "background_rgb": back, "edge_placed": placed}
 
 
 def edge_coverage(rgb: np.ndarray, mask: np.ndarray, background: np.ndarray, *, srgb: bool = True,
@@ -198,10 +198,9 @@ def edge_coverage(rgb: np.ndarray, mask: np.ndarray, background: np.ndarray, *, 
     if not reach.any():
         return out
     # the piece's colour next to each edge pixel: normalised convolution of the inner part
-    weight = cv2.GaussianBlur(inner.astype(np.float32), (0, 0), edge_px)
-    near = cv2.GaussianBlur(rgb * inner[..., None], (0, 0), edge_px)
+    near, weight = normalized_blur(rgb, inner.astype(np.float32), edge_px)
     ok = reach & (weight > 1e-3)
-    f = near[ok] / weight[ok][:, None]
+    f = near[ok]
     c, b = rgb[ok], background[ok]
     contrast = np.linalg.norm(f - b, axis=1)
     if srgb:
@@ -213,6 +212,18 @@ def edge_coverage(rgb: np.ndarray, mask: np.ndarray, background: np.ndarray, *, 
     out[ok] = alpha
     out[reach & ~ok] = np.nan
     return out
+
+
+def cut_from_background(rgb: np.ndarray, *, margin: float = 6.0, srgb: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A piece on a plain background, cut out: ``(colour, mask, info)``.
+
+    The mask and ``info`` are :func:`background_mask`'s (the edge at half coverage); ``colour`` is ``rgb``
+    (float, [0, 1], as stored) with the background's share taken out of the edge pixels kept
+    (:func:`unmix_edge`), so no fringe of the background's colour lines the piece. What
+    ``tessera import images`` and ``tessera evaluate --collection`` make of an RGB picture.
+    """
+    mask, info = background_mask(rgb, margin=margin, srgb=srgb)
+    return unmix_edge(rgb, info["coverage"], info["background_rgb"], srgb=srgb), mask, info
 
 
 def unmix_edge(rgb: np.ndarray, coverage: np.ndarray, background: np.ndarray, *, srgb: bool = True) -> np.ndarray:
@@ -326,8 +337,7 @@ def fragment_from_image(image: np.ndarray, *, dpi: float, background: str = "aut
         mask = alpha > alpha_threshold
         how = "alpha"
     else:
-        mask, info = background_mask(rgb, margin=margin, srgb=srgb)
-        rgb = unmix_edge(rgb, info["coverage"], info["background_rgb"], srgb=srgb)
+        rgb, mask, info = cut_from_background(rgb, margin=margin, srgb=srgb)
         how = "plain background"
     area = float(mask.mean())
     if area < min_area_fraction or not mask.any():

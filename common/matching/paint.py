@@ -41,6 +41,8 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from common.rgbn._filters import normalized_blur
+
 #: grid of the paint fields, mm (paint features on real frescoes are ≥ 1 mm wide)
 PAINT_CELL_MM = 0.5
 #: outer rim replaced by the extrapolation (damaged, discoloured, the soft alpha edge), mm
@@ -112,13 +114,12 @@ def _lab(albedo_linear: np.ndarray) -> np.ndarray:
 
 
 def _smooth(values: np.ndarray, weight: np.ndarray, sigma_cells: float) -> np.ndarray:
-    """Normalised Gaussian convolution: the weighted mean of ``values`` around each cell."""
+    """Normalised Gaussian convolution (:func:`common.rgbn._filters.normalized_blur`), the kernel cut at 3 σ:
+    the weighted mean of ``values`` around each cell."""
     if sigma_cells <= 0:
         return values
     k = int(np.ceil(3 * sigma_cells)) * 2 + 1
-    num = cv2.GaussianBlur(values * weight[..., None], (k, k), sigma_cells)
-    den = cv2.GaussianBlur(weight, (k, k), sigma_cells)
-    return num / np.maximum(den, 1e-6)[..., None]
+    return normalized_blur(values, weight, sigma_cells, ksize=(k, k))[0]
 
 
 def checked_face(albedo, mask, pixel_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -97,6 +97,30 @@ def _blur_direct(values: np.ndarray, sigma_px: float) -> np.ndarray:
     return out
 
 
+def normalized_blur(values: np.ndarray, weight: np.ndarray, sigma_px: float, *,
+                    ksize: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Gaussian mean of ``values`` around each pixel: ``G * (values · weight) / G * weight``.
+
+    A normalised convolution (Knutsson & Westin 1993, "Normalized and differential convolution"):
+    pixels of zero weight (outside a fragment, or not yet known) neither count nor pull the mean
+    towards their values, so the edge of a region keeps the region's colour. ``values`` is (H, W) or
+    (H, W, C), ``weight`` (H, W); ``ksize`` as OpenCV's, (0, 0) = from ``sigma_px``.
+
+    Returns ``(mean, G * weight)``: the mean is ``num / max(den, 1e-6)``, so it tends to 0 where no
+    weighted pixel is within reach (callers that need to tell use the second array).
+
+    >>> v = np.zeros((9, 9, 3), np.float32); v[:, :5] = 0.5; w = np.zeros((9, 9), np.float32); w[:, :5] = 1
+    >>> float(normalized_blur(v, w, 1.5)[0][4, 4, 0])   # the region's edge keeps its colour
+    0.5
+    """
+    w = np.asarray(weight)
+    wide = values.ndim == 3
+    num = cv2.GaussianBlur(values * (w[..., None] if wide else w), ksize, sigma_px)
+    den = cv2.GaussianBlur(w, ksize, sigma_px)
+    floor = np.maximum(den, 1e-6)
+    return num / (floor[..., None] if wide else floor), den
+
+
 def normalize_vectors(v: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     """Unit vectors along the last axis (zero vectors stay zero)."""
     n = np.sqrt(np.einsum("...i,...i->...", v, v))

@@ -68,22 +68,19 @@ def read_fragment_rgba(path) -> np.ndarray:
     return a truncated PNG's missing rows as grey). 16-bit files are reduced to 8 bits.
 
     An RGB image without alpha (the piece photographed or scanned on a plain background, black or
-    any other) gets its alpha from :func:`common.imports.fragments.background_mask` (the edge where the
-    piece covers half a pixel) and its edge pixels the background's share taken out
-    (:func:`~common.imports.fragments.unmix_edge`), as ``tessera import images --background auto`` does;
-    one where no piece stands out from the background is refused."""
+    any other) is cut out by :func:`common.imports.fragments.cut_from_background` (the edge where the
+    piece covers half a pixel, the background's share taken out of the edge pixels), as ``tessera import
+    images --background auto`` does; one where no piece stands out from the background is refused."""
     from common.imports.door import read_image_checked
-    from common.imports.fragments import background_mask, unmix_edge
+    from common.imports.fragments import cut_from_background
 
     img = read_image_checked(path, channels=(3, 4))
     px = img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
     if px.shape[2] == 4:
         return px
-    rgb = px.astype(np.float32) / 255.0
-    mask, info = background_mask(rgb)
+    rgb, mask, _ = cut_from_background(px.astype(np.float32) / 255.0)
     if not mask.any():
         raise ValueError(f"{path}: RGB image without alpha, and no piece stands out from its plain background")
-    rgb = unmix_edge(rgb, info["coverage"], info["background_rgb"])   # no background fringe at the edge
     return np.dstack([(rgb * 255.0 + 0.5).astype(np.uint8), np.where(mask, 255, 0).astype(np.uint8)])
 
 
@@ -152,31 +149,31 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
         A bad ``truth.csv`` (naming the file and line), or damaged fragment images: every one is
         named with its reason (:func:`read_fragment_rgba`), so one run lists all there are to fix.
     """
-    from common.imports.manifest import IMAGE_SUFFIXES
+    from common.imports.manifest import IMAGE_SUFFIXES, expand_paths
 
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"path {root} is not a directory")
     pieces, refused = [], []
     for obj in sorted(p for p in root.iterdir() if p.is_dir()):
-        pngs = sorted(p for p in obj.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-        truth = _read_truth(obj / "truth.csv", {p.name for p in pngs}) if (obj / "truth.csv").is_file() else {}
-        for png in pngs:
+        pictures = sorted(expand_paths([obj]))   # as import images lists a folder (hidden files left out)
+        truth = _read_truth(obj / "truth.csv", {p.name for p in pictures}) if (obj / "truth.csv").is_file() else {}
+        for pic in pictures:
             try:
-                rgba = read_fragment_rgba(png)
+                rgba = read_fragment_rgba(pic)
             except ValueError as exc:   # every damaged image is named at once, not one per run
                 refused.append(str(exc))
                 continue
             h, w = rgba.shape[:2]
             crop, c0, r0 = _crop(rgba)
             M = None
-            if png.name in truth:
-                x, y, rot = truth[png.name]
+            if pic.name in truth:
+                x, y, rot = truth[pic.name]
                 R = cv2.getRotationMatrix2D((w / 2.0, h / 2.0), rot, 1.0)
                 R[:, 2] += (x, y)
                 M = R.copy()
                 M[:, 2] = R[:, :2] @ (c0, r0) + R[:, 2]  # crop pixel -> canvas
-            pieces.append(Piece(png.stem, obj.name, crop, M))
+            pieces.append(Piece(pic.stem, obj.name, crop, M))
     if refused:
         shown = "; ".join(refused[:10]) + (f"; and {len(refused) - 10} more" if len(refused) > 10 else "")
         raise ValueError(f"{len(refused)} fragment image(s) refused: {shown}")

@@ -110,7 +110,7 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
     rgbn.attrs.update({"source": "tessera import images", "face": item.face,
                        "metadata": json.dumps(opts["metadata"], sort_keys=True, ensure_ascii=False)})
     prov = {"importer": "tessera import images", "version": VERSION, "source_file": str(src),
-            "source_sha256": item.digests[0], "dpi": opts["dpi"], "mask_from": rgbn.attrs["mask_from"],
+            **item.source_provenance(), "mask_from": rgbn.attrs["mask_from"],
             "crop_px": [x0, y0]}
     if placed is not None:
         prov["edge_placed"] = placed

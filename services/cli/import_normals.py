@@ -204,7 +204,7 @@ def convert(item: ImportItem, store) -> list[Output]:
                             "source_convention": info["convention"],
                             "metadata": json.dumps(opts["metadata"], sort_keys=True, ensure_ascii=False)})
     prov = {"importer": "tessera import normals", "version": VERSION,
-            "source_files": [str(p) for p in item.sources], "source_sha256": item.digests, "dpi": opts["dpi"],
+            "source_files": [str(p) for p in item.sources], **item.source_provenance(),
             "convention": info["convention"], "curl_opengl": info["curl_opengl"], "curl_directx": info["curl_directx"],
             "albedo": "given" if len(item.sources) > 1 else "none (uniform 0.8)"}
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", rgbn, provenance=prov)

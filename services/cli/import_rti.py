@@ -187,7 +187,7 @@ def convert(item: ImportItem, store) -> list[Output]:
     done.rgbn.attrs.update({"source": "tessera import rti", "face": item.face})
     # the images say which fragment this is, the rig's files do not (common.imports.sources)
     prov = dict(done.provenance, importer="tessera import rti", importer_version=VERSION, capture=str(folder),
-                source_sha256=list(item.digests), shared_sha256=item.shared_digests(), dpi=o["dpi"])
+                **item.source_provenance())
     ref = save_rgbn(store, f"fragments/{item.fragment}/rgbn/{item.face}-{item.key}.h5", done.rgbn, provenance=prov)
     log.info("%s: re-render residual per image median %.3f, max %.3f", folder.name,
              float(sorted(done.residual)[len(done.residual) // 2]), float(max(done.residual)))

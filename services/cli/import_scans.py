@@ -267,7 +267,7 @@ def convert(item: ImportItem, store) -> list[Output]:
                  "%s deg (counter-clockwise from the image's +x)", item.fragment, face, t["turn"], t["angles_deg"],
                  t["correlation_min"], t["mask"], t.get("lamp_direction_deg", "?"))
     prov = {"importer": "tessera import scans", "version": VERSION,
-            "source_files": [str(p) for p in item.sources], "source_sha256": list(item.digests), "dpi": opts["dpi"],
+            "source_files": [str(p) for p in item.sources], **item.source_provenance(),
             "turn": {f: t["turn"] for f, t in turns.items()}, "registration_check": turns}
     ref = write_scans(store, item.fragment, result, key=item.key, provenance=prov)
     return [Output("fragment.ready", ref, {"device": opts["device"], "colour_only": bool(opts["colour_only"])})]

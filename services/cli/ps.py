@@ -391,8 +391,7 @@ def _run(args) -> int:
     rgbn, provenance = done.rgbn, done.provenance
     if capture is not None and capture.digests:
         # what the check of the next import or ps reads from the artifact: its images, the rig's files, the dpi
-        provenance = dict(provenance, source_sha256=list(capture.digests), shared_sha256=capture.shared_digests(),
-                          dpi=float(args.dpi))
+        provenance = dict(provenance, **capture.source_provenance())
 
     if args.output:
         out = Path(args.output)
