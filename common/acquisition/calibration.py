@@ -268,6 +268,15 @@ def measure_target(scan: np.ndarray, dpi: float) -> float:
     return read_target(scan, dpi).value
 
 
+def target_poses(tilts=DEFAULT_TILTS, azimuths=DEFAULT_AZIMUTHS) -> list[tuple[float, float]]:
+    """The target's poses ``(tilt_deg, azimuth_deg)`` that :func:`calibrate_scanner` scans, in order.
+
+    Tilt 0 is scanned once (every rotation of a flat target is the same pose); every other tilt at
+    every rotation.
+    """
+    return [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
+
+
 def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilts=DEFAULT_TILTS,
                       azimuths=DEFAULT_AZIMUTHS, dpi: float = 150, depth: int = 16, prescan_dpi: float = 50,
                       area_mm=None, target_albedo: float = 0.8, saturation: float = 0.98, max_clipped: float = 0.01,
@@ -280,7 +289,7 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
     operator : callable(tilt_deg, azimuth_deg)
         Sets the target up at that tilt and rotation; returns when done.
     tilts, azimuths : sequences of degrees
-        Tilt 0 is scanned once.
+        Tilt 0 is scanned once (:func:`target_poses`).
     area_mm : tuple or None
         Where the calibration jig holds the target; None = find it with a pre-scan each time.
     target_albedo : float
@@ -289,14 +298,14 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
         A target scan with more than ``max_clipped`` of its pixels clipped (a channel at or above
         ``saturation`` of full scale, or at 0) is dropped from the fit and listed in
         ``Calibration.report`` (:func:`fit_target_readings`).
+    progress : callable(fraction, text), optional
+        Called after each target scan with the fraction of poses done and the pose just scanned.
     """
-    poses = [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
+    poses = target_poses(tilts, azimuths)
     if len(poses) < 6:
         raise ValueError("need at least 6 target poses (tilts × azimuths) to fit and cross-validate")
     readings = []
     for i, (t, a) in enumerate(poses):
-        if progress:
-            progress(i / len(poses), f"target at tilt {t:g}°, rotation {a:g}°")
         operator(t, a)
         area = area_mm
         if area is None:
@@ -306,6 +315,8 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
         # the station's own path keeps the inner median (its figures were measured so); --from-files
         # reads at the glass (issue 16: a held-out scanner's lamp whose light changes with height)
         readings.append(read_target(img, dpi, saturation=saturation, tilt_deg=t, direction_deg=a, at_glass=False))
+        if progress:
+            progress((i + 1) / len(poses), f"target at tilt {t:g}°, rotation {a:g}°")
     return fit_target_readings(getattr(scanner, "name", "scanner"), readings, [p[0] for p in poses],
                                [p[1] for p in poses], names=[f"tilt {t:g}° rotation {a:g}°" for t, a in poses],
                                dpi=dpi, depth=depth, target_albedo=target_albedo, max_clipped=max_clipped)

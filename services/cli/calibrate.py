@@ -104,8 +104,10 @@ def _scan_dpi(args) -> float:
 
 
 def run(args) -> int:
-    from common.acquisition.calibration import calibrate_scanner, save_calibration, simulated_target_operator
+    from common.acquisition.calibration import (calibrate_scanner, save_calibration, simulated_target_operator,
+                                                target_poses)
     from common.acquisition.errors import CalibrationError, CaptureError
+    from common.imports import ProgressBar
     from common.store import Store
 
     cfg = config_from_arguments(args)
@@ -139,17 +141,22 @@ def run(args) -> int:
             input(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
                   "and press Enter ")
         area = None
+    tilts, azimuths = _floats(args.tilts, "tilts"), _floats(args.azimuths, "azimuths")
+    # progress on the standard error, as --from-files: the standard output is for the report
+    bar = ProgressBar(len(target_poses(tilts, azimuths)), "target scans")
     try:
-        cal = calibrate_scanner(scanner, operator, tilts=_floats(args.tilts, "tilts"),
-                                azimuths=_floats(args.azimuths, "azimuths"), dpi=_scan_dpi(args), area_mm=area,
+        cal = calibrate_scanner(scanner, operator, tilts=tilts, azimuths=azimuths, dpi=_scan_dpi(args), area_mm=area,
                                 target_albedo=args.target_albedo,
-                                progress=lambda f, t: print(f"[{f:4.0%}] {t}", flush=True))
+                                progress=lambda f, t: bar.update(round(f * bar.total), t))
     except CaptureError as exc:
+        bar.close()
         _error(exc.operator_message)
         return 1
     except CalibrationError as exc:
+        bar.close()
         _error(f"calibration failed: {exc}")
         return 1
+    bar.close()
     ref = save_calibration(store, cal)
     a = ", ".join(f"{v:+.4f}" for v in cal.a)
     print(f"scanner {cal.scanner}: a = ({a}) from {len(cal.intensities)} target scans")

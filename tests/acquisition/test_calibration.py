@@ -89,6 +89,22 @@ def test_tessera_calibrate_stores_and_shows_the_simulated_scanners_model(tmp_pat
     assert '"scanner": "sim"' in shown and '"a"' in shown
 
 
+def test_calibrate_prints_its_progress_on_stderr_and_only_its_result_on_stdout(tmp_path, capsys):
+    # the progress lines ("[ 20%] ... target at tilt ...") were printed on the standard output,
+    # mixed into the report that scripts read
+    from services.cli import main
+    assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--azimuths", "0,90,180,270",
+                 "--tilts", "0,10,20"]) == 0
+    cap = capsys.readouterr()
+    lines = cap.out.splitlines()
+    assert len(lines) == 3, cap.out
+    assert lines[0].startswith("scanner sim: a = (") and lines[1].startswith("leave-one-out RMS error")
+    assert lines[2].startswith("stored calibration/sim/")
+    progress = [ln for ln in cap.err.splitlines() if "target scans" in ln]
+    assert len(progress) == 9                                    # tilt 0 once, 2 tilts x 4 rotations
+    assert "9/9" in progress[-1] and "target at tilt 20°, rotation 270°" in progress[-1]
+
+
 def test_show_of_a_nominal_calibration_is_strict_json(tmp_path, capsys):
     # a nominal calibration has no cross-validation: its cv_rmse is NaN, which --show printed as a bare NaN
     import json
