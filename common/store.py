@@ -278,12 +278,32 @@ def _write_bytes(path: str, data: bytes) -> None:
         os.fsync(fh.fileno())
 
 
-def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True) -> None:
+def _umask_mode() -> int:
+    """The mode ``open()`` gives a new file: 0666 less the process's umask."""
+    umask = os.umask(0)   # the umask can only be read by setting it: set it back at once
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True, public: bool = False) -> None:
     """Write ``data`` to ``final`` atomically: free space checked, temporary name, fsync, rename.
 
     Raises :class:`StorageFull` / :class:`StorageReadOnly` / :class:`StorageUnavailable` like
-    :meth:`Store.write`, never leaving a partial file behind; without ``replace``,
-    :class:`FileExistsError` if ``final`` exists (see :func:`atomic_file`).
+    :meth:`Store.write`, never leaving a partial file behind (an older ``final`` stays as it was);
+    without ``replace``, :class:`FileExistsError` if ``final`` exists (see :func:`atomic_file`).
+
+    Parameters
+    ----------
+    final : path
+        The file to write.
+    data : bytes
+        Its whole content.
+    replace : bool
+        Replace an existing ``final`` (else :class:`FileExistsError`).
+    public : bool
+        Give the file the mode the umask allows, as ``open()`` would, for files other people and
+        tools read (an export's index, pictures, a reconstruction); else the temporary file's 0600,
+        as the store's artifacts.
     """
     final = Path(final)
     try:
@@ -293,6 +313,8 @@ def write_file(final: str | os.PathLike, data: bytes, *, replace: bool = True) -
     check_free_space(final.parent, len(data), str(final))
     with atomic_file(final, replace=replace) as tmp:
         _write_bytes(tmp, data)
+        if public:
+            os.chmod(tmp, _umask_mode())
 
 
 def _copy_verified(source: str | os.PathLike, final: Path, sha256: str) -> None:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from common.rgbn.image import RGBNImage
+from common.store import write_file
 
 import logging
 
@@ -267,24 +268,21 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
     """Write an (H, W) or (H, W, 3) image with values in [0, 1] as 8/16-bit PNG or TIFF.
 
     Values are written as given (no colour encoding); ``alpha`` (H, W) in [0, 1] adds a channel.
-    The format follows the suffix: ``.png``, ``.tif``/``.tiff``.
+    The format follows the suffix: ``.png``, ``.tif``/``.tiff``. The file is encoded in memory
+    (:func:`encode_png`, :func:`encode_tiff`) and written by :func:`common.store.write_file`: the
+    free space checked first, an older file at ``path`` replaced only by a whole new one, with the
+    mode the umask allows. Raises :class:`common.store.StorageFull` (an OSError) naming ``path``
+    when the disk is full.
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in _TIFF and suffix != ".png":
-        raise ValueError(f"output {path} must end in .png, .tif or .tiff")
-    data = _image_samples(image, bits, alpha)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if suffix in _TIFF:
-        import tifffile
-
-        tifffile.imwrite(path, data, photometric="rgb" if data.ndim == 3 else "minisblack",
-                         compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
+        data = encode_tiff(image, bits=bits, alpha=alpha)
+    elif suffix == ".png":
+        data = encode_png(image, bits=bits, alpha=alpha)
     else:
-        if data.ndim == 3:
-            data = cv2.cvtColor(data, cv2.COLOR_RGBA2BGRA if data.shape[2] == 4 else cv2.COLOR_RGB2BGR)
-        if not cv2.imwrite(str(path), data):
-            raise OSError(f"could not write {path}")
+        raise ValueError(f"output {path} must end in .png, .tif or .tiff")
+    write_file(path, data, public=True)
     return path
 
 
@@ -304,6 +302,27 @@ def encode_png(image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = N
     if not ok:
         raise ValueError(f"could not encode a {data.shape} image as PNG")
     return buf.tobytes()
+
+
+def encode_tiff(image: np.ndarray, *, bits: int = 16, alpha: np.ndarray | None = None) -> bytes:
+    """The bytes :func:`write_image` writes to a ``.tif`` file (zlib-compressed), in memory.
+
+    Examples
+    --------
+    >>> import tifffile, io
+    >>> tif = encode_tiff(np.zeros((4, 6, 3)), bits=16, alpha=np.ones((4, 6)))
+    >>> tifffile.imread(io.BytesIO(tif)).shape
+    (4, 6, 4)
+    """
+    import io
+
+    import tifffile
+
+    data = _image_samples(image, bits, alpha)
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, data, photometric="rgb" if data.ndim == 3 else "minisblack",
+                     compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
+    return buf.getvalue()
 
 
 def _image_samples(image: np.ndarray, bits: int, alpha: np.ndarray | None) -> np.ndarray:

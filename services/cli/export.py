@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -110,11 +109,8 @@ def run(args) -> int:
         listed = json.loads(index.read_text()) if index.is_file() else {"fragments": []}
         listed["fragments"] = sorted(set(listed.get("fragments", [])) | set(done))
         listed["storage_root"] = str(Path(root).resolve())
-        try:    # the project's atomic write, free space checked
-            write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"))
-            umask = os.umask(0)   # the store's files are made 0600; an export's index is for everyone the umask allows
-            os.umask(umask)
-            os.chmod(index, 0o666 & ~umask)
+        try:    # the project's atomic write, free space checked; an export's index is for everyone the umask allows
+            write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"), public=True)
         except OSError as exc:
             print(f"tessera export: {index} not updated: {exc}", file=sys.stderr)
             index_written = False

@@ -9,14 +9,15 @@ per cluster, ``OUT/cluster-<root>.png`` (8-bit sRGB, alpha = coverage) and ``clu
 (16-bit). Each cluster's next joins carry the pose the newcomer would take (its proposal's) and, where
 docked against the whole cluster it fits a corner (it faces two members there), that fit too
 (docs/matching.md, "Docking against a confirmed cluster"; ``--no-dock``: no fits). Conflicting loops are
-printed and listed in the JSON. Exit 0, 1 when a loop conflicts or a fragment's image is missing, 2 on bad
-arguments.
+printed and listed in the JSON. Every file is written by ``common.store.write_file`` (free space checked
+first, an older file replaced only by a whole new one); a full disk stops the command naming the file, and
+``reconstruction.json``, written last, stays as it was. Exit 0, 1 when a loop conflicts, a fragment's image
+is missing or the disk is full, 2 on bad arguments.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -46,7 +47,7 @@ def run(args) -> int:
     from common.matching import reconstruction as rc
     from common.messages import to_json
     from common.matching.proposals import ProposalStore
-    from common.store import Store
+    from common.store import Store, write_file
 
     if args.store:
         root, db_path = Path(args.store), None
@@ -91,31 +92,38 @@ def run(args) -> int:
         except ValueError as exc:
             print(f"tessera reconstruct: {exc}", file=sys.stderr)
             return 2
-    out.mkdir(parents=True, exist_ok=True)
-    composites = {}
-    if not args.json_only:
-        bar = ProgressBar(len(rec["clusters"]), "composite")
-        for i, c in enumerate(rec["clusters"]):
-            if any(f not in images for f in c.fragments):
-                bar.update(i + 1, f"{c.id}: skipped")
-                continue
-            comp = rc.compose_cluster(c, images, dpi=args.dpi, max_side_px=args.max_side)
-            stem = f"cluster-{c.root}"
-            rc.write_composite(comp, out / f"{stem}.png", out / f"{stem}.tif")
-            composites[c.id] = {"png": f"{stem}.png", "tiff": f"{stem}.tif", "dpi": comp["dpi"],
-                                "pixel_mm": comp["pixel_mm"], "origin_mm": list(comp["origin_mm"]),
-                                "size_px": [int(comp["alpha"].shape[1]), int(comp["alpha"].shape[0])]}
-            bar.update(i + 1, c.id)
-        bar.close()
-    doc = rec["document"]
-    for c in doc["clusters"]:
-        c["composite"] = composites.get(c["id"])
-    doc["missing_images"] = missing
-    tmp = out / ".reconstruction.json.tmp"
-    # strict JSON (NaN and ±inf as null) for every reader, as the web serves the same document; default=float: a
-    # numpy scalar is written as its number (json.dumps refused all but float64), anything else is still refused
-    tmp.write_text(to_json(doc, indent=2, default=float) + "\n", encoding="utf-8")
-    os.replace(tmp, out / "reconstruction.json")
+    # every file through the project's atomic writer (common.store.write_file, as write_composite's pictures):
+    # the free space checked first, an older file replaced only by a whole new one; a full disk stops the
+    # command and leaves reconstruction.json as it was
+    composites, bar = {}, None
+    try:
+        if not args.json_only:
+            bar = ProgressBar(len(rec["clusters"]), "composite")
+            for i, c in enumerate(rec["clusters"]):
+                if any(f not in images for f in c.fragments):
+                    bar.update(i + 1, f"{c.id}: skipped")
+                    continue
+                comp = rc.compose_cluster(c, images, dpi=args.dpi, max_side_px=args.max_side)
+                stem = f"cluster-{c.root}"
+                rc.write_composite(comp, out / f"{stem}.png", out / f"{stem}.tif")
+                composites[c.id] = {"png": f"{stem}.png", "tiff": f"{stem}.tif", "dpi": comp["dpi"],
+                                    "pixel_mm": comp["pixel_mm"], "origin_mm": list(comp["origin_mm"]),
+                                    "size_px": [int(comp["alpha"].shape[1]), int(comp["alpha"].shape[0])]}
+                bar.update(i + 1, c.id)
+            bar.close()
+        doc = rec["document"]
+        for c in doc["clusters"]:
+            c["composite"] = composites.get(c["id"])
+        doc["missing_images"] = missing
+        # strict JSON (NaN and ±inf as null) for every reader, as the web serves the same document; default=float:
+        # a numpy scalar is written as its number (json.dumps refused all but float64), anything else is refused
+        write_file(out / "reconstruction.json", (to_json(doc, indent=2, default=float) + "\n").encode("utf-8"),
+                   public=True)
+    except OSError as exc:   # StorageFull / StorageReadOnly name the problem and the file
+        if bar is not None:
+            bar.close()      # the error on a line of its own
+        print(f"tessera reconstruct: {exc}; stopped, {out / 'reconstruction.json'} not updated", file=sys.stderr)
+        return 1
     conflicts = [(c.id, lp) for c in rec["clusters"] for lp in c.conflicting_loops]
     print(f"{len(rec['clusters'])} cluster(s), {sum(len(c.fragments) for c in rec['clusters'])} fragments, "
           f"{sum(len(c.joins) for c in rec['clusters'])} joins, {sum(len(c.loops) for c in rec['clusters'])} loops "

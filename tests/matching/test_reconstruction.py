@@ -385,6 +385,49 @@ def test_cli_writes_strict_json_an_undefined_figure_as_null(tmp_path, monkeypatc
     assert all(isinstance(d["tx_mm"], float) for d in c["fragments"])
 
 
+@pytest.mark.parametrize("full", ["before", "while"])
+@pytest.mark.parametrize("json_only", [False, True])
+def test_cli_on_a_full_disk_names_the_file_and_keeps_the_older_output(tmp_path, monkeypatch, capsys, full, json_only):
+    """reconstruct wrote its JSON through its own temporary file and its pictures straight in place, with no
+    free-space check: a full disk went unnoticed or left a truncated picture where a good one was. Every file
+    goes through common.store.write_file now: the free space checked first (``before``), a disk filled during
+    the write (``while``, ENOSPC) refused too; exit 1 naming the file, the older output as it was."""
+    import collections
+    import errno
+    import os
+    import shutil
+    import stat
+
+    import common.store
+    from services.cli import main
+
+    _confirmed_station(tmp_path)
+    out = tmp_path / "out"
+    argv = ["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out)] + (["--json-only"] if json_only else [])
+    assert main(["reconstruct", "--store", str(tmp_path / "store"), "-o", str(out)]) == 0
+    umask = os.umask(0)
+    os.umask(umask)
+    older = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {n.rsplit(".", 1)[1] for n in older} == {"json", "png", "tif"}
+    assert {n: stat.S_IMODE((out / n).stat().st_mode) for n in older} == {n: 0o666 & ~umask for n in older}
+    capsys.readouterr()
+    if full == "before":
+        usage = collections.namedtuple("usage", "total used free")
+        monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 ** 12, 10 ** 12 - 1000, 1000))
+    else:
+        def half_then_enospc(path, data):   # the disk fills half-way through the file
+            with open(path, "wb") as fh:
+                fh.write(data[:len(data) // 2])
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        monkeypatch.setattr(common.store, "_write_bytes", half_then_enospc)
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    first = out / ("reconstruction.json" if json_only else next(n for n in sorted(older) if n.endswith(".png")))
+    said = {"before": f"storage full: {first} needs ", "while": f"storage full: cannot write {first} ("}[full]
+    assert said in err and f"{out / 'reconstruction.json'} not updated" in err, err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == older      # nothing half-written, nothing left over
+
+
 def test_cli_without_a_database_says_so(tmp_path, capsys):
     from services.cli import main
 
