@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 import time as _time
 import uuid
 from typing import Any, Mapping
@@ -293,7 +294,22 @@ def check_packed_size(msg: Mapping) -> int:
 
 def finite(value: Any) -> Any:
     """``value`` with every float that is not finite (NaN, ±inf) replaced by None, recursively through maps,
-    lists and tuples. A message may carry NaN ("not measured", e.g. a docked proposal's ``gap_mm``)."""
+    lists and tuples. A message may carry NaN ("not measured", e.g. a docked proposal's ``gap_mm``).
+
+    Numpy scalars (float16/32/64, ints, bools) and 0-d arrays become their Python values, numpy arrays
+    lists of them, under the same rule: JSON holds none of them but float64 (a float), and a float32
+    NaN went to ``to_json``'s ``default`` (``str``: the text ``"nan"``, a bool ``"True"``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> finite({"a": np.float32("nan"), "b": np.array([1.5, np.inf]), "c": np.int64(3), "d": np.bool_(True)})
+    {'a': None, 'b': [1.5, None], 'c': 3, 'd': True}
+    """
+    # a numpy value exists only when numpy is loaded: not imported here, for the broker and CLI without it
+    np = sys.modules.get("numpy")
+    if np is not None and isinstance(value, (np.generic, np.ndarray)):
+        value = value.tolist()   # Python scalars (of a 0-d array too), nested lists of them for an array
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
@@ -307,9 +323,10 @@ def to_json(value: Any, *, default: Any = str, **kwargs: Any) -> str:
     """Strict JSON text of a message or any document: NaN and ±inf written as ``null``.
 
     Python's ``json.dumps`` writes them as bare ``NaN`` / ``Infinity``, which no JSON reader but
-    Python's accepts (``jq``, a browser's ``JSON.parse``). ``default`` turns what JSON cannot hold into
-    something it can (``str`` unless given); what it returns is made finite too (``default=float`` of a
-    numpy NaN). Other keyword arguments go to ``json.dumps`` (``indent``, ``sort_keys``).
+    Python's accepts (``jq``, a browser's ``JSON.parse``). Numpy scalars and arrays are written as their
+    Python values and lists (:func:`finite`). ``default`` turns what JSON cannot hold else into something it
+    can (``str`` unless given); what it returns is made finite too. Other keyword arguments go to
+    ``json.dumps`` (``indent``, ``sort_keys``).
     """
     return json.dumps(finite(value), default=lambda obj: finite(default(obj)), allow_nan=False, **kwargs)
 

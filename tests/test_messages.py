@@ -417,8 +417,50 @@ def test_to_json_writes_nan_and_infinity_as_null_at_any_depth():
 
     doc = {"a": [1.5, float("-inf"), {"b": float("nan"), "c": (2, 3)}], "d": "NaN", "e": True,
            "f": np.float32("nan"), "g": np.float64("inf"), "h": b"\x01"}
-    # numpy float32 goes through ``default`` (float): its NaN is made null too
+    # what ``default`` returns is made finite too; numpy values do not need it (to_json writes them)
     got = json.loads(to_json(doc, default=lambda o: float(o) if isinstance(o, np.floating) else o.hex()),
                      parse_constant=refuse)
     assert got == {"a": [1.5, None, {"b": None, "c": [2, 3]}], "d": "NaN", "e": True, "f": None, "g": None,
                    "h": "01"}
+
+
+@pytest.mark.parametrize("dtype", ["float16", "float32", "float64"])
+def test_numpy_floats_are_numbers_their_nan_and_infinities_null(dtype):
+    """A numpy float32 (or float16) is not a Python float: to_json passed it to ``default`` (str), so a NaN
+    came out as the text "nan" and a number as a string; numpy scalars, 0-d arrays and arrays are written as
+    their Python values and lists, non-finite floats as null at any depth."""
+    import json
+
+    import numpy as np
+
+    from common.messages import finite, to_json
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+
+    t = np.dtype(dtype).type
+    doc = {"nan": t("nan"), "inf": t("inf"), "-inf": t("-inf"), "half": t(0.5), "zero-d": np.array(t("nan")),
+           "array": np.array([[0.25, np.nan], [np.inf, -2.0]], dtype=dtype), "nested": ({"x": t("nan")}, [t(1.5)])}
+    want = {"nan": None, "inf": None, "-inf": None, "half": 0.5, "zero-d": None, "array": [[0.25, None], [None, -2.0]],
+            "nested": [{"x": None}, [1.5]]}
+    assert json.loads(to_json(doc), parse_constant=refuse) == want
+    got = finite(doc)
+    assert got == want and type(got["half"]) is float and type(got["array"][0][0]) is float
+
+
+def test_numpy_ints_and_bools_are_json_numbers_and_booleans():
+    import json
+
+    import numpy as np
+
+    from common.messages import finite, to_json
+
+    ints = [np.dtype(d).type(7) for d in ("int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64")]
+    doc = {"ints": ints, "big": np.uint64(2 ** 64 - 1), "yes": np.bool_(True), "no": np.False_,
+           "mask": np.array([True, False]), "counts": np.arange(3, dtype=np.int64), "zero-d": np.array(5)}
+    text = to_json(doc)
+    assert json.loads(text) == {"ints": [7] * 8, "big": 2 ** 64 - 1, "yes": True, "no": False, "mask": [True, False],
+                                "counts": [0, 1, 2], "zero-d": 5}
+    assert '"yes": true' in text and '"7"' not in text              # not their text ("True", "7")
+    got = finite(doc)
+    assert type(got["yes"]) is bool and all(type(v) is int for v in got["ints"]) and type(got["zero-d"]) is int

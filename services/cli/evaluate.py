@@ -149,7 +149,7 @@ def _collection(args, progress) -> int:
           + f"; pose accuracy {span(iv['pose_accuracy'])}, offered {span(iv['pose_offered'])}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(to_json(res, indent=1, default=float))   # an undefined figure (NaN) as null
+        Path(args.json).write_text(to_json(res, indent=1))   # an undefined figure (NaN) as null
         print(f"figures in {args.json}")
     if (Path(out) / "collection_examples.png").is_file():
         print(f"hits and misses drawn in {Path(out) / 'collection_examples.png'}")

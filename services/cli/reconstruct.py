@@ -115,10 +115,9 @@ def run(args) -> int:
         for c in doc["clusters"]:
             c["composite"] = composites.get(c["id"])
         doc["missing_images"] = missing
-        # strict JSON (NaN and ±inf as null) for every reader, as the web serves the same document; default=float:
-        # a numpy scalar is written as its number (json.dumps refused all but float64), anything else is refused
-        write_file(out / "reconstruction.json", (to_json(doc, indent=2, default=float) + "\n").encode("utf-8"),
-                   public=True)
+        # strict JSON (NaN and ±inf as null, numpy scalars as their numbers) for every reader, as the web serves
+        # the same document
+        write_file(out / "reconstruction.json", (to_json(doc, indent=2) + "\n").encode("utf-8"), public=True)
     except OSError as exc:   # StorageFull / StorageReadOnly name the problem and the file
         if bar is not None:
             bar.close()      # the error on a line of its own

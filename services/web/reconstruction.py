@@ -301,7 +301,7 @@ def poses():
     doc = _reconstruction()["document"]
     if doc is None:
         return jsonify(error="no proposal store yet: nothing is confirmed"), 404
-    body = to_json(doc, indent=2, default=float) + "\n"   # strict, as tessera reconstruct writes it: NaN/±inf as null
+    body = to_json(doc, indent=2) + "\n"   # strict, as tessera reconstruct writes it: NaN/±inf as null
     return body, 200, {"Content-Type": "application/json",
                        "Content-Disposition": 'attachment; filename="reconstruction.json"'}
 
