@@ -74,7 +74,8 @@ ROLE_SUBMITS: dict[str, frozenset] = {
 ROLE_SERVES: dict[str, frozenset] = {r: frozenset({r}) for r in ("solver", "features", "matcher", "renderer")}
 ROLE_SERVES["admin"] = frozenset({"*"})
 ROLE_RERUNS = frozenset({"web", "admin"})
-#: what a stage key's worker may announce in its results (a renderer's key cannot slip in a verdict); admin any
+#: what a stage key's worker may announce in its results (a renderer's key cannot slip in a verdict); admin any,
+#: every other role (and a key without one: revoked, or made before roles) nothing
 ROLE_ANNOUNCES: dict[str, frozenset] = {
     "solver": frozenset({"rgbn.ready"}),
     "features": frozenset({"features.ready"}),
@@ -682,7 +683,9 @@ class Broker:
         if len(events) > MAX_RESULT_EVENTS:   # counted as refused, not silently cut
             invalid = len(events) - MAX_RESULT_EVENTS
             first_error = f"{len(events)} events in one result (at most {MAX_RESULT_EVENTS}); the rest refused"
-        announces = ROLE_ANNOUNCES.get(role) if role else None   # None: CURVE off, or an admin key
+        # None (anything): CURVE off, or an admin key. Any other role announces only its stage's events: none for a
+        # role without a stage, or a key revoked or re-roled while its worker held the job (role "" or another)
+        announces = None if role is None or role == "admin" else ROLE_ANNOUNCES.get(role, frozenset())
         for ev in events[:MAX_RESULT_EVENTS]:
             try:
                 ev = messages.validate(ev)

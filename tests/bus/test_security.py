@@ -261,6 +261,44 @@ def test_a_stage_key_may_announce_only_its_stages_events(make_station, keys):
     assert "a key of role 'renderer' may not announce match.verified" in rejected["error"]
 
 
+@pytest.mark.parametrize("change", [["revoke", "render1"], ["role", "render1", "web"]], ids=["revoked", "re-roled"])
+def test_a_key_revoked_or_re_roled_while_its_worker_holds_a_job_announces_nothing_of_another_role(
+        make_station, keys, change):
+    """docs/security.md: a registered worker may still return the result of the job it holds, but what a key
+    announces is its role's. A key whose role has no stage (re-roled to web, or revoked: no role) was let
+    announce anything, a forged verdict included; now only an admin key (or CURVE off) announces any type."""
+    from common.bus import protocol as P
+
+    from .test_broker import _FakeWorker
+
+    assert tessera(["keys", "add", "render1", "--role", "renderer", "--dir", str(keys)]) == 0
+    st = make_station(extra=_security_section(keys), routing={"rgbn.ready": ["renderer"]})
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    as_renderer = {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / "render1.key_secret"))}
+    art = {"path": "fragments/F1/rgbn/front-1.h5", "sha256": "1" * 64, "bytes": 10}
+    w = _FakeWorker(endpoint, 336, service=b"renderer", security=as_renderer)
+    try:
+        with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
+            c.submit(new_message("rgbn.ready", fragment="F1", face="front", artifact=art))
+        wait_for(lambda: w.pump(0.1) or w.jobs, 15, "the renderer's fake worker to get the job")
+        assert tessera(["keys", *change, "--dir", str(keys)]) == 0
+        with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
+            c.status()   # a handshake: the broker reads the key directory again
+        w.pump(0.2)
+        done = new_message("render.ready", fragment="F1", face="front", artifact=dict(art, path="fragments/F1/render/x.h5"))
+        forged = new_message("match.verified", fragment="F1", other="F2", verdict="confirmed")
+        w.send(P.RESULT, w.jobs[0].encode(), P.dumps([forged, done]))
+        with st.subscriber(0) as sub:
+            events = collect(sub, lambda ev: any(e["type"] == "input.rejected" for _, e in ev), 20, "the result")
+    finally:
+        w.close()
+    kinds = [e["type"] for _, e in events]
+    assert "match.verified" not in kinds and "render.ready" not in kinds, kinds
+    (rejected,) = [e for _, e in events if e["type"] == "input.rejected"]
+    assert "returned 2 invalid event(s)" in rejected["error"] and "may not announce match.verified" in rejected["error"]
+
+
 def test_keys_list_shows_roles_and_role_changes_them(keys, capsys):
     assert tessera(["keys", "add", "w", "--role", "web", "--dir", str(keys)]) == 0
     assert tessera(["keys", "role", "w", "subscriber", "--dir", str(keys)]) == 0
