@@ -26,8 +26,8 @@ config's shared storage -- or, when it is unreachable, to the bench's spool ``[s
 -- and every event into the same durable outbox as the scanner service
 (:class:`common.bus.outbox.Outbox`), drained in the background by the scanner's
 :class:`services.scanner.Drainer`. At the end the command waits up to ``--wait`` seconds for the
-outbox to drain; what is left stays in the outbox and goes out with the next ``tessera import`` or
-``tessera scanner`` on this machine. Resumability, content keys and the summary are
+outbox to drain; what is left stays in the outbox and goes out when ``tessera station`` runs on this
+machine (it drains the outbox while it runs), or with the next ``tessera import`` or ``tessera scanner`` here. Resumability, content keys and the summary are
 :func:`common.imports.run_import`'s.
 """
 
@@ -136,8 +136,8 @@ class BusSink:
         left = len(self.outbox)
         self.outbox.close()
         if left:
-            print(f"{left} event(s) wait in the outbox {self.outbox.dir} (lab unreachable); they go out with the "
-                  f"next `tessera import` or `tessera scanner` on this machine", file=out or sys.stderr)
+            print(f"{left} event(s) wait in the outbox {self.outbox.dir} (lab unreachable); they go out when "
+                  f"`tessera station` runs on this machine, or with the next `tessera import` or `tessera scanner`", file=out or sys.stderr)
         return left
 
 

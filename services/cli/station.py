@@ -179,6 +179,7 @@ def run(args) -> int:
               "--set broker.port=5565 --set broker.feed_port=5566")
         return 1
     status = 0
+    drainer = None
 
     def interrupt(*_):  # systemd and kill send SIGTERM: stop the children as for Ctrl-C
         raise KeyboardInterrupt
@@ -201,6 +202,7 @@ def run(args) -> int:
                         return 1
             for name in stages:
                 kids.start(name, "worker", name)
+            drainer = _drain_outbox(config)
             if args.no_scanner and args.demo is None:
                 log.info("no scanner: fragments come by `tessera import` or `tessera scanner` at the bench")
             elif config["scanner"]["device"] != "simulated" and args.demo is None:
@@ -223,8 +225,33 @@ def run(args) -> int:
         status = 130
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the orderly stop short
+        if drainer is not None:
+            drainer.stop.set()
+            drainer.wake.set()
+            drainer.join(5)
+            drainer.outbox.close()
         kids.stop()
     return status
+
+
+def _drain_outbox(config):
+    """Deliver this machine's outbox while the station runs (a started ``services.scanner.Drainer``).
+
+    ``tessera import`` and the scanner put their events there first; what could not go out then (the
+    station was down) would otherwise wait for the next import or capture, and a station run with
+    ``--no-scanner`` — the one for imported fragments — has no scanner to send it. The scanner child
+    drains the same outbox; an event sent twice is dropped by the broker (de-duplicated by uid)."""
+    from common.bus.outbox import Outbox
+    from common.store import Store
+    from services.scanner import Drainer
+    st = config["storage"]
+    outbox = Outbox(config["scanner"]["spool_dir"])
+    if len(outbox):
+        print(f"{len(outbox)} event(s) from imports or captures made while the station was down wait in "
+              f"{outbox.dir}; delivering them", flush=True)
+    drainer = Drainer(config, outbox, Store(st["root"], file_locking=st["file_locking"], create=st["create_root"]))
+    drainer.start()
+    return drainer
 
 
 def _demo(config, kids: Children, stages: list[str], n: int) -> int:

@@ -10,7 +10,7 @@ import sys
 import psutil
 import pytest
 
-from .conftest import REPO, wait_for
+from .conftest import REPO, collect, wait_for
 
 pytest.importorskip("common.synth")
 pytest.importorskip("common.acquisition.capture")
@@ -80,6 +80,29 @@ def test_station_without_a_scanner_captures_nothing(make_station, stations):
     assert p.returncode == 130, out
     fragments = st.root / "storage" / "fragments"
     assert not fragments.exists() or not any(fragments.iterdir())
+
+
+def test_station_delivers_what_waited_in_the_outbox(make_station, stations):
+    """Pictures imported while the station was down leave their events in this machine's outbox; the
+    station run for imported fragments (--no-scanner) has no scanner to send them, so it sends them itself."""
+    from common.bus.outbox import Outbox
+    from common.messages import new_message
+    st = make_station(routing={"noop.job": ["noop"]})
+    box = Outbox(st.root / "bench")                     # [scanner] spool_dir of this station
+    for i in range(2):
+        box.put(new_message("noop.job", n=i))
+    box.close()
+    p = _station(st, "--no-scanner")
+    stations.append(p)
+    wait_for(lambda: _answers(st), 60, "the station's broker")
+    wait_for(lambda: len(Outbox(st.root / "bench")) == 0, 60, "the outbox to be delivered")
+    with st.subscriber(since=0) as sub:
+        got = collect(sub, lambda evs: sum(e["type"] == "noop.job" for _, e in evs) >= 2, 30, "both waiting events")
+    assert sorted(e["n"] for _, e in got if e["type"] == "noop.job") == [0, 1]
+    p.send_signal(signal.SIGTERM)
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 130, out
+    assert "2 event(s) from imports or captures made while the station was down" in out
 
 
 def _answers(st) -> bool:
