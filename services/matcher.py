@@ -133,11 +133,18 @@ def handle(job: dict, ctx) -> list[dict]:
 def _on_features(job: dict, ctx) -> list[dict]:
     fragment, face = str(job["fragment"]), str(job.get("face", "front"))
     st = _state(ctx)
-    st.db.add_fragment(fragment, face, job["artifact"])
     if face != "front":
+        st.db.add_fragment(fragment, face, job["artifact"])
         ctx.log.info("fragment %s %s face recorded; only front faces are matched", fragment, face)
         return []
-    _sync(st, ctx)  # indexes the new fragment (only its own cues are computed)
+    # read (digest, schema, layout) before recording: a bad artifact rejects this job only. Recorded, it would be
+    # read by every later job (_sync) and fail each, and it would replace the fragment's good features
+    table = load_features(ctx.store, job["artifact"], face="front")
+    st.db.add_fragment(fragment, face, job["artifact"])
+    if st.seen.get(fragment) != job["artifact"]["sha256"]:   # indexed here, not read again by _sync
+        st.index.add(fragment_cues(table, fragment), table.contour_mm, table.boundary_profile)
+        st.seen[fragment] = job["artifact"]["sha256"]
+    _sync(st, ctx)  # the fragments other workers added meanwhile
     cfg = ctx.config or {}
     cues = st.index.cues[fragment]
     # docking follows as its own job: the first answer is the fast stages' (module docstring)

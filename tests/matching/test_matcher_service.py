@@ -401,3 +401,31 @@ def test_one_proposal_is_logged_in_the_singular(station, caplog):
         matcher.handle(new_message("features.ready", fragment=second, face="front", artifact=arts[second]), ctx)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith(f"fragment {second}: ")]
     assert lines and all(line.startswith(f"fragment {second}: 1 proposal, ") for line in lines), lines
+
+
+@pytest.mark.parametrize("damage", ["corrupt", "not-features"])
+def test_a_bad_feature_artifact_rejects_its_own_job_only_and_is_never_recorded(station, damage):
+    """docs/storage.md: a corrupt input is refused (input.rejected) for its job. The matcher recorded the features
+    in its proposal store before reading them, so every later job (each reads every recorded table) failed on that
+    one file too, and a fragment's good features were replaced by the bad ones; now a table is read before it is
+    recorded."""
+    import services.matcher as matcher
+    from common.store import ArtifactError
+
+    wall, store, db, arts, ctx = station
+    a, b, c = (f.id for f in wall.fragments[:3])
+    _arrive(station, 2)
+    good = db.fragments(face="front")
+    if damage == "corrupt":   # the digest the message states is not the file's
+        bad = dict(arts[c].to_dict(), sha256="0" * 64)
+    else:                     # a valid artifact of another schema
+        bad = store.write(f"fragments/{c}/features/front-bogus.h5", "tessera.noop", 1,
+                          lambda f: f.create_dataset("received", data=1.0)).to_dict()
+    for fid in (c, a):        # a new fragment, and one whose good features are recorded
+        with pytest.raises(ArtifactError):
+            matcher.handle(new_message("features.ready", fragment=fid, face="front", artifact=bad), ctx)
+    assert db.fragments(face="front") == good, "nothing of the bad artifact recorded"
+    matcher._STATES.clear()   # a restarted worker reads every recorded table
+    events = matcher.handle(new_message("features.ready", fragment=c, face="front", artifact=arts[c]), ctx)
+    assert all(e["type"] in ("match.proposed", "match.ranked") for e in events)
+    assert {r["fragment"] for r in db.fragments(face="front")} == {a, b, c}
