@@ -46,6 +46,7 @@ the simulated scanner (``sim``) or, with ``--device sane``, the SANE device's na
 
 from __future__ import annotations
 
+import math
 import sys
 
 from common.config import add_config_arguments, config_from_arguments
@@ -123,6 +124,17 @@ def run(args) -> int:
         _error(f"--device must be simulated or sane (or a device name with --from-files, --nominal or --show), "
                f"got {device!r}")
         return 2
+    # the target poses are checked before the scanner is opened and the operator asked to set anything up
+    tilts, azimuths = _floats(args.tilts, "tilts"), _floats(args.azimuths, "azimuths")
+    bad = [t for t in tilts if not 0 <= t < 90] + [a for a in azimuths if not math.isfinite(a)]
+    if bad:
+        _error(f"--tilts must be degrees in [0, 90) and --azimuths finite degrees, got {', '.join(map(str, bad))}")
+        return 2
+    n_poses = len(target_poses(tilts, azimuths))
+    if n_poses < 6:
+        _error(f"--tilts {args.tilts} × --azimuths {args.azimuths} make {n_poses} target pose(s); the lamp fit and "
+               f"its cross-validation need at least 6 (tilt 0 counts once)")
+        return 2
     if device == "simulated":
         from common.acquisition.flatbed_sim import SimulatedFlatbed
         scanner = SimulatedFlatbed(args.name or "sim", seed=int(cfg["scanner"]["seed"]))
@@ -141,9 +153,8 @@ def run(args) -> int:
             input(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
                   "and press Enter ")
         area = None
-    tilts, azimuths = _floats(args.tilts, "tilts"), _floats(args.azimuths, "azimuths")
     # progress on the standard error, as --from-files: the standard output is for the report
-    bar = ProgressBar(len(target_poses(tilts, azimuths)), "target scans")
+    bar = ProgressBar(n_poses, "target scans")
     try:
         cal = calibrate_scanner(scanner, operator, tilts=tilts, azimuths=azimuths, dpi=_scan_dpi(args), area_mm=area,
                                 target_albedo=args.target_albedo,

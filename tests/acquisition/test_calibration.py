@@ -141,3 +141,17 @@ def test_a_bad_tilt_list_is_named_on_stderr_as_the_command_names_its_errors(tmp_
 
     with pytest.raises(SystemExit, match="^tessera calibrate: --tilts must be comma-separated numbers, got '0,ten'"):
         main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--tilts", "0,ten"])
+
+
+@pytest.mark.parametrize("tilts, azimuths, says", [
+    ("0,10", "0,90", "make 3 target pose(s)"),        # too few poses to fit and cross-validate
+    ("0,95", "0,90,180,270", "[0, 90)"),             # a tilt no jig can hold
+    ("0,10,-5", "0,90,180,270", "-5"),
+])
+def test_calibrate_refuses_target_poses_it_cannot_fit_before_scanning(tmp_path, capsys, tilts, azimuths, says):
+    # too few poses ended in a ValueError traceback after the target had been scanned
+    from services.cli import main
+    assert main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--tilts", tilts, "--azimuths", azimuths]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.startswith("tessera calibrate: ") and says in cap.err
+    assert "target scans" not in cap.err and not (tmp_path / "calibration").exists()
