@@ -15,6 +15,7 @@ functions are passed in, so it is tested with any callables.
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from dataclasses import dataclass, field
@@ -137,6 +138,9 @@ class BenchSession:
         self._scanner = threading.Lock()      # held for the whole of a pre-scan or a capture
         self._cond = threading.Condition()   # guards _state and the operator hand-shake
         self._state = _State()
+        # names this session in every state: ``seq`` starts again when the station restarts, so the page
+        # orders the answers it gets by (session, seq) and draws none older than the one it shows
+        self._session = secrets.token_hex(8)
         self._released: int | None = None    # step index the operator has confirmed
         self._cancel = False
         self._thread: threading.Thread | None = None
@@ -144,13 +148,14 @@ class BenchSession:
 
     # -- what the page reads ----------------------------------------------------------------
     def state(self) -> dict:
-        """A JSON-able snapshot: phase, fragment, current step, counts, message, error, history."""
+        """A JSON-able snapshot: phase, fragment, current step, counts, message, error, history, and
+        ``session`` and ``seq``, which order the snapshots (``seq`` grows with every change in a session)."""
         with self._cond:
             s = self._state
             return {"phase": s.phase, "fragment": s.fragment, "step": dict(s.step) if s.step else None,
                     "scans_done": s.scans_done, "scans_total": s.scans_total, "message": s.message,
                     "error": dict(s.error) if s.error else None,
-                    "delivery": dict(s.delivery) if s.delivery else None, "seq": s.seq,
+                    "delivery": dict(s.delivery) if s.delivery else None, "seq": s.seq, "session": self._session,
                     "busy": self._scanner.locked(),
                     "history": [vars(r).copy() for r in s.history]}
 

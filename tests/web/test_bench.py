@@ -83,6 +83,22 @@ def test_capture_waits_for_the_operator_before_every_scan_and_delivers():
     assert not st["busy"]
 
 
+def test_every_state_names_its_session_so_a_restart_is_told_from_an_older_answer():
+    """The page orders the answers it gets by (session, seq): seq grows within a session and starts
+    again in a new one (the station restarted), which has another name."""
+    def session():
+        return BenchSession(capture=FakeScanner().capture, deliver=lambda fid, r: {"sent": True})
+
+    first, restarted = session(), session()
+    st = first.state()
+    first.start("F0001")
+    waiting = _wait_step(first, 0)
+    assert waiting["session"] == st["session"] and waiting["seq"] > st["seq"]
+    assert restarted.state()["session"] != st["session"]
+    first.cancel()
+    first.join(2)
+
+
 def test_lab_unreachable_keeps_scans_and_says_so():
     scanner = FakeScanner()
     session = BenchSession(capture=scanner.capture, deliver=lambda fid, r: {"sent": False},

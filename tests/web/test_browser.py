@@ -210,6 +210,16 @@ def _stalled(page, live, step: str, console: list[str]) -> None:
                 f"the page's console: {console}\n{live.logs()}")
 
 
+def _free_the_scanner(live) -> None:
+    """Cancel a capture a failed test left waiting for a step (nothing if none is), so the tests after
+    it find the scanner free instead of failing too."""
+    import urllib.request
+
+    req = urllib.request.Request(f"{live.url}/api/bench/cancel", data=b"{}", method="POST",
+                                 headers={"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"})
+    urllib.request.urlopen(req, timeout=10).close()
+
+
 def test_operator_captures_a_fragment_end_to_end(browser, live):
     ctx, page = _login(browser, live)
     console: list[str] = []
@@ -264,6 +274,7 @@ def test_operator_captures_a_fragment_end_to_end(browser, live):
         _shot(page, "bench")
     finally:
         ctx.close()
+        _free_the_scanner(live)
 
 
 def test_the_bench_page_keeps_following_the_station_after_a_bad_answer(browser, live):
@@ -296,6 +307,70 @@ def test_the_bench_page_keeps_following_the_station_after_a_bad_answer(browser, 
                                timeout=60_000)
     finally:
         other_ctx.close()
+        ctx.close()
+
+
+def test_a_late_live_poll_answer_does_not_take_the_page_back_from_a_step(browser, live):
+    """Answers can arrive out of order: the scan's answer (the capture already waiting at step 1) before
+    the long poll's, read a moment earlier (it lists today's fragments too). The page must not draw that
+    older state over the step: there the operator's Enter was not taken, the station waited for step 1
+    for good and the end-to-end capture stalled at "Step 1" in CI. Every bench answer here is the test's,
+    in the order it chooses; a state of another session (the station restarted) is still drawn."""
+    ctx, page = _login(browser, live, next_path="/status")   # no bench page polls before the route is in place
+    step1 = {"index": 1, "total": 8, "face": "front", "rotation": 0.0,
+             "instruction": "Place the fragment face down (front face, scan 1 of 8)"}
+
+    def state(seq, phase, message="", step=None, session="before"):
+        return {"phase": phase, "fragment": None if phase == "idle" else "F0009", "step": step,
+                "scans_done": 1 if step else 0, "scans_total": 8 if step else 0, "message": message,
+                "error": None, "delivery": None, "seq": seq, "session": session, "busy": phase != "idle",
+                "history": []}
+
+    held, proceeds = [], []   # long polls not answered yet; the steps confirmed
+
+    def answer(route, st):
+        route.fulfill(status=200, content_type="application/json",
+                      body=json.dumps({"bench": st, "fragments": [], "time": time.time()}))
+
+    def bench_api(route):
+        path = route.request.url[len(live.url):]
+        if path == "/api/bench":
+            answer(route, state(4, "idle", "Fragment found. Press Scan to capture it."))
+        elif path.startswith("/api/bench?after="):
+            held.append(route)
+        elif path == "/api/bench/scan":
+            answer(route, state(6, "waiting", step=step1))
+        elif path == "/api/bench/proceed":
+            proceeds.append(route.request.post_data_json)
+            answer(route, state(6, "waiting", step=step1))
+        else:
+            route.abort()
+
+    def wait_until(condition, what):
+        deadline = time.monotonic() + 10
+        while not condition():
+            assert time.monotonic() < deadline, f"the page never {what}"
+            page.wait_for_timeout(50)   # lets the routes run
+
+    shown = "() => document.getElementById('step').hidden ? document.getElementById('bench-message').textContent " \
+            ": document.getElementById('step-count').textContent"
+    try:
+        page.route(re.compile(r"/api/bench(\?|/|$)"), bench_api)
+        page.goto(f"{live.url}/bench")
+        wait_until(lambda: len(held) == 1, "started its long poll")
+        page.fill("#fragment-id", "F0009")
+        page.click("#scan-button")
+        page.wait_for_function("() => !document.getElementById('step').hidden", timeout=10_000)
+        answer(held[0], state(5, "scanning", "Starting the capture…"))   # the long poll's older answer, late
+        wait_until(lambda: len(held) == 2, "polled again after the late answer")
+        assert page.evaluate(shown) == "Step 1 of 8", "the late answer took the page back from the step"
+        page.keyboard.press("Enter")
+        wait_until(lambda: proceeds, "sent the step the operator confirmed")
+        assert proceeds == [{"step": 1}]
+        # the station restarted: its seq start again, and the page follows it
+        answer(held[1], state(1, "idle", "The scanner is ready.", session="after"))
+        page.wait_for_function(f"() => ({shown})() === 'The scanner is ready.'", timeout=10_000)
+    finally:
         ctx.close()
 
 

@@ -23,6 +23,16 @@
     }
   }
 
+  // answers arrive out of order: a scan's answer, read as the capture waits at step 1, can overtake
+  // the long poll's, read a moment before (it also lists today's fragments). Drawing the older one
+  // took the page back from the step (to "Starting the capture…" or the pre-scan's state), where the
+  // operator's Enter was ignored and the station waited for step 1 for good. So no answer older than
+  // the state shown is drawn; one from another session (the station restarted, its seq start again)
+  // always is
+  function newer(st) {
+    return !current || st.session !== current.session || st.seq >= current.seq;
+  }
+
   function render(st) {
     const finished = st.phase === "done" && (!current || current.phase !== "done");
     current = st;
@@ -87,8 +97,8 @@
       let drawn = false;
       if (r.ok) {
         try {
-          seq = r.data.bench.seq;
-          render(r.data.bench);
+          if (newer(r.data.bench)) render(r.data.bench);
+          seq = current.seq;   // wait for a change from what is shown, whichever answer brought it
           renderFragments(r.data.fragments || []);
           drawn = true;
         } catch (e) { console.error("bench: could not show the station's state", e); }
@@ -109,9 +119,7 @@
         // pre-scan answers within seconds; a real one well inside ACTION_TIMEOUT_MS)
         const r = await Tessera.api("POST", url, body, { timeoutMs: ACTION_TIMEOUT_MS });
         if (!r.ok) showError({ message: r.data.error || `refused (${r.status})` });
-        // its answer can come after the long poll showed a newer state (the poll always renders:
-        // after a restart of the station its numbers start again)
-        else if (!current || r.data.bench.seq >= current.seq) render(r.data.bench);
+        else if (newer(r.data.bench)) render(r.data.bench);   // the long poll may have shown a newer state
       } catch (e) {   // a failed action must not stop the ones queued behind it
         console.error("bench: action failed", url, e);
       } finally { inFlight = null; }
