@@ -4,8 +4,10 @@ Storage layout (``docs/storage.md``): ``fragments/<id>/<stage>/<face>-<key>.h5``
 fragment:
 
 * **solver** — every face the scans artifact holds scans of (groups ``front``/``back`` with at
-  least one scan) has an RGBN artifact; else the scans' ``fragment.ready`` is re-submitted (an
-  unreadable scans file counts as "some face expected": its ``rgbn`` folder must not be empty);
+  least one scan) has an RGBN artifact, and the face's newest one, where the solver made it, was made by
+  the solver's current version when ``versions`` gives it; else the scans' ``fragment.ready`` is
+  re-submitted (an unreadable scans file counts as "some face expected": its ``rgbn`` folder must not be
+  empty). An RGBN an importer made (no scans to solve) is never re-solved;
 * **features, renderer** — every RGBN face's newest RGBN artifact has a feature table and an illustration
   made from it (their provenance names it as an input; one that names no input counts) by the stage's current
   version when ``versions`` gives it (``tessera reconcile`` does); else that face's ``rgbn.ready``;
@@ -41,6 +43,20 @@ def _artifacts(folder: Path) -> list[Path]:
 
 def _face(path: Path) -> str:
     return path.stem.split("-", 1)[0]
+
+
+def _made_by_older_solver(store: Store, rgbn: Path, version: str | None) -> bool:
+    """Whether an RGBN artifact was made by the solver stage at a version other than ``version`` (None: no
+    version is current, so none is older). Imported RGBN (another ``stage``), RGBN that records no version
+    and unreadable files are not: they are not the solver's to redo."""
+    if version is None:
+        return False
+    try:
+        with store.open(rgbn.relative_to(store.root).as_posix()) as f:
+            prov = store.provenance(f)
+    except Exception:  # noqa: BLE001 - unreadable: not re-solved on the strength of it
+        return False
+    return prov.get("stage") == "solver" and prov.get("stage_version") not in (None, version)
 
 
 def _made_from(store: Store, output: Path, source_rel: str, version: str | None = None) -> bool:
@@ -95,9 +111,9 @@ def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
     matcher_db : path, optional
         The matcher's proposal store; without it the matcher step is not checked.
     versions : mapping, optional
-        Folder (``"features"``, ``"renders"``) → the ``VERSION`` its stage writes now: an output made by another
-        version of the stage is missing too (a face drawn before a fix of the renderer is drawn again). Without
-        it any version counts.
+        Folder (``"rgbn"``, ``"features"``, ``"renders"``) → the ``VERSION`` its stage writes now: an output made
+        by another version of the stage is missing too (a face drawn before a fix of the renderer is drawn again;
+        a face solved before a fix of the solver is solved again from its scans). Without it any version counts.
 
     Returns
     -------
@@ -124,16 +140,22 @@ def missing_stages(store: Store, *, pending: Iterable[tuple] | None = None,
     for frag_dir in sorted(p for p in root.iterdir() if p.is_dir()):
         frag = frag_dir.name
         rgbn = _artifacts(frag_dir / "rgbn")
-        rgbn_faces = {_face(p) for p in rgbn}
+        newest_rgbn = {_face(p): p for p in rgbn}  # sorted oldest first: the last one wins
+        # a face whose newest RGBN an older solver made is as good as unsolved (its re-solve is the newest then)
+        rgbn_faces = {face for face, p in newest_rgbn.items()
+                      if not _made_by_older_solver(store, p, (versions or {}).get("rgbn"))}
+        solving = set()    # faces the solver makes (again): their later stages follow from the new RGBN
         for scans in _artifacts(frag_dir / "scans")[-1:]:  # the newest capture of the fragment
             rel = scans.relative_to(store.root).as_posix()
             expected = _faces_scanned(store, rel)
-            missing = sorted(expected - rgbn_faces) if expected is not None else ([] if rgbn else ["?"])
+            missing = sorted(expected - rgbn_faces) if expected is not None else ([] if rgbn_faces else ["?"])
+            solving = set(FACES) if missing == ["?"] else set(missing)
             if missing and not covered(frag, None, 0):
                 events.append(new_message("fragment.ready", fragment=frag, artifact=store.ref(rel), reconciled=True,
                                           missing=[f"rgbn/{m}" for m in missing]))
-        newest_rgbn = {_face(p): p for p in rgbn}  # sorted oldest first: the last one wins
         for face, path in sorted(newest_rgbn.items()):
+            if face in solving:
+                continue
             rel = path.relative_to(store.root).as_posix()
             missing = [d for d in ("features", "renders")
                        if not any(_face(p) == face and _made_from(store, p, rel, (versions or {}).get(d))

@@ -39,9 +39,12 @@ def run(args) -> int:
     db = (config.get("services", {}).get("matcher", {}) or {}).get("db") or store.root / "matches" / "proposals.sqlite"
     from services.features import VERSION as FEATURES_VERSION
     from services.renderer import VERSION as RENDERER_VERSION
-    # made by an older stage counts as missing: a face drawn before a fix of the renderer is drawn again
+    from services.solver import VERSION as SOLVER_VERSION
+    # made by an older stage counts as missing: a face drawn before a fix of the renderer is drawn again, a
+    # face solved before a fix of the solver is solved again from its scans
     events = missing_stages(store, pending=pending, matcher_db=db,
-                            versions={"features": FEATURES_VERSION, "renders": RENDERER_VERSION})
+                            versions={"rgbn": SOLVER_VERSION, "features": FEATURES_VERSION,
+                                      "renders": RENDERER_VERSION})
     for e in events:
         print(f"{e['fragment']:<12} {e['type']:<15} {e.get('face', ''):<6} {e['artifact']['path']}  "
               f"(missing {', '.join(e['missing'])})")

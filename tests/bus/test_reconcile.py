@@ -197,3 +197,44 @@ def test_an_output_made_by_an_older_version_of_its_stage_is_made_again(tmp_path)
     assert missing_stages(store, versions=now) == []
     made("features", None, "f0")                            # an output recording no version still counts
     assert missing_stages(store, versions={**now, "features": "features-10"}) == []
+
+
+def test_a_face_solved_by_an_older_solver_is_solved_again_from_its_scans(tmp_path):
+    """A fix of the solver reached only fragments captured after it: reconcile counted any RGBN of the face.
+    Given the solver's current version, a face whose newest RGBN an older solver made is solved again (its
+    features and illustration then follow from the new RGBN, not from the old one); an imported RGBN, with no
+    scans to solve, and one that records no version are left as they are."""
+    store = Store(tmp_path)
+
+    def rgbn(frag, face, key, **prov):
+        return store.write(f"fragments/{frag}/rgbn/{face}-{key}.h5", "tessera.test", 1,
+                           lambda f: f.create_dataset("x", data=[1]), provenance=prov)
+
+    def later_stages(frag, face, ref):
+        for d in ("features", "renders"):
+            store.write(f"fragments/{frag}/{d}/{face}-{ref.sha256[:6]}.h5", "tessera.test", 1,
+                        lambda f: f.create_dataset("x", data=[1]), provenance={"inputs": [ref.to_dict()]})
+
+    scans = store.write("fragments/S/scans/scans-s1.h5", "tessera.test", 1,
+                        lambda f: [f.create_group(face).create_dataset("scan0", data=[1]) for face in ("front", "back")])
+    for face in ("front", "back"):
+        later_stages("S", face, rgbn("S", face, "old", stage="solver", stage_version="flatbed-ps-1.0"))
+    later_stages("I", "front", rgbn("I", "front", "imp", stage="import images", stage_version="images-3"))
+    later_stages("N", "front", rgbn("N", "front", "nov", stage="solver"))
+    store.write("fragments/N/scans/scans-n1.h5", "tessera.test", 1,
+                lambda f: f.create_group("front").create_dataset("scan0", data=[1]))
+    now = {"rgbn": "flatbed-ps-1.1", "features": None, "renders": None}
+    assert missing_stages(store) == []                      # any version counts without versions
+    (e,) = missing_stages(store, versions=now)
+    assert (e["type"], e["fragment"], e["artifact"]["path"], e["missing"]) == (
+        "fragment.ready", "S", scans.path, ["rgbn/back", "rgbn/front"])
+    assert missing_stages(store, versions=now, pending=[("solver", "queued", "fragment.ready", "S", None)]) == []
+    # once a face is solved again its newest RGBN is the current solver's, and its later stages are asked for
+    # the new RGBN (not for the old one while the face waits to be solved)
+    new = rgbn("S", "front", "new", stage="solver", stage_version="flatbed-ps-1.1")
+    got = sorted((e["type"], e.get("face"), e["artifact"]["path"], e["missing"]) for e in missing_stages(store, versions=now))
+    assert got == [("fragment.ready", None, scans.path, ["rgbn/back"]),
+                   ("rgbn.ready", "front", new.path, ["features/front", "renders/front"])]
+    later_stages("S", "front", new)
+    later_stages("S", "back", rgbn("S", "back", "new", stage="solver", stage_version="flatbed-ps-1.1"))
+    assert missing_stages(store, versions=now) == []
