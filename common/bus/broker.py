@@ -71,9 +71,11 @@ ROLE_SUBMITS: dict[str, frozenset] = {
     "web": frozenset({"match.verified", "fragment.annotated"}),
     "admin": frozenset(messages.EVENT_TYPES),
 }
+# a bench PC runs `tessera web` with its scanner under one host key: its captures and its verdicts
+ROLE_SUBMITS["bench"] = ROLE_SUBMITS["scanner"] | ROLE_SUBMITS["web"]
 ROLE_SERVES: dict[str, frozenset] = {r: frozenset({r}) for r in ("solver", "features", "matcher", "renderer")}
 ROLE_SERVES["admin"] = frozenset({"*"})
-ROLE_RERUNS = frozenset({"web", "admin"})
+ROLE_RERUNS = frozenset({"web", "bench", "admin"})
 #: what a stage key's worker may announce in its results (a renderer's key cannot slip in a verdict); admin any,
 #: every other role (and a key without one: revoked, or made before roles) nothing
 ROLE_ANNOUNCES: dict[str, frozenset] = {

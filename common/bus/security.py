@@ -46,9 +46,10 @@ DEFAULTS = {
 }
 
 
-#: roles a key can have: a stage's workers, the bench, the web pages, a read-only subscriber, and
-#: the lab's own tools (reconcile, imports, re-runs)
-ROLES = ("solver", "features", "matcher", "renderer", "scanner", "web", "subscriber", "admin")
+#: roles a key can have: a stage's workers, the scanner, the web pages, a bench PC running both (one host,
+#: one key: its captures and its verdicts), a read-only subscriber, and the lab's own tools (reconcile, imports,
+#: re-runs)
+ROLES = ("solver", "features", "matcher", "renderer", "scanner", "web", "bench", "subscriber", "admin")
 _ROLE_LINE = re.compile(r'^\s*role\s*=\s*"([a-z]+)"\s*$', re.M)
 
 

@@ -189,7 +189,8 @@ def test_authorized_keys_follow_the_directory_and_fail_closed(keys, tmp_path):
 
 def test_a_key_may_only_serve_and_submit_as_its_role(make_station, keys, tmp_path):
     """Issue 19: with CURVE on, the web host's key registered as a solver. Now a key's role decides."""
-    for name, role in (("web1", "web"), ("solver1", "solver"), ("bench1", "scanner"), ("reader", "subscriber")):
+    for name, role in (("web1", "web"), ("solver1", "solver"), ("bench1", "scanner"), ("reader", "subscriber"),
+                       ("benchpc", "bench")):
         assert tessera(["keys", "add", name, "--role", role, "--dir", str(keys)]) == 0
     st = make_station(extra=_security_section(keys), routing={"noop.job": ["noop"], "fragment.ready": ["solver"],
                                                                 "match.verified": ["noop"]})
@@ -222,8 +223,16 @@ def test_a_key_may_only_serve_and_submit_as_its_role(make_station, keys, tmp_pat
     with client("bench1") as c:
         with pytest.raises(BrokerRefused, match="may not submit match.verified"):
             c.submit(new_message("match.verified", fragment="A", other="D", verdict="rejected"))
+    # a bench PC's `tessera web` scans and reviews under its one key (with "scanner" its verdicts were refused,
+    # with "web" its captures); it may not serve a stage or submit what neither page makes
+    art = {"path": "fragments/F9/scans/scans-9.h5", "sha256": "9" * 64, "bytes": 10}
+    with client("benchpc") as c:
+        c.submit(new_message("fragment.ready", fragment="F9", artifact=art))
+        c.submit(new_message("match.verified", fragment="A", other="E", verdict="confirmed"))
+        with pytest.raises(BrokerRefused, match="role 'bench' may not submit noop.job"):
+            c.submit(new_message("noop.job"))
     s = st.status()
-    assert s["refused"].get("role", 0) >= 4, s["refused"]
+    assert s["refused"].get("role", 0) >= 5, s["refused"]
     assert web_worker.poll() is None, "the refused worker keeps knocking, harmlessly"
 
 
