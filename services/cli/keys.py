@@ -31,7 +31,8 @@ def add_parser(sub) -> None:
     a.add_argument("--dir", required=True, help="key directory made by `tessera keys init`")
     a.add_argument("--role", required=True, choices=ROLES,
                    help="what the key may do: serve that stage (solver, features, matcher, renderer), submit "
-                        "captures (scanner), verdicts and re-runs (web), only read (subscriber), everything (admin)")
+                        "captures (scanner), verdicts and re-runs (web), both from one bench PC (bench), only read (subscriber), "
+                        "everything (admin)")
     ro = verbs.add_parser("role", help="change the role of an admitted key")
     ro.add_argument("name")
     ro.add_argument("role", choices=ROLES)
