@@ -236,12 +236,9 @@ def test_a_key_may_only_serve_and_submit_as_its_role(make_station, keys, tmp_pat
     assert web_worker.poll() is None, "the refused worker keeps knocking, harmlessly"
 
 
-def test_a_stage_key_may_announce_only_its_stages_events(make_station, keys):
-    """docs/security.md: a stage's key may submit nothing. Its worker's results were journaled and routed whatever
-    their type, so a renderer's key could announce a verdict; now what a stage role announces is its stage's own
-    events (``broker.ROLE_ANNOUNCES``), the rest refused in the job's one input.rejected."""
-    from common.bus import protocol as P
-
+def _renderer_holding_a_job(make_station, keys, pid):
+    """A CURVE station, a renderer-role key ``render1`` and a fake renderer worker under it that holds one
+    rgbn.ready job: (station, worker, the job's artifact). The caller closes the worker."""
     from .test_broker import _FakeWorker
 
     assert tessera(["keys", "add", "render1", "--role", "renderer", "--dir", str(keys)]) == 0
@@ -250,12 +247,25 @@ def test_a_stage_key_may_announce_only_its_stages_events(make_station, keys):
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
     as_renderer = {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / "render1.key_secret"))}
     art = {"path": "fragments/F1/rgbn/front-1.h5", "sha256": "1" * 64, "bytes": 10}
-    job = new_message("rgbn.ready", fragment="F1", face="front", artifact=art)
-    w = _FakeWorker(endpoint, 335, service=b"renderer", security=as_renderer)
+    w = _FakeWorker(endpoint, pid, service=b"renderer", security=as_renderer)
     try:
         with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
-            c.submit(job)
+            c.submit(new_message("rgbn.ready", fragment="F1", face="front", artifact=art))
         wait_for(lambda: w.pump(0.1) or w.jobs, 15, "the renderer's fake worker to get the job")
+    except BaseException:
+        w.close()
+        raise
+    return st, w, art
+
+
+def test_a_stage_key_may_announce_only_its_stages_events(make_station, keys):
+    """docs/security.md: a stage's key may submit nothing. Its worker's results were journaled and routed whatever
+    their type, so a renderer's key could announce a verdict; now what a stage role announces is its stage's own
+    events (``broker.ROLE_ANNOUNCES``), the rest refused in the job's one input.rejected."""
+    from common.bus import protocol as P
+
+    st, w, art = _renderer_holding_a_job(make_station, keys, 335)
+    try:
         done = new_message("render.ready", fragment="F1", face="front", artifact=dict(art, path="fragments/F1/render/x.h5"))
         forged = new_message("match.verified", fragment="F1", other="F2", verdict="confirmed")
         w.send(P.RESULT, w.jobs[0].encode(), P.dumps([forged, done]))
@@ -278,19 +288,9 @@ def test_a_key_revoked_or_re_roled_while_its_worker_holds_a_job_announces_nothin
     announce anything, a forged verdict included; now only an admin key (or CURVE off) announces any type."""
     from common.bus import protocol as P
 
-    from .test_broker import _FakeWorker
-
-    assert tessera(["keys", "add", "render1", "--role", "renderer", "--dir", str(keys)]) == 0
-    st = make_station(extra=_security_section(keys), routing={"rgbn.ready": ["renderer"]})
-    st.broker()
+    st, w, art = _renderer_holding_a_job(make_station, keys, 336)
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
-    as_renderer = {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / "render1.key_secret"))}
-    art = {"path": "fragments/F1/rgbn/front-1.h5", "sha256": "1" * 64, "bytes": 10}
-    w = _FakeWorker(endpoint, 336, service=b"renderer", security=as_renderer)
     try:
-        with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
-            c.submit(new_message("rgbn.ready", fragment="F1", face="front", artifact=art))
-        wait_for(lambda: w.pump(0.1) or w.jobs, 15, "the renderer's fake worker to get the job")
         assert tessera(["keys", *change, "--dir", str(keys)]) == 0
         with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
             c.status()   # a handshake: the broker reads the key directory again
