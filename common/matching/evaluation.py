@@ -144,12 +144,15 @@ def rank_lists(index, model, *, n_candidates: int | None = None, progress=None) 
     order = list(index._order)
     # each fragment's hubness as the matcher service has it: from its own proposal (pruned candidates)
     index.refresh_hubness(order, model, n_candidates=100 if n_candidates is None else n_candidates)
+
+    def others_of(f):
+        return [o for o in order if o != f] if n_candidates is None else index.candidates(index.cues[f], model,
+                                                                                        n_candidates)
+    settle_docking_hubness(index, model, order, others_of)
     best: dict = {}
     lists: dict = {}
     for i, f in enumerate(order):
-        cues = index.cues[f]
-        others = [o for o in order if o != f] if n_candidates is None else index.candidates(cues, model, n_candidates)
-        ranked = index.rank(cues, others, model)
+        ranked = index.rank(index.cues[f], others_of(f), model)
         lists[f] = [c.other for c in ranked]
         for c in ranked:
             key = tuple(sorted((c.fragment, c.other)))
@@ -157,6 +160,22 @@ def rank_lists(index, model, *, n_candidates: int | None = None, progress=None) 
         if progress and (i % 10 == 0 or i == len(order) - 1):
             progress((i + 1) / len(order), f"ranked {i + 1}/{len(order)} fragments")
     return lists, best
+
+
+def settle_docking_hubness(index, model, fragments, others_of) -> dict:
+    """Every fragment's stage-3 docking hubness from its own docked best, before any ranking is kept; returns
+    them (fragment → mm).
+
+    The station scores a pair only once both fragments have been ranked, and its full re-rank sets every
+    fragment's docking hubness before stage 3 (:meth:`~common.matching.index.MatchIndex.rank_again`). An
+    evaluation that ranked the fragments one after another would correct a pair by the median instead of the
+    hubness of every partner not ranked yet, an order-dependent mix the station never ranks by (on RePAIR it
+    read pooled top-5 0.833 where the station gives 0.762; docs/matching.md, "Ranked as the station ranks").
+    So each fragment is ranked once against ``others_of(fragment)`` (its best docked, its hubness set) first.
+    """
+    for f in fragments:
+        index.rank(index.cues[f], others_of(f), model)
+    return dict(index.dock_hubness)
 
 
 def top_k_counts(pair_scores: dict, neighbours, ks=(1, 3, 5, 10), fragments=None) -> dict:

@@ -18,8 +18,8 @@ import numpy as np
 
 from common.features.boundary import boundary_channel_names
 from common.matching.evaluation import (bootstrap_interval, confusion_rates, grouped_cross_validation,
-                                        pair_precision_recall, precision_recall, rank_all_pairs, top_k_counts,
-                                        top_k_recall)
+                                        pair_precision_recall, precision_recall, rank_all_pairs,
+                                        settle_docking_hubness, top_k_counts, top_k_recall)
 from common.matching.index import MatchIndex
 from common.matching import online
 from common.matching.online import (docking_calibration, ribbon_calibration, stage_combination, train_model, wall_cues,
@@ -393,6 +393,8 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     obj = {f.id: f.notes.get("object") for f in wall.fragments}
     ids = list(index._order)
     index.refresh_hubness(ids, model, n_candidates=100)
+    say(0.4, "docking every fragment's best (its docking hubness, as the station has it)")
+    settled = settle_docking_hubness(index, model, ids, lambda f: [o for o in ids if o != f])
     pooled_max, pooled_lists, within_query, proposed = {}, {}, {}, {}
     for i, f in enumerate(ids):
         ranked = index.rank(index.cues[f], [o for o in ids if o != f], model)
@@ -403,6 +405,10 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         mates = [o for o in ids if o != f and obj[o] == obj[f]]
         if mates:
             ranked_w = index.rank(index.cues[f], mates, model, dock_candidates=len(mates))
+            # ranking among its mates set the fragment's docking hubness from them: the later queries are
+            # corrected by the one the station has (its docked best among all)
+            if f in settled:
+                index.dock_hubness[f] = settled[f]
             within_query[f] = [c.other for c in ranked_w]
             for c in ranked_w:
                 if c.alignment is not None:

@@ -623,3 +623,26 @@ def test_docking_calibration_does_not_follow_string_hashing(tmp_path):
                            env={**__import__("os").environ, "PYTHONHASHSEED": seed}).stdout
             for seed in ("1", "2", "3")}
     assert len(runs) == 1 and "None" not in runs.pop()
+
+
+def test_an_evaluation_ranks_as_the_station_whatever_the_fragments_order(small_wall):
+    """The station scores a pair once both fragments are ranked (docking hubness known for both); an evaluation
+    that ranked one fragment after another corrected a pair by the median for every partner not ranked yet, so
+    its figures depended on the fragments' order. Now every fragment's docking hubness is settled first."""
+    from common.matching.docking import docking_contact_mm
+    from common.matching.evaluation import rank_lists
+
+    wall, tables, cues, poses = small_wall
+    lists = []
+    for order in (1, -1):
+        model, ids, index = _docking_index(small_wall, 10)
+        index._order = list(index._order)[::order]
+        got, best = rank_lists(index, model)
+        lists.append((got, best))
+        # the hubness each pair was corrected by is each fragment's own, from its docked best among all
+        for f in ids:
+            head = [c.other for c in index.rank(cues[f], [o for o in ids if o != f], model, dock_candidates=0)][:12]
+            contact = sorted(docking_contact_mm(index.docking(f, o)) for o in head if index.docked(f, o))
+            assert index.dock_hubness[f] == pytest.approx(np.mean(contact[-3:]))
+    assert lists[0][0] == lists[1][0]
+    assert lists[0][1] == pytest.approx(lists[1][1])
