@@ -118,7 +118,8 @@ def rank_all_pairs(index, model, *, n_candidates: int | None = None, pooling: st
     """Score of every (candidate) fragment pair of an index under a model, pooled over both sides.
 
     Every fragment's hubness is estimated first, as the matcher service does when it proposes the
-    fragment (:meth:`~common.matching.index.MatchIndex.refresh_hubness`, 100 pruned candidates).
+    fragment (:meth:`~common.matching.index.MatchIndex.refresh_hubness`, 100 pruned candidates), and its
+    stage-3 docking hubness settled (:func:`settle_docking_hubness`), so no pair depends on the order.
     Each fragment's candidates (all other fragments, or its ``n_candidates`` pruned ones) are
     ranked as :meth:`~common.matching.index.MatchIndex.propose` ranks them: stage 2, then the
     colour ribbon on the best :data:`~common.matching.index.RIBBON_CANDIDATES` when the fragment
