@@ -353,6 +353,13 @@ class Store:
         if create:
             self.root.mkdir(parents=True, exist_ok=True)
 
+    @classmethod
+    def from_config(cls, config: Mapping) -> "Store":
+        """The station's shared storage as its ``[storage]`` section names it (root, file locking, whether to
+        create the root)."""
+        st = config["storage"]
+        return cls(st["root"], file_locking=st["file_locking"], create=st["create_root"])
+
     def _check_root(self) -> None:
         # never create a mount point's directories locally: that would hide data from the lab
         if not self.create and not self.root.is_dir():

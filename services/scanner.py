@@ -99,9 +99,9 @@ class Drainer(threading.Thread):
 def main(config: Mapping, *, count: int | None = None, wait_drained: bool = True, out=sys.stdout) -> int:
     """Capture ``count`` fragments (default ``[scanner] fragments``), then wait until the outbox is empty."""
     from common.acquisition.capture import CaptureError, capture_fragment
-    sc, st = config["scanner"], config["storage"]
+    sc = config["scanner"]
     count = int(sc["fragments"] if count is None else count)
-    storage = Store(st["root"], file_locking=st["file_locking"], create=st["create_root"])
+    storage = Store.from_config(config)
     outbox = Outbox(sc["spool_dir"])
     if len(outbox):
         print(f"outbox holds {len(outbox)} event(s) from before; delivering them first", file=out, flush=True)

@@ -32,6 +32,8 @@ SCHEMA = "tessera.calibration"
 SCHEMA_VERSION = 1
 DEFAULT_TILTS = (0.0, 5.0, 10.0, 15.0, 20.0, 25.0)
 DEFAULT_AZIMUTHS = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
+#: the lamp fit and its leave-one-out cross-validation need at least this many target scans
+MIN_TARGET_SCANS = 6
 
 
 @dataclass
@@ -272,9 +274,14 @@ def target_poses(tilts=DEFAULT_TILTS, azimuths=DEFAULT_AZIMUTHS) -> list[tuple[f
     """The target's poses ``(tilt_deg, azimuth_deg)`` that :func:`calibrate_scanner` scans, in order.
 
     Tilt 0 is scanned once (every rotation of a flat target is the same pose); every other tilt at
-    every rotation.
+    every rotation. Fewer than :data:`MIN_TARGET_SCANS` poses raise ValueError, before anything is scanned.
     """
-    return [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
+    poses = [(0.0, 0.0)] + [(float(t), float(a)) for t in tilts if t > 0 for a in azimuths]
+    if len(poses) < MIN_TARGET_SCANS:
+        raise ValueError(f"tilts {', '.join(f'{t:g}' for t in tilts)} × azimuths {', '.join(f'{a:g}' for a in azimuths)} "
+                         f"make {len(poses)} target pose(s); the lamp fit and its cross-validation need at least "
+                         f"{MIN_TARGET_SCANS} (tilt 0 counts once)")
+    return poses
 
 
 def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilts=DEFAULT_TILTS,
@@ -302,8 +309,6 @@ def calibrate_scanner(scanner, operator: Callable[[float, float], None], *, tilt
         Called after each target scan with the fraction of poses done and the pose just scanned.
     """
     poses = target_poses(tilts, azimuths)
-    if len(poses) < 6:
-        raise ValueError("need at least 6 target poses (tilts × azimuths) to fit and cross-validate")
     readings = []
     for i, (t, a) in enumerate(poses):
         operator(t, a)
@@ -377,9 +382,9 @@ def fit_target_readings(scanner: str, readings: list, tilts_deg, directions_deg,
         report.append({"name": names[i], "tilt_deg": float(tilts[i]), "direction_deg": float(dirs[i]),
                        "value": float(r.value), "pixels": int(r.pixels), "clipped": int(r.clipped),
                        "whole_image": bool(r.whole_image), "used": bool(used[i]), "reason": reason})
-    if used.sum() < 6:
+    if used.sum() < MIN_TARGET_SCANS:
         dropped = "; ".join(f"{e['name']}: {e['reason']}" for e in report if not e["used"])
-        raise CalibrationError(f"only {int(used.sum())} of {n} target scans are usable, at least 6 are needed"
+        raise CalibrationError(f"only {int(used.sum())} of {n} target scans are usable, at least {MIN_TARGET_SCANS} are needed"
                                + (f" (dropped: {dropped})" if dropped else "")
                                + "; lower the scanner's exposure or add target scans")
     cal = fit_calibration(scanner, normals[used], values[used], dpi=dpi, depth=depth, target_albedo=target_albedo)

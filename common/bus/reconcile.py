@@ -45,18 +45,27 @@ def _face(path: Path) -> str:
     return path.stem.split("-", 1)[0]
 
 
+def _provenance(store: Store, artifact: Path) -> dict | None:
+    """An artifact's provenance; None when it cannot be read (it then stands for nothing)."""
+    try:
+        with store.open(artifact.relative_to(store.root).as_posix()) as f:
+            return store.provenance(f)
+    except Exception:  # noqa: BLE001 - unreadable, whatever the reason
+        return None
+
+
+def _by_another_version(prov: dict, version: str | None) -> bool:
+    """Whether provenance names a ``stage_version`` other than ``version`` (None: any version counts; one that
+    records none counts as made by it)."""
+    return version is not None and prov.get("stage_version") not in (None, version)
+
+
 def _made_by_older_solver(store: Store, rgbn: Path, version: str | None) -> bool:
     """Whether an RGBN artifact was made by the solver stage at a version other than ``version`` (None: no
     version is current, so none is older). Imported RGBN (another ``stage``), RGBN that records no version
     and unreadable files are not: they are not the solver's to redo."""
-    if version is None:
-        return False
-    try:
-        with store.open(rgbn.relative_to(store.root).as_posix()) as f:
-            prov = store.provenance(f)
-    except Exception:  # noqa: BLE001 - unreadable: not re-solved on the strength of it
-        return False
-    return prov.get("stage") == "solver" and prov.get("stage_version") not in (None, version)
+    prov = _provenance(store, rgbn) if version is not None else None
+    return prov is not None and prov.get("stage") == "solver" and _by_another_version(prov, version)
 
 
 def _made_from(store: Store, output: Path, source_rel: str, version: str | None = None) -> bool:
@@ -64,15 +73,11 @@ def _made_from(store: Store, output: Path, source_rel: str, version: str | None 
     nothing (an artifact that records no inputs counts, as before provenance was read). An output of an
     older RGBN of the face does not count: the newest one still needs its own. With ``version`` (the stage's
     current ``VERSION``), an output whose provenance names another ``stage_version`` does not count either:
-    it was made by an older stage (one that records none counts)."""
-    try:
-        with store.open(output.relative_to(store.root).as_posix()) as f:
-            prov = store.provenance(f)
-    except Exception:  # noqa: BLE001 - unreadable: it does not stand for the newest input
+    it was made by an older stage (one that records none counts). An unreadable output does not count."""
+    prov = _provenance(store, output)
+    if prov is None or _by_another_version(prov, version):
         return False
     inputs = prov.get("inputs") or []
-    if version is not None and prov.get("stage_version") not in (None, version):
-        return False
     return not inputs or any(isinstance(i, dict) and i.get("path") == source_rel for i in inputs)
 
 

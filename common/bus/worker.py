@@ -234,8 +234,7 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
             signal.signal(sig, lambda *_: stop.set())
     b, w = config["broker"], config["worker"]
     interval, liveness_max = float(b["heartbeat_interval_s"]), int(b["heartbeat_liveness"])
-    st = config["storage"]
-    store = Store(st["root"], file_locking=st["file_locking"], create=st["create_root"])
+    store = Store.from_config(config)
     stage_log = logging.getLogger(f"tessera.{service}")
     with contextlib.suppress(OSError):  # storage may be away at start; the jobs will say so
         for rel in store.sweep_temporary():

@@ -130,10 +130,10 @@ def run(args) -> int:
     if bad:
         _error(f"--tilts must be degrees in [0, 90) and --azimuths finite degrees, got {', '.join(map(str, bad))}")
         return 2
-    n_poses = len(target_poses(tilts, azimuths))
-    if n_poses < 6:
-        _error(f"--tilts {args.tilts} × --azimuths {args.azimuths} make {n_poses} target pose(s); the lamp fit and "
-               f"its cross-validation need at least 6 (tilt 0 counts once)")
+    try:
+        n_poses = len(target_poses(tilts, azimuths))
+    except ValueError as exc:   # too few poses to fit
+        _error(exc)
         return 2
     if device == "simulated":
         from common.acquisition.flatbed_sim import SimulatedFlatbed

@@ -100,8 +100,7 @@ class BusSink:
     def __init__(self, config: Mapping):
         from common.bus.outbox import Outbox
         from services.scanner import Drainer
-        st = config["storage"]
-        self.storage = Store(st["root"], file_locking=st["file_locking"], create=st["create_root"])
+        self.storage = Store.from_config(config)
         self.outbox = Outbox(config["scanner"]["spool_dir"])
         # an event whose artifact is already queued (a run killed before its ledger line) is not queued twice
         self._queued = {e.get("artifact", {}).get("path") for _, e, _ in self.outbox.pending()}

@@ -244,12 +244,11 @@ def _drain_outbox(config):
     from common.bus.outbox import Outbox
     from common.store import Store
     from services.scanner import Drainer
-    st = config["storage"]
     outbox = Outbox(config["scanner"]["spool_dir"])
     if len(outbox):
         print(f"{len(outbox)} event(s) from imports or captures made while the station was down wait in "
               f"{outbox.dir}; delivering them", flush=True)
-    drainer = Drainer(config, outbox, Store(st["root"], file_locking=st["file_locking"], create=st["create_root"]))
+    drainer = Drainer(config, outbox, Store.from_config(config))
     drainer.start()
     return drainer
 
