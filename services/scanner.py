@@ -34,6 +34,16 @@ def fragments(config: Mapping, count: int) -> Iterator[tuple[str, object]]:
         yield frag.id, frag.surface
 
 
+def ask(prompt: str, out=sys.stdout) -> str:
+    """One line the operator types, the prompt shown on ``out`` with the station's other messages (``input()``
+    always prompts on stdout). EOFError when the terminal's input is closed."""
+    print(prompt, end="", file=out, flush=True)
+    line = sys.stdin.readline()
+    if not line:
+        raise EOFError("the operator's input is closed")
+    return line.rstrip("\r\n")
+
+
 def terminal_operator(scanner, simulated: bool, out=sys.stdout) -> Callable:
     """Show each step in the terminal; on the simulated flatbed do it, on a real one wait for Enter."""
     from common.acquisition.capture import simulated_operator
@@ -44,7 +54,7 @@ def terminal_operator(scanner, simulated: bool, out=sys.stdout) -> Callable:
         if act is not None:
             act(step)
         else:
-            input("      press Enter when done ")
+            ask("      press Enter when done ", out)
     return operator
 
 
@@ -115,7 +125,7 @@ def main(config: Mapping, *, count: int | None = None, wait_drained: bool = True
     else:
         from common.acquisition.scanners import SaneScanner
         scanner = SaneScanner(sc["sane_device"])
-        source = ((input("fragment id: ").strip(), None) for _ in range(count))
+        source = ((ask("fragment id: ", out).strip(), None) for _ in range(count))
     operator = terminal_operator(scanner, simulated, out)
     status = 0
     try:
@@ -138,7 +148,7 @@ def main(config: Mapping, *, count: int | None = None, wait_drained: bool = True
                     break
                 except CaptureError as exc:
                     print(f"  ! {getattr(exc, 'operator_message', str(exc))}", file=out, flush=True)
-                    if not simulated and input("      press Enter to retry, or type s to skip: ").strip().lower() == "s":
+                    if not simulated and ask("      press Enter to retry, or type s to skip: ", out).strip().lower() == "s":
                         break
             if result is None:
                 print(f"  fragment {fid} skipped", file=out, flush=True)
@@ -153,8 +163,9 @@ def main(config: Mapping, *, count: int | None = None, wait_drained: bool = True
             print(f"waiting for the lab: {len(outbox)} event(s) in the outbox", file=out, flush=True)
             drainer.wake.set()
             threading.Event().wait(max(1.0, float(sc["drain_interval_s"])))
-    except KeyboardInterrupt:
-        print(f"stopped; {len(outbox)} event(s) stay in the outbox for the next start", file=out, flush=True)
+    except (KeyboardInterrupt, EOFError) as exc:
+        print(f"stopped{' (input closed)' if isinstance(exc, EOFError) else ''}; {len(outbox)} event(s) stay in the "
+              "outbox for the next start", file=out, flush=True)
         status = 130
     finally:
         drainer.stop.set()

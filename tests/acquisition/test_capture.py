@@ -118,3 +118,23 @@ def test_a_scanner_in_grey_mode_is_handled_and_one_giving_black_frames_is_named(
     with pytest.raises(ScannerError, match="front scan 0: all black"):
         capture_fragment(Grey(sim, black=True), "F9", operator=simulated_operator(sim), dpi=100, prescan_dpi=25,
                          colour_only=True)
+
+
+def test_a_real_scanners_operator_is_prompted_where_the_station_speaks_and_a_closed_input_is_named(monkeypatch):
+    """On a real flatbed the operator's prompts go to the station's output (not always stdout, as input()
+    writes them), and a terminal whose input is closed ends the wait with EOFError instead of hanging."""
+    import io
+    from types import SimpleNamespace
+
+    from services.scanner import ask, terminal_operator
+
+    out = io.StringIO()
+    monkeypatch.setattr("sys.stdin", io.StringIO("\nRPf_7\n"))
+    operator = terminal_operator(scanner=None, simulated=False, out=out)
+    operator(SimpleNamespace(index=1, total=4, instruction="turn the fragment by 90 degrees"))
+    assert ask("fragment id: ", out) == "RPf_7"
+    shown = out.getvalue()
+    assert "[1/4] turn the fragment by 90 degrees" in shown
+    assert "press Enter when done" in shown and shown.rstrip().endswith("fragment id:")
+    with pytest.raises(EOFError, match="input is closed"):
+        ask("fragment id: ", out)
