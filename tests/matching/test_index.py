@@ -646,3 +646,59 @@ def test_an_evaluation_ranks_as_the_station_whatever_the_fragments_order(small_w
             assert index.dock_hubness[f] == pytest.approx(np.mean(contact[-3:]))
     assert lists[0][0] == lists[1][0]
     assert lists[0][1] == pytest.approx(lists[1][1])
+
+
+def test_the_ribbon_ranks_stage_2s_best_with_the_same_fresco_ratio_added(monkeypatch):
+    """The cut to the ribbon's candidates orders stage 2's list by its logit plus FRESCO_WEIGHT × the same-fresco
+    ratio: a piece of another fresco that stage 2 likes is left out for one of the query's fresco that it
+    likes less. Worked by hand: logits 2.20, 1.39, 0.85, 0.41 with ratios −4, 0, +4, 0 and weight 4 give
+    −13.8, 1.39, 16.8, 0.41, so the best two are c then b (stage 2 alone: a then b). A list no longer than the
+    cut, a query without a signature or the ratio switched off keep stage 2's choice."""
+    from common.matching import fresco
+    from common.matching.index import Candidate
+
+    def cand(other, p):
+        return Candidate("q", other, p, 0, 0, np.zeros((0, 2), int), np.zeros((0, 1)))
+
+    found = [cand("a", 0.9), cand("b", 0.8), cand("c", 0.7), cand("d", 0.6)]
+    ratio = {"a": -4.0, "b": 0.0, "c": 4.0, "d": 0.0}
+    index = MatchIndex()
+    monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: f)
+    monkeypatch.setattr(fresco, "fresco_llr", lambda a, b: ratio[b])
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    assert [c.other for c in index._ribbon_head("q", found, 2)] == ["c", "b"]
+    assert [c.probability for c in found] == [0.9, 0.8, 0.7, 0.6]          # the probabilities are stage 2's
+    assert [c.other for c in index._ribbon_head("q", found, 4)] == ["a", "b", "c", "d"]
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 0.0)
+    assert [c.other for c in index._ribbon_head("q", found, 2)] == ["a", "b"]
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: None)
+    assert [c.other for c in index._ribbon_head("q", found, 2)] == ["a", "b"]
+
+
+def test_stage_1_takes_the_fragments_likeliest_of_the_querys_fresco_by_their_boundary_colours(monkeypatch):
+    """With a signature, stage 1's candidates are the fragments whose a*b* histograms overlap the query's most
+    (Bhattacharyya coefficient Σ √(h_q h_o), the same-fresco ratio's one cue). Histograms over two bins:
+    the query (1, 0); a (1, 0), b (0.25, 0.75), c (0, 1), d (0.64, 0.36) overlap it by 1, 0.5, 0, 0.8, so the
+    best three are a, d, b. A fragment whose profile changes is looked up afresh; without a signature (or
+    with the ratio off) stage 1 is the KD-tree's (None here)."""
+    from types import SimpleNamespace
+
+    from common.matching import fresco
+
+    hists = {"q": (1.0, 0.0), "a": (1.0, 0.0), "b": (0.25, 0.75), "c": (0.0, 1.0), "d": (0.64, 0.36)}
+    index = MatchIndex()
+    index._order = list(hists)
+    index._raw_profiles = {f: object() for f in hists}
+    sigs = {f: SimpleNamespace(chroma_hist=np.array([h], np.float32)) for f, h in hists.items()}
+    monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: sigs.get(f))
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    assert index._candidates_by_fresco("q", 3) == ["a", "d", "b"]
+    sigs["c"] = SimpleNamespace(chroma_hist=np.array([(0.81, 0.19)], np.float32))   # c re-imported: overlap 0.9
+    index._raw_profiles["c"] = object()
+    assert index._candidates_by_fresco("q", 3) == ["a", "c", "d"]
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 0.0)
+    assert index._candidates_by_fresco("q", 3) is None
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    sigs["q"] = None
+    assert index._candidates_by_fresco("q", 3) is None
