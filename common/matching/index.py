@@ -195,6 +195,11 @@ class MatchIndex:
         self._inputs: dict[str, str | None] = {}
         self.cues: dict[str, FragmentCues] = {}
         self._order: list[str] = []
+        #: stage 1 by fresco (_chroma_rows): fragments with a signature, their rows, and those to look at again
+        self._chroma_names: list[str] = []
+        self._chroma_pos: dict[str, int] = {}
+        self._chroma_matrix = np.zeros((0, 0), np.float32)
+        self._chroma_stale: set[str] = set()
         self._dirty = True
         self._tree = None
         self._tree_n = 0
@@ -246,6 +251,7 @@ class MatchIndex:
         if contour_mm is not None:
             self.contours[cues.fragment] = np.asarray(contour_mm, float)
             self._frames.pop(cues.fragment, None)
+        self._chroma_stale.add(cues.fragment)
         self.profiles.pop(cues.fragment, None)
         self.paint.pop(cues.fragment, None)
         self._raw_profiles.pop(cues.fragment, None)
@@ -280,6 +286,7 @@ class MatchIndex:
             return
         last = self._order[-1] == fragment
         in_tail = last and len(self._order) - 1 >= self._tree_n
+        self._chroma_stale.add(fragment)
         self._order.remove(fragment)
         del self.cues[fragment]
         self.contours.pop(fragment, None)
@@ -423,27 +430,40 @@ class MatchIndex:
         if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None or sig is None:
             return None
         names, rows = self._chroma_rows()
-        bc = rows @ np.sqrt(sig.chroma_hist, dtype=np.float32).ravel()
-        out = [names[i] for i in np.argsort(-bc, kind="stable") if names[i] != fragment]
+        with one_blas_thread():   # a BLAS thread pool would spin beside the other workers for one product
+            bc = rows @ np.sqrt(sig.chroma_hist, dtype=np.float32).ravel()
+        # ties (copies, identical colours) by name, so any index with these fragments gives the same list
+        out = [names[i] for i in np.lexsort((np.array(names), -bc)) if names[i] != fragment]
         return out[:n_candidates]
 
     def _chroma_rows(self) -> tuple[list[str], np.ndarray]:
-        """The fragments with a fresco signature and their √ a*b* histograms as rows (float32), rebuilt when the
-        fragments or their profiles change (a row per fragment is kept, so only the stacking is redone)."""
-        key = tuple((f, id(self._raw_profiles.get(f))) for f in self._order)
-        cache = self.__dict__.setdefault("_chroma_cache", {"key": None, "rows": {}})
-        if cache["key"] != key:
-            rows = {}
-            for f in self._order:
-                sig = self._fresco_signature(f)
-                if sig is not None:
-                    held = cache["rows"].get(f)
-                    rows[f] = held if held is not None and held[0] is sig else (
-                        sig, np.sqrt(sig.chroma_hist, dtype=np.float32).ravel())
-            names = list(rows)
-            cache.update(key=key, rows=rows, names=names,
-                         matrix=np.stack([rows[f][1] for f in names]) if names else np.zeros((0, 1), np.float32))
-        return cache["names"], cache["matrix"]
+        """The fragments with a fresco signature and their √ a*b* histograms as rows (float32). Kept up to date
+        one fragment at a time (:meth:`add` and :meth:`remove` mark it; a removed row is replaced by the last),
+        so a new fragment in a large index costs one row, not a copy of all (12 ms at n = 2,000)."""
+        names, pos = self._chroma_names, self._chroma_pos
+        for f in sorted(self._chroma_stale):
+            sig = self._fresco_signature(f) if f in self.cues else None
+            i = pos.get(f)
+            if sig is None:
+                if i is not None:   # the last row takes its place
+                    last = names.pop()
+                    del pos[f]
+                    if last != f:
+                        self._chroma_matrix[i] = self._chroma_matrix[len(names)]
+                        names[i], pos[last] = last, i
+                continue
+            row = np.sqrt(sig.chroma_hist, dtype=np.float32).ravel()
+            if i is None:
+                if self._chroma_matrix.shape[1] != row.size or len(names) == len(self._chroma_matrix):
+                    grown = np.zeros((max(64, 2 * len(self._chroma_matrix)), row.size), np.float32)
+                    if self._chroma_matrix.shape[1] == row.size:
+                        grown[:len(names)] = self._chroma_matrix[:len(names)]
+                    self._chroma_matrix = grown
+                i = pos[f] = len(names)
+                names.append(f)
+            self._chroma_matrix[i] = row
+        self._chroma_stale.clear()
+        return names, self._chroma_matrix[:len(names)]
 
     def score(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
               chunk_rows: int = 100_000, evidence_for: int | None = None,

@@ -680,23 +680,27 @@ def test_stage_1_takes_the_fragments_likeliest_of_the_querys_fresco_by_their_bou
     """With a signature, stage 1's candidates are the fragments whose a*b* histograms overlap the query's most
     (Bhattacharyya coefficient Σ √(h_q h_o), the same-fresco ratio's one cue). Histograms over two bins:
     the query (1, 0); a (1, 0), b (0.25, 0.75), c (0, 1), d (0.64, 0.36) overlap it by 1, 0.5, 0, 0.8, so the
-    best three are a, d, b. A fragment whose profile changes is looked up afresh; without a signature (or
-    with the ratio off) stage 1 is the KD-tree's (None here)."""
+    best three are a, d, b. A fragment whose profile changes is looked up afresh, a removed one is gone; without a
+    signature (or with the ratio off) stage 1 is the KD-tree's (None here)."""
     from types import SimpleNamespace
 
     from common.matching import fresco
 
     hists = {"q": (1.0, 0.0), "a": (1.0, 0.0), "b": (0.25, 0.75), "c": (0.0, 1.0), "d": (0.64, 0.36)}
     index = MatchIndex()
-    index._order = list(hists)
-    index._raw_profiles = {f: object() for f in hists}
+    index.cues = {f: None for f in hists}   # what add() leaves for _chroma_rows: the fragments, marked
+    index._chroma_stale = set(hists)
     sigs = {f: SimpleNamespace(chroma_hist=np.array([h], np.float32)) for f, h in hists.items()}
     monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: sigs.get(f))
     monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
     assert index._candidates_by_fresco("q", 3) == ["a", "d", "b"]
     sigs["c"] = SimpleNamespace(chroma_hist=np.array([(0.81, 0.19)], np.float32))   # c re-imported: overlap 0.9
-    index._raw_profiles["c"] = object()
+    index._chroma_stale.add("c")
     assert index._candidates_by_fresco("q", 3) == ["a", "c", "d"]
+    del index.cues["a"]                      # a removed: its row goes, the last row takes its place
+    index._chroma_stale.add("a")
+    assert index._candidates_by_fresco("q", 4) == ["c", "d", "b"]
+    assert sorted(index._chroma_names) == ["b", "c", "d", "q"] and len(index._chroma_rows()[1]) == 4
     monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 0.0)
     assert index._candidates_by_fresco("q", 3) is None
     monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
