@@ -381,7 +381,8 @@ class MatchIndex:
         return np.where(np.isfinite(values), values, med) * w
 
     def candidates(self, cues: FragmentCues, model: MatchModel, n_candidates: int = 100) -> list[str]:
-        """Stage 1: the ``n_candidates`` fragments nearest in the weighted per-fragment space.
+        """Stage 1: the ``n_candidates`` likeliest of the query's fresco (:meth:`_candidates_by_fresco`), or, for a
+        query without a boundary profile, those nearest in the weighted per-fragment space.
 
         The KD-tree covers the fragments present when it was built; fragments appended since (the
         *tail*) are compared directly, and the tree is rebuilt once the tail exceeds 5 % of the
@@ -424,10 +425,8 @@ class MatchIndex:
         against 95 % (79 %) by the ratio (docs/matching.md, "What reaches the ribbon"). None when the query has no
         signature (no boundary profile) or the ratio is off: the KD-tree decides. Fragments without a signature
         are reached only through the KD-tree of such queries."""
-        from common.matching import fresco
-
-        sig = self._fresco_signature(fragment)
-        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None or sig is None:
+        sig = self._ratio_signature(fragment)
+        if sig is None:
             return None
         names, rows = self._chroma_rows()
         with one_blas_thread():   # a BLAS thread pool would spin beside the other workers for one product
@@ -652,15 +651,11 @@ class MatchIndex:
 
         if len(found) <= n:
             return list(found)
-        sig = self._fresco_signature(fragment)
-        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None or sig is None:
+        ratios = self._fresco_ratios(fragment, found)
+        if ratios is None:
             return found[:n]
         p = np.clip(np.array([c.probability for c in found], float), 1e-12, 1 - 1e-12)
-        key = np.log(p) - np.log1p(-p)
-        for i, c in enumerate(found):
-            other = self._fresco_signature(c.other)
-            if other is not None and np.isfinite(key[i]):
-                key[i] += fresco.FRESCO_WEIGHT * fresco.fresco_llr(sig, other)
+        key = np.log(p) - np.log1p(-p) + fresco.FRESCO_WEIGHT * np.nan_to_num(ratios, nan=0.0)
         key = np.where(np.isfinite(key), key, -np.inf)
         return [found[i] for i in np.argsort(-key, kind="stable")[:n]]
 
@@ -926,15 +921,39 @@ class MatchIndex:
         a weight of 0 or a profile, the order is kept."""
         from common.matching import fresco
 
-        sig = self._fresco_signature(fragment)
-        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None or sig is None:
+        ratios = self._fresco_ratios(fragment, candidates)
+        if ratios is None:
             return candidates
-        for c in candidates:
-            other = self._fresco_signature(c.other)
-            if other is not None and np.isfinite(c.probability):
-                c.fresco_llr = fresco.fresco_llr(sig, other)
+        for c, r in zip(candidates, ratios):
+            if np.isfinite(r):
+                c.fresco_llr = float(r)
                 c.probability = float(fresco.with_fresco(c.probability, c.fresco_llr, fresco.FRESCO_WEIGHT))
         return sorted(candidates, key=lambda c: -c.probability if np.isfinite(c.probability) else np.inf)
+
+    def _ratio_signature(self, fragment: str):
+        """The fragment's fresco signature where the same-fresco ratio is on (fitted parameters, a weight above 0);
+        None when it is off or the fragment has no profile — stages 1, 2½'s cut and the ratio then keep their
+        order without it."""
+        from common.matching import fresco
+
+        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None:
+            return None
+        return self._fresco_signature(fragment)
+
+    def _fresco_ratios(self, fragment: str, candidates: list[Candidate]) -> np.ndarray | None:
+        """The same-fresco log-likelihood ratio of the query and each candidate (NaN where the candidate has no
+        signature or no finite probability); None when the ratio does not apply (:meth:`_ratio_signature`)."""
+        from common.matching import fresco
+
+        sig = self._ratio_signature(fragment)
+        if sig is None:
+            return None
+        out = np.full(len(candidates), np.nan)
+        for i, c in enumerate(candidates):
+            other = self._fresco_signature(c.other)
+            if other is not None and np.isfinite(c.probability):
+                out[i] = fresco.fresco_llr(sig, other)
+        return out
 
     def rank(self, cues: FragmentCues, others: list[str], model: MatchModel, *,
              ribbon_candidates: int = RIBBON_CANDIDATES, dock_candidates: int = DOCK_CANDIDATES,
