@@ -149,9 +149,11 @@ def run(args) -> int:
         if args.name:
             scanner.name = args.name
 
-        def operator(tilt, azimuth):
-            input(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
-                  "and press Enter ")
+        from services.scanner import ask
+
+        def operator(tilt, azimuth):   # on the standard error with the progress: the standard output is the report
+            ask(f"Set the calibration target at tilt {tilt:g}° turned to {azimuth:g}°, close the lid, "
+                "and press Enter ", sys.stderr)
         area = None
     # progress on the standard error, as --from-files: the standard output is for the report
     bar = ProgressBar(n_poses, "target scans")

@@ -155,3 +155,21 @@ def test_calibrate_refuses_target_poses_it_cannot_fit_before_scanning(tmp_path, 
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.startswith("tessera calibrate: ") and says in cap.err
     assert "target scans" not in cap.err and not (tmp_path / "calibration").exists()
+
+
+def test_a_real_scanners_operator_is_asked_on_stderr_so_stdout_stays_the_report(tmp_path, capsys, monkeypatch):
+    """With a SANE scanner each target pose waits for the operator's Enter; its prompt was written by input() to the
+    standard output, which holds only the report. The scanner here is the simulated one standing in for SANE
+    (nobody moves its target, so the fit fails: only where the prompts go is checked)."""
+    import io
+
+    from common.acquisition.flatbed_sim import SimulatedFlatbed
+    from services.cli import main
+
+    monkeypatch.setattr("common.acquisition.scanners.SaneScanner", lambda device: SimulatedFlatbed("bench", seed=1))
+    monkeypatch.setattr("sys.stdin", io.StringIO("\n" * 9))
+    main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--device", "sane", "--azimuths", "0,90,180,270",
+          "--tilts", "0,10,20"])
+    cap = capsys.readouterr()
+    assert "Set the calibration target at tilt 0° turned to 0°" in cap.err
+    assert "Set the calibration target" not in cap.out
