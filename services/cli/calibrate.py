@@ -169,6 +169,11 @@ def run(args) -> int:
         bar.close()
         _error(f"calibration failed: {exc}")
         return 1
+    except EOFError:   # the operator's input closed before every target pose was scanned: nothing is stored
+        bar.close()
+        _error(f"stopped: the operator's input closed before the {n_poses} target poses were scanned; "
+               "no calibration stored")
+        return 1
     bar.close()
     ref = save_calibration(store, cal)
     a = ", ".join(f"{v:+.4f}" for v in cal.a)

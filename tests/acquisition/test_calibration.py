@@ -173,3 +173,23 @@ def test_a_real_scanners_operator_is_asked_on_stderr_so_stdout_stays_the_report(
     cap = capsys.readouterr()
     assert "Set the calibration target at tilt 0° turned to 0°" in cap.err
     assert "Set the calibration target" not in cap.out
+
+
+def test_a_closed_operator_input_during_calibration_stops_with_a_message_and_stores_nothing(tmp_path, capsys,
+                                                                                            monkeypatch):
+    """The operator's input is closed (a piped or detached session) when the first target pose is asked for: exit 1
+    with a line naming it, no traceback, and no calibration written."""
+    import io
+
+    from common.acquisition.flatbed_sim import SimulatedFlatbed
+    from services.cli import main
+
+    monkeypatch.setattr("common.acquisition.scanners.SaneScanner", lambda device: SimulatedFlatbed("bench", seed=1))
+    monkeypatch.setattr("sys.stdin", io.StringIO(""))
+    rc = main(["calibrate", "--set", f'storage.root="{tmp_path}"', "--device", "sane", "--azimuths", "0,90,180,270",
+               "--tilts", "0,10,20"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert "operator's input closed" in cap.err and "no calibration stored" in cap.err
+    assert "Traceback" not in cap.err
+    assert not list(tmp_path.rglob("*.h5"))
