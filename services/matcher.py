@@ -50,7 +50,7 @@ from pathlib import Path
 from common.features import load_features
 from common.matching.models import load_model, save_model
 from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_dict, refit_with_verdicts, rerank,
-                                    verdict_rows)
+                                    verdict_rows, with_current_ribbon)
 from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
 from common.matching.pose import inverse_pose
@@ -72,10 +72,10 @@ _STATES: dict = {}
 class _State:
     """Per-process caches of one proposal store: the index and the current model."""
 
-    def __init__(self, db: ProposalStore):
+    def __init__(self, db: ProposalStore, *, single_fresco: bool = False):
         self.db = db
         # the dockings are kept in the proposal store: a pair any matcher worker docked is docked once
-        self.index = MatchIndex(dockings=db)
+        self.index = MatchIndex(dockings=db, single_fresco=single_fresco)
         self.model = None
         self.seen: dict = {}   # fragment -> sha256 of the indexed feature artifact
 
@@ -86,9 +86,17 @@ def _state(ctx) -> _State:
     key = (str(ctx.store.root), str(db_path))
     st = _STATES.get(key)
     if st is None:
-        st = _STATES[key] = _State(ProposalStore(db_path, journal_mode=str(cfg.get("journal_mode", "WAL"))))
+        st = _STATES[key] = _State(ProposalStore(db_path, journal_mode=str(cfg.get("journal_mode", "WAL"))),
+                                   single_fresco=_flag(cfg.get("single_fresco", False), "single_fresco"))
     _sync(st, ctx)
     return st
+
+
+def _flag(value, name: str) -> bool:
+    """A yes/no setting of ``[services.matcher]``: a TOML boolean (a string such as "false" would read as true)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"[services.matcher] {name} must be true or false, got {value!r}")
+    return value
 
 
 def _sync(st: _State, ctx) -> None:
@@ -109,7 +117,26 @@ def _sync(st: _State, ctx) -> None:
         st.db.add_model(model.version, ref.to_dict(), n_train=model.info.get("n_train"), note="bootstrap")
         st.model = model
     elif st.model is None or st.model.version != current["version"]:
-        st.model = load_model(ctx.store, current["artifact"])
+        st.model = _with_current_ribbon(load_model(ctx.store, current["artifact"]), st, ctx)
+
+
+def _with_current_ribbon(model, st: _State, ctx):
+    """A stored model whose ribbon calibration was fitted for another ribbon score (an older station) has it fitted
+    again on the bootstrap wall and becomes the next model version; the patch classifier and what verdicts taught it
+    are kept (:func:`common.matching.online.with_current_ribbon`)."""
+    cfg = ctx.config or {}
+    renewed = with_current_ribbon(model, n_fragments=int(cfg.get("bootstrap_fragments", 60)),
+                                  seed=int(cfg.get("bootstrap_seed", 0)),
+                                  progress=lambda f, t: ctx.progress(0.5 * f, f"ribbon calibration: {t}"))
+    if renewed is model:
+        return model
+    ref = save_model(ctx.store, renewed, provenance={"stage": SERVICE, "stage_version": VERSION,
+                                                     "previous": model.version})
+    st.db.add_model(renewed.version, ref.to_dict(), n_train=renewed.info.get("n_train"),
+                    note=f"ribbon calibrated again for {renewed.info['ribbon_definition']}")
+    ctx.log.info("model %s: its ribbon calibration was for another score (%s); calibrated again as %s",
+                 model.version, model.info.get("ribbon_definition", "one run of 20 mm"), renewed.version)
+    return renewed
 
 
 def handle(job: dict, ctx) -> list[dict]:

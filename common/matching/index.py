@@ -184,11 +184,18 @@ class MatchIndex:
         read from it before it is docked, and a new docking is written to it, keyed by both fragments'
         :func:`docking_inputs` and :func:`docking_version`; so an index over the same store — another
         worker's, or a restarted one's — docks none of the pairs this one docked. None: in memory only.
+    single_fresco : bool
+        The collection is the pieces of one fresco: the same-fresco ratio, which tells frescoes apart, does not
+        re-order the ribbon's candidates (:meth:`_rank_by_fresco`); stage 1 and the ribbon's cut still choose by
+        the boundary colours. Among the pieces of one painting the ratio only rewards look-alikes: one synthetic
+        wall of 240 pieces, pooled top-5 0.186 with it, 0.222 without (docs/matching.md, "One fresco").
     """
 
-    def __init__(self, *, use_hubness: bool = True, dockings=None):
+    def __init__(self, *, use_hubness: bool = True, dockings=None, single_fresco: bool = False):
         #: rank by the hubness-corrected probability (False: the patch probability, as before)
         self.use_hubness = bool(use_hubness)
+        #: the collection is one fresco: the same-fresco ratio does not re-order the ribbon's candidates
+        self.single_fresco = bool(single_fresco)
         #: the store of dockings shared with other indexes (the proposal store), or None
         self.docking_store = dockings
         #: fragment → digest of its docking inputs (docking_inputs: outline and boundary profile)
@@ -918,9 +925,11 @@ class MatchIndex:
         log-likelihood ratio of the query and each candidate is added to the candidate's logit
         (``FRESCO_WEIGHT`` × ratio), so it decides with the earlier stages which candidates stage 3 docks
         and stays in their evidence there (``DOCK_KEEPS_EARLIER_EVIDENCE``). Without fitted parameters,
-        a weight of 0 or a profile, the order is kept."""
+        a weight of 0 or a profile, the order is kept; so it is in a collection of one fresco (:attr:`single_fresco`)."""
         from common.matching import fresco
 
+        if self.single_fresco:
+            return candidates
         ratios = self._fresco_ratios(fragment, candidates)
         if ratios is None:
             return candidates

@@ -29,7 +29,7 @@ from common.matching.classifiers import make_classifier
 from common.matching.docking import paint_from_profile
 from common.matching.models import MatchModel, model_from_pipeline
 from common.matching.pairs import FragmentCues, TrainingSet, correspondence_columns, fragment_cues, training_set
-from common.matching.ribbon import fit_ribbon_calibration, pair_ribbon_scores
+from common.matching.ribbon import RIBBON_DEFINITION, fit_ribbon_calibration, pair_ribbon_scores
 
 #: sample weight of one verdict row relative to one bootstrap row
 VERDICT_WEIGHT = 5.0
@@ -76,6 +76,8 @@ def train_model(ts: TrainingSet, *, sequence: int = 1, C: float = 1.0, sample_we
     meta = {"n_train": int(len(ts)), "n_match": int(ts.y.sum()), "class_weight": "balanced",
             "negatives_per_positive": float(ts.negatives_per_positive), "C": C}
     meta.update(info or {})
+    if ribbon is not None and "ribbon_definition" not in (info or {}):   # a refit keeps the previous model's
+        meta["ribbon_definition"] = RIBBON_DEFINITION
     model = model_from_pipeline(pipe, ts.columns, sequence=sequence, top_m=top_m, info=meta, ribbon=ribbon,
                                 docking=docking)
     model.training = (ts.x, ts.y, np.ones(len(ts.y)) if sample_weight is None else np.asarray(sample_weight, float))
@@ -218,13 +220,39 @@ def with_combination(model: MatchModel, combination: tuple | None) -> MatchModel
     return m
 
 
+def bootstrap_wall(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None):
+    """The synthetic wall the bootstrap model's patch classifier and ribbon calibration are fitted on, with its
+    feature tables and cues: ``(wall, tables, cues)``."""
+    from common.synth.wall import generate_wall
+
+    wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
+    tables, cues, _ = wall_cues(wall, progress=progress)
+    return wall, tables, cues
+
+
+def with_current_ribbon(model: MatchModel, *, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0,
+                        progress=None) -> MatchModel:
+    """``model`` itself when its ribbon calibration is for today's ribbon score
+    (:data:`~common.matching.ribbon.RIBBON_DEFINITION`, recorded in ``info["ribbon_definition"]``) or it has none;
+    otherwise the model with its ribbon calibrated again on the bootstrap wall (``n_fragments``, ``seed``, ``dpi``:
+    the station's bootstrap settings), as the next model version. Everything else — the patch classifier and what
+    the verdicts taught it, the docking, the combination — is kept."""
+    if model.ribbon is None or model.info.get("ribbon_definition") == RIBBON_DEFINITION:
+        return model
+    wall, tables, _ = bootstrap_wall(n_fragments=n_fragments, seed=seed, dpi=dpi, progress=progress)
+    info = dict(model.info, ribbon_definition=RIBBON_DEFINITION, previous=model.version,
+                ribbon_recalibrated=f"was {model.info.get('ribbon_definition', 'one run of 20 mm')}: {model.ribbon}")
+    m = replace(model, ribbon=ribbon_calibration(tables, wall.adjacency), info=info)
+    m.version = f"{m.sequence + 1:04d}-{m.digest()}"
+    return m
+
+
 def bootstrap_model(*, n_fragments: int = 60, seed: int = 0, dpi: float = 100.0, progress=None) -> MatchModel:
     """A first model trained on a synthetic wall, for a station that has no verdicts yet."""
     from common.synth.wall import generate_wall
 
-    wall = generate_wall(n_fragments, seed=seed, dpi=dpi)
-    tables, cues, poses = wall_cues(wall, progress=progress)
-    ts = training_set(cues, poses, wall.adjacency, seed=seed)
+    wall, tables, cues = bootstrap_wall(n_fragments=n_fragments, seed=seed, dpi=dpi, progress=progress)
+    ts = training_set(cues, {f.id: f.pose for f in wall.fragments}, wall.adjacency, seed=seed)
     # the docking is calibrated on a realistic wall (plaster lost along the cracks, 2-20 cm pieces),
     # the kind of collection it has to work on; colour-only, since only the outlines are used
     real = generate_wall(max(12, n_fragments // 4), seed=seed + 1, dpi=min(dpi, 40.0), preset="pompeii",

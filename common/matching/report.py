@@ -137,8 +137,8 @@ def _plot_ribbon_examples(wall, tables, index, model, path: Path, n: int = 4) ->
     plt.close(fig)
 
 
-def _index_of(tables, cues):
-    idx = MatchIndex()
+def _index_of(tables, cues, *, single_fresco: bool = False):
+    idx = MatchIndex(single_fresco=single_fresco)
     for fid, c in cues.items():
         idx.add(c, tables[fid].contour_mm, tables[fid].boundary_profile)
     return idx
@@ -336,7 +336,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
 
 
 def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, near_px: float = 48.0,
-                        min_run_px: float = 100.0, adjacency=None, progress=None) -> dict:
+                        min_run_px: float = 100.0, adjacency=None, single_fresco: bool = False,
+                        progress=None) -> dict:
     """Evaluate the matcher on a real, placed collection (``repair-dev`` layout) with a given model.
 
     Nothing is fitted on the collection: the fragments are imported as colour-only fragments
@@ -349,6 +350,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     ``adjacency`` gives (``[(a, b, shared length), ...]`` as ``Wall.adjacency``: a variant of a collection
     — the same pieces scanned otherwise, their masks a pixel different — counted against the original's
     pairs, so that only the matcher's inputs differ; ``tests/bench/bench_scan_variants.py``).
+    ``single_fresco``: rank as a station set for a collection of one fresco does (:class:`MatchIndex`).
 
     A fragment's list is in the station's order: its pairs by mutual proximity of the two
     fragments' rankings (:mod:`common.matching.mutual`; the station's proposal store orders them so).
@@ -389,7 +391,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         say(0.05, "training the default bootstrap model (synthetic walls only)")
         model = bootstrap_model()
     tables, cues, poses = wall_cues(wall, progress=lambda f, t: say(0.1 + 0.3 * f, t))
-    index = _index_of(tables, cues)
+    index = _index_of(tables, cues, single_fresco=single_fresco)
     obj = {f.id: f.notes.get("object") for f in wall.fragments}
     ids = list(index._order)
     index.refresh_hubness(ids, model, n_candidates=100)
@@ -457,7 +459,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     ppr = pair_precision_recall(pooled, wall.adjacency)
     ppr_max = pair_precision_recall(pooled_max, wall.adjacency)
     result = {
-        "collection": str(path), "dpi": float(dpi), "model": model.version,
+        "collection": str(path), "dpi": float(dpi), "model": model.version, "single_fresco": bool(single_fresco),
         "pooled_topk": top_k_recall(pooled, wall.adjacency, (1, 5, 10)),
         "pooled_topk_by_probability": top_k_recall(pooled_max, wall.adjacency, (1, 5, 10)),
         "within_object_recall": wo["recall"], "within_object_random": wo["random"],

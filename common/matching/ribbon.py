@@ -20,8 +20,12 @@ opposite directions):
 2. *Tolerance*: ``D`` is replaced by its minimum over ±``tolerance_mm`` along either profile: the
    paint boundaries cross a crack obliquely and erosion eats the rims unevenly, so the samples of
    a true pair face each other only to within a few mm.
-3. The score is minus the mean of the tolerant ``D`` over the best run of ``window_mm`` of
-   consecutive facing samples (a diagonal of ``D``, wrapping around both closed contours).
+3. For each run length ``w`` of ``windows_mm`` (20, 40 and 80 mm), the best run of ``w`` consecutive
+   facing samples (a diagonal of ``D``, wrapping around both closed contours) and the mean tolerant
+   ``D`` over it; the score is minus the mean of those means over the run lengths. A short run finds
+   a short shared crack; the long ones ask the colours to agree along more of it, which tells the
+   true partner among pieces of one painting (one wall of 240 factory pieces: top-5 0.130 → 0.230 by
+   the ribbon alone, docs/matching.md, "A ribbon at three lengths").
 
 A true pair's score is high; so is the score of two fragments of one plain colour, which is why
 this ranks only the candidates the learned patch classifier put first (:mod:`common.matching.index`).
@@ -40,8 +44,10 @@ import numpy as np
 
 from common.threads import one_blas_thread
 
-#: length of the compared run of facing samples, mm
-RIBBON_WINDOW_MM = 20.0
+#: lengths of the compared runs of facing samples, mm (module docstring, step 3)
+RIBBON_WINDOWS_MM = (20.0, 40.0, 80.0)
+#: the shortest, whose best run is the place a candidate's ribbon match is reported at
+RIBBON_WINDOW_MM = min(RIBBON_WINDOWS_MM)
 #: positional tolerance along either profile, mm
 RIBBON_TOLERANCE_MM = 3.0
 #: weight of the squared thickness difference (mm²) against the squared colour distance
@@ -56,6 +62,12 @@ RIBBON_RARITY_WEIGHT = 1.0
 RIBBON_RARITY_K = 10
 #: samples kept in the rarity reference population
 RIBBON_POPULATION_SAMPLES = 10000
+#: what a ribbon score means. A model's ribbon calibration holds only for scores made this way, so the model records
+#: it (``info["ribbon_definition"]``); a model without it, or with another, has its ribbon calibrated again
+#: (:func:`common.matching.online.with_current_ribbon`; before 2026-11-29 the score was one run of 20 mm)
+RIBBON_DEFINITION = (f"mean of the best runs of {'/'.join(f'{w:g}' for w in RIBBON_WINDOWS_MM)} mm, "
+                     f"±{RIBBON_TOLERANCE_MM:g} mm, {RIBBON_STEP_MM:g} mm steps, rarity {RIBBON_RARITY_WEIGHT:g} × "
+                     f"{RIBBON_RARITY_K}")
 
 
 @dataclass
@@ -226,7 +238,7 @@ def _shifted_min(d: np.ndarray, tol: int, axis: int) -> np.ndarray:
 
 
 def ribbon_scores(a: RibbonProfile, others: list, *, rarity: np.ndarray | None = None,
-                  window_mm: float = RIBBON_WINDOW_MM, tolerance_mm: float = RIBBON_TOLERANCE_MM,
+                  windows_mm=RIBBON_WINDOWS_MM, tolerance_mm: float = RIBBON_TOLERANCE_MM,
                   rarity_weight: float = RIBBON_RARITY_WEIGHT):
     """Ribbon score of fragment A against each of several fragments B (module docstring).
 
@@ -238,33 +250,37 @@ def ribbon_scores(a: RibbonProfile, others: list, *, rarity: np.ndarray | None =
         The other fragments' prepared profiles (same columns and weights).
     rarity : (Ka,) array, optional
         :func:`sample_rarity` of A's samples; ``rarity_weight`` × it is taken off A's distances.
-    window_mm, tolerance_mm, rarity_weight : float
-        Length of the compared run, positional tolerance, weight of the rarity (module docstring).
+    windows_mm : sequence of float
+        Lengths of the compared runs (each at most A's perimeter); the score is the mean over them.
+    tolerance_mm, rarity_weight : float
+        Positional tolerance, weight of the rarity (module docstring).
 
     Returns
     -------
     score : (K,) float
-        Minus the mean tolerant distance over the best run (higher = better fit); NaN for a
-        profile shorter than three samples.
+        Minus the mean, over the run lengths, of the mean tolerant distance over the best run of that
+        length (higher = better fit); NaN for a profile shorter than three samples.
     arc_a_mm : (K,) float
-        Arc position on A where the best run starts (A runs forwards from there).
+        Arc position on A where the best run of the shortest length starts (A runs forwards from there).
     arc_b_mm : (K,) float
         Arc position on B where it starts (B runs backwards from there).
     """
-    if not (window_mm > 0 and tolerance_mm >= 0):
-        raise ValueError("window_mm must be positive and tolerance_mm non-negative")
+    windows = np.atleast_1d(np.asarray(windows_mm, float))
+    if not (len(windows) and np.all(windows > 0) and tolerance_mm >= 0):
+        raise ValueError(f"windows_mm must be one or more positive lengths and tolerance_mm non-negative, "
+                         f"got {windows_mm}, {tolerance_mm}")
     # small matrix products: BLAS threads only add overhead (and fight the other workers)
     with one_blas_thread():
-        return _ribbon_scores(a, others, window_mm, tolerance_mm,
+        return _ribbon_scores(a, others, np.sort(windows), tolerance_mm,
                               None if rarity is None else rarity_weight * np.asarray(rarity, float))
 
 
-#: cells of D handled at once (a group of candidates): small enough that the dozen passes over it
-#: run in the processor's cache, not in main memory (2.6× faster than all candidates at once)
+#: cells of D handled at once (a group of candidates): small enough that the passes over it run in
+#: the processor's cache, not in main memory (2.6× faster than all candidates at once)
 RIBBON_BLOCK_CELLS = 1 << 17
 
 
-def _ribbon_scores(a, others, window_mm, tolerance_mm, offset):
+def _ribbon_scores(a, others, windows_mm, tolerance_mm, offset):
     k = len(others)
     score, arc_a, arc_b = np.full(k, np.nan), np.zeros(k), np.zeros(k)
     lens = np.array([len(p) for p in others], int)
@@ -277,8 +293,8 @@ def _ribbon_scores(a, others, window_mm, tolerance_mm, offset):
             raise ValueError(f"rarity must be ({na},), one value per sample of A, got {offset.shape}")
         offset = offset.astype(np.float32)[:, None]
     tol = int(round(tolerance_mm / a.step_mm))
-    win = max(1, min(int(round(window_mm / a.step_mm)), na))
-    width = lens + 2 * tol + win       # columns of each B: reversed, padded with its own wrap
+    wins = [max(1, min(int(round(w / a.step_mm)), na)) for w in windows_mm]   # shortest first
+    width = lens + 2 * tol + max(wins)       # columns of each B: reversed, padded with its own wrap
     budget = max(1, RIBBON_BLOCK_CELLS // na)
     # thickness counts only where both fragments have it (a colour-only scan is not a mismatch)
     thick = np.array([a.has_thickness and others[j].has_thickness for j in range(k)])
@@ -288,24 +304,25 @@ def _ribbon_scores(a, others, window_mm, tolerance_mm, offset):
         while start < len(sel):
             stop = start + max(1, int(np.searchsorted(np.cumsum(width[sel[start:]]), budget, side="right")))
             group = sel[start:stop]
-            best, i0, j0 = _ribbon_group(a, [others[j] for j in group], flag, tol, win, offset)
-            score[group] = -best / win
+            means, i0, j0 = _ribbon_group(a, [others[j] for j in group], flag, tol, wins, offset)
+            score[group] = -means
             arc_a[group] = i0 * a.step_mm
             arc_b[group] = [(lens[j] - 1 - jj) * others[j].step_mm for j, jj in zip(group, j0)]   # B's own forward arc
             start = stop
     return score, arc_a, arc_b
 
 
-def _ribbon_group(a, group, flag, tol, win, offset):
-    """Best run of A against each B of ``group`` (all with thickness ``flag``): its summed tolerant
-    distance, A's start sample and B's start sample (reversed order), each (len(group),)."""
-    na = len(a)
+def _ribbon_group(a, group, flag, tol, wins, offset):
+    """Best runs of A against each B of ``group`` (all with thickness ``flag``) for each run length of
+    ``wins`` (samples, shortest first): the mean over the lengths of the best run's mean tolerant distance,
+    and A's and B's (reversed order) start samples of the shortest length's best run, each (len(group),)."""
+    na, wmax = len(a), max(wins)
     lens = np.array([len(p) for p in group], int)
-    # every B reversed and padded with its own wrap — `tol` samples before, `tol + win` after — and
+    # every B reversed and padded with its own wrap — `tol` samples before, `tol + wmax` after — and
     # stacked: one matrix product gives D for all of them, the tolerance along B never reaches into
-    # another fragment, and a run of `win` samples from any start stays inside its fragment's block
-    idx = [(n - 1 - np.arange(-tol, n + tol + win)) % n for n in lens]
-    offsets = np.concatenate([[0], np.cumsum(lens + 2 * tol + win)])
+    # another fragment, and a run of up to `wmax` samples from any start stays inside its fragment's block
+    idx = [(n - 1 - np.arange(-tol, n + tol + wmax)) % n for n in lens]
+    offsets = np.concatenate([[0], np.cumsum(lens + 2 * tol + wmax)])
     dd = None
     for kind in ("sqrt", "std"):
         o = np.vstack([p.rows[(kind, flag)][1][ix] for p, ix in zip(group, idx)])
@@ -317,21 +334,34 @@ def _ribbon_group(a, group, flag, tol, win, offset):
         d -= offset
     if tol:
         d = np.minimum(_shifted_min(d, tol, 0), _shifted_min(d, tol, 1))
-    # a run starting at A sample i and B sample j is the diagonal D[i + t, j + t], t < win (A wraps,
-    # B's padding holds its wrap): the sum of `win` shifted views of D with A's first rows appended
-    d = np.vstack([d, d[:win - 1]])
-    n_cols = offsets[-1] - win + 1
-    sums = d[:na, :n_cols].copy()
-    for t in range(1, win):
-        sums += d[t:t + na, t:t + n_cols]
-    best_i = np.argmin(sums, axis=0)                  # the best A start for every column
-    best = sums[best_i, np.arange(n_cols)]
-    out_best, out_i, out_j = np.empty(len(group)), np.empty(len(group), int), np.empty(len(group), int)
-    for t, n in enumerate(lens):
-        c0 = offsets[t] + tol                         # column c0 + j: runs starting at B sample j
-        j = int(np.argmin(best[c0:c0 + n]))
-        out_best[t], out_i[t], out_j[t] = best[c0 + j], best_i[c0 + j], j
-    return out_best, out_i, out_j
+    # a run starting at A sample i and B sample j is the diagonal D[i + t, j + t], t < w (A wraps: its
+    # first rows appended; B's padding holds its wrap). The shortest length's run sums come from `w0`
+    # shifted views of D; a longer run is made of whole runs of the shortest, shifted along the
+    # diagonal, and the samples left over (20, 40 and 80 mm: 10 + 1 + 3 additions, not 10 + 20 + 40)
+    w0 = wins[0]
+    d = np.vstack([d, d[:wmax - 1]])
+    rows, cols = na + wmax - w0, offsets[-1] - w0 + 1
+    base = d[:rows, :cols].copy()
+    for t in range(1, w0):
+        base += d[t:t + rows, t:t + cols]
+    n_cols = offsets[-1] - wmax + 1
+    starts = offsets[:-1] + tol                       # column starts[t] + j: runs starting at B sample j
+    total = np.zeros(len(group))
+    out_i, out_j = np.zeros(len(group), int), np.zeros(len(group), int)
+    for w in wins:
+        sums = base[:na, :n_cols].copy()
+        for m in range(1, w // w0):
+            sums += base[m * w0:m * w0 + na, m * w0:m * w0 + n_cols]
+        for t in range(w // w0 * w0, w):
+            sums += d[t:t + na, t:t + n_cols]
+        best_i = np.argmin(sums, axis=0)              # the best A start for every column
+        best = sums[best_i, np.arange(n_cols)]
+        for t, n in enumerate(lens):
+            j = int(np.argmin(best[starts[t]:starts[t] + n]))
+            total[t] += best[starts[t] + j] / w
+            if w == wins[0]:
+                out_i[t], out_j[t] = best_i[starts[t] + j], j
+    return total / len(wins), out_i, out_j
 
 
 def pair_ribbon_scores(profiles: dict, names, *, step_mm: float = 1.0, progress=None) -> dict:

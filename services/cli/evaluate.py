@@ -5,7 +5,7 @@
                      [--subsets colour,curvature,normal,erosion,thickness,per-match,all]
                      [--dafne ../shared/data/dafne-adam]
     tessera evaluate --train-model ROOT [--db PATH] [--fragments 150] [--seed 11] [--dpi 100]
-    tessera evaluate --collection DIR [--dpi 150] [--json FILE] [--model ROOT] [--out DIR]
+    tessera evaluate --collection DIR [--dpi 150] [--json FILE] [--model ROOT] [--out DIR] [--single-fresco]
 
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
 feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
@@ -23,6 +23,8 @@ bootstrap model, or the current model of the station at ``--model ROOT`` — fit
 and prints and writes pooled top-k, within-object recall with its random baseline, pair AP and
 pose accuracy (docs/matching.md); its picture of hits and misses (``collection_examples.png``) goes to
 ``--out``, by default the folder of the ``--json`` file, or the current folder without one.
+``--single-fresco`` ranks as a station set for a collection of one fresco does (``[services.matcher]
+single_fresco``, docs/matching.md, "One fresco").
 """
 
 from __future__ import annotations
@@ -60,6 +62,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--db", help="proposal database (default ROOT/matches/proposals.sqlite)")
     p.add_argument("--collection", metavar="DIR", help="evaluate on a real placed collection (repair-dev layout)")
     p.add_argument("--json", metavar="FILE", help="with --collection: write the figures as JSON")
+    p.add_argument("--single-fresco", action="store_true",
+                   help="with --collection: rank as a station set for a collection of one fresco "
+                        "([services.matcher] single_fresco): the same-fresco ratio does not re-order candidates")
     p.add_argument("--model", metavar="ROOT", help="with --collection: use the current model of the station "
                                                    "at storage root ROOT (default: the bootstrap model)")
     p.set_defaults(func=run)
@@ -121,14 +126,16 @@ def _collection(args, progress) -> int:
         current = db.current_model()
         if current is None:
             raise SystemExit(f"--model {args.model}: the station has no match model yet")
-        model = load_model(Store(args.model), current["artifact"])
+        from common.matching.online import with_current_ribbon
+        model = with_current_ribbon(load_model(Store(args.model), current["artifact"]))   # as the station's matcher
     out = args.out if args.out is not None else (Path(args.json).parent if args.json else Path("."))
     try:
-        res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out, progress=progress)
+        res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out,
+                                  single_fresco=args.single_fresco, progress=progress)
     except ValueError as exc:
         raise SystemExit(f"--collection {args.collection}: {exc}")
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
-          f"pairs, {res['dpi']:g} dpi, model {res['model']}")
+          f"pairs, {res['dpi']:g} dpi, model {res['model']}" + (", ranked as one fresco" if res["single_fresco"] else ""))
     print("pooled top-k (links), mutual proximity: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items())
           + "; by probability: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk_by_probability"].items()))
     print("within-object recall: " + ", ".join(f"@{k}: {v:.3f} (random {res['within_object_random'][k]:.3f}, "

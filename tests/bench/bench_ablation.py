@@ -150,7 +150,7 @@ def _run(args) -> dict:
     report.wall_cues = lambda *a, **k: (tables, cues, poses)
     with left_out(variant):
         index_of, made = report._index_of, []
-        report._index_of = lambda *a: made.append(index_of(*a)) or made[-1]   # to count the pairs it docked
+        report._index_of = lambda *a, **k: made.append(index_of(*a, **k)) or made[-1]   # to count the pairs it docked
         r = report.evaluate_collection(collection, dpi=dpi, model=model)
     n = r["within_object_fragments"]
     return {"variant": variant, "collection": collection.name, "n_queries": n,

@@ -676,6 +676,27 @@ def test_the_ribbon_ranks_stage_2s_best_with_the_same_fresco_ratio_added(monkeyp
     assert [c.other for c in index._ribbon_head("q", found, 2)] == ["a", "b"]
 
 
+def test_a_collection_of_one_fresco_keeps_the_ribbons_order_and_its_cut(monkeypatch):
+    """Set for one fresco, the same-fresco ratio no longer re-orders the ribbon's candidates (ribbon probabilities
+    0.6, 0.5 with ratios −1, +1 and weight 4: the ratio would put b first, as the default index does), while the cut
+    to the ribbon's candidates still adds it (the reach: stage 2 likes a best, the ratio picks b)."""
+    from common.matching import fresco
+    from common.matching.index import Candidate
+
+    def cand(other, p):
+        return Candidate("q", other, p, 0, 0, np.zeros((0, 2), int), np.zeros((0, 1)))
+
+    ratio = {"a": -1.0, "b": 1.0}
+    monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: f)
+    monkeypatch.setattr(fresco, "fresco_llr", lambda a, b: ratio[b])
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    several, one = MatchIndex(), MatchIndex(single_fresco=True)
+    assert [c.other for c in several._rank_by_fresco("q", [cand("a", 0.6), cand("b", 0.5)])] == ["b", "a"]
+    kept = one._rank_by_fresco("q", [cand("a", 0.6), cand("b", 0.5)])
+    assert [(c.other, c.probability) for c in kept] == [("a", 0.6), ("b", 0.5)]
+    assert [c.other for c in one._ribbon_head("q", [cand("a", 0.6), cand("b", 0.5)], 1)] == ["b"]
+
+
 def test_stage_1_takes_the_fragments_likeliest_of_the_querys_fresco_by_their_boundary_colours(monkeypatch):
     """With a signature, stage 1's candidates are the fragments whose a*b* histograms overlap the query's most
     (Bhattacharyya coefficient Σ √(h_q h_o), the same-fresco ratio's one cue). Histograms over two bins:

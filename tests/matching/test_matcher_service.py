@@ -429,3 +429,45 @@ def test_a_bad_feature_artifact_rejects_its_own_job_only_and_is_never_recorded(s
     events = matcher.handle(new_message("features.ready", fragment=c, face="front", artifact=arts[c]), ctx)
     assert all(e["type"] in ("match.proposed", "match.ranked") for e in events)
     assert {r["fragment"] for r in db.fragments(face="front")} == {a, b, c}
+
+
+def test_a_stored_model_calibrated_for_another_ribbon_score_is_calibrated_again_on_load(station):
+    """A station upgraded past a change of the ribbon's score: its current model's ribbon calibration no longer holds,
+    so the matcher fits it again on its bootstrap wall and stores the result as the current model, with a note."""
+    import dataclasses
+
+    import services.matcher as matcher
+    from common.matching.ribbon import RIBBON_DEFINITION
+
+    wall, store, db, arts, ctx = station
+    base = load_model(store, db.current_model()["artifact"])
+    info = {k: v for k, v in base.info.items() if k != "ribbon_definition"}    # as models were stored before
+    stale = dataclasses.replace(base, ribbon=(10.0, -3.0), info=info)
+    stale.version = f"0002-{stale.digest()}"
+    db.add_model(stale.version, save_model(store, stale).to_dict(), n_train=len(stale.training[1]))
+    ctx.config["bootstrap_fragments"], ctx.config["bootstrap_seed"] = 12, 3
+    matcher.handle(new_message("features.ready", fragment=wall.fragments[0].id, face="front",
+                               artifact=arts[wall.fragments[0].id]), ctx)
+    current = db.current_model()
+    assert current["version"] != stale.version and current["version"].startswith("0003-")
+    assert "ribbon calibrated again" in current["note"]
+    renewed = load_model(store, current["artifact"])
+    assert renewed.info["ribbon_definition"] == RIBBON_DEFINITION and renewed.ribbon != pytest.approx((10.0, -3.0))
+    np.testing.assert_array_equal(renewed.coef, stale.coef)
+    assert matcher._state(ctx).model.version == current["version"]
+
+
+def test_a_station_set_for_one_fresco_ranks_with_an_index_of_one_fresco(tmp_path):
+    """``[services.matcher] single_fresco`` reaches the index; a value that is not a TOML boolean is refused by name
+    (the string "false" would otherwise read as true)."""
+    import services.matcher as matcher
+
+    def ctx(value):
+        return StageContext(store=Store(tmp_path / str(value)), config={"single_fresco": value},
+                            log=logging.getLogger("test.matcher"), progress=lambda f, t: None, service="matcher")
+
+    db = ProposalStore(tmp_path / "db.sqlite")
+    assert matcher._State(db, single_fresco=True).index.single_fresco
+    assert not matcher._State(db).index.single_fresco
+    with pytest.raises(ValueError, match="single_fresco must be true or false"):
+        matcher._state(ctx("false"))

@@ -63,3 +63,30 @@ def test_ribbon_calibration_is_stored_versioned_and_optional(tmp_path):
     assert load_model(store, save_model(store, plain)).ribbon is None
     with pytest.raises(ValueError, match="ribbon"):
         model_from_pipeline(pipe, ["a", "b", "c", "d"], sequence=2, ribbon=(float("nan"), 0.0))
+
+
+def test_a_model_calibrated_for_another_ribbon_score_is_calibrated_again_as_a_bootstrap_would_be(small_wall):
+    """A model from before the ribbon's score changed (no definition recorded, or another) gets the calibration a fresh
+    bootstrap on the same wall fits, as the next version, and keeps its patch classifier and training rows; a model
+    of today's score, or without a ribbon, is left as it is."""
+    from common.matching.online import bootstrap_wall, ribbon_calibration, train_model, with_current_ribbon
+    from common.matching.pairs import training_set
+    from common.matching.ribbon import RIBBON_DEFINITION
+
+    wall, tables, cues, poses = small_wall
+    old, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1), sequence=4, ribbon=(10.0, -3.0),
+                         info={"ribbon_definition": "runs of 20 mm"})
+    renewed = with_current_ribbon(old, n_fragments=12, seed=3)
+    boot_wall, boot_tables, _ = bootstrap_wall(n_fragments=12, seed=3)
+    assert renewed.ribbon == pytest.approx(ribbon_calibration(boot_tables, boot_wall.adjacency))
+    assert renewed.ribbon != pytest.approx((10.0, -3.0))
+    assert renewed.sequence == 5 and renewed.version != old.version
+    assert renewed.info["ribbon_definition"] == RIBBON_DEFINITION and renewed.info["previous"] == old.version
+    np.testing.assert_array_equal(renewed.coef, old.coef)
+    assert renewed.training is old.training
+    assert with_current_ribbon(renewed, n_fragments=12, seed=3) is renewed
+    no_ribbon, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1))
+    assert with_current_ribbon(no_ribbon) is no_ribbon
+    fresh, _ = train_model(training_set(cues, poses, wall.adjacency, seed=1), ribbon=(10.0, -3.0))
+    assert fresh.info["ribbon_definition"] == RIBBON_DEFINITION            # recorded when trained
+    assert with_current_ribbon(fresh) is fresh

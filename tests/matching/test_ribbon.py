@@ -126,8 +126,10 @@ def test_ribbon_profiles_without_colour_channels_or_of_the_wrong_width_are_refus
         prepare_ribbon(a[:, :5], NAMES)
     with pytest.raises(ValueError, match="step_mm"):
         prepare_ribbon(a, NAMES, step_mm=0)
-    with pytest.raises(ValueError, match="window_mm"):
-        ribbon_scores(_ribbon(a), [_ribbon(a)], window_mm=0)
+    with pytest.raises(ValueError, match="windows_mm"):
+        ribbon_scores(_ribbon(a), [_ribbon(a)], windows_mm=(20.0, 0.0))
+    with pytest.raises(ValueError, match="windows_mm"):
+        ribbon_scores(_ribbon(a), [_ribbon(a)], windows_mm=())
 
 
 def _flat_profile(colours):
@@ -191,8 +193,11 @@ def _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset):
 
 
 @pytest.mark.parametrize("block_cells", [1 << 17, 1])   # all candidates in one block, or one each
-@pytest.mark.parametrize("window_mm, tolerance_mm", [(20.0, 3.0), (4.0, 2.0), (500.0, 0.0)])
-def test_scores_and_best_runs_equal_the_definition(window_mm, tolerance_mm, block_cells, monkeypatch):
+@pytest.mark.parametrize("windows_mm, tolerance_mm", [((20.0,), 3.0), ((4.0,), 2.0), ((500.0,), 0.0),
+                                                      ((20.0, 40.0, 80.0), 3.0), ((80.0, 6.0), 1.0)])
+def test_scores_and_best_runs_equal_the_definition(windows_mm, tolerance_mm, block_cells, monkeypatch):
+    """The score is the mean over the run lengths of each length's best run, each found on its own; the
+    reported run is the shortest length's best."""
     import common.matching.ribbon as ribbon
 
     monkeypatch.setattr(ribbon, "RIBBON_BLOCK_CELLS", block_cells)
@@ -200,12 +205,12 @@ def test_scores_and_best_runs_equal_the_definition(window_mm, tolerance_mm, bloc
     others = _decoys(4)[1:] + [_ribbon(_piece(*_painting(9), _cut(9), upper=True)[0])]
     offset = np.random.default_rng(0).uniform(0, 0.05, len(a))
     score, arc_a, arc_b = ribbon_scores(a, others, rarity=offset, rarity_weight=1.0,
-                                        window_mm=window_mm, tolerance_mm=tolerance_mm)
+                                        windows_mm=windows_mm, tolerance_mm=tolerance_mm)
     for b, s, i0, j_arc in zip(others, score, arc_a, arc_b):
-        best, runs = _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset)
-        # the tolerant distances are summed in float32 (ribbon._ribbon_group): ~1e-7 of a score
-        assert s == pytest.approx(best, abs=1e-6)
-        # the reported run (A forwards from arc_a, B backwards from arc_b) is a best one
+        by_length = [_ribbon_by_definition(a, b, w, tolerance_mm, offset) for w in sorted(windows_mm)]
+        assert s == pytest.approx(np.mean([best for best, _ in by_length]), abs=1e-6)
+        # the reported run (A forwards from arc_a, B backwards from arc_b) is a best one of the shortest length
+        best, runs = by_length[0]
         i, j = int(round(i0 / a.step_mm)), len(b) - 1 - int(round(j_arc / b.step_mm))
         assert -runs[i, j] == pytest.approx(best, abs=1e-6)
 
