@@ -20,9 +20,10 @@ opposite directions):
 2. *Tolerance*: ``D`` is replaced by its minimum over ±``tolerance_mm`` along either profile: the
    paint boundaries cross a crack obliquely and erosion eats the rims unevenly, so the samples of
    a true pair face each other only to within a few mm.
-3. For each run length ``w`` of ``windows_mm`` (20, 40 and 80 mm), the best run of ``w`` consecutive
-   facing samples (a diagonal of ``D``, wrapping around both closed contours) and the mean tolerant
-   ``D`` over it; the score is minus the mean of those means over the run lengths. A short run finds
+3. For each run length ``w`` of ``windows_mm`` (20, 40 and 80 mm; a longer one at most a third of A's
+   outline), the best run of ``w`` consecutive facing samples (a diagonal of ``D``, wrapping around both
+   closed contours) and the mean tolerant ``D`` over it; the score is minus the mean of those means over
+   the run lengths. A short run finds
    a short shared crack; the long ones ask the colours to agree along more of it, which tells the
    true partner among pieces of one painting (one wall of 240 factory pieces: top-5 0.130 → 0.230 by
    the ribbon alone, docs/matching.md, "A ribbon at three lengths").
@@ -65,7 +66,8 @@ RIBBON_POPULATION_SAMPLES = 10000
 #: what a ribbon score means. A model's ribbon calibration holds only for scores made this way, so the model records
 #: it (``info["ribbon_definition"]``); a model without it, or with another, has its ribbon calibrated again
 #: (:func:`common.matching.online.with_current_ribbon`; before 2026-11-29 the score was one run of 20 mm)
-RIBBON_DEFINITION = (f"mean of the best runs of {'/'.join(f'{w:g}' for w in RIBBON_WINDOWS_MM)} mm, "
+RIBBON_DEFINITION = (f"mean of the best runs of {'/'.join(f'{w:g}' for w in RIBBON_WINDOWS_MM)} mm (the longer ones at "
+                     f"most a third of the outline), "
                      f"±{RIBBON_TOLERANCE_MM:g} mm, {RIBBON_STEP_MM:g} mm steps, rarity {RIBBON_RARITY_WEIGHT:g} × "
                      f"{RIBBON_RARITY_K}")
 
@@ -251,7 +253,8 @@ def ribbon_scores(a: RibbonProfile, others: list, *, rarity: np.ndarray | None =
     rarity : (Ka,) array, optional
         :func:`sample_rarity` of A's samples; ``rarity_weight`` × it is taken off A's distances.
     windows_mm : sequence of float
-        Lengths of the compared runs (each at most A's perimeter); the score is the mean over them.
+        Lengths of the compared runs (the shortest at most A's perimeter, the others at most a third of it, but
+        never below the shortest); the score is the mean over them.
     tolerance_mm, rarity_weight : float
         Positional tolerance, weight of the rarity (module docstring).
 
@@ -293,7 +296,10 @@ def _ribbon_scores(a, others, windows_mm, tolerance_mm, offset):
             raise ValueError(f"rarity must be ({na},), one value per sample of A, got {offset.shape}")
         offset = offset.astype(np.float32)[:, None]
     tol = int(round(tolerance_mm / a.step_mm))
-    wins = [max(1, min(int(round(w / a.step_mm)), na)) for w in windows_mm]   # shortest first
+    steps = [max(1, min(int(round(w / a.step_mm)), na)) for w in windows_mm]   # shortest first
+    # a longer run covers at most a third of A's outline (never less than the shortest): a shared crack rarely
+    # runs further round a piece, and on a piece 3 cm across a run of 80 mm would be its whole outline
+    wins = [steps[0]] + [min(n, max(steps[0], na // 3)) for n in steps[1:]]
     width = lens + 2 * tol + max(wins)       # columns of each B: reversed, padded with its own wrap
     budget = max(1, RIBBON_BLOCK_CELLS // na)
     # thickness counts only where both fragments have it (a colour-only scan is not a mismatch)

@@ -194,10 +194,11 @@ def _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset):
 
 @pytest.mark.parametrize("block_cells", [1 << 17, 1])   # all candidates in one block, or one each
 @pytest.mark.parametrize("windows_mm, tolerance_mm", [((20.0,), 3.0), ((4.0,), 2.0), ((500.0,), 0.0),
-                                                      ((20.0, 40.0, 80.0), 3.0), ((80.0, 6.0), 1.0)])
+                                                      ((20.0, 40.0, 80.0), 3.0), ((80.0, 6.0), 1.0),
+                                                      ((4.0, 500.0), 2.0)])
 def test_scores_and_best_runs_equal_the_definition(windows_mm, tolerance_mm, block_cells, monkeypatch):
-    """The score is the mean over the run lengths of each length's best run, each found on its own; the
-    reported run is the shortest length's best."""
+    """The score is the mean over the run lengths of each length's best run, each found on its own (a longer
+    length at most a third of A's outline); the reported run is the shortest length's best."""
     import common.matching.ribbon as ribbon
 
     monkeypatch.setattr(ribbon, "RIBBON_BLOCK_CELLS", block_cells)
@@ -206,8 +207,12 @@ def test_scores_and_best_runs_equal_the_definition(windows_mm, tolerance_mm, blo
     offset = np.random.default_rng(0).uniform(0, 0.05, len(a))
     score, arc_a, arc_b = ribbon_scores(a, others, rarity=offset, rarity_weight=1.0,
                                         windows_mm=windows_mm, tolerance_mm=tolerance_mm)
+    # the longer lengths are cut to a third of A's outline, never below the shortest length
+    shortest, *longer = sorted(windows_mm)
+    first = min(round(shortest / a.step_mm), len(a))
+    lengths = [shortest] + [min(round(w / a.step_mm), len(a), max(first, len(a) // 3)) * a.step_mm for w in longer]
     for b, s, i0, j_arc in zip(others, score, arc_a, arc_b):
-        by_length = [_ribbon_by_definition(a, b, w, tolerance_mm, offset) for w in sorted(windows_mm)]
+        by_length = [_ribbon_by_definition(a, b, w, tolerance_mm, offset) for w in lengths]
         assert s == pytest.approx(np.mean([best for best, _ in by_length]), abs=1e-6)
         # the reported run (A forwards from arc_a, B backwards from arc_b) is a best one of the shortest length
         best, runs = by_length[0]
