@@ -369,7 +369,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         review page's candidate poses finds), ``pose_errors``, ``n_fragments``,
         ``n_true_pairs``, ``intervals`` (90 % bootstrap intervals of the pooled top-k, the within-object
         recall and the two pose shares, :func:`~common.matching.evaluation.bootstrap_interval` over the
-        fragments or pairs counted), ``dpi``, ``model``, ``seconds`` (wall) and ``cpu_seconds``.
+        fragments or pairs counted), ``dpi``, ``model``, ``single_fresco``, ``seconds`` (wall) and ``cpu_seconds``.
     """
     from common.matching.alignment import pose_matrix
     from common.matching.collection import collection_wall, relative_pose_error, within_object_recall

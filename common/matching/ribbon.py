@@ -23,10 +23,9 @@ opposite directions):
 3. For each run length ``w`` of ``windows_mm`` (20, 40 and 80 mm; a longer one at most a third of A's
    outline), the best run of ``w`` consecutive facing samples (a diagonal of ``D``, wrapping around both
    closed contours) and the mean tolerant ``D`` over it; the score is minus the mean of those means over
-   the run lengths. A short run finds
-   a short shared crack; the long ones ask the colours to agree along more of it, which tells the
-   true partner among pieces of one painting (one wall of 240 factory pieces: top-5 0.130 → 0.230 by
-   the ribbon alone, docs/matching.md, "A ribbon at three lengths").
+   the run lengths. A short run finds a short shared crack; the long ones ask the colours to agree along
+   more of it, which tells the true partner among pieces of one painting (one wall of 240 factory pieces:
+   top-5 0.130 → 0.227 by the ribbon alone; docs/matching.md, "A ribbon at three lengths, and one fresco").
 
 A true pair's score is high; so is the score of two fragments of one plain colour, which is why
 this ranks only the candidates the learned patch classifier put first (:mod:`common.matching.index`).

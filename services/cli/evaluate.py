@@ -24,7 +24,7 @@ and prints and writes pooled top-k, within-object recall with its random baselin
 pose accuracy (docs/matching.md); its picture of hits and misses (``collection_examples.png``) goes to
 ``--out``, by default the folder of the ``--json`` file, or the current folder without one.
 ``--single-fresco`` ranks as a station set for a collection of one fresco does (``[services.matcher]
-single_fresco``, docs/matching.md, "One fresco").
+single_fresco``, docs/matching.md, "A ribbon at three lengths, and one fresco").
 """
 
 from __future__ import annotations
