@@ -134,8 +134,8 @@ def _with_current_ribbon(model, st: _State, ctx):
                                                      "previous": model.version})
     st.db.add_model(renewed.version, ref.to_dict(), n_train=renewed.info.get("n_train"),
                     note=f"ribbon calibrated again for {renewed.info['ribbon_definition']}")
-    ctx.log.info("model %s: its ribbon calibration was for another score (%s); calibrated again as %s",
-                 model.version, model.info.get("ribbon_definition", "one run of 20 mm"), renewed.version)
+    ctx.log.info("model %s: its ribbon calibration %s; calibrated again as %s", model.version,
+                 renewed.info["ribbon_recalibrated"], renewed.version)
     return renewed
 
 
