@@ -25,7 +25,8 @@ from common.matching import online
 from common.matching.online import (docking_calibration, ribbon_calibration, stage_combination, train_model, wall_cues,
                                     with_combination)
 from common.matching.pairs import training_set
-from common.matching.ribbon import pair_ribbon_scores
+from common.matching.mutual import mutual_pair_scores
+from common.matching.ribbon import ribbon_rankings
 
 log = logging.getLogger("tessera.matching.report")
 
@@ -230,7 +231,9 @@ def evaluate_matching(out_dir, *, n_fragments: int = 150, seed: int = 11, test_s
     topk["synthetic, without docking (stages 2 + ribbon)"] = top_k_recall(undocked, wall2.adjacency, KS)
     plain = rank_all_pairs(_index_of(tables2, cues2), replace(model, ribbon=None, docking=None, combination=None))
     topk["synthetic, stage 2 only (patch classifier)"] = top_k_recall(plain, wall2.adjacency, KS)
-    alone = pair_ribbon_scores({f: t.boundary_profile for f, t in tables2.items()}, boundary_channel_names())
+    # each fragment's own ribbon list, pooled as the station pools (scores from two sides differ in scale)
+    alone = mutual_pair_scores(ribbon_rankings({f: t.boundary_profile for f, t in tables2.items()},
+                                               boundary_channel_names()))
     topk["synthetic, colour ribbon alone (every pair)"] = top_k_recall(alone, wall2.adjacency, KS)
     _plot_ribbon_examples(wall2, tables2, idx2, model, out / "ribbon_examples.png")
     ppr = pair_precision_recall(scores, wall2.adjacency)
@@ -320,8 +323,8 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
                                               replace(model, docking=None, combination=None)))
         plain_scores.update(rank_all_pairs(_index_of({f: tables[f] for f in test_ids}, {f: cues[f] for f in test_ids}),
                                            replace(model, ribbon=None, docking=None, combination=None)))
-        alone_scores.update(pair_ribbon_scores({f: tables[f].boundary_profile for f in test_ids},
-                                               boundary_channel_names()))
+        alone_scores.update(mutual_pair_scores(ribbon_rankings({f: tables[f].boundary_profile for f in test_ids},
+                                                               boundary_channel_names())))
     adj_te = [p for p in wall.adjacency if (p[0] in halves[0]) == (p[1] in halves[0])]
     rec = top_k_recall(all_scores, adj_te, KS)
     topk["DAFNE (train one half, rank the other)"] = rec
@@ -374,7 +377,6 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     from common.matching.alignment import pose_matrix
     from common.matching.collection import collection_wall, relative_pose_error, within_object_recall
     from common.matching.docking import docking_score_at
-    from common.matching.mutual import mutual_pair_scores
     from common.matching.online import bootstrap_model
 
     say = progress or (lambda f, t: None)

@@ -387,6 +387,27 @@ def pair_ribbon_scores(profiles: dict, names, *, step_mm: float = 1.0, progress=
     return out
 
 
+def ribbon_rankings(profiles: dict, names, *, step_mm: float = 1.0) -> dict:
+    """Every fragment's own ranking of all the others by the ribbon alone, ``{fragment: [others, best
+    first]}``: each scored from its own side (its rarity, its run lengths), as stage 2½ ranks a query.
+
+    The ribbon's longer runs are capped by the query's outline (:func:`ribbon_scores`), so scores from
+    different sides are on different scales; pooling these lists by mutual proximity
+    (:func:`~common.matching.mutual.mutual_pair_scores`) compares ranks instead, as the station does.
+    Fragments whose profile is too short to score are left out; NaN scores go last."""
+    prepared = {f: prepare_ribbon(p, names, step_mm=step_mm) for f, p in profiles.items()
+                if p is not None and len(p) >= 3}
+    ids = list(prepared)
+    population = ribbon_population(prepared) if ids else None
+    out = {}
+    for a in ids:
+        others = [b for b in ids if b != a]
+        s, _, _ = ribbon_scores(prepared[a], [prepared[b] for b in others],
+                                rarity=sample_rarity(prepared[a], population, fragment=a))
+        out[a] = [others[i] for i in np.argsort(-np.nan_to_num(s, nan=-np.inf), kind="stable")]
+    return out
+
+
 def fit_ribbon_calibration(scores, joined) -> tuple[float, float]:
     """Logistic calibration ``p = σ(slope · score + intercept)`` of ribbon scores.
 

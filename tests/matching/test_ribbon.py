@@ -5,8 +5,8 @@ import pytest
 
 from common.features.boundary import boundary_channel_names, boundary_profile
 from common.features.contour import fragment_contour
-from common.matching.ribbon import (fit_ribbon_calibration, pair_ribbon_scores, prepare_ribbon, ribbon_probability,
-                                    ribbon_scores)
+from common.matching.ribbon import (fit_ribbon_calibration, pair_ribbon_scores, prepare_ribbon, ribbon_population,
+                                    ribbon_probability, ribbon_rankings, ribbon_scores, sample_rarity)
 
 PX = 0.2           # mm per pixel
 W, H = 300, 200    # a 60 × 40 mm slab
@@ -104,6 +104,25 @@ def test_pair_scores_cover_every_pair_once_and_short_profiles_score_nan():
     assert max(scores, key=scores.get) == ("a", "b")
     s, _, _ = ribbon_scores(_ribbon(a), [_ribbon(b[:2])])
     assert np.isnan(s[0])
+
+
+def test_each_fragment_ranks_the_others_from_its_own_side():
+    albedo, thickness = _painting(0)
+    cut = _cut(0)
+    a, _ = _piece(albedo, thickness, cut, upper=True)
+    b, _ = _piece(albedo, thickness, cut, upper=False)
+    profiles = {"a": a, "b": b, "c": _piece(*_painting(1), _cut(1), upper=False)[0],
+                "d": _piece(*_painting(2), _cut(2), upper=True)[0], "short": b[:2]}
+    lists = ribbon_rankings(profiles, NAMES)
+    assert set(lists) == {"a", "b", "c", "d"} and lists["a"][0] == "b" and lists["b"][0] == "a"
+    # the definition: each list is its fragment's own ribbon scores, best first, with its own rarity
+    prepared = {f: _ribbon(p) for f, p in profiles.items() if f != "short"}
+    population = ribbon_population(prepared)
+    for f, ranked in lists.items():
+        others = [o for o in prepared if o != f]
+        s, _, _ = ribbon_scores(prepared[f], [prepared[o] for o in others],
+                                rarity=sample_rarity(prepared[f], population, fragment=f))
+        assert ranked == [others[i] for i in np.argsort(-s, kind="stable")]
 
 
 def test_calibration_recovers_a_known_logistic_relation():
