@@ -214,7 +214,8 @@ def _ribbon_by_definition(a, b, window_mm, tolerance_mm, offset):
 @pytest.mark.parametrize("block_cells", [1 << 17, 1])   # all candidates in one block, or one each
 @pytest.mark.parametrize("windows_mm, tolerance_mm", [((20.0,), 3.0), ((4.0,), 2.0), ((500.0,), 0.0),
                                                       ((20.0, 40.0, 80.0), 3.0), ((80.0, 6.0), 1.0),
-                                                      ((4.0, 500.0), 2.0)])
+                                                      ((4.0, 500.0), 2.0),
+                                                      ((20.0, 500.0, 600.0), 2.0)])   # two capped to one length
 def test_scores_and_best_runs_equal_the_definition(windows_mm, tolerance_mm, block_cells, monkeypatch):
     """The score is the mean over the run lengths of each length's best run, each found on its own (a longer
     length at most a third of A's outline); the reported run is the shortest length's best."""
