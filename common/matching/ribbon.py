@@ -351,26 +351,21 @@ def _ribbon_group(a, group, flag, tol, wins, offset):
         base += d[t:t + rows, t:t + cols]
     n_cols = offsets[-1] - wmax + 1
     starts = offsets[:-1] + tol                       # column starts[t] + j: runs starting at B sample j
-    # each B's valid run starts, one row per B (shorter Bs padded with a column that never wins)
-    cols = starts[:, None] + np.arange(lens.max())[None, :]
-    valid = np.arange(lens.max())[None, :] < lens[:, None]
-    cols = np.where(valid, cols, n_cols)
-    rows_b = np.arange(len(group))
     total = np.zeros(len(group))
     out_i, out_j = np.zeros(len(group), int), np.zeros(len(group), int)
-    # a length capped to another's is found once and counted as often as it is asked for
-    for w, count in zip(*np.unique(wins, return_counts=True)):
-        sums = base[:na, :n_cols] if w == w0 else base[:na, :n_cols].copy()
+    for w in wins:
+        sums = base[:na, :n_cols].copy()
         for m in range(1, w // w0):
             sums += base[m * w0:m * w0 + na, m * w0:m * w0 + n_cols]
         for t in range(w // w0 * w0, w):
             sums += d[t:t + na, t:t + n_cols]
         best_i = np.argmin(sums, axis=0)              # the best A start for every column
-        best = np.append(sums[best_i, np.arange(n_cols)], np.inf)
-        j = np.argmin(best[cols], axis=1)             # each B's best start
-        total += count * best[cols[rows_b, j]] / w
-        if w == w0:
-            out_i, out_j = best_i[cols[rows_b, j]], j
+        best = sums[best_i, np.arange(n_cols)]
+        for t, n in enumerate(lens):
+            j = int(np.argmin(best[starts[t]:starts[t] + n]))
+            total[t] += best[starts[t] + j] / w
+            if w == wins[0]:
+                out_i[t], out_j[t] = best_i[starts[t] + j], j
     return total / len(wins), out_i, out_j
 
 
