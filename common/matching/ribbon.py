@@ -371,8 +371,8 @@ def _ribbon_group(a, group, flag, tol, wins, offset):
 
 def pair_ribbon_scores(profiles: dict, names, *, step_mm: float = 1.0, progress=None) -> dict:
     """Ribbon score of every unordered pair of fragments from their boundary profiles,
-    ``{(a, b): score}`` (a before b in ``profiles`` order); for training the calibration and for
-    evaluation."""
+    ``{(a, b): score}`` (a before b in ``profiles`` order, scored from a's side); the sample a ribbon
+    calibration is fitted on. To rank, use :func:`ribbon_rankings` (each fragment from its own side)."""
     prepared = {f: prepare_ribbon(p, names, step_mm=step_mm) for f, p in profiles.items()
                 if p is not None and len(p) >= 3}
     ids = list(prepared)
