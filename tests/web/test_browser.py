@@ -411,6 +411,19 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
         page.keyboard.press("Shift+ArrowRight")
         page.wait_for_selector("#pose-adjust:has-text('turned 1.0°, moved (0.5, 0.0) mm')", timeout=5_000)
         assert page.inner_text("#proposal-title") == f"{first[0]} ↔ {first[1]}"   # shift+arrow did not move the queue
+        # X makes a step coarser (0.5 → 2 → 5 → 0.5, mm and degrees): there and back, to the same pose
+        page.keyboard.press("x")
+        page.keyboard.press("Shift+ArrowDown")
+        page.wait_for_selector("#pose-adjust:has-text('turned 1.0°, moved (0.5, 2.0) mm')", timeout=5_000)
+        page.keyboard.press("Shift+ArrowUp")
+        page.keyboard.press("x")
+        assert page.inner_text("#pose-step") == "step 5"
+        page.keyboard.press("]")
+        page.wait_for_selector("#pose-adjust:has-text('turned 6.0°, moved (0.5, 0.0) mm')", timeout=5_000)
+        page.keyboard.press("[")
+        page.keyboard.press("x")
+        assert page.inner_text("#pose-step") == "step 0.5"
+        page.wait_for_selector("#pose-adjust:has-text('turned 1.0°, moved (0.5, 0.0) mm')", timeout=5_000)
         src = page.get_attribute("#joined-colour", "src")
         assert "turn_deg=1.000" in src and "shift_x_mm=0.500" in src
         page.wait_for_function("() => document.getElementById('joined-colour').complete && "

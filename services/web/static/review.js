@@ -6,7 +6,10 @@
   let items = [], index = -1, filter = document.querySelector(".review").dataset.fragment || "";
   const skipped = new Set();
   // the conservator's correction of the proposed pose: B turned about its centre (deg), moved (mm)
-  const STEP_MM = 0.5, STEP_DEG = 0.5;
+  // one step of the pose controls, in mm and degrees alike: fine to coarse, X (or the step button) cycles it; a pose
+  // off by centimetres along the crack (RePAIR's near misses: 8–16 mm, docs/matching.md) is a few coarse steps
+  const STEPS = [0.5, 2, 5];
+  let step = 0;
   let adjust = { turn_deg: 0, shift_x_mm: 0, shift_y_mm: 0 };
   // the candidate poses of the current proposal, as adjustments of its pose with a label, fetched when it is
   // selected: its own pose first, then — where the pair's newcomer fits a corner of a confirmed cluster — that
@@ -88,6 +91,11 @@
       adjust.shift_y_mm = Math.round((adjust.shift_y_mm + dy) * 1000) / 1000;
     }
     showPictures(p);
+  }
+
+  function nextStep() {
+    step = (step + 1) % STEPS.length;
+    $("pose-step").textContent = `step ${STEPS[step]}`;
   }
 
   function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
@@ -206,8 +214,9 @@
   // what a key does: a verdict (for a proposal), a change of the pose shown, or a move in the queue; null: not ours
   function keyAction(k, shift) {
     const arrow = { arrowleft: [-1, 0], arrowright: [1, 0], arrowup: [0, -1], arrowdown: [0, 1] }[k];
-    if (shift && arrow) return { pose: () => nudge(0, arrow[0] * STEP_MM, arrow[1] * STEP_MM) };   // move B
-    if (k === "[" || k === "]") return { pose: () => nudge(k === "]" ? STEP_DEG : -STEP_DEG, 0, 0) };   // turn B
+    if (shift && arrow) return { pose: () => nudge(0, arrow[0] * STEPS[step], arrow[1] * STEPS[step]) };   // move B
+    if (k === "[" || k === "]") return { pose: () => nudge(k === "]" ? STEPS[step] : -STEPS[step], 0, 0) };   // turn B
+    if (k === "x") return { move: nextStep };
     if (k === "0") return { pose: () => nudge(null) };
     if (k === "p") return { pose: () => otherPose(shift ? -1 : 1) };
     if (k === "c" || k === "y") return { verdict: "confirmed" };
@@ -240,9 +249,10 @@
   for (const b of document.querySelectorAll("#pose-controls button[data-nudge]")) {
     b.addEventListener("click", () => {
       const [turn, dx, dy] = (b.dataset.nudge || "").split(",").map(Number);
-      nudge(b.dataset.nudge === "reset" ? null : turn * STEP_DEG, dx * STEP_MM, dy * STEP_MM);
+      nudge(b.dataset.nudge === "reset" ? null : turn * STEPS[step], dx * STEPS[step], dy * STEPS[step]);
     });
   }
+  $("pose-step").addEventListener("click", nextStep);
   $("fragment-filter").addEventListener("submit", (ev) => {
     ev.preventDefault();
     filter = $("filter-id").value.trim();
