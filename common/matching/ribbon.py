@@ -369,18 +369,28 @@ def _ribbon_group(a, group, flag, tol, wins, offset):
     return total / len(wins), out_i, out_j
 
 
+def _ribbon_scorer(profiles: dict, names, step_mm: float):
+    """The fragments whose profile is long enough to score, and a function scoring one of them against others
+    from its own side (its samples' rarity in the population of all of them): ``(ids, score(a, others) → (K,))``."""
+    prepared = {f: prepare_ribbon(p, names, step_mm=step_mm) for f, p in profiles.items()
+                if p is not None and len(p) >= 3}
+    population = ribbon_population(prepared) if prepared else None
+
+    def score(a, others):
+        return ribbon_scores(prepared[a], [prepared[b] for b in others],
+                             rarity=sample_rarity(prepared[a], population, fragment=a))[0]
+
+    return list(prepared), score
+
+
 def pair_ribbon_scores(profiles: dict, names, *, step_mm: float = 1.0, progress=None) -> dict:
     """Ribbon score of every unordered pair of fragments from their boundary profiles,
     ``{(a, b): score}`` (a before b in ``profiles`` order, scored from a's side); the sample a ribbon
     calibration is fitted on. To rank, use :func:`ribbon_rankings` (each fragment from its own side)."""
-    prepared = {f: prepare_ribbon(p, names, step_mm=step_mm) for f, p in profiles.items()
-                if p is not None and len(p) >= 3}
-    ids = list(prepared)
-    population = ribbon_population(prepared) if ids else None
+    ids, score = _ribbon_scorer(profiles, names, step_mm)
     out = {}
     for i, a in enumerate(ids[:-1]):
-        s, _, _ = ribbon_scores(prepared[a], [prepared[b] for b in ids[i + 1:]],
-                                rarity=sample_rarity(prepared[a], population, fragment=a))
+        s = score(a, ids[i + 1:])
         out.update({(a, b): float(v) for b, v in zip(ids[i + 1:], s)})
         if progress and (i % 10 == 0 or i == len(ids) - 2):
             progress((i + 1) / max(1, len(ids) - 1), f"ribbon scores of fragment {i + 1}/{len(ids)}")
@@ -395,15 +405,11 @@ def ribbon_rankings(profiles: dict, names, *, step_mm: float = 1.0) -> dict:
     different sides are on different scales; pooling these lists by mutual proximity
     (:func:`~common.matching.mutual.mutual_pair_scores`) compares ranks instead, as the station does.
     Fragments whose profile is too short to score are left out; NaN scores go last."""
-    prepared = {f: prepare_ribbon(p, names, step_mm=step_mm) for f, p in profiles.items()
-                if p is not None and len(p) >= 3}
-    ids = list(prepared)
-    population = ribbon_population(prepared) if ids else None
+    ids, score = _ribbon_scorer(profiles, names, step_mm)
     out = {}
     for a in ids:
         others = [b for b in ids if b != a]
-        s, _, _ = ribbon_scores(prepared[a], [prepared[b] for b in others],
-                                rarity=sample_rarity(prepared[a], population, fragment=a))
+        s = score(a, others)
         out[a] = [others[i] for i in np.argsort(-np.nan_to_num(s, nan=-np.inf), kind="stable")]
     return out
 
