@@ -180,7 +180,7 @@ def _check_name(msg: Mapping, key: str, pattern: re.Pattern, what: str) -> None:
         raise MessageError(f"{msg['type']} message: {key} {str(msg[key])[:80]!r} is not {what}")
 
 
-def validate(msg: Any) -> dict:
+def validate(msg: Any, *, legacy_verdicts: bool = False) -> dict:
     """Check a decoded message against its declared type; return it or raise :class:`MessageError`.
 
     Besides the required fields of its type: ``uid`` is 32 hex digits (:data:`UID_PATTERN`),
@@ -188,7 +188,9 @@ def validate(msg: Any) -> dict:
     ``face`` :data:`FACE_PATTERN`, an ``artifact`` pointer has a relative ``path``, a 64-hex
     ``sha256`` and a non-negative ``bytes``, ``probability`` and ``mutual`` are in [0, 1], a ``match.proposed``
     or ``match.verified`` names two different fragments, a ``match.verified`` verdict is one of
-    :data:`VERDICTS` or a boolean and its optional ``pose`` one :func:`pose_of` reads, a
+    :data:`VERDICTS` or a boolean (with ``legacy_verdicts``, any value :func:`verdict_of` reads: a reader of
+    a journal, whose older events may hold words the door no longer takes) and its optional ``pose`` one
+    :func:`pose_of` reads, a
     ``match.proposed`` alignment's ``alternatives`` are at most :data:`MAX_ALTERNATIVE_POSES` poses
     :func:`pose_of` reads, a ``match.refitted`` or ``match.reranked`` ``model_version`` matches
     :data:`MODEL_VERSION_PATTERN`, a ``match.reranked`` ``redock`` is a list of 1 to
@@ -260,8 +262,10 @@ def validate(msg: Any) -> dict:
         raise MessageError(f"{kind} message: fragment and other are both {msg['fragment']!r} (a join needs two)")
     if kind == "match.verified":
         v = msg["verdict"]
-        if not (v is True or v is False or (isinstance(v, str) and v in VERDICTS)):
-            # the words older journals may hold are read (verdict_of), never taken in anew
+        if legacy_verdicts:   # a reader of a journal: the words older journals may hold are read
+            verdict_of(v)
+        elif not (v is True or v is False or (isinstance(v, str) and v in VERDICTS)):
+            # the door: the words older journals may hold are read (verdict_of), never taken in anew
             raise MessageError(f"match.verified verdict must be 'confirmed' or 'rejected', got {_short(v)}")
         if msg.get("pose") is not None:
             pose_of(msg["pose"], f"{kind} message: pose")
@@ -331,10 +335,12 @@ def to_json(value: Any, *, default: Any = str, **kwargs: Any) -> str:
     return json.dumps(finite(value), default=lambda obj: finite(default(obj)), allow_nan=False, **kwargs)
 
 
-def unpack(data: bytes) -> dict:
+def unpack(data: bytes, *, legacy_verdicts: bool = False) -> dict:
     """Decode and validate msgpack bytes; any defect raises :class:`MessageError`.
 
-    More than :data:`MAX_MESSAGE_BYTES` is refused before decoding.
+    More than :data:`MAX_MESSAGE_BYTES` is refused before decoding. ``legacy_verdicts`` is
+    :func:`validate`'s: readers of journalled events (a worker's jobs, the web app's feed) pass True,
+    the broker's door (``SUBMIT``) does not.
     """
     if len(data) > MAX_MESSAGE_BYTES:
         raise MessageError(f"message of {len(data)} bytes refused (at most {MAX_MESSAGE_BYTES})")
@@ -342,4 +348,4 @@ def unpack(data: bytes) -> dict:
         msg = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types for garbage
         raise MessageError(f"undecodable message ({type(exc).__name__}: {exc})") from exc
-    return validate(msg)
+    return validate(msg, legacy_verdicts=legacy_verdicts)

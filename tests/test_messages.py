@@ -464,3 +464,25 @@ def test_numpy_ints_and_bools_are_json_numbers_and_booleans():
     assert '"yes": true' in text and '"7"' not in text              # not their text ("True", "7")
     got = finite(doc)
     assert type(got["yes"]) is bool and all(type(v) is int for v in got["ints"]) and type(got["zero-d"]) is int
+
+
+@pytest.mark.parametrize("word", ["confirm", "accept", "accepted", "yes", "reject", "no"])
+def test_a_journalled_verdict_in_an_older_word_is_read_by_readers_but_refused_at_the_door(word):
+    """docs/messages.md: a journal written before the broker refused them may hold these words, "which
+    its readers still read". The worker decodes every job with unpack, so a re-queued match.verified in
+    one of them was parked as bad input before the matcher's verdict_of could read it."""
+    from common.messages import verdict_of
+    doc = _doc(type="match.verified", fragment="A", other="B", verdict=word)
+    with pytest.raises(MessageError, match="verdict"):
+        unpack(pack(doc))                                 # the door (SUBMIT) stays strict
+    with pytest.raises(MessageError, match="verdict"):
+        validate(doc)
+    back = unpack(pack(doc), legacy_verdicts=True)        # a reader of the journal
+    assert back["verdict"] == word and verdict_of(back["verdict"]) in ("confirmed", "rejected")
+    assert validate(doc, legacy_verdicts=True) == doc
+
+
+@pytest.mark.parametrize("value", ["maybe", 1, None, "", ["confirmed"], "Confirmed"])
+def test_a_reader_of_the_journal_still_refuses_a_verdict_no_word_means(value):
+    with pytest.raises(MessageError, match="verdict"):
+        validate(_doc(type="match.verified", fragment="A", other="B", verdict=value), legacy_verdicts=True)

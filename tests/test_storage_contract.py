@@ -87,6 +87,52 @@ def test_every_reader_that_checks_a_schema_also_checks_its_version():
     assert not missing, f"Store.open with a schema but no version: {missing}"
 
 
+# (file, function) that may open an HDF5 file with h5py.File itself, and why: keep the list short
+_PLAIN_H5PY_ALLOWED = {
+    ("common/store.py", "write"): "the store itself: its atomic writer",
+    ("common/store.py", "open"): "the store itself: the schema and version check",
+    ("common/imports/export.py", "_created"): "the root 'created' attribute, to order a face's files by age",
+    ("services/cli/render.py", "_load_input"): "a CLI tool opening a file the user names (checks its schema)",
+    ("services/cli/features.py", "_read_rgbn_file"): "a CLI tool opening a file the user names",
+}
+
+
+def _plain_h5py_opens(tree: ast.AST):
+    """(line, enclosing function or "<module>") of every ``h5py.File(...)`` call and ``from h5py import File``."""
+    out = []
+
+    def visit(node, fn):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            fn = node.name
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "File"
+                and isinstance(node.func.value, ast.Name) and node.func.value.id == "h5py"):
+            out.append((node.lineno, fn))
+        if isinstance(node, ast.ImportFrom) and node.module == "h5py" and any(a.name == "File" for a in node.names):
+            out.append((node.lineno, "from h5py import File"))
+        for child in ast.iter_child_nodes(node):
+            visit(child, fn)
+
+    visit(tree, "<module>")
+    return out
+
+
+def test_no_reader_opens_an_artifact_with_a_plain_h5py_file():
+    """docs/storage.md: every reader opens a file with its schema and the highest version it understands.
+    The catalogue (a face's size, dpi and metadata) and the tile list (a face's normals, a render's recipe)
+    read with a plain h5py.File, so a file written by a newer Tessera was read as if understood. Readers go
+    through ``Store.open(rel, schema=..., version=...)``; the exceptions are named in _PLAIN_H5PY_ALLOWED."""
+    found, seen = [], set()
+    for path in sorted([*(ROOT / "common").rglob("*.py"), *(ROOT / "services").rglob("*.py")]):
+        rel = path.relative_to(ROOT).as_posix()
+        for line, fn in _plain_h5py_opens(ast.parse(path.read_text(), rel)):
+            if (rel, fn) in _PLAIN_H5PY_ALLOWED:
+                seen.add((rel, fn))
+            else:
+                found.append(f"{rel}:{line} ({fn})")
+    assert not found, f"h5py.File outside Store.open (open through the store with schema and version): {found}"
+    assert seen == set(_PLAIN_H5PY_ALLOWED), f"allowed but gone (drop them): {set(_PLAIN_H5PY_ALLOWED) - seen}"
+
+
 def test_the_schema_table_lists_the_codes_schemas_and_versions():
     from common.acquisition import calibration, capture
     from common.features import table

@@ -309,7 +309,8 @@ def run_worker(service_module_name: str, config: Mapping, *, stop: threading.Eve
                                      f"worker busy with {current}".encode()])
                 return
             try:
-                event = messages.unpack(body)
+                # a job is a journalled event: an old one may hold a verdict word the door no longer takes
+                event = messages.unpack(body, legacy_verdicts=True)
             except messages.MessageError as exc:
                 sock.send_multipart([b"", P.WORKER, P.FAIL, jid.encode(), P.FAIL_REJECTED,
                                      f"MessageError: {exc}".encode()])

@@ -599,12 +599,16 @@ def _import_record(attrs) -> dict:
 
 
 def _face_info(store: Store, rel: str) -> dict:
-    """dpi, size, normals and importer metadata of a face, from its attributes (no pixel read)."""
-    import h5py
+    """dpi, size, normals and importer metadata of a face, from its attributes (no pixel read).
+
+    Opened with its schema and the highest version this reader understands: a face it cannot read (not
+    HDF5, not an RGBN image, written by a newer Tessera) is listed without those details, and the log says why."""
+    from common.rgbn.image import SCHEMA as RGBN, SCHEMA_VERSION as RGBN_VERSION
 
     info = {"rgbn": rel, "metadata": {}}
-    with contextlib.suppress(OSError, KeyError, ValueError):
-        with h5py.File(store.path(rel), "r", locking=False) as f:
+    try:
+        with store.open(rel, schema=RGBN, version=RGBN_VERSION) as f, \
+                contextlib.suppress(OSError, KeyError, ValueError):
             h, w = f["mask"].shape
             info.update(dpi=float(f.attrs["dpi"]), width=int(w), height=int(h), has_normals="normals" in f)
             created = f.attrs.get("created", "")
@@ -619,5 +623,7 @@ def _face_info(store: Store, rel: str) -> dict:
                 parsed = json.loads(meta)
                 if isinstance(parsed, dict):
                     info["metadata"] = parsed
+    except (ArtifactError, OSError) as exc:   # listed without those details, never dropped
+        log.warning("catalogue: face %s listed without its size, dpi and metadata: %s", rel, exc)
     return info
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
 import threading
 import time
 from pathlib import Path, PurePosixPath
@@ -44,6 +45,8 @@ import numpy as np
 
 from common.rgbn.io import linear_to_srgb
 from common.store import ArtifactError, Store, write_file
+
+log = logging.getLogger("tessera.web")
 
 #: Side of a tile, pixels.
 TILE_PX = 256
@@ -410,31 +413,38 @@ class TileCache:
 def face_sources(store: Store, fragment: str) -> dict[str, dict]:
     """``{face: {"rgbn": relpath, "normals": bool, "renders": {recipe: relpath}}}`` — the newest RGBN
     artifact of each face (:func:`common.imports.export.latest_faces`), whether it has normals (a
-    colour-only face, an imported picture, has none: no ``normals`` layer), and the renders made from it."""
-    import h5py
+    colour-only face, an imported picture, has none: no ``normals`` layer), and the renders made from it.
 
+    Each file is opened with its schema and the highest version this reader understands: a face it cannot
+    read (not HDF5, not an RGBN image, written by a newer Tessera) is listed without normals, a render it
+    cannot read is left out, and the log says why."""
     from common.imports.export import latest_faces
+    from common.render.artifact import SCHEMA as RENDER, SCHEMA_VERSION as RENDER_VERSION
+    from common.rgbn.image import SCHEMA as RGBN, SCHEMA_VERSION as RGBN_VERSION
 
     out: dict[str, dict] = {}
     renders = store.path(f"fragments/{fragment}/renders")
     for face, rel in latest_faces(store, fragment).items():
         try:
-            with h5py.File(store.path(rel), "r", locking=False) as f:
+            with store.open(rel, schema=RGBN, version=RGBN_VERSION) as f:
                 normals = "normals" in f
-        except OSError:   # unreadable: listed as it is, its pyramid request says what is wrong
+        except (ArtifactError, OSError) as exc:   # unreadable: listed as it is, its pyramid request says what is wrong
+            log.warning("tiles: face %s listed without normals: %s", rel, exc)
             normals = False
         entry = {"rgbn": rel, "normals": normals, "renders": {}}
         for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
+            rrel = rp.relative_to(store.root).as_posix()
             try:
-                with h5py.File(rp, "r", locking=False) as f:
+                with store.open(rrel, schema=RENDER, version=RENDER_VERSION) as f:
                     inputs = json.loads(f.attrs.get("provenance", "{}")).get("inputs") or [{}]
                     recipe = f.attrs.get("recipe", "render")
-            except (OSError, ValueError):
+            except (ArtifactError, OSError, ValueError) as exc:
+                log.warning("tiles: render %s of face %s not offered: %s", rrel, rel, exc)
                 continue
             recipe = recipe.decode() if isinstance(recipe, bytes) else str(recipe)
             if inputs[0].get("path") not in (None, rel):
                 continue   # a render of an older solve of this face
-            entry["renders"][recipe] = rp.relative_to(store.root).as_posix()
+            entry["renders"][recipe] = rrel
         out[face] = entry
     return out
 

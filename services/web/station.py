@@ -175,7 +175,7 @@ class FeedFollower:
         n = 0
         for seq, data in answer.get("events", []):
             try:
-                event = unpack(bytes(data))
+                event = unpack(bytes(data), legacy_verdicts=True)   # the journal's: older verdict words too
             except MessageError as exc:   # the broker validated it; a newer schema, perhaps
                 log.warning("event feed: event %d not understood: %s", seq, exc)
                 event = None

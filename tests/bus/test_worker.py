@@ -322,3 +322,52 @@ def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station, capl
         worker.join(5)
         ctx.destroy(linger=0)
     assert not worker.is_alive()
+
+
+# -- a job from an older journal: a match.verified in a verdict word the door no longer takes -------------
+
+def test_a_re_queued_verdict_in_an_older_word_is_handled_not_parked(make_station):
+    """docs/messages.md: a journal written before the broker refused them may hold the verdict words
+    confirm/accept/accepted/yes/reject/no, "which its readers still read". The worker decoded every job
+    strictly, so such a re-queued match.verified came back FAIL rejected (parked as bad input) and the
+    matcher's verdict_of never saw it. A verdict no word means is still refused."""
+    st = make_station()  # its configuration only: the broker is a fake
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.bind(f"tcp://127.0.0.1:{st.config['broker']['port']}")
+    stop = threading.Event()
+    worker = threading.Thread(target=run_worker, args=("noop", st.config),
+                              kwargs={"stop": stop, "context": ctx, "install_signals": False}, daemon=True)
+    worker.start()
+
+    def job_body(verdict):
+        msg = new_message("match.verified", fragment="A", other="B", verdict="confirmed")
+        return P.dumps(dict(msg, verdict=verdict)), msg["uid"]
+
+    def answer_to(jid: bytes, identity, body, seconds=10.0):
+        router.send_multipart([identity, b"", P.WORKER, P.JOB, jid, b"1", body])
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            if router.poll(left * 1000):
+                frames = router.recv_multipart()
+                if frames[3] in (P.RESULT, P.FAIL) and frames[4] == jid:
+                    return frames[3:]
+        raise AssertionError(f"no answer to job {jid!r}")
+
+    try:
+        assert router.poll(10_000), "the worker registers"
+        identity = router.recv_multipart()[0]
+        router.send_multipart([identity, b"", P.WORKER, P.HEARTBEAT])
+        body, uid = job_body("confirm")
+        answer = answer_to(b"j1", identity, body)
+        assert answer[0] == P.RESULT, f"old-word verdict parked: {answer[2:]}"
+        assert [e["type"] for e in P.loads(answer[2])] == ["noop.done"]
+        assert P.loads(answer[2])[0]["job"] == uid
+        body, _ = job_body("maybe")
+        answer = answer_to(b"j2", identity, body)
+        assert answer[:3] == [P.FAIL, b"j2", P.FAIL_REJECTED] and b"verdict" in answer[3]
+    finally:
+        stop.set()
+        worker.join(5)
+        ctx.destroy(linger=0)
+    assert not worker.is_alive()

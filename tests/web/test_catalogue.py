@@ -339,6 +339,24 @@ def test_the_feed_follower_dispatches_in_order_and_catches_up_after_a_hole():
         f._lock.release()
 
 
+def test_the_feed_follower_reads_a_journalled_verdict_in_an_older_word(caplog):
+    """docs/messages.md: a journal written before the broker refused them may hold the verdict words
+    confirm/accept/yes/reject/no, "which its readers still read"; the web app's feed dropped such an
+    event as "not understood" (the reconstruction page reads it with verdict_of). A verdict no word
+    means is still not understood."""
+    from common.messages import new_message, verdict_of
+    from services.web.station import FeedFollower
+
+    ev = [(i, dict(new_message("match.verified", fragment="A", other="B", verdict="confirmed"), verdict=w))
+          for i, w in ((1, "accept"), (2, "no"), (3, "maybe"))]
+    seen = []
+    f = FeedFollower(_FakeFeed(ev), start=("s1", 0), on_gap=lambda s, last: last)
+    f.subscribe(["match.verified"], lambda e, seq: seen.append((seq, verdict_of(e["verdict"]))))
+    f.poll()
+    assert seen == [(1, "confirmed"), (2, "rejected")] and f.seq == 3
+    assert "event 3 not understood" in caplog.text and "event 1 " not in caplog.text
+
+
 
 def test_a_damaged_face_is_listed_without_a_thumbnail_and_stops_nothing(tmp_path):
     store = Store(tmp_path / "storage")
@@ -367,3 +385,34 @@ def test_a_rejected_input_marks_its_fragment_failed_like_a_failed_stage(collecti
     assert c.get("F004")["state"] == "failed"
     summary = new_message("input.rejected", error="3 frame(s) refused", source="broker", refused=3)
     assert c.apply(summary, 11) == "ignored", "the broker's refusal summary names no fragment"
+
+
+def _newer_rgbn(store, rel, **attrs):
+    """An RGBN face written by a newer Tessera (schema version one above this reader's), with a mask and dpi."""
+    from common.rgbn.image import SCHEMA, SCHEMA_VERSION
+
+    def fill(f):
+        f.create_dataset("mask", data=np.ones((30, 40), bool))
+        f.create_dataset("normals", data=np.zeros((30, 40, 3), np.float32))
+        f.attrs.update(dpi=300.0, metadata=json.dumps({"inventory": "INV-9"}), **attrs)
+
+    return store.write(rel, SCHEMA, SCHEMA_VERSION + 1, fill, provenance={"importer": "tessera import images"})
+
+
+def test_a_face_of_a_newer_schema_version_is_not_read_by_the_catalogue(tmp_path, caplog):
+    """docs/storage.md: every reader opens a file with its schema and the highest version it understands
+    and refuses a newer one. The catalogue read a face's mask, dpi and metadata with a plain h5py.File,
+    so a face written by a newer Tessera was listed with its size and dpi as if understood."""
+    from common.rgbn.image import SCHEMA_VERSION
+
+    store = Store(tmp_path / "storage")
+    rel = "fragments/N1/rgbn/front-00000000000000aa.h5"
+    _newer_rgbn(store, rel)
+    info = cat._face_info(store, rel)
+    assert info["rgbn"] == rel and info["metadata"] == {}
+    assert not {"dpi", "width", "height", "has_normals", "imported"} & set(info), info
+    assert f"schema version {SCHEMA_VERSION + 1}" in caplog.text and rel in caplog.text
+    c = Catalogue(tmp_path / "c.sqlite", store)                  # listed, without those details, never dropped
+    assert c.rebuild() == 1
+    row = c.query()["fragments"][0]
+    assert row["id"] == "N1" and row["inventory"] == "" and not row["has_thumb"]

@@ -350,3 +350,36 @@ def test_a_download_is_refused_before_writing_when_the_storage_lacks_the_room(tm
     assert not (folder.parent / "F9.zip").exists() and not list(folder.parent.glob(".F9.zip.*"))
     free["bytes"] = 10 ** 9
     assert c.get(d["zip"]).status_code == 200
+
+
+def test_face_sources_refuses_faces_and_renders_of_a_newer_schema_version(tmp_path, caplog):
+    """docs/storage.md: every reader opens a file with its schema and the highest version it understands
+    and refuses a newer one. face_sources read a face's normals and a render's provenance and recipe with a
+    plain h5py.File, so a face written by a newer Tessera offered a normals layer and its renders."""
+    from common.render.artifact import SCHEMA as RENDER, SCHEMA_VERSION as RENDER_VERSION
+    from common.rgbn.image import SCHEMA as RGBN, SCHEMA_VERSION as RGBN_VERSION
+
+    store = Store(tmp_path)
+    rel = "fragments/N2/rgbn/front-00000000000000aa.h5"
+
+    def face(f):
+        f.create_dataset("mask", data=np.ones((30, 40), bool))
+        f.create_dataset("normals", data=np.zeros((30, 40, 3), np.float32))
+        f.attrs.update(dpi=300.0)
+
+    store.write(rel, RGBN, RGBN_VERSION + 1, face)
+
+    def render(recipe):
+        def fill(f):
+            f.create_dataset("image", data=np.zeros((30, 40, 3), np.uint8))
+            f.create_dataset("alpha", data=np.zeros((30, 40), np.uint8))
+            f.attrs.update(recipe=recipe, bits=8, dpi=300.0)
+        return fill
+
+    old = "fragments/N2/renders/front-1111111111111111.h5"
+    new = "fragments/N2/renders/front-2222222222222222.h5"
+    store.write(old, RENDER, RENDER_VERSION, render("toon"), provenance={"inputs": [{"path": rel}]})
+    store.write(new, RENDER, RENDER_VERSION + 1, render("ink"), provenance={"inputs": [{"path": rel}]})
+    assert tiles.face_sources(store, "N2") == {"front": {"rgbn": rel, "normals": False, "renders": {"toon": old}}}
+    assert f"{rel} ({RGBN}) has schema version {RGBN_VERSION + 1}" in caplog.text
+    assert f"{new} ({RENDER}) has schema version {RENDER_VERSION + 1}" in caplog.text
