@@ -133,6 +133,7 @@ class Worker:
     expiry: float = 0.0
     job: str | None = None
     since: float = field(default_factory=time.time)
+    key: bytes | None = None    # its CURVE public key (None: security off): its role is looked up again before each job
 
 
 class LoopClock:
@@ -371,11 +372,12 @@ class Broker:
                             frames = self.router.recv_multipart(zmq.NOBLOCK, copy=self._auth is None)
                         except zmq.Again:
                             break
-                        role = None
+                        role = key = None
                         if self._auth is not None:  # CURVE: the ZAP handler's User-Id is the peer's public key
-                            role = self._role_of(frames[0])
+                            key = self._key_of(frames[0])
+                            role = self._role_for(key)
                             frames = [f.bytes for f in frames]
-                        self._handle(frames, role)
+                        self._handle(frames, role, key)
                     self._dispatch_dirty()
                     self._flush()
                 if self._signal in ready:
@@ -508,19 +510,30 @@ class Broker:
                 "input.rejected", error=f"{n} frame(s) refused; last: {self._refused_last}"[:MAX_ERROR_CHARS],
                 source="broker", refused=n, broker=_socket.gethostname()))
 
-    def _role_of(self, frame) -> str | None:
-        """Role of the CURVE key that sent ``frame`` ("" when unknown: allowed nothing but reading)."""
+    def _key_of(self, frame) -> bytes:
+        """The CURVE public key (z85) that sent ``frame`` (b"" when unknown)."""
         try:
             key = frame.get("User-Id")
         except (zmq.ZMQError, AttributeError, ValueError):
-            return ""
+            return b""
+        return key.encode() if isinstance(key, str) else (key or b"")
+
+    def _role_for(self, key: bytes) -> str:
+        """Role of a CURVE key now ("" when unknown: allowed nothing but reading)."""
         provider = self._auth.credentials_providers.get("*") if self._auth is not None else None
         role_of = getattr(provider, "role_of", None)
-        return (role_of(key.encode() if isinstance(key, str) else key) if role_of else "") or ""
+        return (role_of(key) if role_of and key else "") or ""
+
+    def _may_still_serve(self, worker: Worker) -> bool:
+        """Whether a registered worker's key may still serve its service (a key revoked or re-roled since READY
+        may return the job it holds, no other)."""
+        if worker.key is None:
+            return True
+        return bool({worker.service, "*"} & ROLE_SERVES.get(self._role_for(worker.key), frozenset()))
 
     # -- frames ----------------------------------------------------------------------------
-    def _handle(self, frames: list[bytes], role: str | None = None) -> None:
-        """One message from the ROUTER; ``role`` is the CURVE key's role (None: security off)."""
+    def _handle(self, frames: list[bytes], role: str | None = None, key: bytes | None = None) -> None:
+        """One message from the ROUTER; ``role`` is the CURVE key's role, ``key`` the key (None: security off)."""
         if len(frames) < 4 or frames[1] != b"":
             self._refuse(frames[0] if frames else None, "malformed",
                          f"malformed frame: {len(frames)} parts, expected identity, empty, header, command")
@@ -528,7 +541,7 @@ class Broker:
         identity, header, command, rest = frames[0], frames[2], frames[3], frames[4:]
         try:
             if header == P.WORKER:
-                self._worker_message(identity, command, rest, role)
+                self._worker_message(identity, command, rest, role, key)
             elif header == P.CLIENT:
                 self._client_message(identity, command, rest, role)
             else:
@@ -541,7 +554,8 @@ class Broker:
     def _send_worker(self, identity: bytes, command: bytes, *parts: bytes) -> None:
         self.router.send_multipart([identity, b"", P.WORKER, command, *parts])
 
-    def _worker_message(self, identity: bytes, command: bytes, rest: list[bytes], role: str | None = None) -> None:
+    def _worker_message(self, identity: bytes, command: bytes, rest: list[bytes], role: str | None = None,
+                        key: bytes | None = None) -> None:
         now = time.monotonic()
         worker = self.workers.get(identity)
         if command == P.READY:
@@ -565,7 +579,7 @@ class Broker:
             if worker is not None:  # a second READY is a protocol error (MDP): start afresh
                 self._drop_worker(worker, "announced READY twice", count_failure=False)
             worker = Worker(identity, service, host=str(info.get("host", "?"))[:64], pid=pid,
-                            expiry=now + self.interval * self.liveness)
+                            expiry=now + self.interval * self.liveness, key=key)
             self.workers[identity] = worker
             job = self.jobs.get(busy) if busy else None
             if job is not None and (job.service != service or (job.state == "inflight" and job.worker in self.workers
@@ -643,6 +657,11 @@ class Broker:
         worker.job = None
         self.waiting[worker.service].append(worker)
         self._dirty.add(worker.service)
+
+    def _dismiss(self, worker: Worker) -> None:
+        """Tell an idle worker whose key may no longer serve its service to go (it reconnects and is refused)."""
+        self._send_worker(worker.identity, P.DISCONNECT)
+        self._drop_worker(worker, "dismissed: its key's role no longer allows this service", count_failure=False)
 
     def _drop_worker(self, worker: Worker, reason: str, *, count_failure: bool) -> None:
         self.workers.pop(worker.identity, None)
@@ -741,6 +760,10 @@ class Broker:
                 if job is None or job.state != "queued":
                     continue
                 worker = idle.popleft()
+                if not self._may_still_serve(worker):   # revoked or re-roled since READY: no further job
+                    queue.appendleft(job.id)
+                    self._dismiss(worker)
+                    continue
                 job.state, job.worker, job.started, job.progress = "inflight", worker.identity, time.time(), None
                 worker.job = job.id
                 self._send_worker(worker.identity, P.JOB, job.id.encode(), str(job.failures + 1).encode(), job.body)
@@ -751,6 +774,8 @@ class Broker:
         for worker in list(self.workers.values()):
             if worker.expiry < now:
                 self._drop_worker(worker, "stopped responding (heartbeat lost)", count_failure=True)
+            elif worker.job is None and not self._may_still_serve(worker):   # idle, its key revoked or re-roled
+                self._dismiss(worker)
             else:
                 self._send_worker(worker.identity, P.HEARTBEAT)
         # every interval, whatever else flows: a subscriber of some types only still hears the position

@@ -169,16 +169,20 @@ class AuthorizedKeys:
         self.refresh()
 
     def _list(self) -> tuple | None:
-        try:
-            entries = []
-            for p in self.directory.glob("*.key"):
-                st = p.stat()
-                entries.append((p.name, st.st_ino, st.st_size, st.st_mtime_ns))
-            if not self.directory.is_dir():
-                return None
-            return tuple(sorted(entries))
-        except OSError:  # the directory or a file vanished while listing: treat as unreadable
+        try:  # os.scandir, not Path.glob: glob hides an unreadable directory as an empty one
+            with os.scandir(self.directory) as it:
+                names = sorted(e.name for e in it if e.name.endswith(".key"))
+        except OSError as exc:
+            log.error("authorised-keys directory %s unreadable (%s): refusing every CURVE client", self.directory, exc)
             return None
+        entries = []
+        for name in names:
+            try:
+                st = os.stat(self.directory / name)
+                entries.append((name, st.st_ino, st.st_size, st.st_mtime_ns))
+            except OSError:  # a dangling symlink, or deleted since the listing: only this entry fails (on loading)
+                entries.append((name, 0, 0, 0))
+        return tuple(entries)
 
     def refresh(self) -> bool:
         """Re-read the keys if the directory changed; True if it did."""
@@ -192,8 +196,8 @@ class AuthorizedKeys:
                 try:
                     public, _ = zmq.auth.load_certificate(str(self.directory / name))
                     role = read_role(self.directory / name)
-                except (ValueError, OSError) as exc:
-                    log.warning("authorised key %s skipped: %s", self.directory / name, exc)
+                except Exception as exc:  # any defect of one file (zmq raises IndexError too) skips only it
+                    log.warning("authorised key %s skipped: %s: %s", self.directory / name, type(exc).__name__, exc)
                     continue
                 if public:
                     keys[public] = name
@@ -201,8 +205,6 @@ class AuthorizedKeys:
                     if not roles[public]:
                         log.warning("authorised key %s has no role: it may only read (tessera keys role %s ROLE)",
                                     name, name[:-4])
-            if listing is None:
-                log.error("authorised-keys directory %s unreadable: refusing every CURVE client", self.directory)
             added = sorted(set(keys.values()) - set(self._keys.values()))
             removed = sorted(set(self._keys.values()) - set(keys.values()))
             if self._listing is not None and (added or removed):
@@ -223,7 +225,11 @@ class AuthorizedKeys:
 
     def callback(self, domain: str, z85_key: bytes) -> bool:
         """ZAP decision for one handshake: is the client's public key authorised right now?"""
-        self.refresh()
+        try:
+            self.refresh()
+        except Exception:  # refuse this handshake: an exception here would end the ZAP thread, locking out everyone
+            log.exception("CURVE client refused: the authorised keys could not be read")
+            return False
         if z85_key in self._keys:
             return True
         log.info("CURVE client refused: key %s is not authorised", z85_key[:8].decode(errors="replace") + "…")
@@ -259,6 +265,12 @@ def reload_keys(auth: ThreadAuthenticator | None, config: Mapping) -> None:
             auth.configure_curve(domain="*", location=_setting(config, "authorized_keys"))
 
 
+def check_key_name(name: str) -> None:
+    """Raise ValueError unless ``name`` is a key name ``tessera keys`` makes (it names files: no paths)."""
+    if not name or not all(c.isalnum() or c in "-_." for c in name) or name.startswith("."):
+        raise ValueError(f"name: {name!r} must be letters, digits, '-', '_' or '.' (it names files)")
+
+
 def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: str | os.PathLike | None = None,
                      role: str | None = None) -> tuple[Path, Path]:
     """Write a new CURVE key pair ``<directory>/<name>.key`` and ``<name>.key_secret`` (mode 0600).
@@ -283,8 +295,7 @@ def generate_keypair(directory: str | os.PathLike, name: str, *, authorize_in: s
     ValueError
         If ``name`` is unsafe or the key pair exists already (keys are never overwritten).
     """
-    if not name or not all(c.isalnum() or c in "-_." for c in name) or name.startswith("."):
-        raise ValueError(f"name: {name!r} must be letters, digits, '-', '_' or '.' (it names files)")
+    check_key_name(name)
     if role is not None and role not in ROLES:
         raise ValueError(f"role: {role!r} is not one of {', '.join(ROLES)}")
     directory = Path(directory)

@@ -56,7 +56,7 @@ def _host_snippet(d: Path, name: str) -> str:
 
 
 def run(args, out=None) -> int:
-    from common.bus.security import generate_keypair, read_role, set_role
+    from common.bus.security import check_key_name, generate_keypair, read_role, set_role
     out = out or sys.stdout  # looked up per call: a default bound at import outlives a replaced stdout
     d = Path(args.dir).resolve()
     try:
@@ -74,6 +74,7 @@ def run(args, out=None) -> int:
                   f"as {args.role}", file=out)
             print(_host_snippet(d, args.name), file=out)
         elif args.verb == "revoke":
+            check_key_name(args.name)   # the names `add` makes: `revoke ../broker` deleted the broker's key
             target = d / "authorized" / f"{args.name}.key"
             if not target.is_file():
                 print(f"error: {args.name} is not admitted (no {target})", file=sys.stderr)
@@ -81,6 +82,7 @@ def run(args, out=None) -> int:
             target.unlink()
             print(f"{args.name} revoked; restart the broker to drop its live connections", file=out)
         elif args.verb == "role":
+            check_key_name(args.name)   # not a path out of authorized/ (as for revoke)
             target = d / "authorized" / f"{args.name}.key"
             if not target.is_file():
                 print(f"error: {args.name} is not admitted (no {target})", file=sys.stderr)

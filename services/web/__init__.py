@@ -87,6 +87,16 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
+#: addresses a browser on this machine reaches pages listening on loopback under (any port: an SSH tunnel's may differ)
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "[::1]"})
+
+
+def _host_name(host: str) -> str:
+    """The name in a ``Host`` header, lower case, without the port or a final dot (``[::1]:8080`` -> ``[::1]``)."""
+    name = host.split("]", 1)[0] + "]" if host.startswith("[") else host.rsplit(":", 1)[0]
+    return name.lower().rstrip(".")
+
+
 class StrictJSONProvider(DefaultJSONProvider):
     """Flask's JSON writer, but NaN and ±inf are written as ``null``: a browser's ``JSON.parse``
     refuses a bare ``NaN`` (a docked proposal's ``alignment.gap_mm`` is NaN), and the review page
@@ -231,6 +241,20 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     for bp in BLUEPRINTS:
         app.register_blueprint(bp)
 
+    # Pages listening on loopback answer only under a loopback name or the name public_origin publishes them under:
+    # another Host is a site whose name was pointed at 127.0.0.1 (DNS rebinding) to read the open pages. On the lab
+    # network the names the lab uses for this host are not known, so there is no check
+    on_loopback = settings["host"] in ("127.0.0.1", "localhost", "::1")
+    public = settings["public_origin"]
+    known_hosts = LOOPBACK_NAMES | ({_host_name(public.split("://", 1)[1])} if public else set())
+
+    @app.before_request
+    def known_host():
+        if on_loopback and _host_name(request.host) not in known_hosts:
+            return (f"421 Misdirected Request: these pages listen on {settings['host']} and answer only under "
+                    f"localhost, 127.0.0.1 or [::1] (or [services.web] public_origin), not {request.host[:100]!r}\n",
+                    421, {"Content-Type": "text/plain; charset=utf-8"})
+
     @app.url_defaults
     def versioned_static(endpoint, values):
         # every url_for('static', ...) carries the file's version: cached for good, new when it changes
@@ -342,7 +366,7 @@ def serve(cfg: Mapping, *, host: str | None = None, port: int | None = None, wit
     from common.web.review import ReviewData
 
     settings = web_settings(cfg)
-    host = host or settings["host"]
+    host = settings["host"] = host or settings["host"]   # the address bound (--host): the Host check follows it
     port = int(port if port is not None else settings["port"])
     token, token_path = station_token(cfg, settings)
     link = StationLink(cfg)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import time
 from typing import Callable
+from urllib.parse import urlsplit
 
 from flask import Blueprint, abort, jsonify, redirect, render_template, request, session, url_for
 
@@ -120,7 +121,13 @@ def logout():
 
 
 def _safe_next(target: str | None) -> str:
-    """Only local paths are followed after login (no open redirect)."""
-    if target and target.startswith("/") and not target.startswith("//") and "\\" not in target:
-        return target
-    return "/"
+    """Only local paths are followed after login (no open redirect), else the start page.
+
+    Browsers drop tabs and newlines from a URL and read ``\\`` as ``/``, so ``/\\t/evil.example`` or
+    ``/\\evil.example`` would lead to another site: control characters, spaces and backslashes are refused.
+    """
+    if (not target or not target.startswith("/") or target.startswith("//") or "\\" in target
+            or any(c <= " " or c == "\x7f" for c in target)):
+        return "/"
+    parts = urlsplit(target)
+    return "/" if parts.scheme or parts.netloc else target

@@ -319,3 +319,105 @@ def test_keys_list_shows_roles_and_role_changes_them(keys, capsys):
     from common.bus.security import read_role
     assert read_role(keys / "authorized" / "w.key") == "subscriber"
     assert sorted(provider._roles.values()) == ["admin", "subscriber"]
+
+
+def test_a_malformed_key_file_is_skipped_and_a_faulty_check_refuses_one_handshake(keys, caplog):
+    """docs/security.md: a malformed file in the key directory is skipped with a warning. A ``public-key`` line
+    without ``=`` made zmq raise IndexError, which was not caught: the ZAP thread died and every host was
+    locked out until a restart (at start-up the broker stopped with a traceback)."""
+    import zmq.auth
+    d = keys / "authorized"
+    lab, _ = zmq.auth.load_certificate(str(keys / "hosts" / "lab.key"))
+    (d / "typo.key").write_text("metadata\ncurve\n    public-key\n")   # hand-edited, '= "…"' missing
+    provider = AuthorizedKeys(d)   # at start-up
+    assert provider.callback("*", lab), "the other keys stay valid"
+    assert any(r.levelname == "WARNING" and "typo.key" in r.getMessage() for r in caplog.records)
+    (d / "typo2.key").write_text("metadata\ncurve\n    public-key\n")  # while running
+    assert provider.callback("*", lab)
+
+    def broken():
+        raise RuntimeError("unexpected")
+    provider.refresh = broken
+    assert provider.callback("*", lab) is False, "a check that fails refuses that handshake, it does not raise"
+
+
+def test_a_dangling_key_entry_spoils_no_other_key(keys, caplog):
+    """A dangling ``*.key`` symlink (or a file deleted by ``keys revoke`` between listing and stat) made the whole
+    directory count as unreadable: nobody was admitted. Now only that entry is skipped, with a warning."""
+    import zmq.auth
+    d = keys / "authorized"
+    lab, _ = zmq.auth.load_certificate(str(keys / "hosts" / "lab.key"))
+    (d / "old-host.key").symlink_to(keys / "no-such-file.key")
+    provider = AuthorizedKeys(d)
+    assert provider.callback("*", lab)
+    assert any(r.levelname == "WARNING" and "old-host.key" in r.getMessage() for r in caplog.records)
+
+
+def test_an_unreadable_key_directory_admits_nobody_and_says_so_as_an_error(keys, monkeypatch, caplog):
+    """docs/security.md: an unreadable directory admits nobody, logged as an error. Path.glob hides a
+    PermissionError as an empty listing, so only a warning about removed keys was logged. (Tests run as root,
+    which reads a mode 000 directory: the refusal is simulated.)"""
+    import zmq.auth
+    d = keys / "authorized"
+    lab, _ = zmq.auth.load_certificate(str(keys / "hosts" / "lab.key"))
+    provider = AuthorizedKeys(d)
+    assert provider.callback("*", lab)
+
+    def refused(path="."):
+        raise PermissionError(13, "Permission denied", str(path))
+    monkeypatch.setattr(os, "scandir", refused)
+    assert not provider.callback("*", lab)
+    assert any(r.levelname == "ERROR" and str(d) in r.getMessage() for r in caplog.records), caplog.text
+
+
+def test_a_worker_whose_key_is_revoked_returns_its_job_and_gets_no_other(make_station, keys):
+    """docs/security.md: a registered worker whose key is revoked may return the job it holds, and no more.
+    The broker never looked at the role again once a worker was registered, so it kept giving it jobs."""
+    from common.bus import protocol as P
+
+    st, w, art = _renderer_holding_a_job(make_station, keys, 338)
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    told = []
+    pump = w.pump
+
+    def pump_noting_disconnect(seconds):   # the fake worker keeps JOBs only; note a DISCONNECT too
+        end = time.monotonic() + seconds
+        while True:
+            w.send(P.HEARTBEAT)
+            while w.sock.poll(20):
+                frames = w.sock.recv_multipart()
+                if frames[2] == P.JOB:
+                    w.jobs.append(frames[3].decode())
+                told.append(frames[2])
+            if time.monotonic() >= end:
+                return
+    w.pump = pump_noting_disconnect
+    try:
+        assert tessera(["keys", "revoke", "render1", "--dir", str(keys)]) == 0
+        with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
+            c.status()   # a handshake: the broker reads the key directory again
+            c.submit(new_message("rgbn.ready", fragment="F2", face="front",
+                                 artifact=dict(art, path="fragments/F2/rgbn/front-1.h5")))
+        w.pump(0.3)
+        done = new_message("render.ready", fragment="F1", face="front", artifact=dict(art, path="fragments/F1/render/x.h5"))
+        w.send(P.RESULT, w.jobs[0].encode(), P.dumps([done]))
+        wait_for(lambda: w.pump(0.1) or P.DISCONNECT in told, 10, "the broker to tell the revoked worker to go")
+        w.pump(0.5)
+        status = st.status()
+    finally:
+        w.pump = pump
+        w.close()
+    assert len(w.jobs) == 1, f"the revoked worker got another job: {w.jobs}"
+    assert status["queues"]["renderer"] == 1 and status["completed"] == 1, status
+    assert not status["workers"], status["workers"]
+
+
+@pytest.mark.parametrize("verb", [["revoke", "../broker"], ["role", "../broker", "web"], ["revoke", "a/b"]])
+def test_keys_revoke_and_role_refuse_names_that_are_paths(keys, verb, capsys):
+    """``tessera keys revoke ../broker`` deleted the broker's public key: revoke and role now take only the names
+    ``keys add`` makes."""
+    before = sorted(p.name for p in keys.rglob("*"))
+    broker_key = (keys / "broker.key").read_text()
+    assert tessera(["keys", *verb, "--dir", str(keys)]) == 2
+    assert "name" in capsys.readouterr().err
+    assert sorted(p.name for p in keys.rglob("*")) == before and (keys / "broker.key").read_text() == broker_key

@@ -138,6 +138,27 @@ def test_a_wrong_token_at_login_is_refused_and_redirects_stay_local(counting_app
         assert r.headers["Location"] in ("/", "http://localhost/")
 
 
+def test_the_page_after_login_is_a_local_path_or_the_start_page():
+    """A tab or a newline after the first slash (``/\t/evil.example``) is dropped by browsers and by the URL
+    parser, so the redirect went to ``//evil.example``: another site; a newline answered 500."""
+    from services.web.auth import _safe_next
+
+    for local in ("/bench", "/review?fragment=F1&step=2", "/catalogue/F1#faces", "/a/b%2F/c"):
+        assert _safe_next(local) == local
+    for evil in (None, "", "//evil.example", "/\\evil.example", "/\t/evil.example", "/\n/evil.example",
+                 "/\r\n/evil.example", "/ /evil.example", "/\x7f/x", "\t//evil.example", "http://evil.example/",
+                 "https:evil.example", "bench", "/x\\y", "/bench\nSet-Cookie: a=b"):
+        assert _safe_next(evil) == "/", repr(evil)
+
+
+def test_login_redirects_with_control_characters_stay_local(counting_app):
+    app, _ = counting_app
+    c = app.test_client()
+    for evil in ("/\t/evil.example", "/\n/evil.example", "/\r\n/evil.example", "/ /evil.example"):
+        r = c.post("/login", data={"token": TOKEN, "next": evil})
+        assert r.status_code == 302 and r.headers["Location"] in ("/", "http://localhost/"), (evil, r.status_code)
+
+
 class _OneProposal:
     """Stands in for the proposal store: proposal 7, FA-FB, without a pose."""
 
@@ -256,6 +277,55 @@ def test_listens_on_localhost_unless_config_opens_it():
         web.web_settings(load_config(None, {"services.web": {"port": "80"}}))
     with pytest.raises(web.WebConfigError, match="services.web.token"):
         web.web_settings(load_config(None, {"services.web": {"token": "short"}}))
+
+
+def test_pages_on_loopback_answer_only_under_a_loopback_name(tmp_path):
+    """DNS rebinding: a site whose name the attacker points at 127.0.0.1 could read the open pages from a browser
+    on this machine. Pages listening on loopback answer under localhost, 127.0.0.1, [::1] (any port: an SSH
+    tunnel's may differ) or the published ``public_origin``'s name; any other Host gets 421. On the lab network
+    (``host = "0.0.0.0"``) the names the lab uses are not known: no check."""
+    loopback = web.create_app(token=TOKEN, store_root=tmp_path).test_client()
+    for host in ("localhost", "127.0.0.1:8080", "[::1]:8080", "localhost:9000", "LocalHost."):
+        assert loopback.get("/login", headers={"Host": host}).status_code == 200, host
+    for host in ("evil.example", "evil.example:8080", "127.0.0.1.evil.example", "localhost.evil.example:8080"):
+        r = loopback.get("/login", headers={"Host": host})
+        assert r.status_code == 421 and "localhost, 127.0.0.1" in r.get_data(as_text=True), host
+    proxied = web.create_app(token=TOKEN, store_root=tmp_path, settings=web.web_settings(
+        {"services": {"web": {"public_origin": "https://tessera.lab.example"}}})).test_client()
+    assert proxied.get("/login", headers={"Host": "tessera.lab.example"}).status_code == 200
+    assert proxied.get("/login", headers={"Host": "evil.example"}).status_code == 421
+    lab = web.create_app(token=TOKEN, store_root=tmp_path, settings=web.web_settings(
+        {"services": {"web": {"host": "0.0.0.0"}}})).test_client()
+    assert lab.get("/login", headers={"Host": "benchpc.lab:8080"}).status_code == 200
+
+
+def test_the_host_check_follows_the_address_the_pages_listen_on(station_config, tmp_path, monkeypatch):
+    """``tessera web --host`` overrides ``[services.web] host``: the check follows the address bound."""
+    import http.client
+    import threading
+
+    monkeypatch.setenv("STATE_DIRECTORY", str(tmp_path / "state"))
+    station_config.setdefault("services", {}).setdefault("web", {})["host"] = "0.0.0.0"
+    stop, urls = threading.Event(), []
+    t = threading.Thread(target=web.serve, args=(station_config,),
+                         kwargs={"host": "127.0.0.1", "port": 0, "with_scanner": False, "ready": urls.append,
+                                 "stop": stop}, daemon=True)
+    t.start()
+    try:
+        wait_for(lambda: urls, 30, "the pages to start")
+        port = int(urls[0].rsplit(":", 1)[1])
+
+        def status(host):
+            conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+            try:
+                conn.request("GET", "/login", headers={"Host": host})
+                return conn.getresponse().status
+            finally:
+                conn.close()
+        assert (status(f"127.0.0.1:{port}"), status("evil.example")) == (200, 421)
+    finally:
+        stop.set()
+        t.join(15)
 
 
 def test_token_is_generated_at_first_start_on_local_disk_and_kept(tmp_path, monkeypatch):
