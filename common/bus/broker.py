@@ -110,6 +110,9 @@ class Job:
     state: str = "queued"       # queued | inflight | parked
     error: str = ""
     worker: bytes | None = None
+    # the CURVE key (z85) of the worker it was last given to: a READY may reclaim the job only under that key.
+    # None: security off, or not given since the broker started (a job re-queued from the journal)
+    key: bytes | None = None
     started: float = 0.0
     progress: tuple | None = None
     _event: dict | None = None
@@ -591,12 +594,26 @@ class Broker:
                 log.warning("worker %s:%d (%s) claimed job %s it cannot hold: its result will be ignored",
                             worker.host, worker.pid, service, busy[:64])
                 job = None
+            elif job is not None and job.key != key:
+                # CURVE on: the job was last given to another key (or to none since the broker started),
+                # so this is not the worker reconnecting mid-job it claims to be — a stage's key naming
+                # another host's job (ids are derivable from the feed) must not complete it. Refused and
+                # counted; the job keeps its state. The worker is still treated as busy with the job it
+                # named (as above: a real worker that lost its job to another key, or that outlived a broker
+                # restart, is still running it), and its result for it is ignored (not-holder). The ERR
+                # tells the worker why (it logs it).
+                # CURVE off: both keys are None, nothing to check the claim against (any worker of the
+                # service may make it, as before).
+                self._refuse(identity, "not-holder", f"worker {worker.host}:{worker.pid} ({service}) claimed job "
+                                                 f"{busy[:64]!r} in READY, which was not last given to its key: "
+                                                 "refused; its result will be ignored")
+                job = None
             if busy:
                 # a worker that reconnected mid-job is busy with it: its RESULT/FAIL for that job is
                 # expected (even if the job was parked or completed meanwhile), nothing is dispatched
                 worker.job = str(busy)
             if job is not None and job.state != "parked":  # ... and keeps a job still to be done
-                job.state, job.worker = "inflight", identity
+                job.state, job.worker, job.key = "inflight", identity, key
             elif not busy:
                 self.waiting[worker.service].append(worker)
                 self._dirty.add(worker.service)
@@ -633,11 +650,12 @@ class Broker:
             return
         if command == P.RESULT:
             job = self.jobs.get(jid)
-            if job is None or job.worker == identity or (job.state == "parked" and job.service == worker.service):
+            if job is None or job.worker == identity or (job.state == "parked" and job.service == worker.service
+                                                         and job.key == worker.key):
                 self._complete(jid, rest[1], role=role)
-            else:  # a job this worker claimed at READY but another worker holds (or another service's)
-                log.info("result of job %s from worker %s:%d which does not hold it: ignored", jid, worker.host,
-                         worker.pid)
+            else:  # a job this worker claimed at READY but another worker (or key) holds, or another service's
+                self._refuse(None, "not-holder", f"result of job {jid[:64]!r} from worker {worker.host}:{worker.pid} "
+                                                 f"({worker.service}) which does not hold it: ignored")
             self._worker_idle(worker)
         elif command == P.FAIL:
             kind, error = rest[1], rest[2][:MAX_ERROR_CHARS].decode(errors="replace")
@@ -765,6 +783,7 @@ class Broker:
                     self._dismiss(worker)
                     continue
                 job.state, job.worker, job.started, job.progress = "inflight", worker.identity, time.time(), None
+                job.key = worker.key   # who may reclaim it in READY (a worker of this key reconnecting mid-job)
                 worker.job = job.id
                 self._send_worker(worker.identity, P.JOB, job.id.encode(), str(job.failures + 1).encode(), job.body)
         self._dirty.clear()

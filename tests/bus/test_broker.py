@@ -237,7 +237,9 @@ def test_stage_calling_exit_or_returning_bad_events_is_parked_and_worker_survive
 class _FakeWorker:
     """A raw DEALER speaking the worker protocol (common/bus/protocol.py), heartbeating by hand."""
 
-    def __init__(self, endpoint: str, pid: int, service: bytes = b"noop", security: dict | None = None):
+    def __init__(self, endpoint: str, pid: int, service: bytes = b"noop", security: dict | None = None,
+                 claim: str | None = None):
+        """``claim``: the job id its READY names (a worker reconnecting mid-job)."""
         from common.bus.security import secure_client_socket
 
         self.sock = secure_client_socket(zmq.Context.instance().socket(zmq.DEALER), security or {})
@@ -245,13 +247,17 @@ class _FakeWorker:
         self.sock.connect(endpoint)
         self.pid = pid
         self.jobs: list[str] = []
-        self.send(P.READY, service, P.dumps({"host": "fake", "pid": pid}))
+        self.told: list[bytes] = []   # every command the broker sent it (JOB, HEARTBEAT, ERR, DISCONNECT, ...)
+        info = {"host": "fake", "pid": pid}
+        if claim is not None:
+            info["job"] = claim
+        self.send(P.READY, service, P.dumps(info))
 
     def send(self, command: bytes, *parts: bytes) -> None:
         self.sock.send_multipart([b"", P.WORKER, command, *parts])
 
     def pump(self, seconds: float) -> None:
-        """Heartbeat and collect JOB frames for ``seconds``."""
+        """Heartbeat and collect JOB frames (and every command, ``told``) for ``seconds``."""
         end = time.monotonic() + seconds
         while True:
             self.send(P.HEARTBEAT)
@@ -259,6 +265,7 @@ class _FakeWorker:
                 frames = self.sock.recv_multipart()
                 if frames[2] == P.JOB:
                     self.jobs.append(frames[3].decode())
+                self.told.append(frames[2])
             if time.monotonic() >= end:
                 return
 
@@ -384,6 +391,36 @@ def test_ready_claiming_another_services_job_does_not_take_it(make_station):
             assert s["queues"]["noop"] == 1 and s["completed"] == 0 and s["in_flight"] == []
     finally:
         ctx.destroy(linger=0)
+
+
+def test_a_worker_that_lost_its_connection_mid_job_reclaims_it_with_security_off(make_station):
+    """docs/messages.md: a worker reconnecting mid-job names its job in READY and gets it back, so its result is
+    not lost. With CURVE off there is no key to check the claim against: any worker of the service may make it
+    (docs/security.md); with CURVE on only the key the job was last given to (test_security.py)."""
+    st = make_station()
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+    job = new_message("noop.job", n=7)
+    w = _FakeWorker(endpoint, 701)
+    again = None
+    try:
+        with st.client() as c:
+            c.submit(job)
+            wait_for(lambda: w.pump(0.1) or w.jobs, 10, "the worker to get the job")
+            jid = w.jobs[0]
+            w.sock.close()   # the connection is lost, silently: the broker declares it dead and re-queues the job
+            wait_for(lambda: not c.status()["in_flight"], 10, "the job to be re-queued")
+            again = _FakeWorker(endpoint, 701, claim=jid)   # a new connection, the same job
+            again.pump(0.3)
+            s = c.status()
+            assert [(j["job"], j["worker"]) for j in s["in_flight"]] == [(jid, "fake:701")], s["in_flight"]
+            assert again.jobs == [] and s["refused"].get("not-holder", 0) == 0
+            again.send(P.RESULT, jid.encode(), P.dumps([new_message("noop.done", job=job["uid"], received=0.0,
+                                                                    attempt=1)]))
+            wait_for(lambda: again.pump(0.1) or c.status()["completed"] == 1, 10, "the reclaimed job to complete")
+    finally:
+        if again is not None:
+            again.close()
 
 
 def test_rerun_without_a_job_is_refused_not_a_rerun_of_everything(make_station):

@@ -308,6 +308,78 @@ def test_a_key_revoked_or_re_roled_while_its_worker_holds_a_job_announces_nothin
     assert "returned 2 invalid event(s)" in rejected["error"] and "may not announce match.verified" in rejected["error"]
 
 
+@pytest.mark.parametrize("left", ["queued", "parked"])
+def test_a_ready_reclaims_only_a_job_last_given_to_its_own_key(make_station, keys, left):
+    """docs/security.md: a READY naming a job (a worker reconnecting mid-job) was taken for any queued or parked
+    job of the service, so a host with a stage key could name another host's job (ids are derivable from the
+    feed) and complete it with a forged result. Now the claim holds only for the key the job was last given to:
+    another key's claim is refused (counted ``not-holder``), its result ignored; the job's own worker, back
+    under its key, gets it back and its result completes it."""
+    from common.bus import protocol as P
+
+    from .test_broker import _FakeWorker
+
+    for name in ("render1", "render2"):
+        assert tessera(["keys", "add", name, "--role", "renderer", "--dir", str(keys)]) == 0
+    st = make_station(extra=_security_section(keys), routing={"rgbn.ready": ["renderer"]})
+    st.broker()
+    endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
+
+    def as_key(name):
+        return {"security": dict(st.config["security"], secret_key=str(keys / "hosts" / f"{name}.key_secret"))}
+    art = {"path": "fragments/F1/rgbn/front-1.h5", "sha256": "1" * 64, "bytes": 10}
+    job = new_message("rgbn.ready", fragment="F1", face="front", artifact=art)
+
+    def render(by):
+        return P.dumps([new_message("render.ready", fragment="F1", face="front", by=by,
+                                    artifact=dict(art, path=f"fragments/F1/render/{by}.h5"))])
+    workers = []
+
+    def worker(pid, key, claim=None):
+        workers.append(_FakeWorker(endpoint, pid, service=b"renderer", security=as_key(key), claim=claim))
+        return workers[-1]
+    try:
+        with st.client() as c:
+            w1 = worker(501, "render1")
+            c.submit(job)
+            wait_for(lambda: w1.pump(0.1) or w1.jobs, 10, "render1's worker to get the job")
+            jid = w1.jobs[0]
+            if left == "queued":   # its connection is lost mid-job: declared dead, the job re-queued
+                w1.sock.close()
+                wait_for(lambda: not c.status()["in_flight"], 10, "the job to be re-queued")
+            else:                  # parked meanwhile (its connection lost after that)
+                w1.send(P.FAIL, jid.encode(), P.FAIL_REJECTED, b"unreadable")
+                wait_for(lambda: c.status()["parked"], 10, "the job to be parked")
+                w1.sock.close()
+            w2 = worker(502, "render2", claim=jid)   # another host of the same role names that job
+            w2.pump(0.4)
+            s = c.status()
+            assert w2.jobs == [] and s["in_flight"] == [], "render2 was not given the job"
+            assert s["refused"].get("not-holder", 0) == 1, s["refused"]
+            assert (s["queues"].get("renderer", 0), len(s["parked"])) == ((1, 0) if left == "queued" else (0, 1))
+            back = worker(501, "render1", claim=jid)  # the job's own worker, reconnected under its key
+            back.pump(0.3)
+            if left == "queued":
+                assert [(j["job"], j["worker"]) for j in c.status()["in_flight"]] == [(jid, "fake:501")]
+            w2.send(P.RESULT, jid.encode(), render("render2"))   # a forged result: ignored
+            _pump_all = lambda: [w.pump(0.05) for w in (w2, back)]  # noqa: E731
+            _pump_all()
+            _pump_all()
+            s = c.status()
+            assert s["completed"] == 0, "render2's result completed nothing"
+            assert s["refused"].get("not-holder", 0) == 2, ("the claim and the result", s["refused"])
+            back.send(P.RESULT, jid.encode(), render("render1"))
+            wait_for(lambda: _pump_all() and c.status()["completed"] == 1, 10, "render1's result to complete it")
+            s = c.status()
+            assert s["in_flight"] == [] and s["parked"] == [] and s["queues"].get("renderer", 0) == 0
+            events = c.since(0, 100)["events"]
+        renders = [d["by"] for d in (P.loads(e) for _, e in events) if d["type"] == "render.ready"]
+        assert renders == ["render1"], renders
+    finally:
+        for w in workers[1:]:
+            w.close()
+
+
 def test_keys_list_shows_roles_and_role_changes_them(keys, capsys):
     assert tessera(["keys", "add", "w", "--role", "web", "--dir", str(keys)]) == 0
     assert tessera(["keys", "role", "w", "subscriber", "--dir", str(keys)]) == 0
@@ -377,21 +449,6 @@ def test_a_worker_whose_key_is_revoked_returns_its_job_and_gets_no_other(make_st
 
     st, w, art = _renderer_holding_a_job(make_station, keys, 338)
     endpoint = f"tcp://127.0.0.1:{st.config['broker']['port']}"
-    told = []
-    pump = w.pump
-
-    def pump_noting_disconnect(seconds):   # the fake worker keeps JOBs only; note a DISCONNECT too
-        end = time.monotonic() + seconds
-        while True:
-            w.send(P.HEARTBEAT)
-            while w.sock.poll(20):
-                frames = w.sock.recv_multipart()
-                if frames[2] == P.JOB:
-                    w.jobs.append(frames[3].decode())
-                told.append(frames[2])
-            if time.monotonic() >= end:
-                return
-    w.pump = pump_noting_disconnect
     try:
         assert tessera(["keys", "revoke", "render1", "--dir", str(keys)]) == 0
         with BrokerClient(endpoint, timeout_s=5, retries=2, security=st.config) as c:
@@ -401,11 +458,10 @@ def test_a_worker_whose_key_is_revoked_returns_its_job_and_gets_no_other(make_st
         w.pump(0.3)
         done = new_message("render.ready", fragment="F1", face="front", artifact=dict(art, path="fragments/F1/render/x.h5"))
         w.send(P.RESULT, w.jobs[0].encode(), P.dumps([done]))
-        wait_for(lambda: w.pump(0.1) or P.DISCONNECT in told, 10, "the broker to tell the revoked worker to go")
+        wait_for(lambda: w.pump(0.1) or P.DISCONNECT in w.told, 10, "the broker to tell the revoked worker to go")
         w.pump(0.5)
         status = st.status()
     finally:
-        w.pump = pump
         w.close()
     assert len(w.jobs) == 1, f"the revoked worker got another job: {w.jobs}"
     assert status["queues"]["renderer"] == 1 and status["completed"] == 1, status

@@ -274,6 +274,19 @@ def _serve(router, seconds: float, answer) -> list:
     return readies
 
 
+def _noop_worker_beside_a_fake_broker(config):
+    """A real noop worker (a thread) connected to a bare ROUTER bound where its broker would be: the test plays
+    the broker. Returns (context, router, stop event, worker thread)."""
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.bind(f"tcp://127.0.0.1:{config['broker']['port']}")
+    stop = threading.Event()
+    worker = threading.Thread(target=run_worker, args=("noop", config),
+                              kwargs={"stop": stop, "context": ctx, "install_signals": False}, daemon=True)
+    worker.start()
+    return ctx, router, stop, worker
+
+
 def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station, caplog):
     """docs/messages.md: the worker reconnects with exponential back-off ([worker] reconnect_min_s,
     doubling to reconnect_max_s; reset once the broker exchanges heartbeats with it); docs/security.md:
@@ -281,13 +294,7 @@ def test_a_worker_told_to_disconnect_reconnects_with_back_off(make_station, capl
     so a key whose role is refused looped READY/ERR/DISCONNECT as fast as it could; and it logged the
     ERR as a "malformed frame", not the reason the broker gave."""
     st = make_station()  # its configuration only (reconnect 0.1 s doubling to 0.5 s): the broker is a fake
-    ctx = zmq.Context()
-    router = ctx.socket(zmq.ROUTER)
-    router.bind(f"tcp://127.0.0.1:{st.config['broker']['port']}")
-    stop = threading.Event()
-    worker = threading.Thread(target=run_worker, args=("noop", st.config),
-                              kwargs={"stop": stop, "context": ctx, "install_signals": False}, daemon=True)
-    worker.start()
+    ctx, router, stop, worker = _noop_worker_beside_a_fake_broker(st.config)
 
     def send(identity, header, command, *parts):
         router.send_multipart([identity, b"", header, command, *parts])
@@ -332,13 +339,7 @@ def test_a_re_queued_verdict_in_an_older_word_is_handled_not_parked(make_station
     strictly, so such a re-queued match.verified came back FAIL rejected (parked as bad input) and the
     matcher's verdict_of never saw it. A verdict no word means is still refused."""
     st = make_station()  # its configuration only: the broker is a fake
-    ctx = zmq.Context()
-    router = ctx.socket(zmq.ROUTER)
-    router.bind(f"tcp://127.0.0.1:{st.config['broker']['port']}")
-    stop = threading.Event()
-    worker = threading.Thread(target=run_worker, args=("noop", st.config),
-                              kwargs={"stop": stop, "context": ctx, "install_signals": False}, daemon=True)
-    worker.start()
+    ctx, router, stop, worker = _noop_worker_beside_a_fake_broker(st.config)
 
     def job_body(verdict):
         msg = new_message("match.verified", fragment="A", other="B", verdict="confirmed")
