@@ -1,10 +1,13 @@
 """Real fragment collections with known placement, read as ground truth for the matcher's evaluation.
 
 A *collection* is laid out as ``../shared/data/repair-dev`` (RePAIR, Pompeii frescoes): one folder
-per object with its RGBA fragment images and, where the placement is known, ``truth.csv``
-(``rpf,x,y,rot``); folders without one hold distractors. :func:`collection_wall` imports every image
+per object with its fragment images and, where the placement is known, ``truth.csv``
+(``rpf,x,y,rot``); folders without one hold distractors (the variations accepted:
+:func:`common.synth.stats.read_collection`). :func:`collection_wall` imports every image
 as a colour-only fragment (:func:`common.imports.fragments.fragment_from_image`) and turns the
-placements into the :class:`~common.synth.wall.Wall` ground-truth form the evaluation uses.
+placements into the :class:`~common.synth.wall.Wall` ground-truth form the evaluation uses; what it
+leaves out (a damaged picture, an unusable ``truth.csv`` row or file, a picture of a placed object no row
+places) is logged as a warning (logger ``tessera.collection``) and listed in ``params['skipped']``.
 
 Neighbours follow ../shared/data/README.md: two pieces of one object whose placed outlines come
 within ``near_px`` (48) canvas pixels of each other along at least ``min_run_px`` (100) pixels
@@ -14,11 +17,14 @@ material, and the placed outlines of RePAIR's neighbours run 1–8 mm apart.
 
 from __future__ import annotations
 
+import logging
 import os
 
 import numpy as np
 
 from common.synth.wall import Fragment, Wall
+
+log = logging.getLogger("tessera.collection")
 
 
 def piece_pose(matrix: np.ndarray, pixel_mm: float) -> tuple[float, float, float]:
@@ -37,7 +43,7 @@ def piece_pose(matrix: np.ndarray, pixel_mm: float) -> tuple[float, float, float
 
 
 def collection_wall(path: str | os.PathLike, *, dpi: float = 150.0, near_px: float = 48.0,
-                    min_run_px: float = 100.0, progress=None) -> Wall:
+                    min_run_px: float = 100.0, progress=None, strict: bool = False) -> Wall:
     """Read a placed collection of fragment images into the :class:`Wall` ground-truth form.
 
     Parameters
@@ -50,6 +56,10 @@ def collection_wall(path: str | os.PathLike, *, dpi: float = 150.0, near_px: flo
     near_px, min_run_px : float
         Neighbour definition in canvas pixels (see the module docstring).
     progress : callable(fraction, text), optional
+    strict : bool
+        Refuse a damaged picture or an unusable ``truth.csv`` row or file (ValueError naming every
+        damaged picture, or the file and line) instead of leaving it out and going on
+        (:func:`~common.synth.stats.read_collection` with or without ``skipped``).
 
     Returns
     -------
@@ -57,21 +67,46 @@ def collection_wall(path: str | os.PathLike, *, dpi: float = 150.0, near_px: flo
         One fragment per image (id = file stem; ``notes['object']`` its folder), placed fragments
         with their pose in their object's frame (objects are separate frames: only pairs within
         one object are ever neighbours), distractors with ``pose=None`` and ``spurious=True``;
-        ``adjacency`` = ``(a, b, shared crack mm)``.
+        ``adjacency`` = ``(a, b, shared crack mm)``; ``params['skipped']`` what was left out and why.
+        A picture of an object whose ``truth.csv`` places others but not it is left out: its place is
+        unknown, and as a distractor of its own object its true joins would count as wrong matches.
+        The pictures of an object no row places (no ``truth.csv``, or one without rows) are distractors.
     """
     from common.imports.fragments import fragment_from_image
     from common.synth.stats import neighbour_gaps, read_collection
 
-    if not dpi > 0:
+    if not (np.isfinite(dpi) and dpi > 0):
         raise ValueError(f"dpi must be positive, got {dpi}")
-    pieces = read_collection(path)
+    skipped: list = []
+    pieces = read_collection(path, skipped=None if strict else skipped)
+    placed_objects = {p.object for p in pieces if p.matrix is not None}
+    kept = []
+    for p in pieces:
+        if p.matrix is None and p.object in placed_objects:
+            message = (f"{p.file or p.object + '/' + p.id}: no row of its folder's truth.csv places it (none names "
+                       "it, or the one that does is unusable), so its place is unknown: left out (as a distractor of "
+                       "its own object its true joins would count as wrong)")
+            log.warning(message)
+            skipped.append(message)
+        else:
+            kept.append(p)
+    pieces = kept
     pm = 25.4 / dpi
     ids = [p.id for p in pieces]
     if len(set(ids)) != len(ids):  # the same file name in two objects: qualify by object
         ids = [f"{p.object}-{p.id}" for p in pieces]
-    frags = []
+    frags, imported = [], []
     for i, (fid, p) in enumerate(zip(ids, pieces)):
-        rgbn = fragment_from_image(p.rgba, dpi=dpi, background="alpha")
+        try:
+            rgbn = fragment_from_image(p.rgba, dpi=dpi, background="alpha")
+        except ValueError as exc:     # a piece the import cannot use: named, and left out unless strict
+            message = f"{p.file or p.object + '/' + p.id}: cannot be imported as a fragment ({exc})"
+            if strict:
+                raise ValueError(message) from None
+            log.warning(message + ": left out")
+            skipped.append(message + ": left out")
+            continue
+        imported.append(p)
         rgbn.attrs.update({"source": "collection", "object": p.object, "face": "front"})
         pose = piece_pose(p.matrix, pm) if p.matrix is not None else None
         frags.append(Fragment(fid, rgbn=rgbn, pose=pose, spurious=pose is None,
@@ -80,10 +115,10 @@ def collection_wall(path: str | os.PathLike, *, dpi: float = 150.0, near_px: flo
             progress((i + 1) / len(pieces), f"imported {fid}")
     by_key = {(p.object, p.id): fid for fid, p in zip(ids, pieces)}
     adjacency = [(by_key[(g["object"], g["a"])], by_key[(g["object"], g["b"])], g["run_px"] * pm)
-                 for g in neighbour_gaps(pieces, near_px=near_px, min_run_px=min_run_px)]
+                 for g in neighbour_gaps(imported, near_px=near_px, min_run_px=min_run_px)]
     return Wall(f"collection-{os.path.basename(os.path.normpath(str(path)))}", frags, adjacency, {}, 0.0, 0.0,
                 float(dpi), params={"source": "collection", "path": str(path), "dpi": dpi, "near_px": near_px,
-                                    "min_run_px": min_run_px})
+                                    "min_run_px": min_run_px, "skipped": skipped})
 
 
 def relative_pose_error(pose_a, pose_b, proposed, centre_b_mm) -> tuple[float, float]:

@@ -26,10 +26,15 @@ Pixel figures are given at the collection's own sampling; mm figures use its dpi
 
 from __future__ import annotations
 
+import codecs
 import csv
+import io
+import logging
 import os
+import re
+from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 
 import cv2
 import numpy as np
@@ -37,6 +42,13 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 REPAIR_DPI = 7.369 * 25.4  # RePAIR's evaluation code: 7.369 px/mm
+
+
+log = logging.getLogger("tessera.collection")
+
+TRUTH_COLUMNS = ("rpf", "x", "y", "rot")
+# folders a collection copied between machines may carry that hold no object (macOS's resource forks)
+_NOT_OBJECTS = {"__macosx"}
 
 
 @dataclass
@@ -53,31 +65,43 @@ class Piece:
     matrix : (2, 3) float array or None
         Crop pixel (col, row, 1) -> object canvas pixel; None when its place is unknown
         (a distractor).
+    file : str or None
+        The picture it was read from (None for a synthetic piece).
     """
 
     id: str
     object: str
     rgba: np.ndarray
     matrix: np.ndarray | None = None
+    file: str | None = None
 
 
 def read_fragment_rgba(path) -> np.ndarray:
     """A fragment image as (H, W, 4) uint8 RGBA, the piece in its alpha channel, read completely
     through the import door (:func:`common.imports.door.read_image_checked`: a truncated or corrupt
     file or a fully transparent one is refused, naming the file and the reason; OpenCV alone would
-    return a truncated PNG's missing rows as grey). 16-bit files are reduced to 8 bits.
+    return a truncated PNG's missing rows as grey). 16-bit files are reduced to 8 bits; grey pictures
+    (with or without alpha) read as grey RGB(A).
 
     An RGB image without alpha (the piece photographed or scanned on a plain background, black or
     any other) is cut out by :func:`common.imports.fragments.cut_from_background` (the edge where the
     piece covers half a pixel, the background's share taken out of the edge pixels), as ``tessera import
-    images --background auto`` does; one where no piece stands out from the background is refused."""
+    images --background auto`` does; one where no piece stands out from the background is refused. So is
+    an RGBA image whose alpha hides nothing (255 everywhere: a picture on its background saved with an
+    opaque alpha channel), which would otherwise be read as a piece the size of the whole picture."""
     from common.imports.door import read_image_checked
     from common.imports.fragments import cut_from_background
 
-    img = read_image_checked(path, channels=(3, 4))
-    px = img.pixels if img.bits == 8 else (img.as_float() * 255.0 + 0.5).astype(np.uint8)
+    img = read_image_checked(path, channels=(1, 2, 3, 4))
+    px = img.pixels if img.bits == 8 else (np.clip(img.as_float(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if px.ndim == 2:
+        px = px[..., None]
+    if px.shape[2] in (1, 2):   # grey, grey + alpha
+        px = np.concatenate([np.repeat(px[..., :1], 3, axis=2), px[..., 1:]], axis=2)
+    if px.shape[2] == 4 and not (px[..., 3] < 255).any():
+        px = px[..., :3]        # an alpha channel that hides nothing: the piece is on its background
     if px.shape[2] == 4:
-        return px
+        return np.ascontiguousarray(px)
     rgb, mask, _ = cut_from_background(px.astype(np.float32) / 255.0)
     if not mask.any():
         raise ValueError(f"{path}: RGB image without alpha, and no piece stands out from its plain background")
@@ -93,51 +117,192 @@ def _crop(rgba: np.ndarray, pad: int = 2):
     return rgba[r0:r1, c0:c1].copy(), c0, r0
 
 
-def _read_truth(path: Path, images: set) -> dict:
-    """``truth.csv`` of one object: ``{image file name: (x, y, rot)}``. A fragment may be named by its
-    file name (RePAIR's ``RPf_00072_intact_mesh.png``) or its stem; a missing column, a value that is
-    not a number, a name given twice or one that matches no image of the folder is refused, naming the
-    file and line (a typo would otherwise leave a placed piece silently unplaced)."""
-    truth = {}
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in ("rpf", "x", "y", "rot") if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected rpf,x,y,rot)")
-        for row in reader:
-            line = reader.line_num
-            name = (row["rpf"] or "").strip()
-            if name not in images:
-                by_stem = [n for n in images if Path(n).stem == name]
-                if len(by_stem) > 1:
-                    raise ValueError(f"{path}, line {line}: {name!r} could be any of {', '.join(sorted(by_stem))}: "
-                                     "name the file")
-                name = by_stem[0] if by_stem else name
-            if name not in images:
-                raise ValueError(f"{path}, line {line}: {row['rpf']!r} names no fragment image in {path.parent}")
-            if name in truth:
-                raise ValueError(f"{path}, line {line}: {name} is placed twice")
-            try:
-                truth[name] = tuple(float(row[c]) for c in ("x", "y", "rot"))
-            except (TypeError, ValueError):
-                raise ValueError(f"{path}, line {line}: x, y and rot must be numbers, got "
-                                 f"{row['x']!r}, {row['y']!r}, {row['rot']!r}") from None
-            if not all(np.isfinite(truth[name])):
-                raise ValueError(f"{path}, line {line}: x, y and rot must be finite, got {truth[name]}")
-    return truth
+def _hidden(folder: Path) -> bool:
+    return folder.name.startswith(".") or folder.name.lower() in _NOT_OBJECTS
 
 
-def read_collection(path: str | os.PathLike) -> list[Piece]:
+def _truth_file(obj: Path) -> Path | None:
+    """An object folder's ``truth.csv``, its name in any case (``Truth.CSV`` from another system)."""
+    found = sorted(c for c in obj.iterdir() if c.name.lower() == "truth.csv" and c.is_file())
+    if len(found) > 1:
+        raise ValueError(f"{obj}: {' and '.join(c.name for c in found)} are two truth files: keep one")
+    return found[0] if found else None
+
+
+def _truth_text(path: Path) -> str:
+    """A truth file's text as spreadsheets save it: UTF-8 with or without BOM, UTF-16 with BOM
+    (Excel's "Unicode text"), else Windows-1252 (Excel's plain "CSV" on Windows)."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{path}: starts as UTF-16 text but cannot be decoded ({exc.reason} at byte "
+                             f"{exc.start}): save it as CSV (UTF-8)") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        pass
+    try:
+        return raw.decode("cp1252")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: is not text (UTF-8, UTF-16 or Windows-1252: byte {raw[exc.start]:#04x} at "
+                         f"{exc.start} cannot be decoded): save it as CSV (UTF-8)") from None
+
+
+def _pictures_named(name: str, pictures: set) -> list:
+    """The pictures of a folder a ``truth.csv`` name may mean, best first: the file name itself, given
+    with a folder path another tool wrote (its last part), in another case, or as a stem, or with another
+    picture suffix than the file has (a collection converted from PNG to JPEG keeps its truth.csv)."""
+    from common.imports.manifest import IMAGE_SUFFIXES
+
+    base = PureWindowsPath(name).name if ("/" in name or "\\" in name) else name   # both separators
+    if base in pictures:
+        return [base]
+    same = sorted(p for p in pictures if p.lower() == base.lower())
+    if same:
+        return same
+    stem = Path(base).stem if Path(base).suffix.lower() in IMAGE_SUFFIXES else base
+    return sorted(p for p in pictures if Path(p).stem.lower() == stem.lower())
+
+
+def _number(cell: str, delimiter: str) -> float:
+    text = cell.strip()
+    if delimiter != "," and re.fullmatch(r"[-+]?\d*,\d+", text):   # a decimal comma (semicolon-separated files)
+        text = text.replace(",", ".")
+    return float(text)
+
+
+def _read_truth(path: Path, images: set, row_problem=None) -> dict:
+    """``truth.csv`` of one object: ``{image file name: (x, y, rot)}``.
+
+    Read as spreadsheets write it: any of the encodings :func:`_truth_text` reads, separated by commas,
+    semicolons (then a decimal comma is read as a point) or tabs as its header line is, column names in
+    any case and order with spaces around them, extra columns, blank rows and rows of empty cells
+    ignored. A fragment may be named by its file name (RePAIR's ``RPf_00072_intact_mesh.png``), its stem,
+    and as :func:`_pictures_named` finds it.
+
+    A file without the four columns is refused (ValueError naming it). A row is refused naming the file,
+    line and problem -- a value that is not a finite number, a name given twice, one that matches no image
+    of the folder (a typo would otherwise leave a placed piece silently unplaced) or several; with
+    ``row_problem`` (a callable taking that message) the row is ignored instead and reading goes on
+    (a picture whose rows are ignored has no place).
+    """
+    text = _truth_text(path)
+    first = next((line for line in text.splitlines() if line.strip()), "")
+    if not first:
+        raise ValueError(f"{path}: is empty (expected the header line {','.join(TRUTH_COLUMNS)} and a row per "
+                         "placed picture)")
+    delimiter = next((d for d in (",", ";", "\t") if d in first), ",")
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    header = None
+    truth, lines, bad = {}, {}, set()
+
+    def problem(message):
+        if row_problem is None:
+            raise ValueError(message)
+        row_problem(message + ": row ignored")
+
+    for row in reader:
+        if not any(cell.strip() for cell in row):
+            continue
+        if header is None:
+            names = [cell.strip().lower() for cell in row]
+            missing = [c for c in TRUTH_COLUMNS if c not in names]
+            if missing:
+                found = ", ".join(cell.strip() for cell in row if cell.strip())
+                raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (expected "
+                                 f"{','.join(TRUTH_COLUMNS)}; found: {found})")
+            header = {c: names.index(c) for c in TRUTH_COLUMNS}
+            continue
+        line = reader.line_num
+        cells = {c: (row[i] if i < len(row) else "") for c, i in header.items()}
+        name = cells["rpf"].strip()
+        where = f"{path}, line {line}"
+        matches = _pictures_named(name, images) if name else []
+        if len(matches) > 1:
+            problem(f"{where}: {name!r} could be any of {', '.join(matches)}: name the file")
+            continue
+        if not matches:
+            problem(f"{where}: {name!r} names no fragment image in {path.parent}" if name else
+                    f"{where}: the rpf cell is empty")
+            continue
+        pic = matches[0]
+        if pic in lines:
+            bad.add(pic)
+            problem(f"{where}: {pic} is placed twice (lines {lines[pic]} and {line})")
+            continue
+        lines[pic] = line
+        try:
+            values = tuple(_number(cells[c], delimiter) for c in ("x", "y", "rot"))
+        except ValueError:
+            bad.add(pic)
+            problem(f"{where}: {pic}: x, y and rot must be numbers, got "
+                    f"{cells['x']!r}, {cells['y']!r}, {cells['rot']!r}")
+            continue
+        if not all(np.isfinite(values)):
+            bad.add(pic)
+            problem(f"{where}: {pic}: x, y and rot must be finite, got {values}")
+            continue
+        truth[pic] = values
+    if header is None:
+        raise ValueError(f"{path}: is empty (expected the header line {','.join(TRUTH_COLUMNS)})")
+    return {k: v for k, v in truth.items() if k not in bad}
+
+
+def collection_layout(path: str | os.PathLike) -> dict:
+    """What a collection's object folders hold, read without decoding a picture (a check before a long run).
+
+    Returns
+    -------
+    dict
+        object folder name -> ``{"pictures": n, "placed": n of them a truth.csv row places (None without a
+        truth file), "problem": why its truth file is unusable, or None, "deeper": its subfolders that hold
+        pictures (not read)}``; folders as :func:`read_collection` reads them (hidden ones left out).
+    """
+    from common.imports.manifest import expand_paths
+
+    root = Path(path)
+    out = {}
+    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
+        pictures = expand_paths([obj])
+        deeper = sorted(c.name for c in obj.iterdir() if c.is_dir() and not _hidden(c) and expand_paths([c]))
+        entry = {"pictures": len(pictures), "placed": None, "problem": None, "deeper": deeper}
+        try:
+            tf = _truth_file(obj)
+            if tf is not None:
+                entry["placed"] = len(_read_truth(tf, {p.name for p in pictures}, row_problem=lambda m: None))
+        except ValueError as exc:
+            entry["problem"] = str(exc)
+        out[obj.name] = entry
+    return out
+
+
+def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> list[Piece]:
     """Read a collection laid out as ``repair-dev``: one folder per object with fragment pictures (PNG, TIFF or
-    JPEG as ``tessera import images`` reads them; RGBA, or
-    RGB on a plain background: :func:`read_fragment_rgba`) and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the image
-    counter-clockwise by ``rot`` degrees about its centre, canvas kept, then put its top-left
-    corner at ``(x, y)``). Folders without ``truth.csv`` give distractors (``matrix`` None).
+    JPEG as ``tessera import images`` reads them; RGBA, or RGB or grey on a plain background:
+    :func:`read_fragment_rgba`) and, where the placement is known, ``truth.csv`` (``rpf,x,y,rot``: rotate the
+    image counter-clockwise by ``rot`` degrees about its centre, canvas kept, then put its top-left corner at
+    ``(x, y)``, in the picture's own pixels; the file as spreadsheets write it, :func:`_read_truth`).
+    Folders without ``truth.csv``, or whose ``truth.csv`` has no rows, give distractors (``matrix`` None);
+    so does a picture no row places (:func:`common.matching.collection.collection_wall` leaves those out).
+
+    Pictures are the files with a picture suffix directly in an object folder (hidden files, such as macOS's
+    ``._name.png``, and other files left out); hidden folders and ``__MACOSX`` are no objects. A piece's id is
+    its file's stem, or its file name where two pictures of the folder share the stem.
 
     Parameters
     ----------
     path : path
         The collection directory.
+    skipped : list, optional
+        Given, a damaged picture, an unusable ``truth.csv`` row (its picture then has no place) or an unusable
+        ``truth.csv`` (its object left out) is left out, described here with its file and reason, and reading
+        goes on. What the layout leaves out (an object folder without pictures, pictures outside any object
+        folder) is described here too. Each is logged as a warning (logger ``tessera.collection``).
 
     Returns
     -------
@@ -146,26 +311,69 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
     Raises
     ------
     ValueError
-        A bad ``truth.csv`` (naming the file and line), or damaged fragment images: every one is
-        named with its reason (:func:`read_fragment_rgba`), so one run lists all there are to fix.
+        Without ``skipped``: a bad ``truth.csv`` (naming the file and line), or damaged fragment images: every
+        one is named with its reason (:func:`read_fragment_rgba`), so one run lists all there are to fix.
+        Always: ``path`` not a directory, or no fragment picture read, saying where the pictures were found
+        (directly in ``path``, or a level deeper) and what to give instead.
     """
     from common.imports.manifest import IMAGE_SUFFIXES, expand_paths
 
     root = Path(path)
     if not root.is_dir():
-        raise ValueError(f"path {root} is not a directory")
-    pieces, refused = [], []
-    for obj in sorted(p for p in root.iterdir() if p.is_dir()):
+        raise ValueError(f"path {root} is not a directory" if root.exists() else f"path {root} does not exist")
+    lenient = skipped is not None
+    notes = []
+
+    def leave_out(message):
+        log.warning(message)
+        notes.append(message)
+        if lenient:
+            skipped.append(message)
+
+    pieces, refused, folders = [], [], []
+    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
         pictures = sorted(expand_paths([obj]))   # as import images lists a folder (hidden files left out)
-        truth = _read_truth(obj / "truth.csv", {p.name for p in pictures}) if (obj / "truth.csv").is_file() else {}
+        if not pictures:
+            subs = sorted(c.name for c in obj.iterdir() if c.is_dir() and not _hidden(c))
+            leave_out(f"{obj}: holds no fragment picture ({', '.join(IMAGE_SUFFIXES)} directly in it"
+                      + (f"; subfolders such as {', '.join(subs[:3])} are not read" if subs else "") + "): left out")
+            continue
+        folders.append(obj)
+        names = {p.name for p in pictures}
+        ignored = []
+
+        def row_ignored(message):
+            ignored.append(message)
+            leave_out(message)
+
+        try:
+            tf = _truth_file(obj)
+            truth = _read_truth(tf, names, row_problem=row_ignored if lenient else None) if tf else {}
+        except ValueError as exc:
+            if not lenient:
+                raise
+            leave_out(f"{exc}: object {obj.name} left out ({len(pictures)} pictures)")
+            continue
+        if tf is not None and not truth and ignored:   # its pieces are each other's joins: not distractors
+            leave_out(f"{tf}: none of its rows is usable: object {obj.name} left out ({len(pictures)} pictures)")
+            continue
+        if tf is not None and not truth:
+            leave_out(f"{tf} places none of the {len(pictures)} pictures of {obj.name}: read as unplaced "
+                      "(distractors), as a folder without truth.csv")
+        stems = Counter(p.stem for p in pictures)
         for pic in pictures:
             try:
                 rgba = read_fragment_rgba(pic)
-            except ValueError as exc:   # every damaged image is named at once, not one per run
-                refused.append(str(exc))
+                crop, c0, r0 = _crop(rgba)
+            except Exception as exc:   # noqa: BLE001 -- every damaged image is named, not one per run
+                text = str(exc) if isinstance(exc, ValueError) else f"could not be read ({type(exc).__name__}: {exc})"
+                text = text if text.startswith(str(pic)) else f"{pic}: {text}"
+                if lenient:
+                    leave_out(f"{text}: left out")
+                else:
+                    refused.append(text)
                 continue
             h, w = rgba.shape[:2]
-            crop, c0, r0 = _crop(rgba)
             M = None
             if pic.name in truth:
                 x, y, rot = truth[pic.name]
@@ -173,14 +381,37 @@ def read_collection(path: str | os.PathLike) -> list[Piece]:
                 R[:, 2] += (x, y)
                 M = R.copy()
                 M[:, 2] = R[:, :2] @ (c0, r0) + R[:, 2]  # crop pixel -> canvas
-            pieces.append(Piece(pic.stem, obj.name, crop, M))
+            pieces.append(Piece(pic.stem if stems[pic.stem] == 1 else pic.name, obj.name, crop, M, str(pic)))
     if refused:
         shown = "; ".join(refused[:10]) + (f"; and {len(refused) - 10} more" if len(refused) > 10 else "")
         raise ValueError(f"{len(refused)} fragment image(s) refused: {shown}")
-    if not pieces:
-        raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png; "
-                         f"{', '.join(IMAGE_SUFFIXES)} are read)")
-    return pieces
+    stray = expand_paths([root])
+    layout = f"a collection is one folder per object, {root}/<object>/<picture> with the object's truth.csv beside"
+    if stray and folders:
+        leave_out(f"{root}: {len(stray)} fragment picture(s) directly in it ({', '.join(p.name for p in stray[:3])}"
+                  f"{', ...' if len(stray) > 3 else ''}) belong to no object folder: left out")
+    if folders and _truth_file(root) is not None:
+        leave_out(f"{_truth_file(root)}: a truth file at the top of the collection is not read (each object's "
+                  "truth.csv goes in its folder)")
+    if pieces:
+        return pieces
+    if stray and not folders:
+        raise ValueError(f"path {root} holds {len(stray)} fragment pictures directly and no object folder: {layout} "
+                         f"its pictures; put them in a folder of their own inside {root}")
+    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
+        deeper = [c for c in sorted(obj.iterdir()) if c.is_dir() and not _hidden(c) and expand_paths([c])]
+        if deeper and _truth_file(obj) is None:
+            raise ValueError(f"path {root} holds no fragment picture one level down, but {obj} holds object folders "
+                             f"with pictures ({', '.join(c.name for c in deeper[:3])}): give {obj} as the collection "
+                             f"({layout} its pictures)")
+        if deeper:
+            raise ValueError(f"{obj}: its truth.csv is beside no picture; the pictures are in its subfolder "
+                             f"{deeper[0].name}: put them directly in {obj}")
+    if notes:
+        raise ValueError(f"no fragment picture of {root} could be read: " + "; ".join(notes[:5])
+                         + (f"; and {len(notes) - 5} more" if len(notes) > 5 else ""))
+    raise ValueError(f"path {root} holds no fragment images (expected <object>/<fragment>.png; "
+                     f"{', '.join(IMAGE_SUFFIXES)} are read)")
 
 
 def wall_collection(wall, fragments=None, *, alpha_px: float | None = None) -> list[Piece]:

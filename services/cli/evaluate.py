@@ -17,14 +17,36 @@ same for the colour-only DAFNE set. The second trains a model on a synthetic wal
 above: 150 fragments, seed 11, 100 dpi — not those of the matcher's own bootstrap, 60 fragments of
 seed 0, which ``--fragments 60 --seed 0`` reproduces) and installs it as the current model of a
 station's matcher (storage root ``ROOT``). The third ranks a real, placed
-collection (``../shared/data/repair-dev`` layout: one folder per object with fragment pictures (PNG, TIFF or JPEG; RGBA, or RGB on a plain background) and
-``truth.csv``; folders without one are distractors) with the station's default model — the
+collection (``../shared/data/repair-dev`` layout, below) with the station's default model — the
 bootstrap model, or the current model of the station at ``--model ROOT`` — fitting nothing on it,
 and prints and writes pooled top-k, within-object recall with its random baseline, pair AP and
 pose accuracy (docs/matching.md); its picture of hits and misses (``collection_examples.png``) goes to
 ``--out``, by default the folder of the ``--json`` file, or the current folder without one.
-``--single-fresco`` ranks as a station set for a collection of one fresco does (``[services.matcher]
-single_fresco``, docs/matching.md, "A ribbon at three lengths, and one fresco").
+``--single-fresco`` ranks as a station set for a collection of one fresco of mostly plain plaster does
+(``[services.matcher] single_fresco``, docs/matching.md, "A ribbon at three lengths, and one fresco"; not for a
+figure painting, whose boundary colours tell which part of the picture a piece is from: "One fresco richly
+painted").
+
+The collection's layout (``common.synth.stats.read_collection``; docs/matching.md, "Real fragments: RePAIR"):
+``DIR/<object>/<picture>``, one folder per object with ``truth.csv`` beside its pictures. Objects are the
+folders directly in ``DIR`` (hidden ones and ``__MACOSX`` not); pictures are the PNG, TIFF and JPEG files
+directly in an object folder, suffix in any case (hidden files such as ``._name.png``, and other files, not
+read): RGBA, 8 or 16 bits, any size each; grey with or without alpha; RGB, or RGBA whose alpha is 255
+everywhere, is the piece on a plain background of any colour. ``truth.csv`` (name in any case): ``rpf,x,y,rot``
+in the picture's own pixels (rotate counter-clockwise by ``rot`` degrees about the picture's centre, canvas
+kept, then put its top-left corner at ``(x, y)``); UTF-8 with or without BOM, UTF-16 with BOM or
+Windows-1252; any line ends; comma-, semicolon- (decimal comma then allowed) or tab-separated as its header
+is; column names in any case and order, spaces round cells, extra columns and blank rows ignored; ``rpf`` is
+the picture's file name, its stem, a path ending in it, or the name in another case or with another picture
+suffix (two pictures it could name: refused). Folders without ``truth.csv``, or with one without rows, hold
+distractors. Left out with a warning naming file, line and reason, listed after the first line printed
+and under ``skipped`` in the JSON (the figures are those of the rest): damaged pictures (truncated,
+corrupt, empty, fully transparent, no piece on the background), ``truth.csv`` rows naming no picture, with
+a value that is not a finite number, or placing a picture twice (both), an unusable ``truth.csv`` (its
+object), a picture of a placed object that no row places, folders without pictures and pictures directly in
+``DIR``. Refused before any work: ``DIR`` missing or a file, no object folder placing two or more of its
+pictures, pictures only directly in ``DIR`` or object folders one level deeper (the folder to give is
+named), a ``--json`` that is a folder, a ``--dpi`` that is not a positive number.
 """
 
 from __future__ import annotations
@@ -60,10 +82,13 @@ def add_parser(subparsers) -> None:
                                                          "in the matcher's proposal store under storage root ROOT "
                                                          "(the matcher's own bootstrap: --fragments 60 --seed 0)")
     p.add_argument("--db", help="proposal database (default ROOT/matches/proposals.sqlite)")
-    p.add_argument("--collection", metavar="DIR", help="evaluate on a real placed collection (repair-dev layout)")
+    p.add_argument("--collection", metavar="DIR", help="evaluate on a real placed collection (repair-dev layout: "
+                                                       "DIR/<object>/<pictures> and truth.csv rpf,x,y,rot; "
+                                                       "accepted variations: docs/matching.md, Real fragments)")
     p.add_argument("--json", metavar="FILE", help="with --collection: write the figures as JSON")
     p.add_argument("--single-fresco", action="store_true",
-                   help="with --collection: rank as a station set for a collection of one fresco "
+                   help="with --collection: rank as a station set for a collection of one fresco of mostly "
+                        "plain plaster "
                         "([services.matcher] single_fresco): the same-fresco ratio does not re-order candidates")
     p.add_argument("--model", metavar="ROOT", help="with --collection: use the current model of the station "
                                                    "at storage root ROOT (default: the bootstrap model)")
@@ -109,14 +134,63 @@ def run(args) -> int:
     return 0
 
 
+class _LeftOut(logging.Handler):
+    """What the collection's reading left out (its warnings, logger ``tessera.collection``), for the printout
+    and the JSON."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def _check_collection(path: Path) -> None:
+    """Refuse, before any work, a collection with nothing to evaluate (no object folder placing two of its
+    pictures), saying what each object folder holds; a layout without object folders is left to the reader,
+    which says where the pictures are."""
+    from common.synth.stats import collection_layout
+
+    if not path.exists():
+        raise SystemExit(f"--collection {path}: no such directory")
+    if not path.is_dir():
+        raise SystemExit(f"--collection {path}: is a file, not a directory (give the collection's folder: one "
+                         "folder per object, each with its pictures and truth.csv)")
+    layout = {k: v for k, v in collection_layout(path).items() if v["pictures"] or v["deeper"]}
+    if any(v["pictures"] for v in layout.values()) and not any((v["placed"] or 0) >= 2 for v in layout.values()):
+        def holds(v):
+            if not v["pictures"]:
+                return (f"no picture directly in it (its subfolder {v['deeper'][0]} holds pictures: put them directly "
+                        "in the object's folder, beside its truth.csv)")
+            if v["problem"]:
+                return v["problem"]
+            if v["placed"] is None:
+                return f"{v['pictures']} pictures, no truth.csv"
+            return f"{v['placed']} placed of {v['pictures']} pictures"
+        shown = "; ".join(f"{k}: {holds(v)}" for k, v in list(layout.items())[:8])
+        raise SystemExit(f"--collection {path}: nothing to evaluate: no object folder places two or more of its "
+                         f"pictures (truth.csv rows rpf,x,y,rot naming them); {shown}"
+                         + ("; ..." if len(layout) > 8 else ""))
+
+
 def _collection(args, progress) -> int:
+    import math
+
     from common.matching.report import evaluate_collection
 
-    if not Path(args.collection).is_dir():
-        raise SystemExit(f"--collection {args.collection}: no such directory")
+    _check_collection(Path(args.collection))
     dpi = 150.0 if args.dpi is None else args.dpi
-    if not dpi > 0:
-        raise SystemExit(f"--dpi must be positive, got {dpi}")
+    if not (math.isfinite(dpi) and dpi > 0):
+        raise SystemExit(f"--dpi must be a positive number, got {dpi}")
+    if args.json:   # a result that cannot be written is known before the run, not after it
+        if Path(args.json).is_dir():
+            raise SystemExit(f"--json {args.json}: is a directory; give a file name, e.g. "
+                             f"{Path(args.json) / 'collection.json'}")
+        try:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SystemExit(f"--json {args.json}: cannot make its folder ({exc.strerror or exc})")
     model = None
     if args.model:
         from common.matching.models import load_model
@@ -129,13 +203,29 @@ def _collection(args, progress) -> int:
         from common.matching.online import with_current_ribbon
         model = with_current_ribbon(load_model(Store(args.model), current["artifact"]))   # as the station's matcher
     out = args.out if args.out is not None else (Path(args.json).parent if args.json else Path("."))
+    left_out = _LeftOut()
+    reader_log = logging.getLogger("tessera.collection")
+    reader_log.addHandler(left_out)
     try:
         res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out,
                                   single_fresco=args.single_fresco, progress=progress)
     except ValueError as exc:
-        raise SystemExit(f"--collection {args.collection}: {exc}")
+        hint = ""
+        if "no true neighbour pair" in str(exc):
+            hint = (" (no two placed pieces of one object come within 48 px of each other along 100 px of outline: "
+                    "are truth.csv's x, y in the pictures' own pixels?)")
+        if left_out.messages:
+            hint += f"; {len(left_out.messages)} left out while reading, see the warnings above"
+        raise SystemExit(f"--collection {args.collection}: {exc}{hint}")
+    finally:
+        reader_log.removeHandler(left_out)
+    res["skipped"] = left_out.messages
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
           f"pairs, {res['dpi']:g} dpi, model {res['model']}" + (", ranked as one fresco" if res["single_fresco"] else ""))
+    if left_out.messages:
+        print(f"left out {len(left_out.messages)} (the figures are of the rest):")
+        for message in left_out.messages:
+            print(f"  - {message}")
     print("pooled top-k (links), mutual proximity: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items())
           + "; by probability: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk_by_probability"].items()))
     print("within-object recall: " + ", ".join(f"@{k}: {v:.3f} (random {res['within_object_random'][k]:.3f}, "
@@ -155,8 +245,11 @@ def _collection(args, progress) -> int:
           + "; within-object " + ", ".join(f"@{k}: {span(v)}" for k, v in iv["within_object_recall"].items())
           + f"; pose accuracy {span(iv['pose_accuracy'])}, offered {span(iv['pose_offered'])}")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(to_json(res, indent=1))   # an undefined figure (NaN) as null
+        try:
+            Path(args.json).write_text(to_json(res, indent=1))   # an undefined figure (NaN) as null
+        except OSError as exc:
+            raise SystemExit(f"--json {args.json}: cannot be written ({exc.strerror or exc}); the figures are "
+                             "printed above")
         print(f"figures in {args.json}")
     if (Path(out) / "collection_examples.png").is_file():
         print(f"hits and misses drawn in {Path(out) / 'collection_examples.png'}")
