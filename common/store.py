@@ -56,7 +56,14 @@ class StorageError(OSError):
     Transient from a worker's point of view (an operator frees space or remounts the share), so
     it is retried with back-off, never counted as a bad input. Nothing is left behind: the
     temporary file is removed, the final name never appears.
+
+    Made as ``StorageFull(errno.ENOSPC, "storage full: ...")``: ``errno`` and ``strerror`` as any
+    OSError's, but ``str()`` is the message alone, without OSError's ``[Errno 28]`` prefix, as the
+    CLI's and the web's errors quote it (``...: storage full: ...``).
     """
+
+    def __str__(self) -> str:
+        return self.strerror if self.strerror is not None else super().__str__()
 
 
 class StorageFull(StorageError):

@@ -302,6 +302,17 @@ def test_read_only_storage_raises_storage_read_only(tiny_mount):
         assert f["x"].shape == (100,)
 
 
+def test_storage_errors_read_as_their_message_without_the_errno_prefix():
+    """OSError's str() puts ``[Errno 28]`` before the message: the export's and reconstruct's stderr said
+    ``... [Errno 28] storage full: ...`` where the docs quote ``...: storage full: ...``."""
+    import errno
+    assert str(StorageFull(errno.ENOSPC, "storage full: x")) == "storage full: x"
+    assert str(StorageReadOnly(errno.EROFS, "storage read-only: y")) == "storage read-only: y"
+    exc = StorageFull(errno.ENOSPC, "storage full: x")
+    assert exc.errno == errno.ENOSPC and exc.strerror == "storage full: x"     # still an OSError with its errno
+    assert str(StorageFull("bare")) == "bare" and str(StorageFull()) == ""     # no strerror: OSError's own
+
+
 def test_import_file_on_full_disk_raises_storage_full_and_leaves_nothing(tiny_mount, tmp_path):
     src = Store(tmp_path / "spool")
     ref = src.write("fragments/F1/scans/scans-k.h5", "tessera.test", 1, _big_fill(3_000_000))

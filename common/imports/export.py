@@ -8,7 +8,9 @@ folder ``<out>/<fragment id>/`` receives
   alpha 65535 on the fragment, 0 elsewhere (and RGB 0). DirectX tools flip green. Only for faces
   with normals (not colour-only ones);
 * ``<face>-albedo.png`` -- RGBA PNG, sRGB-encoded albedo (8 or 16 bit), alpha = mask;
-* ``<face>-render-<recipe>.png`` -- every illustration of the face on storage (bits as drawn);
+* ``<face>-render-<recipe>-<key8>.png`` -- every illustration of the face on storage (bits as drawn);
+  ``<key8>``: the first 8 hex digits of the render artifact's key (``renders/<face>-<key>.h5``), so two
+  renders of one recipe (other options) do not collide;
 * ``metadata.json`` -- id, per face: dpi, pixel size, size, mask area, source artifact (path,
   sha256), the importer's metadata (inventory, find-spot, ...), provenance; the conventions.
 

@@ -93,9 +93,16 @@ def background_mask(rgb: np.ndarray, *, margin: float = 6.0, min_contrast: float
     Notes
     -----
     The background is modelled per channel as a plane ``c0 + c1 x + c2 y`` fitted to the border
-    strip by least squares, refitted once without the border pixels farther than 3 MAD from the
-    first fit (parts of the fragment reaching the border, dust), so a lamp gradient or vignetting
-    across a scan or photograph does not read as fragment.
+    strip by least squares, so a lamp gradient or vignetting across a scan or photograph does not
+    read as fragment. The first fit takes the half of the strip nearest its per-channel median
+    colour (background while parts of the fragment reaching the border, dust, cover less than half
+    of it), and leaves out the border pixels it would call fragment (farther than ``margin`` MAD);
+    the plane is fitted to the rest, then refitted once without the border pixels farther than
+    3 MAD from that fit. A fit to the whole strip first was dragged by a piece reaching the border
+    along a sixth of it or more (its colour mixed into the background's, the spread grown past full
+    scale): the picture was refused as holding no fragment, where it is found now and refused for
+    touching the border (:func:`fragment_from_image`). With no piece on the border nothing is left
+    out and the fit is the whole strip's, as before.
 
     A threshold a few noise levels above the background finds the piece, but on a contrasting
     background it puts the edge where the piece covers a few per cent of a pixel: 2.4 px outside
@@ -115,12 +122,22 @@ def background_mask(rgb: np.ndarray, *, margin: float = 6.0, min_contrast: float
     yy, xx = np.nonzero(strip)
     design = np.stack([np.ones(len(xx)), xx / w - 0.5, yy / h - 0.5], axis=1)
     samples = rgb[strip].astype(np.float64)
-    keep = np.ones(len(samples), bool)
+
+    def spread_of(coef, among):
+        dist = np.linalg.norm(samples - design @ coef, axis=1)
+        med = float(np.median(dist[among]))
+        return dist, med, 1.4826 * float(np.median(np.abs(dist[among] - med))) + 1e-6
+
+    # first fit: the half of the strip nearest its per-channel median colour, background while the piece (or dust)
+    # covers less than half of the strip; a fit to the whole strip was dragged by a piece reaching the border
+    near = np.linalg.norm(samples - np.median(samples, axis=0), axis=1)
+    first = near <= np.median(near)
+    coef, *_ = np.linalg.lstsq(design[first], samples[first], rcond=None)
+    dist, med, mad = spread_of(coef, slice(None))
+    keep = dist <= med + max(margin, 3.0) * mad    # what this fit would call fragment left out
     for _ in range(2):
         coef, *_ = np.linalg.lstsq(design[keep], samples[keep], rcond=None)
-        dist = np.linalg.norm(samples - design @ coef, axis=1)
-        med = float(np.median(dist[keep]))
-        mad = 1.4826 * float(np.median(np.abs(dist[keep] - med))) + 1e-6
+        dist, med, mad = spread_of(coef, keep)
         keep = dist <= med + 3.0 * mad
     spread = med + mad
     threshold = max(float(min_contrast), med + margin * mad)

@@ -62,7 +62,7 @@ def run(args) -> int:
         print(f"tessera export: {out} exists and is not a folder", file=sys.stderr)
         return 2
     done, failed, full, kept = [], [], None, {}
-    several = len(ids) > 1
+    several = args.all or len(ids) > 1     # --all lists the collection even when it holds one fragment
     if args.all:   # the whole collection sized first: a disk too small refuses it before any fragment is written
         bar = ProgressBar(len(ids), "export: sizing")
         try:

@@ -122,6 +122,40 @@ def test_implausible_pictures_are_refused_with_the_reason():
         fragment_from_image(filled, dpi=300)
 
 
+def _reaching_the_bottom(touch_px, seed=0):
+    """A 200x300 noisy picture on a plain background, the piece running out of it along ``touch_px`` of the bottom
+    edge (the 1-pixel border has 996 pixels)."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((200, 300, 3), np.float32)
+    img[:] = (40, 40, 40)
+    x0 = (300 - touch_px) // 2
+    img[80:, x0:x0 + touch_px] = (200, 150, 90)
+    return np.clip(np.round(img + rng.normal(0, 6, img.shape)), 0, 255).astype(np.uint8), x0
+
+
+@pytest.mark.parametrize("touch_px", [170, 200, 250])
+def test_a_piece_cut_off_by_the_frame_is_refused_as_such(touch_px):
+    """docs/import.md: a piece touching more than 10 % of the picture's border is refused (cut off by the frame).
+    With ~17 % or more of the border strip being fragment, the background fit took the piece for background (the
+    3-MAD rule never dropped it, the threshold ended above full scale) and the refusal said "no fragment found
+    (0.00 % ...; ... by more than 311/255)". The background is fitted to the border pixels nearest its median
+    colour now, so the piece on the border cannot drag it."""
+    img, _ = _reaching_the_bottom(touch_px)
+    with pytest.raises(ImportRefused, match=r"touches the picture's border along (1[7-9]|2[0-9]) % of it"):
+        fragment_from_image(img, dpi=300)
+    mask, info = background_mask(img.astype(np.float32) / 255)
+    np.testing.assert_allclose(np.array(info["background"]) * 255, 40, atol=1.5)   # the background, not a mix
+    assert info["threshold"] * 255 < 60
+
+
+def test_a_piece_touching_a_twentieth_of_the_border_is_imported():
+    img, x0 = _reaching_the_bottom(50)            # 50 of 996 border pixels: 5 %
+    frag = fragment_from_image(img, dpi=300)
+    truth = np.zeros((200, 300), bool)
+    truth[80:, x0:x0 + 50] = True
+    assert _iou(frag.mask, truth) > 0.98
+
+
 def test_bad_arguments_are_named():
     img = np.zeros((50, 50, 3), np.uint8)
     with pytest.raises(ValueError, match="dpi"):

@@ -240,6 +240,7 @@ def test_export_checks_the_free_space_of_its_destination_before_writing_anything
     assert main(["export", "A", "B", "-o", str(out), "--store", str(tmp_path / "st")]) == 1
     err = capsys.readouterr().err
     assert "not enough free space, stopped at A" in err and f"{free} free" in err and "1 more fragment(s) not tried" in err
+    assert "stopped at A: storage full: the export of A" in err and "Errno" not in err   # as docs/import.md quotes it
     need = int(re.search(r"needs (\d+) bytes", err).group(1))
     assert abs(need - size) < 100       # the sum of the files (metadata.json's time stamp aside)
     assert not (tmp_path / "usb").exists()
@@ -248,6 +249,18 @@ def test_export_checks_the_free_space_of_its_destination_before_writing_anything
     _free_space(monkeypatch, size + FREE_SPACE_MARGIN_BYTES + 2000)
     assert main(["export", "A", "-o", str(out), "--store", str(tmp_path / "st")]) == 0
     assert sorted(p.name for p in (out / "A").iterdir()) == ["front-albedo.png", "front-normals.png", "metadata.json"]
+
+
+def test_export_all_of_a_one_fragment_store_writes_collection_json(tmp_path):
+    """docs/import.md: "With several fragments (or --all) OUT/collection.json lists them"; --all on a store of
+    one fragment wrote none (only len(ids) > 1 counted). A single fragment named writes none, as before."""
+    _, mask = _surface_normals()
+    save_rgbn(Store(tmp_path / "st"), "fragments/A/rgbn/front-1.h5",
+              RGBNImage(albedo=_albedo(mask), mask=mask, dpi=300.0))
+    assert main(["export", "--all", "-o", str(tmp_path / "all"), "--store", str(tmp_path / "st")]) == 0
+    assert json.loads((tmp_path / "all" / "collection.json").read_text())["fragments"] == ["A"]
+    assert main(["export", "A", "-o", str(tmp_path / "one"), "--store", str(tmp_path / "st")]) == 0
+    assert (tmp_path / "one" / "A").is_dir() and not (tmp_path / "one" / "collection.json").exists()
 
 
 def test_renders_on_storage_are_exported_as_pngs(tmp_path):

@@ -424,7 +424,7 @@ def test_cli_on_a_full_disk_names_the_file_and_keeps_the_older_output(tmp_path, 
     err = capsys.readouterr().err
     first = out / ("reconstruction.json" if json_only else next(n for n in sorted(older) if n.endswith(".png")))
     said = {"before": f"storage full: {first} needs ", "while": f"storage full: cannot write {first} ("}[full]
-    assert said in err and f"{out / 'reconstruction.json'} not updated" in err, err
+    assert f"tessera reconstruct: {said}" in err and f"{out / 'reconstruction.json'} not updated" in err, err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == older      # nothing half-written, nothing left over
 
 
