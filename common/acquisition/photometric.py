@@ -199,19 +199,33 @@ def _albedo_rgb(colour, lights, normals, weights):
     return np.einsum("pn,npc->pc", ws, colour) / den[:, None]
 
 
-def _confidence(grey, pred, weights, n_lights):
-    """Confidence in [0, 1]: enough inlier lights, and a small residual relative to intensity."""
+def _confidence(grey, pred, weights, n_lights, robust):
+    """Confidence in [0, 1]: enough (inlier) lights, and a small residual relative to intensity."""
     used = weights.sum(1)
     r = grey - pred
     rss = np.einsum("pn,pn->p", weights * r, r)
     power = np.einsum("pn,pn->p", weights * grey, grey)
-    return _confidence_from(used, rss, power, n_lights)
+    return _confidence_from(used, rss, power, n_lights, robust)
 
 
-def _confidence_from(used, rss, power, n_lights):
+def _confidence_from(used, rss, power, n_lights, robust):
+    """``(1 − relative residual)`` × a support factor.
+
+    Least squares: the factor is ``used ≥ 3`` (3 lights determine a normal; docs/handheld.md).
+    Robust: ``clip((used − 3) / max(3, N/4), 0, 1)`` — 3 or fewer kept lights give 0, full at
+    ``3 + max(3, N/4)`` kept lights (the lights a pixel keeps are evidence it fits the model).
+    """
     rel = np.sqrt(np.clip(rss, 0.0, None) / np.maximum(power, 1e-12))
-    support = np.clip((used - 3.0) / max(3.0, 0.25 * n_lights), 0.0, 1.0)
+    if robust:
+        support = np.clip((used - 3.0) / max(3.0, 0.25 * n_lights), 0.0, 1.0)
+    else:
+        support = (used >= 3.0 - 1e-3).astype(np.float64)
     return (support * np.clip(1.0 - rel, 0.0, 1.0)).astype(np.float32)
+
+
+#: fewest images for which :func:`robust_normals` can give any pixel a confidence above 0 (it needs
+#: more than 3 kept lights)
+ROBUST_MIN_IMAGES = 4
 
 
 def _least_squares_linear(images, lights, idx_all):
@@ -253,7 +267,8 @@ def _least_squares_linear(images, lights, idx_all):
         sl = slice(done, done + len(sel))
         normals[sl] = nrm.T
         albedo[sl] = rho if chans == 3 else np.repeat(rho, 3, axis=1)
-        conf[sl] = _confidence_from(np.full(len(sel), float(n_img)), power[local] - explained, power[local], n_img)
+        conf[sl] = _confidence_from(np.full(len(sel), float(n_img)), power[local] - explained, power[local],
+                                    n_img, robust=False)
         done += len(sel)
     return normals, albedo, conf
 
@@ -316,7 +331,7 @@ def least_squares_normals(images, directions=None, *, positions=None, mask=None,
     -------
     RGBNImage
         Unit normals (x right, y up, z to viewer), RGB albedo ρ_c (clipped to [0, 1]),
-        confidence from the fit residual, the mask.
+        confidence = 1 − relative residual (0 for a pixel with fewer than 3 valid lights), the mask.
 
     Notes
     -----
@@ -359,7 +374,7 @@ def least_squares_normals(images, directions=None, *, positions=None, mask=None,
             sl = slice(start, start + len(idx))
             normals[sl] = nrm
             albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, here, nrm, weights))
-            conf[sl] = _confidence(grey, _predict(g, here), weights, n_img)
+            conf[sl] = _confidence(grey, _predict(g, here), weights, n_img, robust=False)
             if progress:
                 progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "least-squares normals")
     return _assemble((h, w), mask, idx_all, normals, albedo, conf, dpi,
@@ -405,8 +420,9 @@ def robust_normals(images, directions=None, *, positions=None, mask=None, valid=
     Returns
     -------
     RGBNImage
-        Normals, RGB albedo (clipped to [0, 1]), confidence = fraction of supporting lights ×
-        (1 − relative residual), mask. ``attrs['mean_inliers']`` is the mean number of lights
+        Normals, RGB albedo (clipped to [0, 1]), confidence = support × (1 − relative residual)
+        with support = clip((kept − 3) / max(3, N/4), 0, 1) (0 with 3 or fewer kept lights, full
+        at 3 + max(3, N/4); so fewer than 4 images give confidence 0 everywhere), mask. ``attrs['mean_inliers']`` is the mean number of lights
         used per pixel.
 
     Notes
@@ -463,7 +479,7 @@ def robust_normals(images, directions=None, *, positions=None, mask=None, valid=
         sl = slice(start, start + len(idx))
         normals[sl] = nrm
         albedo[sl] = _broadcast_rgb(_albedo_rgb(colour, here, nrm, weights))
-        conf[sl] = _confidence(grey, _predict(g, here), weights, n_img)
+        conf[sl] = _confidence(grey, _predict(g, here), weights, n_img, robust=True)
         inliers += float(weights.sum())
         if progress:
             progress(min(1.0, (start + len(idx)) / max(len(idx_all), 1)), "robust normals")

@@ -419,7 +419,7 @@ Draw your own:
 
 ```sh
 tessera render --list-styles                                # styles, parameters, their meaning
-tessera render front.h5 -o front.png --recipe default       # colour plus relief (the service's default)
+tessera render front.h5 -o front.png --recipe default       # colour plus relief (the service's default: [services.renderer] recipe)
 tessera render front.h5 --style raking -o raking.tif --bits 16
 tessera render --normals N.png --albedo A.png --dpi 600 --style ridges_valleys -p valleys=false -o r.png
 ```
@@ -475,7 +475,7 @@ A colour-only image (no normals) is drawn without the styles that need normals (
 outline, not a white silhouette, nor its pale plaster stretched until a pink band turns near black), and said once:
 `render()` (`tessera render`) warns `image has no normals: skipped ...` once per drawing, tiled or
 not; the renderer service draws through `render_h5`, which leaves it to its caller, and logs
-`fragment F face has no normals: skipped ...` once per face (`render(..., warn_skipped=False)` for a caller that
+`fragment F face has no normals: skipped ...` once per face at INFO (a colour-only import is normal, not a fault) (`render(..., warn_skipped=False)` for a caller that
 says it itself; `tests/render/test_renderer_service.py`, `tests/render/test_recipes.py`).
 
 The figures measured now follow (the first section of `docs/gallery/measured.md`, copied here by the

@@ -529,7 +529,7 @@ def generate_wall(n_fragments: int, seed: int, dpi: float = 300, *, mode: str = 
                              if extra.get("ground") is not None else None))
         sc = splan.fracture.coarse_labels
         sareas = np.bincount(sc[sc >= 0].ravel(), minlength=splan.fracture.n_pieces)
-        cand = np.nonzero(sareas * splan.fracture.grid_mm ** 2 >= 25.0)[0]
+        cand = np.nonzero(sareas * splan.fracture.grid_mm ** 2 >= min_area)[0]   # the wall's own floor
         jobs += [(splan, int(lab), True) for lab in sr.choice(cand, min(n_spur, len(cand)), replace=False)]
     # ids in random order: an id says nothing about the place on the wall
     numbers = rng_choice.permutation(len(jobs)) + 1

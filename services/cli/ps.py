@@ -221,6 +221,7 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     """
     from common.acquisition import handheld as hh
     from common.acquisition.lightfile import LightSet, read_intensities, read_lights, write_lp as save_lp
+    from common.acquisition.photometric import ROBUST_MIN_IMAGES
     from common.acquisition.spheres import sphere_normals
 
     if bool(lights) == bool(chrome):
@@ -229,6 +230,10 @@ def solve_capture(images, *, lights=None, intensities=None, chrome=None, chrome_
     paths = [Path(p) for p in images]
     if len(paths) < 3:
         raise ValueError(f"{len(paths)} image(s) given: photometric stereo needs at least 3 (30-100 for a robust solve)")
+    if method == "robust" and len(paths) < ROBUST_MIN_IMAGES:
+        raise ValueError(f"{len(paths)} images given: the robust solver needs at least {ROBUST_MIN_IMAGES} (it gives "
+                         "confidence 0 to a pixel with 3 or fewer kept lights, full confidence from 3 + max(3, N/4)); "
+                         "use --method least_squares")
     if light_positions is not None and (not lights or dome_radius not in (None, "")):
         raise ValueError("--light-positions needs --lights FILE and replaces --dome-radius")
     light_set = read_lights(lights, positions=light_positions) if lights else None

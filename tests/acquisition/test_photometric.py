@@ -51,6 +51,37 @@ def test_least_squares_is_exact_on_lambertian_pixels_lit_by_every_light():
     assert out.confidence.min() > 0.99
 
 
+@pytest.mark.parametrize("n_lights", [3, 4])
+@pytest.mark.parametrize("path", ["shared", "valid", "near"])
+def test_least_squares_confidence_is_one_minus_the_relative_residual_with_three_or_four_lights(n_lights, path):
+    # docs/handheld.md: least-squares confidence = 1 − relative residual (no support factor): an exact
+    # Lambertian capture under 3 or 4 lights is fully trusted
+    lights = np.array([[0, 0, 1.0], [0.6, 0, 0.8], [0, 0.6, 0.8], [-0.5, -0.3, 0.81]])[:n_lights]
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    n = np.array([0.1, 0.15, 0.0])
+    n[2] = np.sqrt(1 - n @ n)
+    kwargs = {}
+    if path == "near":
+        kwargs["positions"] = 1e6 * lights  # lamps so far away they are distant: the per-pixel path
+    else:
+        kwargs["directions"] = lights
+    if path == "valid":
+        kwargs["valid"] = np.ones((n_lights, 4, 4), bool)
+    images = np.tile((0.6 * lights @ n)[:, None, None], (1, 4, 4)).astype(np.float32)
+    out = least_squares_normals(images, **kwargs)
+    assert out.confidence.min() > 0.99
+    assert _angles(out.normals[0, 0], n) < 0.05  # float32 round-off
+
+
+def test_least_squares_pixel_with_fewer_than_three_valid_lights_has_zero_confidence():
+    lights = _lights(4, min_elevation=40)
+    images = np.tile((0.5 * lights[:, 2])[:, None, None], (1, 3, 3)).astype(np.float32)
+    valid = np.ones(images.shape, bool)
+    valid[2:, 0, 0] = False
+    out = least_squares_normals(images, lights, valid=valid)
+    assert out.confidence[0, 0] == 0.0 and out.confidence[1, 1] > 0.99
+
+
 def test_normals_follow_the_project_convention():
     # brighter towards the top of the image under a light from above: n_y > 0 means "up"
     lights = np.array([[0, 0, 1], [0, 0.6, 0.8], [0.6, 0, 0.8], [0, -0.6, 0.8]])

@@ -177,3 +177,23 @@ def test_light_positions_in_millimetres_solve_a_near_lit_plane_flat(tmp_path, ca
         rgbn = read_rgbn(fh)
     tilt = np.degrees(np.arccos(np.clip(rgbn.normals[..., 2], -1, 1)))[rgbn.mask]
     assert rgbn.mask.mean() > 0.99 and tilt.max() < 0.1
+
+
+def test_three_images_solve_by_least_squares(tmp_path, capsys):
+    # ps asks for at least 3 images; with exactly 3 the least-squares fit is exact (confidence 1), not "unusable"
+    surf, shots = _capture(tmp_path, n=3)
+    assert _ps(tmp_path, shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png"),
+               "--method", "least_squares") == 0, capsys.readouterr().err
+    import h5py
+    with h5py.File(tmp_path / "out.h5", "r") as fh:
+        rgbn = read_rgbn(fh)
+    assert rgbn.mask.any() and rgbn.confidence[rgbn.mask].min() > 0.99
+
+
+def test_robust_method_with_three_images_is_refused_up_front_with_its_reason(tmp_path, capsys):
+    _, shots = _capture(tmp_path, n=3)
+    assert _ps(tmp_path, shots, "--lights", str(tmp_path / "capture.lp"), "--mask", str(tmp_path / "mask.png")) == 2
+    err = capsys.readouterr().err
+    assert "robust" in err and "least_squares" in err and "at least 4" in err
+    assert "dark or unusable" not in err
+    _nothing_written(tmp_path)

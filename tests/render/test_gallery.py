@@ -76,3 +76,14 @@ def test_the_page_states_the_parameters_as_the_code_does():
 
     page = (Path(__file__).resolve().parents[2] / "docs" / "gallery.md").read_text()
     assert _recipe_reference() in page
+
+
+def test_the_page_starts_with_the_modules_head():
+    """docs/gallery.md is written by ``python -m common.render.gallery`` as HEAD, a blank line, then the
+    rest: a correction made to the page alone would be undone by the next regeneration."""
+    from pathlib import Path
+
+    from common.render.gallery import HEAD
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "gallery.md").read_text()
+    assert page.startswith(HEAD.rstrip() + "\n\n")

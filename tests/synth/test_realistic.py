@@ -173,3 +173,52 @@ def test_pompeii_wall_is_reproducible_and_can_keep_normals():
     for fa, fb in zip(a.fragments, b.fragments):
         np.testing.assert_array_equal(fa.rgbn.albedo, fb.rgbn.albedo)
         assert fa.rgbn.normals is not None and fa.surface is not None  # not colour-only: relief as before
+
+
+def test_spurious_pieces_obey_the_walls_own_smallest_area(monkeypatch):
+    # docs/synth.md: pieces under (10 mm)^2 are not delivered -- spurious ones (another wall) included.
+    # The other wall is made to hold pieces of 25-100 mm^2 (above the old 25 mm^2 floor, below pompeii's
+    # (20 mm / 2)^2 = 100 mm^2) and one large piece: only the large one may be delivered.
+    import common.synth.wall as wall_mod
+
+    real_plan = wall_mod._plan
+    plans = []
+
+    def plan(*args, **kwargs):
+        p = real_plan(*args, **kwargs)
+        plans.append(p)
+        if len(plans) == 2:   # the spurious wall: shrink every piece but the largest to ~50 mm^2
+            cl = p.fracture.coarse_labels
+            g = p.fracture.grid_mm
+            areas = np.bincount(cl[cl >= 0].ravel(), minlength=p.fracture.n_pieces)
+            keep_cells = int(np.ceil(50.0 / g ** 2))
+            for lab in np.argsort(areas)[:-1]:
+                rr, cc = np.nonzero(cl == lab)
+                cl[rr[keep_cells:], cc[keep_cells:]] = -1
+        return p
+
+    class Stop(Exception):
+        pass
+
+    chosen = []
+
+    def render(pl, label, *args, spurious, **kwargs):
+        # every job is planned before the first piece is drawn: look at the spurious ones and stop
+        jobs = wall_mod._POOL_STATE[0]
+        chosen.extend((pl_, lab) for pl_, lab, spur in jobs if spur)
+        raise Stop
+
+    monkeypatch.setattr(wall_mod, "_plan", plan)
+    monkeypatch.setattr(wall_mod, "_render_piece", render)
+    picked = []
+    for seed in range(4):
+        plans.clear()
+        chosen.clear()
+        with pytest.raises(Stop):
+            generate_wall(12, seed=seed, dpi=10, preset="pompeii", colour_only=True, workers=1)
+        assert chosen, "a 12-fragment pompeii wall has a spurious fragment"
+        for pl_, lab in chosen:
+            g = pl_.fracture.grid_mm
+            picked.append(float((pl_.fracture.coarse_labels == lab).sum() * g * g))
+    small = [a for a in picked if a < 100.0]
+    assert not small, f"spurious pieces of {small} mm^2 delivered"
