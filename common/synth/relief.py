@@ -86,7 +86,8 @@ class WallRelief:
     stroke_region_mm : float
         Typical size of a brush-stroke region.
     grain_mm, grain_depth_mm : float
-        Correlation length and r.m.s. height of the plaster grain.
+        Correlation length and r.m.s. height of the plaster grain's coarser octave (both octaves together: about
+        1.12 × ``grain_depth_mm``).
     thickness_mm : float
         Mean plaster thickness; it varies by about +-25 % over the wall.
     """
