@@ -29,6 +29,7 @@ Reading is open; everything that writes (scan, verdict, re-run) needs the statio
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import logging
 import os
 import re
@@ -84,11 +85,37 @@ DEFAULTS: dict[str, Any] = {
     "catalogue_db": "",         # the catalogue's index; default <storage root>/web/catalogue.sqlite (rebuildable)
     "feed_interval_s": 1.0,     # how often the catalogue asks the broker for new events
     "public_origin": "",        # the pages' address behind a TLS reverse proxy, e.g. "https://tessera.lab.example"
+    "allowed_hosts": [],        # further names the pages answer under, e.g. ["tessera-lab"]; set, the Host check
+                                # applies on the lab network too (empty: only on loopback)
 }
 
 
 #: addresses a browser on this machine reaches pages listening on loopback under (any port: an SSH tunnel's may differ)
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "[::1]"})
+
+
+#: an ``allowed_hosts`` entry: a host name or IPv4 address, or an IPv6 address in brackets; no scheme, port or path
+_ALLOWED_HOST = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9.])?|\[[0-9A-Fa-f:.]+\]")
+
+
+def _allowed_host_error(entry: Any) -> str | None:
+    """Why ``entry`` is not a valid ``allowed_hosts`` entry, or None if it is."""
+    if not isinstance(entry, str) or not _ALLOWED_HOST.fullmatch(entry):
+        return "not a host name"
+    if entry.startswith("["):
+        try:
+            ipaddress.IPv6Address(entry[1:-1])
+        except ValueError:
+            return "not an IPv6 address"
+    return None
+
+
+def _allowed_name(entry: str) -> str:
+    """An ``allowed_hosts`` entry as :func:`_host_name` gives a Host header's: lower case, no final dot, an IPv6
+    address in a browser's (compressed) form."""
+    if entry.startswith("["):
+        return f"[{ipaddress.IPv6Address(entry[1:-1]).compressed}]"
+    return entry.lower().rstrip(".")
 
 
 def _host_name(host: str) -> str:
@@ -136,6 +163,13 @@ def web_settings(cfg: Mapping) -> dict:
     if origin and not re.fullmatch(r"https?://[A-Za-z0-9.-]+(:[0-9]{1,5})?", origin):
         raise WebConfigError(f"services.web.public_origin: expected scheme://host[:port] without a path, e.g. "
                              f"'https://tessera.lab.example', got {origin!r}")
+    for entry in out["allowed_hosts"]:
+        why = _allowed_host_error(entry)
+        if why:
+            raise WebConfigError(f"services.web.allowed_hosts: entry {entry!r} is {why}: give each name or IP address "
+                                 f"alone, without scheme, port, path or spaces (an IPv6 address in brackets), e.g. "
+                                 f"[\"tessera-lab\", \"tessera-lab.example.org\", \"[fe80::7]\"]")
+    out["allowed_hosts"] = list(out["allowed_hosts"])
     return out
 
 
@@ -241,18 +275,22 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
     for bp in BLUEPRINTS:
         app.register_blueprint(bp)
 
-    # Pages listening on loopback answer only under a loopback name or the name public_origin publishes them under:
-    # another Host is a site whose name was pointed at 127.0.0.1 (DNS rebinding) to read the open pages. On the lab
-    # network the names the lab uses for this host are not known, so there is no check
+    # Pages listening on loopback answer only under a loopback name, the name public_origin publishes them under or
+    # one of allowed_hosts: another Host is a site whose name was pointed at 127.0.0.1 (DNS rebinding) to read the
+    # open pages. On the lab network the names the lab uses for this host are known only if allowed_hosts lists
+    # them: then the same check applies there; with it empty there is none
     on_loopback = settings["host"] in ("127.0.0.1", "localhost", "::1")
     public = settings["public_origin"]
-    known_hosts = LOOPBACK_NAMES | ({_host_name(public.split("://", 1)[1])} if public else set())
+    allowed = {_allowed_name(name) for name in settings["allowed_hosts"]}
+    known_hosts = LOOPBACK_NAMES | ({_host_name(public.split("://", 1)[1])} if public else set()) | allowed
+    check_host = on_loopback or bool(allowed)
 
     @app.before_request
     def known_host():
-        if on_loopback and _host_name(request.host) not in known_hosts:
+        if check_host and _host_name(request.host) not in known_hosts:
             return (f"421 Misdirected Request: these pages listen on {settings['host']} and answer only under "
-                    f"localhost, 127.0.0.1 or [::1] (or [services.web] public_origin), not {request.host[:100]!r}\n",
+                    f"localhost, 127.0.0.1 or [::1] (or [services.web] public_origin or a name in [services.web] "
+                    f"allowed_hosts), not {request.host[:100]!r}\n",
                     421, {"Content-Type": "text/plain; charset=utf-8"})
 
     @app.url_defaults

@@ -299,6 +299,49 @@ def test_pages_on_loopback_answer_only_under_a_loopback_name(tmp_path):
     assert lab.get("/login", headers={"Host": "benchpc.lab:8080"}).status_code == 200
 
 
+def test_pages_on_the_lab_network_answer_only_under_allowed_hosts_when_set(tmp_path):
+    """``[services.web] allowed_hosts`` names the lab's names for this host: with it set, pages listening on the lab
+    network answer under those names (any port, any case, a final dot), a loopback name or ``public_origin``'s,
+    and any other Host gets 421 naming the setting; empty (the default), no check there, as before."""
+    def client(**given):
+        return web.create_app(token=TOKEN, store_root=tmp_path, settings=web.web_settings(
+            {"services": {"web": given}})).test_client()
+
+    lab = client(host="0.0.0.0", allowed_hosts=["tessera-lab", "Tessera-Lab.example.org", "192.0.2.7", "[fe80:0:0::7]"],
+                 public_origin="https://tessera.lab.example")
+    for host in ("tessera-lab", "tessera-lab:8080", "TESSERA-LAB.example.org.", "192.0.2.7:8080", "[FE80::7]:8080",
+                 "localhost:8080", "127.0.0.1", "[::1]:8080", "tessera.lab.example"):
+        assert lab.get("/login", headers={"Host": host}).status_code == 200, host
+    for host in ("evil.example", "benchpc.lab:8080", "tessera-lab.evil.example", "192.0.2.8", "[fe80::8]:8080"):
+        r = lab.get("/login", headers={"Host": host})
+        assert r.status_code == 421 and "allowed_hosts" in r.get_data(as_text=True), host
+    # empty: as before, the lab-bound pages answer under any name
+    for given in ({"host": "0.0.0.0"}, {"host": "0.0.0.0", "allowed_hosts": []}):
+        assert client(**given).get("/login", headers={"Host": "benchpc.lab:8080"}).status_code == 200, given
+
+
+def test_pages_on_loopback_also_answer_under_allowed_hosts(tmp_path):
+    loopback = web.create_app(token=TOKEN, store_root=tmp_path, settings=web.web_settings(
+        {"services": {"web": {"allowed_hosts": ["tessera-lab"]}}})).test_client()
+    for host in ("tessera-lab:8080", "localhost", "127.0.0.1:8080"):
+        assert loopback.get("/login", headers={"Host": host}).status_code == 200, host
+    r = loopback.get("/login", headers={"Host": "evil.example"})
+    assert r.status_code == 421 and "allowed_hosts" in r.get_data(as_text=True)
+
+
+@pytest.mark.parametrize("bad", ["tessera-lab", ["tessera-lab:8080"], ["http://tessera-lab"], ["tessera-lab/bench"],
+                                 ["tessera lab"], [" tessera-lab"], [""], [3], ["fe80::7"], ["[fe80::7]:8080"],
+                                 ["*.lab.example"]])
+def test_a_malformed_allowed_hosts_is_refused_at_start_naming_it(bad, capsys):
+    with pytest.raises(web.WebConfigError, match=r"services\.web\.allowed_hosts: (expected|entry)"):
+        web.web_settings({"services": {"web": {"allowed_hosts": bad}}})
+    from services.cli import main
+
+    assert main(["web", "--print-token", "--set", f"services.web.allowed_hosts={bad!r}".replace("'", '"')]) == 2
+    out = capsys.readouterr().out
+    assert "services.web.allowed_hosts" in out and "unknown setting" not in out
+
+
 def test_the_host_check_follows_the_address_the_pages_listen_on(station_config, tmp_path, monkeypatch):
     """``tessera web --host`` overrides ``[services.web] host``: the check follows the address bound."""
     import http.client
