@@ -370,7 +370,8 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         proposed relative pose is within 5° and 5 mm), ``pose_offered`` (the same, counting a pair
         right when its proposed pose or one of its alternatives is: what a person stepping through the
         review page's candidate poses finds), ``pose_errors``, ``n_fragments``,
-        ``n_true_pairs``, ``intervals`` (90 % bootstrap intervals of the pooled top-k, the within-object
+        ``n_true_pairs``, ``skipped`` (what reading the collection left out, and why:
+        :func:`~common.matching.collection.collection_wall`'s ``params['skipped']``), ``intervals`` (90 % bootstrap intervals of the pooled top-k, the within-object
         recall and the two pose shares, :func:`~common.matching.evaluation.bootstrap_interval` over the
         fragments or pairs counted), ``dpi``, ``model``, ``single_fresco``, ``seconds`` (wall) and ``cpu_seconds``.
     """
@@ -474,6 +475,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         "wrong_pose_scores_above_truth": sum(1 for e in errors if e.get("best_right") is False
                                              and e["score_best"] > e["score_at_truth"]),
         "pose_errors": errors, "n_fragments": len(wall.fragments), "n_true_pairs": len(wall.adjacency),
+        "skipped": list(wall.params.get("skipped", [])),   # what the reading left out, and why
         # how far each figure may move on another collection of this kind: resampling the fragments
         # (pairs for the poses) it was counted on
         "intervals": {

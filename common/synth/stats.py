@@ -121,6 +121,18 @@ def _hidden(folder: Path) -> bool:
     return folder.name.startswith(".") or folder.name.lower() in _NOT_OBJECTS
 
 
+def _subfolders(folder: Path) -> list[Path]:
+    """The folders in ``folder`` a collection reads (hidden ones and ``__MACOSX`` left out), by name."""
+    return sorted(p for p in folder.iterdir() if p.is_dir() and not _hidden(p))
+
+
+def _picture_subfolders(folder: Path) -> list[Path]:
+    """Those of its :func:`_subfolders` that hold pictures directly (a layout one level too deep)."""
+    from common.imports.manifest import expand_paths
+
+    return [c for c in _subfolders(folder) if expand_paths([c])]
+
+
 def _truth_file(obj: Path) -> Path | None:
     """An object folder's ``truth.csv``, its name in any case (``Truth.CSV`` from another system)."""
     found = sorted(c for c in obj.iterdir() if c.name.lower() == "truth.csv" and c.is_file())
@@ -267,9 +279,9 @@ def collection_layout(path: str | os.PathLike) -> dict:
 
     root = Path(path)
     out = {}
-    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
+    for obj in _subfolders(root):
         pictures = expand_paths([obj])
-        deeper = sorted(c.name for c in obj.iterdir() if c.is_dir() and not _hidden(c) and expand_paths([c]))
+        deeper = [c.name for c in _picture_subfolders(obj)]
         entry = {"pictures": len(pictures), "placed": None, "problem": None, "deeper": deeper}
         try:
             tf = _truth_file(obj)
@@ -331,10 +343,10 @@ def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> 
             skipped.append(message)
 
     pieces, refused, folders = [], [], []
-    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
+    for obj in _subfolders(root):
         pictures = sorted(expand_paths([obj]))   # as import images lists a folder (hidden files left out)
         if not pictures:
-            subs = sorted(c.name for c in obj.iterdir() if c.is_dir() and not _hidden(c))
+            subs = [c.name for c in _subfolders(obj)]
             leave_out(f"{obj}: holds no fragment picture ({', '.join(IMAGE_SUFFIXES)} directly in it"
                       + (f"; subfolders such as {', '.join(subs[:3])} are not read" if subs else "") + "): left out")
             continue
@@ -398,8 +410,8 @@ def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> 
     if stray and not folders:
         raise ValueError(f"path {root} holds {len(stray)} fragment pictures directly and no object folder: {layout} "
                          f"its pictures; put them in a folder of their own inside {root}")
-    for obj in sorted(p for p in root.iterdir() if p.is_dir() and not _hidden(p)):
-        deeper = [c for c in sorted(obj.iterdir()) if c.is_dir() and not _hidden(c) and expand_paths([c])]
+    for obj in _subfolders(root):
+        deeper = _picture_subfolders(obj)
         if deeper and _truth_file(obj) is None:
             raise ValueError(f"path {root} holds no fragment picture one level down, but {obj} holds object folders "
                              f"with pictures ({', '.join(c.name for c in deeper[:3])}): give {obj} as the collection "

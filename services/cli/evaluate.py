@@ -134,18 +134,6 @@ def run(args) -> int:
     return 0
 
 
-class _LeftOut(logging.Handler):
-    """What the collection's reading left out (its warnings, logger ``tessera.collection``), for the printout
-    and the JSON."""
-
-    def __init__(self):
-        super().__init__(logging.WARNING)
-        self.messages: list[str] = []
-
-    def emit(self, record):
-        self.messages.append(record.getMessage())
-
-
 def _check_collection(path: Path) -> None:
     """Refuse, before any work, a collection with nothing to evaluate (no object folder placing two of its
     pictures), saying what each object folder holds; a layout without object folders is left to the reader,
@@ -203,9 +191,6 @@ def _collection(args, progress) -> int:
         from common.matching.online import with_current_ribbon
         model = with_current_ribbon(load_model(Store(args.model), current["artifact"]))   # as the station's matcher
     out = args.out if args.out is not None else (Path(args.json).parent if args.json else Path("."))
-    left_out = _LeftOut()
-    reader_log = logging.getLogger("tessera.collection")
-    reader_log.addHandler(left_out)
     try:
         res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out,
                                   single_fresco=args.single_fresco, progress=progress)
@@ -214,17 +199,12 @@ def _collection(args, progress) -> int:
         if "no true neighbour pair" in str(exc):
             hint = (" (no two placed pieces of one object come within 48 px of each other along 100 px of outline: "
                     "are truth.csv's x, y in the pictures' own pixels?)")
-        if left_out.messages:
-            hint += f"; {len(left_out.messages)} left out while reading, see the warnings above"
         raise SystemExit(f"--collection {args.collection}: {exc}{hint}")
-    finally:
-        reader_log.removeHandler(left_out)
-    res["skipped"] = left_out.messages
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
           f"pairs, {res['dpi']:g} dpi, model {res['model']}" + (", ranked as one fresco" if res["single_fresco"] else ""))
-    if left_out.messages:
-        print(f"left out {len(left_out.messages)} (the figures are of the rest):")
-        for message in left_out.messages:
+    if res["skipped"]:
+        print(f"left out {len(res['skipped'])} (the figures are of the rest):")
+        for message in res["skipped"]:
             print(f"  - {message}")
     print("pooled top-k (links), mutual proximity: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk"].items())
           + "; by probability: " + ", ".join(f"k={k}: {v:.3f}" for k, v in res["pooled_topk_by_probability"].items()))

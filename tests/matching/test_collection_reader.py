@@ -281,8 +281,8 @@ def fake_evaluation(monkeypatch):
         from common.matching.collection import collection_wall
 
         calls.append(path)
-        collection_wall(path, dpi=dpi)
-        return _fake_result(path, dpi)
+        wall = collection_wall(path, dpi=dpi)
+        return dict(_fake_result(path, dpi), skipped=wall.params["skipped"])
 
     monkeypatch.setattr(report, "evaluate_collection", fake)
     return calls
