@@ -119,7 +119,7 @@ def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> di
     if not faces:
         raise ValueError(f"fragment {fragment} has no RGBN face under {store.root}/fragments/{fragment}/rgbn")
     meta = {"fragment": fragment, "exported": _dt.datetime.now(_dt.timezone.utc).isoformat(),
-            "software_version": __version__, "normal_map": NORMAL_MAP_CONVENTION,
+            "software_version": __version__,
             "albedo": f"{albedo_bits}-bit RGBA PNG, sRGB-encoded reflectance, alpha = mask", "faces": {}}
     out: dict[str, bytes] = {}
     for face, rel in faces.items():
@@ -131,10 +131,10 @@ def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> di
         files = []
         if img.normals is not None:
             out[f"{face}-normals.png"] = encode_png(encode_normal_map(img.normals, mask, "opengl"), bits=16,
-                                                    alpha=mask.astype(np.float32))
+                                                    alpha=mask.astype(np.float32), dpi=img.dpi)
             files.append(f"{face}-normals.png")
         out[f"{face}-albedo.png"] = encode_png(linear_to_srgb(img.albedo) * mask[..., None], bits=albedo_bits,
-                                               alpha=mask.astype(np.float32))
+                                               alpha=mask.astype(np.float32), dpi=img.dpi)
         files.append(f"{face}-albedo.png")
         renders = store.path(f"fragments/{fragment}/renders")
         for rp in sorted(renders.glob(f"{face}-*.h5")) if renders.is_dir() else []:
@@ -143,7 +143,9 @@ def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> di
             except ArtifactError:
                 continue
             name = f"{face}-render-{attrs.get('recipe', 'render')}-{rp.stem.split('-', 1)[-1][:8]}.png"
-            out[name] = encode_png(image, bits=int(attrs.get("bits", 8)), alpha=alpha)
+            drawn_dpi = attrs.get("dpi") if image.shape[:2] != mask.shape else img.dpi   # a render on another grid
+            out[name] = encode_png(image, bits=int(attrs.get("bits", 8)), alpha=alpha,
+                                   dpi=float(drawn_dpi) if drawn_dpi else None)
             files.append(name)
         user = img.attrs.get("metadata")
         user = json.loads(user) if isinstance(user, (str, bytes)) and user else {}
@@ -153,6 +155,8 @@ def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> di
             "area_mm2": float(mask.sum() * img.pixel_mm ** 2), "has_normals": img.normals is not None,
             "metadata": user, "provenance": prov, "files": files}
         del img
+    if any(f["has_normals"] for f in meta["faces"].values()):   # a colour-only fragment has no normal map to describe
+        meta["normal_map"] = NORMAL_MAP_CONVENTION
     out["metadata.json"] = (json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
                             + "\n").encode("utf-8")
     return out

@@ -1117,11 +1117,13 @@ def reconstruct(proposals, *, centres_mm: Mapping | Callable | None = None, dpi:
 
 
 def write_composite(composite: dict, png_path, tiff_path=None) -> list:
-    """Write a :func:`compose_cluster` picture: 8-bit sRGB PNG and 16-bit sRGB TIFF, alpha = coverage."""
+    """Write a :func:`compose_cluster` picture: 8-bit sRGB PNG and 16-bit sRGB TIFF, alpha = coverage, both
+    declaring the composite's dpi."""
     from common.rgbn.io import linear_to_srgb, write_image
 
     srgb = linear_to_srgb(composite["albedo"])
-    out = [write_image(png_path, srgb, bits=8, alpha=composite["alpha"])]
+    dpi = composite.get("dpi")
+    out = [write_image(png_path, srgb, bits=8, alpha=composite["alpha"], dpi=dpi)]
     if tiff_path is not None:
-        out.append(write_image(tiff_path, srgb, bits=16, alpha=composite["alpha"]))
+        out.append(write_image(tiff_path, srgb, bits=16, alpha=composite["alpha"], dpi=dpi))
     return out

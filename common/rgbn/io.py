@@ -264,10 +264,13 @@ def load_rgbn_files(normals_path, albedo_path=None, *, convention: str = "auto",
     return RGBNImage(albedo=albedo, mask=mask, dpi=dpi, normals=normals)
 
 
-def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None) -> Path:
+def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None,
+                dpi: float | None = None) -> Path:
     """Write an (H, W) or (H, W, 3) image with values in [0, 1] as 8/16-bit PNG or TIFF.
 
-    Values are written as given (no colour encoding); ``alpha`` (H, W) in [0, 1] adds a channel.
+    Values are written as given (no colour encoding); ``alpha`` (H, W) in [0, 1] adds a channel;
+    ``dpi``, when given, is declared in the file (PNG ``pHYs``, TIFF resolution in inches), so other
+    tools measure the picture in mm.
     The format follows the suffix: ``.png``, ``.tif``/``.tiff``. The file is encoded in memory
     (:func:`encode_png`, :func:`encode_tiff`) and written by :func:`common.store.write_file`: the
     free space checked first, an older file at ``path`` replaced only by a whole new one, with the
@@ -277,17 +280,19 @@ def write_image(path, image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | N
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in _TIFF:
-        data = encode_tiff(image, bits=bits, alpha=alpha)
+        data = encode_tiff(image, bits=bits, alpha=alpha, dpi=dpi)
     elif suffix == ".png":
-        data = encode_png(image, bits=bits, alpha=alpha)
+        data = encode_png(image, bits=bits, alpha=alpha, dpi=dpi)
     else:
         raise ValueError(f"output {path} must end in .png, .tif or .tiff")
     write_file(path, data, public=True)
     return path
 
 
-def encode_png(image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None) -> bytes:
-    """The bytes :func:`write_image` writes to a ``.png`` file, in memory (to size a write before making it).
+def encode_png(image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = None,
+               dpi: float | None = None) -> bytes:
+    """The bytes :func:`write_image` writes to a ``.png`` file, in memory (to size a write before making it);
+    ``dpi`` given: declared in a ``pHYs`` chunk (pixels per metre).
 
     Examples
     --------
@@ -301,11 +306,29 @@ def encode_png(image: np.ndarray, *, bits: int = 8, alpha: np.ndarray | None = N
     ok, buf = cv2.imencode(".png", data)
     if not ok:
         raise ValueError(f"could not encode a {data.shape} image as PNG")
-    return buf.tobytes()
+    return buf.tobytes() if dpi is None else _with_png_dpi(buf.tobytes(), dpi)
 
 
-def encode_tiff(image: np.ndarray, *, bits: int = 16, alpha: np.ndarray | None = None) -> bytes:
-    """The bytes :func:`write_image` writes to a ``.tif`` file (zlib-compressed), in memory.
+def _with_png_dpi(png: bytes, dpi: float) -> bytes:
+    """PNG bytes with a ``pHYs`` chunk (pixels per metre, unit metre) declaring ``dpi``, put after ``IHDR``."""
+    import struct
+    import zlib
+
+    if not (np.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi!r}")
+    ppm = int(round(float(dpi) / 0.0254))
+    body = b"pHYs" + struct.pack(">IIB", ppm, ppm, 1)
+    chunk = struct.pack(">I", 9) + body + struct.pack(">I", zlib.crc32(body) & 0xFFFFFFFF)
+    end = 8 + 8 + 13 + 4                         # signature, IHDR's length and type, its 13 bytes, its CRC
+    if png[12:16] != b"IHDR":
+        raise ValueError("not a PNG starting with IHDR")
+    return png[:end] + chunk + png[end:]
+
+
+def encode_tiff(image: np.ndarray, *, bits: int = 16, alpha: np.ndarray | None = None,
+                dpi: float | None = None) -> bytes:
+    """The bytes :func:`write_image` writes to a ``.tif`` file (zlib-compressed), in memory; ``dpi``
+    given: declared as ``XResolution``/``YResolution`` in inches.
 
     Examples
     --------
@@ -320,8 +343,11 @@ def encode_tiff(image: np.ndarray, *, bits: int = 16, alpha: np.ndarray | None =
 
     data = _image_samples(image, bits, alpha)
     buf = io.BytesIO()
+    if dpi is not None and not (np.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi!r}")
+    resolution = {} if dpi is None else {"resolution": (float(dpi), float(dpi)), "resolutionunit": "INCH"}
     tifffile.imwrite(buf, data, photometric="rgb" if data.ndim == 3 else "minisblack",
-                     compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None)
+                     compression="zlib", extrasamples=["unassalpha"] if alpha is not None else None, **resolution)
     return buf.getvalue()
 
 

@@ -126,6 +126,26 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
     return [Output("rgbn.ready", ref, {"face": item.face, "colour_only": True, "metadata": opts["metadata"]})]
 
 
+def _pictures_in_subfolders(paths) -> str:
+    """Why folders named gave no picture, when their pictures are one level down (a collection kept one
+    folder per object, as RePAIR's): the folders and their subfolders that hold pictures, or ""."""
+    from common.imports.manifest import expand_paths
+
+    notes = []
+    for folder in (Path(p) for p in paths):
+        if not folder.is_dir() or expand_paths([folder]):
+            continue
+        subs = [(c, len(expand_paths([c]))) for c in sorted(folder.iterdir())
+                if c.is_dir() and not c.name.startswith(".")]
+        subs = [(c, n) for c, n in subs if n]
+        if subs:
+            shown = ", ".join(f"{c.name} ({n} picture{'s' if n > 1 else ''})" for c, n in subs[:8])
+            more = f" and {len(subs) - 8} more" if len(subs) > 8 else ""
+            notes.append(f"{folder} holds no picture itself, and subfolders are not searched; its subfolders "
+                         f"{shown}{more} do: name them (e.g. {folder}/*/) or list them in a --manifest")
+    return "; ".join(notes)
+
+
 def run(args) -> int:
     from services.cli.imports import run_items
     if not args.paths and not args.manifest:
@@ -139,5 +159,10 @@ def run(args) -> int:
     if args.pictures and Path(args.pictures).exists() and not Path(args.pictures).is_dir():
         print(f"tessera import images: --pictures {args.pictures} is a file, not a folder", file=sys.stderr)
         return 2
+    if not items and args.paths:
+        hint = _pictures_in_subfolders(args.paths)
+        if hint:
+            print(f"tessera import images: nothing to import: {hint}", file=sys.stderr)
+            return 2
     return run_items(args, items, functools.partial(convert, pictures=args.pictures), kind="images",
                      version=VERSION)

@@ -329,7 +329,7 @@ def composite(root, ext):
     comp = compose_cluster(solved, images, max_side_px=side)
     with tempfile.TemporaryDirectory(prefix="tessera-composite-") as tmp:
         path = write_image(Path(tmp) / f"cluster-{root}.{ext}", linear_to_srgb(comp["albedo"]),
-                           bits=8 if ext == "png" else 16, alpha=comp["alpha"])
+                           bits=8 if ext == "png" else 16, alpha=comp["alpha"], dpi=comp["dpi"])
         payload = io.BytesIO(path.read_bytes())
     return send_file(payload, mimetype="image/png" if ext == "png" else "image/tiff", as_attachment=True,
                      download_name=f"cluster-{root}.{ext}")

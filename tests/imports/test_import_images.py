@@ -325,3 +325,23 @@ def test_a_piece_too_close_to_its_background_is_imported_with_a_warning(tmp_path
     store = Store(tmp_path / "st")
     faces = {f.parts[-3]: load_rgbn(store, f.relative_to(tmp_path / "st").as_posix()) for f in _rgbn_files(tmp_path / "st")}
     assert faces["pale"].attrs["edge_placed"] < 0.5 <= faces["painted"].attrs["edge_placed"]
+
+
+def test_a_folder_whose_pictures_are_in_subfolders_says_so_and_names_them(tmp_path, capsys):
+    # a lab's collection laid out as RePAIR's: one folder per object, the pictures in those folders
+    root = tmp_path / "collection"
+    for obj, seed in (("obj_g10", 1), ("obj_g12", 2)):
+        (root / obj).mkdir(parents=True)
+        _picture(root / obj / f"P{seed}.png", seed, alpha=True)
+    (root / "obj_g12" / "truth.csv").write_text("rpf,x,y,rot\n")
+    (root / "empty").mkdir()
+    assert main(["import", "images", str(root), "--dpi", "150", "--store", str(tmp_path / "st")]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to import" in err
+    assert f"{root} holds no picture itself" in err and "subfolders are not searched" in err
+    assert "obj_g10 (1 picture)" in err and "obj_g12 (1 picture)" in err and "empty" not in err
+    assert not (tmp_path / "st").exists()
+    # naming the subfolders, as the message says, imports them
+    assert main(["import", "images", str(root / "obj_g10"), str(root / "obj_g12"), "--dpi", "150",
+                 "--store", str(tmp_path / "st")]) == 0
+    assert [f.parts[-3] for f in _rgbn_files(tmp_path / "st")] == ["P1", "P2"]

@@ -341,3 +341,41 @@ def test_export_all_still_checks_each_fragment_for_a_disk_filled_meanwhile(tmp_p
     assert "not enough free space, stopped at B" in err and "1 more fragment(s) not tried" in err
     assert sorted(p.name for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")) == ["A"]
     assert sorted(p.name for p in (out / "A").iterdir()) == ["front-albedo.png", "front-normals.png", "metadata.json"]
+
+
+def test_exported_pictures_declare_the_faces_dpi(tmp_path):
+    """Albedo, normal map and renders carry the face's dpi (PNG pHYs), not only metadata.json: a picture
+    opened alone in an image editor or ImageJ measures in mm."""
+    from PIL import Image
+
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    save_rgbn(store, "fragments/D1/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=187.5, normals=n))
+
+    def fill(f):   # what common.render.artifact.save_rendering writes
+        f.create_dataset("image", data=np.zeros(mask.shape + (3,), np.uint8))
+        f.create_dataset("alpha", data=(mask * 255).astype(np.uint8))
+        f.attrs["recipe"] = "relief"
+        f.attrs["bits"] = 8
+    store.write("fragments/D1/renders/front-0123456789abcdef.h5", "tessera.render", 1, fill)
+    assert main(["export", "D1", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    names = ["front-albedo.png", "front-normals.png", "front-render-relief-01234567.png"]
+    assert sorted(p.name for p in (tmp_path / "out" / "D1").glob("*.png")) == sorted(names)
+    for name in names:
+        with Image.open(tmp_path / "out" / "D1" / name) as im:
+            assert im.info.get("dpi") == pytest.approx((187.5, 187.5), rel=1e-4), name   # whole px per metre
+
+
+def test_a_colour_only_fragments_export_describes_no_normal_map(tmp_path):
+    """A fragment imported from a picture has no normals: its export writes no normal map and its metadata.json
+    does not describe one (a reader would look for a file that is not there); with normals it does."""
+    n, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    save_rgbn(store, "fragments/C1/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=150.0))
+    save_rgbn(store, "fragments/N1/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=150.0, normals=n))
+    assert main(["export", "C1", "N1", "-o", str(tmp_path / "out"), "--store", str(tmp_path / "st")]) == 0
+    colour = json.loads((tmp_path / "out" / "C1" / "metadata.json").read_text())
+    assert colour["faces"]["front"]["has_normals"] is False and "normal_map" not in colour
+    assert not (tmp_path / "out" / "C1" / "front-normals.png").exists()
+    relief = json.loads((tmp_path / "out" / "N1" / "metadata.json").read_text())
+    assert relief["faces"]["front"]["has_normals"] is True and "OpenGL" in relief["normal_map"]

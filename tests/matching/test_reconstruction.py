@@ -669,3 +669,20 @@ def test_cli_docks_the_next_joins_against_their_cluster_from_the_feature_tables(
             assert set(d["faces"]) == {a, b}               # it fits between both members
         if d["newcomer"] == wall.fragments[0].id:
             assert d["fit"] is None                        # no outline to dock
+
+
+def test_composite_files_declare_their_dpi(tmp_path):
+    """The composite PNG and 16-bit TIFF carry the composite's sampling, so a measurement on them is in mm."""
+    import tifffile
+    from PIL import Image
+
+    comp = {"albedo": np.full((12, 16, 3), 0.5, np.float32), "alpha": np.ones((12, 16), np.float32),
+            "dpi": 93.75, "pixel_mm": 25.4 / 93.75}
+    png, tif = write_composite(comp, tmp_path / "c.png", tmp_path / "c.tif")
+    with Image.open(png) as im:
+        assert im.info.get("dpi") == pytest.approx((93.75, 93.75), rel=1e-4)   # PNG: whole pixels per metre
+    with tifffile.TiffFile(tif) as t:
+        tags = t.pages[0].tags
+        assert tags["ResolutionUnit"].value == 2                     # inch
+        num, den = tags["XResolution"].value
+        assert num / den == pytest.approx(93.75, abs=0.01)

@@ -134,3 +134,22 @@ def test_srgb_transfer_is_the_iec_formula_for_every_memory_layout():
         encode = np.where(a <= 0.0031308, a * 12.92, 1.055 * a ** (1 / 2.4) - 0.055)
         assert np.abs(srgb_to_linear(a) - decode).max() < 1e-6
         assert np.abs(linear_to_srgb(a) - encode).max() < 1e-6
+
+
+@pytest.mark.parametrize("suffix", [".png", ".tif"])
+def test_a_written_image_declares_its_dpi_so_other_tools_measure_it_right(tmp_path, suffix):
+    from PIL import Image
+
+    from common.imports.resolution import resolve_dpi
+
+    img = np.random.default_rng(0).random((20, 30, 3))
+    path = write_image(tmp_path / f"a{suffix}", img, bits=16, alpha=np.ones((20, 30)), dpi=150.0)
+    with Image.open(path) as im:
+        assert im.info["dpi"] == pytest.approx((150.0, 150.0), rel=1e-4)   # PNG: whole pixels per metre
+    assert resolve_dpi([path])[0] == pytest.approx(150.0, rel=1e-4)   # what `tessera import` reads back
+    plain = write_image(tmp_path / f"b{suffix}", img, bits=16, alpha=np.ones((20, 30)))   # no dpi: none declared
+    with Image.open(plain) as im:
+        assert "dpi" not in im.info or im.info["dpi"] == pytest.approx((1.0, 1.0))
+    back = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)                  # the same pixels either way
+    assert back.shape == (20, 30, 4) and back.dtype == np.uint16
+    np.testing.assert_array_equal(back, cv2.imread(str(plain), cv2.IMREAD_UNCHANGED))
