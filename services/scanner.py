@@ -96,8 +96,13 @@ class Drainer(threading.Thread):
             while not self.stop.is_set():
                 try:
                     n = self.outbox.drain(client, self.storage)
-                    if n:
-                        log.info("outbox: %d event(s) delivered, %d waiting", n, len(self.outbox))
+                    waiting = len(self.outbox) if n else 0
+                    # one event sent as it was made is routine (an import of hundreds would print a line per
+                    # picture); a backlog caught up after the broker was away, or one still waiting, is news
+                    if n > 1 or waiting:
+                        log.info("outbox: %d event(s) delivered, %d waiting", n, waiting)
+                    elif n:
+                        log.debug("outbox: 1 event delivered")
                 except Exception:  # a drain problem must never stop capture
                     log.exception("outbox drain failed; will retry")
                 self.wake.wait(interval)

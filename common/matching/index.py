@@ -903,9 +903,11 @@ class MatchIndex:
         """The proposed pose of a docked pair as a candidate's alignment (:meth:`pose`, chosen by contact and
         paint, with its :meth:`alternatives`); ``score``: the contact corrected for hubness (NaN where the pair
         was docked before but is not among the best this ranking docked)."""
+        from common.matching.pose import wrapped_deg   # the docking's angles are in [0, 360): shown in one range
+
         q = self.pose(fragment, other)
-        return Alignment(q.angle_deg, q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2, score,
-                         tuple((a.angle_deg, a.tx_mm, a.ty_mm) for a in self.alternatives(fragment, other)))
+        return Alignment(wrapped_deg(q.angle_deg), q.tx_mm, q.ty_mm, float("nan"), q.contact_mm, q.overlap_mm2, score,
+                         tuple((wrapped_deg(a.angle_deg), a.tx_mm, a.ty_mm) for a in self.alternatives(fragment, other)))
 
     def _fresco_signature(self, fragment: str):
         """The fragment's :class:`~common.matching.fresco.FrescoSignature` (from its boundary profile and

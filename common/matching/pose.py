@@ -202,6 +202,15 @@ def offered_poses(dockings: Sequence[Docking], paint_mm, features, *, choose_amo
     return ranked_poses(docks, paint_mm, scores=scores)
 
 
+def wrapped_deg(angle_deg: float) -> float:
+    """An angle in degrees in [-180, 180): the one range every pose the station shows or stores uses.
+
+    >>> wrapped_deg(249.5), wrapped_deg(-190.0), wrapped_deg(180.0)
+    (-110.5, 170.0, -180.0)
+    """
+    return float((float(angle_deg) + 180.0) % 360.0 - 180.0)
+
+
 def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.0)) -> tuple[float, float, float]:
     """A pose corrected by a person: fragment B turned by ``turn_deg`` about its own centre, then moved
     by ``shift_mm`` (both in A's frame, as the review page draws the join).
@@ -229,7 +238,7 @@ def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.
     angle, tx, ty, cx, cy, turn, sx, sy = values
     centre_a = _rotation(angle) @ (cx, cy) + (tx, ty) + (sx, sy)
     t = centre_a - _rotation(angle + turn) @ (cx, cy)
-    return float((angle + turn + 180.0) % 360.0 - 180.0), float(t[0]), float(t[1])
+    return wrapped_deg(angle + turn), float(t[0]), float(t[1])
 
 
 def adjustment_between(pose, other, centre_b_mm) -> tuple[float, float, float]:

@@ -348,12 +348,13 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
     from common.matching.docking import dock_outlines
     from common.matching.index import DOCK_MORE_POSES, DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
     from common.matching.paint import paint_continuity, paint_field_from_profile
-    from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features
+    from common.matching.pose import ALTERNATIVE_POSES, learned_pose_scores, pose_features, wrapped_deg
 
     wall, tables, cues, poses = small_wall
     model, ids, index = _docking_index(small_wall, 6)
     q = ids[0]
     head = index.rank(cues[q], ids[1:], model, dock_candidates=3)[:3]
+    angles = []
     for c in head:
         a, b = sorted((q, c.other))
         docks = dock_outlines(tables[a].contour_mm, tables[b].contour_mm, n_poses=DOCK_PAINT_POSES,
@@ -384,8 +385,15 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
             np.testing.assert_allclose(pose_matrix(g.angle_deg, g.tx_mm, g.ty_mm) @ pose_matrix(h.angle_deg, h.tx_mm, h.ty_mm),
                                        np.eye(3), atol=1e-6)
         mine = index.alternatives(q, c.other)
+        # the proposal shows the same poses with every angle in the one range the station uses, [-180, 180)
+        # (the docking's own are in [0, 360): a pose read 249° beside a verdict's -111° is the same pose)
         assert [tuple(map(float, t)) for t in c.alignment.alternatives] == \
-            [(m.angle_deg, m.tx_mm, m.ty_mm) for m in mine]
+            [(wrapped_deg(m.angle_deg), m.tx_mm, m.ty_mm) for m in mine]
+        p = index.pose(q, c.other)
+        assert (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm) == (wrapped_deg(p.angle_deg), p.tx_mm, p.ty_mm)
+        angles.extend([c.alignment.angle_deg] + [t[0] for t in c.alignment.alternatives])
+    assert all(-180.0 <= a < 180.0 for a in angles)
+    assert any(abs(a) > 1.0 for a in angles)        # turned poses among them, so the range was tested
 
 
 def _after_a_model_update(small_wall, n: int = 24, dock_candidates: int = 3, dockings=None):
