@@ -54,7 +54,7 @@ from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_di
 from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
 from common.matching.pose import inverse_pose
-from common.matching.proposals import Proposal, ProposalStore, ordered_pair
+from common.matching.proposals import Proposal, ProposalStore, ordered_pair, proposals_path
 from common.messages import MAX_REDOCK_FRAGMENTS, MessageError, new_message, verdict_of
 from common.store import content_key
 
@@ -82,7 +82,7 @@ class _State:
 
 def _state(ctx) -> _State:
     cfg = ctx.config or {}
-    db_path = Path(cfg.get("db") or ctx.store.root / "matches" / "proposals.sqlite")
+    db_path = proposals_path(ctx.store.root, cfg.get("db"))
     key = (str(ctx.store.root), str(db_path))
     st = _STATES.get(key)
     if st is None:

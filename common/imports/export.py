@@ -12,7 +12,9 @@ folder ``<out>/<fragment id>/`` receives
   ``<key8>``: the first 8 hex digits of the render artifact's key (``renders/<face>-<key>.h5``), so two
   renders of one recipe (other options) do not collide;
 * ``metadata.json`` -- id, per face: dpi, pixel size, size, mask area, source artifact (path,
-  sha256), the importer's metadata (inventory, find-spot, ...), provenance; the conventions.
+  sha256), the importer's metadata (inventory, find-spot, ...), provenance; the conventions; and, given
+  the station's confirmed joins, the fragment's own (:func:`joins_of`: each other fragment's pose in this
+  one's frame, who confirmed it and when), so a fragment folder alone keeps the conservator's work.
 
 Every file is encoded in memory first and the free space of ``<out>``'s file system is checked
 against their sizes (:func:`common.store.check_free_space`: the sum plus a margin) before anything
@@ -84,8 +86,33 @@ def latest_faces(store: Store, fragment: str) -> dict[str, str]:
     return {face: rel for face, (_, rel) in sorted(faces.items())}
 
 
+def joins_of(joins, fragment: str) -> list[dict]:
+    """The confirmed joins of ``fragment`` among ``joins``
+    (:class:`~common.matching.reconstruction.Join`, B in A's frame), each seen from ``fragment``: ``other``, its
+    pose in ``fragment``'s frame (``angle_deg`` in [-180, 180), ``tx_mm``, ``ty_mm``: ``p_fragment = R p_other + t``,
+    the convention of docs/messages.md), ``by``, ``time`` (Unix s) and ``proposal``, sorted by ``other``.
+
+    >>> from common.matching.reconstruction import Join
+    >>> (j,) = joins_of([Join("A", "B", 90.0, 10.0, 0.0)], "B")    # B turned 90° and 10 mm right of A's origin
+    >>> j["other"], j["angle_deg"], round(j["tx_mm"], 6) + 0.0, j["ty_mm"]
+    ('A', -90.0, 0.0, 10.0)
+    """
+    from common.matching.docking import inverse_pose
+    from common.matching.pose import wrapped_deg
+
+    out = []
+    for j in joins:
+        if fragment not in (j.fragment_a, j.fragment_b):
+            continue
+        pose = (j.angle_deg, j.tx_mm, j.ty_mm) if fragment == j.fragment_a else inverse_pose(j.angle_deg, j.tx_mm, j.ty_mm)
+        out.append({"other": j.fragment_b if fragment == j.fragment_a else j.fragment_a,
+                    "angle_deg": wrapped_deg(pose[0]), "tx_mm": float(pose[1]), "ty_mm": float(pose[2]),
+                    "by": j.by, "time": j.time, "proposal": j.proposal_id})
+    return sorted(out, key=lambda j: j["other"])
+
+
 def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, albedo_bits: int = 16,
-                    overwrite: bool = False) -> Path:
+                    overwrite: bool = False, joins=None) -> Path:
     """Write ``<out_dir>/<fragment>/`` (see the module docstring); return its path.
 
     Raises ValueError naming the fragment when it has no RGBN face on storage, or when the folder
@@ -94,7 +121,7 @@ def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, 
     :class:`~common.store.StorageReadOnly` when it refuses writes.
     """
     _check_destination(Path(out_dir) / fragment, overwrite)   # before the encoding, which is the long part
-    return write_fragment(out_dir, fragment, encode_fragment(store, fragment, albedo_bits=albedo_bits),
+    return write_fragment(out_dir, fragment, encode_fragment(store, fragment, albedo_bits=albedo_bits, joins=joins),
                           overwrite=overwrite)
 
 
@@ -103,8 +130,10 @@ def _check_destination(final: Path, overwrite: bool) -> None:
         raise ValueError(f"{final} exists; remove it or pass overwrite (--force)")
 
 
-def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> dict[str, bytes]:
+def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16, joins=None) -> dict[str, bytes]:
     """Every file of a fragment's export folder (see the module docstring), encoded in memory: ``{name: bytes}``.
+    ``joins``: the station's confirmed joins (:func:`common.matching.reconstruction.confirmed_joins`); given,
+    ``metadata.json`` lists the fragment's (:func:`joins_of`, ``[]`` for none); None: no ``joins`` key (not known).
 
     Raises ValueError naming the fragment when it has no RGBN face on storage, or for ``albedo_bits`` other
     than 8 or 16.
@@ -155,6 +184,8 @@ def encode_fragment(store: Store, fragment: str, *, albedo_bits: int = 16) -> di
             "area_mm2": float(mask.sum() * img.pixel_mm ** 2), "has_normals": img.normals is not None,
             "metadata": user, "provenance": prov, "files": files}
         del img
+    if joins is not None:
+        meta["joins"] = joins_of(joins, fragment)
     if any(f["has_normals"] for f in meta["faces"].values()):   # a colour-only fragment has no normal map to describe
         meta["normal_map"] = NORMAL_MAP_CONVENTION
     out["metadata.json"] = (json.dumps(meta, indent=2, sort_keys=True, default=str, ensure_ascii=False)
@@ -205,7 +236,7 @@ class ExportSize:
 
 
 def size_export(store: Store, fragments, out_dir: str | os.PathLike, *, albedo_bits: int = 16,
-                overwrite: bool = False, keep_bytes: int | None = None, progress=None) -> ExportSize:
+                overwrite: bool = False, keep_bytes: int | None = None, progress=None, joins=None) -> ExportSize:
     """Size the export of ``fragments`` into ``out_dir`` by encoding every file (:func:`encode_fragment`), writing
     nothing: the whole export's bytes, to check the free space for all of it before the first fragment is written.
 
@@ -220,7 +251,7 @@ def size_export(store: Store, fragments, out_dir: str | os.PathLike, *, albedo_b
     for i, fid in enumerate(fragments):
         try:
             _check_destination(Path(out_dir) / fid, overwrite)
-            files = encode_fragment(store, fid, albedo_bits=albedo_bits)
+            files = encode_fragment(store, fid, albedo_bits=albedo_bits, joins=joins)
         except (ValueError, OSError) as exc:
             out.failed.append((fid, str(exc)))
         else:

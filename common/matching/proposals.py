@@ -198,6 +198,12 @@ def ordered_pair(a: str, b: str) -> tuple[str, str]:
     return (a, b) if a < b else (b, a)
 
 
+def proposals_path(root: str | os.PathLike, db: str | os.PathLike | None = None) -> Path:
+    """Where a station's proposal database is: ``db`` (the ``[services.matcher] db`` setting) when set, else
+    ``<storage root>/matches/proposals.sqlite`` (the module notes say when to set it)."""
+    return Path(db) if db else Path(root) / "matches" / "proposals.sqlite"
+
+
 class ProposalStore:
     """SQLite store of fragments seen, proposals, verdicts and model versions.
 

@@ -127,9 +127,11 @@ class ReviewData:
     @classmethod
     def from_config(cls, cfg: Mapping) -> "ReviewData":
         """Database from ``[services.matcher] db`` (default ``<root>/matches/proposals.sqlite``)."""
+        from common.matching.proposals import proposals_path
+
         root = Path(cfg["storage"]["root"])
         matcher = dict(cfg.get("services", {}).get("matcher", {}))
-        db = matcher.get("db") or root / "matches" / "proposals.sqlite"
+        db = proposals_path(root, matcher.get("db"))
         return cls(db, Store(root, file_locking=cfg["storage"]["file_locking"]),
                    journal_mode=str(matcher.get("journal_mode", "WAL")))
 

@@ -5,7 +5,10 @@
 
 Writes ``OUT/<id>/<face>-normals.png`` (16-bit RGBA, OpenGL convention: green = y up),
 ``<face>-albedo.png`` (sRGB), ``<face>-render-<recipe>-<key>.png`` and ``metadata.json``; with
-several fragments also ``OUT/collection.json`` listing them. See ``docs/import.md``.
+several fragments also ``OUT/collection.json`` listing them. Where the station has a proposal database
+(``--db``, default the config's or STORE/matches/proposals.sqlite), the confirmed joins go with them: each
+fragment's ``metadata.json`` lists its own (the other fragment's pose in its frame), ``collection.json``
+those between the fragments it lists. See ``docs/import.md``.
 
 Free space: each fragment's files are encoded in memory and their total size (plus a margin) is
 checked against the free space of OUT's file system before any of them is written. A fragment
@@ -31,6 +34,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--all", action="store_true", help="every fragment with an RGBN face on storage")
     p.add_argument("-o", "--out", required=True, metavar="DIR", help="output folder (one sub-folder per fragment)")
     p.add_argument("--store", metavar="DIR", help="storage root (default: the station config's)")
+    p.add_argument("--db", metavar="PATH", help="proposal database whose confirmed joins go with the export "
+                                               "(default: the config's, or STORE/matches/proposals.sqlite)")
     p.add_argument("--albedo-bits", type=int, choices=(8, 16), default=16, help="albedo PNG depth (default 16)")
     p.add_argument("--force", action="store_true", help="replace fragment folders that exist in OUT")
     from common.config import add_config_arguments
@@ -41,17 +46,25 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from common.imports import ProgressBar
     from common.imports.export import export_fragment, fragment_ids, size_export, write_fragment
+    from common.matching.pose import wrapped_deg
+    from common.matching.proposals import proposals_path
     from common.store import Store, StorageFull, check_free_space, write_file
 
     if args.store:
-        root = args.store
+        root, db_setting = args.store, None
     else:
         from common.config import config_from_arguments
-        root = config_from_arguments(args)["storage"]["root"]
+        cfg = config_from_arguments(args)
+        root, db_setting = cfg["storage"]["root"], dict(cfg.get("services", {}).get("matcher", {})).get("db")
     if not Path(root).is_dir():
         print(f"tessera export: storage root {root} does not exist", file=sys.stderr)
         return 2
     store = Store(root, create=False)
+    try:
+        joins = _confirmed_joins(proposals_path(root, args.db or db_setting), named=bool(args.db))
+    except ValueError as exc:
+        print(f"tessera export: {exc}", file=sys.stderr)
+        return 2
     ids = fragment_ids(store) if args.all else list(dict.fromkeys(args.fragments))
     if not ids:
         print("tessera export: name fragments or --all" if not args.all else
@@ -67,7 +80,7 @@ def run(args) -> int:
         bar = ProgressBar(len(ids), "export: sizing")
         try:
             sized = size_export(store, ids, out, albedo_bits=args.albedo_bits, overwrite=args.force,
-                                progress=bar.update)
+                                progress=bar.update, joins=joins)
         except KeyboardInterrupt:
             bar.close()
             print("interrupted while sizing the export; nothing was written", file=sys.stderr)
@@ -90,7 +103,7 @@ def run(args) -> int:
                 if fid in kept:   # encoded while sizing: written as they are (the free space checked again)
                     write_fragment(out, fid, kept.pop(fid), overwrite=args.force)
                 else:
-                    export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force)
+                    export_fragment(store, fid, out, albedo_bits=args.albedo_bits, overwrite=args.force, joins=joins)
                 done.append(fid)
             except StorageFull as exc:      # checked before writing: the next ones would not fit either
                 full = (fid, str(exc))
@@ -109,6 +122,11 @@ def run(args) -> int:
         listed = json.loads(index.read_text()) if index.is_file() else {"fragments": []}
         listed["fragments"] = sorted(set(listed.get("fragments", [])) | set(done))
         listed["storage_root"] = str(Path(root).resolve())
+        if joins is not None:   # the station's confirmed joins between the fragments listed, B in A's frame
+            inside = set(listed["fragments"])
+            listed["joins"] = [{"fragment": j.fragment_a, "other": j.fragment_b, "angle_deg": wrapped_deg(j.angle_deg),
+                                "tx_mm": j.tx_mm, "ty_mm": j.ty_mm, "by": j.by, "time": j.time, "proposal": j.proposal_id}
+                               for j in joins if j.fragment_a in inside and j.fragment_b in inside]
         try:    # the project's atomic write, free space checked; an export's index is for everyone the umask allows
             write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"), public=True)
         except OSError as exc:
@@ -123,3 +141,30 @@ def run(args) -> int:
               + (f", {left - 1} more fragment(s) not tried" if left > 1 else "")
               + (f"; the {len(done)} exported before it are complete" if done else ""), file=sys.stderr)
     return 1 if failed or full or not index_written else 0
+
+
+def _confirmed_joins(db_path: Path, *, named: bool):
+    """The confirmed joins of the proposal database at ``db_path``
+    (:func:`common.matching.reconstruction.confirmed_joins`); None where there is none (a store no matcher has
+    run on; ValueError when it was ``named`` by --db) or it cannot be read (said on stderr: the faces are
+    exported all the same, without joins)."""
+    import sqlite3
+
+    from common.matching.proposals import ProposalStore
+    from common.matching.reconstruction import confirmed_joins
+
+    if not db_path.is_file():
+        if named:
+            raise ValueError(f"no proposal database at {db_path}")
+        return None
+    try:
+        with ProposalStore(db_path) as db:
+            joins, unposed = confirmed_joins(db)
+    except (sqlite3.Error, OSError) as exc:
+        print(f"tessera export: proposal database {db_path} cannot be read ({exc}); the fragments are exported "
+              "without their joins", file=sys.stderr)
+        return None
+    for a, b in unposed:
+        print(f"tessera export: the confirmed join {a} - {b} has no pose (recorded before poses were kept); "
+              "not listed", file=sys.stderr)
+    return joins

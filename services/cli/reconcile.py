@@ -36,7 +36,8 @@ def run(args) -> int:
             return 1
         print(f"warning: {exc}; jobs already queued or in flight are not known, so they are listed too")
         pending = []
-    db = (config.get("services", {}).get("matcher", {}) or {}).get("db") or store.root / "matches" / "proposals.sqlite"
+    from common.matching.proposals import proposals_path
+    db = proposals_path(store.root, (config.get("services", {}).get("matcher", {}) or {}).get("db"))
     from services.features import VERSION as FEATURES_VERSION
     from services.renderer import VERSION as RENDERER_VERSION
     from services.solver import VERSION as SOLVER_VERSION

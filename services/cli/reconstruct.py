@@ -46,7 +46,7 @@ def run(args) -> int:
     from common.imports import ProgressBar
     from common.matching import reconstruction as rc
     from common.messages import to_json
-    from common.matching.proposals import ProposalStore
+    from common.matching.proposals import ProposalStore, proposals_path
     from common.store import Store, write_file
 
     if args.store:
@@ -56,7 +56,7 @@ def run(args) -> int:
         cfg = config_from_arguments(args)
         root = Path(cfg["storage"]["root"])
         db_path = dict(cfg.get("services", {}).get("matcher", {})).get("db")
-    db_path = Path(args.db or db_path or root / "matches" / "proposals.sqlite")
+    db_path = proposals_path(root, args.db or db_path)
     if not root.is_dir():
         print(f"tessera reconstruct: storage root {root} does not exist", file=sys.stderr)
         return 2

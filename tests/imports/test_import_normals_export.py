@@ -379,3 +379,71 @@ def test_a_colour_only_fragments_export_describes_no_normal_map(tmp_path):
     assert not (tmp_path / "out" / "C1" / "front-normals.png").exists()
     relief = json.loads((tmp_path / "out" / "N1" / "metadata.json").read_text())
     assert relief["faces"]["front"]["has_normals"] is True and "OpenGL" in relief["normal_map"]
+
+
+def _store_of_three(tmp_path):
+    """A store of fragments A, B, C (colour only) and a proposal database: A-B confirmed at a pose set on the
+    review page, B-C confirmed then rejected, A-C confirmed at a pose given from C's side."""
+    from common.matching.proposals import ProposalStore
+
+    _, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    for fid in "ABC":
+        save_rgbn(store, f"fragments/{fid}/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=150.0))
+    with ProposalStore(tmp_path / "st" / "matches" / "proposals.sqlite") as db:
+        db.record_verdict("A", "B", "confirmed", by="conservator", when=1.0e9,
+                          pose={"angle_deg": 90.0, "tx_mm": 10.0, "ty_mm": 0.0})
+        db.record_verdict("B", "C", "confirmed", pose={"angle_deg": 0.0, "tx_mm": 5.0, "ty_mm": 0.0})
+        db.record_verdict("B", "C", "rejected")                  # changed their mind
+        db.record_verdict("C", "A", "confirmed", pose={"angle_deg": 0.0, "tx_mm": 0.0, "ty_mm": 7.0})
+    return store
+
+
+def test_an_export_carries_the_confirmed_joins_with_their_poses(tmp_path):
+    """The conservator's confirmed joins go with the export: each fragment's metadata.json lists its own, the other
+    fragment's pose in this one's frame (p_this = R p_other + t), and collection.json those between the fragments
+    it lists; a rejected join, and a join to a fragment not exported, are not in collection.json."""
+    from common.matching.alignment import pose_matrix
+
+    _store_of_three(tmp_path)
+    out = tmp_path / "out"
+    assert main(["export", "A", "B", "-o", str(out), "--store", str(tmp_path / "st")]) == 0
+    a = json.loads((out / "A" / "metadata.json").read_text())["joins"]
+    b = json.loads((out / "B" / "metadata.json").read_text())["joins"]
+    assert [j["other"] for j in a] == ["B", "C"] and [j["other"] for j in b] == ["A"]   # B-C was rejected
+    ab = a[0]
+    assert (ab["angle_deg"], ab["tx_mm"], ab["ty_mm"]) == pytest.approx((90.0, 10.0, 0.0))
+    assert ab["by"] == "conservator" and ab["time"] == 1.0e9
+    ba = b[0]                      # the same join seen from B: the inverse transform
+    np.testing.assert_allclose(pose_matrix(ab["angle_deg"], ab["tx_mm"], ab["ty_mm"])
+                               @ pose_matrix(ba["angle_deg"], ba["tx_mm"], ba["ty_mm"]), np.eye(3), atol=1e-9)
+    ac = a[1]                      # given from C's side (A 7 mm down in C's frame): C is 7 mm up in A's
+    assert (ac["angle_deg"], ac["tx_mm"], ac["ty_mm"]) == pytest.approx((0.0, 0.0, -7.0))
+    listed = json.loads((out / "collection.json").read_text())
+    assert listed["fragments"] == ["A", "B"]
+    assert [(j["fragment"], j["other"]) for j in listed["joins"]] == [("A", "B")]      # C not exported
+    assert (listed["joins"][0]["angle_deg"], listed["joins"][0]["tx_mm"]) == pytest.approx((90.0, 10.0))
+    # the whole collection (sized first, then written): both confirmed joins
+    assert main(["export", "--all", "-o", str(tmp_path / "all"), "--store", str(tmp_path / "st")]) == 0
+    listed = json.loads((tmp_path / "all" / "collection.json").read_text())
+    assert [(j["fragment"], j["other"]) for j in listed["joins"]] == [("A", "B"), ("A", "C")]
+    assert [j["other"] for j in json.loads((tmp_path / "all" / "C" / "metadata.json").read_text())["joins"]] == ["A"]
+
+
+def test_an_export_without_a_readable_proposal_database_still_exports_the_faces(tmp_path, capsys):
+    """No database (no matcher ran): no joins key, nothing said. --db naming a missing file is refused up front.
+    A database that cannot be read is said on stderr and the faces are exported without joins."""
+    _, mask = _surface_normals()
+    store = Store(tmp_path / "st")
+    save_rgbn(store, "fragments/A/rgbn/front-1.h5", RGBNImage(albedo=_albedo(mask), mask=mask, dpi=150.0))
+    assert main(["export", "A", "-o", str(tmp_path / "o1"), "--store", str(tmp_path / "st")]) == 0
+    assert "joins" not in json.loads((tmp_path / "o1" / "A" / "metadata.json").read_text())
+    missing = tmp_path / "nowhere.sqlite"
+    assert main(["export", "A", "-o", str(tmp_path / "o2"), "--store", str(tmp_path / "st"), "--db", str(missing)]) == 2
+    assert f"no proposal database at {missing}" in capsys.readouterr().err and not (tmp_path / "o2").exists()
+    (tmp_path / "st" / "matches").mkdir()
+    (tmp_path / "st" / "matches" / "proposals.sqlite").write_bytes(b"not a database" * 100)
+    assert main(["export", "A", "-o", str(tmp_path / "o3"), "--store", str(tmp_path / "st")]) == 0
+    err = capsys.readouterr().err
+    assert "proposal database" in err and "cannot be read" in err and "without their joins" in err
+    assert "joins" not in json.loads((tmp_path / "o3" / "A" / "metadata.json").read_text())
