@@ -578,6 +578,10 @@ def test_a_confirmed_join_is_shown_and_confirmed_again_at_its_corrected_pose(bro
         try:
             page.wait_for_selector(f"#queue li.current[data-proposal='{prop.id}']", timeout=30_000)
             assert "kept with the confirmed verdict" in page.inner_text("#proposal-meta")
+            # a fragment's list holds decided proposals too, and says so; its order is not the % shown
+            assert page.inner_text("#queue-title") == "Proposals of FB"
+            assert "mutual proximity" in page.inner_text("#queue-order")
+            assert page.get_attribute(f"#queue li[data-proposal='{prop.id}']", "title").startswith("confirmed · probability 90%")
 
             def joined_src() -> str:
                 return urllib.parse.unquote(page.get_attribute("#joined-colour", "src"))

@@ -133,9 +133,12 @@
     const r = await Tessera.api("GET", url);
     if (!r.ok) { $("review-message").textContent = r.data.error || "The proposals cannot be read."; return; }
     items = (r.data.proposals || []).filter((p) => !skipped.has(p.id) || p.id === keepId);
+    // a fragment's list holds its decided proposals too
+    $("queue-title").textContent = filter ? `Proposals of ${filter}` : "Pending proposals";
     if (r.data.counts) $("counts").textContent = `(${r.data.counts.pending} pending · ${r.data.counts.confirmed} confirmed · ${r.data.counts.rejected} rejected)`;
     $("queue").replaceChildren(...items.map((p, k) => {
-      const li = Tessera.el("li", { "data-proposal": p.id, title: p.status },
+      const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual proximity ${p.mutual.toFixed(3)}`;
+      const li = Tessera.el("li", { "data-proposal": p.id, title: `${p.status} · probability ${pct(p.probability)}${mutual}` },
         Tessera.el("span", { text: `${p.fragment_a} ↔ ${p.fragment_b}` }),
         Tessera.el("span", { class: "prob", text: `${pct(p.probability)}${p.status !== "pending" ? " · " + p.status : ""}` }));
       li.addEventListener("click", () => select(k));
