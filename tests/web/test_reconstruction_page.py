@@ -92,6 +92,15 @@ def test_clusters_follow_the_confirmed_joins(app_and_db):
         assert img.shape[2] == 4 and img[..., 3].max() == 255
         f = wall.fragment(fid)
         assert info["width_mm"] == pytest.approx(f.rgbn.shape[1] * f.rgbn.pixel_mm)
+        # and its outline, which the page draws dashed around a next join's piece: it encloses the piece's area
+        # and runs along the mask's boundary (within the 0.5 mm it is simplified to, and half a pixel)
+        outline = np.array(info["outline_mm"], np.float32)
+        area_mm2 = f.rgbn.mask.sum() * f.rgbn.pixel_mm ** 2
+        assert cv2.contourArea(outline) == pytest.approx(area_mm2, rel=0.08)
+        edge = f.rgbn.mask & ~cv2.erode(f.rgbn.mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        ey, ex = np.nonzero(edge)
+        d = np.hypot(outline[:, None, 0] - ex[None] * f.rgbn.pixel_mm, outline[:, None, 1] - ey[None] * f.rgbn.pixel_mm)
+        assert d.min(axis=1).max() <= 0.5 + f.rgbn.pixel_mm
     with ProposalStore(db_path) as db:
         for pair in true[1:]:
             db.record_verdict(*pair, "confirmed")

@@ -32,8 +32,10 @@
     g.append(svg("title", {}, `${fid}${cls === "ghost" ? " (proposed)" : ""}`));
     g.append(svg("image", { href: info.thumb, x: info.x_mm, y: info.y_mm, width: info.width_mm, height: info.height_mm,
                             preserveAspectRatio: "none" }));
-    if (cls === "ghost") g.append(svg("rect", { x: info.x_mm, y: info.y_mm, width: info.width_mm, height: info.height_mm,
-                                                class: "ghost-box" }));
+    // a next join's piece: its own outline dashed (the picture's box where the outline is not known)
+    if (cls === "ghost") g.append(info.outline_mm && info.outline_mm.length > 2
+      ? svg("polygon", { points: info.outline_mm.map((p) => p.join(",")).join(" "), class: "ghost-box" })
+      : svg("rect", { x: info.x_mm, y: info.y_mm, width: info.width_mm, height: info.height_mm, class: "ghost-box" }));
     return g;
   }
 
