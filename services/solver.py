@@ -40,9 +40,15 @@ def output_path(fragment: str, face: str, scans_sha256: str, calibration_id: str
 def _calibration(ctx, device: str):
     try:
         return newest_calibration(ctx.store, device)
-    except CalibrationError:
+    except CalibrationError as exc:
         if not (device.startswith("sim") and (ctx.config or {}).get("auto_calibrate_simulator", True)):
-            raise
+            # a bare `tessera calibrate` calibrates the station's own [scanner] device, not this one:
+            # name the commands that calibrate *this* device, and how to re-queue the parked job
+            raise CalibrationError(
+                f"{exc} for this device: with scans of a tilted target `tessera calibrate --from-files MANIFEST "
+                f"--device {device}`, without `tessera calibrate --nominal --lamp-direction-deg D --device {device}` "
+                f"(D: the lamp side `tessera import scans` logged); then re-queue the parked job "
+                f"(`tessera status --rerun JOB`)") from None
     from common.acquisition.flatbed_sim import SimulatedFlatbed
     ctx.log.info("no calibration for simulated device %s: calibrating it now", device)
     sim = SimulatedFlatbed(device)

@@ -62,8 +62,14 @@ def test_colour_only_capture_gives_albedo_without_normals(tmp_path):
 def test_real_device_without_calibration_fails_clearly(tmp_path):
     store = Store(tmp_path)
     job = _fragment_ready(store, device="epson2:libusb:001:004")
-    with pytest.raises(CalibrationError, match="tessera calibrate"):
+    with pytest.raises(CalibrationError, match="tessera calibrate") as err:
         solver.handle(job, Ctx(store))
+    # a bare `tessera calibrate` would calibrate the station's [scanner] device, not this one: the
+    # message names the commands for this device and how to re-queue the parked job
+    msg = str(err.value)
+    assert "tessera calibrate --nominal --lamp-direction-deg D --device epson2:libusb:001:004" in msg, msg
+    assert "--from-files MANIFEST --device epson2:libusb:001:004" in msg, msg
+    assert "tessera status --rerun" in msg, msg
 
 
 def test_wrong_message_type_is_rejected(tmp_path):
