@@ -455,6 +455,42 @@ def coarse_window(coarse: Coarse, r0: int, r1: int, c0: int, c1: int) -> Coarse:
     return Coarse(coarse.values[i0:i1, j0:j1], f, (o0 + i0 * f - r0, o1 + j0 * f - c0))
 
 
+#: a surface whose coarse normals' mean is at least this long is near-flat (a painting, a relief, even when near
+#: lights tilted the whole solve) and is levelled; a curved object (a ball: about 0.7) is not
+NEAR_FLAT = 0.95
+
+
+def levelling_sigma_px(shape) -> float:
+    """The scale (px) of the slow undulation levelling removes from an image of ``shape``: a sixteenth of its
+    shorter side, within 8–96 px."""
+    return float(np.clip(min(shape[:2]) / 16.0, 8.0, 96.0))
+
+
+def surface_normal(normals: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray | None:
+    """The way a near-flat surface faces as a whole: the unit mean of its normals smoothed at
+    :func:`levelling_sigma_px` (:func:`coarse_normals`), or None when the mean is shorter than
+    :data:`NEAR_FLAT` (a curved object, which has no one direction) or there is no surface.
+
+    A viewer lights a painting whose solve is tilted as a whole (a panel not square to the camera,
+    a light file's small bias) relative to this direction: the light turned by the rotation that takes
+    it to the view axis (:func:`levelled_light` of a constant field), as levelling does per region.
+
+    Examples
+    --------
+    >>> n = np.zeros((64, 64, 3), np.float32); n[...] = (0.5, 0.0, np.sqrt(0.75))   # tilted 30° towards +x
+    >>> [round(float(v), 4) for v in surface_normal(n)]
+    [0.5, 0.0, 0.866]
+    """
+    normals = check_normals(normals)
+    mask = check_mask(mask, normals.shape[:2])
+    if not mask.any():
+        return None
+    c = coarse_normals(normals, levelling_sigma_px(normals.shape), mask=mask, full_size=False).values
+    mean = c.reshape(-1, 3).astype(np.float64).mean(axis=0)
+    length = float(np.linalg.norm(mean))
+    return (mean / length).astype(np.float32) if length >= NEAR_FLAT else None
+
+
 def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,
                   origin=(0, 0), coarse: Coarse | None = None) -> np.ndarray:
     """Normals relative to the surface's own slow undulation: every normal is rotated by the
@@ -469,7 +505,7 @@ def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | No
     Examples
     --------
     >>> n = np.zeros((8, 8, 3), np.float32); n[...] = (0.6, 0.0, 0.8)
-    >>> level_normals(n, 2.0)[4, 4].round(6).tolist()
+    >>> [round(float(v), 6) + 0.0 for v in level_normals(n, 2.0)[4, 4]]
     [0.0, 0.0, 1.0]
     """
     normals = check_normals(normals)

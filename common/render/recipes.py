@@ -208,11 +208,11 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
     nearly one way (length of their mean > 0.95: a painting, a relief, even when near lights
     tilted the whole solve) — and leaves a curved object (a ball: about 0.7) alone."""
     image = _whole(image)   # a window is levelled as the whole image is
-    sigma = float(np.clip(min(image.shape) / 16.0, 8.0, 96.0))
+    sigma = _enhance.levelling_sigma_px(image.shape)
     if _is_auto(level):
         coarse = _coarse(image, sigma).values
         mean = coarse.reshape(-1, 3).mean(axis=0) if image.mask.any() else np.zeros(3)
-        level = sigma if float(np.linalg.norm(mean)) > 0.95 else 0.0
+        level = sigma if float(np.linalg.norm(mean)) > _enhance.NEAR_FLAT else 0.0
     elif isinstance(level, bool):
         level = sigma if level else 0.0
     resolved["level"] = float(level)

@@ -95,9 +95,11 @@ def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, sha
         ``curvature_sigma_mm`` / ``curvature_sigma_px`` (twice the noise scale, as
         :func:`common.render.recipes.draw_mean_curvature`'s "auto"), ``halo_px``, ``dpi``,
         ``width``, ``height``, ``tile_px``, ``levels`` (sizes ``[w, h]`` per level),
-        ``has_normals``, ``version``.
+        ``has_normals``, ``version``, ``surface_normal`` (the way a near-flat face faces as a whole,
+        :func:`common.render.enhance.surface_normal`, x right, y up: the lit styles light it relative to
+        that, :func:`offline_arguments`; None for a curved object or a colour-only face).
     """
-    from common.render.enhance import relief_scale_px
+    from common.render.enhance import relief_scale_px, surface_normal
 
     if not np.isfinite(dpi) or dpi <= 0:
         raise ValueError(f"dpi must be a positive number, got {dpi}")
@@ -108,6 +110,7 @@ def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, sha
         raise ValueError(f"shape must be positive, got {shape}")
     has_normals = normals is not None
     sigma = relief_scale_px(normals, dpi, mask)[0] if has_normals else 1.0
+    facing = surface_normal(normals, mask) if has_normals else None
     ex = [sigma * 2.0 ** i for i in range(EXAGGERATED_SCALES + 1)]
     unsharp = max(unsharp_sigma_mm * dpi / 25.4, 1.0)
     curv = 2.0 * sigma
@@ -118,6 +121,7 @@ def relight_params(normals: np.ndarray | None, mask: np.ndarray, dpi: float, sha
             "sigma_px": round(float(sigma), 4), "exaggerated_sigmas_px": [round(float(s), 4) for s in ex],
             "unsharp_sigma_mm": float(unsharp_sigma_mm), "unsharp_sigma_px": round(float(unsharp), 4),
             "curvature_sigma_px": round(float(curv), 4), "curvature_sigma_mm": round(float(curv) * 25.4 / dpi, 6),
+            "surface_normal": None if facing is None else [round(float(v), 6) for v in facing],
             "halo_px": int(math.ceil(4.0 * max(ex[-1], unsharp, curv))) + 2}
 
 
@@ -342,7 +346,11 @@ class RelightCache:
         path = self.store.path(rel)
         with _lock(str(path)):
             if path.is_file():
-                return json.loads(path.read_text())
+                params = json.loads(path.read_text())
+                # written before the viewer lit a face relative to its surface_normal: measured again (the
+                # tiles stay, they do not depend on it)
+                if "surface_normal" in params:
+                    return params
             with self.open_artifact() as f:
                 params = face_params(f)
             params["rgbn"] = self.rgbn_relpath
@@ -487,8 +495,10 @@ def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0)
 
     The scales the fields were computed at are passed explicitly, whatever ``values`` says
     (``sigma_px`` / ``sigma0_px`` the noise scale, ``scales = 3`` and ``sigma_ratio = 2``, normal
-    unsharp masking's ``sigma_mm``, the curvature's ``sigma_mm``), the surface is not levelled (``level = False``: the viewer lights the normals
-    as solved), and every parameter the viewer does not have keeps the offline default.
+    unsharp masking's ``sigma_mm``, the curvature's ``sigma_mm``), the surface is not levelled region by region
+    (``level = False``) but, for the lit styles, lit relative to the way the whole face faces (``params``'
+    ``surface_normal``: the light turned as the viewer turns it, :func:`common.render.enhance.levelled_light`),
+    and every parameter the viewer does not have keeps the offline default.
     """
     from common.render.recipes import STYLES
 
@@ -502,6 +512,8 @@ def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0)
     f = 2.0 ** int(level)
     if style in ("lambertian", "raking", "specular"):
         kw.update(sigma_px=params["sigma_px"] / f, level=False)
+        if params.get("surface_normal"):
+            kw.update(_levelled_angles(style, kw, params["surface_normal"]))
     elif style == "exaggerated":
         kw.update(sigma0_px=params["sigma_px"] / f, scales=EXAGGERATED_SCALES, sigma_ratio=2.0)
     elif style == "normal_unsharp":
@@ -512,6 +524,24 @@ def offline_arguments(style: str, values: dict, params: dict, *, level: int = 0)
         if isinstance(kw.get(key), list):
             kw[key] = tuple(kw[key])
     return kw
+
+
+def _levelled_angles(style: str, kw: dict, facing) -> dict:
+    """The lit style's light (``light`` or raking's ``azimuth_deg`` / ``elevation_deg``) turned to a face facing
+    ``facing`` as the viewer turns it, as angles again."""
+    from common.render.enhance import Coarse, levelled_light
+    from common.render.recipes import STYLES
+
+    default = STYLES[style].parameters()
+    if style == "raking":
+        light = (kw.get("azimuth_deg", default["azimuth_deg"]), kw.get("elevation_deg", default["elevation_deg"]))
+    else:
+        light = kw.get("light", default["light"])
+    c = np.asarray(facing, np.float32).reshape(1, 1, 3)
+    l = levelled_light(light, Coarse(c, 1, (0, 0))).values[0, 0].astype(float)
+    l /= np.linalg.norm(l)
+    az, el = math.degrees(math.atan2(l[1], l[0])), math.degrees(math.asin(float(np.clip(l[2], -1.0, 1.0))))
+    return {"azimuth_deg": az, "elevation_deg": el} if style == "raking" else {"light": (az, el)}
 
 
 def auto_contrast(image, style: str, values: dict, params: dict, *, level: int = 0) -> dict:

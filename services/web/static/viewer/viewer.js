@@ -36,6 +36,16 @@ const RelightViewer = (() => {
     return [Math.cos(e) * Math.cos(a), Math.cos(e) * Math.sin(a), Math.sin(e)];
   }
 
+  // the light l turned by the rotation that takes the axis z to the way the surface faces, c (unit): a
+  // near-flat face tilted as a whole is lit relative to its own plane (common.render.enhance.levelled_light
+  // of a constant field, Rodrigues' formula)
+  function levelledLight(l, c) {
+    const ux = -c[1], uy = c[0], cz = Math.max(c[2], 1e-3), k = (ux * l[0] + uy * l[1]) / (1 + cz);
+    const out = [l[0] * cz + uy * l[2] + ux * k, l[1] * cz - ux * l[2] + uy * k, l[2] * cz + (ux * l[1] - uy * l[0])];
+    const n = Math.hypot(...out);
+    return out.map((v) => v / n);
+  }
+
   // the shader files' sources, which the page carries in a JSON data block (services/web/fragment.py)
   function shaderSources() {
     const block = document.getElementById("viewer-shaders");
@@ -59,20 +69,20 @@ const RelightViewer = (() => {
       uniforms: (p) => ({ u_exposure: ["2f", range(p.exposure)] }),
     },
     lambertian: {
-      label: "Lambertian", needsNormals: true,
+      label: "Lambertian", needsNormals: true, levelled: true,
       defaults: { light: [135, 45], ambient: 0.15, colour: true, exposure: [0.3, 0.9], colour_exposure: "none" },
       uniforms: (p) => ({ u_ambient: ["1f", p.ambient], u_exposure: ["2f", range(p.exposure)],
                           u_colour_on: ["1i", p.colour ? 1 : 0], u_colour_exposure: ["2f", range(p.colour_exposure)] }),
     },
     raking: {
-      label: "Raking light", needsNormals: true,
+      label: "Raking light", needsNormals: true, levelled: true,
       defaults: { azimuth_deg: 135, elevation_deg: 12, ambient: 0.05, colour: false, exposure: [0.05, 0.4],
                   colour_exposure: "none" },
       uniforms: (p) => ({ u_ambient: ["1f", p.ambient], u_exposure: ["2f", range(p.exposure)],
                           u_colour_on: ["1i", p.colour ? 1 : 0], u_colour_exposure: ["2f", range(p.colour_exposure)] }),
     },
     specular: {
-      label: "Specular enhancement", needsNormals: true,
+      label: "Specular enhancement", needsNormals: true, levelled: true,
       defaults: { light: [135, 45], kd: 0.6, ks: 0.6, exponent: 30, colour: true, exposure: [0.0, 0.8],
                   colour_exposure: "none", lightness: "none" },
       uniforms: (p) => ({ u_kd: ["1f", p.kd], u_ks: ["1f", p.ks], u_exponent: ["1f", p.exponent],
@@ -539,8 +549,9 @@ const RelightViewer = (() => {
 
     lightVector() {
       const v = this.values[this.style];
-      if (this.style === "raking") return lightVector(v.azimuth_deg, v.elevation_deg);
-      return lightVector(...(v.light || this.light));
+      const l = this.style === "raking" ? lightVector(v.azimuth_deg, v.elevation_deg) : lightVector(...(v.light || this.light));
+      const c = this.info.surface_normal;   // a near-flat face's direction (common/web/relight.py), else null
+      return STYLES[this.style].levelled && c ? levelledLight(l, c) : l;
     }
 
     changed() {
