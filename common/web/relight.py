@@ -269,12 +269,20 @@ def level_from_sums(sums: np.ndarray, level: int, has_normals: bool = True):
 
 
 def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
-    """:func:`relight_params` of an RGBN HDF5 group, measured on its calibration window."""
+    """:func:`relight_params` of an RGBN HDF5 group, measured on its calibration window, and ``dpi_nominal``:
+    True when the face's provenance says its dpi is a guess (a hand-held or RTI capture has no scale of its own,
+    docs/handheld.md), which the page says beside every length it shows."""
     shape = tuple(group["mask"].shape)
     r0, r1, c0, c1 = calibration_window(shape)
     normals = group["normals"][r0:r1, c0:c1] if "normals" in group else None
-    return relight_params(normals, group["mask"][r0:r1, c0:c1], float(group.attrs["dpi"]), shape,
-                          unsharp_sigma_mm=unsharp_sigma_mm)
+    params = relight_params(normals, group["mask"][r0:r1, c0:c1], float(group.attrs["dpi"]), shape,
+                            unsharp_sigma_mm=unsharp_sigma_mm)
+    try:
+        provenance = json.loads(group.attrs.get("provenance", "{}"))
+    except (TypeError, ValueError):
+        provenance = {}
+    params["dpi_nominal"] = bool(isinstance(provenance, dict) and provenance.get("dpi_nominal"))
+    return params
 
 
 def tile_from_group(group, params: dict, level: int, row: int, col: int) -> bytes:
@@ -347,9 +355,9 @@ class RelightCache:
         with _lock(str(path)):
             if path.is_file():
                 params = json.loads(path.read_text())
-                # written before the viewer lit a face relative to its surface_normal: measured again (the
-                # tiles stay, they do not depend on it)
-                if "surface_normal" in params:
+                # written before the viewer lit a face relative to its surface_normal and said when its dpi is
+                # nominal: measured again (the tiles stay, they depend on neither)
+                if "surface_normal" in params and "dpi_nominal" in params:
                     return params
             with self.open_artifact() as f:
                 params = face_params(f)

@@ -229,6 +229,36 @@ def test_page_and_tile_routes(client):
     assert 0.0 <= lo < hi <= 1.0
 
 
+def test_params_say_when_a_faces_dpi_is_nominal_and_how_it_faces(tmp_path):
+    """A hand-held or RTI capture has no scale of its own (its provenance says dpi_nominal): the params say so, for
+    the page to put beside every length; a scan's do not. They carry the way a near-flat face faces
+    (surface_normal, which the viewer lights it relative to). A params.json written before either was measured is
+    measured again, and the tiles cut before are kept."""
+    import json
+
+    from common.rgbn.image import save_rgbn
+    from common.web.relight import RelightCache
+    from services import web
+
+    store = _store_with(tmp_path, relief_face(60, 80))
+    save_rgbn(store, "fragments/H-1/rgbn/front-k2.h5", relief_face(60, 80), provenance={"dpi_nominal": True})
+    client = web.create_app(token=TOKEN, store_root=store.root).test_client()
+    scan = client.get("/api/fragments/F-1/relight/front-k1/params.json").get_json()
+    capture = client.get("/api/fragments/H-1/relight/front-k2/params.json").get_json()
+    assert scan["dpi_nominal"] is False and capture["dpi_nominal"] is True
+    assert np.degrees(np.arccos(capture["surface_normal"][2])) < 5.0    # the analytic face is near-flat, square on
+    cache = RelightCache(store, "fragments/H-1/rgbn/front-k2.h5")
+    path = store.path(f"{cache.folder}/params.json")
+    old = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("dpi_nominal", "surface_normal")}
+    path.write_text(json.dumps(old))
+    tile = store.path(cache.tile_relpath(0, 0, 0))
+    tile.parent.mkdir(parents=True, exist_ok=True)
+    tile.write_bytes(b"a tile cut before")
+    again = RelightCache(store, "fragments/H-1/rgbn/front-k2.h5").params()
+    assert again["dpi_nominal"] is True and again["surface_normal"] == capture["surface_normal"]
+    assert tile.read_bytes() == b"a tile cut before"
+
+
 def test_opening_a_face_cuts_its_coarse_levels_in_one_background_pass(tmp_path):
     from common.web.relight import RelightCache
     from services import web

@@ -82,8 +82,10 @@
       if (!r.ok) { message(r.data.error || `This face cannot be shown (HTTP ${r.status}).`); return; }
       p = face.params = r.data;
     }
+    // a capture with no scale of its own (hand-held, RTI) has a guessed dpi: every length on the page is too
+    const nominal = p.dpi_nominal ? " (nominal: the capture has no scale of its own)" : "";
     $("face-info").textContent = `${(p.width / p.dpi * 25.4).toFixed(1)} × ${(p.height / p.dpi * 25.4).toFixed(1)} mm · ` +
-      `${p.width} × ${p.height} px · ${p.dpi} dpi${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
+      `${p.width} × ${p.height} px · ${p.dpi} dpi${nominal}${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
     const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
     const light = viewer ? viewer.light : null;
     if (viewer) viewer.dispose();

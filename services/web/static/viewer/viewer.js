@@ -643,7 +643,7 @@ const RelightViewer = (() => {
       g.strokeStyle = "#000";
       g.beginPath(); g.moveTo(x, y - 6 * dpr); g.lineTo(x, y); g.lineTo(x + px, y); g.lineTo(x + px, y - 6 * dpr); g.stroke();
       g.fillStyle = "#000";
-      g.fillText(`${mm >= 1 ? mm : mm.toPrecision(1)} mm`, x, y - 9 * dpr);
+      g.fillText(`${mm >= 1 ? mm : mm.toPrecision(1)} mm${this.info.dpi_nominal ? " (nominal)" : ""}`, x, y - 9 * dpr);
       // measurement
       if (this.measure) {
         const a = this.toCanvas(...this.measure.a), b = this.toCanvas(...(this.measure.b || this.measure.a));
@@ -652,7 +652,7 @@ const RelightViewer = (() => {
         for (const p of [a, b]) { g.beginPath(); g.arc(p[0], p[1], 4 * dpr, 0, 2 * Math.PI); g.stroke(); }
         const d = this.measureMm();
         if (d !== null) {
-          const label = `${d.toFixed(2)} mm`;
+          const label = `${d.toFixed(2)} mm${this.info.dpi_nominal ? " (nominal)" : ""}`;
           g.fillStyle = "rgba(255,255,255,0.85)";
           const w = g.measureText(label).width;
           g.fillRect(b[0] + 8 * dpr, b[1] - 16 * dpr, w + 8 * dpr, 20 * dpr);
