@@ -448,7 +448,9 @@ def register_scans(scans: list, dpi: float, *, nominal_deg: list | None = None, 
     for i, p in enumerate(prepared):     # named by its own index (counted from 0), not as "one of the scans"
         if p.area_px * (25.4 / dpi) ** 2 < 4:
             raise RegistrationError(f"scan {i}: no fragment visible (mask under 4 mm²); cannot register — is the "
-                                    "scan blank, or of an empty bed?")
+                                    "scan blank, or of an empty bed? Or does the piece fill the picture, with no bed "
+                                    "around it to tell it from: scan it with a margin of bed on every side (pictures "
+                                    "already cropped and registered go in with `tessera ps` or `tessera import images`)")
     try:
         regs = _register_sequence(prepared[0], prepared, dpi, nominal_deg, search_deg, min_correlation, progress)
     except RegistrationError as exc:

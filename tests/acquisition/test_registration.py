@@ -117,6 +117,18 @@ def test_a_scan_without_the_fragment_is_named_by_its_own_index():
         register_scans([scans[0], scans[1], empty], DPI, nominal_deg=[0, 90, 180])
 
 
+def test_scans_cropped_inside_the_piece_are_refused_saying_the_piece_may_fill_the_picture():
+    """Seen on real scans: pictures already cropped to the piece (a coin filling the frame) have no bed to tell
+    the piece from, and were refused as if blank. The message names that case and what to do."""
+    sim, scans = _rotated_scans(seed=9, n=3)
+    ys, xs = np.nonzero(fragment_mask(scans[0], DPI))
+    cy, cx = int(ys.mean()), int(xs.mean())
+    inside = [s[cy - 15:cy + 15, cx - 15:cx + 15] for s in scans]      # 30 px = 7.6 mm, all piece
+    with pytest.raises(RegistrationError, match=r"^scan 0: no fragment visible") as err:
+        register_scans(inside, DPI, nominal_deg=[0, 90, 180])
+    assert "fill the picture" in str(err.value) and "margin of bed" in str(err.value)
+
+
 def test_rough_turns_far_from_90_degrees_still_register():
     sim = SimulatedFlatbed(bed_mm=(100, 100), seed=10)
     sim.place(demo_surface(25, DPI, seed=2), centre_mm=(50, 50))
