@@ -269,9 +269,10 @@ def level_from_sums(sums: np.ndarray, level: int, has_normals: bool = True):
 
 
 def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
-    """:func:`relight_params` of an RGBN HDF5 group, measured on its calibration window, and ``dpi_nominal``:
+    """:func:`relight_params` of an RGBN HDF5 group, measured on its calibration window; ``dpi_nominal``:
     True when the face's provenance says its dpi is a guess (a hand-held or RTI capture has no scale of its own,
-    docs/handheld.md), which the page says beside every length it shows."""
+    docs/handheld.md), which the page says beside every length it shows; ``piece_px``: the mask's bounding box
+    ``[x0, y0, x1, y1]`` (pixels, end exclusive; None for an empty mask), the size the page gives the piece."""
     shape = tuple(group["mask"].shape)
     r0, r1, c0, c1 = calibration_window(shape)
     normals = group["normals"][r0:r1, c0:c1] if "normals" in group else None
@@ -282,6 +283,9 @@ def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
     except (TypeError, ValueError):
         provenance = {}
     params["dpi_nominal"] = bool(isinstance(provenance, dict) and provenance.get("dpi_nominal"))
+    # the piece's own extent: a scan cropped to everything that turned also holds the lamp's shadow around it
+    rows, cols = np.nonzero(np.any(group["mask"][:], axis=1))[0], np.nonzero(np.any(group["mask"][:], axis=0))[0]
+    params["piece_px"] = ([int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1] if len(rows) else None)
     return params
 
 
@@ -357,7 +361,7 @@ class RelightCache:
                 params = json.loads(path.read_text())
                 # written before the viewer lit a face relative to its surface_normal and said when its dpi is
                 # nominal: measured again (the tiles stay, they depend on neither)
-                if "surface_normal" in params and "dpi_nominal" in params:
+                if all(k in params for k in ("surface_normal", "dpi_nominal", "piece_px")):
                     return params
             with self.open_artifact() as f:
                 params = face_params(f)

@@ -231,7 +231,8 @@ def test_page_and_tile_routes(client):
 
 def test_params_say_when_a_faces_dpi_is_nominal_and_how_it_faces(tmp_path):
     """A hand-held or RTI capture has no scale of its own (its provenance says dpi_nominal): the params say so, for
-    the page to put beside every length; a scan's do not. They carry the way a near-flat face faces
+    the page to put beside every length; a scan's do not. They give the piece's extent (a scan cropped to what
+    turned holds the lamp's shadow too: the page gives the piece's size, not the picture's). They carry the way a near-flat face faces
     (surface_normal, which the viewer lights it relative to). A params.json written before either was measured is
     measured again, and the tiles cut before are kept."""
     import json
@@ -246,10 +247,13 @@ def test_params_say_when_a_faces_dpi_is_nominal_and_how_it_faces(tmp_path):
     scan = client.get("/api/fragments/F-1/relight/front-k1/params.json").get_json()
     capture = client.get("/api/fragments/H-1/relight/front-k2/params.json").get_json()
     assert scan["dpi_nominal"] is False and capture["dpi_nominal"] is True
+    mask = relief_face(60, 80).mask                           # the piece's extent: its mask's bounding box
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    assert scan["piece_px"] == [cols[0], rows[0], cols[-1] + 1, rows[-1] + 1] and (cols[0], rows[0]) != (0, 0)
     assert np.degrees(np.arccos(capture["surface_normal"][2])) < 5.0    # the analytic face is near-flat, square on
     cache = RelightCache(store, "fragments/H-1/rgbn/front-k2.h5")
     path = store.path(f"{cache.folder}/params.json")
-    old = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("dpi_nominal", "surface_normal")}
+    old = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("dpi_nominal", "surface_normal", "piece_px")}
     path.write_text(json.dumps(old))
     tile = store.path(cache.tile_relpath(0, 0, 0))
     tile.parent.mkdir(parents=True, exist_ok=True)
@@ -411,7 +415,11 @@ def test_fragment_page_in_chromium(tmp_path):
             page.click("#faces button[data-face=back]")
             page.wait_for_function("() => tesseraViewer.info.width === 700 && tesseraViewer.stats.complete")
             assert page.evaluate("() => front.stats.gpuTiles") == 0
-            assert page.text_content("#face-info").startswith("29.6 × 21.2 mm")
+            # the piece's size (its elliptic mask's extent), then the picture's (700 x 500 px at 600 dpi)
+            back = relief_face(500, 700, dpi=600.0, seed=3).mask
+            rows, cols = np.nonzero(back.any(axis=1))[0], np.nonzero(back.any(axis=0))[0]
+            size = f"{(cols[-1] + 1 - cols[0]) / 600 * 25.4:.1f} × {(rows[-1] + 1 - rows[0]) / 600 * 25.4:.1f} mm"
+            assert page.text_content("#face-info").startswith(f"{size} (picture 29.6 × 21.2 mm)")
             screenshot(page, shots / "fragment-back.png")
             page.click("#faces button[data-face=front]")
             page.wait_for_function("() => tesseraViewer.info.width === 2000 && tesseraViewer.stats.complete")

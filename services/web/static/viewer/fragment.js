@@ -84,7 +84,11 @@
     }
     // a capture with no scale of its own (hand-held, RTI) has a guessed dpi: every length on the page is too
     const nominal = p.dpi_nominal ? " (nominal: the capture has no scale of its own)" : "";
-    $("face-info").textContent = `${(p.width / p.dpi * 25.4).toFixed(1)} × ${(p.height / p.dpi * 25.4).toFixed(1)} mm · ` +
+    // the piece's size (its mask's extent); the picture's when it differs (a scan crop holds the lamp's shadow too)
+    const mm = (px) => (px / p.dpi * 25.4).toFixed(1);
+    const box = p.piece_px || [0, 0, p.width, p.height], bw = box[2] - box[0], bh = box[3] - box[1];
+    const whole = bw === p.width && bh === p.height ? "" : ` (picture ${mm(p.width)} × ${mm(p.height)} mm)`;
+    $("face-info").textContent = `${mm(bw)} × ${mm(bh)} mm${whole} · ` +
       `${p.width} × ${p.height} px · ${p.dpi} dpi${nominal}${p.has_normals ? "" : " · colour only (no normals: no relighting)"}`;
     const style = viewer ? viewer.style : (p.has_normals ? "raking" : "albedo");
     const light = viewer ? viewer.light : null;
