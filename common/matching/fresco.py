@@ -73,9 +73,11 @@ CHROMA_LO, CHROMA_HI = -12.0, 36.0
 FRESCO_LLR: dict | None = {"features": ["chroma_bhattacharyya"], "mean": [1.2454], "scale": [1.8067],
                             "coef": [-3.0585], "intercept": -0.9581, "clip": 4.0, "n_same": 1680, "n_different": 5400}
 #: the ranking (:meth:`common.matching.index.MatchIndex.rank`) adds this × the ratio to a candidate's logit
-#: after stage 2½ (1 would be naive Bayes; 0: off). 4: the best of 0/1/2/4 for pooled top-5 on two synthetic
-#: one-house collections (0.429 -> 0.553 mean; within-wall @3 kept), docs/matching.md "Which fresco"
-FRESCO_WEIGHT = 4.0
+#: after stage 2½ (1 would be naive Bayes; 0: off). 4 was the best of 0/1/2/4 for pooled top-5 on two synthetic
+#: one-house collections, still rising (docs/matching.md "Which fresco"); 8 (session 25, "The same-fresco ratio's
+#: weight above 4"): pooled top-5 of four fresh collections of six walls sharing a palette 0.506 -> 0.545 (mean),
+#: at a cost on one figure painting (the thesis-style wall 0.469 -> 0.427, DAFNE 0.438 -> 0.429)
+FRESCO_WEIGHT = 8.0
 
 
 @dataclass

@@ -290,6 +290,8 @@ def test_a_join_below_the_docked_best_carries_the_pose_of_a_docking_made_before(
     """Stage 3 docks a fragment's best few; a kept join below them whose pair was docked before (from the other
     side, or by an earlier ranking) now carries that docking's pose and alternatives instead of none."""
     import services.matcher as matcher
+    from common.matching.pose import wrapped_deg   # a proposal's angle is in [-180, 180), the docking's in [0, 360)
+
     wall, store, db, arts, ctx = station
     model = _arrivals_under_a_docking_model(station, 24)
     st = matcher._state(ctx)
@@ -299,7 +301,7 @@ def test_a_join_below_the_docked_best_carries_the_pose_of_a_docking_made_before(
     assert below, "some pairs below the best were docked before"
     for c in below:
         q = st.index.pose(f, c.other)
-        assert c.alignment is not None and (c.alignment.angle_deg, c.alignment.tx_mm) == (q.angle_deg, q.tx_mm)
+        assert c.alignment is not None and (c.alignment.angle_deg, c.alignment.tx_mm) == (wrapped_deg(q.angle_deg), q.tx_mm)
         assert np.isnan(c.alignment.score) and len(c.alignment.alternatives) == len(st.index.alternatives(f, c.other))
     assert all(c.alignment is None for c in found[1:] if not st.index.docked(f, c.other))
 
