@@ -72,10 +72,10 @@ _STATES: dict = {}
 class _State:
     """Per-process caches of one proposal store: the index and the current model."""
 
-    def __init__(self, db: ProposalStore, *, single_fresco: bool = False):
+    def __init__(self, db: ProposalStore, *, single_fresco: bool = False, fresco_weight: float | None = None):
         self.db = db
         # the dockings are kept in the proposal store: a pair any matcher worker docked is docked once
-        self.index = MatchIndex(dockings=db, single_fresco=single_fresco)
+        self.index = MatchIndex(dockings=db, single_fresco=single_fresco, fresco_weight=fresco_weight)
         self.model = None
         self.seen: dict = {}   # fragment -> sha256 of the indexed feature artifact
 
@@ -87,9 +87,19 @@ def _state(ctx) -> _State:
     st = _STATES.get(key)
     if st is None:
         st = _STATES[key] = _State(ProposalStore(db_path, journal_mode=str(cfg.get("journal_mode", "WAL"))),
-                                   single_fresco=_flag(cfg.get("single_fresco", False), "single_fresco"))
+                                   single_fresco=_flag(cfg.get("single_fresco", False), "single_fresco"),
+                                   fresco_weight=_weight(cfg.get("fresco_weight"), "fresco_weight"))
     _sync(st, ctx)
     return st
+
+
+def _weight(value, name: str) -> float | None:
+    """A weight setting of ``[services.matcher]``: a number >= 0, or absent (None: the library's default)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"[services.matcher] {name} must be a number >= 0, got {value!r}")
+    return float(value)
 
 
 def _flag(value, name: str) -> bool:

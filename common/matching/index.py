@@ -192,13 +192,23 @@ class MatchIndex:
         0.285 and 0.333 among 50 (docs/matching.md, "A ribbon at three lengths, and one fresco"). On a figure
         painting, whose boundary colours say which part of the picture a piece is from, it helps: DAFNE 0.438 with
         it, 0.385 without ("One fresco richly painted").
+    fresco_weight : float, optional
+        The same-fresco ratio's weight in the ranking (stage 1's choice, the ribbon's cut and after stage 2½);
+        None: :data:`common.matching.fresco.FRESCO_WEIGHT` (8, best for collections of several frescoes). A
+        collection of one figure painting ranks best at 4 (docs/matching.md, "The same-fresco ratio's weight
+        above 4"); 0 turns the ratio off everywhere.
     """
 
-    def __init__(self, *, use_hubness: bool = True, dockings=None, single_fresco: bool = False):
+    def __init__(self, *, use_hubness: bool = True, dockings=None, single_fresco: bool = False,
+                 fresco_weight: float | None = None):
         #: rank by the hubness-corrected probability (False: the patch probability, as before)
         self.use_hubness = bool(use_hubness)
         #: the collection is one fresco: the same-fresco ratio does not re-order the ribbon's candidates
         self.single_fresco = bool(single_fresco)
+        if fresco_weight is not None and not (np.isfinite(fresco_weight) and fresco_weight >= 0):
+            raise ValueError(f"fresco_weight must be a number >= 0, got {fresco_weight!r}")
+        #: the same-fresco ratio's weight; None: fresco.FRESCO_WEIGHT (read when ranking)
+        self.fresco_weight = None if fresco_weight is None else float(fresco_weight)
         #: the store of dockings shared with other indexes (the proposal store), or None
         self.docking_store = dockings
         #: fragment → digest of its docking inputs (docking_inputs: outline and boundary profile)
@@ -657,15 +667,13 @@ class MatchIndex:
         of RePAIR's true links (20 % of the factory's) were among a fragment's 50 best by stage 2, against 90 %
         (74 %) with the ratio added (docs/matching.md, "What reaches the ribbon"). Only the choice changes:
         the candidates keep their stage-2 probabilities, and a list no longer than ``n`` is kept whole."""
-        from common.matching import fresco
-
         if len(found) <= n:
             return list(found)
         ratios = self._fresco_ratios(fragment, found)
         if ratios is None:
             return found[:n]
         p = np.clip(np.array([c.probability for c in found], float), 1e-12, 1 - 1e-12)
-        key = np.log(p) - np.log1p(-p) + fresco.FRESCO_WEIGHT * np.nan_to_num(ratios, nan=0.0)
+        key = np.log(p) - np.log1p(-p) + self._ratio_weight() * np.nan_to_num(ratios, nan=0.0)
         key = np.where(np.isfinite(key), key, -np.inf)
         return [found[i] for i in np.argsort(-key, kind="stable")[:n]]
 
@@ -941,7 +949,7 @@ class MatchIndex:
         for c, r in zip(candidates, ratios):
             if np.isfinite(r):
                 c.fresco_llr = float(r)
-                c.probability = float(fresco.with_fresco(c.probability, c.fresco_llr, fresco.FRESCO_WEIGHT))
+                c.probability = float(fresco.with_fresco(c.probability, c.fresco_llr, self._ratio_weight()))
         return sorted(candidates, key=lambda c: -c.probability if np.isfinite(c.probability) else np.inf)
 
     def _ratio_signature(self, fragment: str):
@@ -950,9 +958,15 @@ class MatchIndex:
         order without it."""
         from common.matching import fresco
 
-        if fresco.FRESCO_WEIGHT <= 0 or fresco.FRESCO_LLR is None:
+        if self._ratio_weight() <= 0 or fresco.FRESCO_LLR is None:
             return None
         return self._fresco_signature(fragment)
+
+    def _ratio_weight(self) -> float:
+        """The same-fresco ratio's weight: :attr:`fresco_weight`, else the module's default."""
+        from common.matching import fresco
+
+        return fresco.FRESCO_WEIGHT if self.fresco_weight is None else self.fresco_weight
 
     def _fresco_ratios(self, fragment: str, candidates: list[Candidate]) -> np.ndarray | None:
         """The same-fresco log-likelihood ratio of the query and each candidate (NaN where the candidate has no

@@ -138,8 +138,8 @@ def _plot_ribbon_examples(wall, tables, index, model, path: Path, n: int = 4) ->
     plt.close(fig)
 
 
-def _index_of(tables, cues, *, single_fresco: bool = False):
-    idx = MatchIndex(single_fresco=single_fresco)
+def _index_of(tables, cues, *, single_fresco: bool = False, fresco_weight: float | None = None):
+    idx = MatchIndex(single_fresco=single_fresco, fresco_weight=fresco_weight)
     for fid, c in cues.items():
         idx.add(c, tables[fid].contour_mm, tables[fid].boundary_profile)
     return idx
@@ -340,7 +340,7 @@ def _evaluate_dafne(path, out: Path, *, folds, negatives_per_positive, topk, pai
 
 def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, near_px: float = 48.0,
                         min_run_px: float = 100.0, adjacency=None, single_fresco: bool = False,
-                        progress=None) -> dict:
+                        fresco_weight: float | None = None, progress=None) -> dict:
     """Evaluate the matcher on a real, placed collection (``repair-dev`` layout) with a given model.
 
     Nothing is fitted on the collection: the fragments are imported as colour-only fragments
@@ -353,7 +353,8 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     ``adjacency`` gives (``[(a, b, shared length), ...]`` as ``Wall.adjacency``: a variant of a collection
     — the same pieces scanned otherwise, their masks a pixel different — counted against the original's
     pairs, so that only the matcher's inputs differ; ``tests/bench/bench_scan_variants.py``).
-    ``single_fresco``: rank as a station set for a collection of one fresco does (:class:`MatchIndex`).
+    ``single_fresco``: rank as a station set for a collection of one fresco does (:class:`MatchIndex`);
+    ``fresco_weight``: the same-fresco ratio's weight as a station set with ``fresco_weight`` (None: the default).
 
     A fragment's list is in the station's order: its pairs by mutual proximity of the two
     fragments' rankings (:mod:`common.matching.mutual`; the station's proposal store orders them so).
@@ -394,7 +395,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
         say(0.05, "training the default bootstrap model (synthetic walls only)")
         model = bootstrap_model()
     tables, cues, poses = wall_cues(wall, progress=lambda f, t: say(0.1 + 0.3 * f, t))
-    index = _index_of(tables, cues, single_fresco=single_fresco)
+    index = _index_of(tables, cues, single_fresco=single_fresco, fresco_weight=fresco_weight)
     obj = {f.id: f.notes.get("object") for f in wall.fragments}
     ids = list(index._order)
     index.refresh_hubness(ids, model, n_candidates=100)
@@ -463,6 +464,7 @@ def evaluate_collection(path, *, dpi: float = 150.0, model=None, out_dir=None, n
     ppr_max = pair_precision_recall(pooled_max, wall.adjacency)
     result = {
         "collection": str(path), "dpi": float(dpi), "model": model.version, "single_fresco": bool(single_fresco),
+        "fresco_weight": float(index._ratio_weight()),
         "pooled_topk": top_k_recall(pooled, wall.adjacency, (1, 5, 10)),
         "pooled_topk_by_probability": top_k_recall(pooled_max, wall.adjacency, (1, 5, 10)),
         "within_object_recall": wo["recall"], "within_object_random": wo["random"],

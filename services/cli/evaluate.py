@@ -6,6 +6,7 @@
                      [--dafne ../shared/data/dafne-adam]
     tessera evaluate --train-model ROOT [--db PATH] [--fragments 150] [--seed 11] [--dpi 100]
     tessera evaluate --collection DIR [--dpi 150] [--json FILE] [--model ROOT] [--out DIR] [--single-fresco]
+                     [--fresco-weight W]
 
 The first form writes ``table_5_3.csv`` (true/false positive/negative rates per classifier and
 feature subset, 10-fold cross-validation grouped by fragment pair), precision–recall plots,
@@ -25,7 +26,9 @@ pose accuracy (docs/matching.md); its picture of hits and misses (``collection_e
 ``--single-fresco`` ranks as a station set for a collection of one fresco of mostly plain plaster does
 (``[services.matcher] single_fresco``, docs/matching.md, "A ribbon at three lengths, and one fresco"; not for a
 figure painting, whose boundary colours tell which part of the picture a piece is from: "One fresco richly
-painted").
+painted"). ``--fresco-weight W`` ranks with the same-fresco ratio's weight a station set with ``[services.matcher]
+fresco_weight`` has (default 8, for several frescoes; 4 measured better on one figure painting: "The same-fresco
+ratio's weight above 4").
 
 The collection's layout (``common.synth.stats.read_collection``; docs/matching.md, "Real fragments: RePAIR"):
 ``DIR/<object>/<picture>``, one folder per object with ``truth.csv`` beside its pictures. Objects are the
@@ -90,6 +93,9 @@ def add_parser(subparsers) -> None:
                    help="with --collection: rank as a station set for a collection of one fresco of mostly "
                         "plain plaster "
                         "([services.matcher] single_fresco): the same-fresco ratio does not re-order candidates")
+    p.add_argument("--fresco-weight", type=float, metavar="W",
+                   help="with --collection: the same-fresco ratio's weight ([services.matcher] fresco_weight; default "
+                        "8, best for several frescoes; 4 measured better on one figure painting; 0: off)")
     p.add_argument("--model", metavar="ROOT", help="with --collection: use the current model of the station "
                                                    "at storage root ROOT (default: the bootstrap model)")
     p.set_defaults(func=run)
@@ -171,6 +177,8 @@ def _collection(args, progress) -> int:
     dpi = 150.0 if args.dpi is None else args.dpi
     if not (math.isfinite(dpi) and dpi > 0):
         raise SystemExit(f"--dpi must be a positive number, got {dpi}")
+    if args.fresco_weight is not None and not (math.isfinite(args.fresco_weight) and args.fresco_weight >= 0):
+        raise SystemExit(f"--fresco-weight must be a number >= 0, got {args.fresco_weight}")
     if args.json:   # a result that cannot be written is known before the run, not after it
         if Path(args.json).is_dir():
             raise SystemExit(f"--json {args.json}: is a directory; give a file name, e.g. "
@@ -193,7 +201,8 @@ def _collection(args, progress) -> int:
     out = args.out if args.out is not None else (Path(args.json).parent if args.json else Path("."))
     try:
         res = evaluate_collection(args.collection, dpi=dpi, model=model, out_dir=out,
-                                  single_fresco=args.single_fresco, progress=progress)
+                                  single_fresco=args.single_fresco, fresco_weight=args.fresco_weight,
+                                  progress=progress)
     except ValueError as exc:
         hint = ""
         if "no true neighbour pair" in str(exc):
@@ -201,7 +210,8 @@ def _collection(args, progress) -> int:
                     "are truth.csv's x, y in the pictures' own pixels?)")
         raise SystemExit(f"--collection {args.collection}: {exc}{hint}")
     print(f"collection {res['collection']}: {res['n_fragments']} fragments, {res['n_true_pairs']} true neighbour "
-          f"pairs, {res['dpi']:g} dpi, model {res['model']}" + (", ranked as one fresco" if res["single_fresco"] else ""))
+          f"pairs, {res['dpi']:g} dpi, model {res['model']}" + (", ranked as one fresco" if res["single_fresco"] else "")
+          + (f", same-fresco ratio weight {args.fresco_weight:g}" if args.fresco_weight is not None else ""))
     if res["skipped"]:
         print(f"left out {len(res['skipped'])} (the figures are of the rest):")
         for message in res["skipped"]:

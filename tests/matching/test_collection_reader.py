@@ -334,3 +334,25 @@ def test_the_command_refuses_a_dpi_that_is_not_finite(tmp_path, fake_evaluation)
     _touching_object(tmp_path / "c")
     with pytest.raises(SystemExit, match="--dpi must be a positive number"):
         main(["evaluate", "--collection", str(tmp_path / "c"), "--dpi", "inf"])
+
+
+def test_the_command_ranks_with_the_fresco_weight_given_and_refuses_a_bad_one(tmp_path, monkeypatch, capsys):
+    """--fresco-weight reaches the evaluation (as a station's [services.matcher] fresco_weight would) and is said on
+    the first line; a weight that is not a number >= 0 is refused before any work."""
+    import common.matching.report as report
+    from services.cli import main
+
+    _touching_object(tmp_path / "c")
+    got = []
+
+    def fake(path, *, dpi=150.0, fresco_weight=None, **kw):
+        got.append(fresco_weight)
+        return dict(_fake_result(path, dpi), skipped=[])
+
+    monkeypatch.setattr(report, "evaluate_collection", fake)
+    assert main(["evaluate", "--collection", str(tmp_path / "c"), "--fresco-weight", "4"]) == 0
+    assert got == [4.0] and "same-fresco ratio weight 4" in capsys.readouterr().out
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit, match="--fresco-weight must be a number >= 0"):
+            main(["evaluate", "--collection", str(tmp_path / "c"), "--fresco-weight", bad])
+    assert got == [4.0]

@@ -705,6 +705,37 @@ def test_a_collection_of_one_fresco_keeps_the_ribbons_order_and_its_cut(monkeypa
     assert [c.other for c in one._ribbon_head("q", [cand("a", 0.6), cand("b", 0.5)], 1)] == ["b"]
 
 
+def test_an_index_with_its_own_fresco_weight_ranks_as_that_default_would(monkeypatch):
+    """``MatchIndex(fresco_weight=w)`` (a station's ``[services.matcher] fresco_weight``) weighs the same-fresco ratio
+    as the module's default at w would, after stage 2½ and in the cut: ribbon probabilities 0.6, 0.5 with ratios −1, +1
+    put b first at weight 4 (logit 0.405 − 4 < −0.405 + 4), keep a first at 0.1 (0.305 > 0.295); 0 is off (no
+    signature taken, the order kept). A weight that is not a number >= 0 is refused."""
+    from common.matching import fresco
+    from common.matching.index import Candidate
+
+    def cand(other, p):
+        return Candidate("q", other, p, 0, 0, np.zeros((0, 2), int), np.zeros((0, 1)))
+
+    def order(index):
+        return ([c.other for c in index._rank_by_fresco("q", [cand("a", 0.6), cand("b", 0.5)])],
+                [c.other for c in index._ribbon_head("q", [cand("a", 0.6), cand("b", 0.5)], 1)])
+
+    ratio = {"a": -1.0, "b": 1.0}
+    monkeypatch.setattr(MatchIndex, "_fresco_signature", lambda self, f: f)
+    monkeypatch.setattr(fresco, "fresco_llr", lambda a, b: ratio[b])
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 4.0)
+    assert order(MatchIndex()) == order(MatchIndex(fresco_weight=4)) == (["b", "a"], ["b"])
+    assert order(MatchIndex(fresco_weight=0.1)) == (["a", "b"], ["a"])
+    assert order(MatchIndex(fresco_weight=0)) == (["a", "b"], ["a"])
+    probability = MatchIndex(fresco_weight=0.1)._rank_by_fresco("q", [cand("a", 0.6)])[0].probability
+    assert probability == pytest.approx(fresco.with_fresco(0.6, -1.0, 0.1))
+    monkeypatch.setattr(fresco, "FRESCO_WEIGHT", 0.1)                 # the default followed when none is given
+    assert order(MatchIndex()) == (["a", "b"], ["a"])
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="fresco_weight must be a number >= 0"):
+            MatchIndex(fresco_weight=bad)
+
+
 def test_stage_1_takes_the_fragments_likeliest_of_the_querys_fresco_by_their_boundary_colours(monkeypatch):
     """With a signature, stage 1's candidates are the fragments whose a*b* histograms overlap the query's most
     (Bhattacharyya coefficient Σ √(h_q h_o), the same-fresco ratio's one cue). Histograms over two bins:

@@ -473,3 +473,19 @@ def test_a_station_set_for_one_fresco_ranks_with_an_index_of_one_fresco(tmp_path
     assert not matcher._State(db).index.single_fresco
     with pytest.raises(ValueError, match="single_fresco must be true or false"):
         matcher._state(ctx("false"))
+
+
+def test_a_station_sets_the_same_fresco_ratios_weight(tmp_path):
+    """``[services.matcher] fresco_weight`` reaches the index (unset: the library's default); a value that is not a
+    number >= 0 (a string, a boolean, a negative number) is refused by name."""
+    import services.matcher as matcher
+
+    def ctx(name, config):
+        return StageContext(store=Store(tmp_path / name), config=config, log=logging.getLogger("test.matcher"),
+                            progress=lambda f, t: None, service="matcher")
+
+    assert matcher._state(ctx("four", {"fresco_weight": 4})).index.fresco_weight == 4.0
+    assert matcher._state(ctx("unset", {})).index.fresco_weight is None
+    for k, bad in enumerate(("4", True, -1.0)):
+        with pytest.raises(ValueError, match=r"\[services.matcher\] fresco_weight must be a number >= 0"):
+            matcher._state(ctx(f"bad{k}", {"fresco_weight": bad}))
