@@ -475,10 +475,12 @@ def test_a_station_set_for_one_fresco_ranks_with_an_index_of_one_fresco(tmp_path
         matcher._state(ctx("false"))
 
 
-def test_a_station_sets_the_same_fresco_ratios_weight(tmp_path):
+def test_a_station_sets_the_same_fresco_ratios_weight(tmp_path, monkeypatch):
     """``[services.matcher] fresco_weight`` reaches the index (unset: the library's default); a value that is not a
     number >= 0 (a string, a boolean, a negative number) is refused by name."""
     import services.matcher as matcher
+
+    monkeypatch.setattr(matcher, "_sync", lambda st, ctx: None)   # no fragments or model to read: the index only
 
     def ctx(name, config):
         return StageContext(store=Store(tmp_path / name), config=config, log=logging.getLogger("test.matcher"),
