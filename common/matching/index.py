@@ -1037,6 +1037,12 @@ class MatchIndex:
         ranked = self.rank(cues, others, model, ribbon_candidates=ribbon_candidates,
                            evidence_for=0 if (ribbon or also) else top, dock_candidates=dock_candidates if dock else 0)
         self.rankings[cues.fragment] = [c.other for c in ranked]
+        if not dock and self.uses_docking(cues.fragment, model):
+            # the first answer of a station that docks next: its probabilities on the share of joins, as the
+            # docked answer's will be (the fast stages' over-state, the same-fresco ratio most; monotone)
+            for c in ranked:
+                if np.isfinite(c.probability):
+                    c.probability = float(join_probability(c.probability, FIRST_CALIBRATION))
         ranked = ranked[:top] + [c for c in ranked[top:] if c.other in also]
         for c, m in zip(ranked, self.mutual(cues.fragment, [c.other for c in ranked])):
             c.mutual = m
@@ -1162,22 +1168,29 @@ def _pair(a: str, b: str) -> tuple[str, str]:
 #: fragments each, 2,304 candidates, 351 true joins; never RePAIR) by ``tests/bench/bench_join_calibration.py``;
 #: refitted in session 25 for the same-fresco ratio's weight 8 (0.2078, -2.3673 at 4)
 JOIN_CALIBRATION = {"slope": 0.1794, "intercept": -2.3440}
+#: Platt scaling of the matcher's first answer (stages 1–2½ with the same-fresco ratio, before the docking job):
+#: fitted on the top 10 of every fragment of the same four factory collections (1,920 candidates, 328 true joins;
+#: never RePAIR) by ``tests/bench/bench_join_calibration.py --first`` (session 25)
+FIRST_CALIBRATION = {"slope": 0.0951, "intercept": -1.8644}
 
 
-def join_probability(probability) -> np.ndarray:
-    """Stage 3's join probability made honest: ``σ(a · logit(p) + b)`` (:data:`JOIN_CALIBRATION`).
+def join_probability(probability, calibration: dict | None = None) -> np.ndarray:
+    """Stage 3's join probability made honest: ``σ(a · logit(p) + b)`` (:data:`JOIN_CALIBRATION`, or
+    ``calibration``: :data:`FIRST_CALIBRATION` for the first answer's).
 
     Stage 3 adds the docking, paint, earlier-stage and same-fresco evidence as independent log odds, so its
     probability saturates (on held-out factory collections, of the candidates at ≥ 0.999 43 % are joins; on
     RePAIR 28 %). Platt's recalibration of that logit (J. Platt, *Probabilistic outputs for support vector
     machines*, 1999) maps it onto the share of true joins among a fragment's docked best; it is monotone, so no
-    order changes (docs/matching.md, "The probability over-stated; recalibrated").
+    order changes (docs/matching.md, "The probability over-stated; recalibrated"). The first answer, before the
+    docking, over-states alike (mean 0.75 for a share of joins of 0.17 on held-out factory collections).
 
     >>> round(float(join_probability(0.5)), 3), bool(join_probability(0.999) < 0.999)
-    (0.086, True)
+    (0.088, True)
     """
+    cal = JOIN_CALIBRATION if calibration is None else calibration
     p = np.clip(np.asarray(probability, float), 1e-15, 1 - 1e-15)   # float64 tells nothing closer to 0 or 1 apart
-    z = JOIN_CALIBRATION["slope"] * (np.log(p) - np.log1p(-p)) + JOIN_CALIBRATION["intercept"]
+    z = cal["slope"] * (np.log(p) - np.log1p(-p)) + cal["intercept"]
     return 1.0 / (1.0 + np.exp(-z))
 
 

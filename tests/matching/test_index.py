@@ -277,6 +277,29 @@ def _docking_index(small_wall, n: int, dockings=None):
     return model, ids, index
 
 
+def test_the_first_answer_of_a_docking_station_is_recalibrated_and_keeps_its_order(small_wall):
+    """A station that docks next answers first from stages 1–2½, whose probabilities over-state (the same-fresco
+    ratio most): propose(dock=False) gives the fast stages' order with each probability Platt-recalibrated by
+    FIRST_CALIBRATION (σ(a logit p + b)), on the docked answer's scale; a model without docking keeps its own."""
+    from dataclasses import replace
+
+    from common.matching.index import FIRST_CALIBRATION
+
+    model, ids, index = _docking_index(small_wall, 8)
+    q = index.cues[ids[0]]
+    raw = index.rank(q, index.candidates(q, model, 100), model, dock_candidates=0)[:5]
+    first = index.propose(q, model, top=5, check=0, dock=False)
+    assert [c.other for c in first] == [c.other for c in raw]
+    a, b = FIRST_CALIBRATION["slope"], FIRST_CALIBRATION["intercept"]
+    for c, r in zip(first, raw):
+        want = 1.0 / (1.0 + np.exp(-(a * np.log(r.probability / (1.0 - r.probability)) + b)))
+        assert c.probability == pytest.approx(want, rel=1e-9)
+    assert max(c.probability for c in first) < max(r.probability for r in raw)
+    plain = replace(model, docking=None)
+    assert [c.probability for c in index.propose(q, plain, top=5, check=0, dock=False)] == \
+        [c.probability for c in index.rank(q, index.candidates(q, plain, 100), plain, dock_candidates=0)[:5]]
+
+
 def test_docking_stage_adds_the_pairs_paint_continuity(small_wall, monkeypatch):
     """Stage 3 with boundary profiles: each docked candidate's logit gains its paint continuity (best
     over the docking's candidate poses, computed independently here), cached per pair; without
