@@ -160,7 +160,7 @@
     $("azimuth").value = az; $("azimuth-out").textContent = Math.round(az);
     $("elevation").value = el_; $("elevation-out").textContent = Math.round(el_);
     const d = viewer.measureMm();
-    $("measure-readout").textContent = d === null ? "" : `${d.toFixed(2)} mm`;
+    $("measure-readout").textContent = d === null ? "" : `${d.toFixed(2)} mm${viewer.info.dpi_nominal ? " (nominal)" : ""}`;
   }
 
   async function autoContrast() {
