@@ -97,18 +97,23 @@ def joins_of(joins, fragment: str) -> list[dict]:
     >>> j["other"], j["angle_deg"], round(j["tx_mm"], 6) + 0.0, j["ty_mm"]
     ('A', -90.0, 0.0, 10.0)
     """
+    return sorted((join_record(j, fragment) for j in joins if fragment in (j.fragment_a, j.fragment_b)),
+                  key=lambda j: j["other"])
+
+
+def join_record(join, fragment: str) -> dict:
+    """One confirmed join (:class:`~common.matching.reconstruction.Join`) seen from ``fragment``, one of its two, as
+    an export lists it: ``other``, its pose in ``fragment``'s frame, ``by``, ``time``, ``proposal``
+    (:func:`joins_of`)."""
     from common.matching.docking import inverse_pose
     from common.matching.pose import wrapped_deg
 
-    out = []
-    for j in joins:
-        if fragment not in (j.fragment_a, j.fragment_b):
-            continue
-        pose = (j.angle_deg, j.tx_mm, j.ty_mm) if fragment == j.fragment_a else inverse_pose(j.angle_deg, j.tx_mm, j.ty_mm)
-        out.append({"other": j.fragment_b if fragment == j.fragment_a else j.fragment_a,
-                    "angle_deg": wrapped_deg(pose[0]), "tx_mm": float(pose[1]), "ty_mm": float(pose[2]),
-                    "by": j.by, "time": j.time, "proposal": j.proposal_id})
-    return sorted(out, key=lambda j: j["other"])
+    pose = (join.angle_deg, join.tx_mm, join.ty_mm)
+    if fragment != join.fragment_a:
+        pose = inverse_pose(*pose)
+    return {"other": join.fragment_b if fragment == join.fragment_a else join.fragment_a,
+            "angle_deg": wrapped_deg(pose[0]), "tx_mm": float(pose[1]), "ty_mm": float(pose[2]),
+            "by": join.by, "time": join.time, "proposal": join.proposal_id}
 
 
 def export_fragment(store: Store, fragment: str, out_dir: str | os.PathLike, *, albedo_bits: int = 16,

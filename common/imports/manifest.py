@@ -58,6 +58,22 @@ def expand_paths(paths: Iterable[str | os.PathLike], suffixes: Sequence[str] = I
     return out
 
 
+#: folder names that are never a collection's or an object's (an archive unpacked on a Mac), lower case
+NOT_FOLDERS_OF_PICTURES = {"__macosx"}
+
+
+def subfolders(folder: str | os.PathLike) -> list[Path]:
+    """The folders in ``folder`` that may hold pictures, by name: hidden ones (``.name``) and ``__MACOSX`` left out."""
+    return sorted(p for p in Path(folder).iterdir()
+                  if p.is_dir() and not p.name.startswith(".") and p.name.lower() not in NOT_FOLDERS_OF_PICTURES)
+
+
+def picture_subfolders(folder: str | os.PathLike) -> list[Path]:
+    """Those of its :func:`subfolders` that hold pictures directly (:func:`expand_paths`): a collection kept one
+    folder per object, given where one of its objects was expected."""
+    return [c for c in subfolders(folder) if expand_paths([c])]
+
+
 def fragment_id(text: str) -> str:
     """A fragment id (storage directory name) from an inventory number or a file stem.
 

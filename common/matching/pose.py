@@ -158,7 +158,7 @@ def ranked_poses(dockings: Sequence[Docking], paint_mm, *, weight: float = POSE_
     kept: list[Docking] = []
     for i in order:
         d = docks[int(i)]
-        if not any(abs((d.angle_deg - k.angle_deg + 180.0) % 360.0 - 180.0) <= distinct_deg
+        if not any(abs(wrapped_deg(d.angle_deg - k.angle_deg)) <= distinct_deg
                    and np.hypot(d.tx_mm - k.tx_mm, d.ty_mm - k.ty_mm) <= distinct_mm for k in kept):
             kept.append(d)
     return kept
@@ -262,7 +262,7 @@ def adjustment_between(pose, other, centre_b_mm) -> tuple[float, float, float]:
                          f"{centre_b_mm!r}")
     a0, tx0, ty0, a1, tx1, ty1, cx, cy = values
     shift = _rotation(a1) @ (cx, cy) + (tx1, ty1) - _rotation(a0) @ (cx, cy) - (tx0, ty0)
-    return float(-((a0 - a1 + 180.0) % 360.0 - 180.0)), float(shift[0]), float(shift[1])
+    return -wrapped_deg(a0 - a1), float(shift[0]), float(shift[1])
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -466,10 +466,18 @@ def levelling_sigma_px(shape) -> float:
     return float(np.clip(min(shape[:2]) / 16.0, 8.0, 96.0))
 
 
+def near_flat_facing(coarse: np.ndarray) -> np.ndarray | None:
+    """The unit mean of a coarse normal field (its values, any shape (..., 3)) when it is longer than
+    :data:`NEAR_FLAT` — the surface is near-flat and faces that way —, else None (a curved object)."""
+    mean = np.asarray(coarse).reshape(-1, 3).astype(np.float64).mean(axis=0)
+    length = float(np.linalg.norm(mean))
+    return (mean / length).astype(np.float32) if length > NEAR_FLAT else None
+
+
 def surface_normal(normals: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray | None:
-    """The way a near-flat surface faces as a whole: the unit mean of its normals smoothed at
-    :func:`levelling_sigma_px` (:func:`coarse_normals`), or None when the mean is shorter than
-    :data:`NEAR_FLAT` (a curved object, which has no one direction) or there is no surface.
+    """The way a near-flat surface faces as a whole: :func:`near_flat_facing` of its normals smoothed at
+    :func:`levelling_sigma_px` (:func:`coarse_normals`), or None for a curved object (which has no one direction)
+    or no surface.
 
     A viewer lights a painting whose solve is tilted as a whole (a panel not square to the camera,
     a light file's small bias) relative to this direction: the light turned by the rotation that takes
@@ -485,10 +493,7 @@ def surface_normal(normals: np.ndarray, mask: np.ndarray | None = None) -> np.nd
     mask = check_mask(mask, normals.shape[:2])
     if not mask.any():
         return None
-    c = coarse_normals(normals, levelling_sigma_px(normals.shape), mask=mask, full_size=False).values
-    mean = c.reshape(-1, 3).astype(np.float64).mean(axis=0)
-    length = float(np.linalg.norm(mean))
-    return (mean / length).astype(np.float32) if length >= NEAR_FLAT else None
+    return near_flat_facing(coarse_normals(normals, levelling_sigma_px(normals.shape), mask=mask, full_size=False).values)
 
 
 def level_normals(normals: np.ndarray, sigma_px: float, *, mask: np.ndarray | None = None,

@@ -210,9 +210,8 @@ def _level_sigma(image: RGBNImage, level, resolved: dict) -> float:
     image = _whole(image)   # a window is levelled as the whole image is
     sigma = _enhance.levelling_sigma_px(image.shape)
     if _is_auto(level):
-        coarse = _coarse(image, sigma).values
-        mean = coarse.reshape(-1, 3).mean(axis=0) if image.mask.any() else np.zeros(3)
-        level = sigma if float(np.linalg.norm(mean)) > _enhance.NEAR_FLAT else 0.0
+        flat = image.mask.any() and _enhance.near_flat_facing(_coarse(image, sigma).values) is not None
+        level = sigma if flat else 0.0
     elif isinstance(level, bool):
         level = sigma if level else 0.0
     resolved["level"] = float(level)

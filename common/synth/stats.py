@@ -47,10 +47,6 @@ REPAIR_DPI = 7.369 * 25.4  # RePAIR's evaluation code: 7.369 px/mm
 log = logging.getLogger("tessera.collection")
 
 TRUTH_COLUMNS = ("rpf", "x", "y", "rot")
-# folders a collection copied between machines may carry that hold no object (macOS's resource forks)
-_NOT_OBJECTS = {"__macosx"}
-
-
 @dataclass
 class Piece:
     """One fragment of a collection.
@@ -115,22 +111,6 @@ def _crop(rgba: np.ndarray, pad: int = 2):
     r0, c0 = max(int(ys.min()) - pad, 0), max(int(xs.min()) - pad, 0)
     r1, c1 = int(ys.max()) + pad + 1, int(xs.max()) + pad + 1
     return rgba[r0:r1, c0:c1].copy(), c0, r0
-
-
-def _hidden(folder: Path) -> bool:
-    return folder.name.startswith(".") or folder.name.lower() in _NOT_OBJECTS
-
-
-def _subfolders(folder: Path) -> list[Path]:
-    """The folders in ``folder`` a collection reads (hidden ones and ``__MACOSX`` left out), by name."""
-    return sorted(p for p in folder.iterdir() if p.is_dir() and not _hidden(p))
-
-
-def _picture_subfolders(folder: Path) -> list[Path]:
-    """Those of its :func:`_subfolders` that hold pictures directly (a layout one level too deep)."""
-    from common.imports.manifest import expand_paths
-
-    return [c for c in _subfolders(folder) if expand_paths([c])]
 
 
 def _truth_file(obj: Path) -> Path | None:
@@ -275,13 +255,13 @@ def collection_layout(path: str | os.PathLike) -> dict:
         truth file), "problem": why its truth file is unusable, or None, "deeper": its subfolders that hold
         pictures (not read)}``; folders as :func:`read_collection` reads them (hidden ones left out).
     """
-    from common.imports.manifest import expand_paths
+    from common.imports.manifest import expand_paths, picture_subfolders, subfolders
 
     root = Path(path)
     out = {}
-    for obj in _subfolders(root):
+    for obj in subfolders(root):
         pictures = expand_paths([obj])
-        deeper = [c.name for c in _picture_subfolders(obj)]
+        deeper = [c.name for c in picture_subfolders(obj)]
         entry = {"pictures": len(pictures), "placed": None, "problem": None, "deeper": deeper}
         try:
             tf = _truth_file(obj)
@@ -328,7 +308,7 @@ def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> 
         Always: ``path`` not a directory, or no fragment picture read, saying where the pictures were found
         (directly in ``path``, or a level deeper) and what to give instead.
     """
-    from common.imports.manifest import IMAGE_SUFFIXES, expand_paths
+    from common.imports.manifest import IMAGE_SUFFIXES, expand_paths, picture_subfolders, subfolders
 
     root = Path(path)
     if not root.is_dir():
@@ -343,10 +323,10 @@ def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> 
             skipped.append(message)
 
     pieces, refused, folders = [], [], []
-    for obj in _subfolders(root):
+    for obj in subfolders(root):
         pictures = sorted(expand_paths([obj]))   # as import images lists a folder (hidden files left out)
         if not pictures:
-            subs = [c.name for c in _subfolders(obj)]
+            subs = [c.name for c in subfolders(obj)]
             leave_out(f"{obj}: holds no fragment picture ({', '.join(IMAGE_SUFFIXES)} directly in it"
                       + (f"; subfolders such as {', '.join(subs[:3])} are not read" if subs else "") + "): left out")
             continue
@@ -410,8 +390,8 @@ def read_collection(path: str | os.PathLike, *, skipped: list | None = None) -> 
     if stray and not folders:
         raise ValueError(f"path {root} holds {len(stray)} fragment pictures directly and no object folder: {layout} "
                          f"its pictures; put them in a folder of their own inside {root}")
-    for obj in _subfolders(root):
-        deeper = _picture_subfolders(obj)
+    for obj in subfolders(root):
+        deeper = picture_subfolders(obj)
         if deeper and _truth_file(obj) is None:
             raise ValueError(f"path {root} holds no fragment picture one level down, but {obj} holds object folders "
                              f"with pictures ({', '.join(c.name for c in deeper[:3])}): give {obj} as the collection "

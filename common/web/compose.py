@@ -120,6 +120,22 @@ def outline_detected(prescan: np.ndarray, mask: np.ndarray | None = None, *,
     return out
 
 
+def outline_mm(mask: np.ndarray, pixel_mm: float, *, tolerance_mm: float = 0.5) -> list:
+    """A piece's outline (its largest region's outer boundary) as a polygon in its frame, mm (``x = col ×
+    pixel_mm``), simplified to within ``tolerance_mm`` (Douglas–Peucker, ``cv2.approxPolyDP``): what the
+    reconstruction page draws dashed round a next join's piece where it would go. [] for an empty mask.
+
+    >>> m = np.zeros((20, 30), bool); m[5:15, 10:20] = True
+    >>> outline_mm(m, 0.5)
+    [[5.0, 2.5], [5.0, 7.0], [9.5, 7.0], [9.5, 2.5]]
+    """
+    contours, _ = cv2.findContours(np.ascontiguousarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return []
+    poly = cv2.approxPolyDP(max(contours, key=cv2.contourArea), tolerance_mm / pixel_mm, True)[:, 0, :]
+    return [[round(float(x) * pixel_mm, 3), round(float(y) * pixel_mm, 3)] for x, y in poly]
+
+
 def relative_pose(pose_a, pose_b) -> tuple[float, float, float]:
     """Pose of fragment B in fragment A's frame from both fragments' poses in a common frame.
 

@@ -273,10 +273,11 @@ def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
     True when the face's provenance says its dpi is a guess (a hand-held or RTI capture has no scale of its own,
     docs/handheld.md), which the page says beside every length it shows; ``piece_px``: the mask's bounding box
     ``[x0, y0, x1, y1]`` (pixels, end exclusive; None for an empty mask), the size the page gives the piece."""
-    shape = tuple(group["mask"].shape)
+    mask = group["mask"][:]
+    shape = mask.shape
     r0, r1, c0, c1 = calibration_window(shape)
     normals = group["normals"][r0:r1, c0:c1] if "normals" in group else None
-    params = relight_params(normals, group["mask"][r0:r1, c0:c1], float(group.attrs["dpi"]), shape,
+    params = relight_params(normals, mask[r0:r1, c0:c1], float(group.attrs["dpi"]), shape,
                             unsharp_sigma_mm=unsharp_sigma_mm)
     try:
         provenance = json.loads(group.attrs.get("provenance", "{}"))
@@ -284,7 +285,7 @@ def face_params(group, *, unsharp_sigma_mm: float = 1.0) -> dict:
         provenance = {}
     params["dpi_nominal"] = bool(isinstance(provenance, dict) and provenance.get("dpi_nominal"))
     # the piece's own extent: a scan cropped to everything that turned also holds the lamp's shadow around it
-    rows, cols = np.nonzero(np.any(group["mask"][:], axis=1))[0], np.nonzero(np.any(group["mask"][:], axis=0))[0]
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     params["piece_px"] = ([int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1] if len(rows) else None)
     return params
 

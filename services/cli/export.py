@@ -45,23 +45,17 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from common.imports import ProgressBar
-    from common.imports.export import export_fragment, fragment_ids, size_export, write_fragment
-    from common.matching.pose import wrapped_deg
-    from common.matching.proposals import proposals_path
+    from common.imports.export import export_fragment, fragment_ids, join_record, size_export, write_fragment
     from common.store import Store, StorageFull, check_free_space, write_file
+    from services.cli.reconstruct import storage_and_proposals
 
-    if args.store:
-        root, db_setting = args.store, None
-    else:
-        from common.config import config_from_arguments
-        cfg = config_from_arguments(args)
-        root, db_setting = cfg["storage"]["root"], dict(cfg.get("services", {}).get("matcher", {})).get("db")
-    if not Path(root).is_dir():
+    root, db_path = storage_and_proposals(args)
+    if not root.is_dir():
         print(f"tessera export: storage root {root} does not exist", file=sys.stderr)
         return 2
     store = Store(root, create=False)
     try:
-        joins = _confirmed_joins(proposals_path(root, args.db or db_setting), named=bool(args.db))
+        joins = _confirmed_joins(db_path, named=bool(args.db))
     except ValueError as exc:
         print(f"tessera export: {exc}", file=sys.stderr)
         return 2
@@ -124,8 +118,7 @@ def run(args) -> int:
         listed["storage_root"] = str(Path(root).resolve())
         if joins is not None:   # the station's confirmed joins between the fragments listed, B in A's frame
             inside = set(listed["fragments"])
-            listed["joins"] = [{"fragment": j.fragment_a, "other": j.fragment_b, "angle_deg": wrapped_deg(j.angle_deg),
-                                "tx_mm": j.tx_mm, "ty_mm": j.ty_mm, "by": j.by, "time": j.time, "proposal": j.proposal_id}
+            listed["joins"] = [{"fragment": j.fragment_a, **join_record(j, j.fragment_a)}
                                for j in joins if j.fragment_a in inside and j.fragment_b in inside]
         try:    # the project's atomic write, free space checked; an export's index is for everyone the umask allows
             write_file(index, (json.dumps(listed, indent=2) + "\n").encode("utf-8"), public=True)

@@ -129,15 +129,13 @@ def convert(item: ImportItem, store, *, pictures: str | None = None) -> list[Out
 def _pictures_in_subfolders(paths) -> str:
     """Why folders named gave no picture, when their pictures are one level down (a collection kept one
     folder per object, as RePAIR's): the folders and their subfolders that hold pictures, or ""."""
-    from common.imports.manifest import expand_paths
+    from common.imports.manifest import expand_paths, picture_subfolders
 
     notes = []
     for folder in (Path(p) for p in paths):
         if not folder.is_dir() or expand_paths([folder]):
             continue
-        subs = [(c, len(expand_paths([c]))) for c in sorted(folder.iterdir())
-                if c.is_dir() and not c.name.startswith(".")]
-        subs = [(c, n) for c, n in subs if n]
+        subs = [(c, len(expand_paths([c]))) for c in picture_subfolders(folder)]
         if subs:
             shown = ", ".join(f"{c.name} ({n} picture{'s' if n > 1 else ''})" for c, n in subs[:8])
             more = f" and {len(subs) - 8} more" if len(subs) > 8 else ""

@@ -42,21 +42,29 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def storage_and_proposals(args) -> tuple[Path, Path]:
+    """(storage root, proposal database) of a command taking ``--store``, ``--db`` and ``--config``: ``--store``
+    replaces the config's root (and its matcher's ``db`` setting), ``--db`` any other
+    (:func:`common.matching.proposals.proposals_path`)."""
+    from common.matching.proposals import proposals_path
+
+    if args.store:
+        root, db = Path(args.store), None
+    else:
+        from common.config import config_from_arguments
+        cfg = config_from_arguments(args)
+        root, db = Path(cfg["storage"]["root"]), dict(cfg.get("services", {}).get("matcher", {})).get("db")
+    return root, proposals_path(root, args.db or db)
+
+
 def run(args) -> int:
     from common.imports import ProgressBar
     from common.matching import reconstruction as rc
     from common.messages import to_json
-    from common.matching.proposals import ProposalStore, proposals_path
+    from common.matching.proposals import ProposalStore
     from common.store import Store, write_file
 
-    if args.store:
-        root, db_path = Path(args.store), None
-    else:
-        from common.config import config_from_arguments
-        cfg = config_from_arguments(args)
-        root = Path(cfg["storage"]["root"])
-        db_path = dict(cfg.get("services", {}).get("matcher", {})).get("db")
-    db_path = proposals_path(root, args.db or db_path)
+    root, db_path = storage_and_proposals(args)
     if not root.is_dir():
         print(f"tessera reconstruct: storage root {root} does not exist", file=sys.stderr)
         return 2

@@ -41,8 +41,6 @@ bp = Blueprint("reconstruction", __name__)
 
 #: key of the page's live state in ``app.extensions``
 LIVE = "tessera.reconstruction"
-#: how far the drawn outline of a piece may stray from its mask's boundary, mm (a few screen pixels on the page)
-OUTLINE_TOLERANCE_MM = 0.5
 #: longest side of a fragment thumbnail (px) and of an exported composite (px, unless asked smaller)
 THUMB_PX = 320
 EXPORT_MAX_SIDE_PX = 8192
@@ -107,6 +105,7 @@ def _summary(store, fid: str) -> dict | None:
     from common.rgbn.image import load_rgbn
     from common.rgbn.io import linear_to_srgb
     from common.store import ArtifactError
+    from common.web.compose import outline_mm
 
     rel = latest_faces(store, fid).get("front")
     if rel is None:
@@ -131,22 +130,11 @@ def _summary(store, fid: str) -> dict | None:
     # the picture spans pixel edges: from -pixel/2 to (W - 1/2) pixels in the fragment frame (mm)
     out = {"fragment": fid, "artifact": rel, "dpi": img.dpi, "pixel_mm": img.pixel_mm, "centre_mm": list(centre),
            "x_mm": -0.5 * img.pixel_mm, "y_mm": -0.5 * img.pixel_mm, "width_mm": w * img.pixel_mm,
-           "height_mm": h * img.pixel_mm, "outline_mm": _outline_mm(img.mask, img.pixel_mm),
+           "height_mm": h * img.pixel_mm, "outline_mm": outline_mm(img.mask, img.pixel_mm),
            "png": png.tobytes() if ok else b""}
     with live.lock:
         live.summaries[rel] = out
     return out
-
-
-def _outline_mm(mask: np.ndarray, pixel_mm: float, *, tolerance_mm: float = OUTLINE_TOLERANCE_MM) -> list:
-    """The piece's outline (its largest region's outer boundary) as a polygon in the fragment frame, mm
-    (``x = col × pixel_mm``), simplified to within ``tolerance_mm`` (Douglas–Peucker, ``cv2.approxPolyDP``): what the
-    page draws dashed around a next join's piece where it would go. [] for an empty mask."""
-    contours, _ = cv2.findContours(np.ascontiguousarray(mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if not contours:
-        return []
-    poly = cv2.approxPolyDP(max(contours, key=cv2.contourArea), tolerance_mm / pixel_mm, True)[:, 0, :]
-    return [[round(float(x) * pixel_mm, 3), round(float(y) * pixel_mm, 3)] for x, y in poly]
 
 
 def _dock_in_background(st, live: _Live, clusters: list, nexts: dict, todo: frozenset) -> bool:

@@ -99,6 +99,11 @@
   }
 
   function pct(p) { return `${(100 * p).toFixed(p >= 0.995 || p < 0.005 ? 1 : 0)}%`; }
+  // the probability and, where stored, the mutual proximity the queue is ordered by
+  function odds(p) {
+    const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual proximity ${p.mutual.toFixed(3)}`;
+    return `probability ${pct(p.probability)}${mutual}`;
+  }
 
   function select(i) {
     const fresh = i !== index;
@@ -121,8 +126,7 @@
     const pose = !p.pose ? "no pose yet"
       : `pose ${p.pose.angle_deg.toFixed(1)}°, (${p.pose.tx_mm.toFixed(1)}, ${p.pose.ty_mm.toFixed(1)}) mm`
         + (p.verdict_pose ? ` (kept with the ${p.verdict} verdict: confirming again keeps it)` : "");
-    const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual ${p.mutual.toFixed(3)}`;
-    $("proposal-meta").textContent = `probability ${pct(p.probability)}${mutual} · ${p.status} · ${pose} · model ${p.model_version}`;
+    $("proposal-meta").textContent = `${odds(p)} · ${p.status} · ${pose} · model ${p.model_version}`;
     showPictures(p);
     if (fresh && p.pose) loadCandidates(p);
     if (!Tessera.loggedIn()) $("review-message").textContent = "Log in (top right) to confirm or reject.";
@@ -137,8 +141,7 @@
     $("queue-title").textContent = filter ? `Proposals of ${filter}` : "Pending proposals";
     if (r.data.counts) $("counts").textContent = `(${r.data.counts.pending} pending · ${r.data.counts.confirmed} confirmed · ${r.data.counts.rejected} rejected)`;
     $("queue").replaceChildren(...items.map((p, k) => {
-      const mutual = p.mutual === null || p.mutual === undefined ? "" : ` · mutual proximity ${p.mutual.toFixed(3)}`;
-      const li = Tessera.el("li", { "data-proposal": p.id, title: `${p.status} · probability ${pct(p.probability)}${mutual}` },
+      const li = Tessera.el("li", { "data-proposal": p.id, title: `${p.status} · ${odds(p)}` },
         Tessera.el("span", { text: `${p.fragment_a} ↔ ${p.fragment_b}` }),
         Tessera.el("span", { class: "prob", text: `${pct(p.probability)}${p.status !== "pending" ? " · " + p.status : ""}` }));
       li.addEventListener("click", () => select(k));
