@@ -816,20 +816,36 @@ class MatchIndex:
             if DOCK_USES_PAINT:
                 self.paint_pair(*k)
 
+    def _search(self, key: tuple[str, str], many: bool) -> list[Docking]:
+        """The docking search of a pair (the second of ``key`` turned against the first): with ``many``, the
+        :data:`DOCK_PAINT_POSES` candidates and :data:`DOCK_MORE_POSES` more that a pair docked with paint
+        chooses and offers among, else the single best pose (coarse to fine)."""
+        frames = self._frame(key[0]), self._frame(key[1])
+        # paint carried across the gap inside the FFT where both have a boundary profile (off by default)
+        kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
+        if many:
+            return dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE,
+                               more_poses=DOCK_MORE_POSES, **kw)
+        return dock_frames(*frames, n_poses=1, **kw)
+
+    def candidate_poses(self, fragment: str, other: str) -> list[Docking]:
+        """Every candidate pose of ``other`` in ``fragment``'s frame that the station's docking of the pair
+        chooses and offers among (the search run again; nothing is cached). Whether a right pose is among
+        them is the ceiling of any chooser (``pose_reachable`` of :func:`~common.matching.report.evaluate_collection`)."""
+        key = _pair(fragment, other)
+        docks = self._search(key, many=True)
+        return docks if key[0] == fragment else [invert_docking(d) for d in docks]
+
     def _dock_pair(self, key: tuple[str, str], paint: bool) -> None:
         """Dock a pair once (the second of ``key`` turned against the first) and cache what it gives: the
         pose (the best docking), and with ``paint`` also the paint continuity over the same docking's
         :data:`DOCK_PAINT_POSES` candidate poses — one search for both. Without paint the docking is
         coarse to fine (a single pose)."""
-        frames = self._frame(key[0]), self._frame(key[1])
-        # paint carried across the gap inside the FFT where both have a boundary profile (off by default)
-        kw = dict(paint_a=self.paint.get(key[0]), paint_b=self.paint.get(key[1]))
         if paint:
             from common.matching.paint import paint_continuity, paint_field_from_profile
             from common.matching.pose import ALTERNATIVE_POSES, offered_poses, pose_features
 
-            docks = dock_frames(*frames, n_poses=DOCK_PAINT_POSES, per_angle=DOCK_PAINT_PER_ANGLE,
-                                more_poses=DOCK_MORE_POSES, **kw)
+            docks = self._search(key, many=True)
             for f in key:
                 if f not in self._paint_fields:
                     self._paint_fields[f] = paint_field_from_profile(self.contours[f], self._raw_profiles[f])
@@ -845,7 +861,7 @@ class MatchIndex:
             self._alternatives[key] = ranked[1:1 + ALTERNATIVE_POSES]
             self._dockings.setdefault(key, docks[0])
         else:
-            self._dockings[key] = dock_frames(*frames, n_poses=1, **kw)[0]
+            self._dockings[key] = self._search(key, many=False)[0]
         self._keep(key)
         # the frames of the least recently docked fragments go first when over budget (never these two)
         budget = DOCK_FRAMES_MB * 2 ** 20

@@ -226,14 +226,16 @@ def _collection(args, progress) -> int:
           f"{res['wrong_pose_scores_above_truth']} of "
           f"{res['n_true_pairs']} true pairs")
     print(f"pair AP {res['pair_ap']:.3f} (by probability {res['pair_ap_by_probability']:.3f}); pose accuracy (5 deg, 5 mm) {res['pose_accuracy']:.3f} "
-          f"(right among the proposed pose and its alternatives: {res['pose_offered']:.3f}); "
+          f"(right among the proposed pose and its alternatives: {res['pose_offered']:.3f}; among all the docking's "
+          f"candidates, the ceiling of any chooser: {res['pose_reachable']:.3f}); "
           f"{res['seconds']:.0f} s wall, {res['cpu_seconds']:.0f} s CPU")
     iv = res["intervals"]
     span = lambda lo_hi: f"{lo_hi[0]:.2f}-{lo_hi[1]:.2f}"  # noqa: E731
     print(f"{iv['level']:.0%} bootstrap intervals over the fragments (pairs for the poses) counted: pooled top-k "
           + ", ".join(f"k={k}: {span(v)}" for k, v in iv["pooled_topk"].items())
           + "; within-object " + ", ".join(f"@{k}: {span(v)}" for k, v in iv["within_object_recall"].items())
-          + f"; pose accuracy {span(iv['pose_accuracy'])}, offered {span(iv['pose_offered'])}")
+          + f"; pose accuracy {span(iv['pose_accuracy'])}, offered {span(iv['pose_offered'])}, "
+            f"reachable {span(iv['pose_reachable'])}")
     if args.json:
         try:
             Path(args.json).write_text(to_json(res, indent=1))   # an undefined figure (NaN) as null

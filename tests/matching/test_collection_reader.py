@@ -264,10 +264,12 @@ def _fake_result(path, dpi):
             "single_fresco": False, "pooled_topk": k3, "pooled_topk_by_probability": k3,
             "within_object_recall": k2, "within_object_random": k2, "within_object_incidence": k2,
             "within_object_recall_by_query": k2, "wrong_pose_scores_above_truth": 0, "pair_ap": 1.0,
-            "pair_ap_by_probability": 1.0, "pose_accuracy": 0.0, "pose_offered": 0.0, "seconds": 0.0,
+            "pair_ap_by_probability": 1.0, "pose_accuracy": 0.0, "pose_offered": 0.0, "pose_reachable": 0.0,
+            "seconds": 0.0,
             "cpu_seconds": 0.0, "intervals": {"level": 0.9, "pooled_topk": {k: (0, 1) for k in k3},
                                               "within_object_recall": {k: (0, 1) for k in k2},
-                                              "pose_accuracy": (0, 1), "pose_offered": (0, 1)}}
+                                              "pose_accuracy": (0, 1), "pose_offered": (0, 1),
+                                              "pose_reachable": (0, 1)}}
 
 
 @pytest.fixture

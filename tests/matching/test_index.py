@@ -366,7 +366,8 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
     """Stage 3 with paint proposes the learned chooser's best of the docking's 30 candidates and keeps the next-best
     distinct ones of its 30 + 70 (by the chooser's scores among all): the candidate's alignment carries them as
     ``other`` in the query's frame, and seen from the other fragment they are their inverses. The pair's paint
-    evidence is the best over the first 30 only (the further candidates widen the offer, not the evidence)."""
+    evidence is the best over the first 30 only (the further candidates widen the offer, not the evidence).
+    ``candidate_poses`` gives all 100, from either side."""
     from common.matching.alignment import pose_matrix
     from common.matching.docking import dock_outlines
     from common.matching.index import DOCK_MORE_POSES, DOCK_PAINT_PER_ANGLE, DOCK_PAINT_POSES
@@ -390,6 +391,12 @@ def test_a_docked_candidate_offers_the_dockings_other_poses_in_its_frame(small_w
         # the pose: the chooser's best of the first 30, scored among them (what it was fitted on)
         chosen = docks[int(np.argmax(learned_pose_scores(features[:DOCK_PAINT_POSES])))]
         assert index.pose(a, b) == chosen
+        # every candidate the pair chose and offers among, as the search gives them (the evaluation's ceiling)
+        every = index.candidate_poses(a, b)
+        assert every == docks
+        for g, h in zip(every, index.candidate_poses(b, a)):
+            np.testing.assert_allclose(pose_matrix(g.angle_deg, g.tx_mm, g.ty_mm) @ pose_matrix(h.angle_deg, h.tx_mm, h.ty_mm),
+                                       np.eye(3), atol=1e-6)
         # the alternatives: all the others by the chooser's scores among all 100, no near repeat of a better one
         scores = learned_pose_scores(features)
         want = []

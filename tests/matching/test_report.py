@@ -67,6 +67,11 @@ def test_collection_evaluation_ranks_a_synthetic_collection_and_beats_chance(sma
     for e in res["pose_errors"]:
         if e["angle_deg"] <= 5 and e["shift_mm"] <= 5:
             assert e["right_pose_offered"] == 0
+        # what is offered is chosen among the docking's candidates: offered right means a right candidate
+        if e["right_pose_offered"] is not None:
+            assert e["right_candidate"] is not None
+    assert res["pose_offered"] <= res["pose_reachable"] == \
+        sum(e["right_candidate"] is not None for e in res["pose_errors"]) / res["n_true_pairs"]
     assert all(e["angle_deg"] is not None for e in res["pose_errors"])   # every true pair was docked
     # a wrong best pose above the truth is counted, a right one is not
     assert res["wrong_pose_scores_above_truth"] == sum(1 for e in res["pose_errors"] if e["best_right"] is False
