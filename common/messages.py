@@ -38,8 +38,8 @@ UID_PATTERN = re.compile(r"^[0-9a-f]{32}\Z")
 FRAGMENT_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}\Z")
 #: ``face``: 1-32 lower-case letters, digits, '_' or '-' (``front``, ``back``)
 FACE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}\Z")
-#: ``match.refitted`` and ``match.reranked`` ``model_version``: 1-64 letters, digits, '.', '_' or '-'
-#: (``"0003-1a2b3c4d"``)
+#: ``match.refitted`` and ``match.reranked`` ``model_version``: 1-64 letters, digits, '.', '_' or '-', starting
+#: with a letter or digit (``"0003-1a2b3c4d"``)
 MODEL_VERSION_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}\Z")
 #: ``match.reranked`` ``redock``: at most this many fragments (the matcher sends a few per job)
 MAX_REDOCK_FRAGMENTS = 64

@@ -65,6 +65,13 @@ def handle(job: dict, ctx) -> list[dict]:
     fragment = str(job["fragment"])
     ctx.progress(0.0, "reading scans")
     capture = read_scans(ctx.store, ref, check_limits=True)  # absurd dpi or sizes: rejected before a pixel is read
+    # the artifact says which scanner made the scans and whether they are colour-only; the message's copies
+    # (docs/messages.md) must agree, or the calibration the sender meant is not the one that would be used
+    for field, held in (("device", capture.device), ("colour_only", bool(capture.colour_only))):
+        if field in job and job[field] != held:
+            raise MessageError(f"fragment.ready for {fragment}: its {field} {job[field]!r} contradicts the scans "
+                               f"artifact {ref.path}, whose {field} is {held!r} (the artifact's is used for the "
+                               "calibration and the solve): re-import the scans with the right one")
     try:  # float, grey, 8-bit-in-16, blank scans; a face with 1-2 scans that is not colour-only
         capture = check_capture(capture)
     except ValueError as exc:

@@ -26,6 +26,9 @@ def test_lab_toml_loads_with_several_hosts_and_nfs_storage():
     assert cfg["storage"]["file_locking"] is False and cfg["storage"]["create_root"] is False
     assert cfg["broker"]["host"] != "127.0.0.1"
     assert cfg["routing"]["rgbn.ready"] == ["features", "renderer"]
+    # the proposal store stays on the share, where the bench's review page reads it: not in WAL, which NFS cannot
+    # hold (docs/storage.md)
+    assert "db" not in cfg["services"]["matcher"] and cfg["services"]["matcher"]["journal_mode"] == "DELETE"
 
 
 def test_missing_settings_take_defaults(tmp_path):

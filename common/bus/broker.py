@@ -662,6 +662,11 @@ class Broker:
             job = self.jobs.get(jid)
             if job is not None and job.state == "inflight" and job.worker == identity:
                 self._job_failed(job, error, rejected=(kind == P.FAIL_REJECTED), host=f"{worker.host}:{worker.pid}")
+            elif job is not None and not (job.state == "parked" and job.service == worker.service
+                                          and job.key == worker.key):
+                # as for a result: a report on a job another worker (or key) holds changes nothing, and is counted
+                self._refuse(None, "not-holder", f"failure of job {jid[:64]!r} from worker {worker.host}:{worker.pid} "
+                                                 f"({worker.service}) which does not hold it: ignored")
             self._worker_idle(worker)
         elif command == P.DISCONNECT:
             handed_back = rest[0].decode() if rest and rest[0] else None

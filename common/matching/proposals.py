@@ -13,10 +13,11 @@ Where it lives
 --------------
 By default ``<storage root>/matches/proposals.sqlite`` (config ``matcher.db``). SQLite relies on
 POSIX byte-range locks, which many NFS/SMB mounts implement badly; on a station whose storage root
-is a network mount, put the database on the **matcher host's local disk** (``matcher.db =
-"/var/lib/tessera/proposals.sqlite"``) and run the matcher workers that write it on that host.
-The journal mode is WAL on local disks (readers never block the writer); on a network file system
-WAL cannot work (it needs shared memory) — pass ``journal_mode="DELETE"``.
+is a network mount, either put the database on the **matcher host's local disk** (``matcher.db =
+"/var/lib/tessera/proposals.sqlite"``) and run the matcher workers that write it, and the pages that read it, on
+that host, or keep it on the share with ``journal_mode="DELETE"`` (``configs/lab.toml``: its review page runs on
+the bench PC). The journal mode is WAL on local disks (readers never block the writer); on a network file system
+WAL cannot work (it needs shared memory).
 
 Dockings
 --------

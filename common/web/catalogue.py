@@ -502,8 +502,11 @@ class Catalogue:
         sql_where = f"WHERE {' AND '.join(where)}" if where else ""
         with self._db() as db:
             total = db.execute(f"SELECT COUNT(*) FROM fragments {sql_where}", args).fetchone()[0]
-            rows = db.execute(f"SELECT {_COLUMNS} FROM fragments {sql_where} ORDER BY id LIMIT ? OFFSET ?",
-                              args + [per_page, (page - 1) * per_page]).fetchall()
+            offset = (page - 1) * per_page
+            # a page past the last is empty; not asked of SQLite, whose OFFSET is a 64-bit integer
+            rows = [] if offset >= total else db.execute(
+                f"SELECT {_COLUMNS} FROM fragments {sql_where} ORDER BY id LIMIT ? OFFSET ?",
+                args + [per_page, offset]).fetchall()
         return {"total": int(total), "page": page, "per_page": per_page, "fragments": [_row(r) for r in rows]}
 
     def get(self, fid: str) -> dict | None:

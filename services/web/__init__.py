@@ -37,7 +37,7 @@ import threading
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from flask import Flask, jsonify, redirect, request, session, url_for
+from flask import Flask, abort, jsonify, redirect, request, session, url_for
 from flask.json.provider import DefaultJSONProvider
 
 from common.web.auth import MIN_TOKEN_CHARS, load_or_create_token, save_token, session_secret
@@ -292,6 +292,19 @@ def create_app(*, token: str, settings: Mapping | None = None, store_root: str |
                     f"localhost, 127.0.0.1 or [::1] (or [services.web] public_origin or a name in [services.web] "
                     f"allowed_hosts), not {request.host[:100]!r}\n",
                     421, {"Content-Type": "text/plain; charset=utf-8"})
+
+    @app.before_request
+    def bounded_body():
+        # the size limit before any view runs, so a request is refused for its size whatever the view would
+        # have answered first; a chunked body has no length to check, and Werkzeug cuts one silently at the
+        # limit instead of refusing it, so it is refused as such (the pages and scripts send a length)
+        if "chunked" in request.headers.get("Transfer-Encoding", "").lower():
+            message = "send the request body with a Content-Length (chunked bodies are not accepted)"
+            if request.path.startswith("/api/"):
+                return jsonify(error=message), 411
+            return f"411 Length Required: {message}\n", 411, {"Content-Type": "text/plain; charset=utf-8"}
+        if (request.content_length or 0) > app.config["MAX_CONTENT_LENGTH"]:
+            abort(413)
 
     @app.url_defaults
     def versioned_static(endpoint, values):

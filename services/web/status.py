@@ -35,7 +35,10 @@ def rerun():
     link = station().link
     if link is None:
         return jsonify(error="the broker is not configured on this station"), 503
-    job = str(body().get("job", "")).strip()
+    job = body().get("job", "")
+    if not isinstance(job, str):
+        return jsonify(error=f"job must be a parked job's id (a string) or 'all', got {type(job).__name__}"), 400
+    job = job.strip()
     if not job:
         return jsonify(error="name the parked job to re-run (or 'all')"), 400
     try:

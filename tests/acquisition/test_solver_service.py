@@ -72,6 +72,23 @@ def test_real_device_without_calibration_fails_clearly(tmp_path):
     assert "tessera status --rerun" in msg, msg
 
 
+def test_a_message_that_contradicts_its_scans_artifact_is_refused_naming_both(tmp_path):
+    """The solver took the scanner (and colour-only) from the scans artifact and ignored the message's, so a
+    message naming another device was solved with the artifact's device's calibration, silently. A message
+    that repeats the artifact's values is solved; one that contradicts them is refused naming both, and
+    nothing is written."""
+    store = Store(tmp_path)
+    job = _fragment_ready(store)
+    for field, value in (("device", "epson-v850"), ("colour_only", True)):
+        with pytest.raises(MessageError, match=f"{field} .*contradicts the scans artifact") as err:
+            solver.handle(dict(job, **{field: value}), Ctx(store))
+        assert repr(value) in str(err.value)
+    assert not (tmp_path / "fragments" / "F0100" / "rgbn").exists()
+    assert not (tmp_path / "calibration").exists()
+    events = solver.handle(dict(job, device="sim", colour_only=False), Ctx(store))
+    assert [e["face"] for e in events] == ["front", "back"]
+
+
 def test_wrong_message_type_is_rejected(tmp_path):
     with pytest.raises(MessageError):
         solver.handle(new_message("rgbn.ready", fragment="F", face="front",

@@ -368,6 +368,12 @@ def test_a_ready_reclaims_only_a_job_last_given_to_its_own_key(make_station, key
             s = c.status()
             assert s["completed"] == 0, "render2's result completed nothing"
             assert s["refused"].get("not-holder", 0) == 2, ("the claim and the result", s["refused"])
+            w2.send(P.FAIL, jid.encode(), P.FAIL_REJECTED, b"forged")   # a forged failure: ignored, counted too
+            _pump_all()
+            _pump_all()
+            s = c.status()
+            assert s["refused"].get("not-holder", 0) == 3, ("the claim, the result and the failure", s["refused"])
+            assert (len(s["parked"]), s["completed"]) == ((0 if left == "queued" else 1), 0), "the failure changed nothing"
             back.send(P.RESULT, jid.encode(), render("render1"))
             wait_for(lambda: _pump_all() and c.status()["completed"] == 1, 10, "render1's result to complete it")
             s = c.status()

@@ -491,3 +491,27 @@ def test_a_station_sets_the_same_fresco_ratios_weight(tmp_path, monkeypatch):
     for k, bad in enumerate(("4", True, -1.0)):
         with pytest.raises(ValueError, match=r"\[services.matcher\] fresco_weight must be a number >= 0"):
             matcher._state(ctx(f"bad{k}", {"fresco_weight": bad}))
+
+
+def test_a_proposal_turned_half_round_keeps_its_angle_in_the_stated_range():
+    """A proposal is stored as fragment_b in fragment_a's frame; a query sorting after its partner had its pose
+    inverted, and −180° (the docking's 180°, wrapped) came out as +180°, outside the [−180°, 180°) that
+    docs/messages.md states for ``match.proposed``. The inverted pose is the same rotation, wrapped."""
+    from types import SimpleNamespace
+
+    from common.matching.alignment import Alignment, pose_matrix
+    from common.matching.index import Candidate
+    from services.matcher import _proposal
+
+    cues = SimpleNamespace(patch_index=np.arange(4))
+    st = SimpleNamespace(index=SimpleNamespace(cues={"F2": cues, "F1": cues}), model=SimpleNamespace(version="m1"))
+    al = Alignment(-180.0, 12.0, -3.0, float("nan"), 20.0, 0.0, 1.0, ((-180.0, 1.0, 2.0), (90.0, 0.0, 5.0)))
+    c = Candidate("F2", "F1", 0.5, 0, 1, np.zeros((0, 2), int), np.zeros((0, 1)), alignment=al)
+    p = _proposal(c, st, [])
+    assert (p.fragment_a, p.fragment_b) == ("F1", "F2")
+    poses = [(p.angle_deg, p.tx_mm, p.ty_mm), (p.alignment["angle_deg"], p.alignment["tx_mm"], p.alignment["ty_mm"]),
+             *[(q["angle_deg"], q["tx_mm"], q["ty_mm"]) for q in p.alignment["alternatives"]]]
+    assert all(-180.0 <= q[0] < 180.0 for q in poses), poses
+    # each is still the inverse of the query's pose: composed with it, the identity
+    for q, mine in zip([poses[0], *poses[2:]], [(-180.0, 12.0, -3.0), *al.alternatives]):
+        np.testing.assert_allclose(pose_matrix(*q) @ pose_matrix(*mine), np.eye(3), atol=1e-9)

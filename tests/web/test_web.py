@@ -224,6 +224,56 @@ def test_an_api_request_over_the_size_limit_is_answered_413_in_json(tmp_path):
     assert r.status_code == 413 and not r.is_json
 
 
+def test_every_write_endpoint_refuses_an_oversized_body_before_it_answers_anything_else(counting_app):
+    """Some views answered before reading the body (404 for an unknown fragment, 409 with no scanner, 503 with no
+    broker), so a body over the limit was not refused as such: now every POST route answers 413 for it."""
+    app, counter = counting_app
+    c = app.test_client()
+    big = {"x": "x" * (64 * 1024)}
+    for rule in _write_rules(app) + ["/login", "/logout"]:
+        r = c.post(_fill(rule), json=big, headers=BEARER)
+        assert r.status_code == 413, (rule, r.status_code)
+    assert counter.calls == 0
+
+
+def test_a_chunked_body_is_refused_by_the_running_server_not_cut_at_the_limit(tmp_path):
+    """Werkzeug's server cut a chunked body silently at 64 KiB instead of refusing it, so a 300 KiB verdict was
+    accepted and sent; a body without a Content-Length is now refused (411) and nothing is sent. Run through a
+    real server: the test client never sends a chunked body."""
+    import http.client
+    import threading
+
+    from werkzeug.serving import make_server
+
+    outbox = _Outbox()
+    app = web.create_app(token=TOKEN, store_root=tmp_path, review=_OneProposal(), link=outbox)
+    server = make_server("127.0.0.1", 0, app, threaded=True)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        payload = b'{"proposal": 7, "verdict": "confirmed"}' + b" " * (300 * 1024)
+        conn = http.client.HTTPConnection("127.0.0.1", server.server_port, timeout=10)
+        conn.putrequest("POST", "/api/review/verdict", skip_host=True, skip_accept_encoding=True)
+        for k, v in {**BEARER, "Content-Type": "application/json", "Transfer-Encoding": "chunked",
+                     "Host": "localhost"}.items():
+            conn.putheader(k, v)
+        conn.endheaders()
+        for i in range(0, len(payload), 8192):
+            chunk = payload[i:i + 8192]
+            conn.send(b"%x\r\n" % len(chunk) + chunk + b"\r\n")
+        conn.send(b"0\r\n\r\n")
+        r = conn.getresponse()
+        body = r.read()
+        assert r.status == 411 and b"Content-Length" in body
+        assert outbox.sent == []
+        # the same verdict with its length is taken (the refusal is of the chunking, not of the verdict)
+        conn = http.client.HTTPConnection("127.0.0.1", server.server_port, timeout=10)
+        conn.request("POST", "/api/review/verdict", body=b'{"proposal": 7, "verdict": "confirmed"}',
+                     headers={**BEARER, "Content-Type": "application/json", "Host": "localhost"})
+        assert conn.getresponse().status == 200 and len(outbox.sent) == 1
+    finally:
+        server.shutdown()
+
+
 def test_pages_use_only_assets_served_by_the_station(counting_app):
     app, _ = counting_app
     c = app.test_client()
@@ -615,6 +665,10 @@ def test_status_shows_a_parked_failure_and_reruns_it(station_config, broker, noo
     assert any(w["service"] == "noop" for ws in st["workers"].values() for w in ws)
     job = st["parked"][0]["job"]
     assert c.post("/api/status/rerun", json={"job": job}).status_code == 401
+    # a job that is not a string is refused, not forwarded as its text ("None")
+    for bad in (None, 7, [job]):
+        r = c.post("/api/status/rerun", json={"job": bad}, headers=BEARER)
+        assert r.status_code == 400 and "job must be" in r.json["error"], bad
     r = c.post("/api/status/rerun", json={"job": job}, headers=BEARER)
     assert r.status_code == 200 and r.json["rerun"] == [job]
     link.close()
