@@ -92,9 +92,17 @@ def picture(pid, view):
     if view not in VIEWS or not 0 <= pid < 2 ** 63:  # no proposal id beyond SQLite's integers
         abort(404)
     adjust = _adjustment(request.args)
+    side = int(st.settings["picture_px"])
+    px = request.args.get("px", side)
+    try:   # a smaller picture (the candidate poses' strip): 64 px up to the pictures' own size
+        px = int(px)
+    except (TypeError, ValueError):
+        abort(400, f"px must be a whole number of pixels, got {str(px)[:40]!r}")
+    if not 64 <= px <= side:
+        abort(400, f"px must be within 64-{side} (the review pictures' size), got {px}")
     try:
-        pose = _adjusted(st, pid, adjust) if view.startswith("joined") else None
-        png = st.review.picture(pid, view, max_side_px=int(st.settings["picture_px"]), pose=pose)
+        pose = _adjusted(st, pid, adjust) if view.startswith("joined") else None   # in mm: the same at any size
+        png = st.review.picture(pid, view, max_side_px=px, pose=pose)
     except LookupError as exc:
         return jsonify(error=str(exc)), 404
     return png, 200, {"Content-Type": "image/png", "Cache-Control": "private, max-age=60"}

@@ -405,7 +405,22 @@ def test_conservator_confirms_a_proposal_and_sees_it_recorded(browser, live):
             assert f"turn_deg={alternatives[0]['turn_deg']:.3f}" in page.get_attribute("#joined-colour", "src")
         else:
             page.wait_for_selector("#pose-adjust:has-text('no other candidate pose')", timeout=5_000)
+        # the strip shows every candidate pose at once, small; a click shows one above, as P would
+        n = len(alternatives) + 1
+        assert n == 3, "the fixture's first proposal offers two other poses"
+        page.wait_for_function(f"() => [...document.querySelectorAll('#pose-candidates img')].filter("
+                               f"i => i.complete && i.naturalWidth > 0 && i.naturalWidth <= 160).length === {n}",
+                               timeout=30_000)
+        assert page.locator("#pose-candidates button.current").count() == 1   # P's candidate 2, outlined
+        page.locator("#pose-candidates button").nth(2).click()
+        page.wait_for_selector(f"#pose-adjust:has-text('candidate pose 3 of {n}')", timeout=5_000)
+        assert f"turn_deg={alternatives[1]['turn_deg']:.3f}" in page.get_attribute("#joined-colour", "src")
+        assert "px=160" in page.locator("#pose-candidates img").nth(2).get_attribute("src")
+        assert page.locator("#pose-candidates button").nth(2).get_attribute("class") == "current"
         page.keyboard.press("0")
+        page.wait_for_function("() => !document.querySelector('#pose-candidates button:nth-child(3).current')"
+                               " && document.querySelector('#pose-candidates button:nth-child(1).current')",
+                               timeout=5_000)
         page.keyboard.press("]")
         page.keyboard.press("]")
         page.keyboard.press("Shift+ArrowRight")

@@ -650,6 +650,33 @@ def test_review_queue_pictures_and_a_verdict_that_becomes_match_verified(review_
         assert r.status_code == 404 and "no proposal" in r.json["error"], pid
 
 
+def test_a_candidate_pose_is_drawn_small_for_the_strip_at_the_same_pose(review_app):
+    """The review page shows the candidate poses side by side as small pictures (``px``): the same join at the same
+    pose, drawn smaller; a size outside 64 px to the pictures' own is refused naming the range."""
+    app, review = review_app
+    c = app.test_client()
+    pid = c.get("/api/review/queue").json["proposals"][0]["id"]
+
+    def footprint(url):
+        img = cv2.imdecode(np.frombuffer(c.get(url).data, np.uint8), 1)
+        fg = np.any(img != [40, 40, 40], axis=2)
+        rows, cols = np.flatnonzero(fg.any(axis=1)), np.flatnonzero(fg.any(axis=0))
+        return img.shape[:2], (rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1)
+
+    big_shape, big = footprint(f"/api/review/picture/{pid}/joined-colour.png")
+    small_shape, small = footprint(f"/api/review/picture/{pid}/joined-colour.png?px=96")
+    assert max(small_shape) <= 96 < max(big_shape)
+    # the two halves joined at the true pose: one 90 x 120 piece, drawn smaller with its proportions kept
+    assert abs(small[1] / small[0] - big[1] / big[0]) < 0.1 and small[1] < big[1]
+    # an alternative's adjustment reaches that pose at either size (the adjustment is in mm)
+    alt = c.get(f"/api/review/alternatives/{pid}").json["alternatives"][0]
+    q = "&".join(f"{k}={v}" for k, v in alt.items())
+    assert c.get(f"/api/review/picture/{pid}/joined-colour.png?{q}&px=96").status_code == 200
+    for bad in ("10", "641", "abc", "1e3"):
+        r = c.get(f"/api/review/picture/{pid}/joined-colour.png?px={bad}")
+        assert r.status_code == 400 and "px must be" in r.json["error"], bad
+
+
 def test_status_shows_a_parked_failure_and_reruns_it(station_config, broker, noop_worker):
     from common.bus.client import BrokerClient
     from common.messages import new_message
