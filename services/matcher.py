@@ -53,7 +53,7 @@ from common.matching.online import (VERDICT_WEIGHT, bootstrap_model, evidence_di
                                     verdict_rows, with_current_ribbon)
 from common.matching.index import MatchIndex
 from common.matching.pairs import correspondence_columns, fragment_cues
-from common.matching.pose import inverse_pose, wrapped_deg
+from common.matching.pose import inverse_pose
 from common.matching.proposals import Proposal, ProposalStore, ordered_pair, proposals_path
 from common.messages import MAX_REDOCK_FRAGMENTS, MessageError, new_message, verdict_of
 from common.store import content_key
@@ -274,10 +274,9 @@ def _proposal(c, st: _State, columns) -> Proposal:
     if c.alignment is not None:
         pose = (c.alignment.angle_deg, c.alignment.tx_mm, c.alignment.ty_mm)   # other in query frame
         alternatives = list(c.alignment.alternatives)
-        if a != c.fragment:   # stored as b in a: invert, the angle kept in [-180, 180) (-180 inverts to +180)
-            turned = lambda q: (wrapped_deg(q[0]), q[1], q[2])  # noqa: E731
-            pose = turned(inverse_pose(*pose))
-            alternatives = [turned(inverse_pose(*alt)) for alt in alternatives]
+        if a != c.fragment:   # stored as b in a: invert
+            pose = inverse_pose(*pose)
+            alternatives = [inverse_pose(*alt) for alt in alternatives]
         # the stored proposal (and its match.proposed) states every pose as fragment_b in fragment_a's
         # frame, the alignment's own and its alternatives too
         alignment = dict(replace(c.alignment, alternatives=tuple(alternatives)).to_dict(),

@@ -105,8 +105,7 @@ def join_record(join, fragment: str) -> dict:
     """One confirmed join (:class:`~common.matching.reconstruction.Join`) seen from ``fragment``, one of its two, as
     an export lists it: ``other``, its pose in ``fragment``'s frame, ``by``, ``time``, ``proposal``
     (:func:`joins_of`)."""
-    from common.matching.docking import inverse_pose
-    from common.matching.pose import wrapped_deg
+    from common.matching.docking import inverse_pose, wrapped_deg
 
     pose = (join.angle_deg, join.tx_mm, join.ty_mm)
     if fragment != join.fragment_a:

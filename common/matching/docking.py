@@ -709,10 +709,24 @@ def docking_contact_mm(docking: Docking, cell_mm: float = DOCK_CELL_MM) -> float
     return float(docking.score) * cell_mm / 2.0
 
 
+def wrapped_deg(angle_deg: float) -> float:
+    """An angle in degrees in [-180, 180): the one range every pose the station shows or stores uses.
+
+    >>> wrapped_deg(249.5), wrapped_deg(-190.0), wrapped_deg(180.0)
+    (-110.5, 170.0, -180.0)
+    """
+    return float((float(angle_deg) + 180.0) % 360.0 - 180.0)
+
+
 def inverse_pose(angle_deg: float, tx_mm: float, ty_mm: float) -> tuple[float, float, float]:
-    """The same relative pose seen from the other fragment: A in B's frame, ``p_b = Rᵀ (p_a − t)``."""
+    """The same relative pose seen from the other fragment: A in B's frame, ``p_b = Rᵀ (p_a − t)``, its angle in
+    [-180, 180) (:func:`wrapped_deg`: -180 would otherwise invert to +180, outside the range poses are stated in).
+
+    >>> inverse_pose(-180.0, 10.0, 0.0)[0], inverse_pose(30.0, 0.0, 0.0)[0]
+    (-180.0, -30.0)
+    """
     t = -_rotation(angle_deg).T @ np.array([tx_mm, ty_mm], float)
-    return float(-angle_deg), float(t[0]), float(t[1])
+    return wrapped_deg(-angle_deg), float(t[0]), float(t[1])
 
 
 def invert_docking(docking: Docking) -> Docking:

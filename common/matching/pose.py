@@ -46,8 +46,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from common.matching.docking import DOCK_CELL_MM, Docking, _rotation, docking_contact_mm
-# a pose seen from the other fragment: defined beside invert_docking, offered here with the other pose helpers
-from common.matching.docking import inverse_pose  # noqa: F401
+# a pose seen from the other fragment, and the one range of angles: defined beside invert_docking, offered here with
+# the other pose helpers
+from common.matching.docking import inverse_pose, wrapped_deg  # noqa: F401
 
 #: weight of a candidate's paint evidence (mm of crack with continuing paint) against its geometric
 #: contact (mm of shared crack) when choosing a pair's pose among the docking's candidates; chosen on
@@ -200,15 +201,6 @@ def offered_poses(dockings: Sequence[Docking], paint_mm, features, *, choose_amo
     scores = learned_pose_scores(x, weights)
     scores[first] = scores.max() + 1.0          # the proposed pose leads; the rest by the scores among all
     return ranked_poses(docks, paint_mm, scores=scores)
-
-
-def wrapped_deg(angle_deg: float) -> float:
-    """An angle in degrees in [-180, 180): the one range every pose the station shows or stores uses.
-
-    >>> wrapped_deg(249.5), wrapped_deg(-190.0), wrapped_deg(180.0)
-    (-110.5, 170.0, -180.0)
-    """
-    return float((float(angle_deg) + 180.0) % 360.0 - 180.0)
 
 
 def adjusted_pose(pose, centre_b_mm, *, turn_deg: float = 0.0, shift_mm=(0.0, 0.0)) -> tuple[float, float, float]:
